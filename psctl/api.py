@@ -1,0 +1,170 @@
+"""The Python API. The CLI is a thin layer over these functions.
+
+    >>> import psctl
+    >>> result = psctl.run_normals("examples/sphere", method="l2", out="/tmp/sphere")
+    >>> normals = psctl.estimate_normals(images, lights, mask, method="l2")   # arrays in, array out
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+# progress(description, total) -> advance(n): how library code reports progress without
+# depending on a UI. The CLI passes a Rich implementation; None means silent.
+ProgressFactory = Callable[[str, int], Callable[[int], None]]
+
+METHODS = ("auto", "l2")
+
+
+def _noop(_: int) -> None:
+    pass
+
+
+def resolve_method(method: str, calibrated: bool) -> tuple[str, str | None]:
+    """Map a user-facing method name to a concrete one; return (method, note for the user)."""
+    method = method.lower()
+    if method not in METHODS:
+        raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if method == "auto":
+        if not calibrated:
+            raise PsctlError(None, "the folder has no light_directions.txt and no uncalibrated method is installed yet")
+        return "l2", "auto: no trained network weights are installed yet, using l2 (least squares)"
+    return method, None
+
+
+def estimate_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray | None = None,
+                     method: str = "l2") -> np.ndarray:
+    """Normals from arrays.
+
+    Args:
+        images: [N, H, W, 3] (or [N, H, W]) linear images, already divided by light intensities.
+        lights: [N, 3] unit light directions, x right / y up / z toward the camera.
+        mask: [H, W] bool; normals outside are 0.
+        method: "l2" (or "auto").
+    Returns:
+        [H, W, 3] float32 unit normals.
+    """
+    images = np.asarray(images, np.float32)
+    if images.ndim not in (3, 4):
+        raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
+    if not np.isfinite(images).all():
+        raise PsctlError(None, "images contain NaN or infinite values")
+    lights = np.asarray(lights, np.float32)
+    if lights.shape != (images.shape[0], 3):
+        raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
+    method, _ = resolve_method(method, calibrated=True)
+    from psctl.classic import l2_normals
+
+    return l2_normals(images, lights, mask).normals
+
+
+def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
+                formats: tuple[str, ...] | list[str] = ("png16", "exr"), n_images: int | None = None,
+                seed: int | None = None, write: bool = True,
+                progress: ProgressFactory | None = None) -> dict:
+    """Run a method on a capture folder, write its outputs, return the report.
+
+    Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
+    n_images, height, width, seconds, outputs, mae, median, within, plus n_dark and notes.
+    Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
+    ``formats``; with ground truth also ``error.png`` and ``report.json``. Default folder:
+    ``PATH/psctl``. Either all files appear or none.
+    """
+    from psctl.classic import L2Accumulator
+    from psctl.io.atomic import check_output_dir, staged_outputs
+    from psctl.io.capture import bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images
+    from psctl.io.normals import FORMATS, write_normal_map
+    from psctl.io.report import write_error_map, write_json
+    from psctl.metrics import angular_error, summarize
+
+    t0 = time.perf_counter()
+    progress = progress or (lambda desc, total: _noop)
+    cap = open_capture(path)
+    cap = cap.subset(select_images(cap.n_images, n_images, seed))
+    method, note = resolve_method(method, cap.calibrated)
+    notes = [note] if note else []
+    if method == "l2":
+        if not cap.calibrated:
+            raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
+        if cap.n_images < 3:
+            raise PsctlError(cap.path, f"l2 needs at least 3 images (got {cap.n_images})")
+    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    if write:
+        check_output_dir(out_dir)
+
+    mask = load_mask(cap)
+    gt = load_ground_truth(cap)
+    box = bounding_box(mask)
+
+    # --- solve -------------------------------------------------------------------------------
+    acc = L2Accumulator(mask[box])
+    advance = progress(f"{cap.name}: reading + l2", cap.n_images)
+    for k, img in enumerate(iter_images(cap, box)):
+        acc.add(img, cap.lights[k])
+        advance(1)
+    res = acc.solve()
+    normals = np.zeros((cap.height, cap.width, 3), np.float32)
+    normals[box] = res.normals
+    dark = np.zeros(mask.shape, bool)
+    dark[box] = res.dark
+    if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
+        raise RuntimeError("internal error: non-finite normals")
+
+    # --- evaluate ------------------------------------------------------------------------------
+    error = None
+    stats = {"mae": None, "median": None, "within": {"11.25": None, "22.5": None, "30": None}}
+    n_eval = 0
+    if gt is not None:
+        valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
+        if not valid.any():
+            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
+        error = np.zeros(mask.shape, np.float32)
+        error[valid] = angular_error(normals, gt, valid)
+        stats = summarize(error[valid])
+        n_eval = int(valid.sum())
+
+    seconds = time.perf_counter() - t0
+    report = {
+        "object": cap.name,
+        "path": str(cap.path),
+        "method": method,
+        "calibrated": cap.calibrated,
+        "n_images": cap.n_images,
+        "height": cap.height,
+        "width": cap.width,
+        "seconds": round(seconds, 3),
+        "outputs": {},
+        **stats,
+        "n_mask_pixels": int(mask.sum()),
+        "n_evaluated_pixels": n_eval,
+        "n_dark": int(dark.sum()),
+        "notes": notes,
+    }
+
+    # --- write ---------------------------------------------------------------------------------
+    if write:
+        names = [FORMATS[f] for f in formats]
+        if error is not None:
+            names += ["error.png", "report.json"]
+        report["outputs"] = {_output_key(n): str(out_dir / n) for n in names}
+        with staged_outputs(out_dir) as stage:
+            for f in formats:
+                write_normal_map(stage / FORMATS[f], normals, mask, f)
+            if error is not None:
+                write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"])
+                write_json(stage / "report.json", report)
+        report["seconds"] = round(time.perf_counter() - t0, 3)
+    return report
+
+
+def _output_key(filename: str) -> str:
+    """normal.png -> normal_png, error.png -> error, report.json -> report."""
+    stem, ext = filename.rsplit(".", 1)
+    return stem if stem in ("error", "report") else f"{stem}_{ext}"

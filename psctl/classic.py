@@ -1,0 +1,96 @@
+"""Non-learning baselines.
+
+``l2``: Woodham's least-squares photometric stereo. Each pixel's grey observations m_k (k over
+images, already divided by light intensity) are fitted as m_k = l_k . b; the normal is b / |b|
+and |b| the albedo. The solution b = (L^T L)^-1 L^T m only needs the 3 x 3 matrix L^T L and the
+running sum sum_k l_k m_k, so images are streamed and memory does not grow with their number.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+# Grey = ITU-R BT.601 luma, as MATLAB's rgb2gray (the DiLiGenT baseline code's convention).
+GREY = np.array([0.2989, 0.5870, 0.1140], np.float32)
+DARK = 1e-6  # a pixel whose brightest observation is below this carries no information
+DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)  # what a dark pixel gets: facing the camera
+
+
+@dataclass
+class L2Result:
+    normals: np.ndarray  # [H, W, 3] float32 unit vectors (0 outside the mask)
+    albedo: np.ndarray  # [H, W] float32, |b|
+    dark: np.ndarray  # [H, W] bool, pixels dark in every image (given DEFAULT_NORMAL)
+
+
+class L2Accumulator:
+    """Streaming least squares: ``add`` one image at a time, then ``solve``."""
+
+    def __init__(self, mask: np.ndarray):
+        self.mask = mask.astype(bool)
+        p = int(self.mask.sum())
+        self.lhs = np.zeros((3, 3), np.float64)
+        self.rhs = np.zeros((3, p), np.float64)
+        self.peak = np.zeros(p, np.float32)
+        self.count = 0
+
+    def add(self, image: np.ndarray, light: np.ndarray) -> None:
+        """image: [H, W, 3] or [H, W] linear, intensity-normalised; light: [3]."""
+        grey = image @ GREY if image.ndim == 3 else image
+        m = grey[self.mask].astype(np.float64)
+        light = np.asarray(light, np.float64)
+        self.lhs += np.outer(light, light)
+        self.rhs += light[:, None] * m[None, :]
+        np.maximum(self.peak, m, out=self.peak, casting="unsafe")
+        self.count += 1
+
+    def solve(self) -> L2Result:
+        if self.count < 3:
+            raise PsctlError(None, f"L2 photometric stereo needs at least 3 images (got {self.count})")
+        # Condition check: coplanar lights leave the normal undetermined.
+        s = np.linalg.svd(self.lhs, compute_uv=False)
+        if s[-1] < 1e-6 * s[0]:
+            raise PsctlError(None, "light directions are (nearly) coplanar: L2 cannot determine the normals")
+        b = np.linalg.solve(self.lhs, self.rhs)  # [3, P]
+        albedo = np.linalg.norm(b, axis=0)
+        dark = (self.peak < DARK) | (albedo < 1e-12)
+        n = b / np.maximum(albedo, 1e-12)
+        n[:, dark] = DEFAULT_NORMAL[:, None]
+        h, w = self.mask.shape
+        normals = np.zeros((h, w, 3), np.float32)
+        normals[self.mask] = n.T
+        alb = np.zeros((h, w), np.float32)
+        alb[self.mask] = np.where(dark, 0.0, albedo)
+        dark_map = np.zeros((h, w), bool)
+        dark_map[self.mask] = dark
+        return L2Result(normals, alb, dark_map)
+
+
+def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
+               mask: np.ndarray | None = None) -> L2Result:
+    """Least-squares normals.
+
+    Args:
+        images: [N, H, W, 3] or [N, H, W] array, or an iterable of [H, W, (3)] images.
+        lights: [N, 3] light directions (x right, y up, z toward the camera).
+        mask: [H, W] bool, pixels to solve (all when None).
+    """
+    lights = np.asarray(lights, np.float64)
+    acc = None
+    k = -1
+    for k, img in enumerate(images):
+        if acc is None:
+            acc = L2Accumulator(np.ones(img.shape[:2], bool) if mask is None else mask)
+        if k >= len(lights):
+            raise PsctlError(None, f"more images than light directions ({len(lights)})")
+        acc.add(np.asarray(img, np.float32), lights[k])
+    if acc is None:
+        raise PsctlError(None, "no images")
+    if k + 1 != len(lights):
+        raise PsctlError(None, f"{k + 1} images but {len(lights)} light directions")
+    return acc.solve()

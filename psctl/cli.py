@@ -1,0 +1,158 @@
+"""The ``psctl`` command. Each command parses options, calls one library function, and prints.
+
+User errors (PsctlError) become one line on stderr and exit code 2, never a traceback.
+Heavy imports happen inside the commands so that ``psctl --help`` is instant.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+app = typer.Typer(
+    name="psctl",
+    help="Photometric stereo: surface normals (and lights, depth) from images under varying light.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
+Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+
+
+def _stderr():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def _fail(message: str) -> None:
+    _stderr().print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(2)
+
+
+@contextlib.contextmanager
+def _user_errors() -> Iterator[None]:
+    from psctl.errors import PsctlError
+
+    try:
+        yield
+    except PsctlError as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        _stderr().print("interrupted")
+        raise typer.Exit(130) from None
+
+
+@contextlib.contextmanager
+def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None]] | None]:
+    """A progress factory for the library (see psctl.api.ProgressFactory), drawn on stderr."""
+    if quiet:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TimeRemainingColumn(), console=_stderr(), transient=True) as bar:
+        def factory(description: str, total: int) -> Callable[[int], None]:
+            task = bar.add_task(description, total=total)
+            return lambda n: bar.advance(task, n)
+
+        yield factory
+
+
+def _print_json(obj: dict) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+
+
+@app.command()
+def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")], json_out: Json = False) -> None:
+    """Show what psctl detects in a folder: images, size, bit depth, lights, mask, ground truth."""
+    with _user_errors():
+        from psctl.io.summary import describe
+
+        report = describe(path)
+        if json_out:
+            _print_json(report)
+        else:
+            from psctl.io.summary import render_info
+
+            render_info(report)
+
+
+@app.command()
+def normals(
+    path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
+    method: Annotated[str, typer.Option("--method", "-m", help="auto | l2")] = "auto",
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder [default: PATH/psctl].")] = None,
+    fmt: Annotated[str, typer.Option("--format", "-f", help="Comma list of png16, png8, exr, npy.")] = "png16,exr",
+    images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Estimate a normal map: normal.png (16-bit), normal.exr, and error.png + report.json with ground truth."""
+    with _user_errors():
+        from psctl.api import run_normals
+        from psctl.io.normals import parse_formats
+
+        formats = parse_formats(fmt)
+        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
+            report = run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
+                                 progress=progress)
+        if json_out:
+            _print_json(report)
+            return
+        from psctl.io.summary import render_normals
+
+        render_normals(report, quiet=quiet)
+
+
+@app.command("eval")
+def evaluate(
+    benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder")] = "diligent",
+    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects).")] = None,
+    method: Annotated[str, typer.Option("--method", "-m", help="auto | l2")] = "auto",
+    images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object.")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/.")] = None,
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Run a method over every object of a benchmark and print the paper-style error table."""
+    with _user_errors():
+        from psctl.eval import run_benchmark
+
+        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
+            result = run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
+                                   progress=progress)
+        if json_out:
+            _print_json(result)
+            return
+        from psctl.io.summary import render_benchmark
+
+        render_benchmark(result)
+
+
+@app.callback(invoke_without_command=True)
+def _root(version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False) -> None:
+    if version:
+        from psctl import __version__
+
+        typer.echo(f"psctl {__version__}")
+        raise typer.Exit()
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,83 @@
+"""Benchmark tables: run a method over every object of a benchmark root."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from psctl.api import ProgressFactory, run_normals
+from psctl.errors import PsctlError
+
+DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
+
+# Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
+# objects of the DiLiGenT development split. Shown beside our numbers, never mixed with them.
+PAPER_DILIGENT = {
+    "l2": {"ball": 4.1, "cat": 8.4, "pot1": 8.9, "bear": 8.4, "pot2": 14.7},
+    "ps-fcn": {"ball": 2.8, "cat": 6.2, "pot1": 7.1, "bear": 7.6, "pot2": 7.3},
+    "ps-fcn-n": {"ball": 2.7, "cat": 4.8, "pot1": 6.2, "bear": 7.7, "pot2": 7.2},
+    "sdps": {"ball": 2.8, "cat": 8.1, "pot1": 8.1, "bear": 6.9, "pot2": 7.5},
+}
+
+BENCHMARKS = ("diligent", "folder")
+
+
+def default_diligent_root() -> Path:
+    """$PSCTL_DATA/DiLiGenT/pmsData, then ~/.cache/psctl/DiLiGenT/pmsData."""
+    candidates = []
+    if os.environ.get("PSCTL_DATA"):
+        candidates.append(Path(os.environ["PSCTL_DATA"]) / "DiLiGenT" / "pmsData")
+    candidates.append(Path.home() / ".cache" / "psctl" / "DiLiGenT" / "pmsData")
+    for c in candidates:
+        if c.is_dir():
+            return c
+    raise PsctlError(
+        candidates[0],
+        "DiLiGenT not found. Get it from the DiLiGenT benchmark page (Shi et al., "
+        "'A Benchmark Dataset and Evaluation for Non-Lambertian and Uncalibrated Photometric "
+        "Stereo'), unpack it so that this folder holds ballPNG/, catPNG/, ..., or pass "
+        "--root DIR (a pmsData or pmsData_crop folder); psctl never downloads at run time",
+    )
+
+
+def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method: str = "auto",
+                  n_images: int | None = None, seed: int | None = None,
+                  out: str | os.PathLike | None = None,
+                  progress: ProgressFactory | None = None) -> dict:
+    """Evaluate ``method`` on every object under ``root``.
+
+    Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
+    "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
+    """
+    from psctl.io.capture import find_objects
+
+    benchmark = benchmark.lower()
+    if benchmark not in BENCHMARKS:
+        raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
+    if root is None:
+        if benchmark != "diligent":
+            raise PsctlError(None, f"--benchmark {benchmark} needs --root DIR")
+        root = default_diligent_root()
+    root = Path(root)
+    folders = find_objects(root)
+    objects = []
+    used_method = method
+    for folder in folders:
+        r = run_normals(folder, method=method, out=None if out is None else Path(out) / folder.name,
+                        n_images=n_images, seed=seed, write=out is not None, progress=progress)
+        if r["mae"] is None:
+            raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png)")
+        used_method = r["method"]
+        objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
+                        "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
+    paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
+    return {
+        "benchmark": benchmark,
+        "root": str(root),
+        "method": used_method,
+        "objects": objects,
+        "mean_mae": float(np.mean([o["mae"] for o in objects])),
+        "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
+    }

@@ -1,0 +1,1 @@
+"""Input and output: capture folders, images, normal-map encodings, reports."""

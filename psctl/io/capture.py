@@ -1,0 +1,367 @@
+"""Capture folders (DiLiGenT style): one object per folder, or a benchmark root of several.
+
+A capture folder holds
+    images              listed in filenames.txt / names.txt, else every image file in natural order
+    light_directions.txt    N x 3, optional (absent: uncalibrated)
+    light_intensities.txt   N x 3 (RGB) or N x 1, optional (absent: all ones)
+    mask.png            optional (absent: the whole image)
+    Normal_gt.mat (key Normal_gt) / Normal_gt.png / normal.png   optional ground truth
+Convention: x right, y up, z toward the camera. Pixels are linear float32, value / (2^bits - 1),
+divided per channel by the image's intensity row.
+
+``open_capture`` reads only headers and text files, so every size and count mismatch is found
+before any pixel is decoded; ``iter_images`` then streams the pixels one image at a time.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, to_rgb
+
+LIST_FILES = ("filenames.txt", "names.txt")
+LIGHTS_FILE = "light_directions.txt"
+INTENSITIES_FILE = "light_intensities.txt"
+MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
+GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
+# Files in a capture folder that are never input images.
+_NOT_IMAGES = re.compile(r"^(mask|normal|normal_gt|error|depth|shading|lights)([._-].*)?$", re.I)
+
+Progress = Callable[[int], None]
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A validated capture folder (headers and text files read, pixels not yet decoded)."""
+
+    path: Path
+    name: str
+    image_paths: tuple[Path, ...]
+    height: int
+    width: int
+    channels: int
+    dtype: str
+    bits: int
+    lights: np.ndarray | None = field(repr=False)  # [N, 3] unit vectors, or None
+    intensities: np.ndarray = field(repr=False)  # [N, 3]
+    intensities_given: bool = False
+    mask_path: Path | None = None
+    gt_path: Path | None = None
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_paths)
+
+    @property
+    def calibrated(self) -> bool:
+        return self.lights is not None
+
+    def subset(self, indices: Sequence[int]) -> "Capture":
+        """The same capture restricted to some images (in the given order)."""
+        idx = np.asarray(indices, dtype=np.int64)
+        return replace(
+            self,
+            image_paths=tuple(self.image_paths[i] for i in idx),
+            lights=None if self.lights is None else self.lights[idx],
+            intensities=self.intensities[idx],
+        )
+
+
+def object_name(path: str | os.PathLike) -> str:
+    """Folder name with a trailing ``PNG`` removed (``ballPNG`` -> ``ball``)."""
+    name = Path(path).resolve().name
+    return name[:-3] if name.endswith("PNG") and len(name) > 3 else name
+
+
+def natural_key(s: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
+
+
+def _image_files(folder: Path) -> list[Path]:
+    files = [
+        p
+        for p in folder.iterdir()
+        if p.is_file()
+        and p.suffix.lower() in IMAGE_EXTENSIONS
+        and not p.name.startswith(".")
+        and not _NOT_IMAGES.match(p.stem)
+    ]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def _read_list(path: Path) -> list[str]:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise PsctlError(path, f"cannot read file ({e})") from None
+    names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    if not names:
+        raise PsctlError(path, "lists no images")
+    return names
+
+
+def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
+    """Parse a whitespace/comma separated numeric table; each row has one of ``widths`` values.
+
+    Errors name the file and line: malformed numbers, wrong column counts, NaN/inf.
+    """
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise PsctlError(path, f"cannot read {what} ({e})") from None
+    rows: list[list[float]] = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        try:
+            values = [float(v) for v in parts]
+        except ValueError:
+            raise PsctlError(path, f"line {lineno}: not a number in {line!r}") from None
+        if len(values) not in widths:
+            want = " or ".join(str(w) for w in widths)
+            raise PsctlError(path, f"line {lineno}: expected {want} values, found {len(values)}")
+        if not np.all(np.isfinite(values)):
+            raise PsctlError(path, f"line {lineno}: NaN or infinite value")
+        rows.append(values)
+    if not rows:
+        raise PsctlError(path, f"{what} file is empty")
+    if len({len(r) for r in rows}) > 1:
+        raise PsctlError(path, "rows have different numbers of values")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def read_lights(path: Path) -> np.ndarray:
+    """light_directions.txt -> [N, 3] float32 unit vectors (rows normalised)."""
+    lights = read_matrix(path, (3,), "light directions")
+    norms = np.linalg.norm(lights, axis=1)
+    bad = np.flatnonzero(norms < 1e-6)
+    if bad.size:
+        raise PsctlError(path, f"row {bad[0] + 1}: zero-length light direction")
+    return (lights / norms[:, None]).astype(np.float32)
+
+
+def read_intensities(path: Path) -> np.ndarray:
+    """light_intensities.txt -> [N, 3] float32 (an N x 1 file is repeated over RGB)."""
+    e = read_matrix(path, (1, 3), "light intensities")
+    bad = np.flatnonzero((e <= 0).any(axis=1))
+    if bad.size:
+        raise PsctlError(path, f"row {bad[0] + 1}: intensities must be positive")
+    if e.shape[1] == 1:
+        e = np.repeat(e, 3, axis=1)
+    return e.astype(np.float32)
+
+
+def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
+    for n in names:
+        if (folder / n).is_file():
+            return folder / n
+    return None
+
+
+def is_capture_folder(path: str | os.PathLike) -> bool:
+    path = Path(path)
+    return path.is_dir() and (
+        any((path / f).is_file() for f in LIST_FILES) and not (path / "objects.txt").is_file()
+        or bool(_image_files(path))
+    )
+
+
+def find_objects(root: str | os.PathLike) -> list[Path]:
+    """Object folders of a benchmark root: those in objects.txt, else capture subfolders."""
+    root = Path(root)
+    if not root.is_dir():
+        raise PsctlError(root, "not a folder")
+    listed = root / "objects.txt"
+    if listed.is_file():
+        names = _read_list(listed)
+        folders = [root / n for n in names]
+        for f in folders:
+            if not f.is_dir():
+                raise PsctlError(f, "listed in objects.txt but missing")
+        return folders
+    folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")
+                      and p.name != "psctl" and is_capture_folder(p)), key=lambda p: natural_key(p.name))
+    if not folders:
+        raise PsctlError(root, "no object folders found (expected subfolders with images, or objects.txt)")
+    return folders
+
+
+def is_benchmark_root(path: str | os.PathLike) -> bool:
+    path = Path(path)
+    if (path / "objects.txt").is_file():
+        return True
+    return path.is_dir() and not is_capture_folder(path) and any(
+        p.is_dir() and is_capture_folder(p) for p in path.iterdir()
+    )
+
+
+def open_capture(path: str | os.PathLike) -> Capture:
+    """Validate a capture folder without decoding pixels.
+
+    Checks: images exist and share one size, light and intensity rows match the image count and
+    are well formed, mask and ground truth (headers) have the image size.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise PsctlError(path, "folder does not exist")
+    if not path.is_dir():
+        raise PsctlError(path, "not a folder (expected a capture folder of images)")
+    if is_benchmark_root(path):
+        raise PsctlError(path, "holds several objects (a benchmark root); pass one object folder, or use `psctl eval`")
+
+    list_file = _first_existing(path, LIST_FILES)
+    if list_file is not None:
+        image_paths = [path / n for n in _read_list(list_file)]
+        for p in image_paths:
+            if not p.is_file():
+                raise PsctlError(p, f"listed in {list_file.name} but missing")
+    else:
+        image_paths = _image_files(path)
+        if not image_paths:
+            raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)})")
+
+    infos = [image_info(p) for p in image_paths]
+    first = infos[0]
+    for info in infos[1:]:
+        if (info.width, info.height) != (first.width, first.height):
+            raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
+                                        f"{first.path.name} ({first.width}x{first.height})")
+    n = len(image_paths)
+
+    lights = None
+    if (path / LIGHTS_FILE).is_file():
+        lights = read_lights(path / LIGHTS_FILE)
+        if len(lights) != n:
+            raise PsctlError(path / LIGHTS_FILE, f"{len(lights)} light rows but {n} images")
+    intensities = np.ones((n, 3), np.float32)
+    given = (path / INTENSITIES_FILE).is_file()
+    if given:
+        intensities = read_intensities(path / INTENSITIES_FILE)
+        if len(intensities) != n:
+            raise PsctlError(path / INTENSITIES_FILE, f"{len(intensities)} intensity rows but {n} images")
+
+    mask_path = _first_existing(path, MASK_FILES)
+    if mask_path is not None:
+        _check_size(image_info(mask_path), first)
+    gt_path = _first_existing(path, GT_FILES)
+    if gt_path is not None and gt_path.suffix.lower() != ".mat":
+        _check_size(image_info(gt_path), first)
+
+    return Capture(
+        path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
+        width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
+        lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
+        gt_path=gt_path,
+    )
+
+
+def _check_size(info: ImageInfo, ref: ImageInfo) -> None:
+    if (info.width, info.height) != (ref.width, ref.height):
+        raise PsctlError(info.path, f"size {info.width}x{info.height} differs from the images "
+                                    f"({ref.width}x{ref.height})")
+
+
+def load_mask(capture: Capture) -> np.ndarray:
+    """bool [H, W]; the whole image when the folder has no mask. An empty mask is an error."""
+    if capture.mask_path is None:
+        return np.ones((capture.height, capture.width), bool)
+    pixels, _ = read_image(capture.mask_path)
+    mask = pixels[..., :3].max(axis=-1) > 0.5
+    if not mask.any():
+        raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel)")
+    return mask
+
+
+def load_ground_truth(capture: Capture) -> np.ndarray | None:
+    """float32 [H, W, 3] unit normals (zero where undefined), or None without ground truth."""
+    p = capture.gt_path
+    if p is None:
+        return None
+    if p.suffix.lower() == ".mat":
+        import scipy.io
+
+        try:
+            mat = scipy.io.loadmat(str(p))
+        except Exception as e:  # scipy raises several types for bad/unsupported files
+            raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
+        if "Normal_gt" not in mat:
+            raise PsctlError(p, "has no variable 'Normal_gt'")
+        gt = np.asarray(mat["Normal_gt"], dtype=np.float32)
+        if gt.ndim != 3 or gt.shape[2] != 3:
+            raise PsctlError(p, f"Normal_gt has shape {gt.shape}, expected H x W x 3")
+        if gt.shape[:2] != (capture.height, capture.width):
+            raise PsctlError(p, f"size {gt.shape[1]}x{gt.shape[0]} differs from the images "
+                                f"({capture.width}x{capture.height})")
+    else:
+        from psctl.io.normals import decode_normal_pixels
+
+        pixels, info = read_image(p)
+        gt = decode_normal_pixels(pixels, info)
+    if not np.isfinite(gt).all():
+        raise PsctlError(p, "ground truth contains NaN or infinite values")
+    norm = np.linalg.norm(gt, axis=-1, keepdims=True)
+    return np.where(norm > 1e-6, gt / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+
+
+def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[slice, slice]:
+    """Rows/cols slices of the mask's bounding box grown by ``margin`` (clipped to the image)
+    and, where the image allows, to sides that are a multiple of ``multiple``."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+
+    def span(lo: int, hi: int, size: int) -> slice:
+        lo, hi = max(lo - margin, 0), min(hi + 1 + margin, size)
+        extra = (-(hi - lo)) % multiple
+        grow_hi = min(extra, size - hi)
+        hi += grow_hi
+        lo = max(lo - (extra - grow_hi), 0)
+        return slice(lo, hi)
+
+    return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
+
+
+def iter_images(capture: Capture, box: tuple[slice, slice] | None = None,
+                progress: Progress | None = None) -> Iterator[np.ndarray]:
+    """Yield each image as float32 [h, w, 3] (cropped to ``box``), divided by its intensities."""
+    for k, p in enumerate(capture.image_paths):
+        pixels, info = read_image(p)
+        if (info.width, info.height) != (capture.width, capture.height):  # changed since open
+            raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
+        rgb = to_rgb(pixels)
+        if box is not None:
+            rgb = rgb[box]
+        yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
+        if progress is not None:
+            progress(1)
+
+
+def load_images(capture: Capture, box: tuple[slice, slice] | None = None,
+                progress: Progress | None = None) -> np.ndarray:
+    """All images at once: float32 [N, h, w, 3]. Prefer ``iter_images`` for large captures."""
+    out = None
+    for k, img in enumerate(iter_images(capture, box, progress)):
+        if out is None:
+            out = np.empty((capture.n_images, *img.shape), np.float32)
+        out[k] = img
+    assert out is not None
+    return out
+
+
+def select_images(n: int, k: int | None, seed: int | None) -> np.ndarray:
+    """Indices of the images to use: all, the first ``k``, or a seeded random ``k``-subset."""
+    if k is None or k >= n:
+        return np.arange(n)
+    if k < 1:
+        raise PsctlError(None, f"--images must be at least 1 (got {k})")
+    if seed is None:
+        return np.arange(k)
+    return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))

@@ -1,0 +1,160 @@
+"""Image reading and writing through OpenImageIO, at the file's true bit depth.
+
+Pillow, imageio and skimage.io silently reduce 16-bit RGB PNGs to 8 bits; DiLiGenT is 16-bit,
+so everything goes through OpenImageIO. Integer pixels become linear float32 in [0, 1] as
+``value / (2**bits - 1)``; float files (EXR, float TIFF) are returned as stored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+from psctl.io.atomic import atomic_path
+
+IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
+
+
+def _oiio():
+    import OpenImageIO as oiio  # imported here: it is slow to import and only needed for files
+
+    return oiio
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an image header says: size, channels and sample type."""
+
+    path: Path
+    width: int
+    height: int
+    channels: int
+    dtype: str  # "uint8", "uint16", "half", "float", ...
+    bits: int  # bits per sample (8, 16, 32)
+
+
+def image_info(path: str | os.PathLike) -> ImageInfo:
+    """Read an image's header only (cheap)."""
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise PsctlError(path, "image file is missing")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+    try:
+        spec = inp.spec()
+        dtype = str(spec.format)
+        bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
+        return ImageInfo(path, spec.width, spec.height, spec.nchannels, dtype, int(bits))
+    finally:
+        inp.close()
+
+
+def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageInfo]:
+    """Read an image as float32 [H, W, C] plus its header info.
+
+    Integer images are scaled to [0, 1] by the maximum of their true bit depth, so a 16-bit
+    PNG is divided by 65535 and an 8-bit one by 255. Corrupt or truncated files raise
+    PsctlError naming the file.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    info = image_info(path)
+    with _quiet_stderr():
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+        try:
+            # OpenImageIO converts integer samples to float by dividing by the type's maximum.
+            pixels = inp.read_image(0, 0, 0, info.channels, "float")
+            err = inp.geterror()
+        finally:
+            inp.close()
+    if pixels is None or err:
+        raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(info.height, info.width, info.channels)
+    bits_in_container = {"uint8": 8, "uint16": 16}.get(info.dtype)
+    if bits_in_container and info.bits and info.bits < bits_in_container:
+        # e.g. 12-bit data stored in a 16-bit PNG/TIFF: scale by the true maximum.
+        pixels *= (2**bits_in_container - 1) / (2**info.bits - 1)
+    if not np.isfinite(pixels).all():
+        raise PsctlError(path, "image contains NaN or infinite values")
+    return pixels, info
+
+
+def to_rgb(pixels: np.ndarray) -> np.ndarray:
+    """[H, W, C] -> [H, W, 3]: grey is repeated, alpha and extra channels are dropped."""
+    c = pixels.shape[-1]
+    if c == 1 or c == 2:
+        return np.repeat(pixels[..., :1], 3, axis=-1)
+    return pixels[..., :3]
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16") -> None:
+    """Write [H, W] or [H, W, C] float pixels atomically.
+
+    ``dtype`` is "uint8", "uint16" (values in [0, 1], rounded) or "float"/"half" (stored as is).
+    The format follows the file extension (png, tif, exr, ...).
+    """
+    oiio = _oiio()
+    path = Path(path)
+    arr = np.asarray(pixels)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    h, w, c = arr.shape
+    if dtype in ("uint8", "uint16"):
+        peak = 255 if dtype == "uint8" else 65535
+        arr = np.round(np.clip(arr, 0.0, 1.0) * peak).astype(np.uint8 if dtype == "uint8" else np.uint16)
+        fmt = oiio.UINT8 if dtype == "uint8" else oiio.UINT16
+    elif dtype == "half":
+        arr = arr.astype(np.float16)
+        fmt = oiio.HALF
+    else:
+        arr = arr.astype(np.float32)
+        fmt = oiio.FLOAT
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if path.suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise PsctlError(path, f"cannot write image ({_clean(oiio.geterror())})")
+        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise PsctlError(path, f"cannot write image ({_clean(err)})")
+
+
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Swallow what C libraries print on file descriptor 2 (libpng prints "libpng error: ..."
+    for truncated files even though OpenImageIO also reports it): the CLI promises one line."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), fd)
+        try:
+            yield
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+
+
+def _clean(msg: str | None) -> str:
+    """OpenImageIO errors can span lines; the CLI promises one line."""
+    return " ".join((msg or "").split())[:300]

@@ -1,0 +1,84 @@
+"""Normal-map encodings: 16/8-bit PNG ((n + 1) / 2 per channel), float EXR, NumPy .npy.
+
+Convention everywhere: x right, y up, z toward the camera; row 0 is the top of the image.
+Pixels outside the mask are 0 in every encoding (PNG 0 decodes to "no normal").
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+from psctl.io.atomic import atomic_path
+from psctl.io.images import ImageInfo, read_image, write_image
+
+FORMATS = {"png16": "normal.png", "png8": "normal_8bit.png", "exr": "normal.exr", "npy": "normal.npy"}
+
+
+def parse_formats(spec: str) -> list[str]:
+    """"png16,exr" -> ["png16", "exr"], with a clear error for unknown names."""
+    names = [s.strip().lower() for s in spec.split(",") if s.strip()]
+    bad = [n for n in names if n not in FORMATS]
+    if bad or not names:
+        raise PsctlError(None, f"unknown --format {','.join(bad) or spec!r}; choose from {', '.join(FORMATS)}")
+    return list(dict.fromkeys(names))
+
+
+def encode_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """[H, W, 3] unit normals -> [H, W, 3] values in [0, 1], zero outside the mask."""
+    return np.where(mask[..., None], (normals + 1.0) / 2.0, 0.0).astype(np.float32)
+
+
+def decode_normal_pixels(pixels: np.ndarray, info: ImageInfo | None = None) -> np.ndarray:
+    """Inverse of the encodings: integer images hold (n + 1) / 2, float images hold n.
+
+    All-zero pixels (outside the mask) decode to 0.
+    """
+    rgb = pixels[..., :3].astype(np.float32)
+    is_float = info is not None and info.dtype in ("half", "float", "double")
+    if is_float:
+        return rgb
+    empty = (rgb == 0).all(axis=-1, keepdims=True)
+    n = rgb * 2.0 - 1.0
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = n / np.maximum(norm, 1e-6)
+    return np.where(empty, 0.0, n).astype(np.float32)
+
+
+def read_normal_map(path: str | os.PathLike) -> np.ndarray:
+    """Read a normal map written by psctl (png16/png8/exr/npy) -> float32 [H, W, 3]."""
+    path = Path(path)
+    if not path.is_file():
+        raise PsctlError(path, "normal map file is missing")
+    if path.suffix.lower() == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except Exception as e:
+            raise PsctlError(path, f"cannot read .npy ({' '.join(str(e).split())})") from None
+        if arr.ndim != 3 or arr.shape[2] != 3:
+            raise PsctlError(path, f"shape {arr.shape}, expected H x W x 3")
+        return arr.astype(np.float32)
+    pixels, info = read_image(path)
+    if pixels.shape[2] < 3:
+        raise PsctlError(path, "a normal map needs 3 channels")
+    return decode_normal_pixels(pixels, info)
+
+
+def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndarray, fmt: str) -> None:
+    """Write one encoding atomically. ``fmt`` is one of FORMATS."""
+    normals = np.where(mask[..., None], normals, 0.0).astype(np.float32)
+    if fmt == "png16":
+        write_image(path, encode_png(normals, mask), "uint16")
+    elif fmt == "png8":
+        write_image(path, encode_png(normals, mask), "uint8")
+    elif fmt == "exr":
+        write_image(path, normals, "float")
+    elif fmt == "npy":
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, normals)
+    else:
+        raise PsctlError(None, f"unknown normal-map format {fmt!r}")

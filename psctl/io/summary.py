@@ -1,0 +1,128 @@
+"""Human-readable summaries: ``psctl info`` and the tables printed after a run (Rich)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+
+def describe_capture(path: str | os.PathLike) -> dict:
+    """What a capture folder holds, as a JSON-ready dict."""
+    from psctl.io.capture import load_mask, open_capture
+
+    cap = open_capture(path)
+    mask = load_mask(cap)
+    e = cap.intensities
+    return {
+        "kind": "capture",
+        "object": cap.name,
+        "path": str(cap.path),
+        "n_images": cap.n_images,
+        "height": cap.height,
+        "width": cap.width,
+        "channels": cap.channels,
+        "bit_depth": cap.bits,
+        "sample_type": cap.dtype,
+        "calibrated": cap.calibrated,
+        "intensities": "light_intensities.txt" if cap.intensities_given else "none (all ones)",
+        "intensity_range": [float(e.min()), float(e.max())],
+        "mask": cap.mask_path.name if cap.mask_path else None,
+        "mask_coverage": float(mask.mean()),
+        "mask_pixels": int(mask.sum()),
+        "ground_truth": cap.gt_path.name if cap.gt_path else None,
+        "first_image": cap.image_paths[0].name,
+        "last_image": cap.image_paths[-1].name,
+    }
+
+
+def describe(path: str | os.PathLike) -> dict:
+    """A capture folder's description, or a benchmark root's with one entry per object."""
+    from psctl.io.capture import find_objects, is_benchmark_root
+
+    path = Path(path)
+    if not path.exists():
+        raise PsctlError(path, "folder does not exist")
+    if is_benchmark_root(path):
+        return {"kind": "benchmark", "path": str(path),
+                "objects": [describe_capture(f) for f in find_objects(path)]}
+    return describe_capture(path)
+
+
+def _console():
+    from rich.console import Console
+
+    return Console()
+
+
+def render_info(report: dict) -> None:
+    from rich.table import Table
+
+    con = _console()
+    if report["kind"] == "benchmark":
+        t = Table(title=f"benchmark root {report['path']}")
+        for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth"):
+            t.add_column(col)
+        for o in report["objects"]:
+            t.add_row(o["object"], str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
+                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", o["ground_truth"] or "-")
+        con.print(t)
+        return
+    r = report
+    t = Table(title=f"{r['object']}  ({r['path']})", show_header=False)
+    t.add_column("", style="bold")
+    t.add_column("")
+    t.add_row("images", f"{r['n_images']} ({r['first_image']} .. {r['last_image']})")
+    t.add_row("size", f"{r['width']} x {r['height']}, {r['channels']} channels")
+    t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
+    t.add_row("calibrated", "yes (light_directions.txt)" if r["calibrated"] else "no light_directions.txt: uncalibrated")
+    lo, hi = r["intensity_range"]
+    t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
+    t.add_row("mask", f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})")
+    t.add_row("ground truth", r["ground_truth"] or "none")
+    con.print(t)
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def render_normals(r: dict, quiet: bool = False) -> None:
+    con = _console()
+    for note in r.get("notes", []):
+        con.print(f"[yellow]note:[/] {note}")
+    line = f"[bold]{r['object']}[/]: {r['method']}, {r['n_images']} images, {r['width']}x{r['height']}, {r['seconds']:.2f} s"
+    if r["mae"] is not None:
+        w = r["within"]
+        line += (f"\n  mean angular error [bold]{r['mae']:.2f}°[/], median {r['median']:.2f}°, "
+                 f"<11.25° {w['11.25']:.1%}, <22.5° {w['22.5']:.1%}, <30° {w['30']:.1%}")
+    if r.get("n_dark"):
+        line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
+    con.print(line, highlight=False)
+    for key, p in r["outputs"].items():
+        con.print(f"  wrote {p}", highlight=False)
+
+
+def render_benchmark(result: dict) -> None:
+    from rich.table import Table
+
+    con = _console()
+    objs = result["objects"]
+    t = Table(title=f"{result['benchmark']}: mean angular error (degrees), {result['root']}")
+    t.add_column("method")
+    for o in objs:
+        t.add_column(o["name"], justify="right")
+    t.add_column("avg", justify="right", style="bold")
+    t.add_row(f"{result['method']} (psctl)", *[_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]))
+    paper = result.get("paper") or {}
+    if paper:
+        vals = [paper.get(o["name"]) for o in objs]
+        avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
+        t.add_row(f"{result['method']} (paper)", *[_fmt(v) for v in vals], _fmt(avg), style="dim")
+    con.print(t)
+    n = {o["n_images"] for o in objs}
+    secs = sum(o["seconds"] for o in objs)
+    con.print(f"{len(objs)} objects, {'/'.join(map(str, sorted(n)))} images each, {secs:.1f} s", highlight=False)

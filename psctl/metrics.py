@@ -1,0 +1,49 @@
+"""Error measures: angular error of normals, summary statistics, light errors."""
+
+from __future__ import annotations
+
+import numpy as np
+
+THRESHOLDS = (11.25, 22.5, 30.0)
+
+
+def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Per-pixel angle in degrees between two normal maps [..., 3].
+
+    Returns a float array of the pixels selected by ``mask`` (all pixels when None). Inputs need
+    not be exactly unit length; both are normalised.
+    """
+    if mask is not None:
+        normals, gt = normals[mask], gt[mask]
+    a = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+    b = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-12)
+    cos = np.clip((a * b).sum(-1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def summarize(errors: np.ndarray) -> dict:
+    """MAE, median and the fraction of pixels under 11.25 / 22.5 / 30 degrees."""
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.size == 0:
+        return {"mae": None, "median": None, "within": {f"{t:g}": None for t in THRESHOLDS}}
+    return {
+        "mae": float(errors.mean()),
+        "median": float(np.median(errors)),
+        "within": {f"{t:g}": float((errors < t).mean()) for t in THRESHOLDS},
+    }
+
+
+def light_direction_error(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Angle in degrees between estimated and true light directions [N, 3]."""
+    return angular_error(est, gt)
+
+
+def intensity_relative_error(est: np.ndarray, gt: np.ndarray) -> float:
+    """Scale-invariant relative error mean(|s e_i - e~_i| / e~_i), s fitted by least squares.
+
+    Intensities are only known up to a global scale in uncalibrated photometric stereo.
+    """
+    est = np.asarray(est, np.float64).reshape(-1)
+    gt = np.asarray(gt, np.float64).reshape(-1)
+    s = float(est @ gt / max(est @ est, 1e-12))
+    return float(np.mean(np.abs(s * est - gt) / gt))
