@@ -15,6 +15,8 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     """
     if mask is not None:
         normals, gt = normals[mask], gt[mask]
+    # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
+    normals, gt = np.asarray(normals, np.float64), np.asarray(gt, np.float64)
     a = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
     b = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-12)
     cos = np.clip((a * b).sum(-1), -1.0, 1.0)

@@ -1,0 +1,90 @@
+"""Shared fixtures: small synthetic capture folders made on the fly (no external data needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test when the data is not there."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"needs {p} (the project's shared data; absent in a fresh clone)")
+    return p
+
+
+def sphere(size: int, radius: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """Orthographic unit sphere: normals [H, W, 3] (x right, y up, z to camera), mask [H, W]."""
+    c = (np.arange(size) + 0.5) / size * 2 - 1
+    x, y = np.meshgrid(c, -c)  # row 0 is the top: y up
+    r2 = (x**2 + y**2) / radius**2
+    mask = r2 < 1
+    z = np.sqrt(np.clip(1 - r2, 0, None))
+    n = np.stack([x / radius, y / radius, z], -1)
+    n[~mask] = 0
+    return n.astype(np.float32), mask
+
+
+def hemisphere_lights(n: int, max_angle_deg: float = 35.0, seed: int = 0) -> np.ndarray:
+    """n unit light directions within max_angle of the view direction."""
+    rng = np.random.default_rng(seed)
+    cos_max = np.cos(np.radians(max_angle_deg))
+    z = rng.uniform(cos_max, 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - z**2)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], -1).astype(np.float32)
+
+
+def render_lambertian(normals: np.ndarray, mask: np.ndarray, lights: np.ndarray,
+                      albedo: np.ndarray | float = 0.8) -> np.ndarray:
+    """[N, H, W, 3] Lambertian images with attached shadows (max(n.l, 0))."""
+    shading = np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None)
+    alb = np.asarray(albedo, np.float32)
+    alb = np.broadcast_to(alb if alb.ndim == 3 else alb.reshape(1, 1, -1), mask.shape + (3,))
+    imgs = shading[..., None] * alb
+    return (imgs * mask[None, ..., None]).astype(np.float32)
+
+
+def write_capture(folder: Path, n: int = 12, size: int = 40, bits: int = 16, intensities: bool = True,
+                  gt: str = "mat", mask: bool = True, seed: int = 0) -> dict:
+    """Write a DiLiGenT-style folder of a Lambertian sphere; return its arrays."""
+    import scipy.io
+
+    from psctl.io.images import write_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    normals, m = sphere(size)
+    lights = hemisphere_lights(n, seed=seed)
+    rng = np.random.default_rng(seed)
+    e = rng.uniform(0.5, 1.5, (n, 3)).astype(np.float32) if intensities else np.ones((n, 3), np.float32)
+    imgs = render_lambertian(normals, m, lights, 0.7) * e[:, None, None, :] / 1.6
+    names = []
+    for k in range(n):
+        name = f"{k + 1:03d}.png"
+        write_image(folder / name, imgs[k], "uint16" if bits == 16 else "uint8")
+        names.append(name)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(folder / "light_directions.txt", lights, fmt="%.6f")
+    if intensities:
+        np.savetxt(folder / "light_intensities.txt", e / 1.6, fmt="%.6f")
+    if mask:
+        write_image(folder / "mask.png", m.astype(np.float32), "uint8")
+    if gt == "mat":
+        scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": normals.astype(np.float64)})
+    elif gt == "png":
+        write_image(folder / "Normal_gt.png", np.where(m[..., None], (normals + 1) / 2, 0), "uint16")
+    return {"normals": normals, "mask": m, "lights": lights, "intensities": e / 1.6, "images": imgs}
+
+
+@pytest.fixture
+def capture(tmp_path: Path) -> Path:
+    """A valid 16-bit capture folder: 12 images of a 40 x 40 Lambertian sphere."""
+    folder = tmp_path / "spherePNG"
+    write_capture(folder)
+    return folder

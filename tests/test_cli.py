@@ -1,0 +1,224 @@
+"""The psctl command end to end: outputs, JSON, and one-line errors for every bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from psctl.io.images import read_image, write_image
+from psctl.io.normals import read_normal_map
+from psctl.metrics import angular_error
+from tests.conftest import write_capture
+
+
+def psctl(*args: str, check: bool = False) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "100"})
+    if check and proc.returncode != 0:
+        raise AssertionError(proc.stderr)
+    return proc
+
+
+def test_normals_writes_outputs_and_json(capture, tmp_path):
+    out = tmp_path / "out"
+    proc = psctl("normals", capture, "--method", "l2", "--out", out, "--json", check=True)
+    r = json.loads(proc.stdout)
+    for key in ("object", "path", "method", "calibrated", "n_images", "height", "width", "seconds", "outputs",
+                "mae", "median", "within"):
+        assert key in r
+    assert r["object"] == "sphere" and r["n_images"] == 12 and set(r["within"]) == {"11.25", "22.5", "30"}
+    assert sorted(os.listdir(out)) == ["error.png", "normal.exr", "normal.png", "report.json"]
+    pixels, info = read_image(out / "normal.png")
+    assert info.bits == 16 and pixels.shape == (40, 40, 3)
+    report = json.loads((out / "report.json").read_text())
+    assert report["mae"] == pytest.approx(r["mae"])
+    # the PNG decodes to the same normals as the EXR, and both agree with the metric
+    a, b = read_normal_map(out / "normal.png"), read_normal_map(out / "normal.exr")
+    m = np.linalg.norm(b, axis=-1) > 0
+    assert angular_error(a, b, m).max() < 0.01
+
+
+def test_default_output_folder_and_formats(capture):
+    proc = psctl("normals", capture, "-m", "l2", "--format", "png8,npy", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(os.listdir(capture / "psctl")) == ["error.png", "normal.npy", "normal_8bit.png", "report.json"]
+    assert "ball" not in proc.stdout and "sphere" in proc.stdout
+
+
+def test_images_subset(capture, tmp_path):
+    r = json.loads(psctl("normals", capture, "-m", "l2", "--images", "5", "--seed", "3", "--out", tmp_path / "o",
+                         "--json", check=True).stdout)
+    assert r["n_images"] == 5
+
+
+def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path):
+    proc = psctl("normals", capture, "--out", tmp_path / "o", check=True)
+    assert "l2" in proc.stdout and "auto" in proc.stdout
+
+
+def test_info(capture):
+    r = json.loads(psctl("info", capture, "--json", check=True).stdout)
+    assert r["n_images"] == 12 and r["bit_depth"] == 16 and r["calibrated"] and r["ground_truth"] == "Normal_gt.mat"
+    assert 0 < r["mask_coverage"] < 1
+    assert "sphere" in psctl("info", capture, check=True).stdout
+
+
+def test_eval_on_a_folder_of_objects(tmp_path):
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
+    write_capture(tmp_path / "root" / "bPNG", n=6, seed=2)
+    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--json",
+                         check=True).stdout)
+    assert [o["name"] for o in r["objects"]] == ["a", "b"]
+    assert r["mean_mae"] == pytest.approx(np.mean([o["mae"] for o in r["objects"]]))
+    table = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    assert "avg" in table
+
+
+def test_eval_without_diligent_says_where_to_get_it(tmp_path):
+    env = {**os.environ, "PSCTL_DATA": str(tmp_path), "HOME": str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "eval"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and "--root" in proc.stderr and "DiLiGenT" in proc.stderr
+
+
+def test_help_is_instant_no_torch():
+    code = "import sys; from psctl.cli import app; assert 'torch' not in sys.modules and 'OpenImageIO' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# --- bad input: one line naming the file, exit code 2, no traceback, no output ---------------------
+
+
+def _break(kind: str, folder: Path) -> str:
+    """Damage a good capture folder; return the file name the error must mention."""
+    if kind == "missing image":
+        (folder / "003.png").unlink()
+        return "003.png"
+    if kind == "count mismatch":
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        (folder / "light_directions.txt").write_text("\n".join(rows[:-1]) + "\n")
+        return "light_directions.txt"
+    if kind == "malformed light":
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        rows[4] = "0.1 zero 0.9"
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind == "nan light":
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        rows[2] = "nan 0 1"
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind == "zero-length light":
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        rows[1] = "0 0 0"
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind == "short light row":
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        rows[0] = "0.1 0.2"
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind == "bad intensity":
+        rows = (folder / "light_intensities.txt").read_text().splitlines()
+        rows[3] = "1 0 1"
+        (folder / "light_intensities.txt").write_text("\n".join(rows) + "\n")
+        return "light_intensities.txt"
+    if kind == "image size":
+        write_image(folder / "005.png", np.zeros((30, 40, 3)), "uint16")
+        return "005.png"
+    if kind == "mask size":
+        write_image(folder / "mask.png", np.ones((20, 20)), "uint8")
+        return "mask.png"
+    if kind == "gt size":
+        import scipy.io
+
+        scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": np.zeros((20, 20, 3))})
+        return "Normal_gt.mat"
+    if kind == "empty mask":
+        write_image(folder / "mask.png", np.zeros((40, 40)), "uint8")
+        return "mask.png"
+    if kind == "corrupt image":
+        (folder / "007.png").write_bytes(b"this is not a png")
+        return "007.png"
+    if kind == "truncated image":
+        data = (folder / "008.png").read_bytes()
+        (folder / "008.png").write_bytes(data[: len(data) // 2])
+        return "008.png"
+    if kind == "nan image":
+        for k in range(12):
+            (folder / f"{k + 1:03d}.png").rename(folder / f"{k + 1:03d}.exr")
+        (folder / "filenames.txt").write_text("\n".join(f"{k + 1:03d}.exr" for k in range(12)))
+        write_image(folder / "004.exr", np.full((40, 40, 3), np.nan), "float")
+        return "004.exr"
+    if kind == "too few images":
+        (folder / "filenames.txt").write_text("001.png\n002.png\n")
+        rows = (folder / "light_directions.txt").read_text().splitlines()[:2]
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        (folder / "light_intensities.txt").unlink()
+        return str(folder.name)
+    raise ValueError(kind)
+
+
+BAD = ["missing image", "count mismatch", "malformed light", "nan light", "zero-length light", "short light row",
+       "bad intensity", "image size", "mask size", "gt size", "empty mask", "corrupt image", "truncated image",
+       "nan image", "too few images"]
+
+
+@pytest.mark.parametrize("kind", BAD)
+def test_bad_input(kind, capture, tmp_path):
+    before = {p.name: p.read_bytes() for p in capture.iterdir()}
+    culprit = _break(kind, capture)
+    damaged = {p.name: p.read_bytes() for p in capture.iterdir()}
+    out = tmp_path / "out"
+    proc = psctl("normals", capture, "--method", "l2", "--out", out)
+    assert proc.returncode == 2, (kind, proc.stdout, proc.stderr)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, (kind, proc.stderr)
+    assert culprit in lines[0], (kind, lines[0])
+    assert "Traceback" not in proc.stderr
+    assert not out.exists() or not any(out.iterdir())  # no partial output
+    assert {p.name: p.read_bytes() for p in capture.iterdir()} == damaged  # inputs untouched
+    assert before  # (the fixture was a valid folder before _break)
+
+
+def test_output_folder_not_writable(capture, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where a folder should be")
+    proc = psctl("normals", capture, "-m", "l2", "--out", blocker / "out")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "out" in proc.stderr
+    assert blocker.read_text() == "a file where a folder should be"
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root ignores directory permissions")
+def test_output_folder_read_only(capture, tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        proc = psctl("normals", capture, "-m", "l2", "--out", ro / "out")
+        assert proc.returncode == 2 and "not writable" in proc.stderr
+    finally:
+        ro.chmod(0o700)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["normals", "/nonexistent/folderPNG"], "does not exist"),
+    (["normals", "{capture}", "--format", "png16,tiff"], "--format"),
+    (["normals", "{capture}", "--method", "magic"], "unknown method"),
+    (["info", "{capture}/001.png"], "not a folder"),
+])
+def test_other_user_errors(args, needle, capture):
+    proc = psctl(*[a.replace("{capture}", str(capture)) for a in args])
+    assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_uncalibrated_folder_with_l2(capture, tmp_path):
+    (capture / "light_directions.txt").unlink()
+    proc = psctl("normals", capture, "-m", "l2", "--out", tmp_path / "o")
+    assert proc.returncode == 2 and "light_directions.txt" in proc.stderr

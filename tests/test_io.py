@@ -1,0 +1,125 @@
+"""Capture-folder reader, image I/O at true bit depth, normal-map encodings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from psctl.errors import PsctlError
+from psctl.io.capture import (bounding_box, find_objects, load_ground_truth, load_images, load_mask, object_name,
+                              open_capture, select_images)
+from psctl.io.images import read_image, write_image
+from psctl.io.normals import read_normal_map, write_normal_map
+from psctl.metrics import angular_error
+from tests.conftest import write_capture
+
+
+def test_16bit_png_read_exactly(tmp_path):
+    ramp = (np.arange(65536, dtype=np.float64) / 65535).reshape(256, 256)
+    rgb = np.stack([ramp, ramp[::-1], ramp.T], -1)
+    write_image(tmp_path / "r.png", rgb, "uint16")
+    back, info = read_image(tmp_path / "r.png")
+    assert info.bits == 16 and info.dtype == "uint16"
+    # every one of the 65536 levels survives: an 8-bit reader would collapse them to 256
+    assert len(np.unique(back[..., 0])) == 65536
+    assert np.abs(back - rgb).max() < 1e-6
+
+
+def test_8bit_and_exr(tmp_path):
+    x = np.linspace(0, 1, 64 * 3).reshape(8, 8, 3)
+    write_image(tmp_path / "a.png", x, "uint8")
+    back, info = read_image(tmp_path / "a.png")
+    assert info.bits == 8 and np.abs(back - np.round(x * 255) / 255).max() < 1e-6
+    hdr = x * 7.5 - 1.0  # EXR keeps values outside [0, 1] and negatives
+    write_image(tmp_path / "a.exr", hdr, "float")
+    back, info = read_image(tmp_path / "a.exr")
+    assert info.dtype == "float" and np.abs(back - hdr).max() < 1e-6
+
+
+def test_capture_reader_divides_by_intensity(capture):
+    cap = open_capture(capture)
+    assert cap.name == "sphere" and cap.n_images == 12 and cap.bits == 16 and cap.calibrated
+    imgs = load_images(cap)
+    truth = write_capture(capture.parent / "again", seed=0)  # same seed -> same arrays
+    m = truth["mask"]
+    # 16-bit quantisation of the stored values, then division by the intensity row
+    expect = truth["images"] / truth["intensities"][:, None, None, :] * truth["intensities"][:, None, None, :]
+    stored = truth["images"]
+    assert np.abs(imgs[:, m] * cap.intensities[:, None, :] - stored[:, m]).max() < 1e-4
+    assert expect.shape == imgs.shape
+
+
+def test_natural_order_without_filenames(tmp_path):
+    folder = tmp_path / "obj"
+    write_capture(folder, n=12, intensities=False, gt="none")
+    (folder / "filenames.txt").unlink()
+    for k in range(12):  # 001.png -> img1.png ... img12.png: natural order puts img2 before img10
+        (folder / f"{k + 1:03d}.png").rename(folder / f"img{k + 1}.png")
+    cap = open_capture(folder)
+    assert [p.name for p in cap.image_paths] == [f"img{k + 1}.png" for k in range(12)]
+    assert cap.mask_path is not None and cap.gt_path is None  # mask.png is not taken as an input image
+    assert np.all(cap.intensities == 1)
+
+
+def test_names_txt_and_single_column_intensities(tmp_path):
+    folder = tmp_path / "obj"
+    write_capture(folder, n=6)
+    (folder / "filenames.txt").rename(folder / "names.txt")
+    np.savetxt(folder / "light_intensities.txt", np.full((6, 1), 2.0))
+    cap = open_capture(folder)
+    assert cap.intensities.shape == (6, 3) and np.all(cap.intensities == 2.0)
+
+
+def test_ground_truth_png_and_mat_agree(tmp_path):
+    a = write_capture(tmp_path / "a", gt="mat")
+    write_capture(tmp_path / "b", gt="png")
+    ga = load_ground_truth(open_capture(tmp_path / "a"))
+    gb = load_ground_truth(open_capture(tmp_path / "b"))
+    m = a["mask"]
+    assert angular_error(ga, gb, m).max() < 0.01  # 16-bit PNG encoding error is tiny
+
+
+def test_no_mask_means_whole_image(tmp_path):
+    write_capture(tmp_path / "o", mask=False)
+    assert load_mask(open_capture(tmp_path / "o")).all()
+
+
+def test_object_name():
+    assert object_name("/x/ballPNG") == "ball" and object_name("/x/PNG") == "PNG" and object_name("cat") == "cat"
+
+
+def test_benchmark_root(tmp_path):
+    write_capture(tmp_path / "root" / "aPNG", n=4)
+    write_capture(tmp_path / "root" / "bPNG", n=4)
+    assert [p.name for p in find_objects(tmp_path / "root")] == ["aPNG", "bPNG"]
+    (tmp_path / "root" / "objects.txt").write_text("bPNG\n")
+    assert [p.name for p in find_objects(tmp_path / "root")] == ["bPNG"]
+    with pytest.raises(PsctlError, match="benchmark root"):
+        open_capture(tmp_path / "root")
+
+
+def test_select_images():
+    assert list(select_images(10, None, None)) == list(range(10))
+    assert list(select_images(10, 3, None)) == [0, 1, 2]
+    a, b = select_images(10, 4, seed=1), select_images(10, 4, seed=1)
+    assert list(a) == list(b) and len(set(a)) == 4
+
+
+def test_bounding_box_multiple():
+    m = np.zeros((50, 60), bool)
+    m[10:21, 5:9] = True
+    ys, xs = bounding_box(m, margin=2, multiple=4)
+    assert (ys.stop - ys.start) % 4 == 0 and (xs.stop - xs.start) % 4 == 0
+    assert ys.start <= 8 and ys.stop >= 23 and xs.start <= 3 and xs.stop >= 11
+
+
+@pytest.mark.parametrize("fmt,name,tol", [("png16", "n.png", 0.01), ("png8", "n8.png", 0.5), ("exr", "n.exr", 1e-4),
+                                          ("npy", "n.npy", 1e-5)])
+def test_normal_map_round_trip(tmp_path, fmt, name, tol):
+    from tests.conftest import sphere
+
+    n, m = sphere(32)
+    write_normal_map(tmp_path / name, n, m, fmt)
+    back = read_normal_map(tmp_path / name)
+    assert angular_error(back, n, m).max() < tol
+    assert np.all(back[~m] == 0)
