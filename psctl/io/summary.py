@@ -101,7 +101,7 @@ def render_normals(r: dict, quiet: bool = False) -> None:
                  f"<11.25° {w['11.25']:.1%}, <22.5° {w['22.5']:.1%}, <30° {w['30']:.1%}")
     if r.get("n_dark"):
         line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
-    con.print(line, highlight=False)
+    con.print(line, highlight=False, soft_wrap=True)
     for key, p in r["outputs"].items():
         con.print(f"  wrote {p}", highlight=False)
 
