@@ -15,39 +15,66 @@ from pathlib import Path
 import numpy as np
 
 from psctl.errors import PsctlError
+from psctl.models import NETWORK_METHODS
 
 # progress(description, total) -> advance(n): how library code reports progress without
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
-METHODS = ("auto", "l2")
+METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn")
+NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
 
 
 def _noop(_: int) -> None:
     pass
 
 
-def resolve_method(method: str, calibrated: bool) -> tuple[str, str | None]:
-    """Map a user-facing method name to a concrete one; return (method, note for the user)."""
+def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None) -> tuple[str, str | None]:
+    """Map a user-facing method name to a concrete one; return (method, note for the user).
+
+    auto: the method of ``weights`` when given, else ps-fcn-n, then ps-fcn when their weights
+    are installed (calibrated folders), else l2.
+    """
     method = method.lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if method == "auto" and weights is not None:
+        from psctl.models.weights import method_of
+
+        method, note = method_of(weights)
+        if NETWORK_METHODS[method]["lights"] and not calibrated:
+            raise PsctlError(None, f"{weights} holds {method} weights, which need light_directions.txt")
+        return method, note or f"auto: {method} (from {weights})"
     if method == "auto":
         if not calibrated:
             raise PsctlError(None, "the folder has no light_directions.txt and no uncalibrated method is installed yet")
+        from psctl.models.weights import installed_path
+
+        for m in ("ps-fcn-n", "ps-fcn"):
+            if installed_path(m) is not None:
+                return m, None
         return "l2", "auto: no trained network weights are installed yet, using l2 (least squares)"
+    if weights is not None and method not in NETWORKS:
+        raise PsctlError(weights, f"--weights is for the network methods ({', '.join(NETWORKS)}), not {method}")
+    if method in NETWORKS and NETWORK_METHODS[method]["lights"] and not calibrated:
+        raise PsctlError(None, f"{method} needs light directions (light_directions.txt); "
+                               "ups-fcn works without them")
     return method, None
 
 
-def estimate_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray | None = None,
-                     method: str = "l2") -> np.ndarray:
+def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
+                     method: str = "l2", weights: str | os.PathLike | None = None,
+                     device: str = "auto") -> np.ndarray:
     """Normals from arrays.
 
     Args:
         images: [N, H, W, 3] (or [N, H, W]) linear images, already divided by light intensities.
-        lights: [N, 3] unit light directions, x right / y up / z toward the camera.
+        lights: [N, 3] unit light directions, x right / y up / z toward the camera (None for
+            ups-fcn).
         mask: [H, W] bool; normals outside are 0.
-        method: "l2" (or "auto").
+        method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn" or "auto".
+        weights: a weights file for the network methods (default: the installed ones).
+        device: auto | cpu | cuda, for the network methods.
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -56,10 +83,17 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray | 
         raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
     if not np.isfinite(images).all():
         raise PsctlError(None, "images contain NaN or infinite values")
-    lights = np.asarray(lights, np.float32)
-    if lights.shape != (images.shape[0], 3):
-        raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
-    method, _ = resolve_method(method, calibrated=True)
+    if lights is not None:
+        lights = np.asarray(lights, np.float32)
+        if lights.shape != (images.shape[0], 3):
+            raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
+    method, _ = resolve_method(method, calibrated=lights is not None, weights=weights)
+    if method in NETWORKS:
+        from psctl.infer import array_normals
+
+        return array_normals(images, lights, mask, method, weights, {"device": device}).normals
+    if lights is None:
+        raise PsctlError(None, f"{method} needs light directions")
     from psctl.classic import l2_normals
 
     return l2_normals(images, lights, mask).normals
@@ -68,14 +102,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray | 
 def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
                 formats: tuple[str, ...] | list[str] = ("png16", "exr"), n_images: int | None = None,
                 seed: int | None = None, write: bool = True,
-                progress: ProgressFactory | None = None) -> dict:
+                progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
+                device: str = "auto") -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
     n_images, height, width, seconds, outputs, mae, median, within, plus n_dark and notes.
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``; with ground truth also ``error.png`` and ``report.json``. Default folder:
-    ``PATH/psctl``. Either all files appear or none.
+    ``PATH/psctl``. Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
+    cpu | cuda) are for the network methods.
     """
     from psctl.classic import L2Accumulator
     from psctl.io.atomic import check_output_dir, staged_outputs
@@ -88,7 +124,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     progress = progress or (lambda desc, total: _noop)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
-    method, note = resolve_method(method, cap.calibrated)
+    method, note = resolve_method(method, cap.calibrated, weights)
     notes = [note] if note else []
     if method == "l2":
         if not cap.calibrated:
@@ -104,16 +140,23 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     box = bounding_box(mask)
 
     # --- solve -------------------------------------------------------------------------------
-    acc = L2Accumulator(mask[box])
-    advance = progress(f"{cap.name}: reading + l2", cap.n_images)
-    for k, img in enumerate(iter_images(cap, box)):
-        acc.add(img, cap.lights[k])
-        advance(1)
-    res = acc.solve()
-    normals = np.zeros((cap.height, cap.width, 3), np.float32)
-    normals[box] = res.normals
-    dark = np.zeros(mask.shape, bool)
-    dark[box] = res.dark
+    if method in NETWORKS:
+        from psctl.infer import capture_normals
+
+        net = capture_normals(cap, mask, method, weights, {"device": device}, progress)
+        normals, dark = net.normals, net.dark
+        notes += net.notes
+    else:
+        acc = L2Accumulator(mask[box])
+        advance = progress(f"{cap.name}: reading + l2", cap.n_images)
+        for k, img in enumerate(iter_images(cap, box)):
+            acc.add(img, cap.lights[k])
+            advance(1)
+        res = acc.solve()
+        normals = np.zeros((cap.height, cap.width, 3), np.float32)
+        normals[box] = res.normals
+        dark = np.zeros(mask.shape, bool)
+        dark[box] = res.dark
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
 

@@ -25,6 +25,9 @@ app = typer.Typer(
 
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn (auto: ps-fcn-n when its weights are installed, else l2).")]
+WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 
 
 def _stderr():
@@ -90,11 +93,13 @@ def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchm
 @app.command()
 def normals(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
-    method: Annotated[str, typer.Option("--method", "-m", help="auto | l2")] = "auto",
+    method: MethodOpt = "auto",
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder [default: PATH/psctl].")] = None,
     fmt: Annotated[str, typer.Option("--format", "-f", help="Comma list of png16, png8, exr, npy.")] = "png16,exr",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -106,7 +111,7 @@ def normals(
         formats = parse_formats(fmt)
         with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
             report = run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
-                                 progress=progress)
+                                 progress=progress, weights=weights, device=device)
         if json_out:
             _print_json(report)
             return
@@ -119,10 +124,12 @@ def normals(
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder")] = "diligent",
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects).")] = None,
-    method: Annotated[str, typer.Option("--method", "-m", help="auto | l2")] = "auto",
+    method: MethodOpt = "auto",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object.")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/.")] = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -132,7 +139,7 @@ def evaluate(
 
         with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
             result = run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
-                                   progress=progress)
+                                   progress=progress, weights=weights, device=device)
         if json_out:
             _print_json(result)
             return

@@ -45,11 +45,13 @@ def default_diligent_root() -> Path:
 def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method: str = "auto",
                   n_images: int | None = None, seed: int | None = None,
                   out: str | os.PathLike | None = None,
-                  progress: ProgressFactory | None = None) -> dict:
+                  progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
+                  device: str = "auto") -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
+    ``weights`` (a file) and ``device`` are passed on to the network methods.
     """
     from psctl.io.capture import find_objects
 
@@ -66,7 +68,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     used_method = method
     for folder in folders:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / folder.name,
-                        n_images=n_images, seed=seed, write=out is not None, progress=progress)
+                        n_images=n_images, seed=seed, write=out is not None, progress=progress,
+                        weights=weights, device=device)
         if r["mae"] is None:
             raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png)")
         used_method = r["method"]

@@ -1,0 +1,435 @@
+"""The inference engine for PS-FCN-style networks: memory bounded in the number of images and in
+the image size, results equal to one pass of the network over the whole stack.
+
+The authors' test code stacks every image, runs the extractor on each, keeps every feature map
+and takes the max at the end: memory grows with the number of images (about 14 GB for one
+96-image DiLiGenT object). Here:
+
+1. Crop. Only the mask's bounding box is processed, grown by ``margin`` (>= the network's
+   receptive field radius, so the crop does not change the result) and aligned to multiples of 4
+   (the network's stride, so the sampling grid stays that of the full image). Pixels outside the
+   mask are zeroed (as the authors do); the result is pasted back into the full frame.
+2. Streaming fusion. Images are read one at a time and go through the extractor in chunks of
+   ``chunk``; the fused feature keeps a running max (or sum for mean fusion). Memory: one fused
+   map [128, h/2, w/2] plus one chunk, whatever the number of images.
+3. +N needs every image of a pixel before any goes through the network (the norm runs over the
+   images). A first pass accumulates the per-pixel sum of squares ([h, w, 3], cheap) and keeps up
+   to ``cache_mb`` of the cropped images; the second pass re-reads only the images not kept.
+4. Tiling. Regions larger than ``tile`` are cut into tiles, each grown by ``halo`` (>= the
+   receptive field radius, a multiple of 4): the max fusion is per pixel and the halo holds every
+   input an inner pixel sees, so tiled == untiled (the zero padding at a tile border only reaches
+   the halo). Tiles are grouped so that at most ``group_mb`` of fused features are held at once;
+   each group is one pass over the images.
+
+channels_last and torch.inference_mode throughout; ``device`` auto | cpu | cuda. Autocast
+(bf16/fp16) is available on CUDA only and off by default: it has not been checked for accuracy.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from psctl.errors import PsctlError
+from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
+
+if TYPE_CHECKING:
+    import torch
+
+    from psctl.api import ProgressFactory
+    from psctl.io.capture import Capture
+    from psctl.models.ps_fcn import PSFCN
+
+DEFAULT_INFER = {
+    "device": "auto",  # auto | cpu | cuda (| cuda:N)
+    "chunk": 4,  # images per extractor batch (fewer for large tiles, see work_mb)
+    "crop": True,  # process only the mask's bounding box (+ margin)
+    "margin": HALO,  # context kept around the mask's bounding box, pixels
+    "tile": 512,  # tile side (kept output), pixels; larger regions are tiled
+    "halo": HALO,  # context kept around each tile, pixels (>= receptive field radius)
+    "group_mb": 256,  # fused features held per pass over the images
+    "cache_mb": 128,  # cropped images kept from the first pass for the next ones
+    "work_mb": 512,  # extractor activations per chunk (caps chunk for large tiles)
+    "channels_last": True,
+    "autocast": None,  # None | "bf16" | "fp16" (CUDA only; unvalidated, so off by default)
+}
+
+FEATURES = 128  # extractor output channels
+_BYTES_PER_PIXEL = 400  # extractor activations per input pixel and image (fp32, channels_last: 384 measured)
+DARK = 1e-6  # a pixel whose brightest observation is below this carries no information
+
+# reader(start, box) yields images start, start + 1, ... as float32 [h, w, 3] cropped to box.
+Reader = Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]
+
+
+@dataclass
+class InferResult:
+    normals: np.ndarray  # [H, W, 3] float32 unit normals, 0 outside the mask
+    dark: np.ndarray  # [H, W] bool: mask pixels dark in every image (the network still answers)
+    info: dict = field(default_factory=dict)  # device, region, tiles, passes, seconds, ...
+    notes: list[str] = field(default_factory=list)
+
+
+# --- geometry ---------------------------------------------------------------------------------
+
+def _ceil(v: int, m: int) -> int:
+    return -(-v // m) * m
+
+
+def crop_region(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the mask's bounding box grown by ``margin``, corners on multiples of
+    STRIDE. y1/x1 may pass the image by < STRIDE (zero padding, as the authors pad)."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    y0 = max(int(ys.min()) - margin, 0) // STRIDE * STRIDE
+    x0 = max(int(xs.min()) - margin, 0) // STRIDE * STRIDE
+    y1 = _ceil(min(int(ys.max()) + 1 + margin, h), STRIDE)
+    x1 = _ceil(min(int(xs.max()) + 1 + margin, w), STRIDE)
+    return y0, y1, x0, x1
+
+
+@dataclass(frozen=True)
+class Tile:
+    inner: tuple[int, int, int, int]  # y0, y1, x0, x1 of the output kept, region coordinates
+    outer: tuple[int, int, int, int]  # inner grown by the halo, clipped to the region
+
+    @property
+    def fused_bytes(self) -> int:
+        y0, y1, x0, x1 = self.outer
+        return FEATURES * (y1 - y0) // 2 * (x1 - x0) // 2 * 4
+
+
+def plan_tiles(h: int, w: int, tile: int, halo: int) -> list[Tile]:
+    """Tiles covering an h x w region (multiples of STRIDE), row-major."""
+    if h % STRIDE or w % STRIDE:
+        raise ValueError(f"region {h}x{w} is not a multiple of {STRIDE}")
+    if tile < STRIDE or tile % STRIDE or halo % STRIDE or halo < 0:
+        raise PsctlError(None, f"tile ({tile}) and halo ({halo}) must be multiples of {STRIDE}, tile >= {STRIDE}")
+    tiles = []
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
+            outer = (max(y0 - halo, 0), min(y1 + halo, h), max(x0 - halo, 0), min(x1 + halo, w))
+            tiles.append(Tile((y0, y1, x0, x1), outer))
+    return tiles
+
+
+def group_tiles(tiles: list[Tile], limit_bytes: int) -> list[list[Tile]]:
+    """Consecutive tiles whose fused features together stay under ``limit_bytes`` (>= 1 tile)."""
+    groups: list[list[Tile]] = []
+    size = 0
+    for t in tiles:
+        if groups and size + t.fused_bytes <= limit_bytes:
+            groups[-1].append(t)
+            size += t.fused_bytes
+        else:
+            groups.append([t])
+            size = t.fused_bytes
+    return groups
+
+
+def _bbox(tiles: list[Tile]) -> tuple[int, int, int, int]:
+    return (min(t.outer[0] for t in tiles), max(t.outer[1] for t in tiles),
+            min(t.outer[2] for t in tiles), max(t.outer[3] for t in tiles))
+
+
+# --- devices ----------------------------------------------------------------------------------
+
+def pick_device(name: str = "auto") -> "torch.device":
+    """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error."""
+    import torch
+
+    name = (name or "auto").lower()
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    if name == "cuda" or name.startswith("cuda:"):
+        if not torch.cuda.is_available():
+            raise PsctlError(None, f"--device {name}: torch sees no CUDA GPU (torch {torch.__version__}); "
+                                   "use --device cpu or auto")
+        return torch.device(name)
+    raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
+
+
+def _autocast(device: "torch.device", kind: str | None):
+    import contextlib
+
+    import torch
+
+    if kind is None:
+        return contextlib.nullcontext()
+    if device.type != "cuda":
+        raise PsctlError(None, f"autocast {kind} is for CUDA devices only (got {device})")
+    dtypes = {"bf16": torch.bfloat16, "fp16": torch.float16}
+    if kind not in dtypes:
+        raise PsctlError(None, f"unknown autocast {kind!r}; choose from bf16, fp16")
+    return torch.autocast("cuda", dtype=dtypes[kind])
+
+
+# --- the image stream -------------------------------------------------------------------------
+
+class _RegionImages:
+    """The N images cropped to the region, masked, zero padded: [h, w, 3] float32 each.
+
+    Iterable several times. The first pass keeps the first images up to ``cache_bytes``, records
+    each pixel's brightest observation, and checks the values; later passes re-read only the
+    images not kept.
+    """
+
+    def __init__(self, reader: Reader, n: int, box: tuple[int, int, int, int], mask: np.ndarray,
+                 cache_bytes: int, advance: Callable[[int], None]):
+        y0, y1, x0, x1 = box
+        H, W = mask.shape
+        self.reader, self.n, self.advance = reader, n, advance
+        self.read_box = (slice(y0, min(y1, H)), slice(x0, min(x1, W)))
+        self.rh, self.rw = min(y1, H) - y0, min(x1, W) - x0
+        self.shape = (y1 - y0, x1 - x0)
+        self.mask = mask[self.read_box].astype(np.float32)[..., None]
+        self.cache: list[np.ndarray] = []
+        self.cache_bytes = cache_bytes
+        self.peak = np.zeros(self.shape, np.float32)
+        self.passes = 0
+
+    def _prepare(self, img: np.ndarray, k: int) -> np.ndarray:
+        if img.ndim == 2:  # grey: the network takes RGB
+            img = img[..., None]
+        if img.shape[:2] != (self.rh, self.rw):
+            raise PsctlError(None, f"image {k + 1}: size changed while reading")
+        out = np.zeros((*self.shape, 3), np.float32)
+        np.multiply(img[..., :3], self.mask, out=out[: self.rh, : self.rw])
+        return out
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        first = self.passes == 0
+        self.passes += 1
+        yield from self.cache
+        k = len(self.cache)
+        for img in self.reader(k, self.read_box):
+            x = self._prepare(img, k)
+            if first:
+                if not np.isfinite(x).all():
+                    raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
+                np.maximum(self.peak, x.max(-1), out=self.peak)
+                if len(self.cache) == k and (k + 1) * x.nbytes <= self.cache_bytes:
+                    self.cache.append(x)
+            self.advance(1)
+            yield x
+            k += 1
+        if k != self.n:
+            raise PsctlError(None, f"expected {self.n} images, got {k}")
+
+
+# --- the engine -------------------------------------------------------------------------------
+
+def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
+                normalization: str = "none", train_images: int | None = None, config: dict | None = None,
+                progress: "ProgressFactory | None" = None, label: str = "network") -> InferResult:
+    """Normals from a stream of images, memory bounded in N and in the image size.
+
+    Args:
+        model: a PSFCN in eval mode (its device is set here).
+        reader: see ``Reader``; called once per pass over the images.
+        n: number of images.
+        lights: [n, 3] unit light directions (None for UPS-FCN).
+        mask: [H, W] bool, pixels to estimate (the full image size).
+        normalization: "none", "per-channel" or "per-pixel" (+N).
+        train_images: q for the sqrt(t / q) factor of +N.
+        config: overrides of DEFAULT_INFER.
+    Returns:
+        InferResult with [H, W, 3] normals (zero outside the mask).
+    """
+    import torch
+
+    cfg = {**DEFAULT_INFER, **(config or {})}
+    t_start = time.perf_counter()
+    if n < 1:
+        raise PsctlError(None, "no images")
+    if model.uses_lights:
+        if lights is None:
+            raise PsctlError(None, "this network needs light directions (light_directions.txt)")
+        lights = np.asarray(lights, np.float32)
+        if lights.shape != (n, 3):
+            raise PsctlError(None, f"lights must be [{n}, 3], got {lights.shape}")
+    if normalization != "none" and not train_images:
+        raise PsctlError(None, "+N normalisation needs the training image count q")
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        raise PsctlError(None, "mask is empty (no foreground pixel)")
+    device = pick_device(cfg["device"])
+    fmt = torch.channels_last if cfg["channels_last"] else torch.contiguous_format
+    model = model.to(device=device, memory_format=fmt).eval()
+
+    H, W = mask.shape
+    box = crop_region(mask, cfg["margin"]) if cfg["crop"] else (0, _ceil(H, STRIDE), 0, _ceil(W, STRIDE))
+    h, w = box[1] - box[0], box[3] - box[2]
+    tiles = plan_tiles(h, w, cfg["tile"], cfg["halo"])
+    groups = group_tiles(tiles, cfg["group_mb"] << 20)
+    passes = len(groups) + (normalization != "none")
+    advance = (progress or (lambda d, t: (lambda k: None)))(label, n * passes)
+    stream = _RegionImages(reader, n, box, mask, cfg["cache_mb"] << 20, advance)
+
+    # +N, pass 1: per-pixel sum of squares over the images -> one scale per pixel (and channel).
+    scale = None
+    if normalization != "none":
+        # float64: the sum (so the result) does not depend on the order of the images
+        sumsq = np.zeros((h, w, 3 if normalization == "per-channel" else 1), np.float64)
+        for img in stream:
+            sq = img * img
+            sumsq += sq if normalization == "per-channel" else sq.sum(-1, keepdims=True)
+        scale = np.sqrt(sumsq, out=sumsq)  # in place: for a large region these maps are big
+        scale += NORM_EPS
+        np.divide(math.sqrt(n / train_images), scale, out=scale)
+        del sumsq
+
+    out = np.zeros((h, w, 3), np.float32)
+    dtype = next(model.parameters()).dtype  # float32; float64 in tests that check exactness
+    scale_t = None if scale is None else torch.from_numpy(scale).to(dtype)
+    del scale
+    light_t = None if lights is None or not model.uses_lights else torch.from_numpy(lights).to(dtype)
+    chunk_used = cfg["chunk"]
+    with torch.inference_mode(), _autocast(device, cfg["autocast"]):
+        for group in groups:
+            gy0, gy1, gx0, gx1 = _bbox(group)
+            largest = max((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in group)
+            chunk = max(1, min(cfg["chunk"], (cfg["work_mb"] << 20) // (largest * _BYTES_PER_PIXEL)))
+            chunk_used = min(chunk_used, chunk)
+            fused: list[torch.Tensor | None] = [None] * len(group)
+            pending: list[np.ndarray] = []
+            k0 = 0
+            for k, img in enumerate(stream):
+                pending.append(img[gy0:gy1, gx0:gx1])
+                if len(pending) < chunk and k < n - 1:
+                    continue
+                xt = torch.from_numpy(np.stack(pending)).to(dtype)  # [c, gh, gw, 3]
+                if scale_t is not None:
+                    xt *= scale_t[gy0:gy1, gx0:gx1]
+                lt = None if light_t is None else light_t[k0 : k + 1]
+                for i, t in enumerate(group):
+                    oy0, oy1, ox0, ox1 = t.outer
+                    sub = xt[:, oy0 - gy0 : oy1 - gy0, ox0 - gx0 : ox1 - gx0]  # [c, th, tw, 3]
+                    if lt is not None:  # light direction as 3 more channels, built in NHWC
+                        sub = torch.cat([sub, lt[:, None, None, :].expand(*sub.shape[:3], 3)], -1)
+                    inp = sub.permute(0, 3, 1, 2).to(device, non_blocking=True).contiguous(memory_format=fmt)
+                    feat = model.extractor(inp)  # [c, 128, th/2, tw/2]
+                    # element-wise per image: amax(0) over a channels_last batch is several times slower
+                    first = 0
+                    if fused[i] is None:
+                        fused[i], first = feat[:1].clone(), 1
+                    for j in range(first, feat.shape[0]):
+                        if model.config["fuse"] == "max":
+                            torch.maximum(fused[i], feat[j : j + 1], out=fused[i])
+                        else:
+                            fused[i] += feat[j : j + 1]
+                    del feat, inp
+                pending, k0 = [], k + 1
+            for i, t in enumerate(group):
+                f = fused[i] if model.config["fuse"] == "max" else fused[i] / n
+                nrm = model.regress(f.contiguous(memory_format=fmt))[0].float().permute(1, 2, 0).cpu().numpy()
+                fused[i] = None
+                iy0, iy1, ix0, ix1 = t.inner
+                oy0, ox0 = t.outer[0], t.outer[2]
+                out[iy0:iy1, ix0:ix1] = nrm[iy0 - oy0 : iy1 - oy0, ix0 - ox0 : ix1 - ox0]
+
+    if not np.isfinite(out).all():  # a bug, never a user error: fail loudly
+        raise RuntimeError("internal error: non-finite normals")
+    normals = np.zeros((H, W, 3), np.float32)
+    region = stream.read_box
+    inside = mask[region]
+    normals[region] = np.where(inside[..., None], out[: stream.rh, : stream.rw], 0.0)
+    dark = np.zeros((H, W), bool)
+    dark[region] = inside & (stream.peak[: stream.rh, : stream.rw] < DARK)
+    info = {
+        "device": str(device), "region": [int(v) for v in box], "tiles": len(tiles), "passes": passes,
+        "chunk": int(chunk_used), "cached_images": len(stream.cache), "normalization": normalization,
+        "train_images": train_images, "seconds": round(time.perf_counter() - t_start, 3),
+    }
+    return InferResult(normals, dark, info)
+
+
+# --- entry points -----------------------------------------------------------------------------
+
+def _prepare_network(method: str, weights: str | Path | None, config: dict | None):
+    from psctl.models.weights import load_network
+
+    cfg = {**DEFAULT_INFER, **(config or {})}
+    device = pick_device(cfg["device"])
+    model, run, w = load_network(method, weights, device="cpu")
+    if cfg["autocast"] is not None:
+        _autocast(device, cfg["autocast"])  # validate before any work
+    note = f"{method}: weights {w.path}" + (" (the authors' checkpoint)" if w.official else "")
+    return model, run, note
+
+
+def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None, method: str,
+                  weights: str | Path | None = None, config: dict | None = None,
+                  progress: "ProgressFactory | None" = None) -> InferResult:
+    """A network method on in-memory images [N, H, W, 3] (or [N, H, W]), lights [N, 3]."""
+    model, run, note = _prepare_network(method, weights, config)
+    images = np.asarray(images, np.float32)
+    n, H, W = images.shape[:3]
+    mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (H, W):
+        raise PsctlError(None, f"mask must be [{H}, {W}], got {mask.shape}")
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        for k in range(start, n):
+            yield images[k][box]
+
+    res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method)
+    res.notes.append(note)
+    return res
+
+
+def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
+                    config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
+    """A network method on a capture folder, streaming its images from disk."""
+    from psctl.io.capture import iter_images
+
+    model, run, note = _prepare_network(method, weights, config)
+    if model.uses_lights and not capture.calibrated:
+        raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        yield from iter_images(capture.subset(range(start, capture.n_images)), box)
+
+    res = run_network(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
+                      run["train_images"], config, progress, f"{capture.name}: reading + {method}")
+    res.notes.append(note)
+    return res
+
+
+def all_at_once_normals(model: "PSFCN", images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
+                        normalization: str = "none", train_images: int | None = None) -> np.ndarray:
+    """The straightforward implementation (as the authors' test code): the whole frame padded
+    to a multiple of 4, every image through the extractor, every feature map kept, max at the
+    end. Memory grows with N. The oracle for tests and the baseline for benchmarks.
+
+    images [N, H, W, 3], lights [N, 3] -> normals [H, W, 3] (zero outside the mask).
+    """
+    import torch
+
+    from psctl.models.ps_fcn import normalize_observations
+
+    images = np.asarray(images, np.float32)
+    n, H, W = images.shape[:3]
+    mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
+    Hp, Wp = _ceil(H, STRIDE), _ceil(W, STRIDE)
+    dtype = next(model.parameters()).dtype
+    x = torch.zeros(n, 3, Hp, Wp, dtype=dtype)
+    x[:, :, :H, :W] = torch.from_numpy(images * mask[None, ..., None]).permute(0, 3, 1, 2)
+    x = normalize_observations(x, normalization, train_images)
+    lt = None if lights is None or not model.uses_lights else torch.from_numpy(np.asarray(lights, np.float32)).to(dtype)
+    model = model.to("cpu").eval()
+    with torch.inference_mode():
+        feats = [model.extract(x[k : k + 1], None if lt is None else lt[k : k + 1]) for k in range(n)]
+        stacked = torch.cat(feats, 0)
+        fused = stacked.amax(0, keepdim=True) if model.config["fuse"] == "max" else stacked.mean(0, keepdim=True)
+        normals = model.regress(fused)[0].float().permute(1, 2, 0).numpy()[:H, :W]
+    return np.where(mask[..., None], normals, 0.0).astype(np.float32)

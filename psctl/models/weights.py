@@ -1,0 +1,301 @@
+"""Network weights: where installed weights live, the two file formats psctl reads, saving ours.
+
+Installed weights are found by method name: ``<weights dir>/<method>.pt`` with ``-`` written as
+``_`` (``ps-fcn-n`` -> ``ps_fcn_n.pt``). The weights dir is ``$PSCTL_WEIGHTS`` when set, else
+``weights/`` at the repository root (an editable install; a wheel carries no weights).
+
+psctl's format, a ``torch.save`` of plain containers, read with ``torch.load(weights_only=True)``
+(tensors, dicts, lists, strings and numbers only: loading never runs pickled code):
+
+    {"format": "psctl-weights", "version": 1,
+     "state_dict": {parameter name: tensor},
+     "metadata": {"method": "ps-fcn-n", "architecture": {PSFCN config},
+                  "normalization": "per-channel", "train_images": q,
+                  "recipe": {...}, "data": ..., "date": "...", "metrics": {...}, ...}}
+
+The authors' release format, ``*.pth.tar`` = ``{"state_dict": ..., "model": "PS_FCN"}``, loads too
+(``--weights FILE``); it records neither the method nor +N, so the method given by the user
+decides the normalisation, with q = 32 (the authors' ``train_img_num``).
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from psctl.errors import PsctlError
+from psctl.models import NETWORK_METHODS
+
+if TYPE_CHECKING:  # torch is imported inside the functions: finding files must stay cheap
+    import torch
+
+    from psctl.models.ps_fcn import PSFCN
+
+FORMAT = "psctl-weights"
+VERSION = 1
+SUFFIX = ".pt"
+OFFICIAL_TRAIN_IMAGES = 32  # the authors' --train_img_num default, the q of their +N model
+ENV_VAR = "PSCTL_WEIGHTS"
+_SHOW = 3  # how many offending keys an error message names
+
+
+@dataclass
+class Weights:
+    """A weights file, read and checked for format (not yet against an architecture)."""
+
+    path: Path
+    state_dict: dict[str, "torch.Tensor"]
+    metadata: dict[str, Any]
+    official: bool  # the authors' *.pth.tar format (no psctl metadata)
+
+    @property
+    def method(self) -> str | None:
+        return self.metadata.get("method")
+
+    @property
+    def lights(self) -> bool:
+        return bool(self.metadata["architecture"].get("lights", True))
+
+
+# --- where ------------------------------------------------------------------------------------
+
+def weights_dir() -> Path:
+    """$PSCTL_WEIGHTS if set, else weights/ at the repository root (next to the psctl package)."""
+    env = os.environ.get(ENV_VAR)
+    if env:
+        return Path(env).expanduser()
+    return Path(__file__).resolve().parents[2] / "weights"
+
+
+def file_name(method: str) -> str:
+    return method.replace("-", "_") + SUFFIX
+
+
+def installed_path(method: str) -> Path | None:
+    """The installed weights file of a network method, or None."""
+    p = weights_dir() / file_name(method)
+    return p if p.is_file() else None
+
+
+def no_weights_error(method: str) -> PsctlError:
+    where = weights_dir() / file_name(method)
+    return PsctlError(
+        None,
+        f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
+        f"folder). Pass a weights file with --weights FILE: psctl's own (see weights/README.md) or the "
+        f"authors' released checkpoint (e.g. PS-FCN_B_S_32.pth.tar for ps-fcn, "
+        f"PS-FCN_B_S_32_normalize.pth.tar for ps-fcn-n; see docs/models.md), or use --method l2",
+    )
+
+
+# --- read -------------------------------------------------------------------------------------
+
+def _torch_load(path: Path) -> Any:
+    import pickle
+    import re
+    import zipfile
+
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        text = " ".join(str(e).split())
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+        if found:  # weights_only refuses anything beyond tensors and plain containers
+            raise PsctlError(path, f"refused: the file holds a Python object ({found.group(1)}) besides tensors "
+                                   "and plain data, and psctl never unpickles arbitrary objects") from None
+        detail = re.search(r"WeightsUnpickler error: (.*?)(?: Check the documentation|$)", text)
+        raise PsctlError(path, "cannot read weights file: not a torch file, or damaged ("
+                               f"{(detail.group(1) if detail else text)[:120].strip()})") from None
+    except (OSError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile) as e:
+        raise PsctlError(path, f"cannot read weights file ({' '.join(str(e).split())[:160]})") from None
+
+
+def read_weights(path: str | os.PathLike) -> Weights:
+    """Read psctl's format or the authors' ``{'state_dict': ...}`` format."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsctlError(path, "weights file not found")
+    obj = _torch_load(path)
+    if not isinstance(obj, dict) or "state_dict" not in obj:
+        raise PsctlError(path, "not a weights file: expected a dict with a 'state_dict' entry "
+                               "(psctl's format or the authors' *.pth.tar)")
+    sd = obj["state_dict"]
+    if not isinstance(sd, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in sd.items()):
+        raise PsctlError(path, "'state_dict' is not a mapping of parameter names to tensors")
+    sd = dict(sd)
+    if sd and all(k.startswith("module.") for k in sd):  # saved from nn.DataParallel
+        sd = {k[len("module."):]: v for k, v in sd.items()}
+
+    if obj.get("format") == FORMAT:
+        if obj.get("version") != VERSION:
+            raise PsctlError(path, f"psctl weights version {obj.get('version')!r}; this psctl reads version {VERSION}")
+        meta = obj.get("metadata")
+        if not isinstance(meta, dict):
+            raise PsctlError(path, "psctl weights without a metadata dict")
+        _check_metadata(meta, path)
+        return Weights(path, sd, meta, official=False)
+
+    # The authors' file: the first layer's input channels say whether it takes lights.
+    w1 = sd.get("extractor.conv1.0.weight")
+    lights = not (w1 is not None and w1.ndim == 4 and w1.shape[1] == 3)
+    meta = {"method": None, "architecture": {"lights": lights, "fuse": "max"}, "normalization": None,
+            "train_images": OFFICIAL_TRAIN_IMAGES, "source": f"authors' checkpoint ({obj.get('model', 'unnamed')})"}
+    return Weights(path, sd, meta, official=True)
+
+
+def _check_metadata(meta: dict, path: Path | None) -> None:
+    from psctl.models.ps_fcn import NORMALIZATIONS
+
+    method = meta.get("method")
+    if method not in NETWORK_METHODS:
+        raise PsctlError(path, f"metadata 'method' is {method!r}; expected one of {', '.join(NETWORK_METHODS)}")
+    if not isinstance(meta.get("architecture"), dict):
+        raise PsctlError(path, "metadata 'architecture' must be a dict (the network config)")
+    norm = meta.get("normalization")
+    if norm not in NORMALIZATIONS:
+        raise PsctlError(path, f"metadata 'normalization' is {norm!r}; expected one of {', '.join(NORMALIZATIONS)}")
+    q = meta.get("train_images")
+    if not isinstance(q, int) or isinstance(q, bool) or q < 1:
+        raise PsctlError(path, f"metadata 'train_images' (q, images per training sample) must be a positive integer, got {q!r}")
+    if bool(meta["architecture"].get("lights", True)) != NETWORK_METHODS[method]["lights"]:
+        raise PsctlError(path, f"metadata says {method} but the architecture's 'lights' is {meta['architecture'].get('lights')}")
+    if (method == "ps-fcn-n") != (norm != "none") and method != "ups-fcn":
+        raise PsctlError(path, f"metadata says {method} with normalization {norm!r}: ps-fcn-n needs +N, ps-fcn has none")
+
+
+def for_method(weights: Weights, method: str) -> dict:
+    """How to run ``weights`` as ``method``: {"normalization", "train_images", "architecture"}.
+
+    Our files must match the method they were trained for; the authors' files take the
+    normalisation from the method (they do not record it).
+    """
+    if method not in NETWORK_METHODS:
+        raise PsctlError(None, f"{method!r} is not a network method ({', '.join(NETWORK_METHODS)})")
+    spec = NETWORK_METHODS[method]
+    if weights.official:
+        if weights.lights != spec["lights"]:
+            has = "takes light directions (PS-FCN)" if weights.lights else "takes no lights (UPS-FCN)"
+            raise PsctlError(weights.path, f"this checkpoint {has}; it cannot run as {method}")
+        return {"normalization": spec["normalization"], "train_images": OFFICIAL_TRAIN_IMAGES,
+                "architecture": dict(weights.metadata["architecture"])}
+    if weights.method != method:
+        raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; pass --method "
+                                       f"{weights.method} (or --method auto)")
+    return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
+            "architecture": dict(weights.metadata["architecture"])}
+
+
+def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
+    """The method a weights file is for, and a note when that is a guess (the authors' files)."""
+    w = read_weights(path)
+    if not w.official:
+        return w.method, None
+    method = "ps-fcn" if w.lights else "ups-fcn"
+    return method, (f"{Path(path).name}: the authors' checkpoints do not record +N; running it as {method} "
+                    f"(pass --method ps-fcn-n for a +N checkpoint such as PS-FCN_B_S_32_normalize.pth.tar)")
+
+
+def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Module") -> None:
+    """Strict key and shape check; the error names the file and the first offending keys."""
+    want = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    have = {k: tuple(v.shape) for k, v in state_dict.items()}
+    missing = [k for k in want if k not in have]
+    unexpected = [k for k in have if k not in want]
+    shapes = [f"{k} {list(have[k])} (expected {list(want[k])})" for k in want if k in have and have[k] != want[k]]
+    problems = []
+    for what, items in (("missing keys", missing), ("unexpected keys", unexpected), ("wrong shapes", shapes)):
+        if items:
+            more = f" and {len(items) - _SHOW} more" if len(items) > _SHOW else ""
+            problems.append(f"{what}: {', '.join(items[:_SHOW])}{more}")
+    if problems:
+        raise PsctlError(path, "does not match the PS-FCN architecture: " + "; ".join(problems))
+
+
+def build_network(weights: Weights, method: str, device: "str | torch.device" = "cpu") -> tuple["PSFCN", dict]:
+    """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``)."""
+    from psctl.models.ps_fcn import PSFCN
+
+    run = for_method(weights, method)
+    arch = {k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")}
+    model = PSFCN(arch)
+    check_state_dict(weights.path, weights.state_dict, model)
+    model.load_state_dict(weights.state_dict, strict=True)
+    return model.to(device).eval(), run
+
+
+def load_network(method: str, weights_file: str | os.PathLike | None = None,
+                 device: "str | torch.device" = "cpu") -> tuple["PSFCN", dict, Weights]:
+    """Find (or read ``weights_file``), check and load the network for ``method``."""
+    if weights_file is None:
+        path = installed_path(method)
+        if path is None:
+            raise no_weights_error(method)
+    else:
+        path = Path(weights_file)
+    weights = read_weights(path)
+    model, run = build_network(weights, method, device)
+    return model, run, weights
+
+
+# --- write ------------------------------------------------------------------------------------
+
+def _plain(value: Any, where: str) -> Any:
+    """Check that metadata holds only plain data (what weights_only loading accepts)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise PsctlError(None, f"metadata key {where}.{k!r} is not a string")
+            out[k] = _plain(v, f"{where}.{k}")
+        return out
+    raise PsctlError(None, f"metadata {where} is a {type(value).__name__}; only plain data "
+                           f"(str, int, float, bool, None, list, dict) can be stored")
+
+
+def save_weights(path: str | os.PathLike, model: "torch.nn.Module | dict", metadata: dict) -> Path:
+    """Write psctl weights atomically.
+
+    Args:
+        path: the file to write (``weights/<method>.pt`` to install).
+        model: a PSFCN (its config becomes ``architecture``) or a state dict.
+        metadata: at least ``method`` and ``train_images`` (q); ``normalization`` defaults to
+            the method's; put the training ``recipe``, ``data`` and ``metrics`` here too. ``date``
+            (UTC, ISO 8601) is added when absent.
+    """
+    import torch
+
+    from psctl.io.atomic import atomic_path
+
+    path = Path(path)
+    meta = _plain(dict(metadata), "metadata")
+    method = meta.get("method")
+    if method not in NETWORK_METHODS:
+        raise PsctlError(None, f"metadata 'method' must be one of {', '.join(NETWORK_METHODS)}, got {method!r}")
+    if isinstance(model, torch.nn.Module):
+        state = model.state_dict()
+        meta.setdefault("architecture", _plain(dict(getattr(model, "config", {})), "architecture"))
+    else:
+        state = model
+    meta.setdefault("architecture", {"lights": NETWORK_METHODS[method]["lights"], "fuse": "max"})
+    meta.setdefault("normalization", NETWORK_METHODS[method]["normalization"])
+    meta.setdefault("date", datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+    for key, default in (("recipe", {}), ("data", None), ("metrics", {})):
+        meta.setdefault(key, default)
+    _check_metadata(meta, None)
+    # clone: a view would drag its whole storage into the file
+    tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in state.items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        torch.save({"format": FORMAT, "version": VERSION, "state_dict": tensors, "metadata": meta}, tmp)
+    return path

@@ -1,0 +1,398 @@
+"""PS-FCN / PS-FCN+N / UPS-FCN: architecture, weights files, and the inference engine.
+
+The networks have seeded random weights: what is tested here (shapes, file formats, and that
+streaming, chunking, cropping and tiling give the same normals as the plain computation) does
+not depend on their values.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from psctl.errors import PsctlError
+from psctl.infer import all_at_once_normals, crop_region, plan_tiles, run_network
+from psctl.models.ps_fcn import HALO, RECEPTIVE_RADIUS, PSFCN, count_parameters, normalize_observations
+from psctl.models.weights import build_network, check_state_dict, read_weights, save_weights
+from tests.conftest import hemisphere_lights, render_lambertian, sphere, write_capture
+
+# The authors' release (models/PS_FCN.py, fuse max, no batch norm, lights in): name -> shape.
+OFFICIAL = {
+    "extractor.conv1.0.weight": (64, 6, 3, 3), "extractor.conv1.0.bias": (64,),
+    "extractor.conv2.0.weight": (128, 64, 3, 3), "extractor.conv2.0.bias": (128,),
+    "extractor.conv3.0.weight": (128, 128, 3, 3), "extractor.conv3.0.bias": (128,),
+    "extractor.conv4.0.weight": (256, 128, 3, 3), "extractor.conv4.0.bias": (256,),
+    "extractor.conv5.0.weight": (256, 256, 3, 3), "extractor.conv5.0.bias": (256,),
+    "extractor.conv6.0.weight": (256, 128, 4, 4),
+    "extractor.conv7.0.weight": (128, 128, 3, 3), "extractor.conv7.0.bias": (128,),
+    "regressor.deconv1.0.weight": (128, 128, 3, 3), "regressor.deconv1.0.bias": (128,),
+    "regressor.deconv2.0.weight": (128, 128, 3, 3), "regressor.deconv2.0.bias": (128,),
+    "regressor.deconv3.0.weight": (128, 64, 4, 4),
+    "regressor.est_normal.0.weight": (3, 64, 3, 3),
+}
+
+
+def model(lights: bool = True, seed: int = 0, double: bool = False) -> PSFCN:
+    """Seeded random weights. double: float64, for checks of exactness (streaming, chunking,
+    cropping, tiling) that float32 rounding would blur; the engine follows the model's dtype."""
+    torch.manual_seed(seed)
+    net = PSFCN({"lights": lights}).eval()
+    return net.double() if double else net
+
+
+def scene(n: int = 8, h: int = 37, w: int = 45, seed: int = 0):
+    """Random non-negative images [n, h, w, 3], unit lights [n, 3], an off-centre mask."""
+    rng = np.random.default_rng(seed)
+    images = rng.uniform(0, 1, (n, h, w, 3)).astype(np.float32)
+    lights = hemisphere_lights(n, 60, seed)
+    yy, xx = np.mgrid[:h, :w]
+    mask = (yy - 0.45 * h) ** 2 + (xx - 0.55 * w) ** 2 < (0.35 * min(h, w)) ** 2
+    return images, lights, mask
+
+
+def stream(images, lights, mask, net=None, normalization="none", q=None, **config) -> np.ndarray:
+    net = net or model()
+    n = len(images)
+
+    def reader(start, box):
+        for k in range(start, n):
+            yield images[k][box]
+
+    return run_network(net, reader, n, lights, mask, normalization, q, config).normals
+
+
+# --- architecture ----------------------------------------------------------------------------
+
+def test_parameter_count():
+    assert count_parameters(model()) == 2_210_048
+    assert count_parameters(model(lights=False)) == 2_210_048 - 3 * 64 * 9  # UPS-FCN: no light input
+
+
+def test_official_names_and_shapes():
+    assert {k: tuple(v.shape) for k, v in model().state_dict().items()} == OFFICIAL
+
+
+def test_forward_shapes_and_unit_normals():
+    net = model()
+    x = torch.rand(2, 5, 3, 16, 20)
+    lights = torch.nn.functional.normalize(torch.randn(2, 5, 3), dim=-1)
+    with torch.no_grad():
+        out = net(x, lights)
+    assert out.shape == (2, 3, 16, 20)
+    assert torch.allclose(out.norm(dim=1), torch.ones(2, 16, 20), atol=1e-5)
+
+
+def test_receptive_field_within_halo():
+    """An output pixel depends on inputs at most RECEPTIVE_RADIUS px away (all 4 stride phases),
+    and HALO covers it: the premise of exact tiling and cropping."""
+    net = model()
+    size, centre = 64, 28
+    x = torch.rand(4, 1, 3, size, size, requires_grad=True)
+    lights = torch.tensor([[[0.3, 0.2, 0.93]]]).expand(4, 1, 3)
+    out = net(x, lights)
+    # scene p looks at output pixel (centre + p, centre + p): every phase mod 4 in y and x
+    sum(out[p, :, centre + p, centre + p].sum() for p in range(4)).backward()
+    radii = []
+    for p in range(4):
+        ys, xs = np.nonzero(x.grad[p, 0].abs().sum(0).numpy())
+        c = centre + p
+        radii.append(max(c - ys.min(), ys.max() - c, c - xs.min(), xs.max() - c))
+    assert max(radii) == RECEPTIVE_RADIUS
+    assert HALO >= RECEPTIVE_RADIUS and HALO % 4 == 0
+
+
+# --- weights files ---------------------------------------------------------------------------
+
+def test_official_checkpoint_round_trip(tmp_path):
+    net = model(seed=3)
+    path = tmp_path / "PS-FCN_B_S_32.pth.tar"
+    torch.save({"state_dict": net.state_dict(), "model": "PS_FCN"}, path)  # the authors' layout
+    w = read_weights(path)
+    assert w.official and w.lights
+    loaded, run = build_network(w, "ps-fcn")
+    assert run["normalization"] == "none"
+    x, lights = torch.rand(1, 3, 3, 12, 16), torch.nn.functional.normalize(torch.rand(1, 3, 3), dim=-1)
+    with torch.no_grad():
+        assert torch.equal(loaded(x, lights), net(x, lights))
+    # the same file as the +N model: the method decides, with the authors' q = 32
+    assert build_network(w, "ps-fcn-n")[1] == {"normalization": "per-channel", "train_images": 32,
+                                                "architecture": {"lights": True, "fuse": "max"}}
+    # saved from nn.DataParallel: "module." prefixes are dropped
+    torch.save({"state_dict": {f"module.{k}": v for k, v in net.state_dict().items()}}, tmp_path / "dp.pth.tar")
+    build_network(read_weights(tmp_path / "dp.pth.tar"), "ps-fcn")
+
+
+def test_official_ups_fcn_checkpoint(tmp_path):
+    path = tmp_path / "UPS-FCN_B_S_32.pth.tar"
+    torch.save({"state_dict": model(lights=False).state_dict(), "model": "PS_FCN"}, path)
+    w = read_weights(path)
+    assert not w.lights
+    build_network(w, "ups-fcn")
+    with pytest.raises(PsctlError, match="takes no lights"):
+        build_network(w, "ps-fcn")
+
+
+@pytest.mark.parametrize("change, expected", [
+    ("rename", r"missing keys: extractor\.conv3\.0\.weight; unexpected keys: extractor\.conv3\.0\.kernel"),
+    ("drop", r"missing keys: regressor\.est_normal\.0\.weight$"),
+    ("shape", r"wrong shapes: extractor\.conv1\.0\.weight \[64, 4, 3, 3\] \(expected \[64, 6, 3, 3\]\)"),
+])
+def test_wrong_keys_fail_clearly(tmp_path, change, expected):
+    sd = dict(model().state_dict())
+    if change == "rename":
+        sd["extractor.conv3.0.kernel"] = sd.pop("extractor.conv3.0.weight")
+    elif change == "drop":
+        del sd["regressor.est_normal.0.weight"]
+    else:
+        sd["extractor.conv1.0.weight"] = torch.zeros(64, 4, 3, 3)
+    path = tmp_path / "bad.pth.tar"
+    torch.save({"state_dict": sd}, path)
+    with pytest.raises(PsctlError, match=expected) as err:
+        build_network(read_weights(path), "ps-fcn")
+    assert str(path) in str(err.value) and "does not match the PS-FCN architecture" in str(err.value)
+
+
+def test_key_check_names_at_most_three(tmp_path):
+    sd = {f"x{k}": torch.zeros(1) for k in range(5)}
+    with pytest.raises(PsctlError, match=r"unexpected keys: x0, x1, x2 and 2 more"):
+        check_state_dict(tmp_path / "f.pt", {**model().state_dict(), **sd}, model())
+
+
+class Payload:  # stands for anything a malicious or careless pickle could carry
+    pass
+
+
+def test_refuses_arbitrary_objects_and_garbage(tmp_path):
+    evil = tmp_path / "evil.pth.tar"
+    torch.save({"state_dict": model().state_dict(), "extra": Payload()}, evil)
+    with pytest.raises(PsctlError, match="never unpickles arbitrary objects"):
+        read_weights(evil)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a torch file at all")
+    with pytest.raises(PsctlError, match="cannot read weights file"):
+        read_weights(junk)
+    torch.save({"weights": 1}, tmp_path / "nodict.pt")
+    with pytest.raises(PsctlError, match="'state_dict'"):
+        read_weights(tmp_path / "nodict.pt")
+    with pytest.raises(PsctlError, match="not found"):
+        read_weights(tmp_path / "missing.pt")
+
+
+def test_save_load_round_trip_with_metadata(tmp_path):
+    net = model(seed=5)
+    meta = {"method": "ps-fcn-n", "train_images": 32, "recipe": {"lr": 1e-3, "batch": 32, "steps": [1, 2]},
+            "data": "psctl synth", "metrics": {"val_mae": 5.5}}
+    path = save_weights(tmp_path / "ps_fcn_n.pt", net, meta)
+    w = read_weights(path)
+    assert not w.official
+    for k, v in meta.items():
+        assert w.metadata[k] == v
+    assert w.metadata["normalization"] == "per-channel" and w.metadata["architecture"]["lights"] is True
+    assert "date" in w.metadata
+    loaded, run = build_network(w, "ps-fcn-n")
+    assert run["train_images"] == 32 and run["normalization"] == "per-channel"
+    for k, v in net.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v)
+    with pytest.raises(PsctlError, match="holds ps-fcn-n weights, not ps-fcn"):
+        build_network(w, "ps-fcn")
+    # metadata must stay plain data (weights_only loading) and name a known method
+    with pytest.raises(PsctlError, match="only plain data"):
+        save_weights(tmp_path / "x.pt", net, {**meta, "recipe": {"path": tmp_path}})
+    with pytest.raises(PsctlError, match="method"):
+        save_weights(tmp_path / "x.pt", net, {**meta, "method": "ps-fcn-x"})
+    with pytest.raises(PsctlError, match="train_images"):
+        save_weights(tmp_path / "x.pt", net, {**meta, "train_images": 0})
+    with pytest.raises(PsctlError, match="ps-fcn-n needs"):
+        save_weights(tmp_path / "x.pt", net, {**meta, "normalization": "none"})
+    assert not (tmp_path / "x.pt").exists()
+
+
+def test_installed_weights_found_by_method(tmp_path, monkeypatch):
+    from psctl.api import estimate_normals, resolve_method
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    images, lights, mask = scene(6, 20, 24)
+    with pytest.raises(PsctlError, match=r"no weights are installed for ps-fcn .*--weights FILE"):
+        estimate_normals(images, lights, mask, method="ps-fcn")
+    assert resolve_method("auto", True)[0] == "l2"
+    save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    assert resolve_method("auto", True) == ("ps-fcn-n", None)
+    n = estimate_normals(images, lights, mask, method="auto")
+    assert n.shape == (20, 24, 3)
+    np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
+    assert not n[~mask].any()
+
+
+# --- normalisation ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("variant", ["per-channel", "per-pixel"])
+def test_normalize_observations_sqrt_t_over_q(variant):
+    x = torch.rand(2, 12, 3, 5, 6) + 0.1  # [B, N, 3, H, W]
+    for q, expect in ((None, 1.0), (3, 2.0), (48, 0.5)):
+        y = normalize_observations(x, variant, q)
+        norm = y.square().sum(1).sqrt() if variant == "per-channel" else y.square().sum((1, 2)).sqrt()
+        torch.testing.assert_close(norm, torch.full_like(norm, expect))
+
+
+def test_engine_applies_sqrt_t_over_q():
+    """+N in the engine == normalising the stack by hand (same q), then the plain network."""
+    images, lights, mask = scene(8)
+    masked = images * mask[None, ..., None]
+    by_hand = normalize_observations(torch.from_numpy(masked).permute(0, 3, 1, 2), "per-channel", 2)
+    by_hand = by_hand.permute(0, 2, 3, 1).numpy()
+    net = model(double=True)
+    ref = stream(by_hand, lights, mask, net)
+    got = stream(images, lights, mask, net, normalization="per-channel", q=2)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    other_q = stream(images, lights, mask, net, normalization="per-channel", q=32)
+    assert np.abs(other_q - got).max() > 1e-3  # q matters
+
+
+@pytest.mark.parametrize("variant", ["per-channel", "per-pixel"])
+def test_plus_n_removes_albedo_from_lambertian_input(variant):
+    normals, mask = sphere(36)
+    lights = hemisphere_lights(10, 50, seed=1)
+    rng = np.random.default_rng(2)
+    shape = (36, 36, 3) if variant == "per-channel" else (36, 36, 1)  # per-pixel: grey albedo only
+    albedo = np.broadcast_to(rng.uniform(0.05, 1.0, shape), (36, 36, 3)).astype(np.float32)
+    plain = render_lambertian(normals, mask, lights, 1.0)
+    painted = render_lambertian(normals, mask, lights, albedo)
+    net = model()
+    a = stream(plain, lights, mask, net, variant, 32)
+    b = stream(painted, lights, mask, net, variant, 32)
+    np.testing.assert_allclose(a, b, atol=1e-4)  # float32 rounding of the division
+    # without +N the albedo does change the output (so the check above can fail)
+    assert np.abs(stream(plain, lights, mask, net) - stream(painted, lights, mask, net)).max() > 1e-2
+
+
+# --- the engine ------------------------------------------------------------------------------
+
+def test_order_invariance():
+    images, lights, mask = scene(9)
+    p = np.random.default_rng(1).permutation(9)
+    for net in (model(), model(double=True)):
+        a = stream(images, lights, mask, net, "per-channel", 32, chunk=4)
+        b = stream(images[p], lights[p], mask, net, "per-channel", 32, chunk=4)
+        np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+@pytest.mark.parametrize("normalization", ["none", "per-channel", "per-pixel"])
+def test_streaming_equals_all_at_once(normalization):
+    """Chunked streaming on the crop == every feature map at once on the whole frame."""
+    images, lights, mask = scene(5, 33, 41)
+    net = model(double=True)
+    ref = all_at_once_normals(net, images, lights, mask, normalization, 3)
+    for chunk, cache_mb in ((1, 0), (3, 0), (7, 128)):
+        got = stream(images, lights, mask, net, normalization, 3, chunk=chunk, cache_mb=cache_mb)
+        np.testing.assert_allclose(got, ref, atol=1e-6)
+    # float32 with channels_last (the fast path): its kernels round differently
+    net = model()
+    np.testing.assert_allclose(stream(images, lights, mask, net, normalization, 3),
+                               all_at_once_normals(net, images, lights, mask, normalization, 3), atol=1e-4)
+
+
+def test_mean_fusion_streams_too():
+    images, lights, mask = scene(5)
+    torch.manual_seed(0)
+    net = PSFCN({"fuse": "mean"}).eval().double()
+    np.testing.assert_allclose(stream(images, lights, mask, net, chunk=2),
+                               all_at_once_normals(net, images, lights, mask), atol=1e-6)
+
+
+def test_tiled_equals_untiled():
+    images, lights, mask = scene(3, 70, 86)
+    mask[:] = True  # the whole frame: tiles everywhere, including the image borders
+    h, w = 72, 88  # the frame padded to a multiple of 4
+    assert len(plan_tiles(h, w, 32, HALO)) == 9
+    for net, normalization, tol in ((model(double=True), "per-channel", 1e-6), (model(), "none", 1e-4)):
+        whole = stream(images, lights, mask, net, normalization, 32)
+        # several groups (one pass over the images each), nothing cached: images re-read
+        tiled = stream(images, lights, mask, net, normalization, 32, tile=32, group_mb=1, cache_mb=0)
+        np.testing.assert_allclose(tiled, whole, atol=tol)
+
+
+def test_too_small_halo_is_not_exact():
+    """The tiling check can fail: with no halo the tile borders show."""
+    images, lights, mask = scene(4, 64, 64)
+    mask[:] = True
+    net = model(double=True)
+    whole = stream(images, lights, mask, net)
+    assert np.abs(stream(images, lights, mask, net, tile=32, halo=0) - whole).max() > 1e-3
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (5, 7), (37, 53), (64, 64), (30, 2)])
+def test_any_image_size(h, w):
+    rng = np.random.default_rng(h * 100 + w)
+    images = rng.uniform(0, 1, (5, h, w, 3)).astype(np.float32)
+    lights = hemisphere_lights(5, 40)
+    mask = rng.uniform(size=(h, w)) < 0.7
+    mask.flat[0] = True
+    for m in (mask, np.ones((h, w), bool)):
+        n = stream(images, lights, m, normalization="per-channel", q=32)
+        assert n.shape == (h, w, 3) and np.isfinite(n).all()
+        np.testing.assert_allclose(np.linalg.norm(n[m], axis=-1), 1, atol=1e-5)
+        assert not n[~m].any()
+
+
+def test_crop_region_is_aligned_and_keeps_context():
+    mask = np.zeros((100, 90), bool)
+    mask[41:50, 30:33] = True
+    y0, y1, x0, x1 = crop_region(mask, HALO)
+    assert (y0, x0) == (16, 4) and y0 % 4 == 0 and x0 % 4 == 0 and (y1 - y0) % 4 == 0 and (x1 - x0) % 4 == 0
+    assert y0 <= 41 - HALO and y1 >= 50 + HALO and x0 <= 30 - HALO and x1 >= 33 + HALO
+
+
+def test_bad_inputs():
+    images, lights, mask = scene(3, 12, 12)
+    with pytest.raises(PsctlError, match="needs light directions"):
+        stream(images, None, mask)
+    with pytest.raises(PsctlError, match="NaN"):
+        bad = images.copy()
+        bad[1, 5, 5, 0] = np.nan
+        stream(bad, lights, np.ones((12, 12), bool))
+    if not torch.cuda.is_available():
+        with pytest.raises(PsctlError, match="no CUDA GPU"):
+            stream(images, lights, mask, device="cuda")
+    with pytest.raises(PsctlError, match="CUDA devices only"):
+        stream(images, lights, mask, device="cpu", autocast="bf16")
+
+
+def test_ups_fcn_without_lights(tmp_path):
+    from psctl.api import estimate_normals
+
+    images, _, mask = scene(4, 16, 16)
+    path = save_weights(tmp_path / "ups.pt", model(lights=False), {"method": "ups-fcn", "train_images": 32})
+    n = estimate_normals(images, None, mask, method="ups-fcn", weights=path)
+    np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
+    with pytest.raises(PsctlError, match="needs light directions"):
+        estimate_normals(images, None, mask, method="ps-fcn", weights=path)
+    with pytest.raises(PsctlError, match="--weights is for the network methods"):
+        estimate_normals(images, np.eye(3)[[2, 2, 2, 2]], mask, method="l2", weights=path)
+
+
+# --- the command -----------------------------------------------------------------------------
+
+def test_cli_network_methods(tmp_path):
+    folder = tmp_path / "spherePNG"
+    write_capture(folder, n=6, size=24)
+    weights = save_weights(tmp_path / "w.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    env = {**os.environ, "COLUMNS": "200", "PSCTL_WEIGHTS": str(tmp_path / "empty")}
+
+    def psctl(*args):
+        return subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True, env=env)
+
+    proc = psctl("normals", folder, "--method", "ps-fcn", "--out", tmp_path / "o0")
+    assert proc.returncode == 2 and "no weights are installed for ps-fcn" in proc.stderr
+    assert "--weights FILE" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o0").exists()
+    proc = psctl("normals", folder, "--weights", weights, "--device", "cpu", "--out", tmp_path / "o1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    assert r["method"] == "ps-fcn-n" and r["n_images"] == 6 and r["mae"] is not None
+    assert sorted(os.listdir(tmp_path / "o1")) == ["error.png", "normal.exr", "normal.png", "report.json"]
