@@ -148,6 +148,36 @@ def evaluate(
         render_benchmark(result)
 
 
+@app.command()
+def synth(
+    out: Annotated[Path, typer.Argument(help="Output folder: one capture folder per object, plus objects.txt.")],
+    preset: Annotated[str, typer.Option("--preset", "-p", help="syntest | dragon-svbrdf | blobby")],
+    seed: Annotated[int, typer.Option(help="Random seed (shapes, materials, lights).")] = 0,
+    size: Annotated[int, typer.Option(help="Image side in pixels.")] = 128,
+    lights: Annotated[int, typer.Option(help="Lights (images) per object.")] = 100,
+    materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
+    preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Render synthetic objects as DiLiGenT-style folders (readable by psctl normals / eval)."""
+    with _user_errors():
+        from psctl.synth import check_preset
+
+        check_preset(preset)  # before the heavy imports: a typo fails at once
+        from psctl.synth.write import write_preset
+
+        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
+            report = write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials,
+                                  preview=preview, progress=progress)
+        if json_out:
+            _print_json(report)
+            return
+        typer.echo(f"wrote {len(report['objects'])} objects to {report['out']} ({report['seconds']:.1f} s)")
+        if report["preview"]:
+            typer.echo(f"preview: {report['preview']}")
+
+
 @app.callback(invoke_without_command=True)
 def _root(version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False) -> None:
     if version:

@@ -1,0 +1,31 @@
+"""Synthetic photometric-stereo data: geometry, materials, lights, rendering, on the fly.
+
+    shapes.py     G-buffers (normal, depth, mask): analytic sphere, procedural blobby SDF shapes
+    meshes.py     OBJ meshes rasterised under rotations; a cache of training views
+    materials.py  MERL ABC fits, GGX (dielectric, metallic), Lambertian; blends and textures
+    lights.py     directional lights over the upper hemisphere; intensities
+    render.py     m = e f(n, l, v) max(n.l, 0) visibility; cast shadows; noise, quantisation
+    stream.py     the training stream (batches of crops, made on the fly; torch only)
+    write.py      DiLiGenT-style folders and a contact sheet (``psctl synth``)
+
+See docs/synthetic.md. Importing this package is cheap (no torch): the modules above are
+imported where needed.
+"""
+
+from __future__ import annotations
+
+from psctl.errors import PsctlError
+
+PRESETS = {
+    "syntest": "sphere, bunny, dragon, armadillo x K MERL materials (K default 4, 100 = the paper's SynTest)",
+    "dragon-svbrdf": "dragon x ramp / checker / irregular blends of two MERL materials, K pairs (default 1)",
+    "blobby": "K procedural blobby shapes with training-like materials (default 8)",
+}
+DEFAULT_K = {"syntest": 4, "dragon-svbrdf": 1, "blobby": 8}
+
+
+def check_preset(preset: str) -> str:
+    """The preset name, or a PsctlError listing the valid ones."""
+    if preset not in PRESETS:
+        raise PsctlError(None, f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    return preset

@@ -1,0 +1,66 @@
+"""Distant directional lights: directions over the upper hemisphere and per-image intensities.
+
+Directions are unit vectors (x right, y up, z toward the camera), drawn uniformly by area over
+a band of zenith angles (angle from the view direction +z):
+
+    hemisphere  0 .. max_zenith (90 by default: the paper's full 180 x 180 degree range)
+    diligent    0 .. 45 degrees (DiLiGenT's 96 lights span 4.2 .. 43.8 degrees of zenith)
+    poles       0 .. 30 degrees (lights near the view direction)
+    equator     60 .. 90 degrees (grazing lights near the horizon of the hemisphere)
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from psctl.errors import PsctlError
+
+DISTRIBUTIONS = {"hemisphere": (0.0, 90.0), "diligent": (0.0, 45.0), "poles": (0.0, 30.0), "equator": (60.0, 90.0)}
+INTENSITY_RANGE = (0.2, 2.0)
+
+
+def zenith_band(distribution: str, max_zenith: float | None = None) -> tuple[float, float]:
+    """(min, max) zenith in degrees of a named distribution; ``max_zenith`` overrides the max."""
+    if distribution not in DISTRIBUTIONS:
+        raise PsctlError(None, f"unknown light distribution {distribution!r}; choose from {', '.join(DISTRIBUTIONS)}")
+    lo, hi = DISTRIBUTIONS[distribution]
+    if max_zenith is not None:
+        hi = float(max_zenith)
+    if not 0.0 <= lo < hi <= 90.0:
+        raise PsctlError(None, f"light zenith band must lie in [0, 90] degrees, got [{lo}, {hi}]")
+    return lo, hi
+
+
+def sample_lights(shape: tuple[int, ...], gen: torch.Generator, distribution: str = "hemisphere",
+                  max_zenith: float | None = None) -> Tensor:
+    """[*shape, 3] unit light directions, uniform by area over the distribution's zenith band."""
+    lo, hi = zenith_band(distribution, max_zenith)
+    dev = gen.device
+    zmin, zmax = math.cos(math.radians(hi)), math.cos(math.radians(lo))
+    z = zmin + (zmax - zmin) * torch.rand(shape, generator=gen, device=dev)
+    phi = 2 * math.pi * torch.rand(shape, generator=gen, device=dev)
+    r = (1.0 - z * z).clamp_min(0.0).sqrt()
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+def sample_intensities(shape: tuple[int, ...], gen: torch.Generator, mode: str = "unit",
+                       low: float = INTENSITY_RANGE[0], high: float = INTENSITY_RANGE[1]) -> Tensor:
+    """[*shape] light intensities: all 1 ("unit") or uniform in [low, high] ("random")."""
+    if mode == "unit":
+        return torch.ones(shape, device=gen.device)
+    if mode == "random":
+        return low + (high - low) * torch.rand(shape, generator=gen, device=gen.device)
+    raise PsctlError(None, f"unknown intensity mode {mode!r}; choose unit or random")
+
+
+def fibonacci_lights(n: int, max_zenith: float = 90.0, device: torch.device | str = "cpu") -> Tensor:
+    """[n, 3] deterministic, evenly spread directions over the cap of zenith <= max_zenith."""
+    k = torch.arange(n, dtype=torch.float64, device=device) + 0.5
+    zmin = math.cos(math.radians(max_zenith))
+    z = 1.0 - (1.0 - zmin) * k / n
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    r = (1.0 - z * z).clamp_min(0.0).sqrt()
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).float()

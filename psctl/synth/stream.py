@@ -1,0 +1,371 @@
+"""The training stream: endless batches of synthetic photometric-stereo samples, made on the fly.
+
+    >>> from psctl.synth.stream import SynthStream
+    >>> stream = SynthStream({"batch_size": 32, "n_images": 32, "seed": 0})
+    >>> batch = next(iter(stream))
+    >>> batch["images"].shape     # [B, N, 3, 32, 32]
+
+How a batch is made (why it is fast enough not to slow training down):
+  1. Geometry lives in a pool of G-buffers (normal, mask and a horizon map for cast shadows)
+     rendered at ``size`` (128). Each batch replaces ``batch_size / reuse`` of them with new
+     ones (procedural blobby shapes, or random views of the training meshes), so rendering
+     geometry costs little per sample while the pool keeps changing.
+  2. Each sample picks a pool entry and samples its crop straight from the G-buffer: random
+     rescale (the paper's ``size -> [crop, size]``), rotation about the view axis, mirror,
+     then a ``crop x crop`` window around a random object pixel. Shading happens after the
+     crop, so it only touches crop x crop pixels.
+  3. Random materials (MERL ABC fits, GGX, Lambertian; two-material blends; albedo
+     textures), random lights (and intensities), shading with cast shadows from the horizon
+     map, exposure, saturation, the paper's uniform noise.
+
+Test shapes (bunny, dragon, armadillo, sphere) are never used. Without mesh files the stream
+uses procedural shapes only (or views from a .npz made by ``python -m psctl.synth.meshes``).
+The stream never imports OpenImageIO, so it runs where only torch is installed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from psctl.errors import PsctlError
+from psctl.synth import lights as L
+from psctl.synth import materials as M
+from psctl.synth import render as R
+from psctl.synth.shapes import GBuffer, blobby_gbuffers
+
+DEFAULT_CONFIG: dict = {
+    "batch_size": 32,
+    "n_images": 32,  # images (lights) per sample
+    "size": 128,  # resolution the geometry pool is rendered at
+    "crop": 32,  # output side; None: the whole view (size x size)
+    "scale": None,  # (lo, hi) rescaled side before cropping; None: (crop, size) as in the paper
+    "rotate": True,  # random rotation about the view axis
+    "flip": True,  # random mirror
+    "pool": 64,  # G-buffers kept in memory
+    "reuse": 128,  # samples drawn per G-buffer (on average) before it is replaced
+    "shapes": {"blobby": 1.0, "mesh": 0.25},  # relative frequency of the geometry sources
+    "meshes": ["lucy"],  # training meshes (test shapes are refused)
+    "mesh_dir": None,  # folder of .obj files (None: psctl.synth.meshes.mesh_dir())
+    "mesh_cache": None,  # .npz of prerendered views, used when the .obj files are absent
+    "require_meshes": False,  # True: error when no mesh source is found
+    "blobby": {},  # overrides of psctl.synth.shapes.BLOBBY
+    "lights": "hemisphere",  # hemisphere | diligent | poles | equator
+    "max_zenith": None,  # degrees; overrides the distribution's band
+    "intensities": "unit",  # unit | random (uniform in [0.2, 2.0] per image)
+    "materials": {"merl": 0.5, "ggx": 0.35, "lambert": 0.15},
+    "merl": None,  # path of the ABC table (None: psctl.synth.materials.find_merl_file())
+    "merl_names": None,  # restrict MERL draws to these materials
+    "blend": 0.25,  # chance of a two-material blend (ramp / checker / irregular)
+    "texture": 0.3,  # chance of a random albedo texture
+    "shadows": True,
+    "horizon_dirs": 32,  # azimuths of the horizon map
+    "ambient": 0.0,  # ambient strength drawn uniformly in [0, ambient]
+    "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
+    "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
+    "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
+    "quantize": None,  # bits (8, 16) or None
+    "mask_images": True,  # zero the images outside the object
+    "device": "cpu",
+    "seed": 0,
+}
+
+
+def make_config(config: dict | None = None, **overrides) -> dict:
+    """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
+    cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
+    bad = set(cfg) - set(DEFAULT_CONFIG)
+    if bad:
+        raise PsctlError(None, f"unknown synth stream option(s): {', '.join(sorted(bad))}")
+    if cfg["crop"] is None:
+        cfg["crop"] = cfg["size"]
+    if cfg["scale"] is None:
+        cfg["scale"] = (cfg["crop"], cfg["size"])
+    lo, hi = cfg["scale"]
+    if not (0 < cfg["crop"] <= cfg["size"] and cfg["crop"] <= lo <= hi):
+        raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
+                               f"size {cfg['size']}, scale {cfg['scale']})")
+    L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
+    return cfg
+
+
+class GeometryPool:
+    """A pool of M G-buffers stored pixel-major for fast cropping: ``data`` [M, S*S, 4] holds
+    the normal (3) and mask (1) of every pixel, ``horizon`` [M, S*S, K] its horizon angles
+    (float16: they are compared with light elevations to a degree or so)."""
+
+    def __init__(self, cfg: dict, gen: torch.Generator):
+        self.cfg = cfg
+        self.gen = gen
+        self.device = torch.device(cfg["device"])
+        self.size = cfg["size"]
+        self.k = cfg["horizon_dirs"]
+        self.notes: list[str] = []
+        self.sources = self._sources()
+        m = cfg["pool"]
+        self.data = torch.zeros(m, self.size * self.size, 4, device=self.device)
+        self.horizon = torch.zeros(m, self.size * self.size, self.k, dtype=torch.float16, device=self.device)
+        self.cum = torch.zeros(m, self.size * self.size, device=self.device)  # cumulative mask
+        self.names = [""] * m
+        self._pending = 0.0
+        self._put(torch.arange(m, device=self.device))
+
+    # --- geometry sources -------------------------------------------------------------------
+    def _sources(self) -> list[tuple[str, float]]:
+        from psctl.synth import meshes
+
+        cfg = self.cfg
+        weights = dict(cfg["shapes"])
+        bad = set(weights) - {"blobby", "mesh"}
+        if bad:
+            raise PsctlError(None, f"unknown shape source(s) {sorted(bad)}; choose blobby, mesh")
+        self.mesh_data: list[tuple[str, Tensor, Tensor]] = []
+        self.mesh_bank: GBuffer | None = None
+        if weights.get("mesh", 0) > 0:
+            names = list(cfg["meshes"])
+            meshes.check_training_meshes(names)
+            folder = Path(cfg["mesh_dir"]) if cfg["mesh_dir"] else meshes.mesh_dir()
+            for n in names:
+                try:
+                    path = meshes.find_mesh(n, folder)
+                except PsctlError:
+                    continue
+                v, f = meshes.load_obj(path)
+                self.mesh_data.append((path.stem, v.to(self.device), f.to(self.device)))
+            if not self.mesh_data and cfg["mesh_cache"] and Path(cfg["mesh_cache"]).is_file():
+                bank = meshes.load_views(cfg["mesh_cache"], self.device)
+                meshes.check_training_meshes(sorted(set(bank.names)))
+                if bank.size != (self.size, self.size):
+                    bank = _resize(bank, self.size)
+                self.mesh_bank = bank
+            if not self.mesh_data and self.mesh_bank is None:
+                if cfg["require_meshes"]:
+                    raise PsctlError(folder, f"no training mesh found ({', '.join(names)}.obj) and no mesh_cache")
+                self.notes.append(f"no training meshes under {folder}: procedural shapes only")
+                weights["mesh"] = 0.0
+        out = [(k, float(w)) for k, w in weights.items() if w > 0]
+        if not out:
+            raise PsctlError(None, "no geometry source has a positive weight")
+        return out
+
+    def _render(self, n: int) -> GBuffer:
+        """n new G-buffers from the sources, in a seeded random mix."""
+        w = torch.tensor([w for _, w in self.sources], device=self.device)
+        pick = torch.multinomial(w / w.sum(), n, replacement=True, generator=self.gen).tolist()
+        parts: list[GBuffer] = []
+        n_blobby = sum(1 for p in pick if self.sources[p][0] == "blobby")
+        if n_blobby:
+            parts.append(blobby_gbuffers(n_blobby, self.size, self.gen, self.cfg["blobby"]))
+        n_mesh = n - n_blobby
+        if n_mesh:
+            parts.append(self._mesh_views(n_mesh))
+        return GBuffer.cat(parts)
+
+    def _mesh_views(self, n: int) -> GBuffer:
+        from psctl.synth import meshes
+        from psctl.synth.shapes import random_rotations
+
+        if self.mesh_bank is not None:
+            idx = torch.randint(len(self.mesh_bank), (n,), generator=self.gen, device=self.device)
+            return self.mesh_bank.take(idx)
+        which = torch.randint(len(self.mesh_data), (n,), generator=self.gen, device=self.device).tolist()
+        rots = random_rotations((n,), self.gen)
+        fill = 0.6 + 0.35 * torch.rand(n, generator=self.gen, device=self.device)
+        out = []
+        for i, j in enumerate(which):
+            name, v, f = self.mesh_data[j]
+            out.append(meshes.mesh_views(v, f, rots[i:i + 1], self.size, fill=float(fill[i]), name=name))
+        return GBuffer.cat(out)
+
+    def _put(self, slots: Tensor) -> None:
+        g = self._render(len(slots))
+        hz = R.horizon_map(g.depth, self.k) if self.cfg["shadows"] else torch.zeros(len(g), self.k, *g.size, device=self.device)
+        self.data[slots] = torch.cat([g.normals, g.mask.float()], 1).flatten(2).transpose(1, 2)
+        self.horizon[slots] = hz.flatten(2).transpose(1, 2).half()
+        self.cum[slots] = g.mask.flatten(1).float().cumsum(1)
+        for s, name in zip(slots.tolist(), g.names):
+            self.names[s] = name
+
+    def refresh(self, n_samples: int) -> None:
+        """Replace pool entries in proportion to the samples drawn (``reuse`` per entry)."""
+        self._pending += n_samples / self.cfg["reuse"]
+        n = int(self._pending)
+        if n:
+            self._pending -= n
+            m = len(self.names)
+            self._put(torch.randperm(m, generator=self.gen, device=self.device)[:min(n, m)])
+
+
+def _resize(g: GBuffer, size: int) -> GBuffer:
+    import torch.nn.functional as F
+
+    n = F.normalize(F.interpolate(g.normals, size=(size, size), mode="bilinear", align_corners=False), dim=1)
+    m = F.interpolate(g.mask.float(), size=(size, size), mode="bilinear", align_corners=False) > 0.5
+    d = F.interpolate(g.depth, size=(size, size), mode="nearest")
+    return GBuffer(n * m, d, m, g.names)
+
+
+def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) -> dict[str, Tensor]:
+    """Crop b samples out of the pool (bilinear), with rescale, rotation and mirror.
+
+    Returns normals [b, 3, P] in the output frame, mask [b, 1, P] (float 0/1), horizon
+    [b, K, P] in the source frame, the 2 x 2 map ``to_src`` taking output-frame (x, y-up)
+    directions to source-frame ones, and ``slot`` [b].
+    """
+    dev = pool.device
+    s, c = pool.size, cfg["crop"]
+    slot = torch.randint(len(pool.names), (b,), generator=gen, device=dev)
+    data = pool.data
+    # crop centre: a random object pixel of the chosen G-buffer (inverse-CDF draw), plus jitter
+    cum = pool.cum[slot]  # [b, S*S] running count of object pixels
+    u = torch.rand(b, 1, generator=gen, device=dev) * cum[:, -1:]
+    pix = torch.searchsorted(cum, u, right=True)[:, 0].clamp_max(s * s - 1)
+    cx = ((pix % s).float() + 0.5) / s * 2 - 1  # grid coordinates: x right, y down
+    cy = ((pix // s).float() + 0.5) / s * 2 - 1
+    lo, hi = cfg["scale"]
+    sw = lo + (hi - lo) * torch.rand(b, generator=gen, device=dev)  # rescaled sides (paper: randint)
+    sh = lo + (hi - lo) * torch.rand(b, generator=gen, device=dev)
+    ex, ey = c / sw, c / sh  # half-extent of the window in source grid units
+    cx = cx + (torch.rand(b, generator=gen, device=dev) - 0.5) * ex
+    cy = cy + (torch.rand(b, generator=gen, device=dev) - 0.5) * ey
+    # keep the window inside the view when it fits (a window larger than the view is centred)
+    cx = torch.where(ex < 1, torch.maximum(torch.minimum(cx, 1 - ex), -1 + ex), torch.zeros_like(cx))
+    cy = torch.where(ey < 1, torch.maximum(torch.minimum(cy, 1 - ey), -1 + ey), torch.zeros_like(cy))
+    theta = 2 * math.pi * torch.rand(b, generator=gen, device=dev) if cfg["rotate"] else torch.zeros(b, device=dev)
+    flip = torch.where(torch.rand(b, generator=gen, device=dev) < 0.5, -1.0, 1.0) if cfg["flip"] \
+        else torch.ones(b, device=dev)
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    # source = centre + Rot(theta) diag(ex, ey) diag(flip, 1) (u, v), all in grid coordinates
+    g = (torch.arange(c, device=dev, dtype=torch.float32) + 0.5) / c * 2 - 1
+    v, u = torch.meshgrid(g, g, indexing="ij")
+    u, v = u.reshape(1, -1), v.reshape(1, -1)  # [1, P]
+    a = (flip * ex)[:, None] * u
+    bb = ey[:, None] * v
+    gx = cx[:, None] + cos[:, None] * a - sin[:, None] * bb
+    gy = cy[:, None] + sin[:, None] * a + cos[:, None] * bb
+    px = (gx + 1) / 2 * s - 0.5  # pixel coordinates in the source
+    py = (gy + 1) / 2 * s - 0.5
+    x0, y0 = px.floor(), py.floor()
+    fx, fy = (px - x0)[..., None], (py - y0)[..., None]
+    # normal and mask: bilinear; horizon: nearest pixel (it is only compared with light angles)
+    out = 0.0
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi, yi = x0 + dx, y0 + dy
+        inb = ((xi >= 0) & (xi < s) & (yi >= 0) & (yi < s))[..., None]
+        idx = (yi.clamp(0, s - 1) * s + xi.clamp(0, s - 1)).long()
+        out = out + data[slot[:, None], idx] * (w * inb)  # [b, P, 4]
+    out = out.transpose(1, 2)  # [b, 4, P]
+    idx = (py.round().clamp(0, s - 1) * s + px.round().clamp(0, s - 1)).long()
+    horizon = pool.horizon[slot[:, None], idx].transpose(1, 2).float()  # [b, K, P]
+    msk = (out[:, 3:4] > 0.5).float()
+    n_src = torch.nn.functional.normalize(out[:, :3], dim=1)
+    # directions: output (x, y-up) -> grid (x, y-down) is diag(1, -1); output_grid = F Rot(-theta) source_grid
+    nxg, nyg = n_src[:, 0], -n_src[:, 1]
+    rx = cos[:, None] * nxg + sin[:, None] * nyg
+    ry = -sin[:, None] * nxg + cos[:, None] * nyg
+    normals = torch.stack([flip[:, None] * rx, -ry, n_src[:, 2]], 1) * msk
+    # output (x, y-up) -> source (x, y-up): undo the mirror, rotate by theta (grid), back to y-up
+    d = torch.diag(torch.tensor([1.0, -1.0], device=dev))
+    rot = torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)  # [b, 2, 2] grid
+    fl = torch.diag_embed(torch.stack([flip, torch.ones_like(flip)], -1))
+    to_src = d @ rot @ fl @ d
+    return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
+
+
+class SynthStream:
+    """An endless, seeded iterator of training batches (see the module docstring).
+
+    Each batch is a dict:
+        images      [B, N, 3, H, W] float32, e * radiance * exposure (clipped, noisy)
+        lights      [B, N, 3] unit directions (x right, y up, z toward the camera)
+        intensities [B, N] light intensities e (1 unless intensities="random")
+        normals     [B, 3, H, W] unit normals, 0 outside the mask
+        masks       [B, 1, H, W] float 0/1
+        shapes      list of B source names ("blobby", "lucy", ...)
+    The same config (seed included) gives the same batches on the same device.
+    """
+
+    def __init__(self, config: dict | None = None, **overrides):
+        self.cfg = make_config(config, **overrides)
+        cfg = self.cfg
+        self.device = torch.device(cfg["device"])
+        self.gen = torch.Generator(device=self.device).manual_seed(int(cfg["seed"]))
+        probs = dict(cfg["materials"])
+        self.table = None
+        if probs.get("merl", 0) > 0:
+            self.table = M.load_merl(cfg["merl"], self.device)
+        self.probs = probs
+        self.pool = GeometryPool(cfg, self.gen)
+        self.notes = self.pool.notes
+
+    def __iter__(self) -> Iterator[dict]:
+        while True:
+            yield self.next_batch()
+
+    def next_batch(self) -> dict:
+        cfg, gen, dev = self.cfg, self.gen, self.device
+        b, n, c = cfg["batch_size"], cfg["n_images"], cfg["crop"]
+        crops = sample_crops(self.pool, b, cfg, gen)
+        normals, msk = crops["normals"], crops["mask"]
+        p = normals.shape[-1]
+
+        # materials: one per sample, a second one and a blend map for some, textures for some
+        mat = M.sample_materials(b, gen, self.table, self.probs, cfg["merl_names"])
+        blend = torch.rand(b, generator=gen, device=dev) < cfg["blend"]
+        kinds = [M.BLENDS[i] for i in torch.randint(3, (b,), generator=gen, device=dev).tolist()]
+        sv = blend.nonzero()[:, 0]
+        mat_b, weights = None, None
+        if len(sv):
+            mat_b = M.sample_materials(len(sv), gen, self.table, self.probs, cfg["merl_names"])
+            weights = M.blend_weights([kinds[i] for i in sv.tolist()], c, c, gen).reshape(len(sv), 1, p)
+        textured = torch.rand(b, generator=gen, device=dev) < cfg["texture"]
+        texture = None
+        if bool(textured.any()):
+            tex = M.albedo_texture(b, c, c, gen).reshape(b, 3, p)
+            texture = torch.where(textured[:, None, None], tex, torch.ones_like(tex))
+
+        # lights
+        lights = L.sample_lights((b, n), gen, cfg["lights"], cfg["max_zenith"])
+        ints = L.sample_intensities((b, n), gen, cfg["intensities"])
+        vis = None
+        if cfg["shadows"]:
+            l_src = torch.cat([torch.einsum("bij,bnj->bni", crops["to_src"], lights[..., :2]), lights[..., 2:]], -1)
+            vis = R.horizon_visibility(crops["horizon"], l_src)
+        ambient = cfg["ambient"] * torch.rand(b, generator=gen, device=dev) if cfg["ambient"] else None
+
+        img = R.shade(normals, lights, mat, vis, texture=texture, ambient=ambient)  # [b, n, 3, p]
+        if mat_b is not None:  # blends: f = w f_A + (1 - w) f_B on the blended samples only
+            img_b = R.shade(normals[sv], lights[sv], mat_b, None if vis is None else vis[sv],
+                            texture=None if texture is None else texture[sv], ambient=None if ambient is None else ambient[sv])
+            w = weights[:, None]
+            img[sv] = w * img[sv] + (1.0 - w) * img_b
+        # exposure: scale each sample so its mean object radiance hits a random target
+        lo, hi = cfg["exposure"]
+        target = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
+        count = (msk.sum((1, 2)) * n * 3).clamp_min(1.0)
+        mean = (img * msk[:, None]).sum((1, 2, 3)) / count
+        img = img * (target / mean.clamp_min(1e-8))[:, None, None, None]
+        img = img * ints[..., None, None]
+        if cfg["clip"] is not None:
+            img = img.clamp_max(cfg["clip"])
+        if cfg["noise"]:
+            img = R.uniform_noise(img, gen, cfg["noise"])
+        if cfg["quantize"]:
+            img = R.quantize(img, cfg["quantize"])
+        if cfg["mask_images"]:
+            img = img * msk[:, None]
+
+        shapes = [self.pool.names[i] for i in crops["slot"].tolist()]
+        self.pool.refresh(b)
+        return {
+            "images": img.reshape(b, n, 3, c, c),
+            "lights": lights,
+            "intensities": ints,
+            "normals": normals.reshape(b, 3, c, c),
+            "masks": msk.reshape(b, 1, c, c),
+            "shapes": shapes,
+        }

@@ -1,0 +1,314 @@
+"""Write synthetic objects as DiLiGenT-style capture folders (what ``psctl synth`` does).
+
+Each object folder holds 001.png ... (16-bit RGB), filenames.txt, light_directions.txt,
+light_intensities.txt, mask.png, Normal_gt.mat (key Normal_gt), Normal_gt.png and synth.json
+(how it was made). OUT/objects.txt lists the objects, so OUT is a benchmark root:
+
+    psctl synth out/syntest --preset syntest --materials 4
+    psctl eval --benchmark folder --root out/syntest --method l2
+
+Presets
+    syntest        sphere, bunny, dragon, armadillo x K MERL materials, 100 upper-hemisphere
+                   lights (the paper's SynTest; K = 100 is the full set)
+    dragon-svbrdf  dragon x {ramp, checker, irregular} blends of two MERL materials, K pairs
+    blobby         K procedural blobby shapes with training-distribution materials
+Images come from the same renderer as the training stream, with exact cast shadows (depth-map
+marching per light). Each object folder is built in a hidden temporary folder and renamed into
+place, so a folder is either complete or absent. This is the only synth module that reads or
+writes image files (OpenImageIO is imported lazily, the training stream never needs it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from psctl.errors import PsctlError
+from psctl.synth import DEFAULT_K, check_preset
+from psctl.synth import lights as L
+from psctl.synth import materials as M
+from psctl.synth import render as R
+from psctl.synth.shapes import GBuffer, blobby_gbuffers, sphere_gbuffer
+
+# Canonical test views: rotation about the vertical axis (degrees) of each test mesh.
+TEST_VIEWS = {"bunny": 0.0, "dragon": 45.0, "armadillo": 180.0}
+EXPOSURE_QUANTILE = 0.995  # this quantile of an object's pixel values is written as ...
+EXPOSURE_LEVEL = 0.9  # ... this 16-bit level (brighter highlights saturate, as in a camera)
+
+
+@dataclass
+class SynthObject:
+    """One object to write: a view, its material(s) and its lights."""
+
+    name: str
+    view: GBuffer  # one view
+    mat: M.Material  # one material
+    lights: torch.Tensor  # [N, 3]
+    intensities: torch.Tensor  # [N]
+    mat_b: M.Material | None = None
+    weights: torch.Tensor | None = None  # [1, 1, H, W]
+    texture: torch.Tensor | None = None  # [1, 3, H, W]
+    meta: dict = field(default_factory=dict)
+
+
+def _roty(deg: float) -> torch.Tensor:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def test_view(name: str, size: int) -> GBuffer:
+    """The canonical view of a test shape (sphere, bunny, dragon, armadillo)."""
+    if name == "sphere":
+        return sphere_gbuffer(size)
+    from psctl.synth import meshes
+
+    v, f = meshes.load_obj(meshes.find_mesh(name))
+    return meshes.mesh_views(v, f, _roty(TEST_VIEWS[name])[None], size, name=name)
+
+
+def _merl_subset(table: M.MerlTable, k: int, gen: torch.Generator) -> list[int]:
+    if not 1 <= k <= len(table.names):
+        raise PsctlError(None, f"--materials must be in 1..{len(table.names)} (got {k})")
+    return sorted(torch.randperm(len(table.names), generator=gen)[:k].tolist())
+
+
+def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
+                   k: int | None = None) -> list[SynthObject]:
+    """The objects of a preset (geometry, materials, lights), not yet rendered."""
+    check_preset(preset)
+    if size < 8 or n_lights < 3:
+        raise PsctlError(None, f"need --size >= 8 and --lights >= 3 (got {size}, {n_lights})")
+    k = DEFAULT_K[preset] if k is None else k
+    if k < 1:
+        raise PsctlError(None, f"--materials must be at least 1 (got {k})")
+    gen = torch.Generator().manual_seed(seed)
+    lights = L.sample_lights((n_lights,), gen, "hemisphere")
+    ones = torch.ones(n_lights)
+    objs: list[SynthObject] = []
+    if preset == "syntest":
+        table = M.load_merl()
+        rows = _merl_subset(table, k, gen)
+        for shape in ("sphere", "bunny", "dragon", "armadillo"):
+            view = test_view(shape, size)
+            for r in rows:
+                name = f"{shape}_{table.names[r]}"
+                objs.append(SynthObject(name, view, M.merl_materials(table, [r]), lights, ones,
+                                        meta={"shape": shape, "material": table.names[r]}))
+    elif preset == "dragon-svbrdf":
+        table = M.load_merl()
+        view = test_view("dragon", size)
+        for i in range(k):
+            pair = torch.randperm(len(table.names), generator=gen)[:2].tolist()
+            for kind in M.BLENDS:
+                w = M.blend_weights([kind], size, size, gen)
+                name = f"dragon_{kind}_{i + 1:02d}"
+                objs.append(SynthObject(name, view, M.merl_materials(table, pair[:1]), lights, ones,
+                                        M.merl_materials(table, pair[1:]), w,
+                                        meta={"shape": "dragon", "blend": kind,
+                                              "materials": [table.names[j] for j in pair]}))
+    else:  # blobby
+        table = M.load_merl()
+        views = blobby_gbuffers(k, size, gen)
+        for i in range(k):
+            mat = M.sample_materials(1, gen, table)
+            meta = {"shape": "blobby", "material": _describe(mat, table)}
+            mat_b = w = tex = None
+            if float(torch.rand(1, generator=gen)) < 0.25:
+                kind = M.BLENDS[int(torch.randint(3, (1,), generator=gen))]
+                mat_b, w = M.sample_materials(1, gen, table), M.blend_weights([kind], size, size, gen)
+                meta.update(blend=kind, material_b=_describe(mat_b, table))
+            if float(torch.rand(1, generator=gen)) < 0.3:
+                tex = M.albedo_texture(1, size, size, gen)
+                meta["texture"] = True
+            objs.append(SynthObject(f"blobby_{i + 1:02d}", views.take([i]), mat, lights, ones, mat_b, w, tex, meta))
+    for o in objs:
+        o.meta.update(preset=preset, seed=seed, size=size, n_lights=n_lights)
+    return objs
+
+
+def _describe(mat: M.Material, table: M.MerlTable) -> str:
+    if bool(mat["abc"][0]):
+        match = (table.a == mat["c1"][0]).all(1) & (table.b == mat["b"][0])
+        return f"merl:{table.names[int(match.nonzero()[0, 0])]}" if match.any() else "merl"
+    if bool(mat["metal"][0]):
+        return f"ggx-metal alpha={float(mat['alpha'][0]):.3f}"
+    if float(mat["c1"][0].abs().sum()) == 0:
+        return "lambertian"
+    return f"ggx-dielectric alpha={float(mat['alpha'][0]):.3f} ior={float(mat['ior'][0]):.2f}"
+
+
+def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shadows: bool = True,
+                  chunk: int = 16) -> torch.Tensor:
+    """e * radiance, [N, 3, H, W] (not yet exposed or quantised).
+
+    ``visibility`` [1, N, H*W] may be passed in when several objects share a view and lights;
+    otherwise it is computed here (with ``shadows``) by marching the depth map.
+    """
+    g = obj.view
+    h, w = g.size
+    if visibility is None and shadows:
+        visibility = R.march_shadows(g.depth, obj.lights[None]).reshape(1, -1, h * w)
+    n = g.normals.reshape(1, 3, h * w)
+    tex = None if obj.texture is None else obj.texture.reshape(1, 3, h * w)
+    out = []
+    for s in range(0, len(obj.lights), chunk):
+        lc, ec = obj.lights[None, s:s + chunk], obj.intensities[None, s:s + chunk]
+        vc = None if visibility is None else visibility[:, s:s + chunk]
+        img = R.shade(n, lc, obj.mat, vc, ec, tex)
+        if obj.mat_b is not None:
+            wt = obj.weights.reshape(1, 1, 1, h * w)
+            img = wt * img + (1 - wt) * R.shade(n, lc, obj.mat_b, vc, ec, tex)
+        out.append(img[0].reshape(-1, 3, h, w))
+    return torch.cat(out)
+
+
+def exposure_scale(images: torch.Tensor, mask: torch.Tensor, gen: torch.Generator | None = None) -> float:
+    """The factor that maps the EXPOSURE_QUANTILE of the object's pixel values to EXPOSURE_LEVEL."""
+    vals = images.permute(1, 0, 2, 3)[:, :, mask].reshape(-1)
+    if vals.numel() > 4_000_000:  # torch.quantile has a size limit: a seeded subsample
+        gen = gen or torch.Generator().manual_seed(0)
+        vals = vals[torch.randint(vals.numel(), (4_000_000,), generator=gen)]
+    q = float(torch.quantile(vals, EXPOSURE_QUANTILE)) if vals.numel() else 0.0
+    return EXPOSURE_LEVEL / q if q > 0 else 1.0
+
+
+def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
+    """Write one capture folder (images already exposed, values in [0, 1])."""
+    import scipy.io
+
+    from psctl.io.atomic import write_text_atomic
+    from psctl.io.images import write_image
+    from psctl.io.normals import write_normal_map
+
+    g = obj.view
+    mask = g.mask[0, 0].numpy()
+    normals = g.normals[0].permute(1, 2, 0).numpy().astype(np.float32)
+    n = images.shape[0]
+    width = max(3, len(str(n)))
+    names = [f"{i + 1:0{width}d}.png" for i in range(n)]
+    arr = images.permute(0, 2, 3, 1).numpy()
+    for name, img in zip(names, arr):
+        write_image(folder / name, img, "uint16")
+    write_text_atomic(folder / "filenames.txt", "".join(f"{x}\n" for x in names))
+    write_text_atomic(folder / "light_directions.txt",
+                      "".join(f"{a:.6f} {b:.6f} {c:.6f}\n" for a, b, c in obj.lights.tolist()))
+    write_text_atomic(folder / "light_intensities.txt",
+                      "".join(f"{e:.6f} {e:.6f} {e:.6f}\n" for e in obj.intensities.tolist()))
+    write_image(folder / "mask.png", mask.astype(np.float32), "uint8")
+    scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
+    write_normal_map(folder / "Normal_gt.png", normals, mask, "png16")
+    write_text_atomic(folder / "synth.json", json.dumps(obj.meta, indent=2) + "\n")
+
+
+def _replace_dir(tmp: Path, final: Path) -> None:
+    """Move a finished temporary folder into place, replacing an older one of the same name."""
+    old = None
+    if final.exists():
+        if not final.is_dir():
+            raise PsctlError(final, "exists and is not a folder")
+        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
+        os.replace(final, old / final.name)
+    os.replace(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
+                 k: int | None = None, preview: bool = False, shadows: bool = True,
+                 sensor_noise: float = 0.0, progress=None) -> dict:
+    """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
+
+    Args:
+        preset: syntest | dragon-svbrdf | blobby.
+        k: materials per shape (syntest), material pairs (dragon-svbrdf) or shapes (blobby).
+        preview: also write out/preview.png, a contact sheet of a few images per object.
+        sensor_noise: standard deviation of Gaussian read noise added before quantisation.
+    Returns:
+        {"out", "preset", "seed", "size", "n_lights", "objects", "preview", "seconds"}.
+    """
+    from psctl.io.atomic import check_output_dir, ensure_writable_dir, write_text_atomic
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    check_output_dir(out)
+    objs = preset_objects(preset, seed, size, n_lights, k)
+    ensure_writable_dir(out)
+    advance = progress(f"synth {preset}", len(objs)) if progress else (lambda _: None)
+    gen = torch.Generator().manual_seed(seed + 1)
+    sheet_rows = []
+    cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
+    for obj in objs:
+        key = id(obj.view)
+        if shadows and key not in cache:
+            h, w = obj.view.size
+            cache = {key: R.march_shadows(obj.view.depth, obj.lights[None]).reshape(1, -1, h * w)}
+        images = render_object(obj, cache.get(key), shadows)
+        scale = exposure_scale(images, obj.view.mask[0, 0], gen)
+        images = images * scale
+        if sensor_noise > 0:
+            images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
+        images = R.quantize(images, 16) * obj.view.mask[0]
+        obj.meta["exposure"] = scale
+        tmp = Path(tempfile.mkdtemp(prefix=f".{obj.name}.tmp.", dir=out))
+        try:
+            write_object(tmp, obj, images)
+            _replace_dir(tmp, out / obj.name)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+        if preview:
+            sheet_rows.append(_sheet_row(images, obj))
+        advance(1)
+    write_text_atomic(out / "objects.txt", "".join(f"{o.name}\n" for o in objs))
+    preview_path = None
+    if preview:
+        from psctl.io.images import write_image
+
+        preview_path = out / "preview.png"
+        write_image(preview_path, _sheet(sheet_rows), "uint8")
+    return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights,
+            "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
+            "seconds": round(time.perf_counter() - t0, 3)}
+
+
+# --------------------------------------------------------------------------------------------
+# Contact sheet
+# --------------------------------------------------------------------------------------------
+
+SHEET_IMAGES = 6  # images per object on the contact sheet
+SHEET_ROWS = 24  # objects on the contact sheet at most
+
+
+def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
+    """One row: SHEET_IMAGES images (lights spread from left to right), then the normal map."""
+    lx = obj.lights[:, 0]
+    picks = torch.argsort(lx)[torch.linspace(0, len(lx) - 1, SHEET_IMAGES).round().long()]
+    tiles = []
+    for i in picks.tolist():
+        tiles.append(images[i].permute(1, 2, 0).clamp(0, 1).numpy() ** (1 / 2.2))  # display gamma
+    g = obj.view
+    tiles.append(((g.normals[0].permute(1, 2, 0).numpy() + 1) / 2) * g.mask[0, 0].numpy()[..., None])
+    gap = np.full((images.shape[-2], 2, 3), 0.25, np.float32)
+    row = []
+    for t in tiles:
+        row += [t.astype(np.float32), gap]
+    return np.concatenate(row[:-1], 1)
+
+
+def _sheet(rows: list[np.ndarray]) -> np.ndarray:
+    if len(rows) > SHEET_ROWS:  # evenly spread over the objects
+        rows = [rows[i] for i in np.linspace(0, len(rows) - 1, SHEET_ROWS).round().astype(int)]
+    gap = np.full((2, rows[0].shape[1], 3), 0.25, np.float32)
+    out = []
+    for r in rows:
+        out += [r, gap]
+    return np.concatenate(out[:-1], 0)
