@@ -1,0 +1,730 @@
+"""From normals to a surface: integrate a normal map into a depth map, then a mesh.
+
+    >>> import psctl
+    >>> z = psctl.integrate_normals(normals, mask)                     # [H, W] float32, NaN outside
+    >>> z = psctl.integrate_normals(normals, mask, method="bilateral")  # keeps depth jumps
+    >>> report = run_depth("captures/ball", method="poisson")            # files + report dict
+
+Conventions (as everywhere in psctl): x right, y up, z toward the camera; image row 0 is the top.
+The result is the surface's z coordinate, so larger values are nearer the camera.
+
+* Orthographic (default): z in pixel units (one pixel = one unit of x and y). Its gradient is
+  dz/dcol = -nx/nz and dz/drow = +ny/nz (rows go down while y goes up).
+* Perspective (intrinsics K, 3 x 3, OpenCV layout: fx, fy, cx, cy in pixels, pixel centres at
+  integer coordinates): the unknown is w = -log(distance) along the optical axis, whose
+  gradient is a function of the normal and the pixel's ray (Durou et al. 2007; Cao et al.
+  2022). The returned z = -exp(-w) is the camera-frame coordinate (negative: the camera looks
+  down -z; distance = -z).
+
+Both methods minimise, over the valid pixels only, a sum over one-sided differences between
+neighbouring pixels: for pixel i and each of its (up to four) 4-neighbours j,
+    w_ij * (s_i * (z_j - z_i) - t_i)^2      (a forward or a backward difference)
+where t_i / s_i is the gradient that the normal at i predicts. Each image edge (i, j) then
+carries c = sum of w s^2 and b = sum of w s t of its two one-sided terms, and the normal
+equations are a weighted graph Laplacian L z = rhs, solved by conjugate gradients with a small
+smoothed-aggregation multigrid preconditioner (scipy has no fast sparse Cholesky, and a direct
+LU of a 2000 x 2000 grid is too slow and too big).
+
+* ``poisson``: s = 1, t = gradient, all weights 1/2: each edge's target is the average of the
+  two pixels' gradients (trapezoid rule, exact on quadrics).
+* ``bilateral`` (in the spirit of BiNI, Cao et al., ECCV 2022): s = nz (orthographic) or the
+  normal's component along the pixel ray times f (perspective), so residuals stay bounded at
+  steep slopes; iteratively reweighted least squares where the forward/backward weights of a
+  pixel are sigmoid(k * (backward^2 - forward^2)) and 1 minus it, computed from the current
+  depth's one-sided differences. A pixel next to a depth jump then trusts the side without
+  the jump, and the jump survives instead of being smeared into the surface.
+
+Gauge: depth is known up to a constant per connected region (and, in perspective, up to a
+scale). One pixel per connected component is pinned with a single extra equation z_p = 0
+(this adds no bias: the least-squares optimum is only defined up to that constant), then
+each component is shifted to zero mean (orthographic: mean z = 0; perspective: mean w = 0,
+i.e. the geometric-mean distance is 1).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+# progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
+ProgressFactory = Callable[[str, int], Callable[[int], None]]
+
+METHODS = ("poisson", "bilateral")
+
+DEFAULT_CONFIG = {
+    "grazing_nz": 0.1,        # steeper normals count as this steep (|slope| <= 10): rims are unreliable
+    "bilateral_k": 2.0,       # sigmoid sharpness (BiNI's k)
+    "bilateral_iters": 50,    # at most this many reweighting rounds ...
+    "bilateral_tol": 1e-3,    # ... or until the energy changes by less than this (relative)
+    "bilateral_k_start": 1e4, # sharpness of the first round, halved each round down to k (see _bilateral)
+    "weight_floor": 1e-6,     # keeps every edge weight > 0 so the system stays definite
+    "cg_rtol": 1e-7,          # relative residual of the linear solve
+    "cg_maxiter": 500,
+    "amg_max_coarse": 400,    # coarsest multigrid level is solved densely below this size
+    "amg_rebuild_iters": 20,  # bilateral: rebuild the multigrid when CG needs more iterations
+    "amg_sweeps": 2,          # Jacobi sweeps before and after the coarse correction
+    "amg_strength": 0.05,     # couplings weaker than this (relative) are not aggregated over
+}
+
+K_FILE = "K.txt"
+
+
+# ----------------------------------------------------------------------------------------------
+# Public API
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class DepthResult:
+    """What ``integrate`` returns; ``depth`` is what ``integrate_normals`` returns."""
+
+    depth: np.ndarray  # [H, W] float32 z (toward the camera), NaN where not integrated
+    valid: np.ndarray  # [H, W] bool, pixels that were integrated
+    n_mask: int  # pixels in the mask
+    n_rejected_nan: int  # mask pixels with NaN/inf or zero-length normals
+    n_rejected_facing: int  # mask pixels facing away (nz <= min_nz; perspective: away from the ray)
+    n_components: int  # connected regions (each has its own unknown offset)
+    iterations: int  # reweighting rounds (1 for poisson)
+    cg_iterations: int  # conjugate-gradient iterations, all rounds together
+    projection: str  # "orthographic" | "perspective"
+
+    @property
+    def n_rejected(self) -> int:
+        return self.n_rejected_nan + self.n_rejected_facing
+
+
+def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, method: str = "poisson",
+                      K: np.ndarray | None = None, config: dict | None = None,
+                      progress: ProgressFactory | None = None) -> np.ndarray:
+    """Depth map from a normal map.
+
+    Args:
+        normals: [H, W, 3] normals, x right / y up / z toward the camera (need not be unit).
+        mask: [H, W] bool, the pixels to integrate (default: every pixel with a nonzero normal).
+        method: "poisson" (least squares) or "bilateral" (keeps depth discontinuities).
+        K: [3, 3] camera intrinsics for a perspective camera; None for orthographic.
+        config: overrides of DEFAULT_CONFIG.
+    Returns:
+        [H, W] float32 z coordinate, larger = nearer the camera, NaN outside the mask and at
+        rejected normals (NaN, or facing away). Orthographic: pixel units, each connected
+        region shifted to mean 0. Perspective: z = -distance, each region scaled so that its
+        geometric-mean distance is 1.
+    """
+    return integrate(normals, mask, method, K, config, progress).depth
+
+
+def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str = "poisson",
+              K: np.ndarray | None = None, config: dict | None = None,
+              progress: ProgressFactory | None = None) -> DepthResult:
+    """``integrate_normals`` with the bookkeeping: rejected counts, components, iterations."""
+    import scipy.sparse.csgraph as csgraph
+
+    cfg = {**DEFAULT_CONFIG, **(config or {})}
+    method = str(method).lower()
+    if method not in METHODS:
+        raise PsctlError(None, f"unknown depth method {method!r}; choose from {', '.join(METHODS)}")
+    normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise PsctlError(None, f"normals must be [H, W, 3], got shape {normals.shape}")
+    h, w = normals.shape[:2]
+    if mask is None:
+        mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)
+    mask = np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        raise PsctlError(None, f"normal map is {w}x{h} but the mask is {mask.shape[1]}x{mask.shape[0]}")
+    if not mask.any():
+        raise PsctlError(None, "the mask is empty (no foreground pixel)")
+    K = None if K is None else check_intrinsics(K)
+
+    # --- per-pixel terms: gradient = t / s along columns (u) and rows (v) ------------------------
+    n = normals.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        length = np.linalg.norm(n, axis=-1)
+        finite = np.isfinite(n).all(axis=-1) & (length > 1e-8)
+    n = np.where(finite[..., None], n / np.where(finite, length, 1.0)[..., None], 0.0)
+    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    if K is None:
+        facing = nz  # the normal's component toward the (orthographic) camera
+        su = sv = np.maximum(facing, cfg["grazing_nz"])
+    else:
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        # -(n . ray) with the ray (u-cx)/fx, (v-cy)/fy, 1 in OpenCV axes (y down, z forward),
+        # i.e. normal (nx, -ny, -nz): the component of the normal toward the camera along the ray.
+        facing = -(nx * (u - cx) / fx - ny * (v - cy) / fy - nz)
+        su = np.maximum(facing, cfg["grazing_nz"]) * fx
+        sv = np.maximum(facing, cfg["grazing_nz"]) * fy
+    good = mask & finite
+    valid = good & (facing > 0)
+    n_mask = int(mask.sum())
+    n_nan = int((mask & ~finite).sum())
+    n_facing = int((good & ~valid).sum())
+    if not valid.any():
+        raise PsctlError(None, f"no usable normal inside the mask ({n_nan} NaN or zero, "
+                               f"{n_facing} facing away from the camera)")
+    tu, tv = -nx, ny  # s * dz/dcol = -nx and s * dz/drow = +ny, in both projections
+
+    # --- graph of valid pixels: horizontal and vertical edges (i -> j = right / down) ------------
+    index = np.full((h, w), -1, np.int64)
+    index[valid] = np.arange(int(valid.sum()))
+    npix = int(valid.sum())
+    hor = valid[:, :-1] & valid[:, 1:]
+    ver = valid[:-1, :] & valid[1:, :]
+    ei = np.concatenate([index[:, :-1][hor], index[:-1, :][ver]])
+    ej = np.concatenate([index[:, 1:][hor], index[1:, :][ver]])
+    n_hor = int(hor.sum())
+    # one-sided terms: (s, t) of the edge's start pixel (its forward difference) and of its end
+    # pixel (its backward difference)
+    s_all = np.concatenate([su[valid], sv[valid]])  # [2P]: u-terms then v-terms, by pixel index
+    t_all = np.concatenate([tu[valid], tv[valid]])
+    axis_off = np.concatenate([np.zeros(n_hor, np.int64), np.full(len(ei) - n_hor, npix)])
+    fwd, bwd = ei + axis_off, ej + axis_off  # rows in s_all/t_all of the two one-sided terms
+    coords = np.nonzero(valid)  # (row, col) of each unknown, for the multigrid's aggregates
+    del index, hor, ver, su, sv, tu, tv, n, nx, ny, nz, facing, finite, good
+
+    graph_n, labels = csgraph.connected_components(
+        _adjacency(npix, ei, ej), directed=False) if len(ei) else (npix, np.arange(npix))
+    pins = np.unique(labels, return_index=True)[1]
+
+    progress = progress or (lambda desc, total: (lambda k: None))
+    if method == "poisson":
+        sf, sb = s_all[fwd], s_all[bwd]
+        c = 0.5 * (sf * sf + sb * sb)
+        b = 0.5 * (sf * t_all[fwd] + sb * t_all[bwd])
+        z, its, _ = _solve(npix, ei, ej, c, b, pins, coords, None, cfg)
+        rounds, total_its = 1, its
+    else:
+        z, rounds, total_its = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
+                                          progress(f"integrating (bilateral, <= {cfg['bilateral_iters']} rounds)",
+                                                   cfg["bilateral_iters"]))
+
+    # --- gauge: zero mean per component, then back to z ------------------------------------------
+    counts = np.bincount(labels, minlength=graph_n)
+    z = z - (np.bincount(labels, z, graph_n) / counts)[labels]
+    if K is not None:
+        z = -np.exp(-z)
+    depth = np.full((h, w), np.nan, np.float32)
+    depth[valid] = z
+    return DepthResult(depth, valid, n_mask, n_nan, n_facing, int(graph_n), rounds, total_its,
+                       "orthographic" if K is None else "perspective")
+
+
+def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np.ndarray:
+    """Validate a 3 x 3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels)."""
+    K = np.asarray(K, np.float64)
+    if K.shape != (3, 3):
+        raise PsctlError(path, f"intrinsics must be a 3 x 3 matrix, got shape {K.shape}")
+    if not np.isfinite(K).all():
+        raise PsctlError(path, "intrinsics contain NaN or infinite values")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise PsctlError(path, "intrinsics need positive focal lengths fx = K[0,0] and fy = K[1,1]")
+    if abs(K[1, 0]) > 1e-9 or not np.allclose(K[2], [0, 0, 1]):
+        raise PsctlError(path, "intrinsics must have the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0]:
+        raise PsctlError(path, "skewed intrinsics (K[0,1] != 0) are not supported")
+    return K
+
+
+def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
+    """K.txt: three rows of three numbers (whitespace or commas, '#' comments)."""
+    from psctl.io.capture import read_matrix
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsctlError(path, "intrinsics file is missing")
+    K = read_matrix(path, (3,), "intrinsics")
+    if K.shape != (3, 3):
+        raise PsctlError(path, f"expected 3 rows of 3 numbers, found {K.shape[0]} rows")
+    return check_intrinsics(K, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Solvers
+# ----------------------------------------------------------------------------------------------
+
+def _adjacency(npix: int, ei: np.ndarray, ej: np.ndarray):
+    import scipy.sparse as sp
+
+    return sp.csr_matrix((np.ones(len(ei), np.int8), (ei, ej)), shape=(npix, npix))
+
+
+def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance):
+    """IRLS with BiNI's one-sided weights. Returns (z, rounds, cg iterations).
+
+    Rows of s_all / t_all are (pixel, axis) pairs; ``fwd[e]`` is the row of edge e's forward
+    term (its start pixel), ``bwd[e]`` the row of its backward term (its end pixel).
+    """
+    from scipy.special import expit
+
+    k, floor = cfg["bilateral_k"], cfg["weight_floor"]
+    # continuation: the sharpness starts at k_start and halves each round down to k. A sharp
+    # sigmoid finds the jumps in the first, smeared (poisson-like) solutions within a few rounds;
+    # ending at k lets smooth places that were cut by mistake knit back together.
+    anneal = int(np.ceil(np.log2(max(cfg["bilateral_k_start"] / k, 1.0))))
+    has_f = np.zeros(len(s_all), bool)
+    has_b = np.zeros(len(s_all), bool)
+    has_f[fwd] = True
+    has_b[bwd] = True
+    both = has_f & has_b  # a pixel missing one side keeps 1/2 and 1/2: nothing to compare
+    wt = np.full(len(s_all), 0.5)  # weight of each row's forward term; 1 - wt for the backward one
+    sf, sb, tf, tb = s_all[fwd], s_all[bwd], t_all[fwd], t_all[bwd]
+    df = np.zeros(len(s_all))
+    db = np.zeros(len(s_all))
+    z = amg = None
+    energy = None
+    rounds = total = 0
+    for rounds in range(1, cfg["bilateral_iters"] + 1):
+        w_fwd = wt[fwd]
+        w_bwd = 1.0 - wt[bwd]
+        c = w_fwd * sf * sf + w_bwd * sb * sb
+        b = w_fwd * sf * tf + w_bwd * sb * tb
+        z, its, amg = _solve(npix, ei, ej, c, b, pins, coords, z, cfg, amg)
+        total += its
+        dz = z[ej] - z[ei]
+        energy, old = float(np.sum(w_fwd * (sf * dz - tf) ** 2 + w_bwd * (sb * dz - tb) ** 2)), energy
+        # one-sided depth differences, scaled by s: bounded on smooth surfaces, large at a jump
+        df[fwd] = sf * dz
+        db[bwd] = sb * dz
+        k_round = max(k, cfg["bilateral_k_start"] * 0.5 ** (rounds - 1))
+        wt = np.where(both, expit(k_round * (db * db - df * df)), 0.5).clip(floor, 1.0 - floor)
+        advance(1)
+        if rounds > anneal + 1 and abs(energy - old) <= cfg["bilateral_tol"] * max(old, 1e-300):
+            break
+    return z, rounds, total
+
+
+def _solve(npix, ei, ej, c, b, pins, coords, x0, cfg, amg=None):
+    """min sum_e c_e (z_j - z_i)^2 - 2 b_e (z_j - z_i), one pinned pixel per component.
+
+    ``amg``: a preconditioner built for an earlier matrix of the same graph (any SPD
+    preconditioner keeps CG correct; a stale one only costs iterations). Returns
+    (z, cg iterations, preconditioner used)."""
+    if len(ei) == 0:  # isolated pixels only
+        return np.zeros(npix), 0, None
+    L = _laplacian(npix, ei, ej, c, pins)
+    rhs = np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
+    if npix <= cfg["amg_max_coarse"]:
+        import scipy.linalg
+
+        return scipy.linalg.solve(L.toarray(), rhs, assume_a="pos"), 0, None
+    its = 0
+    if amg is not None:  # try the old preconditioner for a few iterations first
+        x0, its, done = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["amg_rebuild_iters"])
+        if done:
+            return x0, its, amg
+    amg = _SmoothedAggregation(L, coords, cfg)
+    z, more, _ = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
+    return z, its + more, amg
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    # einsum, not np.dot: OpenBLAS threads its dot product, and on a busy 2-core machine that is
+    # 10x slower than a plain loop
+    return float(np.einsum("i,i->", a, b))
+
+
+def _pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
+         maxiter: int) -> tuple[np.ndarray, int, bool]:
+    """Preconditioned conjugate gradients until max_i |r_i| / a_ii <= rtol max_i |b_i| / a_ii.
+
+    The stopping rule is per unknown (r_i / a_ii is how far a Jacobi step would move z_i), not
+    on |r|: a pixel that bilateral weights have nearly cut loose has a tiny row, and a global
+    residual norm would stop before that pixel has settled. Returns (x, iterations, converged).
+    """
+    dinv = 1.0 / A.diagonal()
+    x = np.zeros_like(b) if x0 is None else x0.copy()
+    r = b - A @ x
+    tmp = np.empty_like(b)
+
+    def scaled_max(v: np.ndarray) -> float:
+        np.multiply(v, dinv, out=tmp)
+        return float(np.max(np.abs(tmp, out=tmp)))
+
+    stop = rtol * scaled_max(b)
+    if scaled_max(r) <= stop:
+        return x, 0, True
+    y = M(r)
+    p = y.copy()
+    ry = _dot(r, y)
+    for it in range(1, maxiter + 1):
+        q = A @ p
+        alpha = ry / _dot(p, q)
+        x += np.multiply(p, alpha, out=tmp)
+        r -= np.multiply(q, alpha, out=tmp)
+        if scaled_max(r) <= stop:
+            return x, it, True
+        y = M(r)
+        ry, ry_old = _dot(r, y), ry
+        p *= ry / ry_old
+        p += y
+    return x, maxiter, False
+
+
+def _laplacian(npix, ei, ej, c, pins):
+    """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree)."""
+    import scipy.sparse as sp
+
+    diag = np.bincount(ei, c, npix) + np.bincount(ej, c, npix)
+    diag[pins] += max(float(diag.mean()), 1e-12)
+    diag = np.maximum(diag, 1e-300)  # isolated pixels are pinned, so only a guard
+    rows = np.concatenate([ei, ej, np.arange(npix)])
+    cols = np.concatenate([ej, ei, np.arange(npix)])
+    return sp.csr_matrix((np.concatenate([-c, -c, diag]), (rows, cols)), shape=(npix, npix))
+
+
+class _SmoothedAggregation:
+    """A V-cycle of smoothed-aggregation multigrid, used as the CG preconditioner.
+
+    Aggregates: within each 2 x 2 block of a level's grid, the nodes joined by strong couplings
+    (so a depth jump that bilateral weights have cut is never averaged over). Prolongation
+    P = (I - omega D^-1 A) P0 with P0 the aggregates' indicator; coarse A = P^T A P; damped
+    Jacobi smoothing (symmetric, so the V-cycle is a valid CG preconditioner).
+    ``coords``: (row, col) of each unknown on the pixel grid.
+    """
+
+    def __init__(self, A, coords: tuple[np.ndarray, np.ndarray], cfg: dict):
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as sla
+
+        self.sweeps = cfg["amg_sweeps"]
+        self.levels = []
+        while A.shape[0] > cfg["amg_max_coarse"]:
+            n = A.shape[0]
+            agg, coarse_coords = _aggregate(A, coords, cfg["amg_strength"])
+            nc = int(agg.max()) + 1
+            if nc > 0.8 * n:  # coarsening has stalled (very sparse or cut-up graph): stop here
+                break
+            dinv = 1.0 / A.diagonal()
+            omega = (4.0 / 3.0) / _jacobi_radius_bound(A, dinv)
+            P0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, nc))
+            P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr()
+            R = P.T.tocsr()
+            self.levels.append((A, omega * dinv, P, R))
+            A, coords = (R @ (A @ P)).tocsr(), coarse_coords
+        # sparse LU: single-threaded and tiny here (a dense Cholesky calls multithreaded BLAS,
+        # which is slow on a busy 2-core machine); also copes when coarsening stalled early
+        self.coarse = sla.splu(A.tocsc()).solve
+
+    def __call__(self, b: np.ndarray) -> np.ndarray:
+        return self._vcycle(0, b)
+
+    def _vcycle(self, k: int, b: np.ndarray) -> np.ndarray:
+        if k == len(self.levels):
+            return self.coarse(b)
+        A, wd, P, R = self.levels[k]
+        x = wd * b
+        for _ in range(self.sweeps - 1):
+            x += wd * (b - A @ x)
+        x += P @ self._vcycle(k + 1, R @ (b - A @ x))
+        for _ in range(self.sweeps):
+            x += wd * (b - A @ x)
+        return x
+
+
+def _jacobi_radius_bound(A, dinv: np.ndarray) -> float:
+    """Gershgorin bound on the spectral radius of D^-1 A (2 for a graph Laplacian)."""
+    absrow = np.asarray(abs(A).sum(axis=1)).ravel()
+    return float(np.max(absrow * dinv))
+
+
+def _aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
+    """Aggregates: connected groups of strongly coupled nodes (-a_ij >= theta sqrt(a_ii a_jj))
+    inside each 2 x 2 block of the nodes' (row, col) grid coordinates.
+
+    Returns (aggregate of each node, (row, col) of each aggregate on the next, halved grid)."""
+    import scipy.sparse as sp
+    import scipy.sparse.csgraph as csgraph
+
+    r, c = coords
+    A = A.tocoo()
+    i, j, v = A.row, A.col, A.data
+    d = A.diagonal()
+    keep = (i != j) & (-v >= theta * np.sqrt(d[i] * d[j])) & (r[i] // 3 == r[j] // 3) & (c[i] // 3 == c[j] // 3)
+    n = A.shape[0]
+    graph = sp.csr_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(n, n))
+    _, agg = csgraph.connected_components(graph, directed=False)
+    first = np.unique(agg, return_index=True)[1]
+    return agg, (r[first] // 3, c[first] // 3)
+
+
+# ----------------------------------------------------------------------------------------------
+# Surfaces: 3D points, mesh, shading
+# ----------------------------------------------------------------------------------------------
+
+LIGHT = np.array([-0.4, 0.5, 0.77]) / np.linalg.norm([-0.4, 0.5, 0.77])  # shading.png: upper left, front
+
+
+def depth_to_points(depth: np.ndarray, K: np.ndarray | None = None) -> np.ndarray:
+    """[H, W] z -> [H, W, 3] camera-frame points (x right, y up, z toward the camera).
+
+    Orthographic: (col, -row, z), pixel units. Perspective: distance d = -z along the ray of the
+    pixel (u, v), i.e. (d (u - cx) / fx, -d (v - cy) / fy, z). NaN depth gives NaN points.
+    """
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    z = depth.astype(np.float32)
+    if K is None:
+        return np.stack([u, -v, z], axis=-1)
+    d = -z
+    return np.stack([d * (u - K[0, 2]) / K[0, 0], -d * (v - K[1, 2]) / K[1, 1], z], axis=-1)
+
+
+def normals_from_points(points: np.ndarray) -> np.ndarray:
+    """[H, W, 3] points (NaN = none) -> [H, W, 3] unit normals of the surface through them
+    (central differences, one-sided at borders; NaN where a pixel has no neighbour along an axis)."""
+    def derivative(axis: int) -> np.ndarray:
+        p = np.moveaxis(points, axis, 0)
+        nan = np.full_like(p[:1], np.nan)
+        nxt = np.concatenate([p[1:], nan])
+        prv = np.concatenate([nan, p[:-1]])
+        d = (nxt - prv) / 2
+        d = np.where(np.isnan(d), nxt - p, d)
+        d = np.where(np.isnan(d), p - prv, d)
+        return np.moveaxis(d, 0, axis)
+
+    d_row, d_col = derivative(0), derivative(1)
+    n = np.cross(d_row, d_col)  # rows go down, columns right: this order points n toward the camera
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def shade(normals: np.ndarray, light: np.ndarray = LIGHT, ambient: float = 0.08) -> np.ndarray:
+    """Lambertian shading of unit normals under a distant light: [H, W] in [0, 1], NaN stays NaN."""
+    return ambient + (1.0 - ambient) * np.clip(normals @ light.astype(normals.dtype), 0.0, 1.0)
+
+
+def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarray | None = None,
+               colors: np.ndarray | None = None):
+    """A triangle mesh with one vertex per pixel of finite depth.
+
+    Each 2 x 2 block of pixels gives two triangles when all four have depth, one when three do.
+    Triangles are counter-clockwise seen from the camera. ``normals`` [H, W, 3] and ``colors``
+    [H, W, 3] uint8 become per-vertex attributes.
+    Returns psctl.io.mesh.Mesh.
+    """
+    from psctl.io.mesh import Mesh
+
+    valid = np.isfinite(depth)
+    h, w = depth.shape
+    index = np.full((h + 1, w + 1), -1, np.int64)  # padded so blocks at the border see "no pixel"
+    index[:h, :w][valid] = np.arange(int(valid.sum()))
+    a, b = index[:-1, :-1], index[:-1, 1:]  # top-left, top-right of each block
+    c, d = index[1:, :-1], index[1:, 1:]  # bottom-left, bottom-right
+    a, b, c, d = (x.ravel() for x in (a, b, c, d))
+    ok = np.stack([a, b, c, d]) >= 0
+    # (x = col, y = -row) seen from +z: a c b and b c d are counter-clockwise
+    full = ok.all(axis=0)
+    tris = [np.stack([a, c, b], 1)[full], np.stack([b, c, d], 1)[full]]
+    three = ok.sum(axis=0) == 3
+    for missing, tri in ((0, (b, c, d)), (1, (a, c, d)), (2, (a, d, b)), (3, (a, c, b))):
+        sel = three & ~ok[missing]
+        tris.append(np.stack(tri, 1)[sel])
+    faces = np.concatenate(tris).astype(np.int32)
+    vertices = depth_to_points(depth, K)[valid]
+    return Mesh(vertices=vertices, faces=faces,
+                normals=None if normals is None else normals[valid].astype(np.float32),
+                colors=None if colors is None else colors[valid])
+
+
+def display_colors(mean_image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Linear mean image [H, W, 3] -> uint8 display colours (99.5th percentile to white, gamma 2.2)."""
+    scale = float(np.percentile(mean_image[valid].max(axis=-1), 99.5)) if valid.any() else 1.0
+    rgb = np.clip(mean_image / max(scale, 1e-12), 0.0, 1.0) ** (1 / 2.2)
+    return np.round(rgb * 255).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------------
+# Capture folders: psctl depth
+# ----------------------------------------------------------------------------------------------
+
+NORMAL_FILES = ("normal.exr", "normal.png")  # what `psctl normals` writes into PATH/psctl/
+OUTPUTS = ("depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.json")
+
+
+def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",
+              out: str | os.PathLike | None = None, K: str | os.PathLike | np.ndarray | None = None,
+              write: bool = True, binary_ply: bool = True, config: dict | None = None,
+              progress: ProgressFactory | None = None) -> dict:
+    """Integrate a capture folder's normal map into depth.exr, depth.png, mesh.ply, shading.png
+    and depth_report.json (in ``out``, default PATH/psctl; all files or none).
+
+    Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else PATH/psctl/normal.exr or
+    normal.png, else estimated from the images (``psctl normals --method auto``). Mask: the
+    folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
+    array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
+    """
+    from psctl.io.atomic import check_output_dir
+    from psctl.io.capture import bounding_box, iter_images, load_images, open_capture
+
+    t0 = time.perf_counter()
+    progress = progress or (lambda desc, total: (lambda k: None))
+    method = str(method).lower()
+    if method not in METHODS:
+        raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
+    cap = open_capture(path)
+    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    if write:
+        check_output_dir(out_dir)
+    notes: list[str] = []
+
+    # --- intrinsics ----------------------------------------------------------------------------
+    k_source = None
+    if K is None and (cap.path / K_FILE).is_file():
+        K = cap.path / K_FILE
+    if isinstance(K, (str, os.PathLike)):
+        k_source = str(K)
+        K = read_intrinsics(K)
+    elif K is not None:
+        K, k_source = check_intrinsics(K), "array"
+
+    # --- normals and mask ----------------------------------------------------------------------
+    mask = _capture_mask(cap)
+    mean_image = None
+    if normals is None:
+        for name in NORMAL_FILES:
+            if (cap.path / "psctl" / name).is_file():
+                normals = cap.path / "psctl" / name
+                break
+    if normals is not None:
+        from psctl.io.normals import read_normal_map
+
+        source = Path(normals)
+        nmap = read_normal_map(source)
+        if nmap.shape[:2] != (cap.height, cap.width):
+            raise PsctlError(source, f"normal map is {nmap.shape[1]}x{nmap.shape[0]} but the capture's images "
+                                     f"{'and mask ' if cap.mask_path else ''}are {cap.width}x{cap.height}")
+        if mask is None:
+            mask = ~(nmap == 0).all(axis=-1)
+            if not mask.any():
+                raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
+        normals_source = str(source)
+    else:
+        from psctl.api import estimate_normals
+
+        if mask is None:
+            mask = np.ones((cap.height, cap.width), bool)
+        box = bounding_box(mask)
+        images = load_images(cap, box, progress(f"{cap.name}: reading images", cap.n_images))
+        nmap = np.zeros((cap.height, cap.width, 3), np.float32)
+        nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
+        mean_image = np.zeros_like(nmap)
+        mean_image[box] = images.mean(axis=0)
+        del images
+        source = cap.path
+        normals_source = "estimated (psctl normals --method auto)"
+        notes.append("no normal map given or found in PATH/psctl: normals estimated from the images "
+                     "(run `psctl normals` first to choose the method and keep them)")
+
+    # --- integrate -----------------------------------------------------------------------------
+    try:
+        res = integrate(nmap, mask, method, K, config, progress)
+    except PsctlError as e:
+        raise PsctlError(e.path or source, e.message) from None
+    if res.n_rejected:
+        notes.append(f"{res.n_rejected} mask pixels have no usable normal ({res.n_rejected_nan} NaN or zero, "
+                     f"{res.n_rejected_facing} facing away from the camera): they get no depth")
+    if res.n_components > 1:
+        notes.append(f"{res.n_components} separate regions: each has its own unknown depth offset")
+    t_integrate = time.perf_counter() - t0
+
+    # --- surface products ----------------------------------------------------------------------
+    valid = res.valid
+    if mean_image is None:
+        box = bounding_box(valid)
+        mean_image = np.zeros((cap.height, cap.width, 3), np.float32)
+        advance = progress(f"{cap.name}: mean image for vertex colours", cap.n_images)
+        for img in iter_images(cap, box):
+            mean_image[box] += img / cap.n_images
+            advance(1)
+    colors = display_colors(mean_image, valid)
+    unit = np.where(valid[..., None], nmap / np.maximum(np.linalg.norm(nmap, axis=-1, keepdims=True), 1e-12), 0.0)
+    mesh = depth_mesh(res.depth, K, unit, colors)
+    recomputed = normals_from_points(depth_to_points(res.depth, K))
+    shading = np.nan_to_num(shade(recomputed), nan=0.0)
+
+    z = res.depth[valid]
+    report = {
+        "object": cap.name,
+        "path": str(cap.path),
+        "method": method,
+        "projection": res.projection,
+        "intrinsics": k_source,
+        "normals": normals_source,
+        "height": cap.height,
+        "width": cap.width,
+        "n_pixels": int(valid.sum()),
+        "n_mask_pixels": res.n_mask,
+        "n_rejected": res.n_rejected,
+        "n_rejected_nan": res.n_rejected_nan,
+        "n_rejected_facing_away": res.n_rejected_facing,
+        "n_regions": res.n_components,
+        "iterations": res.iterations,
+        "cg_iterations": res.cg_iterations,
+        "z_min": round(float(z.min()), 6),
+        "z_max": round(float(z.max()), 6),
+        "z_units": "pixels" if K is None else "geometric-mean distance of each region",
+        "n_vertices": int(len(mesh.vertices)),
+        "n_faces": int(len(mesh.faces)),
+        "seconds_integrate": round(t_integrate, 3),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "outputs": {},
+        "notes": notes,
+    }
+    if write:
+        _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply)
+        report["seconds"] = round(time.perf_counter() - t0, 3)
+    return report
+
+
+def _capture_mask(cap) -> np.ndarray | None:
+    """The folder's mask (an all-background mask is an error), or None without a mask file."""
+    from psctl.io.capture import load_mask
+
+    return load_mask(cap) if cap.mask_path is not None else None
+
+
+def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """[H, W] z -> [H, W, 2] grey + alpha in [0, 1]: nearest point white, farthest black,
+    transparent where there is no depth."""
+    z = depth[valid]
+    lo, hi = float(z.min()), float(z.max())
+    grey = np.where(valid, (np.nan_to_num(depth, nan=lo) - lo) / max(hi - lo, 1e-12), 0.0)
+    return np.stack([grey, valid.astype(np.float32)], axis=-1).astype(np.float32)
+
+
+def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
+                   report: dict, binary_ply: bool) -> None:
+    from psctl.io.atomic import staged_outputs
+    from psctl.io.images import write_image
+    from psctl.io.mesh import write_ply
+    from psctl.io.report import write_json
+
+    report["outputs"] = {name.replace(".", "_"): str(out_dir / name) for name in OUTPUTS}
+    with staged_outputs(out_dir) as stage:
+        write_image(stage / "depth.exr", depth.astype(np.float32), "float")
+        write_image(stage / "depth.png", depth_preview(depth, valid), "uint16")
+        write_ply(stage / "mesh.ply", mesh, binary=binary_ply,
+                  comment=f"psctl depth --method {report['method']} ({report['projection']}) of {report['object']}")
+        write_image(stage / "shading.png", np.stack([shading, valid.astype(np.float32)], -1), "uint8")
+        write_json(stage / "depth_report.json", report)
+
+
+def render_depth(r: dict, quiet: bool = False) -> None:
+    """Print a ``run_depth`` report for people (Rich, stdout)."""
+    from rich.console import Console
+
+    con = Console()
+    for note in r.get("notes", []):
+        con.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
+    con.print(f"[bold]{r['object']}[/]: {r['method']} ({r['projection']}), {r['n_pixels']} pixels, "
+              f"{r['n_vertices']} vertices, {r['n_faces']} triangles, {r['seconds']:.2f} s", highlight=False,
+              soft_wrap=True)
+    if not quiet:
+        for p in r["outputs"].values():
+            con.print(f"  wrote {p}", highlight=False)
