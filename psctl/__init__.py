@@ -13,6 +13,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "estimate_normals": "psctl.api",
     "run_normals": "psctl.api",
+    "integrate_normals": "psctl.depth",
     "open_capture": "psctl.io.capture",
     "load_capture": "psctl.io.capture",
     "angular_error": "psctl.metrics",

@@ -178,6 +178,28 @@ def synth(
             typer.echo(f"preview: {report['preview']}")
 
 
+@app.command()
+def depth(
+    path: Annotated[Path, typer.Argument(help="Capture folder (normals from PATH/psctl/normal.exr|png, or estimated).")],
+    normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl 16-bit PNG, EXR or .npy.")] = None,
+    method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
+    K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Integrate normals into a surface: depth.exr, depth.png, mesh.ply, shading.png, depth_report.json."""
+    with _user_errors():
+        from psctl.depth import render_depth, run_depth
+
+        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
+            report = run_depth(path, normals=normals, method=method, out=out, K=K, progress=progress)
+        if json_out:
+            _print_json(report)
+            return
+        render_depth(report, quiet=quiet)
+
+
 @app.callback(invoke_without_command=True)
 def _root(version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False) -> None:
     if version:
