@@ -151,7 +151,7 @@ def lobes(mat: Material, nl: Tensor, nv: Tensor, nh: Tensor, lh: Tensor) -> tupl
     nh_, lh_ = nh.clamp(0.0, 1.0), lh.clamp(1e-6, 1.0)
     abc = mat["abc"]
 
-    def part(sel: Tensor | None, use_abc: bool) -> Tensor:
+    def part(sel: Tensor | slice | None, use_abc: bool) -> Tensor:
         # D G / (pi nl nv) for the materials in ``sel`` (all when None), one model
         def pick(t: Tensor) -> Tensor:
             return t if sel is None or t.shape[0] == 1 else t[sel]
@@ -169,20 +169,26 @@ def lobes(mat: Material, nl: Tensor, nv: Tensor, nh: Tensor, lh: Tensor) -> tupl
         g1v = 2.0 / (1.0 + (alpha2 / (v * v) + (1.0 - alpha2)).sqrt())
         return alpha2 / (4.0 * math.pi * t * t) * g1a * g1v / (a * v)
 
-    # evaluate each model only on its own materials
-    if bool(abc.all()):
+    # evaluate each model only on its own materials (ABC ones first makes both parts slices)
+    k = int(abc.sum())
+    if k == len(abc):
         s0 = part(None, True).expand(shape)
-    elif not bool(abc.any()):
+    elif k == 0:
         s0 = part(None, False).expand(shape)
+    elif bool(abc[:k].all()):
+        s0 = torch.cat([part(slice(0, k), True).expand(k, *shape[1:]),
+                        part(slice(k, None), False).expand(len(abc) - k, *shape[1:])])
     else:
         s0 = torch.empty(shape, device=nl.device)
         ia, ig = abc.nonzero()[:, 0], (~abc).nonzero()[:, 0]
         s0[ia] = part(ia, True).expand(len(ia), *shape[1:])
         s0[ig] = part(ig, False).expand(len(ig), *shape[1:])
     s0 = s0 * ((nl > 0) & (nv > 0))
-    s1 = torch.where(_bc(mat["metal"], nd), s0, s0 * fresnel_dielectric(lh_, _bc(mat["ior"], nd)))
-    s2 = s0 * (1.0 - lh_) ** 5
-    return s1, s2
+    metal = mat["metal"]
+    if not bool(metal.any()):  # S2 only matters for metals (its colour c2 is 0 otherwise)
+        return s0 * fresnel_dielectric(lh_, _bc(mat["ior"], nd)), torch.zeros_like(s0)
+    s1 = torch.where(_bc(metal, nd), s0, s0 * fresnel_dielectric(lh_, _bc(mat["ior"], nd)))
+    return s1, s0 * (1.0 - lh_) ** 5
 
 
 def brdf(mat: Material, n: Tensor, l: Tensor, v: Tensor) -> Tensor:

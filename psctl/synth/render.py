@@ -57,15 +57,20 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
 
     def one(m: Material) -> Tensor:
         s1, s2 = lobes(m, nl, nz, nh, lh)
-        kd = m["kd"][:, None, :, None] / math.pi  # [B, 1, 3, 1]
-        if texture is not None:
-            kd = kd * texture[:, None]
-        out = kd * cos[:, :, None] + m["c1"][:, None, :, None] * (s1 * cos)[:, :, None]
+        # RGB = sum of colour x scalar terms: one batched 3 x T matmul per (sample, light)
+        terms, coefs = [s1 * cos], [m["c1"]]
         if bool(m["metal"].any()):
-            out = out + m["c2"][:, None, :, None] * (s2 * cos)[:, :, None]
+            terms.append(s2 * cos)
+            coefs.append(m["c2"])
+        if texture is None:
+            terms.append(cos)
+            coefs.append(m["kd"] / math.pi)
+        out = torch.matmul(torch.stack(coefs, -1)[:, None], torch.stack(terms, 2))  # [B, N, 3, P]
+        if texture is not None:
+            out.addcmul_((m["kd"][:, :, None] / math.pi * texture)[:, None], cos[:, :, None])
         if ambient is not None:
-            alb = m["kd"][:, None, :, None] * (texture[:, None] if texture is not None else 1.0)
-            out = out + ambient[:, None, None, None] * alb * (nz > 0)[:, None]
+            alb = m["kd"][:, :, None] * (texture if texture is not None else 1.0) * (nz > 0)  # [B, 3, P]
+            out.add_((ambient[:, None, None] * alb)[:, None])
         return out
 
     img = one(mat)
@@ -219,10 +224,11 @@ def horizon_visibility(horizon: Tensor, lights: Tensor, softness_deg: float = 1.
 
 
 def uniform_noise(images: Tensor, gen: torch.Generator, level: float = 0.025) -> Tensor:
-    """Add noise uniform in [-level, level] (the paper's training augmentation), drawn as 16-bit
-    integers (twice as fast as float draws on a CPU, 65536 levels)."""
+    """Add noise uniform in [-level, level) (the paper's training augmentation), on 65536 levels:
+    16-bit integer draws added in place cost a third of float draws plus arithmetic on a CPU.
+    ``images`` is modified in place and returned."""
     q = torch.randint(-32768, 32768, images.shape, dtype=torch.int16, generator=gen, device=gen.device)
-    return images + (q.float() + 0.5) * (level / 32768.0)
+    return images.add_(q, alpha=level / 32768.0)
 
 
 def sensor_noise(images: Tensor, gen: torch.Generator, read: float = 0.002, shot: float = 1e-4) -> Tensor:

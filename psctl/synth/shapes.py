@@ -29,8 +29,8 @@ BLOBBY = {
     "primitives": (2, 6),  # number of positive primitives (the first is a central ellipsoid)
     "p_capsule": 0.25, "p_torus": 0.12, "p_box": 0.3,  # chance of each non-ellipsoid slot being used
     "dents": 0.5,  # chance of each dent slot being used
-    "features": 12,  # displacement sinusoids per shape
-    "detail": (0.0, 1.5),  # displacement strength, drawn per shape
+    "features": 24,  # displacement sinusoids per shape
+    "detail": (0.0, 2.5),  # displacement strength, drawn per shape
     "steps": 96,  # sphere-tracing iterations per level (at most)
 }
 
@@ -147,13 +147,13 @@ def sample_blobby(n: int, gen: torch.Generator, config: dict | None = None) -> d
     active[:, slots] = rank < count[:, None]
     p["active"] = active
     p["k"] = _uniform((n,), 0.05, 0.2, gen)  # smooth-union radius
-    # displacement: sinusoids with log-uniform frequency, slope (amplitude x frequency) ~ U(0.3, 1) x 0.06
+    # displacement: sinusoids with log-uniform frequency, slope (amplitude x frequency) ~ U(0.3, 1) x 0.045
     nf = cfg["features"]
     freq = torch.exp(_uniform((n, nf), math.log(3.0), math.log(40.0), gen))
     strength = _uniform((n, 1), *cfg["detail"], gen)
     p["w"] = F.normalize(torch.randn(n, nf, 3, generator=gen, device=gen.device), dim=-1) * freq[..., None]
     p["phase"] = _uniform((n, nf), 0.0, 2 * math.pi, gen)
-    p["amp"] = 0.06 * strength / freq * _uniform((n, nf), 0.3, 1.0, gen)
+    p["amp"] = 0.045 * strength / freq * _uniform((n, nf), 0.3, 1.0, gen)
     return p
 
 
@@ -212,13 +212,17 @@ def blobby_sdf(p: Tensor, s: dict[str, Tensor]) -> Tensor:
 
 
 def lipschitz(s: dict[str, Tensor]) -> Tensor:
-    """[n] bound on the gradient norm of ``blobby_sdf`` (the displacement adds sum |a w|)."""
-    return 1.0 + (s["amp"] * s["w"].norm(dim=-1)).sum(-1)
+    """[n] step divisor for sphere tracing ``blobby_sdf``: 1 + 1.5 x the RMS sum of the
+    displacement slopes |a w|. Not a strict bound (that is sum |a w|, reached only when every
+    sinusoid peaks at once), but random phases make that rare: against strict-bound tracing
+    with 600 steps it disagrees on fewer silhouette pixels, and it is 1.5x faster."""
+    return 1.0 + 1.5 * ((s["amp"] * s["w"].norm(dim=-1)) ** 2).sum(-1).sqrt()
 
 
 def _march(s: dict[str, Tensor], sdf, x: Tensor, y: Tensor, ids: Tensor, z: Tensor, floor: float,
-           stop: Tensor, steps: int) -> tuple[Tensor, Tensor]:
-    """Sphere-trace rays (one set per shape) down -z until the SDF falls below ``stop``.
+           stop: Tensor, steps: int, surface: bool = False) -> tuple[Tensor, Tensor]:
+    """Sphere-trace rays (one set per shape) down -z until the SDF falls below ``stop`` (with
+    ``surface``: until |SDF| does, so a ray that overshot inside steps back out).
 
     Args:
         x, y: [Q] ray positions; ids: [n, K] the rays of each shape; z: [n, K] start heights.
@@ -239,7 +243,7 @@ def _march(s: dict[str, Tensor], sdf, x: Tensor, y: Tensor, ids: Tensor, z: Tens
     live = torch.ones_like(z, dtype=torch.bool)  # entries of shapes with fewer rays are padding
     for it in range(steps):
         d = sdf(torch.stack([x[ids], y[ids], z], -1), s)
-        done = d < stop
+        done = (d.abs() if surface else d) < stop
         prev = torch.where(done, prev, z)
         z = torch.where(done, z, z - d * scale)
         last = it == steps - 1
@@ -297,7 +301,8 @@ def render_sdf(s: dict[str, Tensor], size: int, sdf=blobby_sdf, steps: int = BLO
     if k:
         order = torch.argsort((~todo).to(torch.int8), dim=1, stable=True)[:, :k]
         z0 = torch.nan_to_num(start.gather(1, order), nan=-2 * bound)  # padding: already below the floor
-        z_hit, _ = _march(s, sdf, x, y, order, z0, -bound, torch.full((n, 1), 0.05 * px, device=dev), steps)
+        z_hit, _ = _march(s, sdf, x, y, order, z0, -bound, torch.full((n, 1), 0.05 * px, device=dev), steps,
+                          surface=True)
     # normals from central differences of the SDF, evaluated at the candidate hits only
     cand = z_hit.isfinite()
     normal = torch.zeros(n, 3, size * size, device=dev)

@@ -48,6 +48,7 @@ DEFAULT_CONFIG: dict = {
     "flip": True,  # random mirror
     "pool": 64,  # G-buffers kept in memory
     "reuse": 128,  # samples drawn per G-buffer (on average) before it is replaced
+    "refresh_chunk": 8,  # new G-buffers are rendered this many at a time (GPU: fewer, larger calls)
     "shapes": {"blobby": 1.0, "mesh": 0.25},  # relative frequency of the geometry sources
     "meshes": ["lucy"],  # training meshes (test shapes are refused)
     "mesh_dir": None,  # folder of .obj files (None: psctl.synth.meshes.mesh_dir())
@@ -193,7 +194,8 @@ class GeometryPool:
     def refresh(self, n_samples: int) -> None:
         """Replace pool entries in proportion to the samples drawn (``reuse`` per entry)."""
         self._pending += n_samples / self.cfg["reuse"]
-        n = int(self._pending)
+        chunk = max(1, int(self.cfg["refresh_chunk"]))
+        n = int(self._pending // chunk) * chunk
         if n:
             self._pending -= n
             m = len(self.names)
@@ -276,6 +278,28 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
 
 
+class SynthDataset(torch.utils.data.IterableDataset):
+    """The stream for a torch DataLoader with worker processes (``batch_size=None``: the
+    stream already batches). Worker w uses seed ``seed + 7919 * w`` and one torch thread: on a
+    CPU, a few single-threaded workers are much faster than one multi-threaded stream, and
+    multi-threaded torch collapses when the cores are shared.
+
+        loader = DataLoader(SynthDataset(cfg), batch_size=None, num_workers=2, persistent_workers=True)
+    """
+
+    def __init__(self, config: dict | None = None, **overrides):
+        super().__init__()
+        self.cfg = make_config(config, **overrides)
+
+    def __iter__(self) -> Iterator[dict]:
+        info = torch.utils.data.get_worker_info()
+        cfg = dict(self.cfg)
+        if info is not None:
+            torch.set_num_threads(1)  # this process is a worker: its own thread budget
+            cfg["seed"] = int(cfg["seed"]) + 7919 * info.id
+        return iter(SynthStream(cfg))
+
+
 class SynthStream:
     """An endless, seeded iterator of training batches (see the module docstring).
 
@@ -315,12 +339,14 @@ class SynthStream:
 
         # materials: one per sample, a second one and a blend map for some, textures for some
         mat = M.sample_materials(b, gen, self.table, self.probs, cfg["merl_names"])
+        mat = M.take(mat, torch.argsort((~mat["abc"]).to(torch.int8), stable=True))  # ABC first: see lobes()
         blend = torch.rand(b, generator=gen, device=dev) < cfg["blend"]
         kinds = [M.BLENDS[i] for i in torch.randint(3, (b,), generator=gen, device=dev).tolist()]
         sv = blend.nonzero()[:, 0]
         mat_b, weights = None, None
         if len(sv):
             mat_b = M.sample_materials(len(sv), gen, self.table, self.probs, cfg["merl_names"])
+            mat_b = M.take(mat_b, torch.argsort((~mat_b["abc"]).to(torch.int8), stable=True))
             weights = M.blend_weights([kinds[i] for i in sv.tolist()], c, c, gen).reshape(len(sv), 1, p)
         textured = torch.rand(b, generator=gen, device=dev) < cfg["texture"]
         texture = None
@@ -348,16 +374,15 @@ class SynthStream:
         target = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
         count = (msk.sum((1, 2)) * n * 3).clamp_min(1.0)
         mean = (img * msk[:, None]).sum((1, 2, 3)) / count
-        img = img * (target / mean.clamp_min(1e-8))[:, None, None, None]
-        img = img * ints[..., None, None]
+        img.mul_(((target / mean.clamp_min(1e-8))[:, None] * ints)[..., None, None])  # exposure x intensity
         if cfg["clip"] is not None:
-            img = img.clamp_max(cfg["clip"])
+            img.clamp_(max=cfg["clip"])
         if cfg["noise"]:
-            img = R.uniform_noise(img, gen, cfg["noise"])
+            R.uniform_noise(img, gen, cfg["noise"])
         if cfg["quantize"]:
             img = R.quantize(img, cfg["quantize"])
         if cfg["mask_images"]:
-            img = img * msk[:, None]
+            img.mul_(msk[:, None])
 
         shapes = [self.pool.names[i] for i in crops["slot"].tolist()]
         self.pool.refresh(b)
