@@ -3,7 +3,7 @@
     python benchmarks/bench_synth.py                       # CPU, torch's default thread count
     python benchmarks/bench_synth.py --threads 1           # one core
     python benchmarks/bench_synth.py --threads 1 --workers 2 --skip pieces,writer   # + 2 DataLoader workers
-    python benchmarks/bench_synth.py --device cuda --batches 50 --pool 512
+    python benchmarks/bench_synth.py --device cuda --batches 50 --pool 512 --reuse 512 --refresh-chunk 32
 
 Measures
   * the training stream: samples per second (a sample = --images images of --crop x --crop
@@ -48,7 +48,7 @@ def bench_stream(args, device: torch.device) -> dict:
     from psctl.synth.stream import SynthStream
 
     cfg = {"batch_size": args.batch_size, "n_images": args.images, "crop": args.crop, "size": args.size,
-           "pool": args.pool, "reuse": args.reuse, "device": str(device), "seed": 0,
+           "pool": args.pool, "reuse": args.reuse, "refresh_chunk": args.refresh_chunk, "device": str(device), "seed": 0,
            "intensities": args.intensities}
     if args.no_meshes:
         cfg["shapes"] = {"blobby": 1.0}
@@ -77,7 +77,8 @@ def bench_workers(args) -> dict:
     from psctl.synth.stream import SynthDataset
 
     cfg = {"batch_size": args.batch_size, "n_images": args.images, "crop": args.crop, "size": args.size,
-           "pool": args.pool, "reuse": args.reuse, "seed": 0, "intensities": args.intensities}
+           "pool": args.pool, "reuse": args.reuse, "refresh_chunk": args.refresh_chunk, "seed": 0,
+           "intensities": args.intensities}
     if args.no_meshes:
         cfg["shapes"] = {"blobby": 1.0}
     loader = DataLoader(SynthDataset(cfg), batch_size=None, num_workers=args.workers, persistent_workers=True,
@@ -149,6 +150,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--pool", type=int, default=64)
     ap.add_argument("--reuse", type=int, default=128)
+    ap.add_argument("--refresh-chunk", type=int, default=8, help="new G-buffers rendered per call")
     ap.add_argument("--intensities", default="unit")
     ap.add_argument("--batches", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=2)
