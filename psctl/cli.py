@@ -200,6 +200,49 @@ def depth(
         render_depth(report, quiet=quiet)
 
 
+@app.command()
+def train(
+    method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn")],
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run [default: runs/METHOD].")] = None,
+    resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
+    device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
+    max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
+    install: Annotated[bool, typer.Option(help="When finished, copy the best weights to weights/ (release).")] = False,
+    quiet: Quiet = False,
+) -> None:
+    """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
+    with _user_errors():
+        from psctl.train import install_weights, load_config, train as run_training
+
+        cfg = load_config(config)
+        run_dir = resume or out or Path("runs") / method.replace("-", "_")
+        con = _stderr()
+        if quiet:
+            report = None
+            st = run_training(method, cfg, run_dir, resume=resume is not None, device=device,
+                              max_seconds=None if max_minutes is None else 60 * max_minutes)
+        else:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} samples"),
+                          TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:
+                task = bar.add_task(f"train {method}", total=None, info="")
+
+                def report(rec: dict) -> None:
+                    bar.update(task, completed=rec["samples"], total=rec["total"],
+                               info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
+
+                st = run_training(method, cfg, run_dir, resume=resume is not None, device=device, progress=report,
+                                  max_seconds=None if max_minutes is None else 60 * max_minutes)
+        best = "-" if st["best_val"] is None else f"{st['best_val']:.2f}°"
+        state = "finished" if st["finished"] else "stopped (resume with --resume)"
+        con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "
+                  f"weights {Path(run_dir) / 'best.pt'}", highlight=False, soft_wrap=True)
+        if install and st["finished"]:
+            con.print(f"installed {install_weights(run_dir, method)}", highlight=False)
+
+
 @app.callback(invoke_without_command=True)
 def _root(version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False) -> None:
     if version:

@@ -1,0 +1,404 @@
+"""Training loops: PS-FCN, PS-FCN+N and UPS-FCN on psctl's synthetic stream (nanoGPT style).
+
+    psctl train ps-fcn-n --config configs/ps_fcn_n.yaml [--resume runs/ps_fcn_n] [--device cuda]
+
+The recipe is one YAML file (see configs/); defaults follow the paper: Adam(0.9, 0.999), lr 1e-3
+halved at regular intervals, batch 32, 32 images per sample, 32 x 32 crops, noise augmentation,
+cosine loss 1 - n.n_gt over the object's pixels. The schedule is counted in samples seen.
+
+A run folder holds
+    model.pt            psctl weights (release format) of the latest state, with metadata
+    optim.0.pt, ...     Adam state split in parts of < 16 MB (files returned from the GPU machine are capped)
+    stream.pt           the synthetic stream's state (generator state, geometry-pool seeds)
+    state.json          step, samples seen, wall time, RNG state of the stream, best validation
+    best.pt             weights with the best synthetic-validation MAE so far
+    log.jsonl           one line per log interval and per validation
+A checkpoint is written every few minutes, at the end, and on SIGINT/SIGTERM; ``--resume``
+continues exactly (same data order, same optimiser state).
+
+This module must not import OpenImageIO: it runs on the GPU machine, which lacks it.
+"""
+
+from __future__ import annotations
+
+import base64
+import copy
+import io
+import json
+import math
+import os
+import signal
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from psctl.errors import PsctlError
+
+DEFAULT_CONFIG: dict[str, Any] = {
+    "model": {"fuse": "max"},
+    "normalization": None,  # None: the method's default (ps-fcn-n: per-channel)
+    "data": {},  # passed to psctl.synth.stream (see there for keys)
+    "train": {
+        "batch_size": 32,
+        "images_per_sample": 32,  # q
+        "crop": 32,
+        "lr": 1.0e-3,
+        "betas": [0.9, 0.999],
+        "weight_decay": 0.0,
+        "lr_halve_every": 420_000,  # samples (the paper: every 5 epochs of ~84k samples)
+        "samples": 2_500_000,  # the paper: 30 epochs of ~84k samples
+        "seed": 0,
+        "log_every": 20,  # steps
+        "checkpoint_minutes": 5.0,
+        "val_every": 50_000,  # samples
+        "amp": "bf16",  # on CUDA only; CPU always runs float32
+        "channels_last": True,
+    },
+    "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16},
+}
+
+OPTIM_PART_BYTES = 12 * 2**20
+
+
+def merge(base: dict, override: dict | None) -> dict:
+    """Deep-merge ``override`` into a copy of ``base``; unknown top-level/section keys are errors."""
+    out = copy.deepcopy(base)
+    for k, v in (override or {}).items():
+        if k in out and isinstance(out[k], dict) and isinstance(v, dict) and k != "data":
+            unknown = set(v) - set(out[k])
+            if unknown:
+                raise PsctlError(None, f"unknown config keys in '{k}': {', '.join(sorted(unknown))}")
+            out[k] = {**out[k], **v}
+        elif k in out or k == "method":
+            out[k] = v
+        else:
+            raise PsctlError(None, f"unknown config section {k!r}")
+    return out
+
+
+def load_config(path: str | os.PathLike | None) -> dict:
+    """YAML recipe merged over DEFAULT_CONFIG."""
+    if path is None:
+        return copy.deepcopy(DEFAULT_CONFIG)
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise PsctlError(path, "config file is missing")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise PsctlError(path, f"not valid YAML ({' '.join(str(e).split())})") from None
+    if not isinstance(raw, dict):
+        raise PsctlError(path, "a config must be a mapping of sections")
+    try:
+        return merge(DEFAULT_CONFIG, raw)
+    except PsctlError as e:
+        raise PsctlError(path, e.message) from None
+
+
+def cosine_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """mean over object pixels of 1 - n.n_gt. pred, gt [B, 3, H, W], mask [B, 1, H, W]."""
+    cos = (pred * gt).sum(1, keepdim=True)
+    m = mask.to(pred.dtype)
+    return ((1 - cos) * m).sum() / m.sum().clamp_min(1)
+
+
+def mae_degrees(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean angular error (degrees) over the object pixels of a batch."""
+    cos = (pred.double() * gt.double()).sum(1, keepdim=True).clamp(-1, 1)
+    err = torch.rad2deg(torch.acos(cos))
+    m = mask.bool()
+    return err[m].mean()
+
+
+def network_inputs(batch: dict, lights: bool, normalization: str) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Stream batch -> (images [B, N, 3, H, W] as the network sees them, lights [B, N, 3] or None).
+
+    Images arrive divided by their light intensities for calibrated methods (the capture reader
+    does the same for real data); +N then removes albedo.
+    """
+    from psctl.models.ps_fcn import normalize_observations
+
+    images = batch["images"]
+    if lights and "intensities" in batch:
+        images = images / batch["intensities"][:, :, None, None, None].clamp_min(1e-6)
+    images = normalize_observations(images, normalization)
+    return images, (batch["lights"] if lights else None)
+
+
+class _Stop:
+    """SIGINT/SIGTERM set a flag; the loop checkpoints and leaves at the next step."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "_Stop":
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._old[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not in the main thread
+                pass
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:  # a second Ctrl-C leaves at once
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def _rng_to_text(state: torch.Tensor) -> str:
+    return base64.b64encode(state.cpu().numpy().tobytes()).decode()
+
+
+def _rng_from_text(text: str) -> torch.Tensor:
+    return torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone()
+
+
+def save_optimizer(run: Path, optim: torch.optim.Optimizer) -> list[str]:
+    """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file)."""
+    from psctl.io.atomic import atomic_path
+
+    sd = optim.state_dict()
+    parts: list[dict] = [{}]
+    size = 0
+    for idx, st in sd["state"].items():
+        nbytes = sum(v.numel() * v.element_size() for v in st.values() if torch.is_tensor(v))
+        if size + nbytes > OPTIM_PART_BYTES and parts[-1]:
+            parts.append({})
+            size = 0
+        parts[-1][idx] = {k: v.detach().cpu().clone() if torch.is_tensor(v) else v for k, v in st.items()}
+        size += nbytes
+    names = []
+    for i, part in enumerate(parts):
+        name = f"optim.{i}.pt"
+        with atomic_path(run / name) as tmp:
+            torch.save({"state": part, "param_groups": sd["param_groups"] if i == 0 else []}, tmp)
+        names.append(name)
+    for stale in run.glob("optim.*.pt"):
+        if stale.name not in names:
+            stale.unlink()
+    return names
+
+
+def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], device: torch.device) -> None:
+    state: dict = {}
+    groups = None
+    for name in names:
+        part = torch.load(run / name, map_location=device, weights_only=True)
+        state.update(part["state"])
+        groups = groups or part["param_groups"]
+    optim.load_state_dict({"state": state, "param_groups": groups})
+
+
+def lr_at(samples: int, cfg: dict) -> float:
+    t = cfg["train"]
+    return t["lr"] * 0.5 ** (samples // max(1, t["lr_halve_every"]))
+
+
+def synth_stream(data: dict, *, batch_size: int, images: int, crop: int, seed: int, device: torch.device):
+    """The synthetic training stream (psctl.synth.stream.SynthStream) for a recipe's ``data`` section."""
+    from psctl.synth.stream import SynthStream
+
+    try:
+        return SynthStream(data, batch_size=batch_size, n_images=images, crop=crop, seed=seed, device=str(device))
+    except TypeError as e:  # duplicate keys between data and the train section
+        raise PsctlError(None, f"config 'data' section: {e}") from None
+
+
+def validation_set(cfg: dict, lights: bool, normalization: str, device: torch.device,
+                   make_stream: Callable) -> list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]]:
+    """A fixed synthetic validation set: training-distribution shapes and materials, a held-out seed."""
+    v = cfg["val"]
+    stream = make_stream(cfg["data"], batch_size=v["batch_size"], images=v["images"], crop=v["size"],
+                         seed=v["seed"], device=device)
+    out = []
+    for _ in range(math.ceil(v["samples"] / v["batch_size"])):
+        b = stream.next_batch()
+        x, l = network_inputs(b, lights, normalization)
+        out.append((x, l, b["normals"], b["masks"]))
+    return out
+
+
+@torch.no_grad()
+def evaluate(model, val, device: torch.device, amp) -> float:
+    model.eval()
+    errs, counts = [], []
+    for x, l, n, m in val:
+        with amp():
+            pred = model(x, l).float()
+        errs.append(mae_degrees(pred, n, m).item() * m.sum().item())
+        counts.append(m.sum().item())
+    model.train()
+    return sum(errs) / max(1, sum(counts))
+
+
+def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
+          max_seconds: float | None = None, progress: Callable[[dict], None] | None = None,
+          make_stream: Callable = synth_stream) -> dict:
+    """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
+
+    Args:
+        method: "ps-fcn", "ps-fcn-n" or "ups-fcn".
+        config: merged recipe (see ``load_config``).
+        run_dir: run folder; with ``resume`` its checkpoint is continued.
+        max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
+            can be split into commands of a fixed length.
+        progress: called with a status dict after each logged step.
+        make_stream: the stream factory (default ``synth_stream``): returns an object with
+            ``next_batch()``, and ``state_dict()`` / ``load_state_dict()`` for exact resumption.
+    """
+    from psctl.infer import pick_device
+    from psctl.models import NETWORK_METHODS
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    if method not in NETWORK_METHODS:
+        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(NETWORK_METHODS)}")
+    spec = NETWORK_METHODS[method]
+    normalization = config.get("normalization") or spec["normalization"]
+    t = config["train"]
+    dev = pick_device(device)
+    run = Path(run_dir)
+    state_file = run / "state.json"
+    if resume and not state_file.is_file():
+        raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
+    if not resume and state_file.is_file():
+        raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
+    run.mkdir(parents=True, exist_ok=True)
+
+    torch.manual_seed(t["seed"])  # initial weights (the stream has its own generator)
+    model = PSFCN({**config["model"], "lights": spec["lights"]}).to(dev)
+    if t["channels_last"]:
+        model = model.to(memory_format=torch.channels_last)
+    optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])
+    st: dict[str, Any] = {"step": 0, "samples": 0, "seconds": 0.0, "best_val": None, "best_samples": None,
+                          "stream_seed": t["seed"], "method": method, "val": []}
+    if resume:
+        from psctl.models.weights import read_weights
+
+        st = json.loads(state_file.read_text())
+        if st["method"] != method:
+            raise PsctlError(state_file, f"is a {st['method']} run, not {method}")
+        w = read_weights(run / "model.pt")
+        model.load_state_dict(w.state_dict)
+        load_optimizer(run, optim, st["optim_files"], dev)
+
+    use_amp = dev.type == "cuda" and t["amp"] in ("bf16", "fp16")
+    amp_dtype = torch.bfloat16 if t["amp"] == "bf16" else torch.float16
+
+    def amp():
+        return torch.autocast("cuda", dtype=amp_dtype) if use_amp else torch.autocast("cpu", enabled=False)
+
+    stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
+                         crop=t["crop"], seed=st["stream_seed"], device=dev)
+    if resume and (run / "stream.pt").is_file():
+        stream.load_state_dict(torch.load(run / "stream.pt", map_location="cpu", weights_only=True))
+    val = validation_set(config, spec["lights"], normalization, dev, make_stream)
+    log = open(run / "log.jsonl", "a")
+
+    def metadata(metrics: dict) -> dict:
+        return {"method": method, "architecture": dict(model.config), "normalization": normalization,
+                "train_images": t["images_per_sample"], "recipe": config,
+                "data": "psctl synthetic stream (psctl.synth), generated on the fly",
+                "samples_seen": st["samples"], "wall_seconds": round(st["seconds"], 1),
+                "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"cpu ({os.cpu_count()} cores)",
+                "metrics": metrics}
+
+    def checkpoint() -> None:
+        from psctl.io.atomic import atomic_path
+
+        st["optim_files"] = save_optimizer(run, optim)
+        if hasattr(stream, "state_dict"):
+            with atomic_path(run / "stream.pt") as tmp:
+                torch.save(stream.state_dict(), tmp)
+        save_weights(run / "model.pt", model, metadata({"synthetic_val_mae": st["best_val"]}))
+        from psctl.io.atomic import write_text_atomic
+
+        write_text_atomic(state_file, json.dumps(st, indent=1))
+
+    t_call = time.perf_counter()
+    t_start = t_ckpt = t_call
+    t_log, samples_log = t_call, st["samples"]
+    next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
+    loss_avg = None
+    with _Stop() as stop:
+        model.train()
+        while st["samples"] < t["samples"]:
+            for g in optim.param_groups:
+                g["lr"] = lr_at(st["samples"], config)
+            batch = stream.next_batch()
+            x, l = network_inputs(batch, spec["lights"], normalization)
+            with amp():
+                pred = model(x, l).float()
+            loss = cosine_loss(pred, batch["normals"], batch["masks"])
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            st["step"] += 1
+            st["samples"] += x.shape[0]
+            loss_avg = loss.item() if loss_avg is None else 0.9 * loss_avg + 0.1 * loss.item()
+            now = time.perf_counter()
+            if st["step"] % t["log_every"] == 0 or st["samples"] >= t["samples"]:
+                rate = (st["samples"] - samples_log) / max(now - t_log, 1e-9)
+                rec = {"step": st["step"], "samples": st["samples"], "loss": round(loss_avg, 5),
+                       "lr": optim.param_groups[0]["lr"], "samples_per_s": round(rate, 1),
+                       "seconds": round(st["seconds"] + now - t_call, 1)}
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+                if progress:
+                    progress({**rec, "total": t["samples"]})
+                t_log, samples_log = now, st["samples"]
+            if st["samples"] >= next_val or st["samples"] >= t["samples"]:
+                mae = evaluate(model, val, dev, amp)
+                st["val"].append([st["samples"], round(mae, 4)])
+                log.write(json.dumps({"samples": st["samples"], "val_mae": round(mae, 4)}) + "\n")
+                log.flush()
+                if st["best_val"] is None or mae < st["best_val"]:
+                    st["best_val"], st["best_samples"] = mae, st["samples"]
+                    st["seconds"] += now - t_call
+                    t_call = now
+                    save_weights(run / "best.pt", model, metadata({"synthetic_val_mae": round(mae, 4)}))
+                next_val += t["val_every"]
+            out_of_time = max_seconds is not None and now - t_start >= max_seconds
+            if stop.requested or out_of_time or now - t_ckpt > 60 * t["checkpoint_minutes"]:
+                st["seconds"] += now - t_call
+                t_call = now
+                checkpoint()
+                t_ckpt = time.perf_counter()
+                if stop.requested or out_of_time:
+                    break
+        else:
+            st["seconds"] += time.perf_counter() - t_call
+            checkpoint()
+    log.close()
+    st["finished"] = st["samples"] >= t["samples"]
+    return st
+
+
+def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
+    """Copy a run's best weights into the weights folder as the release file for ``method``."""
+    import shutil
+
+    from psctl.io.atomic import atomic_path
+    from psctl.models.weights import file_name, read_weights, weights_dir
+
+    src = Path(run_dir) / "best.pt"
+    if not src.is_file():
+        raise PsctlError(src, "no best weights in this run yet")
+    w = read_weights(src)
+    if w.method != method:
+        raise PsctlError(src, f"holds {w.method} weights, not {method}")
+    dst = weights_dir() / file_name(method)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    return dst
