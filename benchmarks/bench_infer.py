@@ -128,17 +128,30 @@ def model_time(folder: Path, weights: Path, method: str, device: str, repeats: i
         for k in range(start, cap.n_images):
             yield images[k][box]
 
-    cfg = {"device": device}
-    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
-    run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)  # warm-up
-    times = []
-    for _ in range(repeats):
-        sync()
-        t0 = time.perf_counter()
-        res = run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)
-        sync()
-        times.append(time.perf_counter() - t0)
-    print(json.dumps({"model_s": [round(t, 3) for t in times], "info": res.info, "dtype": str(np.float32)}))
+    gpu = device != "cpu" and torch.cuda.is_available()
+    sync = torch.cuda.synchronize if gpu else (lambda: None)
+
+    def timed(cfg: dict) -> tuple[list[float], object]:
+        run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)  # warm-up
+        times = []
+        for _ in range(repeats):
+            sync()
+            t0 = time.perf_counter()
+            res = run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)
+            sync()
+            times.append(round(time.perf_counter() - t0, 3))
+        return times, res
+
+    times, res = timed({"device": device})
+    out = {"model_s": times, "info": res.info}
+    if gpu:  # autocast: speed, and how far the normals move (random weights: indicative only)
+        for kind in ("bf16", "fp16"):
+            t, r = timed({"device": device, "autocast": kind})
+            cos = np.clip((r.normals * res.normals).sum(-1)[mask], -1, 1)
+            deg = np.degrees(np.arccos(cos))
+            out[f"autocast_{kind}"] = {"model_s": t, "mean_deg": round(float(deg.mean()), 4),
+                                       "max_deg": round(float(deg.max()), 4)}
+    print(json.dumps(out))
 
 
 def machine() -> dict:
@@ -218,7 +231,7 @@ def main() -> None:
         out = run_measured([sys.executable, __file__, "--model-child", str(folders[n0]), str(weights), args.method,
                             args.device, str(args.repeats)])
         mt = json.loads(out["stdout"].strip().splitlines()[-1])
-        record("model only (images in memory)", n0, out, model_s=mt["model_s"], info=mt["info"])
+        record("model only (images in memory)", n0, out, **{k: v for k, v in mt.items()})
 
     print()
     print(f"| configuration | images | wall s | peak RSS MB | notes |")
