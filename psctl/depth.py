@@ -12,27 +12,30 @@ The result is the surface's z coordinate, so larger values are nearer the camera
   dz/dcol = -nx/nz and dz/drow = +ny/nz (rows go down while y goes up).
 * Perspective (intrinsics K, 3 x 3, OpenCV layout: fx, fy, cx, cy in pixels, pixel centres at
   integer coordinates): the unknown is w = -log(distance) along the optical axis, whose
-  gradient is a function of the normal and the pixel's ray (Durou et al. 2007; Cao et al.
-  2022). The returned z = -exp(-w) is the camera-frame coordinate (negative: the camera looks
-  down -z; distance = -z).
+  gradient is a function of the normal and the pixel's ray (the log-depth form of Quéau, Durou
+  and Aujol, "Normal integration: a survey", 2018, also used by BiNI). The returned
+  z = -exp(-w) is the camera-frame coordinate (negative: the camera looks down -z;
+  distance = -z).
 
 Both methods minimise, over the valid pixels only, a sum over one-sided differences between
 neighbouring pixels: for pixel i and each of its (up to four) 4-neighbours j,
     w_ij * (s_i * (z_j - z_i) - t_i)^2      (a forward or a backward difference)
-where t_i / s_i is the gradient that the normal at i predicts. Each image edge (i, j) then
-carries c = sum of w s^2 and b = sum of w s t of its two one-sided terms, and the normal
-equations are a weighted graph Laplacian L z = rhs, solved by conjugate gradients with a small
-smoothed-aggregation multigrid preconditioner (scipy has no fast sparse Cholesky, and a direct
-LU of a 2000 x 2000 grid is too slow and too big).
+where t_i / s_i is the slope that the normal at i predicts: s = nz, t = -nx along columns and
++ny along rows (perspective: s = f times the normal's component toward the camera along the
+ray). Scaling by s keeps the residuals bounded where the surface is steep; nz is clamped at
+``grazing_nz`` (slopes beyond ~84 degrees count as 84 degrees: rim normals are unreliable).
+Each image edge (i, j) then carries c = sum of w s^2 and b = sum of w s t over its two
+one-sided terms, and the normal equations are a weighted graph Laplacian L z = rhs, solved by
+conjugate gradients with a small smoothed-aggregation multigrid preconditioner (scipy has no
+sparse Cholesky, and its sparse LU is slow and memory-hungry at millions of unknowns).
 
-* ``poisson``: s = 1, t = gradient, all weights 1/2: each edge's target is the average of the
-  two pixels' gradients (trapezoid rule, exact on quadrics).
-* ``bilateral`` (in the spirit of BiNI, Cao et al., ECCV 2022): s = nz (orthographic) or the
-  normal's component along the pixel ray times f (perspective), so residuals stay bounded at
-  steep slopes; iteratively reweighted least squares where the forward/backward weights of a
-  pixel are sigmoid(k * (backward^2 - forward^2)) and 1 minus it, computed from the current
-  depth's one-sided differences. A pixel next to a depth jump then trusts the side without
-  the jump, and the jump survives instead of being smeared into the surface.
+* ``poisson``: all weights 1/2: weighted least squares of the gradient field (-nx/nz, -ny/nz),
+  one linear solve.
+* ``bilateral`` (in the spirit of BiNI, Cao et al., ECCV 2022): iteratively reweighted least
+  squares where a pixel's forward/backward weights are sigmoid(k * (backward^2 - forward^2))
+  and 1 minus it, from the current depth's one-sided differences (times s). A pixel next to a
+  depth jump then trusts the side without the jump, and the jump survives instead of being
+  smeared into the surface. k starts high and halves each round (see ``_bilateral``).
 
 Gauge: depth is known up to a constant per connected region (and, in perspective, up to a
 scale). One pixel per connected component is pinned with a single extra equation z_p = 0
@@ -88,7 +91,7 @@ class DepthResult:
     valid: np.ndarray  # [H, W] bool, pixels that were integrated
     n_mask: int  # pixels in the mask
     n_rejected_nan: int  # mask pixels with NaN/inf or zero-length normals
-    n_rejected_facing: int  # mask pixels facing away (nz <= min_nz; perspective: away from the ray)
+    n_rejected_facing: int  # mask pixels facing away (nz <= 0; perspective: away from the ray)
     n_components: int  # connected regions (each has its own unknown offset)
     iterations: int  # reweighting rounds (1 for poisson)
     cg_iterations: int  # conjugate-gradient iterations, all rounds together
