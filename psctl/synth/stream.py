@@ -97,7 +97,12 @@ def make_config(config: dict | None = None, **overrides) -> dict:
 class GeometryPool:
     """A pool of M G-buffers stored pixel-major for fast cropping: ``data`` [M, S*S, 4] holds
     the normal (3) and mask (1) of every pixel, ``horizon`` [M, S*S, K] its horizon angles
-    (float16: they are compared with light elevations to a degree or so)."""
+    (float16: they are compared with light elevations to a degree or so).
+
+    Entries are replaced first-in first-out, ``refresh_chunk`` at a time. Each chunk is rendered
+    from its own seed (drawn from the stream's generator), so the pool can be rebuilt exactly
+    from the seeds alone: that is the pool's state in ``state_dict``.
+    """
 
     def __init__(self, cfg: dict, gen: torch.Generator):
         self.cfg = cfg
@@ -112,8 +117,60 @@ class GeometryPool:
         self.horizon = torch.zeros(m, self.size * self.size, self.k, dtype=torch.float16, device=self.device)
         self.cum = torch.zeros(m, self.size * self.size, device=self.device)  # cumulative mask
         self.names = [""] * m
+        self.records = torch.zeros(m, 3, dtype=torch.int64)  # per slot: chunk seed, chunk size, index in chunk
         self._pending = 0.0
-        self._put(torch.arange(m, device=self.device))
+        self._ring = 0  # next slot to replace
+        self._new(m)
+
+    def _new(self, n: int) -> None:
+        """Replace the n oldest entries, ``refresh_chunk`` at a time."""
+        m = len(self.names)
+        chunk = max(1, int(self.cfg["refresh_chunk"]))
+        while n > 0:
+            k = min(chunk, n, m)
+            seed = int(torch.randint(0, 2**62, (1,), generator=self.gen, device=self.device))
+            slots = [(self._ring + i) % m for i in range(k)]
+            self._ring = (self._ring + k) % m
+            self._fill(seed, k, list(range(k)), slots)
+            n -= k
+
+    def _fill(self, seed: int, k: int, which: list[int], slots: list[int]) -> None:
+        """Render the chunk ``seed`` (k entries) and store its entries ``which`` in ``slots``."""
+        g = self._render(k, torch.Generator(device=self.device).manual_seed(seed))
+        hz = R.horizon_map(g.depth, self.k) if self.cfg["shadows"] else torch.zeros(k, self.k, *g.size, device=self.device)
+        idx = torch.tensor(which, device=self.device)
+        dst = torch.tensor(slots, device=self.device)
+        self.data[dst] = torch.cat([g.normals, g.mask.float()], 1)[idx].flatten(2).transpose(1, 2)
+        self.horizon[dst] = hz[idx].flatten(2).transpose(1, 2).half()
+        self.cum[dst] = g.mask[idx].flatten(1).float().cumsum(1)
+        for w, s in zip(which, slots):
+            self.names[s] = g.names[w]
+            self.records[s] = torch.tensor([seed, k, w])
+
+    def refresh(self, n_samples: int) -> None:
+        """Replace pool entries in proportion to the samples drawn (``reuse`` per entry)."""
+        self._pending += n_samples / self.cfg["reuse"]
+        chunk = max(1, int(self.cfg["refresh_chunk"]))
+        n = int(self._pending // chunk) * chunk
+        if n:
+            self._pending -= n
+            self._new(n)
+
+    def state_dict(self) -> dict:
+        return {"records": self.records.clone(), "pending": self._pending, "ring": self._ring}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Rebuild the pool from its chunk seeds (as long as filling it at start)."""
+        rec = state["records"].to(torch.int64)
+        if rec.shape != self.records.shape:
+            raise PsctlError(None, f"stream state is for a pool of {len(rec)} entries, this pool has {len(self.records)}")
+        chunks: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for slot, (seed, k, w) in enumerate(rec.tolist()):
+            chunks.setdefault((seed, k), []).append((w, slot))
+        for (seed, k), entries in chunks.items():
+            self._fill(seed, k, [w for w, _ in entries], [s for _, s in entries])
+        self._pending = float(state["pending"])
+        self._ring = int(state["ring"])
 
     # --- geometry sources -------------------------------------------------------------------
     def _sources(self) -> list[tuple[str, float]]:
@@ -153,53 +210,34 @@ class GeometryPool:
             raise PsctlError(None, "no geometry source has a positive weight")
         return out
 
-    def _render(self, n: int) -> GBuffer:
-        """n new G-buffers from the sources, in a seeded random mix."""
+    def _render(self, n: int, gen: torch.Generator) -> GBuffer:
+        """n new G-buffers from the sources, in a random mix drawn from ``gen``."""
         w = torch.tensor([w for _, w in self.sources], device=self.device)
-        pick = torch.multinomial(w / w.sum(), n, replacement=True, generator=self.gen).tolist()
+        pick = torch.multinomial(w / w.sum(), n, replacement=True, generator=gen).tolist()
         parts: list[GBuffer] = []
         n_blobby = sum(1 for p in pick if self.sources[p][0] == "blobby")
         if n_blobby:
-            parts.append(blobby_gbuffers(n_blobby, self.size, self.gen, self.cfg["blobby"]))
+            parts.append(blobby_gbuffers(n_blobby, self.size, gen, self.cfg["blobby"], chunk=max(8, n_blobby)))
         n_mesh = n - n_blobby
         if n_mesh:
-            parts.append(self._mesh_views(n_mesh))
+            parts.append(self._mesh_views(n_mesh, gen))
         return GBuffer.cat(parts)
 
-    def _mesh_views(self, n: int) -> GBuffer:
+    def _mesh_views(self, n: int, gen: torch.Generator) -> GBuffer:
         from psctl.synth import meshes
         from psctl.synth.shapes import random_rotations
 
         if self.mesh_bank is not None:
-            idx = torch.randint(len(self.mesh_bank), (n,), generator=self.gen, device=self.device)
+            idx = torch.randint(len(self.mesh_bank), (n,), generator=gen, device=self.device)
             return self.mesh_bank.take(idx)
-        which = torch.randint(len(self.mesh_data), (n,), generator=self.gen, device=self.device).tolist()
-        rots = random_rotations((n,), self.gen)
-        fill = 0.6 + 0.35 * torch.rand(n, generator=self.gen, device=self.device)
+        which = torch.randint(len(self.mesh_data), (n,), generator=gen, device=self.device).tolist()
+        rots = random_rotations((n,), gen)
+        fill = 0.6 + 0.35 * torch.rand(n, generator=gen, device=self.device)
         out = []
         for i, j in enumerate(which):
             name, v, f = self.mesh_data[j]
             out.append(meshes.mesh_views(v, f, rots[i:i + 1], self.size, fill=float(fill[i]), name=name))
         return GBuffer.cat(out)
-
-    def _put(self, slots: Tensor) -> None:
-        g = self._render(len(slots))
-        hz = R.horizon_map(g.depth, self.k) if self.cfg["shadows"] else torch.zeros(len(g), self.k, *g.size, device=self.device)
-        self.data[slots] = torch.cat([g.normals, g.mask.float()], 1).flatten(2).transpose(1, 2)
-        self.horizon[slots] = hz.flatten(2).transpose(1, 2).half()
-        self.cum[slots] = g.mask.flatten(1).float().cumsum(1)
-        for s, name in zip(slots.tolist(), g.names):
-            self.names[s] = name
-
-    def refresh(self, n_samples: int) -> None:
-        """Replace pool entries in proportion to the samples drawn (``reuse`` per entry)."""
-        self._pending += n_samples / self.cfg["reuse"]
-        chunk = max(1, int(self.cfg["refresh_chunk"]))
-        n = int(self._pending // chunk) * chunk
-        if n:
-            self._pending -= n
-            m = len(self.names)
-            self._put(torch.randperm(m, generator=self.gen, device=self.device)[:min(n, m)])
 
 
 def _resize(g: GBuffer, size: int) -> GBuffer:
@@ -329,6 +367,16 @@ class SynthStream:
     def __iter__(self) -> Iterator[dict]:
         while True:
             yield self.next_batch()
+
+    def state_dict(self) -> dict:
+        """What it takes to continue with exactly the same batches (a few KB): the generator
+        state and the geometry pool's chunk seeds. Same config and device needed."""
+        return {"generator": self.gen.get_state(), "pool": self.pool.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from ``state_dict()`` (re-renders the geometry pool from its seeds)."""
+        self.pool.load_state_dict(state["pool"])
+        self.gen.set_state(state["generator"].cpu())
 
     def next_batch(self) -> dict:
         cfg, gen, dev = self.cfg, self.gen, self.device
