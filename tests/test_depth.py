@@ -334,3 +334,15 @@ def test_cli_depth_bad_inputs(case, capture, tmp_path):
     out = tmp_path / "out"
     _one_line_error(psctl("depth", capture, "--out", out, *args), culprit)
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
+
+
+def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
+    from psctl.depth import run_depth
+    from psctl.io.normals import write_normal_map
+
+    data = write_capture(capture)  # same folder again: returns its arrays
+    (capture / "psctl").mkdir()
+    write_normal_map(capture / "psctl" / "normal.exr", data["normals"], data["mask"], "exr")
+    report = run_depth(capture, write=False)
+    assert report["normals"].endswith("normal.exr") and report["outputs"] == {}
+    assert report["n_pixels"] == data["mask"].sum() and report["n_regions"] == 1
