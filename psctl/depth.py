@@ -615,7 +615,11 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         box = bounding_box(mask)
         images = load_images(cap, box, progress(f"{cap.name}: reading images", cap.n_images))
         nmap = np.zeros((cap.height, cap.width, 3), np.float32)
-        nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
+        try:
+            nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
+        except PsctlError as e:
+            raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
+                                                 f"{e.message} (give one with --normals)") from None
         mean_image = np.zeros_like(nmap)
         mean_image[box] = images.mean(axis=0)
         del images
