@@ -65,7 +65,7 @@ def _roty(deg: float) -> torch.Tensor:
     return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def test_view(name: str, size: int) -> GBuffer:
+def canonical_view(name: str, size: int) -> GBuffer:
     """The canonical view of a test shape (sphere, bunny, dragon, armadillo)."""
     if name == "sphere":
         return sphere_gbuffer(size)
@@ -98,14 +98,14 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
         table = M.load_merl()
         rows = _merl_subset(table, k, gen)
         for shape in ("sphere", "bunny", "dragon", "armadillo"):
-            view = test_view(shape, size)
+            view = canonical_view(shape, size)
             for r in rows:
                 name = f"{shape}_{table.names[r]}"
                 objs.append(SynthObject(name, view, M.merl_materials(table, [r]), lights, ones,
                                         meta={"shape": shape, "material": table.names[r]}))
     elif preset == "dragon-svbrdf":
         table = M.load_merl()
-        view = test_view("dragon", size)
+        view = canonical_view("dragon", size)
         for i in range(k):
             pair = torch.randperm(len(table.names), generator=gen)[:2].tolist()
             for kind in M.BLENDS:
@@ -245,8 +245,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     advance = progress(f"synth {preset}", len(objs)) if progress else (lambda _: None)
     gen = torch.Generator().manual_seed(seed + 1)
     sheet_rows = []
+    on_sheet = set(np.linspace(0, len(objs) - 1, min(len(objs), SHEET_ROWS)).round().astype(int).tolist())
     cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
-    for obj in objs:
+    for i, obj in enumerate(objs):
         key = id(obj.view)
         if shadows and key not in cache:
             h, w = obj.view.size
@@ -265,7 +266,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
-        if preview:
+        if preview and i in on_sheet:
             sheet_rows.append(_sheet_row(images, obj))
         advance(1)
     write_text_atomic(out / "objects.txt", "".join(f"{o.name}\n" for o in objs))
@@ -285,7 +286,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 # --------------------------------------------------------------------------------------------
 
 SHEET_IMAGES = 6  # images per object on the contact sheet
-SHEET_ROWS = 24  # objects on the contact sheet at most
+SHEET_ROWS = 24  # objects on the contact sheet at most (evenly spread over the set)
 
 
 def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
@@ -305,8 +306,6 @@ def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
 
 
 def _sheet(rows: list[np.ndarray]) -> np.ndarray:
-    if len(rows) > SHEET_ROWS:  # evenly spread over the objects
-        rows = [rows[i] for i in np.linspace(0, len(rows) - 1, SHEET_ROWS).round().astype(int)]
     gap = np.full((2, rows[0].shape[1], 3), 0.25, np.float32)
     out = []
     for r in rows:
