@@ -68,6 +68,7 @@ DEFAULT_CONFIG = {
     "bilateral_tol": 1e-3,    # ... or until the energy changes by less than this (relative)
     "bilateral_k_start": 1e4, # sharpness of the first round, halved each round down to k (see _bilateral)
     "weight_floor": 1e-6,     # keeps every edge weight > 0 so the system stays definite
+    "cut_fraction": 0.05,     # bilateral: an edge left with less than this of its weight is a tear
     "cg_rtol": 1e-7,          # relative residual of the linear solve
     "cg_maxiter": 500,
     "amg_max_coarse": 400,    # coarsest multigrid level is solved densely below this size
@@ -96,6 +97,7 @@ class DepthResult:
     iterations: int  # reweighting rounds (1 for poisson)
     cg_iterations: int  # conjugate-gradient iterations, all rounds together
     projection: str  # "orthographic" | "perspective"
+    cut: np.ndarray | None = None  # [H, W, 2] bool, bilateral: edge to the right / to the pixel below cut by a jump
 
     @property
     def n_rejected(self) -> int:
@@ -189,13 +191,14 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     axis_off = np.concatenate([np.zeros(n_hor, np.int64), np.full(len(ei) - n_hor, npix)])
     fwd, bwd = ei + axis_off, ej + axis_off  # rows in s_all/t_all of the two one-sided terms
     coords = np.nonzero(valid)  # (row, col) of each unknown, for the multigrid's aggregates
-    del index, hor, ver, su, sv, tu, tv, n, nx, ny, nz, facing, finite, good
+    del index, su, sv, tu, tv, n, nx, ny, nz, facing, finite, good
 
     graph_n, labels = csgraph.connected_components(
         _adjacency(npix, ei, ej), directed=False) if len(ei) else (npix, np.arange(npix))
     pins = np.unique(labels, return_index=True)[1]
 
     progress = progress or (lambda desc, total: (lambda k: None))
+    cut = None
     if method == "poisson":
         sf, sb = s_all[fwd], s_all[bwd]
         c = 0.5 * (sf * sf + sb * sb)
@@ -203,9 +206,14 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         z, its, _ = _solve(npix, ei, ej, c, b, pins, coords, None, cfg)
         rounds, total_its = 1, its
     else:
-        z, rounds, total_its = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
+        z, rounds, total_its, kept = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
                                           progress(f"integrating (bilateral, <= {cfg['bilateral_iters']} rounds)",
                                                    cfg["bilateral_iters"]))
+        # edges whose final weight is a small fraction of poisson's: the surface tears there
+        cut = np.zeros((h, w, 2), bool)
+        torn = kept < cfg["cut_fraction"]
+        cut[:, :-1, 0][hor] = torn[:n_hor]
+        cut[:-1, :, 1][ver] = torn[n_hor:]
 
     # --- gauge: zero mean per component, then back to z ------------------------------------------
     counts = np.bincount(labels, minlength=graph_n)
@@ -215,7 +223,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     depth = np.full((h, w), np.nan, np.float32)
     depth[valid] = z
     return DepthResult(depth, valid, n_mask, n_nan, n_facing, int(graph_n), rounds, total_its,
-                       "orthographic" if K is None else "perspective")
+                       "orthographic" if K is None else "perspective", cut)
 
 
 def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np.ndarray:
@@ -258,7 +266,8 @@ def _adjacency(npix: int, ei: np.ndarray, ej: np.ndarray):
 
 
 def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance):
-    """IRLS with BiNI's one-sided weights. Returns (z, rounds, cg iterations).
+    """IRLS with BiNI's one-sided weights. Returns (z, rounds, cg iterations, kept), where
+    kept[e] is edge e's final weight as a fraction of its poisson weight (~0 across a jump).
 
     Rows of s_all / t_all are (pixel, axis) pairs; ``fwd[e]`` is the row of edge e's forward
     term (its start pixel), ``bwd[e]`` the row of its backward term (its end pixel).
@@ -299,7 +308,8 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
         advance(1)
         if rounds > anneal + 1 and abs(energy - old) <= cfg["bilateral_tol"] * max(old, 1e-300):
             break
-    return z, rounds, total
+    kept = (wt[fwd] * sf * sf + (1.0 - wt[bwd]) * sb * sb) / (0.5 * (sf * sf + sb * sb))
+    return z, rounds, total, kept
 
 
 def _solve(npix, ei, ej, c, b, pins, coords, x0, cfg, amg=None):
@@ -503,12 +513,13 @@ def shade(normals: np.ndarray, light: np.ndarray = LIGHT, ambient: float = 0.08)
 
 
 def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarray | None = None,
-               colors: np.ndarray | None = None):
+               colors: np.ndarray | None = None, cut: np.ndarray | None = None):
     """A triangle mesh with one vertex per pixel of finite depth.
 
-    Each 2 x 2 block of pixels gives two triangles when all four have depth, one when three do.
-    Triangles are counter-clockwise seen from the camera. ``normals`` [H, W, 3] and ``colors``
-    [H, W, 3] uint8 become per-vertex attributes.
+    Each 2 x 2 block of pixels gives two triangles when all four have depth, one when three do,
+    none when one of its edges is in ``cut`` ([H, W, 2] bool, DepthResult.cut: the surface tears
+    there, so no wall is drawn across a depth jump). Triangles are counter-clockwise seen from
+    the camera. ``normals`` [H, W, 3] and ``colors`` [H, W, 3] uint8 become per-vertex attributes.
     Returns psctl.io.mesh.Mesh.
     """
     from psctl.io.mesh import Mesh
@@ -521,6 +532,11 @@ def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarr
     c, d = index[1:, :-1], index[1:, 1:]  # bottom-left, bottom-right
     a, b, c, d = (x.ravel() for x in (a, b, c, d))
     ok = np.stack([a, b, c, d]) >= 0
+    if cut is not None:  # a block with a torn edge (top, bottom, left or right) gets no triangle
+        right, down = cut[..., 0], cut[..., 1]
+        torn = right[:-1, :-1] | right[1:, :-1] | down[:-1, :-1] | down[:-1, 1:]
+        torn = np.pad(torn, ((0, 1), (0, 1))).ravel()
+        ok &= ~torn
     # (x = col, y = -row) seen from +z: a c b and b c d are counter-clockwise
     full = ok.all(axis=0)
     tris = [np.stack([a, c, b], 1)[full], np.stack([b, c, d], 1)[full]]
@@ -651,7 +667,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             advance(1)
     colors = display_colors(mean_image, valid)
     unit = np.where(valid[..., None], nmap / np.maximum(np.linalg.norm(nmap, axis=-1, keepdims=True), 1e-12), 0.0)
-    mesh = depth_mesh(res.depth, K, unit, colors)
+    mesh = depth_mesh(res.depth, K, unit, colors, res.cut)
     recomputed = normals_from_points(depth_to_points(res.depth, K))
     shading = np.nan_to_num(shade(recomputed), nan=0.0)
 
@@ -672,6 +688,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "n_rejected_facing_away": res.n_rejected_facing,
         "n_regions": res.n_components,
         "iterations": res.iterations,
+        "n_torn_edges": 0 if res.cut is None else int(res.cut.sum()),
         "cg_iterations": res.cg_iterations,
         "z_min": round(float(z.min()), 6),
         "z_max": round(float(z.max()), 6),

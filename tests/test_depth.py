@@ -136,6 +136,22 @@ def test_bilateral_keeps_a_depth_jump_that_poisson_smears():
     assert errors["bilateral"] < errors["poisson"] / 10, errors
 
 
+def test_bilateral_mesh_tears_at_the_jump_instead_of_drawing_a_wall():
+    normals, left, z = step_scene()
+    res = integrate(normals, np.ones_like(left), "bilateral")
+    assert res.cut is not None and res.cut[..., 1].sum() == 0  # no vertical edge is torn
+    torn_cols = np.nonzero(res.cut[..., 0])[1]
+    assert len(torn_cols) > 30 and (torn_cols == 23).all()  # the edges between columns 23 and 24
+
+    def max_z_span(mesh):
+        zs = mesh.vertices[mesh.faces][..., 2]
+        return float((zs.max(1) - zs.min(1)).max())
+
+    assert max_z_span(depth_mesh(res.depth)) > 5  # without the tears: a wall across the jump
+    assert max_z_span(depth_mesh(res.depth, cut=res.cut)) < 1
+    assert integrate(normals, np.ones_like(left)).cut is None  # poisson never tears
+
+
 def perspective_sphere(h=48, w=64, f=80.0):
     """Normals of a sphere seen by a pinhole camera (psctl axes), its mask (the part facing the
     camera by more than ~17 degrees), intrinsics and true distances along the optical axis."""
