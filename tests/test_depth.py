@@ -362,3 +362,15 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
     report = run_depth(capture, write=False)
     assert report["normals"].endswith("normal.exr") and report["outputs"] == {}
     assert report["n_pixels"] == data["mask"].sum() and report["n_regions"] == 1
+
+
+def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):
+    """NaN in a float normal map marks 'no normal': counted and skipped, not a crash."""
+    from psctl.io.images import write_image
+
+    normals = write_capture(tmp_path / "again")["normals"].copy()
+    normals[18:20, 18:20] = np.nan
+    write_image(tmp_path / "n.exr", normals, "float")
+    proc = psctl("depth", capture, "--normals", tmp_path / "n.exr", "--out", tmp_path / "o", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["n_rejected"] == 4

@@ -59,12 +59,13 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         inp.close()
 
 
-def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageInfo]:
+def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 [H, W, C] plus its header info.
 
     Integer images are scaled to [0, 1] by the maximum of their true bit depth, so a 16-bit
     PNG is divided by 65535 and an 8-bit one by 255. Corrupt or truncated files raise
-    PsctlError naming the file.
+    PsctlError naming the file, as do NaN/inf pixels unless ``allow_nonfinite`` (normal maps,
+    where NaN marks "no normal" and the caller counts such pixels).
     """
     oiio = _oiio()
     path = Path(path)
@@ -86,7 +87,7 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageInfo]:
     if bits_in_container and info.bits and info.bits < bits_in_container:
         # e.g. 12-bit data stored in a 16-bit PNG/TIFF: scale by the true maximum.
         pixels *= (2**bits_in_container - 1) / (2**info.bits - 1)
-    if not np.isfinite(pixels).all():
+    if not allow_nonfinite and not np.isfinite(pixels).all():
         raise PsctlError(path, "image contains NaN or infinite values")
     return pixels, info
 

@@ -61,7 +61,7 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise PsctlError(path, f"shape {arr.shape}, expected H x W x 3")
         return arr.astype(np.float32)
-    pixels, info = read_image(path)
+    pixels, info = read_image(path, allow_nonfinite=True)  # NaN = no normal; callers count them
     if pixels.shape[2] < 3:
         raise PsctlError(path, "a normal map needs 3 channels")
     return decode_normal_pixels(pixels, info)
