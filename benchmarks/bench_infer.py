@@ -15,7 +15,9 @@ a small wrapper process through RUSAGE_CHILDREN; wall = the whole command):
 * the straightforward all-at-once implementation (psctl.infer.all_at_once_normals: every
   image's feature map kept, max at the end, as the authors' test code) on the same images, also
   end to end, on the whole frame ("naive-full") and on psctl's crop ("naive-crop");
-* model time only: images already in memory, psctl.infer on ``--device``.
+* model time only: images already in memory, psctl.infer on ``--device``;
+* tiling: a synthetic ``--large`` x ``--large`` all-foreground capture (4 random images made on
+  the fly) with 512 px tiles and untiled.
 
 The network has seeded random weights (speed and memory do not depend on the values); the
 method is ps-fcn-n (+N, two passes over the images) unless ``--method ps-fcn``.
@@ -154,6 +156,27 @@ def model_time(folder: Path, weights: Path, method: str, device: str, repeats: i
     print(json.dumps(out))
 
 
+def large(side: int, n: int, tile: int) -> None:
+    """Child mode: one side x side capture of n random images, mask = everything (tiling)."""
+    import numpy as np
+    import torch
+
+    from psctl.infer import run_network
+    from psctl.models.ps_fcn import PSFCN
+
+    torch.manual_seed(0)
+    model = PSFCN().eval()
+    lights = np.tile(np.array([[0.2, 0.3, 0.93]], np.float32), (n, 1))
+
+    def reader(start, box):  # images made on the fly, as a reader decodes files
+        for k in range(start, n):
+            yield np.random.default_rng(k).uniform(0, 1, (side, side, 3)).astype(np.float32)[box]
+
+    t0 = time.perf_counter()
+    res = run_network(model, reader, n, lights, np.ones((side, side), bool), "per-channel", 32, {"tile": tile})
+    print(json.dumps({"model_s": round(time.perf_counter() - t0, 2), "info": res.info}))
+
+
 def machine() -> dict:
     cpu = platform.processor() or platform.machine()
     try:
@@ -181,6 +204,8 @@ def main() -> None:
     ap.add_argument("--naive", default="full:96,crop:96,crop:288",
                     help="all-at-once runs as MODE:COUNT, MODE full (whole frame) or crop; '' for none")
     ap.add_argument("--repeats", type=int, default=1, help="model-time repeats")
+    ap.add_argument("--large", type=int, default=1536, help="side of a synthetic all-foreground capture run "
+                    "tiled (512 px tiles) and untiled, 4 images; 0 to skip")
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
 
@@ -232,6 +257,12 @@ def main() -> None:
                             args.device, str(args.repeats)])
         mt = json.loads(out["stdout"].strip().splitlines()[-1])
         record("model only (images in memory)", n0, out, **{k: v for k, v in mt.items()})
+        if args.large:
+            for tile in (512, 1 << 20):
+                out = run_measured([sys.executable, __file__, "--large-child", str(args.large), "4", str(tile)])
+                lt = json.loads(out["stdout"].strip().splitlines()[-1])
+                record(f"{args.large} x {args.large}, all foreground, {'tiled' if tile == 512 else 'untiled'}", 4, out,
+                       model_s=lt["model_s"], tiles=lt["info"]["tiles"], passes=lt["info"]["passes"])
 
     print()
     print(f"| configuration | images | wall s | peak RSS MB | notes |")
@@ -257,6 +288,8 @@ if __name__ == "__main__":
         measure(sys.argv[3:] if sys.argv[2] == "--" else sys.argv[2:])
     elif len(sys.argv) > 1 and sys.argv[1] == "--naive-child":
         naive(Path(sys.argv[3]), Path(sys.argv[4]), sys.argv[5], sys.argv[2] == "crop", Path(sys.argv[6]))
+    elif len(sys.argv) > 1 and sys.argv[1] == "--large-child":
+        large(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))
     elif len(sys.argv) > 1 and sys.argv[1] == "--model-child":
         model_time(Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4], sys.argv[5], int(sys.argv[6]))
     else:

@@ -55,7 +55,7 @@ DEFAULT_INFER = {
     "halo": HALO,  # context kept around each tile, pixels (>= receptive field radius)
     "group_mb": 256,  # fused features held per pass over the images
     "cache_mb": 64,  # cropped images kept from the first pass for the next ones (RSS stays flat)
-    "work_mb": 512,  # extractor activations per chunk (caps chunk for large tiles)
+    "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
     "autocast": None,  # None | "bf16" | "fp16" (CUDA only; unvalidated, so off by default)
 }
@@ -293,13 +293,15 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     scale_t = None if scale is None else torch.from_numpy(scale).to(dtype)
     del scale
     light_t = None if lights is None or not model.uses_lights else torch.from_numpy(lights).to(dtype)
-    chunk_cfg = cfg["chunk"] or (32 if device.type == "cuda" else 4)
+    cuda = device.type == "cuda"
+    chunk_cfg = cfg["chunk"] or (32 if cuda else 4)
+    work_bytes = (cfg["work_mb"] or (4096 if cuda else 256)) << 20
     chunk_used = chunk_cfg
     with torch.inference_mode(), _autocast(device, cfg["autocast"]):
         for group in groups:
             gy0, gy1, gx0, gx1 = _bbox(group)
             largest = max((t.outer[1] - t.outer[0]) * (t.outer[3] - t.outer[2]) for t in group)
-            chunk = max(1, min(chunk_cfg, (cfg["work_mb"] << 20) // (largest * _BYTES_PER_PIXEL)))
+            chunk = max(1, min(chunk_cfg, work_bytes // (largest * _BYTES_PER_PIXEL)))
             chunk_used = min(chunk_used, chunk)
             fused: list[torch.Tensor | None] = [None] * len(group)
             pending: list[np.ndarray] = []
