@@ -85,7 +85,7 @@ def no_weights_error(method: str) -> PsctlError:
     return PsctlError(
         None,
         f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
-        f"folder). Pass a weights file with --weights FILE: psctl's own (see weights/README.md) or the "
+        f"folder). Pass a weights file with --weights FILE: psctl's own format or the "
         f"authors' released checkpoint (e.g. PS-FCN_B_S_32.pth.tar for ps-fcn, "
         f"PS-FCN_B_S_32_normalize.pth.tar for ps-fcn-n; see docs/models.md), or use --method l2",
     )
