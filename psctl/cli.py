@@ -94,7 +94,7 @@ def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchm
 def normals(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
     method: MethodOpt = "auto",
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder [default: PATH/psctl].")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
     fmt: Annotated[str, typer.Option("--format", "-f", help="Comma list of png16, png8, exr, npy.")] = "png16,exr",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
@@ -204,7 +204,7 @@ def depth(
 def train(
     method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn")],
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/).")] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run [default: runs/METHOD].")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run (default: runs/METHOD).")] = None,
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
