@@ -68,7 +68,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     """Normals from arrays.
 
     Args:
-        images: [N, H, W, 3] (or [N, H, W]) linear images, already divided by light intensities.
+        images: [N, H, W, 3] (or [N, H, W] grey) linear images, already divided by light
+            intensities.
         lights: [N, 3] unit light directions, x right / y up / z toward the camera (None for
             ups-fcn).
         mask: [H, W] bool; normals outside are 0.
@@ -79,8 +80,20 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         [H, W, 3] float32 unit normals.
     """
     images = np.asarray(images, np.float32)
-    if images.ndim not in (3, 4):
-        raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
+    if images.ndim == 3:
+        images = np.repeat(images[..., None], 3, axis=-1)  # grey: the same value in R, G, B
+    if images.ndim != 4 or images.shape[-1] not in (1, 3, 4):
+        raise PsctlError(None, f"images must be [N, H, W, 3] (or [N, H, W]), got shape {images.shape}")
+    if images.shape[-1] != 3:  # grey or RGBA, as the capture reader does
+        from psctl.io.images import to_rgb
+
+        images = np.ascontiguousarray(to_rgb(images))
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != images.shape[1:3]:
+            raise PsctlError(None, f"mask must be [H, W] = {list(images.shape[1:3])}, got {list(mask.shape)}")
+        if not mask.any():
+            raise PsctlError(None, "mask is empty")
     if not np.isfinite(images).all():
         raise PsctlError(None, "images contain NaN or infinite values")
     if lights is not None:
@@ -116,7 +129,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.classic import L2Accumulator
     from psctl.io.atomic import check_output_dir, staged_outputs
     from psctl.io.capture import bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images
-    from psctl.io.normals import FORMATS, write_normal_map
+    from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
     from psctl.metrics import angular_error, summarize
 
@@ -132,7 +145,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if cap.n_images < 3:
             raise PsctlError(cap.path, f"l2 needs at least 3 images (got {cap.n_images})")
     out_dir = Path(out) if out is not None else cap.path / "psctl"
+    formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
+    names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
     if write:
+        inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
+        clash = [n for n in names if (out_dir / n).resolve() in inputs]
+        if clash:
+            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
 
     mask = load_mask(cap)
@@ -193,9 +212,6 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     # --- write ---------------------------------------------------------------------------------
     if write:
-        names = [FORMATS[f] for f in formats]
-        if error is not None:
-            names += ["error.png", "report.json"]
         report["outputs"] = {_output_key(n): str(out_dir / n) for n in names}
         with staged_outputs(out_dir) as stage:
             for f in formats:

@@ -227,7 +227,7 @@ def train(
 
             with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} samples"),
                           TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:
-                task = bar.add_task(f"train {method}", total=None, info="")
+                task = bar.add_task(f"train {method}", total=cfg["train"]["samples"], info="")
 
                 def report(rec: dict) -> None:
                     bar.update(task, completed=rec["samples"], total=rec["total"],

@@ -394,7 +394,7 @@ def _laplacian(npix, ei, ej, c, pins):
 class _SmoothedAggregation:
     """A V-cycle of smoothed-aggregation multigrid, used as the CG preconditioner.
 
-    Aggregates: within each 2 x 2 block of a level's grid, the nodes joined by strong couplings
+    Aggregates: within each 3 x 3 block of a level's grid, the nodes joined by strong couplings
     (so a depth jump that bilateral weights have cut is never averaged over). Prolongation
     P = (I - omega D^-1 A) P0 with P0 the aggregates' indicator; coarse A = P^T A P; damped
     Jacobi smoothing (symmetric, so the V-cycle is a valid CG preconditioner).
@@ -448,9 +448,9 @@ def _jacobi_radius_bound(A, dinv: np.ndarray) -> float:
 
 def _aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
     """Aggregates: connected groups of strongly coupled nodes (-a_ij >= theta sqrt(a_ii a_jj))
-    inside each 2 x 2 block of the nodes' (row, col) grid coordinates.
+    inside each 3 x 3 block of the nodes' (row, col) grid coordinates.
 
-    Returns (aggregate of each node, (row, col) of each aggregate on the next, halved grid)."""
+    Returns (aggregate of each node, (row, col) of each aggregate on the next, coarser grid)."""
     import scipy.sparse as sp
     import scipy.sparse.csgraph as csgraph
 

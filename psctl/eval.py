@@ -53,7 +53,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
     ``weights`` (a file) and ``device`` are passed on to the network methods.
     """
-    from psctl.io.capture import find_objects
+    from psctl.io.capture import find_objects, object_name, open_capture
 
     benchmark = benchmark.lower()
     if benchmark not in BENCHMARKS:
@@ -64,14 +64,16 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         root = default_diligent_root()
     root = Path(root)
     folders = find_objects(root)
+    # every object must be scorable before any is run (and before any output is written)
+    for folder in folders:
+        if open_capture(folder).gt_path is None:
+            raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png / normal.png)")
     objects = []
     used_method = method
     for folder in folders:
-        r = run_normals(folder, method=method, out=None if out is None else Path(out) / folder.name,
+        r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
                         weights=weights, device=device)
-        if r["mae"] is None:
-            raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png)")
         used_method = r["method"]
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})

@@ -209,7 +209,9 @@ class _RegionImages:
     def __iter__(self) -> Iterator[np.ndarray]:
         first = self.passes == 0
         self.passes += 1
-        yield from self.cache
+        for x in self.cache:  # later passes: cached images count on the progress bar too
+            self.advance(1)
+            yield x
         k = len(self.cache)
         for img in self.reader(k, self.read_box):
             x = self._prepare(img, k)

@@ -89,16 +89,22 @@ def check_output_dir(path: str | os.PathLike) -> Path:
 @contextlib.contextmanager
 def staged_outputs(out_dir: str | os.PathLike) -> Iterator[Path]:
     """Yield a hidden staging folder inside ``out_dir``; when the block succeeds, move every file
-    written there into ``out_dir``. On error nothing appears in ``out_dir``: a run gives all of
-    its files or none."""
+    written there into ``out_dir``. On error nothing appears in ``out_dir`` (and ``out_dir``
+    itself is removed again if this call created it): a run gives all of its files or none."""
+    out_dir = Path(out_dir)
+    created = not out_dir.exists()
     out_dir = ensure_writable_dir(out_dir)
     stage = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=out_dir))
-
+    ok = False
     try:
         yield stage
         for f in sorted(stage.iterdir()):
             os.replace(f, out_dir / f.name)
+        ok = True
     finally:
         for f in stage.iterdir():
             f.unlink()
         stage.rmdir()
+        if not ok and created:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()

@@ -275,7 +275,7 @@ def load_mask(capture: Capture) -> np.ndarray:
     if capture.mask_path is None:
         return np.ones((capture.height, capture.width), bool)
     pixels, _ = read_image(capture.mask_path)
-    mask = pixels[..., :3].max(axis=-1) > 0.5
+    mask = to_rgb(pixels).max(axis=-1) > 0.5  # colour channels only: alpha is ignored
     if not mask.any():
         raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel)")
     return mask

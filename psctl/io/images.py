@@ -83,10 +83,8 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     if pixels is None or err:
         raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
     pixels = np.asarray(pixels, dtype=np.float32).reshape(info.height, info.width, info.channels)
-    bits_in_container = {"uint8": 8, "uint16": 16}.get(info.dtype)
-    if bits_in_container and info.bits and info.bits < bits_in_container:
-        # e.g. 12-bit data stored in a 16-bit PNG/TIFF: scale by the true maximum.
-        pixels *= (2**bits_in_container - 1) / (2**info.bits - 1)
+    # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
+    # OpenImageIO already rescales them to the container's full range.
     if not allow_nonfinite and not np.isfinite(pixels).all():
         raise PsctlError(path, "image contains NaN or infinite values")
     return pixels, info

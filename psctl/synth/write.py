@@ -242,6 +242,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     check_output_dir(out)
     objs = preset_objects(preset, seed, size, n_lights, k)
     ensure_writable_dir(out)
+    # objects.txt marks a complete set: it goes now and comes back when every object is written,
+    # so an interrupted run is never read as a finished one together with an older objects.txt
+    (out / "objects.txt").unlink(missing_ok=True)
     advance = progress(f"synth {preset}", len(objs)) if progress else (lambda _: None)
     gen = torch.Generator().manual_seed(seed + 1)
     sheet_rows = []
