@@ -21,33 +21,74 @@ from psctl.models import NETWORK_METHODS
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
-METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn")
+METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
+# sdps (uncalibrated): LCNet estimates the lights (weights/lcnet.pt or --lcnet FILE), then PS-FCN†
+# estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); see psctl/lights.py.
+SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light_directions.txt only scores the lights)"
 
 
 def _noop(_: int) -> None:
     pass
 
 
-def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None) -> tuple[str, str | None]:
+def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> None:
+    """Fail early, in one line, when sdps lacks weights: which files are missing and how to get them."""
+    from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, weights_dir
+
+    missing = [(m, flag) for m, given, flag in (("lcnet", lcnet, "--lcnet"), ("ps-fcn-dagger", weights, "--weights"))
+               if given is None and installed_path(m) is None]
+    if len(missing) == 1:
+        raise no_weights_error(*missing[0])
+    if missing:
+        where = weights_dir()
+        raise PsctlError(None, f"sdps needs the LCNet and PS-FCN† weights, and neither is installed (looked for "
+                               f"{where / file_name('lcnet')} and {where / file_name('ps-fcn-dagger')}; set ${ENV_VAR} "
+                               f"to use another folder). Train them on a GPU with `psctl train lcnet --config "
+                               f"configs/lcnet.yaml --install`, then `psctl train ps-fcn-dagger --config "
+                               f"configs/ps_fcn_dagger.yaml --install` (docs/training.md), or pass --lcnet FILE and "
+                               f"--weights FILE (docs/uncalibrated.md)")
+
+
+def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None,
+                   lcnet: str | os.PathLike | None = None) -> tuple[str, str | None]:
     """Map a user-facing method name to a concrete one; return (method, note for the user).
 
     auto: the method of ``weights`` when given, else ps-fcn-n, then ps-fcn when their weights
-    are installed (calibrated folders), else l2.
+    are installed (calibrated folders), else l2. Without light_directions.txt: sdps (LCNet +
+    PS-FCN†), else ups-fcn when only its weights are installed, else an error naming the
+    missing weights. ``lcnet`` (a file) is sdps's LCNet.
     """
     method = method.lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if lcnet is not None and method not in ("sdps", "auto"):
+        raise PsctlError(lcnet, f"--lcnet is for --method sdps (or auto), not {method}")
     if method == "auto" and weights is not None:
         from psctl.models.weights import method_of
 
         method, note = method_of(weights)
+        if method == "lcnet":
+            raise PsctlError(weights, "holds LCNet weights (light estimation): use `psctl lights`, or pass them "
+                                      "with --lcnet FILE to --method sdps")
+        if method == "ps-fcn-dagger":  # the second stage of sdps
+            check_sdps_weights(weights, lcnet)
+            return "sdps", f"auto: sdps (PS-FCN† weights from {weights}); {SDPS_NOTE}"
         if NETWORK_METHODS[method]["lights"] and not calibrated:
             raise PsctlError(None, f"{weights} holds {method} weights, which need light_directions.txt")
         return method, note or f"auto: {method} (from {weights})"
+    if method == "auto" and (not calibrated or lcnet is not None):
+        from psctl.models.weights import installed_path
+
+        if lcnet is None and installed_path("ups-fcn") is not None and (
+                installed_path("lcnet") is None or installed_path("ps-fcn-dagger") is None):
+            return "ups-fcn", "auto: no light_directions.txt and no sdps weights installed: ups-fcn"
+        check_sdps_weights(None, lcnet)
+        return "sdps", f"auto: no light_directions.txt; {SDPS_NOTE}"
+    if method == "sdps":
+        check_sdps_weights(weights, lcnet)
+        return "sdps", SDPS_NOTE
     if method == "auto":
-        if not calibrated:
-            raise PsctlError(None, "the folder has no light_directions.txt and no uncalibrated method is installed yet")
         from psctl.models.weights import installed_path
 
         for m in ("ps-fcn-n", "ps-fcn"):
@@ -64,18 +105,20 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
-                     device: str = "auto") -> np.ndarray:
+                     device: str = "auto", lcnet: str | os.PathLike | None = None) -> np.ndarray:
     """Normals from arrays.
 
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images, already divided by light
-            intensities.
+            intensities (sdps: as captured; it estimates the intensities).
         lights: [N, 3] unit light directions, x right / y up / z toward the camera (None for
-            ups-fcn).
+            ups-fcn and sdps).
         mask: [H, W] bool; normals outside are 0.
-        method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn" or "auto".
-        weights: a weights file for the network methods (default: the installed ones).
+        method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps" or "auto".
+        weights: a weights file for the network methods (default: the installed ones; for sdps
+            the PS-FCN† file).
         device: auto | cpu | cuda, for the network methods.
+        lcnet: sdps: the LCNet weights file (default: the installed one).
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -100,7 +143,14 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights = np.asarray(lights, np.float32)
         if lights.shape != (images.shape[0], 3):
             raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
-    method, _ = resolve_method(method, calibrated=lights is not None, weights=weights)
+    method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
+    if method == "sdps":
+        from psctl.infer import array_normals
+        from psctl.lights import array_lights
+
+        est = array_lights(images, mask, lcnet, {"device": device})
+        images = images / est.intensities[:, None, None, None]
+        return array_normals(images, est.directions, mask, "ps-fcn-dagger", weights, {"device": device}).normals
     if method in NETWORKS:
         from psctl.infer import array_normals
 
@@ -116,7 +166,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 formats: tuple[str, ...] | list[str] = ("png16", "exr"), n_images: int | None = None,
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                device: str = "auto") -> dict:
+                device: str = "auto", lcnet: str | os.PathLike | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -124,7 +174,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``; with ground truth also ``error.png`` and ``report.json``. Default folder:
     ``PATH/psctl``. Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
-    cpu | cuda) are for the network methods.
+    cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
+    light_mae and intensity_re (None without ground-truth lights).
     """
     from psctl.classic import L2Accumulator
     from psctl.io.atomic import check_output_dir, staged_outputs
@@ -137,7 +188,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     progress = progress or (lambda desc, total: _noop)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
-    method, note = resolve_method(method, cap.calibrated, weights)
+    method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     notes = [note] if note else []
     if method == "l2":
         if not cap.calibrated:
@@ -159,7 +210,25 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     box = bounding_box(mask)
 
     # --- solve -------------------------------------------------------------------------------
-    if method in NETWORKS:
+    light_stats = None
+    if method == "sdps":
+        from dataclasses import replace
+
+        from psctl.infer import capture_normals
+        from psctl.lights import capture_lights, light_errors
+
+        est = capture_lights(cap, mask, lcnet, {"device": device}, progress, flag="--lcnet")
+        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+        net = capture_normals(lit, mask, "ps-fcn-dagger", weights, {"device": device}, progress)
+        normals, dark = net.normals, net.dark
+        notes += est.notes + net.notes
+        light_stats = light_errors(est.directions, est.intensities, cap.lights,
+                                   cap.intensities if cap.intensities_given else None)
+        if light_stats["light_mae"] is not None:
+            notes.append(f"lcnet: light direction error {light_stats['light_mae']:.2f}° (mean)" + (
+                "" if light_stats["intensity_re"] is None else
+                f", intensity relative error {light_stats['intensity_re']:.3f}"))
+    elif method in NETWORKS:
         from psctl.infer import capture_normals
 
         net = capture_normals(cap, mask, method, weights, {"device": device}, progress)
@@ -209,6 +278,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_dark": int(dark.sum()),
         "notes": notes,
     }
+    if light_stats is not None:
+        report["light_mae"] = light_stats["light_mae"]
+        report["intensity_re"] = light_stats["intensity_re"]
 
     # --- write ---------------------------------------------------------------------------------
     if write:

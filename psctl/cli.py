@@ -25,9 +25,10 @@ app = typer.Typer(
 
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
-MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn (auto: ps-fcn-n when its weights are installed, else l2).")]
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn-n when its weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
+LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 
 def _stderr():
@@ -100,6 +101,7 @@ def normals(
     seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
+    lcnet: LcnetOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -111,7 +113,7 @@ def normals(
         formats = parse_formats(fmt)
         with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
             report = run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
-                                 progress=progress, weights=weights, device=device)
+                                 progress=progress, weights=weights, device=device, lcnet=lcnet)
         if json_out:
             _print_json(report)
             return
@@ -130,6 +132,7 @@ def evaluate(
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/.")] = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
+    lcnet: LcnetOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -139,13 +142,38 @@ def evaluate(
 
         with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
             result = run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
-                                   progress=progress, weights=weights, device=device)
+                                   progress=progress, weights=weights, device=device, lcnet=lcnet)
         if json_out:
             _print_json(result)
             return
         from psctl.io.summary import render_benchmark
 
         render_benchmark(result)
+
+
+@app.command()
+def lights(
+    path: Annotated[Path, typer.Argument(help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
+    weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
+    decode: Annotated[str, typer.Option(help="argmax (class centres, the paper) | soft (soft-argmax).")] = "argmax",
+    images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    device: DeviceOpt = "auto",
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Estimate light directions and intensities (LCNet): light_directions.txt, light_intensities.txt, lights.png."""
+    with _user_errors():
+        from psctl.lights import render_lights, run_lights
+
+        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
+            report = run_lights(path, out=out, weights=weights, device=device, decode=decode, n_images=images,
+                                seed=seed, progress=progress)
+        if json_out:
+            _print_json(report)
+            return
+        render_lights(report)
 
 
 @app.command()
@@ -202,13 +230,14 @@ def depth(
 
 @app.command()
 def train(
-    method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn")],
+    method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn | lcnet | ps-fcn-dagger")],
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/).")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run (default: runs/METHOD).")] = None,
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
     install: Annotated[bool, typer.Option(help="When finished, copy the best weights to weights/ (release).")] = False,
+    lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
@@ -220,7 +249,7 @@ def train(
         con = _stderr()
         if quiet:
             report = None
-            st = run_training(method, cfg, run_dir, resume=resume is not None, device=device,
+            st = run_training(method, cfg, run_dir, resume=resume is not None, device=device, lcnet=lcnet,
                               max_seconds=None if max_minutes is None else 60 * max_minutes)
         else:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -234,7 +263,7 @@ def train(
                                info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
 
                 st = run_training(method, cfg, run_dir, resume=resume is not None, device=device, progress=report,
-                                  max_seconds=None if max_minutes is None else 60 * max_minutes)
+                                  lcnet=lcnet, max_seconds=None if max_minutes is None else 60 * max_minutes)
         best = "-" if st["best_val"] is None else f"{st['best_val']:.2f}°"
         state = "finished" if st["finished"] else "stopped (resume with --resume)"
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "

@@ -21,6 +21,14 @@ PAPER_DILIGENT = {
     "sdps": {"ball": 2.8, "cat": 8.1, "pot1": 8.1, "bear": 6.9, "pot2": 7.5},
 }
 
+# LCNet's light estimates on the same objects, from the same paper: mean light direction error
+# (degrees) and scale-invariant intensity relative error.
+PAPER_DILIGENT_LIGHTS = {
+    "ball": {"light_mae": 3.27, "intensity_re": 0.039}, "cat": {"light_mae": 4.08, "intensity_re": 0.095},
+    "pot1": {"light_mae": 5.44, "intensity_re": 0.058}, "bear": {"light_mae": 3.47, "intensity_re": 0.061},
+    "pot2": {"light_mae": 2.87, "intensity_re": 0.048},
+}
+
 BENCHMARKS = ("diligent", "folder")
 
 
@@ -46,12 +54,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   n_images: int | None = None, seed: int | None = None,
                   out: str | os.PathLike | None = None,
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                  device: str = "auto") -> dict:
+                  device: str = "auto", lcnet: str | os.PathLike | None = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
-    ``weights`` (a file) and ``device`` are passed on to the network methods.
+    ``weights`` (a file) and ``device`` are passed on to the network methods, ``lcnet`` to sdps.
+    sdps also gives each object's "light_mae" and "intensity_re", their means "mean_light_mae"
+    and "mean_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
     from psctl.io.capture import find_objects, object_name, open_capture
 
@@ -73,12 +83,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     for folder in folders:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
-                        weights=weights, device=device)
+                        weights=weights, device=device, lcnet=lcnet)
         used_method = r["method"]
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
+        if "light_mae" in r:  # sdps: the lights LCNet estimated
+            objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"])
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
-    return {
+    result = {
         "benchmark": benchmark,
         "root": str(root),
         "method": used_method,
@@ -86,3 +98,10 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         "mean_mae": float(np.mean([o["mae"] for o in objects])),
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
     }
+    if any("light_mae" in o for o in objects):
+        for key in ("light_mae", "intensity_re"):
+            vals = [o.get(key) for o in objects]
+            result[f"mean_{key}"] = None if any(v is None for v in vals) else float(np.mean(vals))
+        lights = PAPER_DILIGENT_LIGHTS if benchmark == "diligent" else {}
+        result["paper_lights"] = {o["name"]: lights[o["name"]] for o in objects if o["name"] in lights}
+    return result

@@ -1,10 +1,19 @@
-"""Training loops: PS-FCN, PS-FCN+N and UPS-FCN on psctl's synthetic stream (nanoGPT style).
+"""Training loops: PS-FCN, PS-FCN+N, UPS-FCN, LCNet and PS-FCN† on psctl's synthetic stream
+(nanoGPT style).
 
     psctl train ps-fcn-n --config configs/ps_fcn_n.yaml [--resume runs/ps_fcn_n] [--device cuda]
+    psctl train lcnet --config configs/lcnet.yaml
+    psctl train ps-fcn-dagger --config configs/ps_fcn_dagger.yaml [--lcnet runs/lcnet/best.pt]
 
 The recipe is one YAML file (see configs/); defaults follow the paper: Adam(0.9, 0.999), lr 1e-3
 halved at regular intervals, batch 32, 32 images per sample, 32 x 32 crops, noise augmentation,
 cosine loss 1 - n.n_gt over the object's pixels. The schedule is counted in samples seen.
+
+One loop trains every network; what differs is a ``Task`` (model, loss of a stream batch,
+validation items and error): ``normals_task`` (PS-FCN family, the cosine loss; PS-FCN† takes
+its lights from a frozen LCNet: discretised directions, images divided by the estimated
+intensities) and ``lcnet_task`` (cross-entropy on the three heads, validated by the mean
+angular error of the decoded light directions).
 
 A run folder holds
     model.pt            psctl weights (release format) of the latest state, with metadata
@@ -30,6 +39,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +68,15 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "channels_last": True,
     },
     "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16},
+    "lcnet": {  # LCNet: the network trained by `train lcnet`, or the frozen one of `train ps-fcn-dagger`
+        "dirs_cls": 36,  # azimuth / elevation classes
+        "ints_cls": 20,  # intensity classes
+        "ints_range": [0.2, 2.0],  # intensities the classes cover
+        "in_mask": True,  # mask as a 4th input channel
+        "loss_weights": [1.0, 1.0, 1.0],  # cross-entropy weights: azimuth, elevation, intensity
+        "weights": None,  # ps-fcn-dagger: the frozen LCNet file (None: weights/lcnet.pt; --lcnet overrides)
+        "decode": "argmax",  # ps-fcn-dagger: how the frozen LCNet's classes become lights (argmax | soft)
+    },
 }
 
 OPTIM_PART_BYTES = 12 * 2**20
@@ -214,40 +233,140 @@ def synth_stream(data: dict, *, batch_size: int, images: int, crop: int, seed: i
         raise PsctlError(None, f"config 'data' section: {e}") from None
 
 
-def validation_set(cfg: dict, lights: bool, normalization: str, device: torch.device,
-                   make_stream: Callable) -> list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]]:
+@dataclass
+class Task:
+    """What differs between the networks; ``train`` runs the same loop for all of them."""
+
+    model: torch.nn.Module
+    loss: Callable[[dict], torch.Tensor]  # stream batch -> scalar loss (forward under autocast)
+    val_item: Callable[[dict], tuple]  # stream batch -> a stored validation item
+    val_error: Callable[[tuple], tuple[float, float]]  # item -> (sum of errors in degrees, count)
+    metric: str  # validation metric (degrees, lower is better): "mae" (normals), "light_mae" (LCNet)
+    metadata: dict = field(default_factory=dict)  # method-specific weights metadata
+
+
+def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.device):
+    """The LCNet that estimates PS-FCN†'s training lights: ``path``, else the recipe's
+    ``lcnet.weights``, else the installed weights/lcnet.pt. Returns (model, provenance)."""
+    from psctl.models.weights import installed_path, load_network, no_weights_error
+
+    path = path or config["lcnet"]["weights"]
+    if path is None and installed_path("lcnet") is None:
+        raise no_weights_error("lcnet", "--lcnet")
+    model, _, w = load_network("lcnet", path, device=device)
+    model.requires_grad_(False)
+    info = {"path": str(w.path), "official": w.official, "date": w.metadata.get("date"),
+            "samples_seen": w.metadata.get("samples_seen"), "metrics": w.metadata.get("metrics"),
+            "decode": config["lcnet"]["decode"]}
+    return model.eval(), info
+
+
+def normals_task(method: str, config: dict, device: torch.device, amp: Callable,
+                 lcnet: str | os.PathLike | None = None) -> Task:
+    """PS-FCN, PS-FCN+N, UPS-FCN (lights from the stream) and PS-FCN† (lights from a frozen LCNet)."""
+    from psctl.models import NETWORK_METHODS
+    from psctl.models.ps_fcn import PSFCN, normalize_observations
+
+    spec = NETWORK_METHODS[method]
+    normalization = config.get("normalization") or spec["normalization"]
+    model = PSFCN({**config["model"], "lights": spec["lights"]}).to(device)  # first: it draws the initial weights
+    meta: dict = {"normalization": normalization}
+
+    if method == "ps-fcn-dagger":
+        estimator, meta["lcnet"] = frozen_lcnet(config, lcnet, device)
+        mode = config["lcnet"]["decode"]
+
+        def inputs(b: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+            with amp():
+                dirs, ints = estimator.estimate(b["images"], b["masks"], mode)
+            images = b["images"] / ints.float()[:, :, None, None, None].clamp_min(1e-6)
+            return normalize_observations(images, normalization), dirs.float()
+    else:
+        def inputs(b: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+            return network_inputs(b, spec["lights"], normalization)
+
+    def loss(b: dict) -> torch.Tensor:
+        x, l = inputs(b)
+        with amp():
+            pred = model(x, l).float()
+        return cosine_loss(pred, b["normals"], b["masks"])
+
+    def val_item(b: dict) -> tuple:
+        x, l = inputs(b)
+        return x, l, b["normals"], b["masks"]
+
+    def val_error(item: tuple) -> tuple[float, float]:
+        x, l, n, m = item
+        with amp():
+            pred = model(x, l).float()
+        count = m.sum().item()
+        return mae_degrees(pred, n, m).item() * count, count
+
+    return Task(model, loss, val_item, val_error, "mae", meta)
+
+
+def lcnet_task(config: dict, device: torch.device, amp: Callable) -> Task:
+    """LCNet: cross-entropy on the azimuth, elevation and intensity classes of each image;
+    validated by the mean angle between the argmax-decoded and the true directions."""
+    from psctl.models.lcnet import LCNet, classification_loss, decode, resize_stack
+
+    lc, t = config["lcnet"], config["train"]
+    arch = {k: lc[k] for k in ("dirs_cls", "ints_cls", "ints_range", "in_mask")}
+    try:  # the network's input side is the training crop (128 in the paper)
+        model = LCNet({**arch, "fuse": config["model"]["fuse"], "size": t["crop"]}).to(device)
+    except ValueError as e:
+        raise PsctlError(None, f"lcnet recipe: {e} (train.crop is LCNet's input side)") from None
+    weights = tuple(float(w) for w in lc["loss_weights"])
+    size = int(model.config["size"])
+
+    def loss(b: dict) -> torch.Tensor:
+        with amp():
+            logits = model(b["images"], b["masks"])
+        return classification_loss(logits, b["lights"], b["intensities"], model.config, weights)[0]
+
+    def val_item(b: dict) -> tuple:
+        x, m = resize_stack(b["images"], b["masks"], size)
+        return x, m, b["lights"]
+
+    def val_error(item: tuple) -> tuple[float, float]:
+        x, m, l = item
+        with amp():
+            logits = model(x, m)
+        dirs, _ = decode(logits, model.config)
+        cos = (dirs.double() * l.double()).sum(-1).clamp(-1, 1)
+        return torch.rad2deg(torch.acos(cos)).sum().item(), float(cos.numel())
+
+    return Task(model, loss, val_item, val_error, "light_mae", {"normalization": "none"})
+
+
+def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
     """A fixed synthetic validation set: training-distribution shapes and materials, a held-out seed."""
     v = cfg["val"]
     stream = make_stream(cfg["data"], batch_size=v["batch_size"], images=v["images"], crop=v["size"],
                          seed=v["seed"], device=device)
-    out = []
-    for _ in range(math.ceil(v["samples"] / v["batch_size"])):
-        b = stream.next_batch()
-        x, l = network_inputs(b, lights, normalization)
-        out.append((x, l, b["normals"], b["masks"]))
-    return out
+    with torch.no_grad():
+        return [task.val_item(stream.next_batch()) for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
 
 
 @torch.no_grad()
-def evaluate(model, val, device: torch.device, amp) -> float:
-    model.eval()
-    errs, counts = [], []
-    for x, l, n, m in val:
-        with amp():
-            pred = model(x, l).float()
-        errs.append(mae_degrees(pred, n, m).item() * m.sum().item())
-        counts.append(m.sum().item())
-    model.train()
-    return sum(errs) / max(1, sum(counts))
+def evaluate(task: Task, val: list[tuple]) -> float:
+    """The task's validation metric over the fixed set (degrees)."""
+    task.model.eval()
+    total, count = 0.0, 0.0
+    for item in val:
+        s, c = task.val_error(item)
+        total, count = total + s, count + c
+    task.model.train()
+    return total / max(1.0, count)
 
 
 def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], None] | None = None,
-          make_stream: Callable = synth_stream) -> dict:
+          make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
     Args:
-        method: "ps-fcn", "ps-fcn-n" or "ups-fcn".
+        method: "ps-fcn", "ps-fcn-n", "ups-fcn", "lcnet" or "ps-fcn-dagger".
         config: merged recipe (see ``load_config``).
         run_dir: run folder; with ``resume`` its checkpoint is continued.
         max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
@@ -255,16 +374,17 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         progress: called with a status dict after each logged step.
         make_stream: the stream factory (default ``synth_stream``): returns an object with
             ``next_batch()``, and ``state_dict()`` / ``load_state_dict()`` for exact resumption.
+        lcnet: ps-fcn-dagger only: the frozen LCNet's weights file (default: the recipe's
+            ``lcnet.weights``, else weights/lcnet.pt; a resumed run keeps the file it started with).
     """
     from psctl.infer import pick_device
-    from psctl.models import NETWORK_METHODS
-    from psctl.models.ps_fcn import PSFCN
+    from psctl.models import WEIGHTS_METHODS
     from psctl.models.weights import save_weights
 
-    if method not in NETWORK_METHODS:
-        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(NETWORK_METHODS)}")
-    spec = NETWORK_METHODS[method]
-    normalization = config.get("normalization") or spec["normalization"]
+    if method not in WEIGHTS_METHODS:
+        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
+    if lcnet is not None and method != "ps-fcn-dagger":
+        raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
     t = config["train"]
     dev = pick_device(device)
     run = Path(run_dir)
@@ -275,38 +395,45 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
     run.mkdir(parents=True, exist_ok=True)
 
-    torch.manual_seed(t["seed"])  # initial weights (the stream has its own generator)
-    model = PSFCN({**config["model"], "lights": spec["lights"]}).to(dev)
-    if t["channels_last"]:
-        model = model.to(memory_format=torch.channels_last)
-    optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])
-    st: dict[str, Any] = {"step": 0, "samples": 0, "seconds": 0.0, "best_val": None, "best_samples": None,
-                          "stream_seed": t["seed"], "method": method, "val": []}
-    if resume:
-        from psctl.models.weights import read_weights
-
-        st = json.loads(state_file.read_text())
-        if st["method"] != method:
-            raise PsctlError(state_file, f"is a {st['method']} run, not {method}")
-        w = read_weights(run / "model.pt")
-        model.load_state_dict(w.state_dict)
-        load_optimizer(run, optim, st["optim_files"], dev)
-
     use_amp = dev.type == "cuda" and t["amp"] in ("bf16", "fp16")
     amp_dtype = torch.bfloat16 if t["amp"] == "bf16" else torch.float16
 
     def amp():
         return torch.autocast("cuda", dtype=amp_dtype) if use_amp else torch.autocast("cpu", enabled=False)
 
+    st: dict[str, Any] = {"step": 0, "samples": 0, "seconds": 0.0, "best_val": None, "best_samples": None,
+                          "stream_seed": t["seed"], "method": method, "val": []}
+    if resume:
+        st = json.loads(state_file.read_text())
+        if st["method"] != method:
+            raise PsctlError(state_file, f"is a {st['method']} run, not {method}")
+        lcnet = lcnet or st.get("lcnet")  # the frozen LCNet the run started with
+
+    torch.manual_seed(t["seed"])  # initial weights (the stream has its own generator)
+    task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp, lcnet)
+    model = task.model
+    if "lcnet" in task.metadata:
+        st["lcnet"] = task.metadata["lcnet"]["path"]
+    if t["channels_last"]:
+        model.to(memory_format=torch.channels_last)  # in place: the task's closures hold this module
+    optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])
+    if resume:
+        from psctl.models.weights import read_weights
+
+        w = read_weights(run / "model.pt")
+        model.load_state_dict(w.state_dict)
+        load_optimizer(run, optim, st["optim_files"], dev)
+
     stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
                          crop=t["crop"], seed=st["stream_seed"], device=dev)
     if resume and (run / "stream.pt").is_file():
         stream.load_state_dict(torch.load(run / "stream.pt", map_location="cpu", weights_only=True))
-    val = validation_set(config, spec["lights"], normalization, dev, make_stream)
+    val = validation_set(config, task, dev, make_stream)
     log = open(run / "log.jsonl", "a")
+    metric = f"synthetic_val_{task.metric}"
 
     def metadata(metrics: dict) -> dict:
-        return {"method": method, "architecture": dict(model.config), "normalization": normalization,
+        return {"method": method, "architecture": dict(model.config), **task.metadata,
                 "train_images": t["images_per_sample"], "recipe": config,
                 "data": "psctl synthetic stream (psctl.synth), generated on the fly",
                 "samples_seen": st["samples"], "wall_seconds": round(st["seconds"], 1),
@@ -320,7 +447,7 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
                 torch.save(stream.state_dict(), tmp)
-        save_weights(run / "model.pt", model, metadata({"synthetic_val_mae": st["best_val"]}))
+        save_weights(run / "model.pt", model, metadata({metric: st["best_val"]}))
         from psctl.io.atomic import write_text_atomic
 
         write_text_atomic(state_file, json.dumps(st, indent=1))
@@ -336,15 +463,12 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
             for g in optim.param_groups:
                 g["lr"] = lr_at(st["samples"], config)
             batch = stream.next_batch()
-            x, l = network_inputs(batch, spec["lights"], normalization)
-            with amp():
-                pred = model(x, l).float()
-            loss = cosine_loss(pred, batch["normals"], batch["masks"])
+            loss = task.loss(batch)
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
             st["step"] += 1
-            st["samples"] += x.shape[0]
+            st["samples"] += batch["images"].shape[0]
             loss_avg = loss.item() if loss_avg is None else 0.9 * loss_avg + 0.1 * loss.item()
             now = time.perf_counter()
             if st["step"] % t["log_every"] == 0 or st["samples"] >= t["samples"]:
@@ -358,15 +482,15 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
                     progress({**rec, "total": t["samples"]})
                 t_log, samples_log = now, st["samples"]
             if st["samples"] >= next_val or st["samples"] >= t["samples"]:
-                mae = evaluate(model, val, dev, amp)
+                mae = evaluate(task, val)
                 st["val"].append([st["samples"], round(mae, 4)])
-                log.write(json.dumps({"samples": st["samples"], "val_mae": round(mae, 4)}) + "\n")
+                log.write(json.dumps({"samples": st["samples"], f"val_{task.metric}": round(mae, 4)}) + "\n")
                 log.flush()
                 if st["best_val"] is None or mae < st["best_val"]:
                     st["best_val"], st["best_samples"] = mae, st["samples"]
                     st["seconds"] += now - t_call
                     t_call = now
-                    save_weights(run / "best.pt", model, metadata({"synthetic_val_mae": round(mae, 4)}))
+                    save_weights(run / "best.pt", model, metadata({metric: round(mae, 4)}))
                 next_val += t["val_every"]
             out_of_time = max_seconds is not None and now - t_start >= max_seconds
             if stop.requested or out_of_time or now - t_ckpt > 60 * t["checkpoint_minutes"]:

@@ -122,6 +122,17 @@ def render_benchmark(result: dict) -> None:
         vals = [paper.get(o["name"]) for o in objs]
         avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
         t.add_row(f"{result['method']} (paper)", *[_fmt(v) for v in vals], _fmt(avg), style="dim")
+    if "mean_light_mae" in result:  # sdps: the lights LCNet estimated, and the paper's LCNet
+        paper_l = result.get("paper_lights") or {}
+        for key, label, fmt in (("light_mae", "light direction (°)", _fmt),
+                                ("intensity_re", "intensity RE", lambda x: "-" if x is None else f"{x:.3f}")):
+            if all(o.get(key) is None for o in objs):  # no ground truth to score against
+                continue
+            t.add_row(f"{label} (psctl)", *[fmt(o.get(key)) for o in objs], fmt(result[f"mean_{key}"]))
+            if paper_l:
+                vals = [paper_l.get(o["name"], {}).get(key) for o in objs]
+                avg = float(np.mean(vals)) if all(v is not None for v in vals) else None
+                t.add_row(f"{label} (paper)", *[fmt(v) for v in vals], fmt(avg), style="dim")
     con.print(t)
     n = {o["n_images"] for o in objs}
     secs = sum(o["seconds"] for o in objs)

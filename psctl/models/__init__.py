@@ -1,6 +1,7 @@
 """Networks. One readable file per model; torch is imported only by the model modules.
 
     ps_fcn.py    PS-FCN, PS-FCN+N and UPS-FCN (Chen et al., ECCV 2018 / TPAMI 2020)
+    lcnet.py     LCNet, the lighting calibration network of SDPS-Net (CVPR 2019 / TPAMI 2020)
     weights.py   finding, loading (ours and the authors' ``*.pth.tar``) and saving weights
 """
 
@@ -8,10 +9,21 @@ from __future__ import annotations
 
 # method name -> what the network needs. "normalization" is the default +N variant for the
 # method; our own weights files record the variant they were trained with (see weights.py).
+# ps-fcn-dagger (PS-FCN†) is PS-FCN trained on the lights a frozen LCNet estimates (discretised
+# directions, images divided by the estimated intensities): the second stage of `sdps`.
 NETWORK_METHODS: dict[str, dict] = {
-    "ps-fcn": {"lights": True, "normalization": "none"},
-    "ps-fcn-n": {"lights": True, "normalization": "per-channel"},
-    "ups-fcn": {"lights": False, "normalization": "none"},
+    "ps-fcn": {"architecture": "ps-fcn", "lights": True, "normalization": "none"},
+    "ps-fcn-n": {"architecture": "ps-fcn", "lights": True, "normalization": "per-channel"},
+    "ups-fcn": {"architecture": "ps-fcn", "lights": False, "normalization": "none"},
+    "ps-fcn-dagger": {"architecture": "ps-fcn", "lights": True, "normalization": "none"},
 }
 
-__all__ = ["NETWORK_METHODS"]
+# Networks that estimate lights, not normals (weights files of their own, same format).
+LIGHT_METHODS: dict[str, dict] = {
+    "lcnet": {"architecture": "lcnet", "normalization": "none"},
+}
+
+# Every method that has a weights file.
+WEIGHTS_METHODS: dict[str, dict] = {**NETWORK_METHODS, **LIGHT_METHODS}
+
+__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "WEIGHTS_METHODS"]

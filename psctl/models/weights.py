@@ -16,6 +16,11 @@ psctl's format, a ``torch.save`` of plain containers, read with ``torch.load(wei
 The authors' release format, ``*.pth.tar`` = ``{"state_dict": ..., "model": "PS_FCN"}``, loads too
 (``--weights FILE``); it records neither the method nor +N, so the method given by the user
 decides the normalisation, with q = 32 (the authors' ``train_img_num``).
+
+LCNet (method ``lcnet``, SDPS-Net's lighting calibration network) uses the same format with its
+own architecture config; the authors' ``LCNet_CVPR2019.pth.tar`` is recognised by its
+``featExtractor.*`` keys and checked as strictly. Their stage-2 ``NENet_CVPR2019.pth.tar`` has
+PS-FCN's keys and runs as ``ps-fcn-dagger``.
 """
 
 from __future__ import annotations
@@ -27,11 +32,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from psctl.errors import PsctlError
-from psctl.models import NETWORK_METHODS
+from psctl.models import NETWORK_METHODS, WEIGHTS_METHODS
 
 if TYPE_CHECKING:  # torch is imported inside the functions: finding files must stay cheap
     import torch
 
+    from psctl.models.lcnet import LCNet
     from psctl.models.ps_fcn import PSFCN
 
 FORMAT = "psctl-weights"
@@ -59,6 +65,11 @@ class Weights:
     def lights(self) -> bool:
         return bool(self.metadata["architecture"].get("lights", True))
 
+    @property
+    def kind(self) -> str:
+        """The architecture family: "ps-fcn" (PS-FCN, UPS-FCN, PS-FCN†) or "lcnet"."""
+        return self.metadata.get("kind") or WEIGHTS_METHODS[self.metadata["method"]]["architecture"]
+
 
 # --- where ------------------------------------------------------------------------------------
 
@@ -80,8 +91,23 @@ def installed_path(method: str) -> Path | None:
     return p if p.is_file() else None
 
 
-def no_weights_error(method: str) -> PsctlError:
+# what to suggest when the uncalibrated networks' weights are missing: the recipe and the
+# authors' release file
+_TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
+                "ps-fcn-dagger": ("configs/ps_fcn_dagger.yaml", "NENet_CVPR2019.pth.tar")}
+
+
+def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
     where = weights_dir() / file_name(method)
+    if method in _TRAIN_HINTS:
+        recipe, official = _TRAIN_HINTS[method]
+        return PsctlError(
+            None,
+            f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
+            f"folder). Train them with `psctl train {method} --config {recipe} --install` (a GPU is "
+            f"needed, see docs/training.md), or pass a weights file with {flag} FILE: psctl's own "
+            f"or the authors' {official} (docs/uncalibrated.md)",
+        )
     return PsctlError(
         None,
         f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
@@ -142,11 +168,18 @@ def read_weights(path: str | os.PathLike) -> Weights:
         _check_metadata(meta, path)
         return Weights(path, sd, meta, official=False)
 
-    # The authors' file: the first layer's input channels say whether it takes lights.
+    source = f"authors' checkpoint ({obj.get('model', 'unnamed')})"
+    if any(k.startswith("featExtractor.") for k in sd):  # SDPS-Net's LCNet: 4 input channels = mask in
+        w1 = sd.get("featExtractor.conv1.0.weight")
+        in_mask = not (w1 is not None and w1.ndim == 4 and w1.shape[1] == 3)
+        meta = {"method": "lcnet", "kind": "lcnet", "architecture": {"in_mask": in_mask, "fuse": "max"},
+                "normalization": "none", "train_images": OFFICIAL_TRAIN_IMAGES, "source": source}
+        return Weights(path, sd, meta, official=True)
+    # The authors' PS-FCN file: the first layer's input channels say whether it takes lights.
     w1 = sd.get("extractor.conv1.0.weight")
     lights = not (w1 is not None and w1.ndim == 4 and w1.shape[1] == 3)
-    meta = {"method": None, "architecture": {"lights": lights, "fuse": "max"}, "normalization": None,
-            "train_images": OFFICIAL_TRAIN_IMAGES, "source": f"authors' checkpoint ({obj.get('model', 'unnamed')})"}
+    meta = {"method": None, "kind": "ps-fcn", "architecture": {"lights": lights, "fuse": "max"}, "normalization": None,
+            "train_images": OFFICIAL_TRAIN_IMAGES, "source": source}
     return Weights(path, sd, meta, official=True)
 
 
@@ -154,8 +187,8 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
     from psctl.models.ps_fcn import NORMALIZATIONS
 
     method = meta.get("method")
-    if method not in NETWORK_METHODS:
-        raise PsctlError(path, f"metadata 'method' is {method!r}; expected one of {', '.join(NETWORK_METHODS)}")
+    if method not in WEIGHTS_METHODS:
+        raise PsctlError(path, f"metadata 'method' is {method!r}; expected one of {', '.join(WEIGHTS_METHODS)}")
     if not isinstance(meta.get("architecture"), dict):
         raise PsctlError(path, "metadata 'architecture' must be a dict (the network config)")
     norm = meta.get("normalization")
@@ -164,6 +197,10 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
     q = meta.get("train_images")
     if not isinstance(q, int) or isinstance(q, bool) or q < 1:
         raise PsctlError(path, f"metadata 'train_images' (q, images per training sample) must be a positive integer, got {q!r}")
+    if method not in NETWORK_METHODS:  # lcnet: no lights input, no +N
+        if norm != "none":
+            raise PsctlError(path, f"metadata says {method} with normalization {norm!r}; it has none")
+        return
     if bool(meta["architecture"].get("lights", True)) != NETWORK_METHODS[method]["lights"]:
         raise PsctlError(path, f"metadata says {method} but the architecture's 'lights' is {meta['architecture'].get('lights')}")
     if (method == "ps-fcn-n") != (norm != "none") and method != "ups-fcn":
@@ -176,9 +213,15 @@ def for_method(weights: Weights, method: str) -> dict:
     Our files must match the method they were trained for; the authors' files take the
     normalisation from the method (they do not record it).
     """
-    if method not in NETWORK_METHODS:
-        raise PsctlError(None, f"{method!r} is not a network method ({', '.join(NETWORK_METHODS)})")
-    spec = NETWORK_METHODS[method]
+    if method not in WEIGHTS_METHODS:
+        raise PsctlError(None, f"{method!r} is not a network method ({', '.join(WEIGHTS_METHODS)})")
+    spec = WEIGHTS_METHODS[method]
+    if weights.kind != spec["architecture"]:
+        what = "LCNet (light estimation)" if weights.kind == "lcnet" else "a PS-FCN-style network (normals)"
+        raise PsctlError(weights.path, f"holds the weights of {what}; they cannot run as {method}")
+    if weights.official and spec["architecture"] == "lcnet":
+        return {"normalization": "none", "train_images": OFFICIAL_TRAIN_IMAGES,
+                "architecture": dict(weights.metadata["architecture"])}
     if weights.official:
         if weights.lights != spec["lights"]:
             has = "takes light directions (PS-FCN)" if weights.lights else "takes no lights (UPS-FCN)"
@@ -195,14 +238,14 @@ def for_method(weights: Weights, method: str) -> dict:
 def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
     """The method a weights file is for, and a note when that is a guess (the authors' files)."""
     w = read_weights(path)
-    if not w.official:
+    if not w.official or w.kind == "lcnet":
         return w.method, None
     method = "ps-fcn" if w.lights else "ups-fcn"
     return method, (f"{Path(path).name}: the authors' checkpoints do not record +N; running it as {method} "
                     f"(pass --method ps-fcn-n for a +N checkpoint such as PS-FCN_B_S_32_normalize.pth.tar)")
 
 
-def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Module") -> None:
+def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Module", name: str = "PS-FCN") -> None:
     """Strict key and shape check; the error names the file and the first offending keys."""
     want = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     have = {k: tuple(v.shape) for k, v in state_dict.items()}
@@ -215,23 +258,33 @@ def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Modul
             more = f" and {len(items) - _SHOW} more" if len(items) > _SHOW else ""
             problems.append(f"{what}: {', '.join(items[:_SHOW])}{more}")
     if problems:
-        raise PsctlError(path, "does not match the PS-FCN architecture: " + "; ".join(problems))
+        raise PsctlError(path, f"does not match the {name} architecture: " + "; ".join(problems))
 
 
-def build_network(weights: Weights, method: str, device: "str | torch.device" = "cpu") -> tuple["PSFCN", dict]:
+def build_network(weights: Weights, method: str,
+                  device: "str | torch.device" = "cpu") -> tuple["PSFCN | LCNet", dict]:
     """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``)."""
-    from psctl.models.ps_fcn import PSFCN
-
     run = for_method(weights, method)
-    arch = {k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")}
-    model = PSFCN(arch)
-    check_state_dict(weights.path, weights.state_dict, model)
+    if WEIGHTS_METHODS[method]["architecture"] == "lcnet":
+        from psctl.models.lcnet import DEFAULT_CONFIG, LCNet
+
+        try:
+            model = LCNet({k: v for k, v in run["architecture"].items() if k in DEFAULT_CONFIG})
+        except (ValueError, TypeError) as e:
+            raise PsctlError(weights.path, f"bad LCNet architecture in the metadata ({e})") from None
+        name = "LCNet"
+    else:
+        from psctl.models.ps_fcn import PSFCN
+
+        model = PSFCN({k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")})
+        name = "PS-FCN"
+    check_state_dict(weights.path, weights.state_dict, model, name)
     model.load_state_dict(weights.state_dict, strict=True)
     return model.to(device).eval(), run
 
 
 def load_network(method: str, weights_file: str | os.PathLike | None = None,
-                 device: "str | torch.device" = "cpu") -> tuple["PSFCN", dict, Weights]:
+                 device: "str | torch.device" = "cpu") -> tuple["PSFCN | LCNet", dict, Weights]:
     """Find (or read ``weights_file``), check and load the network for ``method``."""
     if weights_file is None:
         path = installed_path(method)
@@ -268,7 +321,7 @@ def save_weights(path: str | os.PathLike, model: "torch.nn.Module | dict", metad
 
     Args:
         path: the file to write (``weights/<method>.pt`` to install).
-        model: a PSFCN (its config becomes ``architecture``) or a state dict.
+        model: a PSFCN or LCNet (its config becomes ``architecture``) or a state dict.
         metadata: at least ``method`` and ``train_images`` (q); ``normalization`` defaults to
             the method's; put the training ``recipe``, ``data`` and ``metrics`` here too. ``date``
             (UTC, ISO 8601) is added when absent.
@@ -280,15 +333,20 @@ def save_weights(path: str | os.PathLike, model: "torch.nn.Module | dict", metad
     path = Path(path)
     meta = _plain(dict(metadata), "metadata")
     method = meta.get("method")
-    if method not in NETWORK_METHODS:
-        raise PsctlError(None, f"metadata 'method' must be one of {', '.join(NETWORK_METHODS)}, got {method!r}")
+    if method not in WEIGHTS_METHODS:
+        raise PsctlError(None, f"metadata 'method' must be one of {', '.join(WEIGHTS_METHODS)}, got {method!r}")
     if isinstance(model, torch.nn.Module):
         state = model.state_dict()
         meta.setdefault("architecture", _plain(dict(getattr(model, "config", {})), "architecture"))
     else:
         state = model
-    meta.setdefault("architecture", {"lights": NETWORK_METHODS[method]["lights"], "fuse": "max"})
-    meta.setdefault("normalization", NETWORK_METHODS[method]["normalization"])
+    if method in NETWORK_METHODS:
+        meta.setdefault("architecture", {"lights": NETWORK_METHODS[method]["lights"], "fuse": "max"})
+    else:
+        from psctl.models.lcnet import DEFAULT_CONFIG
+
+        meta.setdefault("architecture", _plain(dict(DEFAULT_CONFIG), "architecture"))
+    meta.setdefault("normalization", WEIGHTS_METHODS[method]["normalization"])
     meta.setdefault("date", datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
     for key, default in (("recipe", {}), ("data", None), ("metrics", {})):
         meta.setdefault(key, default)

@@ -1,0 +1,445 @@
+"""Light estimation for uncalibrated photometric stereo: LCNet over all images of a capture.
+
+    psctl lights ballPNG     ->  ballPNG/psctl/light_directions.txt, light_intensities.txt, lights.png
+
+    >>> from psctl.lights import run_lights
+    >>> report = run_lights("ballPNG")            # report["light_mae"] with ground-truth lights
+
+The pipeline (psctl.models.lcnet has the network and the discretisation):
+
+1. Crop and resize. The images are cropped to the mask's bounding box grown by ``margin``
+   (15 px, as the authors' ``pmsData_crop``), multiplied by the mask and resized to LCNet's
+   input side (128 x 128, bilinear, antialiased); the resized mask is the 4th channel. The
+   images are used as captured: light_intensities.txt, if present, is ground truth to compare
+   with, never applied (estimating the intensities is LCNet's job).
+2. Global feature, pass 1. Images are read one at a time and go through the extractor in chunks;
+   the global feature is a running element-wise max of the per-image features [256, 8, 8], so
+   memory does not grow with the number of images. Per-image features (64 KB each) are kept up
+   to ``cache_mb``.
+3. Classification, pass 2. Each image's feature, concatenated with the global one, is
+   classified (azimuth, elevation, intensity). Images whose features were not kept are read and
+   extracted again (only captures of more than ~1000 images at the default cache).
+4. Decoding: the argmax class centre (the paper) or the soft-argmax (``decode="soft"``).
+
+Outputs are in DiLiGenT's format: light_directions.txt (N x 3, unit, x right / y up / z toward
+the camera) and light_intensities.txt (N x 3, the same value in R, G and B; only relative
+intensities are meaningful). With ground truth in the folder, the report gives the mean angular
+error of the directions (``light_mae``, degrees) and the scale-invariant relative intensity
+error (``intensity_re``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+if TYPE_CHECKING:
+    import torch
+
+    from psctl.api import ProgressFactory
+    from psctl.io.capture import Capture
+    from psctl.models.lcnet import LCNet
+
+DEFAULT_LIGHTS = {
+    "device": "auto",  # auto | cpu | cuda
+    "chunk": None,  # images per network batch: None = 8 on CPU, 64 on CUDA
+    "margin": 15,  # pixels kept around the mask's bounding box (the authors' DiLiGenT crop)
+    "cache_mb": 64,  # per-image features kept from pass 1 for pass 2 (64 KB each at 128 px)
+    "decode": "argmax",  # argmax | soft
+}
+
+OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
+                "lights": "lights.png"}
+
+# reader(start, box) yields images start, start + 1, ... as float32 [h, w, 3] cropped to box
+# (the same contract as psctl.infer.Reader).
+Reader = Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]
+
+
+@dataclass
+class LightEstimate:
+    directions: np.ndarray  # [N, 3] float32 unit vectors (x right, y up, z toward the camera)
+    intensities: np.ndarray  # [N] float32, relative (LCNet's scale, in [0.2, 2.0])
+    logits: dict[str, np.ndarray]  # {"dir_x": [N, K_d], "dir_y": [N, K_d], "ints": [N, K_e]}
+    info: dict = field(default_factory=dict)  # device, box, size, chunk, passes, seconds, ...
+    notes: list[str] = field(default_factory=list)
+
+
+# --- the network ------------------------------------------------------------------------------
+
+def load_lcnet(weights: str | os.PathLike | None = None, flag: str = "--weights"):
+    """LCNet with installed weights (weights/lcnet.pt) or ``weights`` (psctl's file or the
+    authors' LCNet_CVPR2019.pth.tar); returns (model, weights). ``flag`` names the option that
+    passes a file, for the error message when nothing is installed."""
+    from psctl.models.weights import installed_path, load_network, no_weights_error
+
+    if weights is None and installed_path("lcnet") is None:
+        raise no_weights_error("lcnet", flag)
+    model, _, w = load_network("lcnet", weights, device="cpu")
+    return model, w
+
+
+def crop_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """The mask's bounding box grown by ``margin`` pixels, clipped to the image."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    return (slice(max(int(ys.min()) - margin, 0), min(int(ys.max()) + 1 + margin, h)),
+            slice(max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)))
+
+
+def run_lcnet(model: "LCNet", reader: Reader, n: int, mask: np.ndarray, config: dict | None = None,
+              progress: "ProgressFactory | None" = None, label: str = "LCNet") -> LightEstimate:
+    """Lights of ``n`` images from a stream, memory bounded in ``n``.
+
+    Args:
+        model: an LCNet (eval mode is set here).
+        reader: see ``Reader``; called once, or twice for captures larger than the cache.
+        n: number of images.
+        mask: [H, W] bool object mask (the full image size).
+        config: overrides of DEFAULT_LIGHTS.
+    Returns:
+        LightEstimate with directions [n, 3] and intensities [n].
+    """
+    import torch
+
+    from psctl.infer import pick_device
+    from psctl.models.lcnet import FEATURES, decode, resize_inputs
+
+    cfg = {**DEFAULT_LIGHTS, **(config or {})}
+    t0 = time.perf_counter()
+    if n < 1:
+        raise PsctlError(None, "no images")
+    if cfg["decode"] not in ("argmax", "soft"):
+        raise PsctlError(None, f"unknown decoding {cfg['decode']!r}; choose argmax or soft")
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        raise PsctlError(None, "mask is empty (no foreground pixel)")
+    device = pick_device(cfg["device"])
+    model = model.to(device).eval()
+    dtype = next(model.parameters()).dtype
+    size = int(model.config["size"])
+    box = crop_box(mask, int(cfg["margin"]))
+    h, w = box[0].stop - box[0].start, box[1].stop - box[1].start
+    crop_mask = mask[box].astype(np.float32)
+    chunk = int(cfg["chunk"] or (64 if device.type == "cuda" else 8))
+    feat_bytes = FEATURES * (-(-size // 16)) ** 2 * torch.finfo(dtype).bits // 8
+    n_cache = max(0, int(cfg["cache_mb"] * 2**20) // feat_bytes)
+    passes = 1 if n <= n_cache else 2
+    advance = (progress or (lambda d, t: (lambda k: None)))(label, n + max(0, n - n_cache))
+    mask_t = torch.from_numpy(crop_mask)[None, None].to(device, dtype)
+
+    def chunks(start: int) -> Iterator[torch.Tensor]:
+        """Network inputs [c, 4, size, size] of images start.. in chunks."""
+        pending: list[np.ndarray] = []
+        k = start
+        for img in reader(start, box):
+            if img.ndim == 2:
+                img = img[..., None]
+            if img.shape[:2] != (h, w):
+                raise PsctlError(None, f"image {k + 1}: size changed while reading")
+            img = np.ascontiguousarray(img[..., :3], np.float32)
+            if img.shape[-1] == 1:
+                img = np.repeat(img, 3, -1)
+            if not np.isfinite(img).all():
+                raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
+            pending.append(img * crop_mask[..., None])
+            advance(1)
+            k += 1
+            if len(pending) == chunk or k == n:
+                x = torch.from_numpy(np.stack(pending)).permute(0, 3, 1, 2).to(device, dtype)
+                m = mask_t.expand(len(pending), 1, h, w)
+                x, m = resize_inputs(x, m, size)
+                yield model.network_input(x, m)
+                pending = []
+        if k != n or pending:
+            raise PsctlError(None, f"expected {n} images, got {k}")
+
+    fuse_max = model.config["fuse"] == "max"
+    with torch.inference_mode():
+        fused = None
+        cache: list[torch.Tensor] = []
+        kept = 0
+        for x in chunks(0):  # pass 1: the global feature (and the first features)
+            f = model.extract(x)
+            fm = f.amax(0, keepdim=True) if fuse_max else f.sum(0, keepdim=True)
+            fused = fm if fused is None else (torch.maximum(fused, fm) if fuse_max else fused + fm)
+            take = min(len(f), n_cache - kept)
+            if take > 0:
+                cache.append(f[:take].clone())
+                kept += take
+        if not fuse_max:
+            fused = fused / n
+        logits: dict[str, list[torch.Tensor]] = {"dir_x": [], "dir_y": [], "ints": []}
+
+        def classify(f: torch.Tensor) -> None:
+            for i in range(0, len(f), chunk):
+                out = model.classify(f[i:i + chunk], fused)
+                for key in logits:
+                    logits[key].append(out[key].float().cpu())
+
+        for f in cache:  # pass 2: classify each image against the global feature
+            classify(f)
+        cache.clear()
+        if kept < n:
+            for x in chunks(kept):
+                classify(model.extract(x))
+    out = {k: torch.cat(v) for k, v in logits.items()}
+    dirs, ints = decode(out, model.config, cfg["decode"])
+    info = {"device": str(device), "box": [box[0].start, box[0].stop, box[1].start, box[1].stop],
+            "size": size, "chunk": chunk, "passes": passes, "cached_features": kept, "decode": cfg["decode"],
+            "seconds": round(time.perf_counter() - t0, 3)}
+    return LightEstimate(dirs.numpy().astype(np.float32), ints.numpy().astype(np.float32),
+                         {k: v.numpy() for k, v in out.items()}, info)
+
+
+def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
+                 config: dict | None = None, model: "LCNet | None" = None,
+                 progress: "ProgressFactory | None" = None) -> LightEstimate:
+    """Lights from in-memory images [N, H, W, 3] (or [N, H, W]), as captured (not divided by any
+    intensity). ``model`` (an LCNet) replaces loading ``weights`` / the installed weights."""
+    images = np.asarray(images, np.float32)
+    if images.ndim not in (3, 4):
+        raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
+    n, H, W = images.shape[:3]
+    mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (H, W):
+        raise PsctlError(None, f"mask must be [{H}, {W}], got {mask.shape}")
+    note = None
+    if model is None:
+        model, w = load_lcnet(weights)
+        note = f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else "")
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        for k in range(start, n):
+            yield images[k][box]
+
+    res = run_lcnet(model, reader, n, mask, config, progress)
+    if note:
+        res.notes.append(note)
+    return res
+
+
+def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathLike | None = None,
+                   config: dict | None = None, progress: "ProgressFactory | None" = None,
+                   flag: str = "--weights") -> LightEstimate:
+    """Lights of a capture folder, streaming its images from disk as captured (the folder's
+    light_intensities.txt, if any, is not applied)."""
+    from psctl.io.capture import iter_images
+
+    model, w = load_lcnet(weights, flag)
+    raw = replace(capture, intensities=np.ones_like(capture.intensities))
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        yield from iter_images(raw.subset(range(start, raw.n_images)), box)
+
+    res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
+    res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
+    return res
+
+
+# --- errors -----------------------------------------------------------------------------------
+
+def intensity_error(est: np.ndarray, gt: np.ndarray) -> float:
+    """Scale-invariant relative intensity error of estimates [N] against ground truth [N] or
+    [N, 3] (RGB). As the authors' evaluation: each ground-truth channel is first divided by its
+    first row (a grey estimate cannot know the lights' common colour), then
+    mean(|s e_i - e~_i| / e~_i) over images and channels, s by least squares."""
+    from psctl.metrics import intensity_relative_error
+
+    est = np.asarray(est, np.float64).reshape(-1)
+    gt = np.asarray(gt, np.float64)
+    gt = gt.reshape(len(est), -1)
+    gt = gt / gt[:1]
+    return intensity_relative_error(np.repeat(est[:, None], gt.shape[1], 1), gt)
+
+
+def light_errors(directions: np.ndarray, intensities: np.ndarray, gt_directions: np.ndarray | None = None,
+                 gt_intensities: np.ndarray | None = None) -> dict:
+    """{"light_mae": mean angle (degrees) or None, "intensity_re": float or None,
+    "direction_errors": [N] degrees or None}."""
+    from psctl.metrics import light_direction_error
+
+    out: dict = {"light_mae": None, "intensity_re": None, "direction_errors": None}
+    if gt_directions is not None:
+        err = light_direction_error(directions, gt_directions)
+        out["direction_errors"] = err
+        out["light_mae"] = float(err.mean())
+    if gt_intensities is not None:
+        out["intensity_re"] = intensity_error(intensities, gt_intensities)
+    return out
+
+
+# --- files and pictures -----------------------------------------------------------------------
+
+def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray) -> dict[str, Path]:
+    """light_directions.txt (N x 3) and light_intensities.txt (N x 3, grey) in DiLiGenT's format."""
+    from psctl.io.atomic import write_text_atomic
+
+    folder = Path(folder)
+    d = np.asarray(directions, np.float64)
+    e = np.asarray(intensities, np.float64).reshape(len(d), -1)
+    if e.shape[1] == 1:
+        e = np.repeat(e, 3, 1)
+    paths = {"light_directions": folder / OUTPUT_FILES["light_directions"],
+             "light_intensities": folder / OUTPUT_FILES["light_intensities"]}
+    write_text_atomic(paths["light_directions"], "".join(f"{x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in d))
+    write_text_atomic(paths["light_intensities"], "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in e))
+    return paths
+
+
+def _disk(canvas: np.ndarray, cy: float, cx: float, r: float, colour, ring: float | None = None) -> None:
+    """A filled disk (or, with ``ring`` = line width, a circle) of radius r at (cy, cx)."""
+    H, W = canvas.shape[:2]
+    pad = r + (ring or 0) + 1
+    y0, y1 = max(int(cy - pad), 0), min(int(cy + pad) + 1, H)
+    x0, x1 = max(int(cx - pad), 0), min(int(cx + pad) + 1, W)
+    if y1 <= y0 or x1 <= x0:
+        return
+    yy, xx = np.ogrid[y0:y1, x0:x1]
+    d = np.sqrt((yy - cy) ** 2 + (xx - cx) ** 2)
+    sel = np.abs(d - r) <= ring / 2 if ring else d <= r
+    canvas[y0:y1, x0:x1][sel] = colour
+
+
+def _segment(canvas: np.ndarray, p0: tuple[float, float], p1: tuple[float, float], colour) -> None:
+    """A one-pixel line from p0 to p1 ((row, col) each)."""
+    steps = int(max(abs(p1[0] - p0[0]), abs(p1[1] - p0[1]))) + 1
+    t = np.linspace(0.0, 1.0, steps + 1)
+    rows = np.round(p0[0] + t * (p1[0] - p0[0])).astype(int)
+    cols = np.round(p0[1] + t * (p1[1] - p0[1])).astype(int)
+    ok = (rows >= 0) & (rows < canvas.shape[0]) & (cols >= 0) & (cols < canvas.shape[1])
+    canvas[rows[ok], cols[ok]] = colour
+
+
+def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: np.ndarray | None = None,
+                title: str | None = None, radius: int = 220, ints_range: tuple[float, float] = (0.2, 2.0)) -> np.ndarray:
+    """Estimated (and true) light directions on the unit disk: [H, W, 3] in [0, 1].
+
+    Orthographic view of the hemisphere from the camera: a direction (x, y, z) is drawn at
+    (x, y), x right, y up; grey circles at 30, 60 and 90 degrees from the view axis. Estimates
+    are filled dots coloured by intensity (jet over ``ints_range``, colour bar on the right);
+    ground truth, when given, is a white ring joined to its estimate by a grey line.
+    """
+    from psctl.io.report import _stamp, jet, text_bitmap
+
+    s = 2  # text scale
+    top, pad, bar_w, right = 12 * s, 12, 10 * s, 44 * s
+    side = 2 * (radius + pad)
+    canvas = np.full((side + top + 4 * s, side + right, 3), 0.12, np.float32)
+    cy, cx = top + side / 2, side / 2
+    _disk(canvas, cy, cx, radius, 0.18)
+    for zenith in (30.0, 60.0, 90.0):
+        _disk(canvas, cy, cx, radius * np.sin(np.radians(zenith)), 0.35, ring=1.0)
+    _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
+    _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
+
+    def at(d: np.ndarray) -> tuple[float, float]:
+        return cy - d[1] * radius, cx + d[0] * radius  # y up: row 0 is the top
+
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    lo, hi = ints_range
+    colours = jet((np.asarray(intensities, np.float64).reshape(-1) - lo) / (hi - lo))
+    if gt_directions is not None:
+        g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
+        for k in range(len(d)):
+            _segment(canvas, at(d[k]), at(g[k]), 0.6)
+        for k in range(len(g)):
+            _disk(canvas, *at(g[k]), 5.0, 1.0, ring=1.5)
+    for k in range(len(d)):
+        _disk(canvas, *at(d[k]), 3.5, colours[k])
+    # colour bar: high intensities on top
+    bx, bh = side + 4 * s, side - 2 * pad
+    by = top + pad
+    canvas[by:by + bh, bx:bx + bar_w] = jet(np.linspace(1.0, 0.0, bh)[:, None].repeat(bar_w, 1))
+    for frac in (0.0, 0.5, 1.0):
+        y = by + int(round((1 - frac) * (bh - 1)))
+        bm = text_bitmap(f"{lo + frac * (hi - lo):.1f}", s)
+        _stamp(canvas, bm, min(max(y - bm.shape[0] // 2, by), by + bh - bm.shape[0]), bx + bar_w + 2 * s)
+    if title:
+        _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
+    return canvas
+
+
+def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
+                      gt_directions: np.ndarray | None = None, light_mae: float | None = None) -> None:
+    """lights.png (8-bit RGB); the title gives the mean direction error when known."""
+    from psctl.io.images import write_image
+
+    title = None if light_mae is None else f"MAE {light_mae:.2f}°"
+    write_image(path, lights_plot(directions, intensities, gt_directions, title), "uint8")
+
+
+# --- the command ------------------------------------------------------------------------------
+
+def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
+               weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "argmax",
+               n_images: int | None = None, seed: int | None = None, write: bool = True,
+               progress: "ProgressFactory | None" = None) -> dict:
+    """Estimate a capture folder's lights with LCNet, write them, return the report.
+
+    Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
+    intensity_re (None without ground truth), outputs, plus path, weights, decode, seconds and
+    notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
+    lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
+    """
+    from psctl.io.atomic import check_output_dir, staged_outputs
+    from psctl.io.capture import load_mask, open_capture, select_images
+
+    t0 = time.perf_counter()
+    cap = open_capture(path)
+    cap = cap.subset(select_images(cap.n_images, n_images, seed))
+    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    if write:
+        if out_dir.resolve() == cap.path.resolve():
+            raise PsctlError(out_dir, "is the capture folder: its light_directions.txt / light_intensities.txt "
+                                      "are inputs and are never overwritten; choose another --out")
+        check_output_dir(out_dir)
+    mask = load_mask(cap)
+    est = capture_lights(cap, mask, weights, {"device": device, "decode": decode}, progress)
+    errors = light_errors(est.directions, est.intensities, cap.lights,
+                          cap.intensities if cap.intensities_given else None)
+    report = {
+        "object": cap.name,
+        "path": str(cap.path),
+        "n_images": cap.n_images,
+        "light_mae": errors["light_mae"],
+        "intensity_re": errors["intensity_re"],
+        "outputs": {},
+        "decode": est.info["decode"],
+        "device": est.info["device"],
+        "seconds": round(time.perf_counter() - t0, 3),
+        "notes": est.notes,
+    }
+    if write:
+        report["outputs"] = {k: str(out_dir / v) for k, v in OUTPUT_FILES.items()}
+        with staged_outputs(out_dir) as stage:
+            write_light_files(stage, est.directions, est.intensities)
+            write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
+                              errors["light_mae"])
+        report["seconds"] = round(time.perf_counter() - t0, 3)
+    return report
+
+
+def render_lights(r: dict) -> None:
+    """The human-readable summary of ``run_lights``'s report (Rich, stdout)."""
+    from rich.console import Console
+
+    con = Console()
+    for note in r.get("notes", []):
+        con.print(f"[yellow]note:[/] {note}", highlight=False)
+    line = f"[bold]{r['object']}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
+    if r["light_mae"] is not None:
+        line += f"\n  light direction error [bold]{r['light_mae']:.2f}°[/] (mean)"
+    if r["intensity_re"] is not None:
+        line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
+    con.print(line, highlight=False, soft_wrap=True)
+    for p in r["outputs"].values():
+        con.print(f"  wrote {p}", highlight=False)

@@ -1,0 +1,393 @@
+"""LCNet, light estimation (psctl lights), sdps (LCNet + PS-FCN†) and their training.
+
+The networks have seeded random weights (or a few training steps): what is tested here is the
+architecture, the discretisation, the streaming pipeline, the files and the commands, none of
+which depends on trained weights.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from psctl.errors import PsctlError
+from psctl.lights import array_lights, intensity_error, lights_plot, run_lcnet, write_light_files
+from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
+                                count_parameters, decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
+                                resize_inputs)
+from psctl.models.ps_fcn import PSFCN
+from psctl.models.weights import load_network, read_weights, save_weights
+from tests.conftest import write_capture
+
+REPO = Path(__file__).resolve().parents[1]
+
+# The authors' release (SDPS-Net models/LCNet.py: mask in, 36 direction and 20 intensity classes).
+OFFICIAL = {
+    **{f"featExtractor.conv{i}.0.weight": s for i, s in
+       enumerate([(64, 4, 3, 3), (128, 64, 3, 3), (128, 128, 3, 3), (128, 128, 3, 3), (128, 128, 3, 3),
+                  (256, 128, 3, 3), (256, 256, 3, 3)], 1)},
+    **{f"featExtractor.conv{i}.0.bias": (c,) for i, c in enumerate([64, 128, 128, 128, 128, 256, 256], 1)},
+    "classifier.conv1.0.weight": (256, 512, 3, 3), "classifier.conv1.0.bias": (256,),
+    **{f"classifier.conv{i}.0.weight": (256, 256, 3, 3) for i in (2, 3, 4)},
+    **{f"classifier.conv{i}.0.bias": (256,) for i in (2, 3, 4)},
+    **{f"classifier.{h}.0.0.weight": (64, 256, 1, 1) for h in ("dir_x_est", "dir_y_est", "int_est")},
+    **{f"classifier.{h}.0.0.bias": (64,) for h in ("dir_x_est", "dir_y_est", "int_est")},
+    "classifier.dir_x_est.1.0.weight": (36, 64, 1, 1), "classifier.dir_x_est.1.0.bias": (36,),
+    "classifier.dir_y_est.1.0.weight": (36, 64, 1, 1), "classifier.dir_y_est.1.0.bias": (36,),
+    "classifier.int_est.1.0.weight": (20, 64, 1, 1), "classifier.int_est.1.0.bias": (20,),
+}
+
+
+def lcnet(seed: int = 0, **config) -> LCNet:
+    torch.manual_seed(seed)
+    return LCNet(config).eval()
+
+
+def psctl(*args, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "100", **(env or {})})
+
+
+@pytest.fixture(scope="module")
+def fake_weights(tmp_path_factory) -> Path:
+    """A weights folder with seeded random LCNet and PS-FCN† files (stand-ins for trained ones)."""
+    folder = tmp_path_factory.mktemp("weights")
+    save_weights(folder / "lcnet.pt", lcnet(), {"method": "lcnet", "train_images": 32})
+    torch.manual_seed(1)
+    save_weights(folder / "ps_fcn_dagger.pt", PSFCN(), {"method": "ps-fcn-dagger", "train_images": 32})
+    return folder
+
+
+# --- architecture -----------------------------------------------------------------------------
+
+def test_parameter_count_and_official_names():
+    net = lcnet()
+    assert count_parameters(net) == 4_409_692  # "about 4.41 M"
+    assert {k: tuple(v.shape) for k, v in net.state_dict().items()} == OFFICIAL
+
+
+def test_shapes_and_size_limit():
+    net = lcnet()
+    out = net(torch.rand(2, 5, 3, 128, 128), torch.ones(2, 1, 128, 128))
+    assert {k: tuple(v.shape) for k, v in out.items()} == {"dir_x": (2, 5, 36), "dir_y": (2, 5, 36), "ints": (2, 5, 20)}
+    assert net.extract(torch.rand(3, 4, 128, 128)).shape == (3, 256, 8, 8)
+    with pytest.raises(ValueError, match="at most 128"):
+        net(torch.rand(1, 2, 3, 256, 256), torch.ones(1, 1, 256, 256))
+
+
+def test_global_feature_is_order_invariant():
+    """Permuting the images permutes the per-image outputs and nothing else."""
+    net = lcnet().double()
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(1, 7, 3, 64, 64, generator=g, dtype=torch.float64)
+    m = (torch.rand(1, 1, 64, 64, generator=g) > 0.2).double()
+    perm = torch.randperm(7, generator=g)
+    with torch.no_grad():
+        a, b = net(x, m), net(x[:, perm], m)
+    for k in a:
+        torch.testing.assert_close(a[k][:, perm], b[k], atol=1e-10, rtol=0)
+
+
+# --- discretisation ---------------------------------------------------------------------------
+
+unit_front = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0.05, 1)).filter(
+    lambda v: math.hypot(*v) > 0.1).map(lambda v: np.asarray(v) / math.hypot(*v))
+
+
+@settings(max_examples=200, deadline=None)
+@given(unit_front)
+def test_direction_round_trip_within_half_a_bin(d):
+    t = torch.tensor(d, dtype=torch.float64)
+    theta, phi = dirs_to_angles(t)
+    back = classes_to_dirs(*dirs_to_classes(t, 36), 36)
+    theta2, phi2 = dirs_to_angles(back)
+    # class centres are float32: allow its rounding on top of half a bin (2.5 degrees)
+    assert abs(float(theta2 - theta)) <= 2.5 + 1e-4 and abs(float(phi2 - phi)) <= 2.5 + 1e-4
+    assert abs(float(back.norm()) - 1) < 1e-6 and float(back[2]) > 0
+    torch.testing.assert_close(angles_to_dirs(theta, phi), t)  # the angles describe the direction
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(0.2, 2.0))
+def test_intensity_round_trip_within_half_a_bin(e):
+    back = classes_to_ints(ints_to_classes(torch.tensor(e, dtype=torch.float64), 20), 20)
+    assert abs(float(back) - e) <= 0.9 / 20 + 1e-6
+
+
+def test_classes_decode_to_themselves():
+    k = torch.arange(36)
+    cx, cy = dirs_to_classes(classes_to_dirs(k, k.flip(0), 36), 36)
+    assert (cx == k).all() and (cy == k.flip(0)).all()
+    assert (ints_to_classes(classes_to_ints(torch.arange(20), 20), 20) == torch.arange(20)).all()
+    # bin edges: (angle + 90) / 180 * K, clamped
+    assert dirs_to_classes(torch.tensor([0.0, 0.0, 1.0]), 36)[0] == 18
+    assert ints_to_classes(torch.tensor([0.1, 0.2, 2.0, 3.0]), 20).tolist() == [0, 0, 19, 19]
+
+
+def test_soft_argmax_decoding():
+    logits = {"dir_x": torch.full((2, 36), -30.0), "dir_y": torch.full((2, 36), -30.0), "ints": torch.full((2, 20), -30.0)}
+    logits["dir_x"][0, 18] = logits["dir_y"][0, 18] = logits["ints"][0, 5] = 30.0  # confident: as argmax
+    for key, (i, j) in (("dir_x", (20, 21)), ("dir_y", (10, 11)), ("ints", (3, 4))):
+        logits[key][1, [i, j]] = 30.0  # two equal classes: soft-argmax lands on their shared edge
+    d_arg, e_arg = decode(logits)
+    d_soft, e_soft = decode(logits, mode="soft")
+    torch.testing.assert_close(d_soft[0], d_arg[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(e_soft[0], e_arg[0], atol=1e-5, rtol=0)
+    theta, phi = dirs_to_angles(d_soft[1])
+    assert float(theta) == pytest.approx(21 * 5 - 90, abs=1e-3) and float(phi) == pytest.approx(11 * 5 - 90, abs=1e-3)
+    assert float(e_soft[1]) == pytest.approx(0.2 + 4 * 0.09, abs=1e-4)
+    with pytest.raises(ValueError, match="decoding"):
+        decode(logits, mode="median")
+
+
+def test_loss_is_cross_entropy_on_the_three_heads():
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0], [-0.5, 0.4, 0.7]]), dim=-1)
+    ints = torch.tensor([0.5, 1.7])
+    uniform = {"dir_x": torch.zeros(2, 36), "dir_y": torch.zeros(2, 36), "ints": torch.zeros(2, 20)}
+    total, terms = classification_loss(uniform, dirs, ints)
+    assert float(total) == pytest.approx(2 * math.log(36) + math.log(20), rel=1e-6)
+    cx, cy = dirs_to_classes(dirs, 36)
+    right = {k: v.clone() for k, v in uniform.items()}
+    right["dir_x"][torch.arange(2), cx] = right["dir_y"][torch.arange(2), cy] = 50.0
+    right["ints"][torch.arange(2), ints_to_classes(ints, 20)] = 50.0
+    assert float(classification_loss(right, dirs, ints)[0]) < 1e-6
+
+
+# --- the light-estimation pipeline ------------------------------------------------------------
+
+def scene(n: int = 11, h: int = 50, w: int = 70, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    images = rng.uniform(0, 0.5, (n, h, w, 3)).astype(np.float32)
+    yy, xx = np.mgrid[:h, :w]
+    mask = (yy - 0.5 * h) ** 2 + (xx - 0.45 * w) ** 2 < (0.4 * h) ** 2
+    return images, mask
+
+
+def all_at_once(net: LCNet, images: np.ndarray, mask: np.ndarray, margin: int = 15) -> dict:
+    """The straightforward computation: crop, resize every image, one forward pass."""
+    from psctl.lights import crop_box
+
+    box = crop_box(mask, margin)
+    dtype = next(net.parameters()).dtype
+    x = torch.from_numpy(images[:, box[0], box[1]] * mask[box][..., None]).permute(0, 3, 1, 2).to(dtype)
+    m = torch.from_numpy(mask[box].astype(np.float32))[None, None].to(dtype).expand(len(images), 1, *x.shape[-2:])
+    x, m = resize_inputs(x, m, 128)
+    with torch.no_grad():
+        return {k: v[0].numpy() for k, v in net(x[None], m[:1]).items()}
+
+
+def test_streamed_and_chunked_equal_all_at_once():
+    net = lcnet().double()
+    images, mask = scene()
+    ref = all_at_once(net, images, mask)
+    for config in ({}, {"chunk": 3, "cache_mb": 0}, {"chunk": 4, "cache_mb": 5 * 256 * 64 * 8 / 2**20}):
+        est = array_lights(images, mask, model=net, config=config)
+        for k in ref:
+            np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)  # logits are returned as float32
+    assert est.info["passes"] == 2 and est.info["cached_features"] == 5
+    assert est.directions.shape == (11, 3) and est.intensities.shape == (11,)
+    np.testing.assert_allclose(np.linalg.norm(est.directions, axis=1), 1, atol=1e-6)
+
+
+def test_pipeline_reads_each_image_once_when_the_features_fit():
+    net = lcnet()
+    images, mask = scene(n=6)
+    calls = []
+
+    def reader(start, box):
+        calls.append(start)
+        for k in range(start, len(images)):
+            yield images[k][box]
+
+    run_lcnet(net, reader, 6, mask)
+    assert calls == [0]
+    calls.clear()
+    run_lcnet(net, reader, 6, mask, {"cache_mb": 0})
+    assert calls == [0, 0]
+    with pytest.raises(PsctlError, match="expected 7 images"):
+        run_lcnet(net, reader, 7, mask)
+
+
+def test_intensity_error_is_scale_invariant_and_colour_blind():
+    gt = np.array([[1.0, 0.9, 0.8], [2.0, 1.8, 1.6], [0.5, 0.45, 0.4]])  # one light colour, 3 strengths
+    assert intensity_error(3.0 * np.array([1.0, 2.0, 0.5]), gt) == pytest.approx(0.0, abs=1e-12)
+    assert intensity_error(np.array([1.0, 1.0, 1.0]), gt) > 0.1
+
+
+def test_light_files_and_plot(tmp_path):
+    from psctl.io.capture import read_intensities, read_lights
+    from psctl.io.images import read_image
+    from psctl.lights import write_lights_plot
+
+    d = np.array([[0.1, 0.2, 0.97], [-0.5, 0.3, 0.81], [0.0, -0.6, 0.8]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e = np.array([0.5, 1.25, 1.9])
+    write_light_files(tmp_path, d, e)
+    np.testing.assert_allclose(read_lights(tmp_path / "light_directions.txt"), d, atol=1e-6)
+    np.testing.assert_allclose(read_intensities(tmp_path / "light_intensities.txt"), np.repeat(e[:, None], 3, 1), atol=1e-6)
+    write_lights_plot(tmp_path / "lights.png", d, e, d[::-1], light_mae=12.5)
+    pixels, info = read_image(tmp_path / "lights.png")
+    assert info.bits == 8 and pixels.shape[2] == 3
+    # x right, y up: the light pointing down-ish (y < 0) is drawn below the centre
+    canvas = lights_plot(d[2:], e[2:], radius=100)
+    hot = np.argwhere(np.abs(canvas - lights_plot(d[:0], e[:0], radius=100)).sum(-1) > 0)
+    centre_row = 24 + (2 * (100 + 12)) / 2
+    assert hot[:, 0].mean() > centre_row + 50
+
+
+# --- weights files ----------------------------------------------------------------------------
+
+def test_weights_round_trip_and_official_checkpoint(tmp_path):
+    net = lcnet(3)
+    save_weights(tmp_path / "lcnet.pt", net, {"method": "lcnet", "train_images": 32})
+    w = read_weights(tmp_path / "lcnet.pt")
+    assert w.method == "lcnet" and w.kind == "lcnet" and w.metadata["architecture"]["size"] == 128
+    loaded, _, _ = load_network("lcnet", tmp_path / "lcnet.pt")
+    x = torch.rand(1, 3, 3, 128, 128)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(x, torch.ones(1, 1, 128, 128)), net(x, torch.ones(1, 1, 128, 128)))
+    # the authors' release: {'state_dict': ..., 'model': 'LCNet'}, loaded with weights_only
+    torch.save({"state_dict": net.state_dict(), "model": "LCNet"}, tmp_path / "LCNet_CVPR2019.pth.tar")
+    w = read_weights(tmp_path / "LCNet_CVPR2019.pth.tar")
+    assert w.official and w.method == "lcnet"
+    load_network("lcnet", w.path)
+    bad = dict(net.state_dict())
+    bad.pop("classifier.int_est.1.0.bias")
+    bad["classifier.dir_x_est.1.0.weight"] = torch.zeros(30, 64, 1, 1)
+    torch.save({"state_dict": bad}, tmp_path / "bad.pth.tar")
+    with pytest.raises(PsctlError, match="LCNet architecture.*missing keys: classifier.int_est.1.0.bias.*wrong shapes"):
+        load_network("lcnet", tmp_path / "bad.pth.tar")
+    # an LCNet file is not a normal-estimation network, and vice versa
+    with pytest.raises(PsctlError, match="LCNet"):
+        load_network("ps-fcn", tmp_path / "lcnet.pt")
+    save_weights(tmp_path / "psfcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    with pytest.raises(PsctlError, match="cannot run as lcnet"):
+        load_network("lcnet", tmp_path / "psfcn.pt")
+
+
+# --- commands ---------------------------------------------------------------------------------
+
+def test_lights_command(tmp_path, fake_weights):
+    data = write_capture(tmp_path / "ballPNG", n=8, size=48)
+    out = tmp_path / "out"
+    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", out, "--json",
+                 "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    assert {"object", "n_images", "light_mae", "intensity_re", "outputs"} <= set(r)
+    assert r["object"] == "ball" and r["n_images"] == 8
+    assert 0 <= r["light_mae"] <= 180 and r["intensity_re"] >= 0
+    assert sorted(os.listdir(out)) == ["light_directions.txt", "light_intensities.txt", "lights.png"]
+    assert set(r["outputs"]) == {"light_directions", "light_intensities", "lights"}
+    est = np.loadtxt(out / "light_directions.txt")
+    from psctl.metrics import light_direction_error
+
+    assert light_direction_error(est, data["lights"]).mean() == pytest.approx(r["light_mae"], abs=1e-5)
+    # never over the inputs; the capture folder keeps its own light files
+    before = (tmp_path / "ballPNG" / "light_directions.txt").read_text()
+    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "ballPNG")
+    assert proc.returncode == 2 and "never overwritten" in proc.stderr
+    assert (tmp_path / "ballPNG" / "light_directions.txt").read_text() == before
+
+
+def test_missing_weights_are_one_clear_line(tmp_path, capture):
+    env = {"PSCTL_WEIGHTS": str(tmp_path / "none")}
+    for args, needles in ((["lights", capture], ["lcnet", "psctl train lcnet", "docs/training.md"]),
+                          (["normals", capture, "--method", "sdps"], ["lcnet.pt", "ps_fcn_dagger.pt", "docs/training.md"])):
+        proc = psctl(*args, env=env)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+        assert all(n in proc.stderr for n in needles), proc.stderr
+    (capture / "light_directions.txt").unlink()  # uncalibrated: auto means sdps
+    proc = psctl("normals", capture, env=env)
+    assert proc.returncode == 2 and "sdps" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
+    from psctl.api import run_normals
+    from psctl.eval import run_benchmark
+
+    write_capture(tmp_path / "root" / "aPNG", n=6, size=40, seed=1)
+    write_capture(tmp_path / "root" / "bPNG", n=6, size=40, seed=2)
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        r = run_normals(tmp_path / "root" / "aPNG", method="sdps", out=tmp_path / "o", device="cpu")
+        assert r["method"] == "sdps" and any("LCNet" in n and "PS-FCN†" in n for n in r["notes"])
+        assert r["light_mae"] is not None and r["intensity_re"] is not None and r["mae"] is not None
+        assert json.loads((tmp_path / "o" / "report.json").read_text())["light_mae"] == pytest.approx(r["light_mae"])
+        res = run_benchmark("folder", root=tmp_path / "root", method="sdps", device="cpu")
+        assert [o["name"] for o in res["objects"]] == ["a", "b"]
+        assert res["mean_light_mae"] == pytest.approx(np.mean([o["light_mae"] for o in res["objects"]]))
+        assert res["mean_intensity_re"] == pytest.approx(np.mean([o["intensity_re"] for o in res["objects"]]))
+        # --weights names the PS-FCN† file; an LCNet file there is refused clearly
+        with pytest.raises(PsctlError, match="LCNet"):
+            run_normals(tmp_path / "root" / "aPNG", method="sdps", weights=fake_weights / "lcnet.pt", write=False)
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
+def test_lights_help_imports_nothing_heavy():
+    code = ("import sys\nfrom psctl.cli import main\nsys.argv = ['psctl', 'lights', '--help']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "assert not [m for m in ('torch', 'OpenImageIO', 'scipy') if m in sys.modules]\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0 and "Usage" in proc.stdout, proc.stderr
+
+
+# --- training ---------------------------------------------------------------------------------
+
+def tiny(samples: int, **train) -> dict:
+    from psctl.train import load_config, merge
+
+    return merge(load_config(REPO / "configs" / "tiny.yaml"), {
+        "data": {"size": 32, "intensities": "random"},
+        "train": {"samples": samples, "crop": 32, "batch_size": 4, "log_every": 5, "val_every": samples, **train},
+        "val": {"samples": 4, "size": 32, "batch_size": 4}})
+
+
+def test_tiny_lcnet_training_loss_goes_down(tmp_path):
+    from psctl.train import train
+
+    torch.set_num_threads(2)
+    st = train("lcnet", tiny(160), tmp_path / "run", device="cpu")
+    assert st["finished"] and st["samples"] == 160
+    losses = [r["loss"] for r in map(json.loads, (tmp_path / "run" / "log.jsonl").read_text().splitlines()) if "loss" in r]
+    assert np.mean(losses[-2:]) < np.mean(losses[:2]), losses
+    w = read_weights(tmp_path / "run" / "best.pt")
+    assert w.method == "lcnet" and w.metadata["architecture"]["size"] == 32 and w.metadata["train_images"] == 8
+    assert "synthetic_val_light_mae" in w.metadata["metrics"]
+    # the trained file runs in the light-estimation pipeline at the size it was trained at
+    images, mask = scene(n=4)
+    est = array_lights(images, mask, weights=tmp_path / "run" / "best.pt")
+    assert est.info["size"] == 32 and est.directions.shape == (4, 3)
+
+
+def test_tiny_ps_fcn_dagger_training_uses_the_frozen_lcnet(tmp_path):
+    from psctl.train import train
+
+    torch.set_num_threads(2)
+    save_weights(tmp_path / "lc.pt", lcnet(size=32), {"method": "lcnet", "train_images": 8})
+    cfg = tiny(16)
+    with pytest.raises(PsctlError, match="lcnet"):  # nothing installed and no --lcnet
+        os.environ["PSCTL_WEIGHTS"] = str(tmp_path / "none")
+        try:
+            train("ps-fcn-dagger", cfg, tmp_path / "fail", device="cpu")
+        finally:
+            del os.environ["PSCTL_WEIGHTS"]
+    st = train("ps-fcn-dagger", cfg, tmp_path / "run", device="cpu", lcnet=tmp_path / "lc.pt")
+    assert st["finished"] and st["lcnet"] == str(tmp_path / "lc.pt")
+    w = read_weights(tmp_path / "run" / "best.pt")
+    assert w.method == "ps-fcn-dagger" and w.metadata["normalization"] == "none"
+    assert w.metadata["lcnet"]["path"] == str(tmp_path / "lc.pt")
+    with pytest.raises(PsctlError, match="--lcnet is for ps-fcn-dagger"):
+        train("ps-fcn", cfg, tmp_path / "other", device="cpu", lcnet=tmp_path / "lc.pt")
