@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     import torch
 
     from psctl.api import ProgressFactory
+    from psctl.infer import Reader  # reader(start, box) yields images start.. as float32 [h, w, 3] cropped to box
     from psctl.io.capture import Capture
     from psctl.models.lcnet import LCNet
 
@@ -58,10 +59,6 @@ DEFAULT_LIGHTS = {
 
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png"}
-
-# reader(start, box) yields images start, start + 1, ... as float32 [h, w, 3] cropped to box
-# (the same contract as psctl.infer.Reader).
-Reader = Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]
 
 
 @dataclass
@@ -95,13 +92,13 @@ def crop_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
             slice(max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)))
 
 
-def run_lcnet(model: "LCNet", reader: Reader, n: int, mask: np.ndarray, config: dict | None = None,
+def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config: dict | None = None,
               progress: "ProgressFactory | None" = None, label: str = "LCNet") -> LightEstimate:
     """Lights of ``n`` images from a stream, memory bounded in ``n``.
 
     Args:
         model: an LCNet (eval mode is set here).
-        reader: see ``Reader``; called once, or twice for captures larger than the cache.
+        reader: see ``psctl.infer.Reader``; called once, or twice for captures larger than the cache.
         n: number of images.
         mask: [H, W] bool object mask (the full image size).
         config: overrides of DEFAULT_LIGHTS.
@@ -401,6 +398,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         if out_dir.resolve() == cap.path.resolve():
             raise PsctlError(out_dir, "is the capture folder: its light_directions.txt / light_intensities.txt "
                                       "are inputs and are never overwritten; choose another --out")
+        inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
+        clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
+        if clash:
+            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
     mask = load_mask(cap)
     est = capture_lights(cap, mask, weights, {"device": device, "decode": decode}, progress)

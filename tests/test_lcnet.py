@@ -349,8 +349,9 @@ def test_lights_help_imports_nothing_heavy():
 def tiny(samples: int, **train) -> dict:
     from psctl.train import load_config, merge
 
-    return merge(load_config(REPO / "configs" / "tiny.yaml"), {
-        "data": {"size": 32, "intensities": "random"},
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    return merge(cfg, {  # merge() replaces the data section whole
+        "data": {**cfg["data"], "size": 32, "intensities": "random"},
         "train": {"samples": samples, "crop": 32, "batch_size": 4, "log_every": 5, "val_every": samples, **train},
         "val": {"samples": 4, "size": 32, "batch_size": 4}})
 
@@ -391,3 +392,16 @@ def test_tiny_ps_fcn_dagger_training_uses_the_frozen_lcnet(tmp_path):
     assert w.metadata["lcnet"]["path"] == str(tmp_path / "lc.pt")
     with pytest.raises(PsctlError, match="--lcnet is for ps-fcn-dagger"):
         train("ps-fcn", cfg, tmp_path / "other", device="cpu", lcnet=tmp_path / "lc.pt")
+
+
+def test_lcnet_resume_continues_exactly(tmp_path):
+    """16 + 16 samples with a stop in between == 32 samples in one go (same batches, same Adam state)."""
+    from psctl.train import merge, train
+
+    cfg = tiny(32)
+    train("lcnet", cfg, tmp_path / "a", device="cpu")
+    train("lcnet", merge(cfg, {"train": {"samples": 16}}), tmp_path / "b", device="cpu")
+    train("lcnet", cfg, tmp_path / "b", resume=True, device="cpu")
+    wa = read_weights(tmp_path / "a" / "model.pt").state_dict
+    wb = read_weights(tmp_path / "b" / "model.pt").state_dict
+    assert max((wa[k] - wb[k]).abs().max().item() for k in wa) < 1e-5
