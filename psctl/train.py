@@ -248,8 +248,11 @@ class Task:
 def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.device):
     """The LCNet that estimates PS-FCN†'s training lights: ``path``, else the recipe's
     ``lcnet.weights``, else the installed weights/lcnet.pt. Returns (model, provenance)."""
+    from psctl.models.lcnet import DECODINGS
     from psctl.models.weights import installed_path, load_network, no_weights_error
 
+    if config["lcnet"]["decode"] not in DECODINGS:
+        raise PsctlError(None, f"lcnet.decode is {config['lcnet']['decode']!r}; choose from {', '.join(DECODINGS)}")
     path = path or config["lcnet"]["weights"]
     if path is None and installed_path("lcnet") is None:
         raise no_weights_error("lcnet", "--lcnet")
