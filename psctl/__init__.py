@@ -14,6 +14,7 @@ _LAZY = {
     "estimate_normals": "psctl.api",
     "run_normals": "psctl.api",
     "integrate_normals": "psctl.depth",
+    "run_lights": "psctl.lights",
     "open_capture": "psctl.io.capture",
     "load_capture": "psctl.io.capture",
     "angular_error": "psctl.metrics",

@@ -83,10 +83,13 @@ OPTIM_PART_BYTES = 12 * 2**20
 
 
 def merge(base: dict, override: dict | None) -> dict:
-    """Deep-merge ``override`` into a copy of ``base``; unknown top-level/section keys are errors."""
+    """Merge ``override`` into a copy of ``base`` section by section; unknown top-level/section
+    keys are errors, except in ``data``, whose keys the synthetic stream itself checks."""
     out = copy.deepcopy(base)
     for k, v in (override or {}).items():
-        if k in out and isinstance(out[k], dict) and isinstance(v, dict) and k != "data":
+        if k == "data" and isinstance(out.get(k), dict) and isinstance(v, dict):
+            out[k] = {**out[k], **copy.deepcopy(v)}  # stream options: merged, not replaced
+        elif k in out and isinstance(out[k], dict) and isinstance(v, dict):
             unknown = set(v) - set(out[k])
             if unknown:
                 raise PsctlError(None, f"unknown config keys in '{k}': {', '.join(sorted(unknown))}")

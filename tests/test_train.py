@@ -48,6 +48,11 @@ def test_resume_continues_exactly(tmp_path):
     assert diff < 1e-5, diff
 
 
+def test_merge_keeps_the_recipe_data_section():
+    cfg = merge(tiny(), {"data": {"intensities": "random"}})
+    assert cfg["data"]["intensities"] == "random" and cfg["data"]["size"] == 64 and cfg["data"]["pool"] == 8
+
+
 def test_bad_config(tmp_path):
     (tmp_path / "c.yaml").write_text("train: {batchsize: 3}\n")
     with pytest.raises(PsctlError, match="batchsize"):
