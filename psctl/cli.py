@@ -25,6 +25,9 @@ app = typer.Typer(
 
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")]
+Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
+OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn-n when its weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
@@ -95,10 +98,10 @@ def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchm
 def normals(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
     method: MethodOpt = "auto",
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
+    out: OutDir = None,
     fmt: Annotated[str, typer.Option("--format", "-f", help="Comma list of png16, png8, exr, npy.")] = "png16,exr",
-    images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    images: Images = None,
+    seed: Seed = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
@@ -128,7 +131,7 @@ def evaluate(
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects).")] = None,
     method: MethodOpt = "auto",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object.")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    seed: Seed = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/.")] = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
@@ -154,11 +157,11 @@ def evaluate(
 @app.command()
 def lights(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
+    out: OutDir = None,
     weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
     decode: Annotated[str, typer.Option(help="argmax (class centres, the paper) | soft (soft-argmax).")] = "argmax",
-    images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")] = None,
+    images: Images = None,
+    seed: Seed = None,
     device: DeviceOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
@@ -211,7 +214,7 @@ def depth(
     path: Annotated[Path, typer.Argument(help="Capture folder (normals from PATH/psctl/normal.exr|png, or estimated).")],
     normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl 16-bit PNG, EXR or .npy.")] = None,
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")] = None,
+    out: OutDir = None,
     K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,
     json_out: Json = False,
     quiet: Quiet = False,
