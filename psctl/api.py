@@ -36,6 +36,19 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
     """Fail early, in one line, when sdps lacks weights: which files are missing and how to get them."""
     from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, weights_dir
 
+    from psctl.models.weights import read_weights
+
+    # a given file must hold what its flag is for, checked before minutes of LCNet work
+    for given, flag in ((lcnet, "--lcnet"), (weights, "--weights")):
+        if given is not None:
+            w = read_weights(given)
+            kind = w.method or w.metadata.get("kind")
+            ok = kind == "lcnet" if flag == "--lcnet" else (
+                kind == "ps-fcn-dagger" or (w.official and kind == "ps-fcn" and w.lights))  # the authors' NENet
+            if not ok:
+                shown = {"lcnet": "LCNet", "ps-fcn-dagger": "PS-FCN†"}.get(kind, kind)
+                raise PsctlError(given, f"holds {shown} weights; {flag} for sdps takes "
+                                        f"{'LCNet' if flag == '--lcnet' else 'PS-FCN†'} weights")
     missing = [(m, flag) for m, given, flag in (("lcnet", lcnet, "--lcnet"), ("ps-fcn-dagger", weights, "--weights"))
                if given is None and installed_path(m) is None]
     if len(missing) == 1:

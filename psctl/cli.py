@@ -247,7 +247,8 @@ def train(
     with _user_errors():
         from psctl.train import install_weights, load_config, train as run_training
 
-        cfg = load_config(config)
+        # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
+        cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
         con = _stderr()
         if quiet:
@@ -257,9 +258,9 @@ def train(
         else:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} samples"),
+            with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed:,} samples"),
                           TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(), console=con) as bar:
-                task = bar.add_task(f"train {method}", total=cfg["train"]["samples"], info="")
+                task = bar.add_task(f"train {method}", total=None, info="")  # the first report sets it
 
                 def report(rec: dict) -> None:
                     bar.update(task, completed=rec["samples"], total=rec["total"],

@@ -79,16 +79,17 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         if open_capture(folder).gt_path is None:
             raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png / normal.png)")
     objects = []
-    used_method = method
+    used = []  # `auto` can resolve differently per object (calibrated or not)
     for folder in folders:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
                         weights=weights, device=device, lcnet=lcnet)
-        used_method = r["method"]
+        used.append(r["method"])
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
         if "light_mae" in r:  # sdps: the lights LCNet estimated
             objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"])
+    used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
     result = {
         "benchmark": benchmark,

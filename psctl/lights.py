@@ -203,8 +203,12 @@ def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: st
     """Lights from in-memory images [N, H, W, 3] (or [N, H, W]), as captured (not divided by any
     intensity). ``model`` (an LCNet) replaces loading ``weights`` / the installed weights."""
     images = np.asarray(images, np.float32)
-    if images.ndim not in (3, 4):
+    if images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[-1] not in (1, 3, 4)):
         raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
+    if images.ndim == 4 and images.shape[-1] != 3:  # grey or RGBA, as the capture reader does
+        from psctl.io.images import to_rgb
+
+        images = np.ascontiguousarray(to_rgb(images))
     n, H, W = images.shape[:3]
     mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (H, W):

@@ -215,10 +215,37 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
     state: dict = {}
     groups = None
     for name in names:
-        part = torch.load(run / name, map_location=device, weights_only=True)
+        # on the CPU: Adam's step counters must stay there (load_state_dict moves the moments to
+        # the parameters' device); a CUDA step counter costs a GPU sync every iteration
+        part = torch.load(run / name, map_location="cpu", weights_only=True)
         state.update(part["state"])
         groups = groups or part["param_groups"]
     optim.load_state_dict({"state": state, "param_groups": groups})
+
+
+def _plain_json(obj: Any) -> Any:
+    """What ``obj`` looks like after a JSON round trip (tuples become lists), for comparisons."""
+    return json.loads(json.dumps(obj))
+
+
+RESUME_MAY_CHANGE = ("samples", "checkpoint_minutes", "log_every")  # train.* keys a resume may set anew
+
+
+def _recipe_core(config: dict) -> Any:
+    core = _plain_json(config)
+    for k in RESUME_MAY_CHANGE:
+        core["train"].pop(k, None)
+    return core
+
+
+def _portable(path: str | os.PathLike) -> str:
+    """A path as recorded in state.json: relative to the working directory when inside it, so a
+    run folder copied to another machine (run from the repository root there) still finds it."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(p)
 
 
 def lr_at(samples: int, cfg: dict) -> float:
@@ -366,14 +393,15 @@ def evaluate(task: Task, val: list[tuple]) -> float:
     return total / max(1.0, count)
 
 
-def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
+def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], None] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
     Args:
         method: "ps-fcn", "ps-fcn-n", "ups-fcn", "lcnet" or "ps-fcn-dagger".
-        config: merged recipe (see ``load_config``).
+        config: merged recipe (see ``load_config``). A resumed run keeps the recipe it started
+            with (saved in state.json): pass None, or the same recipe (another one is an error).
         run_dir: run folder; with ``resume`` its checkpoint is continued.
         max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
             can be split into commands of a fixed length.
@@ -391,7 +419,6 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
     if lcnet is not None and method != "ps-fcn-dagger":
         raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
-    t = config["train"]
     dev = pick_device(device)
     run = Path(run_dir)
     state_file = run / "state.json"
@@ -399,6 +426,25 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
+    saved = json.loads(state_file.read_text()) if resume else None
+    if saved is not None:
+        if saved["method"] != method:
+            raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
+        if "config" not in saved:
+            raise PsctlError(state_file, "records no recipe (a run from an older psctl): cannot resume it safely")
+        if config is not None:
+            # only the length of the run and its bookkeeping may change on resume
+            changed = _recipe_core(config) != _recipe_core(saved["config"])
+            if changed:
+                raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
+                                             "(a run keeps its recipe) or start a new run with --out")
+            saved["config"]["train"].update({k: config["train"][k] for k in RESUME_MAY_CHANGE})
+        config = saved["config"]
+        if lcnet is not None and saved.get("lcnet") and _portable(lcnet) != saved["lcnet"]:
+            raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
+    if config is None:
+        config = load_config(None)
+    t = config["train"]
     run.mkdir(parents=True, exist_ok=True)
 
     use_amp = dev.type == "cuda" and t["amp"] in ("bf16", "fp16")
@@ -408,18 +454,16 @@ def train(method: str, config: dict, run_dir: str | os.PathLike, resume: bool = 
         return torch.autocast("cuda", dtype=amp_dtype) if use_amp else torch.autocast("cpu", enabled=False)
 
     st: dict[str, Any] = {"step": 0, "samples": 0, "seconds": 0.0, "best_val": None, "best_samples": None,
-                          "stream_seed": t["seed"], "method": method, "val": []}
-    if resume:
-        st = json.loads(state_file.read_text())
-        if st["method"] != method:
-            raise PsctlError(state_file, f"is a {st['method']} run, not {method}")
-        lcnet = lcnet or st.get("lcnet")  # the frozen LCNet the run started with
+                          "stream_seed": t["seed"], "method": method, "val": [], "config": _plain_json(config)}
+    if saved is not None:
+        st = saved
+        lcnet = saved.get("lcnet") or lcnet  # the frozen LCNet the run started with
 
     torch.manual_seed(t["seed"])  # initial weights (the stream has its own generator)
     task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp, lcnet)
     model = task.model
     if "lcnet" in task.metadata:
-        st["lcnet"] = task.metadata["lcnet"]["path"]
+        st["lcnet"] = _portable(task.metadata["lcnet"]["path"])
     if t["channels_last"]:
         model.to(memory_format=torch.channels_last)  # in place: the task's closures hold this module
     optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])

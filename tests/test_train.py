@@ -48,6 +48,17 @@ def test_resume_continues_exactly(tmp_path):
     assert diff < 1e-5, diff
 
 
+def test_resume_keeps_the_runs_recipe(tmp_path):
+    cfg = tiny(16)
+    train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
+    with pytest.raises(PsctlError, match="another recipe"):
+        train("ps-fcn", merge(cfg, {"train": {"lr": 0.5}}), tmp_path / "run", resume=True, device="cpu")
+    st = train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")  # the saved recipe: 8 samples
+    assert st["samples"] == 8 and st["config"]["train"]["samples"] == 8
+    st = train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")  # a longer run is allowed
+    assert st["samples"] == 16
+
+
 def test_merge_keeps_the_recipe_data_section():
     cfg = merge(tiny(), {"data": {"intensities": "random"}})
     assert cfg["data"]["intensities"] == "random" and cfg["data"]["size"] == 64 and cfg["data"]["pool"] == 8

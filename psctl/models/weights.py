@@ -229,8 +229,9 @@ def for_method(weights: Weights, method: str) -> dict:
         return {"normalization": spec["normalization"], "train_images": OFFICIAL_TRAIN_IMAGES,
                 "architecture": dict(weights.metadata["architecture"])}
     if weights.method != method:
-        raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; pass --method "
-                                       f"{weights.method} (or --method auto)")
+        use = {"ps-fcn-dagger": "--method sdps (with --weights)", "lcnet": "psctl lights, or --lcnet with --method sdps"}
+        raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use "
+                                       f"{use.get(weights.method, f'--method {weights.method}')} (or --method auto)")
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
             "architecture": dict(weights.metadata["architecture"])}
 
