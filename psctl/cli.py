@@ -60,8 +60,10 @@ def _user_errors() -> Iterator[None]:
 
 @contextlib.contextmanager
 def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None]] | None]:
-    """A progress factory for the library (see psctl.api.ProgressFactory), drawn on stderr."""
-    if quiet:
+    """A progress factory for the library (see psctl.api.ProgressFactory), drawn on stderr.
+
+    Only on a terminal: in a log or a pipe a bar is noise (and Rich leaves an empty line)."""
+    if quiet or not sys.stderr.isatty():
         yield None
         return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -251,10 +253,23 @@ def train(
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
         con = _stderr()
+        kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
+                      max_seconds=None if max_minutes is None else 60 * max_minutes)
         if quiet:
-            report = None
-            st = run_training(method, cfg, run_dir, resume=resume is not None, device=device, lcnet=lcnet,
-                              max_seconds=None if max_minutes is None else 60 * max_minutes)
+            st = run_training(method, cfg, run_dir, **kwargs)
+        elif not sys.stderr.isatty():  # a log (e.g. a remote GPU run): a plain line every 30 s
+            import time
+
+            last = [0.0]
+
+            def log_line(rec: dict) -> None:
+                if time.monotonic() - last[0] >= 30:
+                    last[0] = time.monotonic()
+                    con.print(f"{rec['samples']:,}/{rec['total']:,} samples  loss {rec['loss']:.4f}  "
+                              f"{rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}  {rec['seconds']:.0f} s",
+                              highlight=False, soft_wrap=True)
+
+            st = run_training(method, cfg, run_dir, progress=log_line, **kwargs)
         else:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -266,8 +281,7 @@ def train(
                     bar.update(task, completed=rec["samples"], total=rec["total"],
                                info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
 
-                st = run_training(method, cfg, run_dir, resume=resume is not None, device=device, progress=report,
-                                  lcnet=lcnet, max_seconds=None if max_minutes is None else 60 * max_minutes)
+                st = run_training(method, cfg, run_dir, progress=report, **kwargs)
         best = "-" if st["best_val"] is None else f"{st['best_val']:.2f}°"
         state = "finished" if st["finished"] else "stopped (resume with --resume)"
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "
