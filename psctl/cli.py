@@ -77,6 +77,17 @@ def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None
         yield factory
 
 
+def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], None]) -> None:
+    """The shape of every reporting command: do the work under a progress bar, then print its
+    report as one JSON object (``--json``) or for a person."""
+    with _progress(quiet) as progress:
+        report = work(progress)
+    if json_out:
+        _print_json(report)
+    else:
+        render(report)
+
+
 def _print_json(obj: dict) -> None:
     sys.stdout.write(json.dumps(obj, indent=2) + "\n")
 
@@ -115,16 +126,12 @@ def normals(
         from psctl.api import run_normals
         from psctl.io.normals import parse_formats
 
-        formats = parse_formats(fmt)
-        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
-            report = run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
-                                 progress=progress, weights=weights, device=device, lcnet=lcnet)
-        if json_out:
-            _print_json(report)
-            return
         from psctl.io.summary import render_normals
 
-        render_normals(report, quiet=quiet)
+        formats = parse_formats(fmt)
+        _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
+                                          progress=progress, weights=weights, device=device, lcnet=lcnet),
+             json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
 @app.command("eval")
@@ -144,16 +151,11 @@ def evaluate(
     """Run a method over every object of a benchmark and print the paper-style error table."""
     with _user_errors():
         from psctl.eval import run_benchmark
-
-        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
-            result = run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
-                                   progress=progress, weights=weights, device=device, lcnet=lcnet)
-        if json_out:
-            _print_json(result)
-            return
         from psctl.io.summary import render_benchmark
 
-        render_benchmark(result)
+        _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
+                                            progress=progress, weights=weights, device=device, lcnet=lcnet),
+             json_out, quiet, render_benchmark)
 
 
 @app.command()
@@ -172,13 +174,9 @@ def lights(
     with _user_errors():
         from psctl.lights import render_lights, run_lights
 
-        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
-            report = run_lights(path, out=out, weights=weights, device=device, decode=decode, n_images=images,
-                                seed=seed, progress=progress)
-        if json_out:
-            _print_json(report)
-            return
-        render_lights(report)
+        _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
+                                         n_images=images, seed=seed, progress=progress),
+             json_out, quiet, render_lights)
 
 
 @app.command()
@@ -200,15 +198,14 @@ def synth(
         check_preset(preset)  # before the heavy imports: a typo fails at once
         from psctl.synth.write import write_preset
 
-        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
-            report = write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials,
-                                  preview=preview, progress=progress)
-        if json_out:
-            _print_json(report)
-            return
-        typer.echo(f"wrote {len(report['objects'])} objects to {report['out']} ({report['seconds']:.1f} s)")
-        if report["preview"]:
-            typer.echo(f"preview: {report['preview']}")
+        def show(report: dict) -> None:
+            typer.echo(f"wrote {len(report['objects'])} objects to {report['out']} ({report['seconds']:.1f} s)")
+            if report["preview"]:
+                typer.echo(f"preview: {report['preview']}")
+
+        _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials,
+                                           preview=preview, progress=progress),
+             json_out, quiet, show)
 
 
 @app.command()
@@ -225,12 +222,8 @@ def depth(
     with _user_errors():
         from psctl.depth import render_depth, run_depth
 
-        with _progress(quiet or json_out and not sys.stderr.isatty()) as progress:
-            report = run_depth(path, normals=normals, method=method, out=out, K=K, progress=progress)
-        if json_out:
-            _print_json(report)
-            return
-        render_depth(report, quiet=quiet)
+        _run(lambda progress: run_depth(path, normals=normals, method=method, out=out, K=K, progress=progress),
+             json_out, quiet, lambda r: render_depth(r, quiet=quiet))
 
 
 @app.command()
