@@ -64,7 +64,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "log_every": 20,  # steps
         "checkpoint_minutes": 5.0,
         "val_every": 50_000,  # samples
-        "amp": "bf16",  # on CUDA only; CPU always runs float32
+        "amp": "bf16",  # bf16 autocast on CUDA and on CPUs with native bf16; "none": float32
         "channels_last": True,
     },
     "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16},
@@ -120,6 +120,25 @@ def load_config(path: str | os.PathLike | None) -> dict:
         return merge(DEFAULT_CONFIG, raw)
     except PsctlError as e:
         raise PsctlError(path, e.message) from None
+
+
+def cpu_has_bf16() -> bool:
+    """True when this CPU runs bf16 matrix kernels natively (AVX512-BF16 or AMX); elsewhere
+    torch emulates them and autocast would be slower than float32."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def amp_settings(amp: str, device: torch.device) -> tuple[bool, torch.dtype]:
+    """Recipe ``train.amp`` -> (autocast on?, dtype). bf16 runs on CUDA and on CPUs with native
+    bf16 (about 2x faster than float32 for PS-FCN on a 2-core AVX512-BF16 machine); fp16 on CUDA only."""
+    if amp == "bf16":
+        return (device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16())), torch.bfloat16
+    if amp == "fp16":
+        return device.type == "cuda", torch.float16
+    return False, torch.float32
 
 
 def cosine_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -228,7 +247,7 @@ def _plain_json(obj: Any) -> Any:
     return json.loads(json.dumps(obj))
 
 
-RESUME_MAY_CHANGE = ("samples", "checkpoint_minutes", "log_every")  # train.* keys a resume may set anew
+RESUME_MAY_CHANGE = ("samples", "checkpoint_minutes", "log_every", "val_every")  # train.* keys a resume may set anew
 
 
 def _recipe_core(config: dict) -> Any:
@@ -447,11 +466,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     t = config["train"]
     run.mkdir(parents=True, exist_ok=True)
 
-    use_amp = dev.type == "cuda" and t["amp"] in ("bf16", "fp16")
-    amp_dtype = torch.bfloat16 if t["amp"] == "bf16" else torch.float16
+    use_amp, amp_dtype = amp_settings(t["amp"], dev)
 
     def amp():
-        return torch.autocast("cuda", dtype=amp_dtype) if use_amp else torch.autocast("cpu", enabled=False)
+        return torch.autocast(dev.type, dtype=amp_dtype, enabled=use_amp)
 
     st: dict[str, Any] = {"step": 0, "samples": 0, "seconds": 0.0, "best_val": None, "best_samples": None,
                           "stream_seed": t["seed"], "method": method, "val": [], "config": _plain_json(config)}

@@ -77,3 +77,15 @@ def test_refuses_to_overwrite_a_run(tmp_path):
     train("ps-fcn", tiny(8), tmp_path / "run", device="cpu")
     with pytest.raises(PsctlError, match="--resume"):
         train("ps-fcn", tiny(8), tmp_path / "run", device="cpu")
+
+
+def test_amp_settings_follow_device_and_cpu():
+    from psctl.train import amp_settings, cpu_has_bf16
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert amp_settings("bf16", cuda) == (True, torch.bfloat16)
+    assert amp_settings("fp16", cuda) == (True, torch.float16)
+    assert amp_settings("fp16", cpu)[0] is False  # fp16 autocast is CUDA only here
+    assert amp_settings("none", cpu)[0] is False and amp_settings("none", cuda)[0] is False
+    # bf16 on the CPU only where it is native: emulated bf16 is slower than float32
+    assert amp_settings("bf16", cpu) == (cpu_has_bf16(), torch.bfloat16)
