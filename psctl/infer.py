@@ -57,7 +57,7 @@ DEFAULT_INFER = {
     "cache_mb": 64,  # cropped images kept from the first pass for the next ones (RSS stays flat)
     "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
-    "autocast": None,  # None | "bf16" | "fp16" (CUDA only; unvalidated, so off by default)
+    "autocast": None,  # None | "bf16" (CUDA, CPUs with native bf16) | "fp16" (CUDA); off by default
 }
 
 FEATURES = 128  # extractor output channels
@@ -165,11 +165,17 @@ def _autocast(device: "torch.device", kind: str | None):
 
     if kind is None:
         return contextlib.nullcontext()
-    if device.type != "cuda":
-        raise PsctlError(None, f"autocast {kind} is for CUDA devices only (got {device})")
     dtypes = {"bf16": torch.bfloat16, "fp16": torch.float16}
     if kind not in dtypes:
         raise PsctlError(None, f"unknown autocast {kind!r}; choose from bf16, fp16")
+    if device.type == "cpu" and kind == "bf16":
+        from psctl.train import cpu_has_bf16
+
+        if not cpu_has_bf16():  # emulated bf16 is slower than float32
+            raise PsctlError(None, "autocast bf16 needs a CPU with native bf16 (AVX512-BF16 or AMX)")
+        return torch.autocast("cpu", dtype=torch.bfloat16)
+    if device.type != "cuda":
+        raise PsctlError(None, f"autocast {kind} is for CUDA devices (bf16 also on CPUs with native bf16), not {device}")
     return torch.autocast("cuda", dtype=dtypes[kind])
 
 

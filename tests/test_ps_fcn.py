@@ -359,8 +359,25 @@ def test_bad_inputs():
     if not torch.cuda.is_available():
         with pytest.raises(PsctlError, match="no CUDA GPU"):
             stream(images, lights, mask, device="cuda")
-    with pytest.raises(PsctlError, match="CUDA devices only"):
-        stream(images, lights, mask, device="cpu", autocast="bf16")
+    with pytest.raises(PsctlError, match="autocast fp16 is for CUDA"):
+        stream(images, lights, mask, device="cpu", autocast="fp16")
+    with pytest.raises(PsctlError, match="unknown autocast"):
+        stream(images, lights, mask, device="cpu", autocast="int8")
+
+
+def test_cpu_bf16_autocast_close_to_float32():
+    from psctl.train import cpu_has_bf16
+
+    images, lights, mask = scene(6, 24, 24)
+    if not cpu_has_bf16():
+        with pytest.raises(PsctlError, match="native bf16"):
+            stream(images, lights, mask, device="cpu", autocast="bf16")
+        pytest.skip("this CPU has no native bf16 (the refusal above is what users get)")
+    a = stream(images, lights, mask, device="cpu")
+    b = stream(images, lights, mask, device="cpu", autocast="bf16")
+    cos = np.clip((a[mask] * b[mask]).sum(-1), -1, 1)
+    assert np.degrees(np.arccos(cos)).mean() < 2.0  # random weights: loose; trained weights in docs/models.md
+    np.testing.assert_allclose(np.linalg.norm(b[mask], axis=-1), 1, atol=1e-4)
 
 
 def test_ups_fcn_without_lights(tmp_path):

@@ -93,7 +93,8 @@ class Regressor(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.deconv3(self.deconv2(self.deconv1(x)))
-        return F.normalize(self.est_normal(x), p=2, dim=1)
+        # float32 for the unit length: under bf16 autocast the norm would be off by ~1e-2
+        return F.normalize(self.est_normal(x).float(), p=2, dim=1)
 
 
 class PSFCN(nn.Module):
