@@ -31,10 +31,10 @@ def main() -> None:
     args = ap.parse_args()
 
     from psctl.classic import l2_normals
+    from psctl.metrics import angular_error
     from psctl.models.weights import read_weights
     from psctl.train import evaluate, load_config, normals_task, synth_stream
 
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     cfg = load_config(args.config)
     v, dev = cfg["val"], torch.device("cpu")
     stream = synth_stream(cfg["data"], batch_size=v["batch_size"], images=v["images"], crop=v["size"],
@@ -50,9 +50,8 @@ def main() -> None:
             m = b["masks"][i, 0].bool().numpy()
             x = imgs[i].permute(0, 2, 3, 1).numpy()  # [N, H, W, 3]
             n = l2_normals(x, b["lights"][i].double().numpy(), m).normals
-            gt = b["normals"][i].permute(1, 2, 0).double().numpy()
-            cos = np.clip((n[m] * gt[m]).sum(-1), -1, 1)
-            total += float(np.degrees(np.arccos(cos)).sum())
+            gt = b["normals"][i].permute(1, 2, 0).numpy()
+            total += float(angular_error(n, gt, m).sum())
             count += int(m.sum())
     out = {"config": args.config, "val": v, "pixels": count, "mae": {"l2": round(total / count, 4)}}
 

@@ -158,6 +158,17 @@ def pick_device(name: str = "auto") -> "torch.device":
     raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
 
 
+def cpu_has_bf16() -> bool:
+    """True when this CPU runs bf16 matrix kernels natively (AVX512-BF16 or AMX); elsewhere
+    torch emulates them and autocast would be slower than float32."""
+    import torch
+
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def _autocast(device: "torch.device", kind: str | None):
     import contextlib
 
@@ -169,8 +180,6 @@ def _autocast(device: "torch.device", kind: str | None):
     if kind not in dtypes:
         raise PsctlError(None, f"unknown autocast {kind!r}; choose from bf16, fp16")
     if device.type == "cpu" and kind == "bf16":
-        from psctl.train import cpu_has_bf16
-
         if not cpu_has_bf16():  # emulated bf16 is slower than float32
             raise PsctlError(None, "autocast bf16 needs a CPU with native bf16 (AVX512-BF16 or AMX)")
         return torch.autocast("cpu", dtype=torch.bfloat16)

@@ -122,18 +122,11 @@ def load_config(path: str | os.PathLike | None) -> dict:
         raise PsctlError(path, e.message) from None
 
 
-def cpu_has_bf16() -> bool:
-    """True when this CPU runs bf16 matrix kernels natively (AVX512-BF16 or AMX); elsewhere
-    torch emulates them and autocast would be slower than float32."""
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
-
-
 def amp_settings(amp: str, device: torch.device) -> tuple[bool, torch.dtype]:
     """Recipe ``train.amp`` -> (autocast on?, dtype). bf16 runs on CUDA and on CPUs with native
     bf16 (about 2x faster than float32 for PS-FCN on a 2-core AVX512-BF16 machine); fp16 on CUDA only."""
+    from psctl.infer import cpu_has_bf16
+
     if amp == "bf16":
         return (device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16())), torch.bfloat16
     if amp == "fp16":

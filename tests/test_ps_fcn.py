@@ -366,7 +366,7 @@ def test_bad_inputs():
 
 
 def test_cpu_bf16_autocast_close_to_float32():
-    from psctl.train import cpu_has_bf16
+    from psctl.infer import cpu_has_bf16
 
     images, lights, mask = scene(6, 24, 24)
     if not cpu_has_bf16():

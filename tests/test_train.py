@@ -80,7 +80,8 @@ def test_refuses_to_overwrite_a_run(tmp_path):
 
 
 def test_amp_settings_follow_device_and_cpu():
-    from psctl.train import amp_settings, cpu_has_bf16
+    from psctl.infer import cpu_has_bf16
+    from psctl.train import amp_settings
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert amp_settings("bf16", cuda) == (True, torch.bfloat16)
