@@ -186,6 +186,7 @@ def synth(
     seed: Annotated[int, typer.Option(help="Random seed (shapes, materials, lights).")] = 0,
     size: Annotated[int, typer.Option(help="Image side in pixels.")] = 128,
     lights: Annotated[int, typer.Option(help="Lights (images) per object.")] = 100,
+    light_dist: Annotated[str, typer.Option("--light-dist", help="Zenith band of the lights: hemisphere (0-90 degrees) | diligent (0-45, like DiLiGenT's rig) | poles (0-30) | equator (60-90).")] = "hemisphere",
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
     json_out: Json = False,
@@ -196,6 +197,9 @@ def synth(
         from psctl.synth import check_preset
 
         check_preset(preset)  # before the heavy imports: a typo fails at once
+        from psctl.synth.lights import zenith_band
+
+        zenith_band(light_dist)
         from psctl.synth.write import write_preset
 
         def show(report: dict) -> None:
@@ -203,7 +207,7 @@ def synth(
             if report["preview"]:
                 typer.echo(f"preview: {report['preview']}")
 
-        _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials,
+        _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials, light_dist=light_dist,
                                            preview=preview, progress=progress),
              json_out, quiet, show)
 

@@ -507,6 +507,19 @@ def test_cli_synth(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "o"), "--preset", "nope"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "unknown preset" in proc.stderr and "Traceback" not in proc.stderr
+    # --light-dist: DiLiGenT-like lights (zenith <= 45 degrees), recorded in synth.json
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "d"), "--preset", "blobby",
+                           "--size", "24", "--lights", "40", "--materials", "1", "--light-dist", "diligent", "--json"],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["light_dist"] == "diligent"
+    z = np.loadtxt(tmp_path / "d" / "blobby_01" / "light_directions.txt")[:, 2]
+    assert z.min() >= np.cos(np.radians(45)) - 1e-6 and z.max() > 0.97
+    assert json.loads((tmp_path / "d" / "blobby_01" / "synth.json").read_text())["light_dist"] == "diligent"
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "e"), "--preset", "blobby",
+                           "--light-dist", "ring"], capture_output=True, text=True)
+    assert proc.returncode == 2 and "unknown light distribution 'ring'" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "e").exists()
 
 
 def test_syntest_preset_with_shared_meshes(tmp_path):

@@ -82,16 +82,21 @@ def _merl_subset(table: M.MerlTable, k: int, gen: torch.Generator) -> list[int]:
 
 
 def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
-                   k: int | None = None) -> list[SynthObject]:
-    """The objects of a preset (geometry, materials, lights), not yet rendered."""
+                   k: int | None = None, light_dist: str = "hemisphere") -> list[SynthObject]:
+    """The objects of a preset (geometry, materials, lights), not yet rendered.
+
+    ``light_dist`` names the zenith band the lights are drawn from (psctl.synth.lights:
+    hemisphere, diligent, poles, equator); the presets use the hemisphere, as the paper.
+    """
     check_preset(preset)
+    L.zenith_band(light_dist)  # validates the name before any work
     if size < 8 or n_lights < 3:
         raise PsctlError(None, f"need --size >= 8 and --lights >= 3 (got {size}, {n_lights})")
     k = DEFAULT_K[preset] if k is None else k
     if k < 1:
         raise PsctlError(None, f"--materials must be at least 1 (got {k})")
     gen = torch.Generator().manual_seed(seed)
-    lights = L.sample_lights((n_lights,), gen, "hemisphere")
+    lights = L.sample_lights((n_lights,), gen, light_dist)
     ones = torch.ones(n_lights)
     objs: list[SynthObject] = []
     if preset == "syntest":
@@ -131,7 +136,7 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
                 meta["texture"] = True
             objs.append(SynthObject(f"blobby_{i + 1:02d}", views.take([i]), mat, lights, ones, mat_b, w, tex, meta))
     for o in objs:
-        o.meta.update(preset=preset, seed=seed, size=size, n_lights=n_lights)
+        o.meta.update(preset=preset, seed=seed, size=size, n_lights=n_lights, light_dist=light_dist)
     return objs
 
 
@@ -224,7 +229,7 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
-                 sensor_noise: float = 0.0, progress=None) -> dict:
+                 sensor_noise: float = 0.0, light_dist: str = "hemisphere", progress=None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
@@ -232,15 +237,16 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         k: materials per shape (syntest), material pairs (dragon-svbrdf) or shapes (blobby).
         preview: also write out/preview.png, a contact sheet of a few images per object.
         sensor_noise: standard deviation of Gaussian read noise added before quantisation.
+        light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
     Returns:
-        {"out", "preset", "seed", "size", "n_lights", "objects", "preview", "seconds"}.
+        {"out", "preset", "seed", "size", "n_lights", "light_dist", "objects", "preview", "seconds"}.
     """
     from psctl.io.atomic import check_output_dir, ensure_writable_dir, write_text_atomic
 
     t0 = time.perf_counter()
     out = Path(out)
     check_output_dir(out)
-    objs = preset_objects(preset, seed, size, n_lights, k)
+    objs = preset_objects(preset, seed, size, n_lights, k, light_dist)
     ensure_writable_dir(out)
     # objects.txt marks a complete set: it goes now and comes back when every object is written,
     # so an interrupted run is never read as a finished one together with an older objects.txt
@@ -279,7 +285,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
         preview_path = out / "preview.png"
         write_image(preview_path, _sheet(sheet_rows), "uint8")
-    return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights,
+    return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
             "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
             "seconds": round(time.perf_counter() - t0, 3)}
 
