@@ -26,34 +26,59 @@ NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weigh
 # sdps (uncalibrated): LCNet estimates the lights (weights/lcnet.pt or --lcnet FILE), then PS-FCN†
 # estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); see psctl/lights.py.
 SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light_directions.txt only scores the lights)"
+# sdps's second stage, in order of preference: PS-FCN† was trained on LCNet's lights (the
+# paper's choice); without it, a calibrated network runs on the estimated lights instead.
+SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn-n", "ps-fcn")
+_SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
+
+
+def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, str]:
+    """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
+
+    ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
+    None: the first installed of PS-FCN†, PS-FCN+N, PS-FCN. Raises when there is none.
+    """
+    from psctl.models.weights import installed_path, no_weights_error, read_weights
+
+    if weights is not None:
+        w = read_weights(weights)
+        kind = w.method or w.metadata.get("kind")
+        if w.official and kind == "ps-fcn" and w.lights:  # the authors' NENet has PS-FCN's keys
+            kind = "ps-fcn-dagger"
+        if kind not in SDPS_SECOND:
+            raise PsctlError(weights, f"holds {_SHOWN.get(kind, kind)} weights; --weights for sdps takes "
+                                      "PS-FCN† (or PS-FCN / PS-FCN+N) weights")
+        method = kind
+    else:
+        method = next((m for m in SDPS_SECOND if installed_path(m) is not None), None)
+        if method is None:
+            raise no_weights_error("ps-fcn-dagger")
+    if method == "ps-fcn-dagger":
+        return method, SDPS_NOTE
+    return method, (f"sdps: lights estimated by LCNet, then normals by {_SHOWN[method]} on those lights "
+                    "(PS-FCN†, trained on LCNet's lights, is not installed; a light_directions.txt only "
+                    "scores the lights)")
 
 
 def _noop(_: int) -> None:
     pass
 
 
-def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> None:
-    """Fail early, in one line, when sdps lacks weights: which files are missing and how to get them."""
-    from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, weights_dir
-
-    from psctl.models.weights import read_weights
+def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> str:
+    """Fail early, in one line, when sdps lacks weights: which files are missing and how to get
+    them. Returns the note naming the second stage (``sdps_second_stage``)."""
+    from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, read_weights, weights_dir
 
     # a given file must hold what its flag is for, checked before minutes of LCNet work
-    for given, flag in ((lcnet, "--lcnet"), (weights, "--weights")):
-        if given is not None:
-            w = read_weights(given)
-            kind = w.method or w.metadata.get("kind")
-            ok = kind == "lcnet" if flag == "--lcnet" else (
-                kind == "ps-fcn-dagger" or (w.official and kind == "ps-fcn" and w.lights))  # the authors' NENet
-            if not ok:
-                shown = {"lcnet": "LCNet", "ps-fcn-dagger": "PS-FCN†"}.get(kind, kind)
-                raise PsctlError(given, f"holds {shown} weights; {flag} for sdps takes "
-                                        f"{'LCNet' if flag == '--lcnet' else 'PS-FCN†'} weights")
-    missing = [(m, flag) for m, given, flag in (("lcnet", lcnet, "--lcnet"), ("ps-fcn-dagger", weights, "--weights"))
-               if given is None and installed_path(m) is None]
-    if len(missing) == 1:
-        raise no_weights_error(*missing[0])
-    if missing:
+    if lcnet is not None:
+        w = read_weights(lcnet)
+        kind = w.method or w.metadata.get("kind")
+        if kind != "lcnet":
+            raise PsctlError(lcnet, f"holds {_SHOWN.get(kind, kind)} weights; --lcnet for sdps takes LCNet weights")
+    second = weights is not None or any(installed_path(m) is not None for m in SDPS_SECOND)
+    if lcnet is None and installed_path("lcnet") is None:
+        if second:
+            raise no_weights_error("lcnet", "--lcnet")
         where = weights_dir()
         raise PsctlError(None, f"sdps needs the LCNet and PS-FCN† weights, and neither is installed (looked for "
                                f"{where / file_name('lcnet')} and {where / file_name('ps-fcn-dagger')}; set ${ENV_VAR} "
@@ -61,6 +86,7 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
                                f"configs/lcnet.yaml --install`, then `psctl train ps-fcn-dagger --config "
                                f"configs/ps_fcn_dagger.yaml --install` (docs/training.md), or pass --lcnet FILE and "
                                f"--weights FILE (docs/uncalibrated.md)")
+    return sdps_second_stage(weights)[1]
 
 
 def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None,
@@ -85,8 +111,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
             raise PsctlError(weights, "holds LCNet weights (light estimation): use `psctl lights`, or pass them "
                                       "with --lcnet FILE to --method sdps")
         if method == "ps-fcn-dagger":  # the second stage of sdps
-            check_sdps_weights(weights, lcnet)
-            return "sdps", f"auto: sdps (PS-FCN† weights from {weights}); {SDPS_NOTE}"
+            note = check_sdps_weights(weights, lcnet)
+            return "sdps", f"auto: sdps (PS-FCN† weights from {weights}); {note}"
         if NETWORK_METHODS[method]["lights"] and not calibrated:
             raise PsctlError(None, f"{weights} holds {method} weights, which need light_directions.txt")
         return method, note or f"auto: {method} (from {weights})"
@@ -96,11 +122,10 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         if lcnet is None and installed_path("ups-fcn") is not None and (
                 installed_path("lcnet") is None or installed_path("ps-fcn-dagger") is None):
             return "ups-fcn", "auto: no light_directions.txt and no sdps weights installed: ups-fcn"
-        check_sdps_weights(None, lcnet)
-        return "sdps", f"auto: no light_directions.txt; {SDPS_NOTE}"
+        note = check_sdps_weights(None, lcnet)
+        return "sdps", f"auto: no light_directions.txt; {note}"
     if method == "sdps":
-        check_sdps_weights(weights, lcnet)
-        return "sdps", SDPS_NOTE
+        return "sdps", check_sdps_weights(weights, lcnet)
     if method == "auto":
         from psctl.models.weights import installed_path
 
@@ -163,7 +188,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         est = array_lights(images, mask, lcnet, {"device": device})
         images = images / est.intensities[:, None, None, None]
-        return array_normals(images, est.directions, mask, "ps-fcn-dagger", weights, {"device": device}).normals
+        second = sdps_second_stage(weights)[0]
+        return array_normals(images, est.directions, mask, second, weights, {"device": device}).normals
     if method in NETWORKS:
         from psctl.infer import array_normals
 
@@ -232,7 +258,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
         est = capture_lights(cap, mask, lcnet, {"device": device}, progress, flag="--lcnet")
         lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-        net = capture_normals(lit, mask, "ps-fcn-dagger", weights, {"device": device}, progress)
+        second = sdps_second_stage(weights)[0]
+        net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
         light_stats = light_errors(est.directions, est.intensities, cap.lights,
@@ -292,6 +319,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "notes": notes,
     }
     if light_stats is not None:
+        report["second_stage"] = second  # the network that turned LCNet's lights into normals
         report["light_mae"] = light_stats["light_mae"]
         report["intensity_re"] = light_stats["intensity_re"]
 

@@ -336,6 +336,47 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
         del os.environ["PSCTL_WEIGHTS"]
 
 
+def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_path, fake_weights):
+    """LCNet installed, PS-FCN† not: sdps runs PS-FCN+N on LCNet's lights and says so."""
+    import shutil
+
+    from psctl.api import estimate_normals, run_normals
+    from psctl.infer import array_normals
+    from psctl.lights import array_lights
+
+    folder = tmp_path / "w"
+    folder.mkdir()
+    shutil.copy(fake_weights / "lcnet.pt", folder / "lcnet.pt")
+    torch.manual_seed(2)
+    save_weights(folder / "ps_fcn_n.pt", PSFCN(), {"method": "ps-fcn-n", "normalization": "per-channel",
+                                                    "train_images": 32})
+    data = write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    (tmp_path / "aPNG" / "light_directions.txt").unlink()  # uncalibrated
+    os.environ["PSCTL_WEIGHTS"] = str(folder)
+    try:
+        r = run_normals(tmp_path / "aPNG", out=tmp_path / "o", device="cpu")  # auto
+        assert r["method"] == "sdps" and r["second_stage"] == "ps-fcn-n"
+        assert any("PS-FCN+N on those lights" in n and "not installed" in n for n in r["notes"])
+        # the same as running the two stages by hand
+        mask = data["mask"]
+        images = data["images"]
+        est = array_lights(images, mask, folder / "lcnet.pt", {"device": "cpu"})
+        want = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, "ps-fcn-n",
+                             folder / "ps_fcn_n.pt", {"device": "cpu"}).normals
+        got = estimate_normals(images, None, mask, method="sdps", device="cpu")
+        assert np.abs(got - want).max() < 1e-5
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+    # an explicit PS-FCN† file still wins over the installed PS-FCN+N
+    os.environ["PSCTL_WEIGHTS"] = str(folder)
+    try:
+        r = run_normals(tmp_path / "aPNG", method="sdps", weights=fake_weights / "ps_fcn_dagger.pt", write=False,
+                        device="cpu")
+        assert r["second_stage"] == "ps-fcn-dagger" and any("PS-FCN†" in n for n in r["notes"])
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
 def test_lights_help_imports_nothing_heavy():
     code = ("import sys\nfrom psctl.cli import main\nsys.argv = ['psctl', 'lights', '--help']\n"
             "try:\n    main()\nexcept SystemExit:\n    pass\n"
