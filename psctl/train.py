@@ -569,12 +569,22 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     return st
 
 
+RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
+
+
 def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
-    """Copy a run's best weights into the weights folder as the release file for ``method``."""
+    """Copy a run's best weights into the weights folder as the release file for ``method``.
+
+    A file over RELEASE_MAX_BYTES (LCNet's 4.4 M parameters take 17.6 MB in float32) is stored
+    with float16 tensors instead, recorded as ``stored_dtype`` in its metadata; loading casts
+    them back to the network's float32 parameters.
+    """
     import shutil
 
+    import torch
+
     from psctl.io.atomic import atomic_path
-    from psctl.models.weights import file_name, read_weights, weights_dir
+    from psctl.models.weights import file_name, read_weights, save_weights, weights_dir
 
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
@@ -584,6 +594,18 @@ def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
         raise PsctlError(src, f"holds {w.method} weights, not {method}")
     dst = weights_dir() / file_name(method)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
+    if src.stat().st_size <= RELEASE_MAX_BYTES:
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+        return dst
+    half = {k: v.to(torch.float16) if v.is_floating_point() else v for k, v in w.state_dict.items()}
+    tmp = dst.with_name(f".{dst.name}.half.tmp")
+    try:  # checked before it replaces anything
+        save_weights(tmp, half, {**w.metadata, "stored_dtype": "float16"})
+        if tmp.stat().st_size > RELEASE_MAX_BYTES:
+            raise PsctlError(src, f"needs {tmp.stat().st_size / 1e6:.1f} MB even in float16 "
+                                  f"(limit {RELEASE_MAX_BYTES / 1e6:.0f} MB per release file)")
+        os.replace(tmp, dst)
+    finally:
+        tmp.unlink(missing_ok=True)
     return dst

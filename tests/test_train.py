@@ -90,3 +90,28 @@ def test_amp_settings_follow_device_and_cpu():
     assert amp_settings("none", cpu)[0] is False and amp_settings("none", cuda)[0] is False
     # bf16 on the CPU only where it is native: emulated bf16 is slower than float32
     assert amp_settings("bf16", cpu) == (cpu_has_bf16(), torch.bfloat16)
+
+
+def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeypatch):
+    import psctl.train as T
+    from psctl.models.weights import load_network
+
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(16), run, device="cpu")
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
+    small = T.install_weights(run, "ps-fcn")  # under the limit: a byte copy
+    assert small.read_bytes() == (run / "best.pt").read_bytes()
+    monkeypatch.setattr(T, "RELEASE_MAX_BYTES", small.stat().st_size - 1)
+    half = T.install_weights(run, "ps-fcn")
+    w = read_weights(half)
+    assert w.metadata["stored_dtype"] == "float16" and half.stat().st_size < (run / "best.pt").stat().st_size
+    assert all(v.dtype == torch.float16 for v in w.state_dict.values() if v.is_floating_point())
+    model, _, _ = load_network("ps-fcn", half)  # loads into float32 parameters
+    ref = read_weights(run / "best.pt").state_dict
+    for k, v in model.state_dict().items():
+        assert v.dtype == torch.float32 and torch.allclose(v, ref[k], rtol=1e-3, atol=1e-4)
+    monkeypatch.setattr(T, "RELEASE_MAX_BYTES", 100)
+    with pytest.raises(PsctlError, match="even in float16"):
+        T.install_weights(run, "ps-fcn")
+    assert read_weights(half).metadata["stored_dtype"] == "float16"  # the last good file is kept
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["ps_fcn.pt"]
