@@ -197,10 +197,7 @@ def synth(
         from psctl.synth import check_preset
 
         check_preset(preset)  # before the heavy imports: a typo fails at once
-        from psctl.synth.lights import zenith_band
-
-        zenith_band(light_dist)
-        from psctl.synth.write import write_preset
+        from psctl.synth.write import write_preset  # (preset_objects checks --light-dist before writing)
 
         def show(report: dict) -> None:
             typer.echo(f"wrote {len(report['objects'])} objects to {report['out']} ({report['seconds']:.1f} s)")

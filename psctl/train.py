@@ -599,13 +599,9 @@ def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
             shutil.copyfile(src, tmp)
         return dst
     half = {k: v.to(torch.float16) if v.is_floating_point() else v for k, v in w.state_dict.items()}
-    tmp = dst.with_name(f".{dst.name}.half.tmp")
-    try:  # checked before it replaces anything
+    with atomic_path(dst) as tmp:  # the size is checked before anything is replaced
         save_weights(tmp, half, {**w.metadata, "stored_dtype": "float16"})
         if tmp.stat().st_size > RELEASE_MAX_BYTES:
             raise PsctlError(src, f"needs {tmp.stat().st_size / 1e6:.1f} MB even in float16 "
                                   f"(limit {RELEASE_MAX_BYTES / 1e6:.0f} MB per release file)")
-        os.replace(tmp, dst)
-    finally:
-        tmp.unlink(missing_ok=True)
     return dst
