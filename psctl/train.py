@@ -66,6 +66,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "val_every": 50_000,  # samples
         "amp": "bf16",  # bf16 autocast on CUDA and on CPUs with native bf16; "none": float32
         "channels_last": True,
+        "init": None,  # a weights file of the same network to start from (fine-tuning); None: random
     },
     "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16},
     "lcnet": {  # LCNet: the network trained by `train lcnet`, or the frozen one of `train ps-fcn-dagger`
@@ -306,6 +307,18 @@ def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.dev
     return model.eval(), info
 
 
+def crop_windows(x: torch.Tensor, windows: torch.Tensor, side: int) -> torch.Tensor:
+    """Cut one side x side window per sample out of x [B, ..., H, W]; windows [B, 2] long holds
+    each window's top row and left column. Returns [B, ..., side, side]."""
+    ar = torch.arange(side, device=x.device)
+    rows = (windows[:, 0, None] + ar)[:, :, None]  # [B, side, 1]
+    cols = (windows[:, 1, None] + ar)[:, None, :]  # [B, 1, side]
+    flat = x.flatten(1, -3)  # [B, K, H, W]
+    b = torch.arange(x.shape[0], device=x.device)[:, None, None]
+    out = flat.permute(0, 2, 3, 1)[b, rows, cols]  # [B, side, side, K]
+    return out.permute(0, 3, 1, 2).reshape(*x.shape[:-2], side, side)
+
+
 def normals_task(method: str, config: dict, device: torch.device, amp: Callable,
                  lcnet: str | os.PathLike | None = None) -> Task:
     """PS-FCN, PS-FCN+N, UPS-FCN (lights from the stream) and PS-FCN† (lights from a frozen LCNet)."""
@@ -320,25 +333,30 @@ def normals_task(method: str, config: dict, device: torch.device, amp: Callable,
     if method == "ps-fcn-dagger":
         estimator, meta["lcnet"] = frozen_lcnet(config, lcnet, device)
         mode = config["lcnet"]["decode"]
+        side = config["data"].get("windows")
 
-        def inputs(b: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+        def inputs(b: dict, crop: bool = True) -> tuple:
+            # LCNet sees the whole view; PS-FCN† then trains on the stream's windows when it draws
+            # them (the CPU recipe: LCNet on a 64 px view, PS-FCN† on 32 x 32 windows of it)
             with amp():
                 dirs, ints = estimator.estimate(b["images"], b["masks"], mode)
             images = b["images"] / ints.float()[:, :, None, None, None].clamp_min(1e-6)
-            return normalize_observations(images, normalization), dirs.float()
+            normals, masks = b["normals"], b["masks"]
+            if crop and side and "windows" in b:
+                images, normals, masks = (crop_windows(t, b["windows"], int(side)) for t in (images, normals, masks))
+            return normalize_observations(images, normalization), dirs.float(), normals, masks
     else:
-        def inputs(b: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
-            return network_inputs(b, spec["lights"], normalization)
+        def inputs(b: dict, crop: bool = True) -> tuple:
+            return (*network_inputs(b, spec["lights"], normalization), b["normals"], b["masks"])
 
     def loss(b: dict) -> torch.Tensor:
-        x, l = inputs(b)
+        x, l, n, m = inputs(b)
         with amp():
             pred = model(x, l).float()
-        return cosine_loss(pred, b["normals"], b["masks"])
+        return cosine_loss(pred, n, m)
 
     def val_item(b: dict) -> tuple:
-        x, l = inputs(b)
-        return x, l, b["normals"], b["masks"]
+        return inputs(b, crop=False)  # validated on the whole view
 
     def val_error(item: tuple) -> tuple[float, float]:
         x, l, n, m = item
@@ -382,6 +400,23 @@ def lcnet_task(config: dict, device: torch.device, amp: Callable) -> Task:
         return torch.rad2deg(torch.acos(cos)).sum().item(), float(cos.numel())
 
     return Task(model, loss, val_item, val_error, "light_mae", {"normalization": "none"})
+
+
+def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
+    """Load ``path`` (psctl weights of the same architecture) into ``model``; returns its
+    provenance for the new weights' metadata."""
+    from psctl.models.weights import read_weights
+
+    w = read_weights(path)
+    if w.kind != ("lcnet" if type(model).__name__ == "LCNet" else "ps-fcn") or \
+            dict(w.metadata.get("architecture", {})) != dict(model.config):
+        raise PsctlError(path, f"train.init: holds {w.method or w.kind} weights with architecture "
+                               f"{w.metadata.get('architecture')}; this run's network is {dict(model.config)}")
+    model.load_state_dict({k: v.float() for k, v in w.state_dict.items()})
+    m = w.metadata
+    return {"path": _portable(path), "method": w.method, "samples_seen": m.get("samples_seen"),
+            "wall_seconds": m.get("wall_seconds"), "device": m.get("device"), "metrics": m.get("metrics"),
+            "normalization": m.get("normalization")}
 
 
 def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
@@ -475,6 +510,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     model = task.model
     if "lcnet" in task.metadata:
         st["lcnet"] = _portable(task.metadata["lcnet"]["path"])
+    if t["init"] and not resume:  # fine-tuning: start from another run's weights (recorded)
+        st["init"] = init_from(model, t["init"])
+    if st.get("init"):
+        task.metadata["init"] = st["init"]
     if t["channels_last"]:
         model.to(memory_format=torch.channels_last)  # in place: the task's closures hold this module
     optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])
@@ -512,6 +551,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         from psctl.io.atomic import write_text_atomic
 
         write_text_atomic(state_file, json.dumps(st, indent=1))
+
+    if st.get("init") and st["samples"] == 0 and not st["val"]:  # where fine-tuning starts from
+        mae = evaluate(task, val)
+        st["val"].append([0, round(mae, 4)])
+        log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(mae, 4), "init": st["init"]["path"]}) + "\n")
+        log.flush()
 
     t_call = time.perf_counter()
     t_start = t_ckpt = t_call

@@ -435,6 +435,40 @@ def test_tiny_ps_fcn_dagger_training_uses_the_frozen_lcnet(tmp_path):
         train("ps-fcn", cfg, tmp_path / "other", device="cpu", lcnet=tmp_path / "lc.pt")
 
 
+def test_ps_fcn_dagger_trains_on_windows_from_an_init_file(tmp_path):
+    """The CPU recipe: LCNet sees the whole view, PS-FCN† (+N) trains on the stream's windows,
+    starting from a calibrated network's weights; validation runs on the whole view."""
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.train import merge, train
+
+    torch.set_num_threads(2)
+    save_weights(tmp_path / "lc.pt", lcnet(size=32), {"method": "lcnet", "train_images": 8})
+    start = PSFCN()
+    save_weights(tmp_path / "init.pt", start, {"method": "ps-fcn-n", "train_images": 8, "samples_seen": 123})
+    base = tiny(8, lr=0.0)  # lr 0: the weights stay the init file's, which shows it was loaded
+    cfg = merge(base, {"data": {**base["data"], "windows": 16}, "normalization": "per-channel",
+                       "train": {**base["train"], "init": str(tmp_path / "init.pt")}})
+    seen = []
+    import psctl.train as T
+
+    real = T.crop_windows
+    T.crop_windows = lambda x, w, side: seen.append((x.shape[-1], side)) or real(x, w, side)
+    try:
+        st = train("ps-fcn-dagger", cfg, tmp_path / "run", device="cpu", lcnet=tmp_path / "lc.pt")
+    finally:
+        T.crop_windows = real
+    assert st["finished"] and seen and all(s == (32, 16) for s in seen)
+    assert [v[0] for v in st["val"]] == [0, 8]  # the init file is validated before training
+    w = read_weights(tmp_path / "run" / "best.pt")
+    assert w.metadata["normalization"] == "per-channel" and w.metadata["init"]["samples_seen"] == 123
+    assert all(torch.equal(w.state_dict[k], v) for k, v in start.state_dict().items())
+    # a file of another architecture is refused in one line
+    save_weights(tmp_path / "ups.pt", PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 8})
+    cfg["train"]["init"] = str(tmp_path / "ups.pt")
+    with pytest.raises(PsctlError, match="train.init"):
+        train("ps-fcn-dagger", cfg, tmp_path / "bad", device="cpu", lcnet=tmp_path / "lc.pt")
+
+
 def test_lcnet_resume_continues_exactly(tmp_path):
     """16 + 16 samples with a stop in between == 32 samples in one go (same batches, same Adam state)."""
     from psctl.train import merge, train

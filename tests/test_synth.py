@@ -532,3 +532,19 @@ def test_syntest_preset_with_shared_meshes(tmp_path):
     objs = preset_objects("syntest", size=32, n_lights=4, k=1)
     assert [o.meta["shape"] for o in objs] == ["sphere", "bunny", "dragon", "armadillo"]
     assert all(o.view.mask.float().mean() > 0.1 for o in objs)
+
+
+def test_stream_windows_sit_on_the_object_and_repeat_with_the_seed():
+    from psctl.synth.stream import SynthStream
+
+    cfg = {"batch_size": 6, "n_images": 4, "size": 32, "crop": 32, "pool": 4, "shapes": {"blobby": 1.0},
+           "windows": 12, "seed": 5}
+    a, b = SynthStream(cfg).next_batch(), SynthStream(cfg).next_batch()
+    assert torch.equal(a["windows"], b["windows"]) and a["windows"].shape == (6, 2)
+    for k, (r, c) in enumerate(a["windows"].tolist()):
+        assert 0 <= r <= 20 and 0 <= c <= 20
+        assert a["masks"][k, 0, r:r + 12, c:c + 12].sum() > 0  # the window holds object pixels
+    plain = SynthStream({**cfg, "windows": None}).next_batch()
+    assert "windows" not in plain and torch.equal(plain["images"], a["images"])  # same draws otherwise
+    with pytest.raises(PsctlError, match="windows"):
+        SynthStream({**cfg, "windows": 40})

@@ -203,7 +203,8 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
         return
     if bool(meta["architecture"].get("lights", True)) != NETWORK_METHODS[method]["lights"]:
         raise PsctlError(path, f"metadata says {method} but the architecture's 'lights' is {meta['architecture'].get('lights')}")
-    if (method == "ps-fcn-n") != (norm != "none") and method != "ups-fcn":
+    # ps-fcn and ps-fcn-n differ only by +N; UPS-FCN and PS-FCN† may be trained with or without it
+    if (method == "ps-fcn-n") != (norm != "none") and method in ("ps-fcn", "ps-fcn-n"):
         raise PsctlError(path, f"metadata says {method} with normalization {norm!r}: ps-fcn-n needs +N, ps-fcn has none")
 
 

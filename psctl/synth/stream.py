@@ -46,6 +46,8 @@ DEFAULT_CONFIG: dict = {
     "scale": None,  # (lo, hi) rescaled side before cropping; None: (crop, size) as in the paper
     "rotate": True,  # random rotation about the view axis
     "flip": True,  # random mirror
+    "windows": None,  # side w: also draw one w x w window per sample around a random object pixel
+    #                   (batch key "windows", [B, 2] top-left row and column), for PS-FCN† crops
     "pool": 64,  # G-buffers kept in memory
     "reuse": 128,  # samples drawn per G-buffer (on average) before it is replaced
     "refresh_chunk": 8,  # new G-buffers are rendered this many at a time (GPU: fewer, larger calls)
@@ -90,6 +92,8 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     if not (0 < cfg["crop"] <= cfg["size"] and cfg["crop"] <= lo <= hi):
         raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
                                f"size {cfg['size']}, scale {cfg['scale']})")
+    if cfg["windows"] is not None and not (0 < int(cfg["windows"]) <= cfg["crop"]):
+        raise PsctlError(None, f"need 0 < windows <= crop (windows {cfg['windows']}, crop {cfg['crop']})")
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
     return cfg
 
@@ -316,6 +320,22 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
 
 
+def object_windows(mask: Tensor, side: int, w: int, gen: torch.Generator) -> Tensor:
+    """One w x w window per sample, centred (as far as the view allows) on a random object pixel.
+
+    mask [B, side * side] (0/1) -> [B, 2] long (top row, left column); an empty mask gives the
+    view's centre.
+    """
+    b = mask.shape[0]
+    cum = mask.float().cumsum(1)
+    u = torch.rand(b, 1, generator=gen, device=mask.device) * cum[:, -1:]
+    pix = torch.searchsorted(cum, u, right=True)[:, 0].clamp_max(side * side - 1)
+    pix = torch.where(cum[:, -1] > 0, pix, torch.full_like(pix, side * side // 2 + side // 2))
+    top = (pix // side - w // 2).clamp(0, side - w)
+    left = (pix % side - w // 2).clamp(0, side - w)
+    return torch.stack([top, left], 1)
+
+
 class SynthDataset(torch.utils.data.IterableDataset):
     """The stream for a torch DataLoader with worker processes (``batch_size=None``: the
     stream already batches). Worker w uses seed ``seed + 7919 * w`` and one torch thread: on a
@@ -348,6 +368,8 @@ class SynthStream:
         normals     [B, 3, H, W] unit normals, 0 outside the mask
         masks       [B, 1, H, W] float 0/1
         shapes      list of B source names ("blobby", "lucy", ...)
+        windows     [B, 2] long, only with the ``windows`` option: top-left corner of a random
+                    window around an object pixel (PS-FCN† trains on it; LCNet sees the view)
     The same config (seed included) gives the same batches on the same device.
     """
 
@@ -433,8 +455,7 @@ class SynthStream:
             img.mul_(msk[:, None])
 
         shapes = [self.pool.names[i] for i in crops["slot"].tolist()]
-        self.pool.refresh(b)
-        return {
+        out = {
             "images": img.reshape(b, n, 3, c, c),
             "lights": lights,
             "intensities": ints,
@@ -442,3 +463,7 @@ class SynthStream:
             "masks": msk.reshape(b, 1, c, c),
             "shapes": shapes,
         }
+        if cfg["windows"] is not None:  # drawn here, from the stream's generator: a resume repeats them
+            out["windows"] = object_windows(msk.reshape(b, c * c), c, int(cfg["windows"]), gen)
+        self.pool.refresh(b)
+        return out
