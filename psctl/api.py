@@ -60,6 +60,19 @@ def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, st
                     "scores the lights)")
 
 
+def sdps_decode(method: str, weights: str | os.PathLike | None = None) -> str:
+    """How sdps turns LCNet's classes into lights: the decoding the PS-FCN† file was trained on
+    (its metadata ``lcnet.decode``), so it sees the kind of lights it learned from; argmax (the
+    paper's) for the authors' files and for a calibrated second stage."""
+    from psctl.models.weights import installed_path, read_weights
+
+    if method != "ps-fcn-dagger":
+        return "argmax"
+    path = weights if weights is not None else installed_path(method)
+    lc = read_weights(path).metadata.get("lcnet") if path is not None else None
+    return lc.get("decode", "argmax") if isinstance(lc, dict) else "argmax"
+
+
 def _noop(_: int) -> None:
     pass
 
@@ -186,9 +199,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.infer import array_normals
         from psctl.lights import array_lights
 
-        est = array_lights(images, mask, lcnet, {"device": device})
-        images = images / est.intensities[:, None, None, None]
         second = sdps_second_stage(weights)[0]
+        est = array_lights(images, mask, lcnet, {"device": device, "decode": sdps_decode(second, weights)})
+        images = images / est.intensities[:, None, None, None]
         return array_normals(images, est.directions, mask, second, weights, {"device": device}).normals
     if method in NETWORKS:
         from psctl.infer import array_normals
@@ -256,9 +269,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.infer import capture_normals
         from psctl.lights import capture_lights, light_errors
 
-        est = capture_lights(cap, mask, lcnet, {"device": device}, progress, flag="--lcnet")
-        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
         second = sdps_second_stage(weights)[0]
+        decode = sdps_decode(second, weights)
+        est = capture_lights(cap, mask, lcnet, {"device": device, "decode": decode}, progress, flag="--lcnet")
+        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
         net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
@@ -320,6 +334,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     }
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
+        report["lcnet_decode"] = decode
         report["light_mae"] = light_stats["light_mae"]
         report["intensity_re"] = light_stats["intensity_re"]
 

@@ -336,6 +336,26 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
         del os.environ["PSCTL_WEIGHTS"]
 
 
+def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_weights):
+    from psctl.api import run_normals, sdps_decode
+    from psctl.models.ps_fcn import PSFCN
+
+    write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    save_weights(tmp_path / "soft.pt", PSFCN(), {"method": "ps-fcn-dagger", "train_images": 32,
+                                                 "lcnet": {"decode": "soft"}})
+    assert sdps_decode("ps-fcn-dagger", tmp_path / "soft.pt") == "soft"
+    assert sdps_decode("ps-fcn-n", tmp_path / "soft.pt") == "argmax"  # calibrated second stage: the paper's
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        assert sdps_decode("ps-fcn-dagger") == "argmax"  # the installed (fake) file records none
+        r = run_normals(tmp_path / "aPNG", method="sdps", weights=tmp_path / "soft.pt", write=False, device="cpu")
+        assert r["lcnet_decode"] == "soft"
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+        assert r["lcnet_decode"] == "argmax"
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
 def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_path, fake_weights):
     """LCNet installed, PS-FCN† not: sdps runs PS-FCN+N on LCNet's lights and says so."""
     import shutil
