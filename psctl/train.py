@@ -479,6 +479,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
         if "config" not in saved:
             raise PsctlError(state_file, "records no recipe (a run from an older psctl): cannot resume it safely")
+        # a run started by an older psctl lacks keys added since: they take their defaults
+        # (which reproduce the old behaviour), so it resumes, and compares equal to its recipe
+        saved["config"] = _plain_json(merge(DEFAULT_CONFIG, saved["config"]))
         if config is not None:
             # only the length of the run and its bookkeeping may change on resume
             changed = _recipe_core(config) != _recipe_core(saved["config"])

@@ -60,6 +60,19 @@ def test_resume_keeps_the_runs_recipe(tmp_path):
     assert st["samples"] == 16
 
 
+def test_a_run_from_before_a_new_recipe_key_resumes(tmp_path):
+    """Keys added to the recipe since a run started take their defaults on resume (a real CPU
+    run died with a KeyError when train.init was added)."""
+    cfg = tiny(16)
+    train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
+    state = tmp_path / "run" / "state.json"
+    st = json.loads(state.read_text())
+    del st["config"]["train"]["init"]
+    state.write_text(json.dumps(st))
+    assert train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")["samples"] == 8
+    assert train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
+
+
 def test_merge_keeps_the_recipe_data_section():
     cfg = merge(tiny(), {"data": {"intensities": "random"}})
     assert cfg["data"]["intensities"] == "random" and cfg["data"]["size"] == 64 and cfg["data"]["pool"] == 8
