@@ -408,8 +408,7 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
     from psctl.models.weights import read_weights
 
     w = read_weights(path)
-    if w.kind != ("lcnet" if type(model).__name__ == "LCNet" else "ps-fcn") or \
-            dict(w.metadata.get("architecture", {})) != dict(model.config):
+    if dict(w.metadata.get("architecture", {})) != dict(model.config):  # names the network family too
         raise PsctlError(path, f"train.init: holds {w.method or w.kind} weights with architecture "
                                f"{w.metadata.get('architecture')}; this run's network is {dict(model.config)}")
     model.load_state_dict({k: v.float() for k, v in w.state_dict.items()})
