@@ -493,6 +493,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
     if config is None:
         config = load_config(None)
+    if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
+        raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
+                               f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
     t = config["train"]
     run.mkdir(parents=True, exist_ok=True)
 

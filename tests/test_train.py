@@ -78,6 +78,13 @@ def test_merge_keeps_the_recipe_data_section():
     assert cfg["data"]["intensities"] == "random" and cfg["data"]["size"] == 64 and cfg["data"]["pool"] == 8
 
 
+def test_data_windows_is_refused_outside_ps_fcn_dagger(tmp_path):
+    cfg = tiny(8)
+    with pytest.raises(PsctlError, match="data.windows"):
+        train("ps-fcn-n", merge(cfg, {"data": {"windows": 16}}), tmp_path / "run", device="cpu")
+    assert not (tmp_path / "run").exists()
+
+
 def test_bad_config(tmp_path):
     (tmp_path / "c.yaml").write_text("train: {batchsize: 3}\n")
     with pytest.raises(PsctlError, match="batchsize"):
