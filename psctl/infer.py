@@ -247,7 +247,8 @@ class _RegionImages:
 
 def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
                 normalization: str = "none", train_images: int | None = None, config: dict | None = None,
-                progress: "ProgressFactory | None" = None, label: str = "network") -> InferResult:
+                progress: "ProgressFactory | None" = None, label: str = "network",
+                input_mean: float | None = None) -> InferResult:
     """Normals from a stream of images, memory bounded in N and in the image size.
 
     Args:
@@ -259,6 +260,9 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         normalization: "none", "per-channel" or "per-pixel" (+N).
         train_images: q for the sqrt(t / q) factor of +N.
         config: overrides of DEFAULT_INFER.
+        input_mean: without +N, scale all images by one factor so that their mean over the mask
+            (all images and channels) is this: the exposure the network was trained at
+            (weights metadata ``input_mean``). None: the images as they are.
     Returns:
         InferResult with [H, W, 3] normals (zero outside the mask).
     """
@@ -276,6 +280,10 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
             raise PsctlError(None, f"lights must be [{n}, 3], got {lights.shape}")
     if normalization != "none" and not train_images:
         raise PsctlError(None, "+N normalisation needs the training image count q")
+    if normalization != "none":
+        input_mean = None  # +N removes any global scale
+    elif input_mean is not None and not (math.isfinite(input_mean) and input_mean > 0):
+        raise PsctlError(None, f"input_mean must be a positive number, got {input_mean!r}")
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")
@@ -288,7 +296,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     h, w = box[1] - box[0], box[3] - box[2]
     tiles = plan_tiles(h, w, cfg["tile"], cfg["halo"])
     groups = group_tiles(tiles, cfg["group_mb"] << 20)
-    passes = len(groups) + (normalization != "none")
+    passes = len(groups) + (normalization != "none" or input_mean is not None)
     advance = (progress or (lambda d, t: (lambda k: None)))(label, n * passes)
     stream = _RegionImages(reader, n, box, mask, cfg["cache_mb"] << 20, advance)
 
@@ -304,6 +312,15 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         scale += NORM_EPS
         np.divide(math.sqrt(n / train_images), scale, out=scale)
         del sumsq
+    # exposure, pass 1: one factor for the whole capture (keeps albedo and shading ratios)
+    exposure = None
+    if input_mean is not None:
+        total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
+        mean = total / (float(stream.mask.sum()) * 3 * n)
+        if not mean > 0:
+            raise PsctlError(None, "all images are black inside the mask")
+        exposure = input_mean / mean
+        scale = np.full((1, 1, 1), exposure, np.float32)
 
     out = np.zeros((h, w, 3), np.float32)
     dtype = next(model.parameters()).dtype  # float32; float64 in tests that check exactness
@@ -329,7 +346,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
                     continue
                 xt = torch.from_numpy(np.stack(pending)).to(dtype)  # [c, gh, gw, 3]
                 if scale_t is not None:
-                    xt *= scale_t[gy0:gy1, gx0:gx1]
+                    xt *= scale_t if exposure is not None else scale_t[gy0:gy1, gx0:gx1]
                 lt = None if light_t is None else light_t[k0 : k + 1]
                 for i, t in enumerate(group):
                     oy0, oy1, ox0, ox1 = t.outer
@@ -370,6 +387,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         "chunk": int(chunk_used), "cached_images": len(stream.cache), "normalization": normalization,
         "train_images": train_images, "seconds": round(time.perf_counter() - t_start, 3),
     }
+    if exposure is not None:
+        info["exposure_scale"] = round(exposure, 6)
     return InferResult(normals, dark, info)
 
 
@@ -402,7 +421,8 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
         for k in range(start, n):
             yield images[k][box]
 
-    res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method)
+    res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
+                      run.get("input_mean"))
     res.notes.append(note)
     return res
 
@@ -420,7 +440,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
 
     res = run_network(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
-                      run["train_images"], config, progress, f"{capture.name}: reading + {method}")
+                      run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"))
     res.notes.append(note)
     return res
 

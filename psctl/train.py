@@ -329,6 +329,13 @@ def normals_task(method: str, config: dict, device: torch.device, amp: Callable,
     normalization = config.get("normalization") or spec["normalization"]
     model = PSFCN({**config["model"], "lights": spec["lights"]}).to(device)  # first: it draws the initial weights
     meta: dict = {"normalization": normalization}
+    if normalization == "none":
+        # the stream scales each sample to a mean in data.exposure (log-uniform): inference scales
+        # each capture to the range's centre, so the network sees the brightness it was trained at
+        from psctl.synth.stream import DEFAULT_CONFIG as STREAM_DEFAULTS
+
+        lo, hi = config["data"].get("exposure", STREAM_DEFAULTS["exposure"])
+        meta["input_mean"] = round(math.sqrt(lo * hi), 6)
 
     if method == "ps-fcn-dagger":
         estimator, meta["lcnet"] = frozen_lcnet(config, lcnet, device)

@@ -297,6 +297,48 @@ def test_streaming_equals_all_at_once(normalization):
                                all_at_once_normals(net, images, lights, mask, normalization, 3), atol=1e-4)
 
 
+def test_input_mean_scales_each_capture_to_the_training_exposure():
+    """Without +N: one factor per capture brings its masked mean to input_mean, so the result
+    does not depend on the capture's exposure, and equals feeding pre-scaled images."""
+    images, lights, mask = scene()
+    net = model(double=True)
+
+    def run(x, input_mean):
+        def reader(start, box):
+            for k in range(start, len(x)):
+                yield x[k][box]
+        return run_network(net, reader, len(x), lights, mask, "none", None, {}, None, "t", input_mean)
+
+    base = run(images, 0.2)
+    # (the images are float32 as read: the two scalings round differently)
+    assert np.abs(run(images * 7.5, 0.2).normals - base.normals).max() < 1e-5
+    assert np.abs(run(images * 0.01, 0.2).normals - base.normals).max() < 1e-5
+    # the same as scaling by hand: the mean over the mask, all images and channels
+    factor = 0.2 / images[:, mask].mean(dtype=np.float64)
+    assert base.info["exposure_scale"] == pytest.approx(factor, rel=1e-5)
+    by_hand = run((images * factor).astype(np.float64), None).normals
+    assert np.allclose(base.normals, by_hand, atol=1e-6)
+    # and it matters: without it the network sees other values
+    assert not np.allclose(run(images * 7.5, None).normals, run(images, None).normals, atol=1e-3)
+    assert base.info["passes"] == run(images, None).info["passes"] + 1
+    with pytest.raises(PsctlError, match="black"):
+        run(images * 0, 0.2)
+    with pytest.raises(PsctlError, match="input_mean"):
+        run(images, -1.0)
+
+
+def test_input_mean_in_metadata(tmp_path):
+    net = model()
+    meta = {"method": "ps-fcn", "train_images": 32, "input_mean": 0.2236}
+    w = read_weights(save_weights(tmp_path / "ps_fcn.pt", net, meta))
+    assert build_network(w, "ps-fcn")[1]["input_mean"] == 0.2236
+    w = read_weights(save_weights(tmp_path / "old.pt", net, {"method": "ps-fcn", "train_images": 32}))
+    assert build_network(w, "ps-fcn")[1]["input_mean"] is None  # files from before: images as they are
+    for bad in (0, -0.1, float("nan"), "0.2", True):
+        with pytest.raises(PsctlError, match="input_mean"):
+            save_weights(tmp_path / "x.pt", net, {**meta, "input_mean": bad})
+
+
 def test_mean_fusion_streams_too():
     images, lights, mask = scene(5)
     torch.manual_seed(0)

@@ -32,6 +32,7 @@ def test_tiny_recipe_trains_and_loss_goes_down(tmp_path):
     meta = w.metadata
     assert meta["method"] == "ps-fcn-n" and meta["train_images"] == 8 and meta["normalization"] == "per-channel"
     assert meta["samples_seen"] > 0 and "synthetic_val_mae" in meta["metrics"]
+    assert "input_mean" not in meta  # +N removes the exposure
     assert all(p.stat().st_size < 16 * 2**20 for p in (tmp_path / "run").iterdir())
 
 
@@ -47,6 +48,8 @@ def test_resume_continues_exactly(tmp_path):
     wb = read_weights(tmp_path / "b" / "model.pt").state_dict
     diff = max((wa[k] - wb[k]).abs().max().item() for k in wa)
     assert diff < 1e-5, diff
+    # without +N the file records the exposure it was trained at: the centre of data.exposure
+    assert read_weights(tmp_path / "a" / "model.pt").metadata["input_mean"] == pytest.approx((0.1 * 0.5) ** 0.5, rel=1e-5)
 
 
 def test_resume_keeps_the_runs_recipe(tmp_path):

@@ -11,6 +11,7 @@ psctl's format, a ``torch.save`` of plain containers, read with ``torch.load(wei
      "state_dict": {parameter name: tensor},
      "metadata": {"method": "ps-fcn-n", "architecture": {PSFCN config},
                   "normalization": "per-channel", "train_images": q,
+                  "input_mean": m (without +N: the mean observation it was trained at),
                   "recipe": {...}, "data": ..., "date": "...", "metrics": {...}, ...}}
 
 The authors' release format, ``*.pth.tar`` = ``{"state_dict": ..., "model": "PS_FCN"}``, loads too
@@ -26,6 +27,7 @@ PS-FCN's keys and runs as ``ps-fcn-dagger``.
 from __future__ import annotations
 
 import datetime
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -197,6 +199,9 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
     q = meta.get("train_images")
     if not isinstance(q, int) or isinstance(q, bool) or q < 1:
         raise PsctlError(path, f"metadata 'train_images' (q, images per training sample) must be a positive integer, got {q!r}")
+    im = meta.get("input_mean")
+    if im is not None and (isinstance(im, bool) or not isinstance(im, (int, float)) or not math.isfinite(im) or im <= 0):
+        raise PsctlError(path, f"metadata 'input_mean' must be a positive number, got {im!r}")
     if method not in NETWORK_METHODS:  # lcnet: no lights input, no +N
         if norm != "none":
             raise PsctlError(path, f"metadata says {method} with normalization {norm!r}; it has none")
@@ -209,7 +214,10 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
 
 
 def for_method(weights: Weights, method: str) -> dict:
-    """How to run ``weights`` as ``method``: {"normalization", "train_images", "architecture"}.
+    """How to run ``weights`` as ``method``: {"normalization", "train_images", "architecture", "input_mean"}.
+
+    ``input_mean`` (our files without +N): the mean observation the network was trained at;
+    inference scales each capture to it. None for the authors' files and for +N.
 
     Our files must match the method they were trained for; the authors' files take the
     normalisation from the method (they do not record it).
@@ -234,7 +242,7 @@ def for_method(weights: Weights, method: str) -> dict:
         raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use "
                                        f"{use.get(weights.method, f'--method {weights.method}')} (or --method auto)")
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
-            "architecture": dict(weights.metadata["architecture"])}
+            "architecture": dict(weights.metadata["architecture"]), "input_mean": weights.metadata.get("input_mean")}
 
 
 def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
