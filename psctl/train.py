@@ -68,7 +68,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "channels_last": True,
         "init": None,  # a weights file of the same network to start from (fine-tuning); None: random
     },
-    "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16},
+    # val.data: stream options that differ from the recipe's data for validation only (e.g.
+    # {lights: diligent}: select checkpoints under the narrow light cone of real captures)
+    "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16, "data": {}},
     "lcnet": {  # LCNet: the network trained by `train lcnet`, or the frozen one of `train ps-fcn-dagger`
         "dirs_cls": 36,  # azimuth / elevation classes
         "ints_cls": 20,  # intensity classes
@@ -428,8 +430,8 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
 def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
     """A fixed synthetic validation set: training-distribution shapes and materials, a held-out seed."""
     v = cfg["val"]
-    stream = make_stream(cfg["data"], batch_size=v["batch_size"], images=v["images"], crop=v["size"],
-                         seed=v["seed"], device=device)
+    stream = make_stream({**cfg["data"], **(v.get("data") or {})}, batch_size=v["batch_size"], images=v["images"],
+                         crop=v["size"], seed=v["seed"], device=device)
     with torch.no_grad():
         return [task.val_item(stream.next_batch()) for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
 
@@ -503,6 +505,11 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
+    if make_stream is synth_stream:  # bad stream options fail here, before the run folder exists
+        from psctl.synth.stream import make_config
+
+        make_config(config["data"])
+        make_config({**config["data"], **(config["val"].get("data") or {})})
     t = config["train"]
     run.mkdir(parents=True, exist_ok=True)
 

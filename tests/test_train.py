@@ -88,6 +88,25 @@ def test_data_windows_is_refused_outside_ps_fcn_dagger(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_val_data_changes_the_validation_stream_only(tmp_path):
+    from psctl.train import synth_stream
+
+    seen = []
+
+    def recording(data, **kw):
+        seen.append((kw["seed"], dict(data)))
+        return synth_stream(data, **kw)
+
+    cfg = merge(tiny(8), {"val": {"data": {"lights": "diligent"}}})
+    train("ps-fcn", cfg, tmp_path / "run", device="cpu", make_stream=recording)
+    val_seed = cfg["val"]["seed"]
+    assert [d.get("lights") for s, d in seen if s == val_seed] == ["diligent"]
+    assert all(d.get("lights") != "diligent" for s, d in seen if s != val_seed) and len(seen) == 2
+    with pytest.raises(PsctlError, match="unknown synth stream option"):
+        train("ps-fcn", merge(tiny(8), {"val": {"data": {"light": "diligent"}}}), tmp_path / "bad", device="cpu")
+    assert not (tmp_path / "bad").exists()  # refused before anything is written
+
+
 def test_bad_config(tmp_path):
     (tmp_path / "c.yaml").write_text("train: {batchsize: 3}\n")
     with pytest.raises(PsctlError, match="batchsize"):
