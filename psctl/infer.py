@@ -406,6 +406,12 @@ def _prepare_network(method: str, weights: str | Path | None, config: dict | Non
     return model, run, note
 
 
+def _note_exposure(res: InferResult, method: str, input_mean: float | None) -> None:
+    if "exposure_scale" in res.info:
+        res.notes.append(f"{method}: images scaled by {res.info['exposure_scale']:.4g} to the mean brightness "
+                         f"the network was trained at ({input_mean:.3g})")
+
+
 def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None, method: str,
                   weights: str | Path | None = None, config: dict | None = None,
                   progress: "ProgressFactory | None" = None) -> InferResult:
@@ -424,6 +430,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
                       run.get("input_mean"))
     res.notes.append(note)
+    _note_exposure(res, method, run.get("input_mean"))
     return res
 
 
@@ -442,6 +449,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     res = run_network(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                       run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"))
     res.notes.append(note)
+    _note_exposure(res, method, run.get("input_mean"))
     return res
 
 

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from psctl.errors import PsctlError
-from psctl.infer import all_at_once_normals, crop_region, plan_tiles, run_network
+from psctl.infer import all_at_once_normals, array_normals, crop_region, plan_tiles, run_network
 from psctl.models.ps_fcn import HALO, RECEPTIVE_RADIUS, PSFCN, count_parameters, normalize_observations
 from psctl.models.weights import build_network, check_state_dict, read_weights, save_weights
 from tests.conftest import hemisphere_lights, render_lambertian, sphere, write_capture
@@ -332,6 +332,9 @@ def test_input_mean_in_metadata(tmp_path):
     meta = {"method": "ps-fcn", "train_images": 32, "input_mean": 0.2236}
     w = read_weights(save_weights(tmp_path / "ps_fcn.pt", net, meta))
     assert build_network(w, "ps-fcn")[1]["input_mean"] == 0.2236
+    images, lights, mask = scene(4, 16, 16)
+    res = array_normals(images, lights, mask, "ps-fcn", tmp_path / "ps_fcn.pt", {"device": "cpu"})
+    assert res.info["exposure_scale"] > 0 and any("scaled by" in n and "0.224" in n for n in res.notes)
     w = read_weights(save_weights(tmp_path / "old.pt", net, {"method": "ps-fcn", "train_images": 32}))
     assert build_network(w, "ps-fcn")[1]["input_mean"] is None  # files from before: images as they are
     for bad in (0, -0.1, float("nan"), "0.2", True):
