@@ -9,7 +9,8 @@ random inputs shaped like the paper's training samples (--images images of --siz
 samples per second, for each precision and memory format. The data stream is not included
 (benchmarks/bench_synth.py measures it); `psctl train`'s log.jsonl gives the end-to-end rate.
 bf16 runs on CUDA and on CPUs with native bf16 (AVX512-BF16 or AMX); elsewhere it is skipped.
-The script prints the load average: wall-clock numbers are only as good as the machine is quiet.
+On a CPU it first calls psctl.train.keep_freed_memory, as `psctl train` does (--malloc default:
+glibc's own behaviour, for comparison). The script prints the load average: wall-clock numbers are only as good as the machine is quiet.
 """
 
 from __future__ import annotations
@@ -88,16 +89,20 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--malloc", choices=["keep", "default"], default="keep",
+                    help="keep: glibc keeps freed memory, as psctl train does on a CPU (keep_freed_memory)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    from psctl.train import amp_settings
+    from psctl.train import amp_settings, keep_freed_memory
+
+    kept = args.malloc == "keep" and keep_freed_memory()
 
     device = torch.device(args.device)
     has_bf16 = amp_settings("bf16", device)[0]
     out = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
            "threads": torch.get_num_threads(), "torch": torch.__version__, "device": str(device),
-           "net": args.net, "batch": args.batch, "images": args.images, "size": args.size,
+           "net": args.net, "batch": args.batch, "images": args.images, "size": args.size, "keep_freed_memory": kept,
            "loadavg_before": os.getloadavg()[0], "samples_per_s": {}}
     if device.type == "cuda":
         out["gpu"] = torch.cuda.get_device_name(device)

@@ -263,6 +263,31 @@ def _portable(path: str | os.PathLike) -> str:
         return str(p)
 
 
+def keep_freed_memory() -> bool:
+    """Ask glibc's malloc to keep freed memory for reuse instead of returning it to the kernel.
+
+    Each CPU training step allocates and frees activations of hundreds of MB; by default glibc
+    maps such blocks fresh every time (mmap) and gives them back (munmap), so the kernel zeroes
+    every page again: on the 2-core VM that was about 110,000 page faults per second and 30-40 %
+    of the CPU time in the kernel (docs/performance.md). Raising the mmap and trim thresholds
+    makes the heap keep the memory: the process stays at its peak size, which training reaches
+    anyway. Returns False (and changes nothing) where the C library is not glibc.
+    """
+    import ctypes
+    import ctypes.util
+    import platform
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # <malloc.h>
+    big = ctypes.c_int(2**30)  # mallopt takes an int: 1 GiB, above any single activation here
+    return bool(libc.mallopt(M_MMAP_THRESHOLD, big)) and bool(libc.mallopt(M_TRIM_THRESHOLD, big))
+
+
 def lr_at(samples: int, cfg: dict) -> float:
     t = cfg["train"]
     return t["lr"] * 0.5 ** (samples // max(1, t["lr_halve_every"]))
@@ -475,6 +500,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if lcnet is not None and method != "ps-fcn-dagger":
         raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
     dev = pick_device(device)
+    if dev.type == "cpu":
+        keep_freed_memory()  # about 20 % faster CPU steps (see keep_freed_memory)
     run = Path(run_dir)
     state_file = run / "state.json"
     if resume and not state_file.is_file():
