@@ -12,6 +12,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "estimate_normals": "psctl.api",
+    "estimate_lights": "psctl.api",
     "run_normals": "psctl.api",
     "integrate_normals": "psctl.depth",
     "run_lights": "psctl.lights",

@@ -154,6 +154,32 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     return method, None
 
 
+def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
+                    decode: str = "argmax", device: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Light directions and relative intensities from arrays (LCNet, uncalibrated).
+
+    Args:
+        images: [N, H, W, 3] (or [N, H, W] grey) linear images as captured, not divided by any
+            light intensity.
+        mask: [H, W] bool, the object (None: the whole image).
+        weights: an LCNet weights file (default: the installed weights/lcnet.pt).
+        decode: "argmax" (the paper's: bin centres) or "soft" (soft-argmax over the classes).
+        device: auto | cpu | cuda.
+    Returns:
+        directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
+        intensities [N] float32 (relative: LCNet's scale, in [0.2, 2.0]).
+    """
+    from psctl.lights import array_lights
+
+    images = np.asarray(images, np.float32)
+    if not np.isfinite(images).all():
+        raise PsctlError(None, "images contain NaN or infinite values")
+    if mask is not None and not np.asarray(mask, bool).any():
+        raise PsctlError(None, "mask is empty")
+    est = array_lights(images, mask, weights, {"device": device, "decode": decode})
+    return est.directions, est.intensities
+
+
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None) -> np.ndarray:
