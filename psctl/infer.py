@@ -248,7 +248,7 @@ class _RegionImages:
 def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
                 normalization: str = "none", train_images: int | None = None, config: dict | None = None,
                 progress: "ProgressFactory | None" = None, label: str = "network",
-                input_mean: float | None = None) -> InferResult:
+                input_mean: float | None = None, input_clip: float | None = None) -> InferResult:
     """Normals from a stream of images, memory bounded in N and in the image size.
 
     Args:
@@ -263,6 +263,9 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         input_mean: without +N, scale all images by one factor so that their mean over the mask
             (all images and channels) is this: the exposure the network was trained at
             (weights metadata ``input_mean``). None: the images as they are.
+        input_clip: with ``input_mean``, clip the scaled images at this value: the sensor
+            saturation of the training data (the recipe's ``data.clip``), so highlights scaled
+            far above it look as they did in training. None: no clipping.
     Returns:
         InferResult with [H, W, 3] normals (zero outside the mask).
     """
@@ -284,6 +287,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         input_mean = None  # +N removes any global scale
     elif input_mean is not None and not (math.isfinite(input_mean) and input_mean > 0):
         raise PsctlError(None, f"input_mean must be a positive number, got {input_mean!r}")
+    if input_clip is not None and not (math.isfinite(input_clip) and input_clip > 0):
+        raise PsctlError(None, f"input_clip must be a positive number, got {input_clip!r}")
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")
@@ -347,6 +352,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
                 xt = torch.from_numpy(np.stack(pending)).to(dtype)  # [c, gh, gw, 3]
                 if scale_t is not None:
                     xt *= scale_t if exposure is not None else scale_t[gy0:gy1, gx0:gx1]
+                if exposure is not None and input_clip is not None:
+                    xt.clamp_(max=input_clip)
                 lt = None if light_t is None else light_t[k0 : k + 1]
                 for i, t in enumerate(group):
                     oy0, oy1, ox0, ox1 = t.outer
@@ -428,7 +435,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
             yield images[k][box]
 
     res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
-                      run.get("input_mean"))
+                      run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
     _note_exposure(res, method, run.get("input_mean"))
     return res
@@ -447,7 +454,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
 
     res = run_network(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
-                      run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"))
+                      run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"),
+                      run.get("input_clip"))
     res.notes.append(note)
     _note_exposure(res, method, run.get("input_mean"))
     return res

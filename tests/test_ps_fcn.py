@@ -327,11 +327,38 @@ def test_input_mean_scales_each_capture_to_the_training_exposure():
         run(images, -1.0)
 
 
+def test_input_clip_saturates_scaled_highlights_as_training_did():
+    """The training stream clips each sample at 1 after scaling it to its exposure; a dark capture
+    with a bright highlight, scaled up to input_mean, must be clipped the same way."""
+    images, lights, mask = scene()
+    images = images * 0.05
+    images[:, 10:14, 20:24] = 1.0  # highlights: far above 1 once the capture is scaled up
+    net = model(double=True)
+
+    def run(x, input_mean, input_clip):
+        def reader(start, box):
+            for k in range(start, len(x)):
+                yield x[k][box]
+        return run_network(net, reader, len(x), lights, mask, "none", None, {}, None, "t", input_mean, input_clip)
+
+    clipped = run(images, 0.2, 1.0)
+    factor = clipped.info["exposure_scale"]
+    assert factor > 2
+    by_hand = run(np.minimum(images.astype(np.float64) * factor, 1.0), None, None).normals
+    assert np.allclose(clipped.normals, by_hand, atol=1e-6)
+    assert not np.allclose(run(images, 0.2, None).normals, by_hand, atol=1e-3)
+    with pytest.raises(PsctlError, match="input_clip"):
+        run(images, 0.2, 0.0)
+
+
 def test_input_mean_in_metadata(tmp_path):
     net = model()
     meta = {"method": "ps-fcn", "train_images": 32, "input_mean": 0.2236}
     w = read_weights(save_weights(tmp_path / "ps_fcn.pt", net, meta))
     assert build_network(w, "ps-fcn")[1]["input_mean"] == 0.2236
+    assert build_network(w, "ps-fcn")[1]["input_clip"] == 1.0  # the stream's default sensor saturation
+    w2 = read_weights(save_weights(tmp_path / "noclip.pt", net, {**meta, "recipe": {"data": {"clip": None}}}))
+    assert build_network(w2, "ps-fcn")[1]["input_clip"] is None
     images, lights, mask = scene(4, 16, 16)
     res = array_normals(images, lights, mask, "ps-fcn", tmp_path / "ps_fcn.pt", {"device": "cpu"})
     assert res.info["exposure_scale"] > 0 and any("scaled by" in n and "0.224" in n for n in res.notes)

@@ -214,10 +214,12 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
 
 
 def for_method(weights: Weights, method: str) -> dict:
-    """How to run ``weights`` as ``method``: {"normalization", "train_images", "architecture", "input_mean"}.
+    """How to run ``weights`` as ``method``: {"normalization", "train_images", "architecture", "input_mean",
+    "input_clip"}.
 
     ``input_mean`` (our files without +N): the mean observation the network was trained at;
-    inference scales each capture to it. None for the authors' files and for +N.
+    inference scales each capture to it, then clips at ``input_clip`` (the training data's sensor
+    saturation, the recipe's ``data.clip``). None for the authors' files and for +N.
 
     Our files must match the method they were trained for; the authors' files take the
     normalisation from the method (they do not record it).
@@ -241,8 +243,14 @@ def for_method(weights: Weights, method: str) -> dict:
         use = {"ps-fcn-dagger": "--method sdps (with --weights)", "lcnet": "psctl lights, or --lcnet with --method sdps"}
         raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use "
                                        f"{use.get(weights.method, f'--method {weights.method}')} (or --method auto)")
+    input_mean = weights.metadata.get("input_mean")
+    # the training stream clipped each sample at the sensor level after scaling it to its
+    # exposure (synth.stream "clip", default 1.0): scaled captures are clipped the same way
+    data = (weights.metadata.get("recipe") or {}).get("data") or {}
+    clip = data.get("clip", 1.0) if input_mean is not None else None
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
-            "architecture": dict(weights.metadata["architecture"]), "input_mean": weights.metadata.get("input_mean")}
+            "architecture": dict(weights.metadata["architecture"]), "input_mean": input_mean,
+            "input_clip": float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None}
 
 
 def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
