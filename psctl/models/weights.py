@@ -246,8 +246,9 @@ def for_method(weights: Weights, method: str) -> dict:
     input_mean = weights.metadata.get("input_mean")
     # the training stream clipped each sample at the sensor level after scaling it to its
     # exposure (synth.stream "clip", default 1.0): scaled captures are clipped the same way
-    data = (weights.metadata.get("recipe") or {}).get("data") or {}
-    clip = data.get("clip", 1.0) if input_mean is not None else None
+    recipe = weights.metadata.get("recipe")
+    data = recipe.get("data") if isinstance(recipe, dict) else None
+    clip = (data.get("clip", 1.0) if isinstance(data, dict) else 1.0) if input_mean is not None else None
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
             "architecture": dict(weights.metadata["architecture"]), "input_mean": input_mean,
             "input_clip": float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None}
