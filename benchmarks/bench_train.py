@@ -10,7 +10,8 @@ samples per second, for each precision and memory format. The data stream is not
 (benchmarks/bench_synth.py measures it); `psctl train`'s log.jsonl gives the end-to-end rate.
 bf16 runs on CUDA and on CPUs with native bf16 (AVX512-BF16 or AMX); elsewhere it is skipped.
 On a CPU it first calls psctl.train.keep_freed_memory, as `psctl train` does (--malloc default:
-glibc's own behaviour, for comparison). The script prints the load average: wall-clock numbers are only as good as the machine is quiet.
+glibc's own behaviour, for comparison). The script prints the load average: wall-clock numbers
+are only as good as the machine is quiet.
 """
 
 from __future__ import annotations

@@ -171,11 +171,6 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     """
     from psctl.lights import array_lights
 
-    images = np.asarray(images, np.float32)
-    if not np.isfinite(images).all():
-        raise PsctlError(None, "images contain NaN or infinite values")
-    if mask is not None and not np.asarray(mask, bool).any():
-        raise PsctlError(None, "mask is empty")
     est = array_lights(images, mask, weights, {"device": device, "decode": decode})
     return est.directions, est.intensities
 

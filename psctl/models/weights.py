@@ -244,14 +244,18 @@ def for_method(weights: Weights, method: str) -> dict:
         raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use "
                                        f"{use.get(weights.method, f'--method {weights.method}')} (or --method auto)")
     input_mean = weights.metadata.get("input_mean")
-    # the training stream clipped each sample at the sensor level after scaling it to its
-    # exposure (synth.stream "clip", default 1.0): scaled captures are clipped the same way
-    recipe = weights.metadata.get("recipe")
-    data = recipe.get("data") if isinstance(recipe, dict) else None
-    clip = (data.get("clip", 1.0) if isinstance(data, dict) else 1.0) if input_mean is not None else None
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
             "architecture": dict(weights.metadata["architecture"]), "input_mean": input_mean,
-            "input_clip": float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None}
+            "input_clip": None if input_mean is None else _training_clip(weights.metadata)}
+
+
+def _training_clip(meta: dict) -> float | None:
+    """The sensor level the training stream clipped each exposure-scaled sample at (the recipe's
+    ``data.clip``, the stream's default 1.0); None: the recipe did not clip."""
+    recipe = meta.get("recipe")
+    data = recipe.get("data") if isinstance(recipe, dict) else None
+    clip = data.get("clip", 1.0) if isinstance(data, dict) else 1.0
+    return float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None
 
 
 def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
