@@ -112,6 +112,31 @@ def test_noise_and_quantisation():
     assert q[0] == 0 and q[2] == 1 and abs(float(q[1]) * 65535 - round(0.3 * 65535)) < 1e-3
 
 
+def test_ambient_term_lifts_shadows_by_a_times_albedo():
+    """Real shadows are rarely black; the stream's ``ambient`` option adds a * kD to every image."""
+    sp = sphere_gbuffer(32)
+    n = sp.normals.reshape(1, 3, -1)
+    lights = torch.tensor([[[0.6, 0.0, 0.8]]])
+    kd = torch.tensor([[0.5, 0.4, 0.3]])
+    mat = M.lambertian(kd)
+    plain = R.shade(n, lights, mat)
+    lifted = R.shade(n, lights, mat, ambient=torch.tensor([0.01]))
+    obj = sp.mask.reshape(-1)
+    dark = obj & (torch.einsum("bcp,bnc->bnp", n, lights)[0, 0] < 0)
+    assert dark.any() and (plain[0, 0][:, dark] == 0).all()
+    assert torch.allclose(lifted - plain, (0.01 * kd)[:, None, :, None] * obj, atol=1e-7)
+
+
+def test_stream_ambient_option_leaves_no_black_shadow():
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "noise": 0.0, "texture": 0.0, "blend": 0.0, "materials": {"lambert": 1.0}}
+    for amb, black in ((0.0, True), (0.02, False)):
+        b = SynthStream({**cfg, "ambient": amb}, seed=2).next_batch()
+        m = b["masks"].bool()[:, None].expand_as(b["images"])
+        assert ((b["images"][m] == 0).any()) == black, amb
+
+
 # --- materials --------------------------------------------------------------------------------
 
 
