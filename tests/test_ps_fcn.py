@@ -359,6 +359,9 @@ def test_input_mean_in_metadata(tmp_path):
     assert build_network(w, "ps-fcn")[1]["input_clip"] == 1.0  # the stream's default sensor saturation
     w2 = read_weights(save_weights(tmp_path / "noclip.pt", net, {**meta, "recipe": {"data": {"clip": None}}}))
     assert build_network(w2, "ps-fcn")[1]["input_clip"] is None
+    # random intensities: images were divided by them after the clip, so no level bounds them
+    w3 = read_weights(save_weights(tmp_path / "rand.pt", net, {**meta, "recipe": {"data": {"intensities": "random"}}}))
+    assert build_network(w3, "ps-fcn")[1]["input_clip"] is None
     images, lights, mask = scene(4, 16, 16)
     res = array_normals(images, lights, mask, "ps-fcn", tmp_path / "ps_fcn.pt", {"device": "cpu"})
     assert res.info["exposure_scale"] > 0 and any("scaled by" in n and "0.224" in n for n in res.notes)

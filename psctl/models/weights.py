@@ -251,9 +251,13 @@ def for_method(weights: Weights, method: str) -> dict:
 
 def _training_clip(meta: dict) -> float | None:
     """The sensor level the training stream clipped each exposure-scaled sample at (the recipe's
-    ``data.clip``, the stream's default 1.0); None: the recipe did not clip."""
+    ``data.clip``, the stream's default 1.0); None: the recipe did not clip, or drew random light
+    intensities (the network then saw each image divided by its intensity after the clip, so no
+    single level bounds its inputs)."""
     recipe = meta.get("recipe")
     data = recipe.get("data") if isinstance(recipe, dict) else None
+    if isinstance(data, dict) and data.get("intensities", "unit") != "unit":
+        return None
     clip = data.get("clip", 1.0) if isinstance(data, dict) else 1.0
     return float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None
 
