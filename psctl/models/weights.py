@@ -256,9 +256,11 @@ def _training_clip(meta: dict) -> float | None:
     single level bounds its inputs)."""
     recipe = meta.get("recipe")
     data = recipe.get("data") if isinstance(recipe, dict) else None
-    if isinstance(data, dict) and data.get("intensities", "unit") != "unit":
+    if not isinstance(data, dict):
+        return 1.0
+    if data.get("intensities", "unit") != "unit":
         return None
-    clip = data.get("clip", 1.0) if isinstance(data, dict) else 1.0
+    clip = data.get("clip", 1.0)
     return float(clip) if isinstance(clip, (int, float)) and not isinstance(clip, bool) else None
 
 
