@@ -256,6 +256,23 @@ def test_lights():
         L.sample_lights((3,), g, "sideways")
 
 
+def test_lights_cone_range_is_drawn_per_sample():
+    d = L.sample_lights((400, 300), gen(), "hemisphere", (40.0, 90.0))
+    widest = torch.rad2deg(torch.acos(d[..., 2].clamp(-1, 1))).amax(dim=1)  # [400] per sample
+    assert widest.min() >= 30 and widest.max() <= 90 + 1e-3
+    # each sample fills its own cone: narrow and wide ones both occur, spread over [40, 90]
+    assert (widest < 50).float().mean() > 0.1 and (widest > 80).float().mean() > 0.1
+    assert abs(widest.median().item() - 65) < 6
+    assert L.zenith_band("hemisphere", [40, 90]) == (0.0, 90.0)
+    for bad in ([90, 40], [0, 90], [40], [40, 95]):
+        with pytest.raises(PsctlError):
+            L.zenith_band("hemisphere", bad)
+    from psctl.synth import stream
+
+    with pytest.raises(PsctlError):  # the stream validates the option too
+        stream.make_config(max_zenith=[95, 99])
+
+
 # --- geometry ---------------------------------------------------------------------------------
 
 

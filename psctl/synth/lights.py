@@ -7,11 +7,17 @@ a band of zenith angles (angle from the view direction +z):
     diligent    0 .. 45 degrees (DiLiGenT's 96 lights span 4.2 .. 43.8 degrees of zenith)
     poles       0 .. 30 degrees (lights near the view direction)
     equator     60 .. 90 degrees (grazing lights near the horizon of the hemisphere)
+
+``max_zenith`` may also be a range (a, b): each sample (all but the last axis of ``shape``)
+then draws its own cone, max zenith uniform in [a, b], and its lights fill that cone. Real
+rigs differ in how wide their lights spread (DiLiGenT's stay within 44 degrees of the view
+axis); a network that infers the lights from the images alone sees narrow and wide rigs.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -22,11 +28,16 @@ DISTRIBUTIONS = {"hemisphere": (0.0, 90.0), "diligent": (0.0, 45.0), "poles": (0
 INTENSITY_RANGE = (0.2, 2.0)
 
 
-def zenith_band(distribution: str, max_zenith: float | None = None) -> tuple[float, float]:
-    """(min, max) zenith in degrees of a named distribution; ``max_zenith`` overrides the max."""
+def zenith_band(distribution: str, max_zenith: float | Sequence[float] | None = None) -> tuple[float, float]:
+    """(min, max) zenith in degrees of a named distribution; ``max_zenith`` overrides the max
+    (for a range (a, b), the widest band: (min, b), after checking that a > min)."""
     if distribution not in DISTRIBUTIONS:
         raise PsctlError(None, f"unknown light distribution {distribution!r}; choose from {', '.join(DISTRIBUTIONS)}")
     lo, hi = DISTRIBUTIONS[distribution]
+    if isinstance(max_zenith, (list, tuple)):
+        if len(max_zenith) != 2 or not lo < float(max_zenith[0]) <= float(max_zenith[1]):
+            raise PsctlError(None, f"max_zenith range must be (a, b) with {lo} < a <= b, got {list(max_zenith)}")
+        max_zenith = max_zenith[1]
     if max_zenith is not None:
         hi = float(max_zenith)
     if not 0.0 <= lo < hi <= 90.0:
@@ -35,11 +46,18 @@ def zenith_band(distribution: str, max_zenith: float | None = None) -> tuple[flo
 
 
 def sample_lights(shape: tuple[int, ...], gen: torch.Generator, distribution: str = "hemisphere",
-                  max_zenith: float | None = None) -> Tensor:
-    """[*shape, 3] unit light directions, uniform by area over the distribution's zenith band."""
+                  max_zenith: float | Sequence[float] | None = None) -> Tensor:
+    """[*shape, 3] unit light directions, uniform by area over the distribution's zenith band
+    (per sample, over ``shape[:-1]``, when ``max_zenith`` is a range)."""
     lo, hi = zenith_band(distribution, max_zenith)
     dev = gen.device
-    zmin, zmax = math.cos(math.radians(hi)), math.cos(math.radians(lo))
+    zmax = math.cos(math.radians(lo))
+    if isinstance(max_zenith, (list, tuple)):
+        a, b = (math.radians(float(v)) for v in max_zenith)
+        cone = a + (b - a) * torch.rand((*shape[:-1], 1), generator=gen, device=dev)
+        zmin = torch.cos(cone)
+    else:
+        zmin = math.cos(math.radians(hi))
     z = zmin + (zmax - zmin) * torch.rand(shape, generator=gen, device=dev)
     phi = 2 * math.pi * torch.rand(shape, generator=gen, device=dev)
     r = (1.0 - z * z).clamp_min(0.0).sqrt()
