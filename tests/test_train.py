@@ -188,3 +188,14 @@ def test_keep_freed_memory_reuses_pages_instead_of_faulting_them_in_again():
     pages = (60 << 22) // 4096
     assert int(run("default")) > pages // 2  # the default really faults (else the test proves nothing)
     assert int(kept) < pages // 20
+
+
+@pytest.mark.parametrize("recipe", sorted(p.name for p in (REPO / "configs").glob("*.yaml")))
+def test_shipped_recipes_load_and_their_data_validate(recipe):
+    """Every recipe in configs/ parses, has only known keys, and its data section is a valid
+    stream config (a typo in a GPU recipe would otherwise surface only on the GPU)."""
+    from psctl.synth.stream import make_config
+
+    cfg = load_config(REPO / "configs" / recipe)
+    data = make_config(cfg["data"], crop=cfg["train"]["crop"])
+    assert data["n_images"] > 0 and cfg["train"]["samples"] > 0
