@@ -27,8 +27,10 @@ NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weigh
 # estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); see psctl/lights.py.
 SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light_directions.txt only scores the lights)"
 # sdps's second stage, in order of preference: PS-FCN† was trained on LCNet's lights (the
-# paper's choice); without it, a calibrated network runs on the estimated lights instead.
-SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn-n", "ps-fcn")
+# paper's choice); without it, a calibrated network runs on the estimated lights instead, PS-FCN
+# before PS-FCN+N (on LCNet's lights it measured better on syntest and the dev split with every
+# LCNet so far; weights/README.md).
+SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")
 _SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
 
 
@@ -36,7 +38,7 @@ def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, st
     """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
 
     ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
-    None: the first installed of PS-FCN†, PS-FCN+N, PS-FCN. Raises when there is none.
+    None: the first installed of PS-FCN†, PS-FCN, PS-FCN+N. Raises when there is none.
     """
     from psctl.models.weights import installed_path, no_weights_error, read_weights
 

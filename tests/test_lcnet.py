@@ -397,6 +397,22 @@ def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_pa
         del os.environ["PSCTL_WEIGHTS"]
 
 
+def test_sdps_prefers_ps_fcn_dagger_then_ps_fcn_then_ps_fcn_n(tmp_path):
+    from psctl.api import sdps_second_stage
+
+    folder = tmp_path / "w"
+    folder.mkdir()
+    os.environ["PSCTL_WEIGHTS"] = str(folder)
+    try:
+        for name, want in (("ps_fcn_n.pt", "ps-fcn-n"), ("ps_fcn.pt", "ps-fcn"), ("ps_fcn_dagger.pt", "ps-fcn-dagger")):
+            save_weights(folder / name, PSFCN(), {"method": want, "train_images": 32})
+            method, note = sdps_second_stage()
+            assert method == want, name
+            assert ("not installed" in note) == (want != "ps-fcn-dagger")
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
 def test_lights_help_imports_nothing_heavy():
     code = ("import sys\nfrom psctl.cli import main\nsys.argv = ['psctl', 'lights', '--help']\n"
             "try:\n    main()\nexcept SystemExit:\n    pass\n"

@@ -68,9 +68,12 @@ def test_release_lcnet_finds_the_lights(scene):
 def test_release_sdps_solves_a_sphere_without_lights(scene):
     from psctl.api import estimate_normals
 
+    from psctl.api import sdps_second_stage
+
     release("lcnet.pt")
+    second = sdps_second_stage()[0]  # the installed second stage, as `psctl normals -m sdps` picks it
     images, _, normals, mask = scene
-    est = estimate_normals(images, None, mask, method="sdps", weights=release("ps_fcn_dagger.pt"),
+    est = estimate_normals(images, None, mask, method="sdps", weights=release(file_name(second)),
                            lcnet=WEIGHTS / "lcnet.pt", device="cpu")
     assert angular_error(est, normals, mask).mean() < 15.0
 
