@@ -163,7 +163,7 @@ def lights(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
     out: OutDir = None,
     weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
-    decode: Annotated[str, typer.Option(help="argmax (class centres, the paper) | soft (soft-argmax).")] = "argmax",
+    decode: Annotated[str, typer.Option(help="soft (soft-argmax) | argmax (class centres, the paper).")] = "soft",
     images: Images = None,
     seed: Seed = None,
     device: DeviceOpt = "auto",

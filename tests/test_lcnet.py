@@ -344,7 +344,8 @@ def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_wei
     save_weights(tmp_path / "soft.pt", PSFCN(), {"method": "ps-fcn-dagger", "train_images": 32,
                                                  "lcnet": {"decode": "soft"}})
     assert sdps_decode("ps-fcn-dagger", tmp_path / "soft.pt") == "soft"
-    assert sdps_decode("ps-fcn-n", tmp_path / "soft.pt") == "argmax"  # calibrated second stage: the paper's
+    assert sdps_decode("ps-fcn-n", tmp_path / "soft.pt") == "soft"  # calibrated: continuous lights
+    assert sdps_decode("ps-fcn") == "soft"
     os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
     try:
         assert sdps_decode("ps-fcn-dagger") == "argmax"  # the installed (fake) file records none
