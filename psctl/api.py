@@ -76,6 +76,16 @@ def sdps_decode(method: str, weights: str | os.PathLike | None = None) -> str:
     return lc.get("decode", "argmax") if isinstance(lc, dict) else "argmax"
 
 
+def sdps_lcnet_config(method: str, weights: str | os.PathLike | None, device: str) -> dict:
+    """LCNet options for sdps (psctl.lights.DEFAULT_LIGHTS): the decoding of ``sdps_decode``;
+    with argmax (a PS-FCN† trained on bin-centre lights, or the authors' file) one view, so that
+    the second stage still gets bin centres; otherwise the default symmetric views."""
+    from psctl.lights import DEFAULT_LIGHTS
+
+    decode = sdps_decode(method, weights)
+    return {"device": device, "decode": decode, "views": 1 if decode == "argmax" else DEFAULT_LIGHTS["views"]}
+
+
 def _noop(_: int) -> None:
     pass
 
@@ -158,7 +168,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
-                    decode: str = "soft", device: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+                    decode: str = "soft", device: str = "auto", views: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -168,13 +178,16 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
         device: auto | cpu | cuda.
+        views: symmetric views averaged, 1, 2, 4 or 8 (the default: the images turned and
+            mirrored about the view axis, estimates turned back and averaged; 1 is the paper's
+            single pass; docs/uncalibrated.md).
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative: LCNet's scale, in [0.2, 2.0]).
     """
     from psctl.lights import array_lights
 
-    est = array_lights(images, mask, weights, {"device": device, "decode": decode})
+    est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     return est.directions, est.intensities
 
 
@@ -224,7 +237,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.lights import array_lights
 
         second = sdps_second_stage(weights)[0]
-        est = array_lights(images, mask, lcnet, {"device": device, "decode": sdps_decode(second, weights)})
+        est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
         images = images / est.intensities[:, None, None, None]
         return array_normals(images, est.directions, mask, second, weights, {"device": device}).normals
     if method in NETWORKS:
@@ -294,8 +307,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.lights import capture_lights, light_errors
 
         second = sdps_second_stage(weights)[0]
-        decode = sdps_decode(second, weights)
-        est = capture_lights(cap, mask, lcnet, {"device": device, "decode": decode}, progress, flag="--lcnet")
+        lc_cfg = sdps_lcnet_config(second, weights, device)
+        est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
         net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
         normals, dark = net.normals, net.dark
@@ -358,7 +371,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     }
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
-        report["lcnet_decode"] = decode
+        report["lcnet_decode"] = lc_cfg["decode"]
+        report["lcnet_views"] = lc_cfg["views"]
         report["light_mae"] = light_stats["light_mae"]
         report["intensity_re"] = light_stats["intensity_re"]
 

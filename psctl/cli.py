@@ -164,6 +164,7 @@ def lights(
     out: OutDir = None,
     weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
     decode: Annotated[str, typer.Option(help="soft (soft-argmax) | argmax (class centres, the paper).")] = "soft",
+    views: Annotated[int, typer.Option(help="Symmetric views averaged: 8 (the images turned and mirrored about the view axis) | 4 | 2 | 1 (one pass, the paper).")] = 8,
     images: Images = None,
     seed: Seed = None,
     device: DeviceOpt = "auto",
@@ -175,7 +176,7 @@ def lights(
         from psctl.lights import render_lights, run_lights
 
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
-                                         n_images=images, seed=seed, progress=progress),
+                                         views=views, n_images=images, seed=seed, progress=progress),
              json_out, quiet, render_lights)
 
 

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 
 from psctl.errors import PsctlError
 from psctl.lights import array_lights, intensity_error, lights_plot, run_lcnet, write_light_files
-from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
+from psctl.models.lcnet import (SYMMETRIES, LCNet, transform_dirs, transform_images, untransform_dirs, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
                                 count_parameters, decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
                                 resize_inputs)
 from psctl.models.ps_fcn import PSFCN
@@ -191,7 +191,7 @@ def test_streamed_and_chunked_equal_all_at_once():
     images, mask = scene()
     ref = all_at_once(net, images, mask)
     for config in ({}, {"chunk": 3, "cache_mb": 0}, {"chunk": 4, "cache_mb": 5 * 256 * 64 * 8 / 2**20}):
-        est = array_lights(images, mask, model=net, config=config)
+        est = array_lights(images, mask, model=net, config={**config, "views": 1})
         for k in ref:
             np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)  # logits are returned as float32
     assert est.info["passes"] == 2 and est.info["cached_features"] == 5
@@ -293,6 +293,11 @@ def test_lights_command(tmp_path, fake_weights):
     from psctl.metrics import light_direction_error
 
     assert light_direction_error(est, data["lights"]).mean() == pytest.approx(r["light_mae"], abs=1e-5)
+    assert r["views"] == 8 and r["decode"] == "soft"
+    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "v3",
+                 "--views", "3")
+    assert proc.returncode == 2 and "views" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "v3").exists()
     # never over the inputs; the capture folder keeps its own light files
     before = (tmp_path / "ballPNG" / "light_directions.txt").read_text()
     proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "ballPNG")
@@ -350,9 +355,10 @@ def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_wei
     try:
         assert sdps_decode("ps-fcn-dagger") == "argmax"  # the installed (fake) file records none
         r = run_normals(tmp_path / "aPNG", method="sdps", weights=tmp_path / "soft.pt", write=False, device="cpu")
-        assert r["lcnet_decode"] == "soft"
+        assert r["lcnet_decode"] == "soft" and r["lcnet_views"] == 8
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
         assert r["lcnet_decode"] == "argmax"
+        assert r["lcnet_views"] == 1  # bin centres, as that PS-FCN† was trained on
     finally:
         del os.environ["PSCTL_WEIGHTS"]
 
@@ -517,3 +523,80 @@ def test_lcnet_resume_continues_exactly(tmp_path):
     wa = read_weights(tmp_path / "a" / "model.pt").state_dict
     wb = read_weights(tmp_path / "b" / "model.pt").state_dict
     assert max((wa[k] - wb[k]).abs().max().item() for k in wa) < 1e-5
+
+
+# --- symmetric views --------------------------------------------------------------------------
+
+def lambert_sphere(light: torch.Tensor, h: int = 41) -> torch.Tensor:
+    """A Lambertian unit sphere filling an h x h image (row 0 at the top, x right, y up)."""
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(h, dtype=torch.float64), indexing="ij")
+    x, y = (xs - (h - 1) / 2) / ((h - 1) / 2), -(ys - (h - 1) / 2) / ((h - 1) / 2)
+    inside = x ** 2 + y ** 2 < 1
+    n = torch.stack([x, y, (1 - x ** 2 - y ** 2).clamp_min(0).sqrt()], -1)
+    return (n @ light.double()).clamp_min(0) * inside
+
+
+@pytest.mark.parametrize("sym", SYMMETRIES)
+def test_symmetries_move_images_and_lights_together(sym):
+    """Turning / mirroring the image of a sphere equals rendering it under the turned light, and
+    untransform_dirs undoes transform_dirs: the geometry LCNet's views rely on."""
+    light = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
+    torch.testing.assert_close(transform_images(lambert_sphere(light), sym), lambert_sphere(transform_dirs(light, sym)))
+    d = torch.nn.functional.normalize(torch.randn(7, 3, dtype=torch.float64), dim=-1)
+    torch.testing.assert_close(untransform_dirs(transform_dirs(d, sym), sym), d)
+
+
+def test_symmetries_are_the_group_of_the_square():
+    """The 8 symmetries are distinct, and the first 1, 2 and 4 are subgroups (closed under
+    composition), so views=8 gives estimates that turn with the capture."""
+    d = torch.nn.functional.normalize(torch.randn(5, 3, dtype=torch.float64), dim=-1)
+    images = [transform_dirs(d, s) for s in SYMMETRIES]
+    assert len({tuple(np.round(i.numpy().ravel(), 9)) for i in images}) == 8
+    for k in (1, 2, 4, 8):
+        sub = SYMMETRIES[:k]
+        keys = {tuple(np.round(transform_dirs(d, s).numpy().ravel(), 9)) for s in sub}
+        for a in sub:
+            for b in sub:
+                assert tuple(np.round(transform_dirs(transform_dirs(d, b), a).numpy().ravel(), 9)) in keys
+
+
+def test_views_average_the_turned_back_estimates():
+    """views=8 is the unit mean of the 8 turned-back single-pass estimates, streamed or not."""
+    net = lcnet(size=32).double()
+    images, mask = scene()
+    ref_dirs, ref_ints = [], []
+    for sym in SYMMETRIES:
+        r = array_lights(np.ascontiguousarray(transform_images(torch.from_numpy(images).permute(0, 3, 1, 2), sym)
+                                              .permute(0, 2, 3, 1).numpy()),
+                         np.ascontiguousarray(transform_images(torch.from_numpy(mask), sym).numpy()),
+                         model=net, config={"views": 1})
+        ref_dirs.append(untransform_dirs(torch.from_numpy(r.directions).double(), sym))
+        ref_ints.append(r.intensities)
+    ref = torch.nn.functional.normalize(torch.stack(ref_dirs).mean(0), dim=-1).numpy()
+    for config in ({}, {"chunk": 3, "cache_mb": 0}):
+        est = array_lights(images, mask, model=net, config=config)
+        assert est.info["views"] == 8
+        np.testing.assert_allclose(est.directions, ref, atol=1e-5)
+        np.testing.assert_allclose(est.intensities, np.mean(ref_ints, 0), atol=1e-5)
+
+
+@pytest.mark.parametrize("sym", [SYMMETRIES[1], SYMMETRIES[4], SYMMETRIES[7]])  # flip x, transpose, all three
+def test_eight_views_turn_with_the_capture(sym):
+    """Estimating on a turned / mirrored capture gives the turned estimates (views=8)."""
+    net = lcnet(size=32).double()
+    images, mask = scene(h=48, w=64)
+    est = array_lights(images, mask, model=net)
+    t_images = transform_images(torch.from_numpy(images).permute(0, 3, 1, 2), sym).permute(0, 2, 3, 1).numpy()
+    t_mask = transform_images(torch.from_numpy(mask), sym).numpy()
+    t_est = array_lights(np.ascontiguousarray(t_images), np.ascontiguousarray(t_mask), model=net)
+    np.testing.assert_allclose(t_est.directions, transform_dirs(torch.from_numpy(est.directions).double(), sym).numpy(),
+                               atol=1e-5)
+    np.testing.assert_allclose(t_est.intensities, est.intensities, atol=1e-5)
+
+
+def test_views_refused_when_not_a_subgroup():
+    net = lcnet(size=32).double()
+    images, mask = scene()
+    for bad in (3, 0, 16, "8", True):
+        with pytest.raises(PsctlError, match="views"):
+            array_lights(images, mask, model=net, config={"views": bad})
