@@ -44,8 +44,8 @@ def synthetic(weights: Path, lights: dict, samples: int, device: str, decode: st
 
     from psctl.infer import pick_device
     from psctl.lights import intensity_error
-    from psctl.models.lcnet import SYMMETRIES, decode as decode_logits, mean_direction, resize_stack, \
-        transform_images, untransform_dirs
+    from psctl.models.lcnet import decode as decode_logits, resize_stack
+    from psctl.symmetry import SYMMETRIES, transform_images, untransform_dirs
     from psctl.models.weights import load_network
     from psctl.train import load_config, synth_stream
 
@@ -68,7 +68,8 @@ def synthetic(weights: Path, lights: dict, samples: int, device: str, decode: st
                 dirs.append(untransform_dirs(d, sym))
                 ints.append(i)
             for v in views:
-                d, i = mean_direction(torch.stack(dirs[:v])), torch.stack(ints[:v]).mean(0)
+                d = torch.nn.functional.normalize(torch.stack(dirs[:v]).mean(0), dim=-1)
+                i = torch.stack(ints[:v]).mean(0)
                 cos = (d.double() * b["lights"].double()).sum(-1).clamp(-1, 1)
                 errs[v].append(torch.rad2deg(torch.acos(cos)).flatten().cpu().numpy())
                 for e, g in zip(i.cpu().numpy(), b["intensities"].cpu().numpy()):

@@ -193,7 +193,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
 
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
-                     device: str = "auto", lcnet: str | os.PathLike | None = None) -> np.ndarray:
+                     device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -207,6 +207,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             the PS-FCN† file).
         device: auto | cpu | cuda, for the network methods.
         lcnet: sdps: the LCNet weights file (default: the installed one).
+        views: network methods: average 1, 2, 4 or 8 symmetric views of the capture (turned and
+            mirrored about the view axis; ``views`` times the work; docs/models.md).
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -239,11 +241,11 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
         images = images / est.intensities[:, None, None, None]
-        return array_normals(images, est.directions, mask, second, weights, {"device": device}).normals
+        return array_normals(images, est.directions, mask, second, weights, {"device": device, "views": views}).normals
     if method in NETWORKS:
         from psctl.infer import array_normals
 
-        return array_normals(images, lights, mask, method, weights, {"device": device}).normals
+        return array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")
     from psctl.classic import l2_normals
@@ -255,7 +257,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 formats: tuple[str, ...] | list[str] = ("png16", "exr"), n_images: int | None = None,
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                device: str = "auto", lcnet: str | os.PathLike | None = None) -> dict:
+                device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -264,9 +266,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     ``formats``; with ground truth also ``error.png`` and ``report.json``. Default folder:
     ``PATH/psctl``. Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
     cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
-    light_mae and intensity_re (None without ground-truth lights).
+    light_mae and intensity_re (None without ground-truth lights). ``views`` (1, 2, 4 or 8): the
+    network methods average that many symmetric views of the capture (psctl.infer.run_views;
+    ``views`` times the work).
     """
     from psctl.classic import L2Accumulator
+    from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, staged_outputs
     from psctl.io.capture import bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
@@ -279,6 +284,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     notes = [note] if note else []
+    try:
+        views = check_views(views)
+    except ValueError as e:
+        raise PsctlError(None, str(e)) from None
+    if views > 1 and method == "l2":
+        notes.append("views: l2 gives the same normals in every view; one pass")
+        views = 1
     if method == "l2":
         if not cap.calibrated:
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
@@ -310,7 +322,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         lc_cfg = sdps_lcnet_config(second, weights, device)
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-        net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
+        net = capture_normals(lit, mask, second, weights, {"device": device, "views": views}, progress)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
         light_stats = light_errors(est.directions, est.intensities, cap.lights,
@@ -322,7 +334,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in NETWORKS:
         from psctl.infer import capture_normals
 
-        net = capture_normals(cap, mask, method, weights, {"device": device}, progress)
+        net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
         normals, dark = net.normals, net.dark
         notes += net.notes
     else:
@@ -367,6 +379,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_mask_pixels": int(mask.sum()),
         "n_evaluated_pixels": n_eval,
         "n_dark": int(dark.sum()),
+        "views": views,
         "notes": notes,
     }
     if light_stats is not None:

@@ -31,6 +31,7 @@ OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output fold
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn-n when its weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
+ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 
@@ -118,6 +119,7 @@ def normals(
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
+    views: ViewsOpt = 1,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -130,7 +132,8 @@ def normals(
 
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
-                                          progress=progress, weights=weights, device=device, lcnet=lcnet),
+                                          progress=progress, weights=weights, device=device, lcnet=lcnet,
+                                          views=views),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -145,6 +148,7 @@ def evaluate(
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
+    views: ViewsOpt = 1,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -154,7 +158,8 @@ def evaluate(
         from psctl.io.summary import render_benchmark
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
-                                            progress=progress, weights=weights, device=device, lcnet=lcnet),
+                                            progress=progress, weights=weights, device=device, lcnet=lcnet,
+                                            views=views),
              json_out, quiet, render_benchmark)
 
 

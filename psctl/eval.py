@@ -54,12 +54,12 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   n_images: int | None = None, seed: int | None = None,
                   out: str | os.PathLike | None = None,
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                  device: str = "auto", lcnet: str | os.PathLike | None = None) -> dict:
+                  device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
-    ``weights`` (a file) and ``device`` are passed on to the network methods, ``lcnet`` to sdps.
+    ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet`` to sdps.
     sdps also gives each object's "light_mae" and "intensity_re", their means "mean_light_mae"
     and "mean_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
@@ -83,7 +83,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     for folder in folders:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
-                        weights=weights, device=device, lcnet=lcnet)
+                        weights=weights, device=device, lcnet=lcnet, views=views)
         used.append(r["method"])
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})

@@ -58,6 +58,9 @@ DEFAULT_INFER = {
     "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
     "autocast": None,  # None | "bf16" (CUDA, CPUs with native bf16) | "fp16" (CUDA); off by default
+    # symmetric views averaged (psctl.symmetry): 1 = one pass (the paper); 8 = the capture turned
+    # and mirrored about the view axis, each view's normals turned back, their unit mean. 8x the work.
+    "views": 1,
 }
 
 FEATURES = 128  # extractor output channels
@@ -399,6 +402,61 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     return InferResult(normals, dark, info)
 
 
+def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
+              normalization: str = "none", train_images: int | None = None, config: dict | None = None,
+              progress: "ProgressFactory | None" = None, label: str = "network",
+              input_mean: float | None = None, input_clip: float | None = None) -> InferResult:
+    """``run_network`` over ``config["views"]`` symmetric views of the capture (psctl.symmetry):
+    each view turns / mirrors the images, the mask and the lights together, its normals are
+    turned back into the capture's frame, and the result is their unit mean. views = 1 is
+    ``run_network`` itself. Same arguments and result as ``run_network``."""
+    from psctl.symmetry import SYMMETRIES, check_views, transform_dirs, transform_images, untransform_dirs, \
+        untransform_images
+
+    cfg = {**DEFAULT_INFER, **(config or {})}
+    try:
+        views = check_views(cfg["views"])
+    except ValueError as e:
+        raise PsctlError(None, str(e)) from None
+    args = (normalization, train_images, cfg)
+    if views == 1:
+        return run_network(model, reader, n, lights, mask, *args, progress, label, input_mean, input_clip)
+    t0 = time.perf_counter()
+    mask = np.asarray(mask, bool)
+    H, W = mask.shape
+    total = np.zeros((H, W, 3), np.float64)
+    first = None
+    for v, sym in enumerate(SYMMETRIES[:views]):
+        transpose, flip_x, flip_y = sym
+        Ht, Wt = (W, H) if transpose else (H, W)
+
+        def view_reader(start: int, box: tuple[slice, slice], sym=sym, Ht=Ht, Wt=Wt,
+                        flip_x=flip_x, flip_y=flip_y, transpose=transpose) -> Iterator[np.ndarray]:
+            ys, xs = box  # in the view's frame: the same region of the capture, then turned
+            ys = slice(*ys.indices(Ht)[:2])
+            xs = slice(*xs.indices(Wt)[:2])
+            if flip_y:
+                ys = slice(Ht - ys.stop, Ht - ys.start)
+            if flip_x:
+                xs = slice(Wt - xs.stop, Wt - xs.start)
+            if transpose:
+                ys, xs = xs, ys
+            for img in reader(start, (ys, xs)):
+                yield np.ascontiguousarray(transform_images(img, sym, axes=(0, 1)))
+
+        mask_v = np.ascontiguousarray(transform_images(mask, sym, axes=(0, 1)))
+        lights_v = None if lights is None else transform_dirs(np.asarray(lights, np.float32), sym)
+        res = run_network(model, view_reader, n, lights_v, mask_v, *args, progress,
+                          f"{label} (view {v + 1}/{views})", input_mean, input_clip)
+        total += untransform_dirs(untransform_images(res.normals, sym, axes=(0, 1)), sym)
+        if first is None:
+            first = res
+    norm = np.linalg.norm(total, axis=-1, keepdims=True)
+    normals = np.where(mask[..., None] & (norm > 0), total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    info = {**first.info, "views": views, "seconds": round(time.perf_counter() - t0, 3)}
+    return InferResult(normals, first.dark, info, first.notes)
+
+
 # --- entry points -----------------------------------------------------------------------------
 
 def _prepare_network(method: str, weights: str | Path | None, config: dict | None):
@@ -434,8 +492,8 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
         for k in range(start, n):
             yield images[k][box]
 
-    res = run_network(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
-                      run.get("input_mean"), run.get("input_clip"))
+    res = run_views(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
+                    run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
     _note_exposure(res, method, run.get("input_mean"))
     return res
@@ -453,9 +511,9 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
 
-    res = run_network(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
-                      run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"),
-                      run.get("input_clip"))
+    res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
+                    run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"),
+                    run.get("input_clip"))
     res.notes.append(note)
     _note_exposure(res, method, run.get("input_mean"))
     return res

@@ -22,7 +22,7 @@ The pipeline (psctl.models.lcnet has the network and the discretisation):
 4. Decoding: the soft-argmax (the default) or the argmax class centre (the paper, ``decode="argmax"``).
 5. Symmetric views (``views``, 8 by default; 1 is the paper's single pass): steps 2-4 run on the
    images as captured and turned / mirrored about the view axis (the 8 symmetries of the square,
-   ``psctl.models.lcnet.SYMMETRIES``); each view's directions are turned back and the unit mean
+   ``psctl.symmetry``); each view's directions are turned back and the unit mean
    of the views is the estimate, the intensities their mean. Exact for an orthographic camera
    and isotropic materials; it costs ``views`` times the network work.
 
@@ -62,7 +62,7 @@ DEFAULT_LIGHTS = {
     # soft-argmax: better than the paper's argmax (class centres) on held-out synthetic sets with
     # both release LCNets (7.53 vs 7.67 and 7.60 vs 7.99 degrees; docs/uncalibrated.md)
     "decode": "soft",  # soft | argmax
-    # symmetric views averaged (1, 2, 4 or 8 of psctl.models.lcnet.SYMMETRIES): the images turned
+    # symmetric views averaged (1, 2, 4 or 8 of psctl.symmetry.SYMMETRIES): the images turned
     # and mirrored about the view axis, LCNet's estimates turned back and averaged. 8 was better
     # than 1 on held-out synthetic sets with the release LCNet (docs/uncalibrated.md)
     "views": 8,
@@ -119,8 +119,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     import torch
 
     from psctl.infer import pick_device
-    from psctl.models.lcnet import (FEATURES, SYMMETRIES, decode, mean_direction, resize_inputs, transform_images,
-                                    untransform_dirs)
+    from psctl.models.lcnet import FEATURES, decode, resize_inputs
+    from psctl.symmetry import SYMMETRIES, check_views, transform_images, untransform_dirs
 
     cfg = {**DEFAULT_LIGHTS, **(config or {})}
     t0 = time.perf_counter()
@@ -128,9 +128,10 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         raise PsctlError(None, "no images")
     if cfg["decode"] not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown decoding {cfg['decode']!r}; choose argmax or soft")
-    views = cfg["views"]
-    if isinstance(views, bool) or not isinstance(views, int) or views not in (1, 2, 4, 8):
-        raise PsctlError(None, f"views must be 1, 2, 4 or 8, got {views!r}")
+    try:
+        views = check_views(cfg["views"])
+    except ValueError as e:
+        raise PsctlError(None, str(e)) from None
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")
@@ -209,7 +210,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
                     classify(v, model.extract(transform_images(x, sym)))
     outs = [{k: torch.cat(val) for k, val in lv.items()} for lv in logits]
     decoded = [decode(o, model.config, cfg["decode"]) for o in outs]
-    dirs = mean_direction(torch.stack([untransform_dirs(d, sym) for (d, _), sym in zip(decoded, syms)]))
+    dirs = torch.nn.functional.normalize(torch.stack([untransform_dirs(d, sym) for (d, _), sym in zip(decoded, syms)]).mean(0),
+                                         dim=-1)
     ints = torch.stack([i for _, i in decoded]).mean(0)
     out = outs[0]
     info = {"device": str(device), "box": [box[0].start, box[0].stop, box[1].start, box[1].stop],

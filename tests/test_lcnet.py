@@ -22,11 +22,12 @@ from hypothesis import strategies as st
 
 from psctl.errors import PsctlError
 from psctl.lights import array_lights, intensity_error, lights_plot, run_lcnet, write_light_files
-from psctl.models.lcnet import (SYMMETRIES, LCNet, transform_dirs, transform_images, untransform_dirs, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
+from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
                                 count_parameters, decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
                                 resize_inputs)
 from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import load_network, read_weights, save_weights
+from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs
 from tests.conftest import write_capture
 
 REPO = Path(__file__).resolve().parents[1]

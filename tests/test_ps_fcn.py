@@ -17,9 +17,10 @@ import pytest
 import torch
 
 from psctl.errors import PsctlError
-from psctl.infer import all_at_once_normals, array_normals, crop_region, plan_tiles, run_network
+from psctl.infer import all_at_once_normals, array_normals, crop_region, plan_tiles, run_network, run_views
 from psctl.models.ps_fcn import HALO, RECEPTIVE_RADIUS, PSFCN, count_parameters, normalize_observations
 from psctl.models.weights import build_network, check_state_dict, read_weights, save_weights
+from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs, untransform_images
 from tests.conftest import hemisphere_lights, render_lambertian, sphere, write_capture
 
 # The authors' release (models/PS_FCN.py, fuse max, no batch norm, lights in): name -> shape.
@@ -488,3 +489,54 @@ def test_cli_network_methods(tmp_path):
     r = json.loads(proc.stdout)
     assert r["method"] == "ps-fcn-n" and r["n_images"] == 6 and r["mae"] is not None
     assert sorted(os.listdir(tmp_path / "o1")) == ["error.png", "normal.exr", "normal.png", "report.json"]
+
+
+# --- symmetric views ----------------------------------------------------------------------------
+
+def views(images, lights, mask, net, k, normalization="none", q=None, **config) -> np.ndarray:
+    n = len(images)
+
+    def reader(start, box):
+        for i in range(start, n):
+            yield images[i][box]
+
+    return run_views(net, reader, n, lights, mask, normalization, q, {**config, "views": k}).normals
+
+
+def test_views_average_turned_back_normals(normalization="per-channel"):  # +N: two passes through each view's reader
+    """views=8: the unit mean of the network's normals on the 8 turned / mirrored captures,
+    each turned back (the reader is asked for the right region of the capture in every view,
+    with tiles too)."""
+    images, lights, _ = scene(5, 70, 84)
+    mask = np.zeros((70, 84), bool)
+    mask[6:26, 47:70] = True  # off-centre and small: each view reads a different region of the capture
+    net = model(double=True)
+    acc = 0
+    for sym in SYMMETRIES:
+        n = all_at_once_normals(net, np.ascontiguousarray(transform_images(images, sym, axes=(1, 2))),
+                                transform_dirs(lights, sym), np.ascontiguousarray(transform_images(mask, sym, axes=(0, 1))),
+                                normalization, 3)
+        acc = acc + untransform_dirs(untransform_images(n, sym, axes=(0, 1)), sym)
+    ref = np.where(mask[..., None], acc / np.linalg.norm(acc, axis=-1, keepdims=True).clip(1e-12), 0)
+    np.testing.assert_allclose(views(images, lights, mask, net, 8, normalization, 3), ref, atol=1e-6)
+    np.testing.assert_allclose(views(images, lights, mask, net, 8, normalization, 3, tile=16, halo=HALO), ref, atol=1e-6)
+    np.testing.assert_allclose(views(images, lights, mask, net, 1, normalization, 3),
+                               all_at_once_normals(net, images, lights, mask, normalization, 3), atol=1e-6)
+
+
+@pytest.mark.parametrize("sym", [SYMMETRIES[1], SYMMETRIES[4], SYMMETRIES[6]])
+def test_eight_views_turn_with_the_capture(sym):
+    images, lights, _ = scene(4, 64, 72)
+    mask = np.zeros((64, 72), bool)
+    mask[5:22, 40:61] = True
+    net = model(double=True)
+    ref = views(images, lights, mask, net, 8)
+    got = views(np.ascontiguousarray(transform_images(images, sym, axes=(1, 2))), transform_dirs(lights, sym),
+                np.ascontiguousarray(transform_images(mask, sym, axes=(0, 1))), net, 8)
+    np.testing.assert_allclose(got, transform_dirs(transform_images(ref, sym, axes=(0, 1)), sym), atol=1e-6)
+
+
+def test_views_must_be_a_subgroup():
+    images, lights, mask = scene(3, 20, 20)
+    with pytest.raises(PsctlError, match="views"):
+        views(images, lights, mask, model(), 3)

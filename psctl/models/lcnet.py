@@ -265,50 +265,6 @@ def decode(logits: dict[str, torch.Tensor], config: dict | None = None,
     raise ValueError(f"unknown decoding {mode!r}; choose from {', '.join(DECODINGS)}")
 
 
-# --- test-time symmetry: pure functions over tensors --------------------------------------------
-# Under an orthographic camera, turning the object and its lights about the view axis by a multiple
-# of 90 degrees, or mirroring both, gives another valid capture (isotropic materials). Each of the
-# 8 symmetries of the square is (transpose, flip x, flip y) applied to the images in that order;
-# LCNet's estimates in the turned frame are turned back and averaged (psctl.lights, ``views``).
-SYMMETRIES = tuple((bool(t & 4), bool(t & 1), bool(t & 2)) for t in (0, 1, 2, 3, 4, 5, 6, 7))
-
-
-def transform_images(x: torch.Tensor, sym: tuple[bool, bool, bool]) -> torch.Tensor:
-    """Images [..., H, W] (row 0 at the top) seen after symmetry ``sym`` = (transpose, flip x, flip y)."""
-    transpose, flip_x, flip_y = sym
-    if transpose:
-        x = x.transpose(-1, -2)
-    dims = [d for d, f in ((-1, flip_x), (-2, flip_y)) if f]
-    return x.flip(dims) if dims else x
-
-
-def transform_dirs(dirs: torch.Tensor, sym: tuple[bool, bool, bool]) -> torch.Tensor:
-    """Directions [..., 3] (x right, y up) after symmetry ``sym``: what a light becomes when the
-    images are changed by ``transform_images(x, sym)``. Transposing rows and columns maps
-    (x, y) to (-y, -x) because rows run downward."""
-    transpose, flip_x, flip_y = sym
-    x, y, z = dirs.unbind(-1)
-    if transpose:
-        x, y = -y, -x
-    return torch.stack([-x if flip_x else x, -y if flip_y else y, z], -1)
-
-
-def untransform_dirs(dirs: torch.Tensor, sym: tuple[bool, bool, bool]) -> torch.Tensor:
-    """The inverse of ``transform_dirs``: directions estimated on transformed images, back in the
-    capture's frame."""
-    transpose, flip_x, flip_y = sym
-    x, y, z = dirs.unbind(-1)
-    x, y = (-x if flip_x else x), (-y if flip_y else y)
-    if transpose:
-        x, y = -y, -x
-    return torch.stack([x, y, z], -1)
-
-
-def mean_direction(dirs: torch.Tensor) -> torch.Tensor:
-    """Unit mean of directions [V, ..., 3] over the first axis."""
-    return F.normalize(dirs.mean(0), dim=-1)
-
-
 def discretize_dirs(dirs: torch.Tensor, k: int = DEFAULT_CONFIG["dirs_cls"]) -> torch.Tensor:
     """Snap directions [..., 3] to their class centres (what an argmax LCNet can output)."""
     return classes_to_dirs(*dirs_to_classes(dirs, k), k).to(dirs.dtype)
@@ -339,6 +295,5 @@ def bin_width_degrees(k: int = DEFAULT_CONFIG["dirs_cls"]) -> float:
     return 180.0 / k
 
 
-__all__ = ["LCNet", "DEFAULT_CONFIG", "SYMMETRIES", "decode", "transform_images", "transform_dirs", "untransform_dirs",
-           "mean_direction", "classification_loss", "resize_inputs", "dirs_to_classes",
+__all__ = ["LCNet", "DEFAULT_CONFIG", "decode", "classification_loss", "resize_inputs", "dirs_to_classes",
            "classes_to_dirs", "ints_to_classes", "classes_to_ints", "discretize_dirs", "count_parameters"]
