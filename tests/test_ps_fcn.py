@@ -489,6 +489,14 @@ def test_cli_network_methods(tmp_path):
     r = json.loads(proc.stdout)
     assert r["method"] == "ps-fcn-n" and r["n_images"] == 6 and r["mae"] is not None
     assert sorted(os.listdir(tmp_path / "o1")) == ["error.png", "normal.exr", "normal.png", "report.json"]
+    assert r["views"] == 1
+    proc = psctl("normals", folder, "--weights", weights, "--device", "cpu", "--views", "2", "--json", "--out",
+                 tmp_path / "o2")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["views"] == 2
+    proc = psctl("normals", folder, "--weights", weights, "--views", "6", "--out", tmp_path / "o6")
+    assert proc.returncode == 2 and "views must be 1, 2, 4 or 8" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o6").exists()
 
 
 # --- symmetric views ----------------------------------------------------------------------------
