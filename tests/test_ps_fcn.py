@@ -224,6 +224,8 @@ def test_installed_weights_found_by_method(tmp_path, monkeypatch):
     assert resolve_method("auto", True)[0] == "l2"
     save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
     assert resolve_method("auto", True) == ("ps-fcn-n", None)
+    save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    assert resolve_method("auto", True) == ("ps-fcn", None)  # the more accurate release network first
     n = estimate_normals(images, lights, mask, method="auto")
     assert n.shape == (20, 24, 3)
     np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
