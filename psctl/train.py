@@ -616,6 +616,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 g["lr"] = lr_at(st["samples"], config)
             batch = stream.next_batch()
             loss = task.loss(batch)
+            if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
+                raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
+                                      f"({st['samples']:,} samples seen): stopped; the last checkpoint is kept")
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()

@@ -550,3 +550,17 @@ def test_views_must_be_a_subgroup():
     images, lights, mask = scene(3, 20, 20)
     with pytest.raises(PsctlError, match="views"):
         views(images, lights, mask, model(), 3)
+
+
+def test_weights_with_nan_are_refused(tmp_path):
+    """A NaN in an unused kernel tap can hide behind kernels that skip zero padding (the LCNet of
+    2026-11-22/23 shipped 126,208 of them): files with non-finite values are refused on load and
+    never written."""
+    state = {k: v.clone() for k, v in model().state_dict().items()}
+    state["regressor.est_normal.0.weight"][0, 0, 0, 0] = float("nan")
+    with pytest.raises(PsctlError, match=r"regressor.est_normal.0.weight has 1 NaN or infinite"):
+        save_weights(tmp_path / "nan.pt", state, {"method": "ps-fcn", "train_images": 32})
+    assert not (tmp_path / "nan.pt").exists()
+    torch.save({"state_dict": state}, tmp_path / "authors.pth.tar")  # the authors' format, written by someone else
+    with pytest.raises(PsctlError, match="NaN or infinite"):
+        read_weights(tmp_path / "authors.pth.tar")

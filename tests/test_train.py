@@ -36,6 +36,32 @@ def test_tiny_recipe_trains_and_loss_goes_down(tmp_path):
     assert all(p.stat().st_size < 16 * 2**20 for p in (tmp_path / "run").iterdir())
 
 
+def test_nan_loss_stops_the_run_before_the_step(tmp_path):
+    """A non-finite loss stops training with one clear error and never reaches the weights."""
+    from psctl.train import synth_stream
+
+    class Poisoned:
+        def __init__(self, inner):
+            self.inner, self.calls = inner, 0
+
+        def next_batch(self):
+            self.calls += 1
+            b = self.inner.next_batch()
+            if self.calls == 2:  # the second training batch (each validation stream is used once)
+                b["images"] = torch.full_like(b["images"], float("nan"))
+            return b
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    with pytest.raises(PsctlError, match=r"training loss is nan at step 2"):
+        train("ps-fcn", tiny(48), tmp_path / "run", device="cpu",
+              make_stream=lambda *a, **k: Poisoned(synth_stream(*a, **k)))
+    for f in ("model.pt", "best.pt"):
+        if (tmp_path / "run" / f).exists():
+            read_weights(tmp_path / "run" / f)  # finite, or it would raise
+
+
 def test_resume_continues_exactly(tmp_path):
     """24 + 24 samples with a stop in between == 48 samples in one go."""
     cfg = tiny(48)

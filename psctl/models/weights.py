@@ -160,6 +160,7 @@ def read_weights(path: str | os.PathLike) -> Weights:
     sd = dict(sd)
     if sd and all(k.startswith("module.") for k in sd):  # saved from nn.DataParallel
         sd = {k[len("module."):]: v for k, v in sd.items()}
+    check_finite(sd, path)
 
     if obj.get("format") == FORMAT:
         if obj.get("version") != VERSION:
@@ -183,6 +184,18 @@ def read_weights(path: str | os.PathLike) -> Weights:
     meta = {"method": None, "kind": "ps-fcn", "architecture": {"lights": lights, "fuse": "max"}, "normalization": None,
             "train_images": OFFICIAL_TRAIN_IMAGES, "source": source}
     return Weights(path, sd, meta, official=True)
+
+
+def check_finite(state: dict, path: Path | None) -> None:
+    """PsctlError naming the first tensor with NaN or infinite entries. Such a file can still give
+    finite outputs with kernels that skip zero padding (0 * NaN never computed) and NaN with
+    others, so it is refused rather than trusted."""
+    import torch
+
+    for k, v in state.items():
+        if v.is_floating_point() and not torch.isfinite(v).all():
+            bad = int((~torch.isfinite(v)).sum())
+            raise PsctlError(path, f"{k} has {bad:,} NaN or infinite values (of {v.numel():,}): not usable weights")
 
 
 def _check_metadata(meta: dict, path: Path | None) -> None:
@@ -369,6 +382,7 @@ def save_weights(path: str | os.PathLike, model: "torch.nn.Module | dict", metad
         meta.setdefault("architecture", _plain(dict(getattr(model, "config", {})), "architecture"))
     else:
         state = model
+    check_finite(state, path)
     if method in NETWORK_METHODS:
         meta.setdefault("architecture", {"lights": NETWORK_METHODS[method]["lights"], "fuse": "max"})
     else:
