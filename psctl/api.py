@@ -287,10 +287,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     notes = [note] if note else []
-    try:
-        views = check_views(views)
-    except ValueError as e:
-        raise PsctlError(None, str(e)) from None
+    views = check_views(views)
     if views > 1 and method == "l2":
         notes.append("views: l2 gives the same normals in every view; one pass")
         views = 1

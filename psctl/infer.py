@@ -414,10 +414,7 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
         untransform_images
 
     cfg = {**DEFAULT_INFER, **(config or {})}
-    try:
-        views = check_views(cfg["views"])
-    except ValueError as e:
-        raise PsctlError(None, str(e)) from None
+    views = check_views(cfg["views"])
     args = (normalization, train_images, cfg)
     if views == 1:
         return run_network(model, reader, n, lights, mask, *args, progress, label, input_mean, input_clip)

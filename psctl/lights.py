@@ -128,10 +128,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         raise PsctlError(None, "no images")
     if cfg["decode"] not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown decoding {cfg['decode']!r}; choose argmax or soft")
-    try:
-        views = check_views(cfg["views"])
-    except ValueError as e:
-        raise PsctlError(None, str(e)) from None
+    views = check_views(cfg["views"])
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")
@@ -406,9 +403,8 @@ def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensiti
 
 def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "soft",
-               views: int = DEFAULT_LIGHTS["views"], n_images: int | None = None, seed: int | None = None,
-               write: bool = True,
-               progress: "ProgressFactory | None" = None) -> dict:
+               n_images: int | None = None, seed: int | None = None, write: bool = True,
+               progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"]) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and

@@ -19,6 +19,8 @@ from typing import TypeVar
 
 import numpy as np
 
+from psctl.errors import PsctlError
+
 Sym = tuple[bool, bool, bool]
 SYMMETRIES: tuple[Sym, ...] = tuple((bool(t & 4), bool(t & 1), bool(t & 2)) for t in range(8))
 VIEW_COUNTS = (1, 2, 4, 8)
@@ -76,7 +78,7 @@ def untransform_dirs(dirs: A, sym: Sym) -> A:
 
 
 def check_views(views: object) -> int:
-    """``views`` if it is one of VIEW_COUNTS, else ValueError."""
+    """``views`` if it is one of VIEW_COUNTS (the subgroups), else PsctlError (a ValueError)."""
     if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or int(views) not in VIEW_COUNTS:
-        raise ValueError(f"views must be 1, 2, 4 or 8, got {views!r}")
+        raise PsctlError(None, f"views must be 1, 2, 4 or 8, got {views!r}")
     return int(views)
