@@ -601,3 +601,24 @@ def test_views_refused_when_not_a_subgroup():
     for bad in (3, 0, 16, "8", True):
         with pytest.raises(PsctlError, match="views"):
             array_lights(images, mask, model=net, config={"views": bad})
+
+
+def test_classifier_gradients_stay_off_padding_only_taps_under_bf16():
+    """At 64 px the classifier's last conv runs on a 1 x 1 map, so only the centre tap of its
+    kernel sees data. Under CPU bf16 autocast oneDNN gave the other taps non-zero (later NaN)
+    gradients from the second backward on: the NaNs of the release LCNet. The classifier runs
+    outside autocast; its padding-only taps must get exactly zero gradient."""
+    from psctl.infer import cpu_has_bf16
+
+    if not cpu_has_bf16():
+        pytest.skip("this CPU has no native bf16: psctl trains in float32 here")
+    net = lcnet(size=64).train()
+    x, m = torch.rand(2, 8, 3, 64, 64), torch.ones(2, 1, 64, 64)
+    for _ in range(4):
+        net.zero_grad()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = net(x, m)
+        sum(v.float().logsumexp(-1).mean() for v in out.values()).backward()
+        g = net.classifier.conv4[0].weight.grad.clone()
+        g[:, :, 1, 1] = 0
+        assert torch.count_nonzero(g) == 0

@@ -127,8 +127,17 @@ class LCNet(nn.Module):
 
     def classify(self, feats: torch.Tensor, fused: torch.Tensor) -> dict[str, torch.Tensor]:
         """Per-image features [B, 256, h, w] and the global feature [B or 1, 256, h, w] ->
-        logits {"dir_x": [B, K_d], "dir_y": [B, K_d], "ints": [B, K_e]}."""
-        return self.classifier(torch.cat([feats, fused.expand_as(feats)], 1))
+        logits {"dir_x": [B, K_d], "dir_y": [B, K_d], "ints": [B, K_e]}.
+
+        The classifier always runs in the network's own dtype, outside any autocast: on the
+        2-core development CPU (torch 2.13.0, oneDNN) the bf16 backward of its last stride-2
+        conv on a 1 x 1 map (64 px inputs) gave non-zero, later NaN, weight gradients on kernel
+        taps that only see zero padding, which is how the release LCNet got NaN weights
+        (weights/README.md). It works on maps of 4 x 4 and less: cheap next to the extractor."""
+        x = torch.cat([feats, fused.expand_as(feats)], 1)
+        dtype = next(self.classifier.parameters()).dtype
+        with torch.autocast(x.device.type, enabled=False):
+            return self.classifier(x.to(dtype))
 
     def forward(self, images: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """All images at once (training; psctl.lights streams instead).
