@@ -410,8 +410,8 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
     each view turns / mirrors the images, the mask and the lights together, its normals are
     turned back into the capture's frame, and the result is their unit mean. views = 1 is
     ``run_network`` itself. Same arguments and result as ``run_network``."""
-    from psctl.symmetry import SYMMETRIES, check_views, transform_dirs, transform_images, untransform_dirs, \
-        untransform_images
+    from psctl.symmetry import SYMMETRIES, box_in_capture, check_views, transform_dirs, transform_images, \
+        untransform_dirs, untransform_images
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     views = check_views(cfg["views"])
@@ -422,23 +422,12 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
     mask = np.asarray(mask, bool)
     H, W = mask.shape
     total = np.zeros((H, W, 3), np.float64)
-    first = None
+    first = None  # SYMMETRIES[0] is the identity: its info and dark map are the capture's own
     for v, sym in enumerate(SYMMETRIES[:views]):
-        transpose, flip_x, flip_y = sym
-        Ht, Wt = (W, H) if transpose else (H, W)
+        view_shape = (W, H) if sym[0] else (H, W)
 
-        def view_reader(start: int, box: tuple[slice, slice], sym=sym, Ht=Ht, Wt=Wt,
-                        flip_x=flip_x, flip_y=flip_y, transpose=transpose) -> Iterator[np.ndarray]:
-            ys, xs = box  # in the view's frame: the same region of the capture, then turned
-            ys = slice(*ys.indices(Ht)[:2])
-            xs = slice(*xs.indices(Wt)[:2])
-            if flip_y:
-                ys = slice(Ht - ys.stop, Ht - ys.start)
-            if flip_x:
-                xs = slice(Wt - xs.stop, Wt - xs.start)
-            if transpose:
-                ys, xs = xs, ys
-            for img in reader(start, (ys, xs)):
+        def view_reader(start: int, box: tuple[slice, slice], sym=sym, view_shape=view_shape) -> Iterator[np.ndarray]:
+            for img in reader(start, box_in_capture(box, sym, view_shape)):
                 yield np.ascontiguousarray(transform_images(img, sym, axes=(0, 1)))
 
         mask_v = np.ascontiguousarray(transform_images(mask, sym, axes=(0, 1)))

@@ -77,6 +77,19 @@ def untransform_dirs(dirs: A, sym: Sym) -> A:
     return _stack(dirs, [x, y, z])
 
 
+def box_in_capture(box: tuple[slice, slice], sym: Sym, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The region of the capture that a (rows, columns) box of the view after ``sym`` shows;
+    ``shape`` is the view's (H, W). ``transform_images(capture[region], sym) == view[box]``."""
+    transpose, flip_x, flip_y = sym
+    h, w = shape
+    ys, xs = slice(*box[0].indices(h)[:2]), slice(*box[1].indices(w)[:2])
+    if flip_y:
+        ys = slice(h - ys.stop, h - ys.start)
+    if flip_x:
+        xs = slice(w - xs.stop, w - xs.start)
+    return (xs, ys) if transpose else (ys, xs)
+
+
 def check_views(views: object) -> int:
     """``views`` if it is one of VIEW_COUNTS (the subgroups), else PsctlError (a ValueError)."""
     if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or int(views) not in VIEW_COUNTS:
