@@ -11,12 +11,20 @@ by default as psctl lights; the paper: argmax, one view), each for every --views
   hemi        512 held-out synthetic samples (seed 2,000,003, never used for training or
               validation) of configs/lcnet_cpu.yaml's data: lights uniform over the hemisphere
   cone45      the same with lights within 45 degrees of the view axis (DiLiGenT-like rigs)
+  hemi_dir, cone45_dir
+              the same two with "directional" intensities (psctl.synth.lights): a smooth
+              function of the light direction drawn per sample, as real rigs whose LEDs dim
+              towards the rim, instead of independent per image
   syntest     .cache/syntest: test shapes (bunny, dragon, armadillo) x 4 MERL materials, 100
               lights over the hemisphere (benchmarks/eval_weights.py makes it)
   syntest_dl  the same shapes under 96 DiLiGenT-like lights, 4 other materials (.cache/syntest_dl)
+  syntest_dl_dir
+              syntest_dl with directional intensities, each object its own rig (`psctl synth
+              .cache/syntest_dl_dir --preset syntest --lights 96 --light-dist diligent
+              --intensities directional`)
   dev         the DiLiGenT dev split (../shared/data); reported, never used for choosing
 
-The synthetic sets (the first four) choose; ``dev`` only reports.
+The synthetic sets (all but dev) choose; ``dev`` only reports.
 """
 
 from __future__ import annotations
@@ -34,8 +42,11 @@ from bench_infer import machine  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DILIGENT = REPO.parent / "shared" / "data" / "diligent" / "pmsData_crop"
-FOLDERS = {"syntest": REPO / ".cache" / "syntest", "syntest_dl": REPO / ".cache" / "syntest_dl", "dev": DILIGENT}
-SETS = ("hemi", "cone45", "syntest", "syntest_dl", "dev")
+FOLDERS = {"syntest": REPO / ".cache" / "syntest", "syntest_dl": REPO / ".cache" / "syntest_dl",
+           "syntest_dl_dir": REPO / ".cache" / "syntest_dl_dir", "dev": DILIGENT}
+SETS = ("hemi", "cone45", "hemi_dir", "cone45_dir", "syntest", "syntest_dl", "syntest_dl_dir", "dev")
+STREAM_SETS = {"hemi": ("hemisphere", "random"), "cone45": ("diligent", "random"),
+               "hemi_dir": ("hemisphere", "directional"), "cone45_dir": ("diligent", "directional")}
 
 
 def synthetic(weights: Path, lights: dict, samples: int, device: str, decode: str, views: list[int]) -> dict:
@@ -108,8 +119,8 @@ def main() -> None:
     for w in args.weights:
         res: dict = {v: {} for v in args.views}
         for s in args.sets:
-            if s in ("hemi", "cone45"):
-                lights = {"lights": "hemisphere" if s == "hemi" else "diligent", "max_zenith": None}
+            if s in STREAM_SETS:
+                lights = {"lights": STREAM_SETS[s][0], "max_zenith": None, "intensities": STREAM_SETS[s][1]}
                 for v, r in synthetic(w, lights, args.samples, args.device, args.decode, args.views).items():
                     res[v][s] = r
             elif not FOLDERS[s].is_dir():

@@ -256,6 +256,55 @@ def test_lights():
         L.sample_lights((3,), g, "sideways")
 
 
+def _corr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pearson correlation along the last axis."""
+    a, b = a - a.mean(-1, keepdim=True), b - b.mean(-1, keepdim=True)
+    return (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1))
+
+
+def test_directional_intensities_follow_the_lights():
+    g = gen()
+    lights = L.sample_lights((300, 96), g, "diligent")
+    e = L.sample_intensities((300, 96), g, "directional", lights=lights)
+    assert e.shape == (300, 96) and e.min() >= 0.2 and e.max() <= 2.0
+    # a smooth function of direction (up to the small jitter): log e is nearly linear in l
+    x = torch.cat([lights, torch.ones(300, 96, 1)], -1)
+    fit = torch.linalg.lstsq(x, e.log()[..., None]).solution
+    resid = (x @ fit)[..., 0] - e.log()
+    unclamped = ((e > 0.2) & (e < 2.0)).all(-1)
+    assert unclamped.sum() > 30
+    assert resid[unclamped].abs().amax(-1).max() < 1.5 * math.log(L.DIRECTIONAL_JITTER)  # least squares, not the true a
+    # each sample its own rig: strongly correlated with zenith in either sense, some with none
+    c = _corr(e, lights[..., 2])
+    assert (c > 0.6).any() and (c < -0.6).any() and c.abs().min() < 0.3
+    # random ignores the lights; mixed is each of the two, per sample
+    r = L.sample_intensities((300, 96), g, "random")
+    assert _corr(r, lights[..., 2]).abs().max() < 0.45
+    m = L.sample_intensities((300, 96), g, "mixed", lights=lights)
+    smooth = (torch.linalg.lstsq(x, m.log()[..., None]).solution, )
+    resid_m = ((x @ smooth[0])[..., 0] - m.log()).abs().amax(-1)
+    frac = (resid_m < 1.5 * math.log(L.DIRECTIONAL_JITTER)).float().mean()
+    assert 0.15 < frac < 0.6  # directional (minus clamped ones) about half the time
+    with pytest.raises(ValueError):
+        L.sample_intensities((3, 4), g, "directional")  # needs the lights
+    with pytest.raises(PsctlError):
+        L.sample_intensities((3, 4), g, "sometimes", lights=lights[:3, :4])
+
+
+def test_synth_folder_intensities(tmp_path):
+    from psctl.synth.write import preset_objects
+
+    unit = preset_objects("blobby", seed=3, size=16, n_lights=12, k=2)
+    dirn = preset_objects("blobby", seed=3, size=16, n_lights=12, k=2, intensities="directional")
+    for a, b in zip(unit, dirn):  # the same objects and lights: only the intensities differ
+        assert torch.equal(a.lights, b.lights) and a.name == b.name
+        assert (a.intensities == 1).all() and not (b.intensities == 1).all()
+        assert b.meta["intensities"] == "directional" and "intensities" not in a.meta
+    assert not torch.equal(dirn[0].intensities, dirn[1].intensities)  # a rig per object
+    with pytest.raises(PsctlError):
+        preset_objects("blobby", size=16, n_lights=12, k=1, intensities="bright")
+
+
 def test_lights_cone_range_is_drawn_per_sample():
     d = L.sample_lights((400, 300), gen(), "hemisphere", (40.0, 90.0))
     widest = torch.rad2deg(torch.acos(d[..., 2].clamp(-1, 1))).amax(dim=1)  # [400] per sample

@@ -59,7 +59,7 @@ DEFAULT_CONFIG: dict = {
     "blobby": {},  # overrides of psctl.synth.shapes.BLOBBY
     "lights": "hemisphere",  # hemisphere | diligent | poles | equator
     "max_zenith": None,  # degrees; overrides the distribution's band
-    "intensities": "unit",  # unit | random (uniform in [0.2, 2.0] per image)
+    "intensities": "unit",  # unit | random (uniform in [0.2, 2.0] per image) | directional | mixed (psctl.synth.lights)
     "materials": {"merl": 0.5, "ggx": 0.35, "lambert": 0.15},
     "merl": None,  # path of the ABC table (None: psctl.synth.materials.find_merl_file())
     "merl_names": None,  # restrict MERL draws to these materials
@@ -364,7 +364,7 @@ class SynthStream:
     Each batch is a dict:
         images      [B, N, 3, H, W] float32, e * radiance * exposure (clipped, noisy)
         lights      [B, N, 3] unit directions (x right, y up, z toward the camera)
-        intensities [B, N] light intensities e (1 unless intensities="random")
+        intensities [B, N] light intensities e (1 when intensities="unit")
         normals     [B, 3, H, W] unit normals, 0 outside the mask
         masks       [B, 1, H, W] float 0/1
         shapes      list of B source names ("blobby", "lucy", ...)
@@ -426,7 +426,7 @@ class SynthStream:
 
         # lights
         lights = L.sample_lights((b, n), gen, cfg["lights"], cfg["max_zenith"])
-        ints = L.sample_intensities((b, n), gen, cfg["intensities"])
+        ints = L.sample_intensities((b, n), gen, cfg["intensities"], lights=lights)
         vis = None
         if cfg["shadows"]:
             l_src = torch.cat([torch.einsum("bij,bnj->bni", crops["to_src"], lights[..., :2]), lights[..., 2:]], -1)

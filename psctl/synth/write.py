@@ -82,14 +82,19 @@ def _merl_subset(table: M.MerlTable, k: int, gen: torch.Generator) -> list[int]:
 
 
 def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
-                   k: int | None = None, light_dist: str = "hemisphere") -> list[SynthObject]:
+                   k: int | None = None, light_dist: str = "hemisphere", intensities: str = "unit") -> list[SynthObject]:
     """The objects of a preset (geometry, materials, lights), not yet rendered.
 
     ``light_dist`` names the zenith band the lights are drawn from (psctl.synth.lights:
     hemisphere, diligent, poles, equator); the presets use the hemisphere, as the paper.
+    ``intensities`` (psctl.synth.lights: unit, random, directional, mixed): the lights'
+    intensities, drawn per object (each object its own rig), for uncalibrated methods; unit
+    keeps the presets as they were.
     """
     check_preset(preset)
     L.zenith_band(light_dist)  # validates the name before any work
+    if intensities not in L.INTENSITY_MODES:
+        raise PsctlError(None, f"unknown --intensities {intensities!r}; choose from {', '.join(L.INTENSITY_MODES)}")
     if size < 8 or n_lights < 3:
         raise PsctlError(None, f"need --size >= 8 and --lights >= 3 (got {size}, {n_lights})")
     k = DEFAULT_K[preset] if k is None else k
@@ -135,8 +140,14 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
                 tex = M.albedo_texture(1, size, size, gen)
                 meta["texture"] = True
             objs.append(SynthObject(f"blobby_{i + 1:02d}", views.take([i]), mat, lights, ones, mat_b, w, tex, meta))
+    if intensities != "unit":  # a generator of their own: the unit presets' draws stay as they were
+        gen_e = torch.Generator().manual_seed(seed + 2)
+        for o in objs:
+            o.intensities = L.sample_intensities((1, n_lights), gen_e, intensities, lights=lights[None])[0]
     for o in objs:
         o.meta.update(preset=preset, seed=seed, size=size, n_lights=n_lights, light_dist=light_dist)
+        if intensities != "unit":
+            o.meta["intensities"] = intensities
     return objs
 
 
@@ -229,7 +240,8 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
-                 sensor_noise: float = 0.0, light_dist: str = "hemisphere", progress=None) -> dict:
+                 sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
+                 progress=None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
@@ -238,6 +250,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         preview: also write out/preview.png, a contact sheet of a few images per object.
         sensor_noise: standard deviation of Gaussian read noise added before quantisation.
         light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
+        intensities: unit | random | directional | mixed (psctl.synth.lights), per object.
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "objects", "preview", "seconds"}.
     """
@@ -246,7 +259,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     t0 = time.perf_counter()
     out = Path(out)
     check_output_dir(out)
-    objs = preset_objects(preset, seed, size, n_lights, k, light_dist)
+    objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
     ensure_writable_dir(out)
     # objects.txt marks a complete set: it goes now and comes back when every object is written,
     # so an interrupted run is never read as a finished one together with an older objects.txt
