@@ -281,8 +281,8 @@ def test_directional_intensities_follow_the_lights():
     r = L.sample_intensities((300, 96), g, "random")
     assert _corr(r, lights[..., 2]).abs().max() < 0.45
     m = L.sample_intensities((300, 96), g, "mixed", lights=lights)
-    smooth = (torch.linalg.lstsq(x, m.log()[..., None]).solution, )
-    resid_m = ((x @ smooth[0])[..., 0] - m.log()).abs().amax(-1)
+    smooth = torch.linalg.lstsq(x, m.log()[..., None]).solution
+    resid_m = ((x @ smooth)[..., 0] - m.log()).abs().amax(-1)
     frac = (resid_m < 1.5 * math.log(L.DIRECTIONAL_JITTER)).float().mean()
     assert 0.15 < frac < 0.6  # directional (minus clamped ones) about half the time
     with pytest.raises(ValueError):
@@ -291,8 +291,19 @@ def test_directional_intensities_follow_the_lights():
         L.sample_intensities((3, 4), g, "sometimes", lights=lights[:3, :4])
 
 
+def test_stream_directional_intensities():
+    from psctl.synth.stream import SynthStream
+
+    b = SynthStream(SMALL, seed=1, intensities="directional", lights="diligent", crop=None, size=24).next_batch()
+    e, l = b["intensities"], b["lights"]
+    assert e.shape == l.shape[:2] and e.min() >= 0.2 and e.max() <= 2.0
+    assert not torch.allclose(e, torch.ones_like(e))
+    with pytest.raises(PsctlError, match="unknown intensities"):
+        SynthStream(SMALL, seed=1, intensities="bright", crop=None, size=24)
+
+
 def test_synth_folder_intensities(tmp_path):
-    from psctl.synth.write import preset_objects
+    from psctl.synth.write import preset_objects, write_preset
 
     unit = preset_objects("blobby", seed=3, size=16, n_lights=12, k=2)
     dirn = preset_objects("blobby", seed=3, size=16, n_lights=12, k=2, intensities="directional")
@@ -303,6 +314,14 @@ def test_synth_folder_intensities(tmp_path):
     assert not torch.equal(dirn[0].intensities, dirn[1].intensities)  # a rig per object
     with pytest.raises(PsctlError):
         preset_objects("blobby", size=16, n_lights=12, k=1, intensities="bright")
+    r = write_preset(tmp_path / "set", "blobby", seed=3, size=16, n_lights=12, k=2, intensities="directional")
+    assert r["intensities"] == "directional"
+    for o in dirn:  # the files hold the drawn intensities, one RGB row per light
+        e = np.loadtxt(tmp_path / "set" / o.name / "light_intensities.txt")
+        assert np.allclose(e, o.intensities.numpy()[:, None].repeat(3, 1), atol=1e-5)
+    with pytest.raises(PsctlError):
+        write_preset(tmp_path / "bad", "blobby", size=16, n_lights=12, k=1, intensities="bright")
+    assert not (tmp_path / "bad").exists()  # refused before any folder is made
 
 
 def test_lights_cone_range_is_drawn_per_sample():

@@ -86,7 +86,10 @@ def sample_intensities(shape: tuple[int, ...], gen: torch.Generator, mode: str =
     random       uniform in [low, high], independently per image (the paper)
     directional  a smooth function of the light direction, exp(a . l) times a small per-image
                  jitter, with a per sample (DIRECTIONAL_GAIN), scaled to geometric mean 1 and
-                 clamped to [low, high]; needs ``lights`` [*shape, 3]
+                 clamped to [low, high]; needs ``lights`` [*shape, 3]. The gains are large next
+                 to the range, so the clamp is often hit (hemisphere lights: about 27% of the
+                 images at ``high`` and 7% at ``low``; 45-degree cone: 9% and 0.1%): a smooth
+                 ramp that saturates
     mixed        per sample, random or directional with equal chance
     """
     dev = gen.device

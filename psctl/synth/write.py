@@ -140,7 +140,9 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
                 tex = M.albedo_texture(1, size, size, gen)
                 meta["texture"] = True
             objs.append(SynthObject(f"blobby_{i + 1:02d}", views.take([i]), mat, lights, ones, mat_b, w, tex, meta))
-    if intensities != "unit":  # a generator of their own: the unit presets' draws stay as they were
+    # a generator of their own: the unit presets' draws stay as they were (seed + 2 is also the
+    # lights' generator of the preset with seed + 2; sets of neighbouring seeds share draws)
+    if intensities != "unit":
         gen_e = torch.Generator().manual_seed(seed + 2)
         for o in objs:
             o.intensities = L.sample_intensities((1, n_lights), gen_e, intensities, lights=lights[None])[0]
@@ -252,7 +254,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
         intensities: unit | random | directional | mixed (psctl.synth.lights), per object.
     Returns:
-        {"out", "preset", "seed", "size", "n_lights", "light_dist", "objects", "preview", "seconds"}.
+        {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds"}.
     """
     from psctl.io.atomic import check_output_dir, ensure_writable_dir, write_text_atomic
 
@@ -299,7 +301,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         preview_path = out / "preview.png"
         write_image(preview_path, _sheet(sheet_rows), "uint8")
     return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
-            "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
+            "intensities": intensities, "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
             "seconds": round(time.perf_counter() - t0, 3)}
 
 
