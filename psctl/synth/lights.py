@@ -69,12 +69,19 @@ def sample_lights(shape: tuple[int, ...], gen: torch.Generator, distribution: st
 
 # "directional" intensities: e = exp(a . l) x jitter, a drawn per sample. Real rigs' LEDs differ
 # smoothly with their position: DiLiGenT's dim towards the rim (intensity vs zenith correlation
-# -0.72 on cat, 0.45 at 40 degrees vs 1.2 near the axis, i.e. a_z about 4). Drawn independently
+# -0.72 on cat, 0.42 at 40 degrees vs 1.20 at 4 degrees, i.e. a_z about 4.5). Drawn independently
 # of the lights, as "random" is, an LCNet can learn that a bright image means a frontal light;
 # with both modes in training (mixed) brightness says nothing about direction.
 DIRECTIONAL_GAIN = (5.0, 1.5)  # |a_z| <= 5 (rim falloff or rise), |a_x|, |a_y| <= 1.5 (lateral gradients)
 DIRECTIONAL_JITTER = 1.25  # per-image factor log-uniform in [1/1.25, 1.25]
 INTENSITY_MODES = ("unit", "random", "directional", "mixed")
+
+
+def check_intensities(mode: str, name: str = "intensities") -> str:
+    """``mode`` if it is one of INTENSITY_MODES, else PsctlError naming the option ``name``."""
+    if mode not in INTENSITY_MODES:
+        raise PsctlError(None, f"unknown {name} {mode!r}; choose from {', '.join(INTENSITY_MODES)}")
+    return mode
 
 
 def sample_intensities(shape: tuple[int, ...], gen: torch.Generator, mode: str = "unit",
@@ -97,8 +104,7 @@ def sample_intensities(shape: tuple[int, ...], gen: torch.Generator, mode: str =
         return torch.ones(shape, device=dev)
     if mode == "random":
         return low + (high - low) * torch.rand(shape, generator=gen, device=dev)
-    if mode not in ("directional", "mixed"):
-        raise PsctlError(None, f"unknown intensity mode {mode!r}; choose from {', '.join(INTENSITY_MODES)}")
+    check_intensities(mode, "intensity mode")
     if lights is None or tuple(lights.shape) != (*shape, 3):
         raise ValueError(f"intensities {mode!r} need lights of shape {(*shape, 3)}")
     gz, gxy = DIRECTIONAL_GAIN

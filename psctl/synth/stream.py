@@ -95,8 +95,7 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     if cfg["windows"] is not None and not (0 < int(cfg["windows"]) <= cfg["crop"]):
         raise PsctlError(None, f"need 0 < windows <= crop (windows {cfg['windows']}, crop {cfg['crop']})")
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
-    if cfg["intensities"] not in L.INTENSITY_MODES:  # before the geometry pool is built
-        raise PsctlError(None, f"unknown intensities {cfg['intensities']!r}; choose from {', '.join(L.INTENSITY_MODES)}")
+    L.check_intensities(cfg["intensities"])  # before the geometry pool is built
     return cfg
 
 

@@ -93,8 +93,7 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     """
     check_preset(preset)
     L.zenith_band(light_dist)  # validates the name before any work
-    if intensities not in L.INTENSITY_MODES:
-        raise PsctlError(None, f"unknown --intensities {intensities!r}; choose from {', '.join(L.INTENSITY_MODES)}")
+    L.check_intensities(intensities, "--intensities")
     if size < 8 or n_lights < 3:
         raise PsctlError(None, f"need --size >= 8 and --lights >= 3 (got {size}, {n_lights})")
     k = DEFAULT_K[preset] if k is None else k
@@ -142,13 +141,11 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
             objs.append(SynthObject(f"blobby_{i + 1:02d}", views.take([i]), mat, lights, ones, mat_b, w, tex, meta))
     # a generator of their own: the unit presets' draws stay as they were (seed + 2 is also the
     # lights' generator of the preset with seed + 2; sets of neighbouring seeds share draws)
-    if intensities != "unit":
-        gen_e = torch.Generator().manual_seed(seed + 2)
-        for o in objs:
-            o.intensities = L.sample_intensities((1, n_lights), gen_e, intensities, lights=lights[None])[0]
+    gen_e = None if intensities == "unit" else torch.Generator().manual_seed(seed + 2)
     for o in objs:
         o.meta.update(preset=preset, seed=seed, size=size, n_lights=n_lights, light_dist=light_dist)
-        if intensities != "unit":
+        if gen_e is not None:
+            o.intensities = L.sample_intensities((1, n_lights), gen_e, intensities, lights=lights[None])[0]
             o.meta["intensities"] = intensities
     return objs
 
