@@ -564,3 +564,39 @@ def test_weights_with_nan_are_refused(tmp_path):
     torch.save({"state_dict": state}, tmp_path / "authors.pth.tar")  # the authors' format, written by someone else
     with pytest.raises(PsctlError, match="NaN or infinite"):
         read_weights(tmp_path / "authors.pth.tar")
+
+
+def test_folder_and_in_memory_paths_agree(tmp_path):
+    """capture_normals (images streamed from disk, divided by their intensities) and array_normals
+    on load_images of the same folder give the same normals (an analysis once seemed to disagree:
+    it had scored mask pixels without a ground-truth normal, see test_score_skips_pixels_without_gt)."""
+    from psctl.infer import capture_normals
+    from psctl.io.capture import load_images, load_mask, open_capture
+
+    write_capture(tmp_path / "obj", n=6, size=36)
+    cap = open_capture(tmp_path / "obj")
+    w = save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32, "input_mean": 0.2236})
+    mask = load_mask(cap)
+    a = capture_normals(cap, mask, "ps-fcn", w, {"device": "cpu"})
+    b = array_normals(load_images(cap), cap.lights, mask, "ps-fcn", w, {"device": "cpu"})
+    assert a.info["exposure_scale"] == b.info["exposure_scale"]
+    np.testing.assert_array_equal(a.normals, b.normals)
+
+
+def test_score_skips_pixels_without_gt(tmp_path):
+    """Mask pixels whose ground-truth normal is zero (73 of pot2's 35,278 in DiLiGenT's cropped
+    set) are not scored: they would count 90 degrees each whatever the method answers."""
+    import scipy.io
+
+    from psctl.api import run_normals
+
+    arrays = write_capture(tmp_path / "obj", n=8, size=36)
+    full = run_normals(tmp_path / "obj", method="l2", write=False)
+    gt = scipy.io.loadmat(tmp_path / "obj" / "Normal_gt.mat")["Normal_gt"]
+    holes = np.argwhere(arrays["mask"])[::7]
+    gt[holes[:, 0], holes[:, 1]] = 0
+    scipy.io.savemat(tmp_path / "obj" / "Normal_gt.mat", {"Normal_gt": gt})
+    holed = run_normals(tmp_path / "obj", method="l2", write=False)
+    assert holed["n_mask_pixels"] == full["n_mask_pixels"] == int(arrays["mask"].sum())
+    assert holed["n_evaluated_pixels"] == full["n_evaluated_pixels"] - len(holes)
+    assert holed["mae"] < 1.0  # Lambertian sphere, L2: near exact on the scored pixels, no 90s
