@@ -66,6 +66,9 @@ DEFAULT_LIGHTS = {
     # and mirrored about the view axis, LCNet's estimates turned back and averaged. 8 was better
     # than 1 on held-out synthetic sets with the release LCNet (docs/uncalibrated.md)
     "views": 8,
+    # pad the crop to a square before resizing (False: stretch it to a square, as the authors'
+    # code does); see docs/uncalibrated.md for the comparison
+    "square": False,
 }
 
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
@@ -101,6 +104,16 @@ def crop_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
     h, w = mask.shape
     return (slice(max(int(ys.min()) - margin, 0), min(int(ys.max()) + 1 + margin, h)),
             slice(max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)))
+
+
+def pad_square(x: "torch.Tensor") -> "torch.Tensor":
+    """Zero-pad [..., H, W] to [..., S, S], S = max(H, W), centred: resizing then keeps the
+    object's aspect ratio (a stretched sphere no longer looks like a sphere to LCNet)."""
+    import torch.nn.functional as F
+
+    h, w = x.shape[-2:]
+    s = max(h, w)
+    return F.pad(x, ((s - w) // 2, s - w - (s - w) // 2, (s - h) // 2, s - h - (s - h) // 2))
 
 
 def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config: dict | None = None,
@@ -166,6 +179,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
             if len(pending) == chunk or k == n:
                 x = torch.from_numpy(np.stack(pending)).permute(0, 3, 1, 2).to(device, dtype)
                 m = mask_t.expand(len(pending), 1, h, w)
+                if cfg["square"]:
+                    x, m = pad_square(x), pad_square(m)
                 x, m = resize_inputs(x, m, size)
                 yield model.network_input(x, m)
                 pending = []
