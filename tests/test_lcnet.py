@@ -187,6 +187,36 @@ def all_at_once(net: LCNet, images: np.ndarray, mask: np.ndarray, margin: int = 
         return {k: v[0].numpy() for k, v in net(x[None], m[:1]).items()}
 
 
+def test_square_crop_pads_instead_of_stretching():
+    """``square``: the crop is zero-padded to a square, centred, before resizing."""
+    from psctl.lights import pad_square
+
+    x = torch.ones(2, 3, 6, 10)
+    y = pad_square(x)
+    assert y.shape == (2, 3, 10, 10) and float(y.sum()) == float(x.sum())
+    assert (y[..., :2, :] == 0).all() and (y[..., 8:, :] == 0).all() and (y[..., 2:8, :] == 1).all()
+    assert pad_square(x.transpose(-1, -2)).shape == (2, 3, 10, 10)
+    net = lcnet().double()
+    images, mask = scene(h=24, w=40)
+    box = crop_box_of(mask)
+    x = torch.from_numpy(images[:, box[0], box[1]] * mask[box][..., None]).permute(0, 3, 1, 2).double()
+    m = torch.from_numpy(mask[box].astype(np.float64))[None, None].expand(len(images), 1, *x.shape[-2:])
+    x, m = resize_inputs(pad_square(x), pad_square(m), 128)
+    with torch.no_grad():
+        ref = {k: v[0].numpy() for k, v in net(x[None], m[:1]).items()}
+    est = array_lights(images, mask, model=net, config={"views": 1, "square": True})
+    for k in ref:
+        np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)
+    stretched = array_lights(images, mask, model=net, config={"views": 1})
+    assert not np.allclose(stretched.logits["dir_x"], est.logits["dir_x"])
+
+
+def crop_box_of(mask: np.ndarray) -> tuple[slice, slice]:
+    from psctl.lights import crop_box
+
+    return crop_box(mask, 15)
+
+
 def test_streamed_and_chunked_equal_all_at_once():
     net = lcnet().double()
     images, mask = scene()

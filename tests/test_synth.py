@@ -112,6 +112,38 @@ def test_noise_and_quantisation():
     assert q[0] == 0 and q[2] == 1 and abs(float(q[1]) * 65535 - round(0.3 * 65535)) < 1e-3
 
 
+def test_capture_rounding_is_an_8_bit_camera_at_a_dark_exposure():
+    """``capture``: drawn samples land on the 8-bit grid of a camera whose mean object pixel is
+    the drawn value, at their own brightness; the others are untouched."""
+    from psctl.synth.stream import capture_rounding
+
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(6, 4, 3, 10, 10, generator=g) * 0.4  # [b, n, 3, p] with p = 10 x 10 here
+    msk = torch.ones(6, 10, 10)
+    img, msk = img.flatten(3), msk.flatten(1)[:, None]  # as the stream holds them: [b, n, 3, p], [b, 1, p]
+    out = capture_rounding(img, msk, gen(), {"p": 1.0, "mean": [0.02, 0.02], "bits": 8})
+    for i in range(6):
+        s = 0.02 / float(img[i].mean())
+        codes = out[i] * s * 255
+        assert torch.allclose(codes, codes.round(), atol=1e-3)  # on the 8-bit grid of that exposure
+        assert len(torch.unique(codes.round())) <= 256 and (codes.round() <= 255).all()
+        assert abs(float(out[i].mean()) / float(img[i].mean()) - 1) < 0.05  # brightness kept
+        assert (out[i] == 0).any() and not (img[i] == 0).any()  # dark values clip to black
+    same = capture_rounding(img, msk, gen(), {"p": 0.0, "mean": [0.02, 0.02], "bits": 8})
+    assert torch.equal(same, img)
+
+
+def test_stream_capture_option():
+    from psctl.synth.stream import SynthStream
+
+    plain = SynthStream({**SMALL}, seed=2).next_batch()
+    cap = SynthStream({**SMALL, "capture": {"p": 1.0, "mean": [0.01, 0.01], "bits": 8}}, seed=2).next_batch()
+    assert torch.equal(plain["normals"], cap["normals"]) and not torch.equal(plain["images"], cap["images"])
+    for k in range(len(cap["images"])):  # few grey levels per sample: a dark 8-bit capture
+        m = cap["masks"][k, 0].bool()
+        assert len(torch.unique(cap["images"][k][:, :, m])) < 64
+
+
 def test_ambient_term_lifts_shadows_by_a_times_albedo():
     """Real shadows are rarely black; the stream's ``ambient`` option adds a * kD to every image."""
     sp = sphere_gbuffer(32)

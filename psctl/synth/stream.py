@@ -72,6 +72,11 @@ DEFAULT_CONFIG: dict = {
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
     "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
     "quantize": None,  # bits (8, 16) or None
+    # an integer camera at a dark exposure: with chance p a sample is scaled to a mean object
+    # pixel drawn log-uniformly in `mean`, clipped, rounded to `bits` and scaled back (the
+    # network sees the usual brightness, with the capture's rounding and black clipping).
+    # DiLiGenT's 8-bit crops have mean object pixels of 0.018 (pot2) to 0.073 (ball).
+    "capture": None,  # None or {"p": 0.5, "mean": [0.01, 0.1], "bits": 8}
     "mask_images": True,  # zero the images outside the object
     "device": "cpu",
     "seed": 0,
@@ -321,6 +326,21 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
 
 
+def capture_rounding(img: Tensor, msk: Tensor, gen: torch.Generator, capture: dict) -> Tensor:
+    """Images [b, n, 3, p] as an integer camera at a random dark exposure would record them (see
+    DEFAULT_CONFIG["capture"]), at their own brightness; masks as the stream's exposure step takes them. Samples not drawn (chance
+    1 - p) are returned unchanged."""
+    b, dev = img.shape[0], img.device
+    lo, hi = capture["mean"]
+    pick = torch.rand(b, generator=gen, device=dev) < float(capture.get("p", 0.5))
+    want = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
+    count = (msk.sum((1, 2)) * img.shape[1] * 3).clamp_min(1.0)  # as the exposure step
+    mean = (img.clamp_min(0.0) * msk[:, None]).sum((1, 2, 3)) / count
+    s = (want / mean.clamp_min(1e-8))[:, None, None, None]
+    rounded = R.quantize(img * s, int(capture.get("bits", 8))) / s
+    return torch.where(pick[:, None, None, None], rounded, img)
+
+
 def object_windows(mask: Tensor, side: int, w: int, gen: torch.Generator) -> Tensor:
     """One w x w window per sample, centred (as far as the view allows) on a random object pixel.
 
@@ -452,6 +472,8 @@ class SynthStream:
             R.uniform_noise(img, gen, cfg["noise"])
         if cfg["quantize"]:
             img = R.quantize(img, cfg["quantize"])
+        if cfg["capture"]:
+            img = capture_rounding(img, msk, gen, cfg["capture"])
         if cfg["mask_images"]:
             img.mul_(msk[:, None])
 
