@@ -6,7 +6,7 @@
 The DiLiGenT dev split (cropped, 8-bit) is dark: the mean object pixel is 0.018 (pot2) to 0.073
 (ball) of full scale, and 70-81 % of pot1's and pot2's observations are below 8/255. Each
 synthetic object (16-bit PNG, read as float) is scaled so that its mean object pixel is m, clipped
-to 1 and rounded to 8 bits, then given to each method with the true lights; ``float`` is the
+to 1 and rounded (``--floor``: truncated) to 8 bits, then given to each method with the true lights; ``float`` is the
 image as read. Mean angular error in degrees per object and over the folder.
 """
 
@@ -22,10 +22,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def capture_8bit(images: np.ndarray, mask: np.ndarray, mean: float) -> np.ndarray:
-    """Images [N, H, W, 3] scaled to object mean ``mean``, clipped to [0, 1], rounded to 8 bits."""
+def capture_8bit(images: np.ndarray, mask: np.ndarray, mean: float, floor: bool = False) -> np.ndarray:
+    """Images [N, H, W, 3] scaled to object mean ``mean``, clipped to [0, 1], rounded (or
+    truncated, as DiLiGenT's crops were made) to 8 bits."""
     scale = mean / max(float(images[:, mask].mean()), 1e-12)
-    return np.round(np.clip(images * scale, 0.0, 1.0) * 255.0) / 255.0
+    to_int = np.floor if floor else np.round
+    return to_int(np.clip(images * scale, 0.0, 1.0) * 255.0) / 255.0
 
 
 def main() -> None:
@@ -38,6 +40,7 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["ps-fcn", "ps-fcn-n"])
     ap.add_argument("--weights", nargs="*", default=None, help="one file per method (default: installed)")
     ap.add_argument("--means", nargs="+", type=float, default=[0.06, 0.02])
+    ap.add_argument("--floor", action="store_true", help="truncate instead of rounding (DiLiGenT's crops)")
     ap.add_argument("--out")
     args = ap.parse_args()
     weights = args.weights or [None] * len(args.methods)
@@ -48,7 +51,7 @@ def main() -> None:
         mask, gt = load_mask(cap), load_ground_truth(cap)
         valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
         images = load_images(cap)
-        inputs = {"float": images, **{f"8bit@{m:g}": capture_8bit(images, mask, m) for m in args.means}}
+        inputs = {"float": images, **{f"8bit@{m:g}": capture_8bit(images, mask, m, args.floor) for m in args.means}}
         row = {}
         for method, w in zip(args.methods, weights):
             for v in variants:

@@ -131,6 +131,10 @@ def test_capture_rounding_is_an_8_bit_camera_at_a_dark_exposure():
         assert (out[i] == 0).any() and not (img[i] == 0).any()  # dark values clip to black
     same = capture_rounding(img, msk, gen(), {"p": 0.0, "mean": [0.02, 0.02], "bits": 8})
     assert torch.equal(same, img)
+    low = capture_rounding(img, msk, gen(), {"p": 1.0, "mean": [0.02, 0.02], "bits": 8, "floor": True})
+    s = (0.02 / img.flatten(1).mean(1))[:, None, None, None]
+    torch.testing.assert_close(low, torch.floor(img * s * 255) / (255 * s))  # truncated, as DiLiGenT's crops
+    assert (low <= img + 1e-7).all() and (low < out - 1e-7).any()
 
 
 def test_stream_capture_option():

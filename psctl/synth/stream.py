@@ -76,7 +76,9 @@ DEFAULT_CONFIG: dict = {
     # pixel drawn log-uniformly in `mean`, clipped, rounded to `bits` and scaled back (the
     # network sees the usual brightness, with the capture's rounding and black clipping).
     # DiLiGenT's 8-bit crops have mean object pixels of 0.018 (pot2) to 0.073 (ball).
-    "capture": None,  # None or {"p": 0.5, "mean": [0.01, 0.1], "bits": 8}
+    # "floor": truncate instead of rounding (DiLiGenT's 8-bit crops are the 16-bit images / 257,
+    # truncated: everything under one step is black)
+    "capture": None,  # None or {"p": 0.5, "mean": [0.01, 0.1], "bits": 8, "floor": False}
     "mask_images": True,  # zero the images outside the object
     "device": "cpu",
     "seed": 0,
@@ -337,7 +339,11 @@ def capture_rounding(img: Tensor, msk: Tensor, gen: torch.Generator, capture: di
     count = (msk.sum((1, 2)) * img.shape[1] * 3).clamp_min(1.0)  # as the exposure step
     mean = (img.clamp_min(0.0) * msk[:, None]).sum((1, 2, 3)) / count
     s = (want / mean.clamp_min(1e-8))[:, None, None, None]
-    rounded = R.quantize(img * s, int(capture.get("bits", 8))) / s
+    peak = float(2 ** int(capture.get("bits", 8)) - 1)
+    if capture.get("floor", False):
+        rounded = torch.floor((img * s).clamp(0.0, 1.0) * peak) / (peak * s)
+    else:
+        rounded = R.quantize(img * s, int(capture.get("bits", 8))) / s
     return torch.where(pick[:, None, None, None], rounded, img)
 
 
