@@ -174,14 +174,16 @@ def scene(n: int = 11, h: int = 50, w: int = 70, seed: int = 0):
     return images, mask
 
 
-def all_at_once(net: LCNet, images: np.ndarray, mask: np.ndarray, margin: int = 15) -> dict:
-    """The straightforward computation: crop, resize every image, one forward pass."""
-    from psctl.lights import crop_box
+def all_at_once(net: LCNet, images: np.ndarray, mask: np.ndarray, margin: int = 15, square: bool = False) -> dict:
+    """The straightforward computation: crop, (pad to a square,) resize every image, one forward pass."""
+    from psctl.lights import crop_box, pad_square
 
     box = crop_box(mask, margin)
     dtype = next(net.parameters()).dtype
     x = torch.from_numpy(images[:, box[0], box[1]] * mask[box][..., None]).permute(0, 3, 1, 2).to(dtype)
     m = torch.from_numpy(mask[box].astype(np.float32))[None, None].to(dtype).expand(len(images), 1, *x.shape[-2:])
+    if square:
+        x, m = pad_square(x), pad_square(m)
     x, m = resize_inputs(x, m, 128)
     with torch.no_grad():
         return {k: v[0].numpy() for k, v in net(x[None], m[:1]).items()}
@@ -198,23 +200,12 @@ def test_square_crop_pads_instead_of_stretching():
     assert pad_square(x.transpose(-1, -2)).shape == (2, 3, 10, 10)
     net = lcnet().double()
     images, mask = scene(h=24, w=40)
-    box = crop_box_of(mask)
-    x = torch.from_numpy(images[:, box[0], box[1]] * mask[box][..., None]).permute(0, 3, 1, 2).double()
-    m = torch.from_numpy(mask[box].astype(np.float64))[None, None].expand(len(images), 1, *x.shape[-2:])
-    x, m = resize_inputs(pad_square(x), pad_square(m), 128)
-    with torch.no_grad():
-        ref = {k: v[0].numpy() for k, v in net(x[None], m[:1]).items()}
+    ref = all_at_once(net, images, mask, square=True)
     est = array_lights(images, mask, model=net, config={"views": 1, "square": True})
     for k in ref:
         np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)
     stretched = array_lights(images, mask, model=net, config={"views": 1})
     assert not np.allclose(stretched.logits["dir_x"], est.logits["dir_x"])
-
-
-def crop_box_of(mask: np.ndarray) -> tuple[slice, slice]:
-    from psctl.lights import crop_box
-
-    return crop_box(mask, 15)
 
 
 def test_streamed_and_chunked_equal_all_at_once():

@@ -328,22 +328,24 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
 
 
+def object_mean(img: Tensor, msk: Tensor) -> Tensor:
+    """Mean object pixel of each sample: images [b, n, 3, p], masks [b, 1, p] -> [b]."""
+    count = (msk.sum((1, 2)) * img.shape[1] * 3).clamp_min(1.0)
+    return (img.clamp_min(0.0) * msk[:, None]).sum((1, 2, 3)) / count
+
+
 def capture_rounding(img: Tensor, msk: Tensor, gen: torch.Generator, capture: dict) -> Tensor:
     """Images [b, n, 3, p] as an integer camera at a random dark exposure would record them (see
-    DEFAULT_CONFIG["capture"]), at their own brightness; masks as the stream's exposure step takes them. Samples not drawn (chance
-    1 - p) are returned unchanged."""
+    DEFAULT_CONFIG["capture"]), at their own brightness; masks [b, 1, p]. Samples not drawn
+    (chance 1 - p) are returned unchanged."""
     b, dev = img.shape[0], img.device
     lo, hi = capture["mean"]
     pick = torch.rand(b, generator=gen, device=dev) < float(capture.get("p", 0.5))
     want = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
-    count = (msk.sum((1, 2)) * img.shape[1] * 3).clamp_min(1.0)  # as the exposure step
-    mean = (img.clamp_min(0.0) * msk[:, None]).sum((1, 2, 3)) / count
-    s = (want / mean.clamp_min(1e-8))[:, None, None, None]
+    s = (want / object_mean(img, msk).clamp_min(1e-8))[:, None, None, None]
     peak = float(2 ** int(capture.get("bits", 8)) - 1)
-    if capture.get("floor", False):
-        rounded = torch.floor((img * s).clamp(0.0, 1.0) * peak) / (peak * s)
-    else:
-        rounded = R.quantize(img * s, int(capture.get("bits", 8))) / s
+    to_int = torch.floor if capture.get("floor", False) else torch.round
+    rounded = to_int((img * s).clamp(0.0, 1.0) * peak) / (peak * s)
     return torch.where(pick[:, None, None, None], rounded, img)
 
 
@@ -469,8 +471,7 @@ class SynthStream:
         # exposure: scale each sample so its mean object radiance hits a random target
         lo, hi = cfg["exposure"]
         target = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
-        count = (msk.sum((1, 2)) * n * 3).clamp_min(1.0)
-        mean = (img * msk[:, None]).sum((1, 2, 3)) / count
+        mean = object_mean(img, msk)  # shading is non-negative: the clamp there changes nothing
         img.mul_(((target / mean.clamp_min(1e-8))[:, None] * ints)[..., None, None])  # exposure x intensity
         if cfg["clip"] is not None:
             img.clamp_(max=cfg["clip"])
