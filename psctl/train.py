@@ -227,6 +227,8 @@ def save_optimizer(run: Path, optim: torch.optim.Optimizer) -> list[str]:
 
 
 def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], device: torch.device) -> None:
+    if not names:  # a run whose Adam state was dropped on purpose (state.json "optim_files": []): fresh moments
+        return
     state: dict = {}
     groups = None
     for name in names:

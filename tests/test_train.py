@@ -102,6 +102,25 @@ def test_a_run_from_before_a_new_recipe_key_resumes(tmp_path):
     assert train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
 
 
+def test_a_run_without_its_optimiser_state_resumes_with_fresh_moments(tmp_path):
+    """configs/gpu_session.sh restores a run from model.pt and state.json alone (the Adam state
+    is too large to bring back from every GPU call) by listing no optimiser files."""
+    cfg = tiny(16)
+    train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
+    for f in (tmp_path / "run").glob("optim.*.pt"):
+        f.unlink()
+    state = tmp_path / "run" / "state.json"
+    st = json.loads(state.read_text())
+    with pytest.raises(FileNotFoundError):  # listed but missing: not silently fresh
+        train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")
+    st["optim_files"] = []
+    state.write_text(json.dumps(st))
+    before = read_weights(tmp_path / "run" / "model.pt").state_dict
+    st = train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")
+    after = read_weights(tmp_path / "run" / "model.pt").state_dict
+    assert st["samples"] == 16 and any((before[k] - after[k]).abs().max() > 0 for k in before)
+
+
 def test_merge_keeps_the_recipe_data_section():
     cfg = merge(tiny(), {"data": {"intensities": "random"}})
     assert cfg["data"]["intensities"] == "random" and cfg["data"]["size"] == 64 and cfg["data"]["pool"] == 8

@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# Three fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
+#   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
+# From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs:
+# configs/ps_fcn_gpu_stage8.yaml, configs/ps_fcn_n_gpu_stage6.yaml, configs/lcnet_gpu_stage6.yaml.
+# The first call starts them, trains one minute, then sets each run's length from its own measured
+# rate (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
+# the learning rate has not changed yet, so the run is as if started with those values) and trains
+# on for MINUTES. A later call resumes them for MINUTES. Each call copies model.pt, state.json,
+# stream.pt and the logs to $OUT (with 'final': best.pt instead of model.pt and stream.pt), in
+# parts of 15 MB (the device tool returns files of at most 16 MB). A run folder missing on the
+# machine (a fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments.
+set -u
+cd "$(dirname "$0")/.."
+DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
+MIN=${1:?minutes}; PLAN=${2:-1250}; FINAL=${3:-}
+OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
+export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
+RUNS="ps-fcn:configs/ps_fcn_gpu_stage8.yaml:g_ps_fcn ps-fcn-n:configs/ps_fcn_n_gpu_stage6.yaml:g_ps_fcn_n lcnet:configs/lcnet_gpu_stage6.yaml:g_lcnet"
+psctl() { python3 -c 'import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()' "$@"; }
+
+# train.init files: the release files of the commits the recipes name
+[ -f .cache/gpu/ps_fcn_stage7.pt ] || cp weights/ps_fcn.pt .cache/gpu/ps_fcn_stage7.pt
+[ -f .cache/gpu/ps_fcn_n_stage5.pt ] || cp weights/ps_fcn_n.pt .cache/gpu/ps_fcn_n_stage5.pt
+[ -f .cache/gpu/lcnet_stage5.pt ] || cp weights/lcnet.pt .cache/gpu/lcnet_stage5.pt
+sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
+
+restore() {  # a fresh machine: the last returned state, without the optimiser's
+  local name=$1
+  [ -f runs/$name/state.json ] || [ ! -f .cache/gpu/back/$name/state.json ] || {
+    cp -r .cache/gpu/back/$name runs/$name
+    python3 - runs/$name/state.json <<'PY'
+import json, sys
+p = sys.argv[1]; st = json.load(open(p))
+st["optim_files"] = []; st.setdefault("optim_reset_at", []).append(st["samples"])
+json.dump(st, open(p, "w"), indent=1)
+PY
+  }
+}
+
+launch() {  # launch MINUTES: every run, side by side; wait for all
+  local pids=() m c name
+  for r in $RUNS; do
+    IFS=: read -r m c name <<< "$r"
+    restore $name
+    if [ -f runs/$name/state.json ]; then a=(--resume runs/$name); else a=(--config $c --out runs/$name); fi
+    psctl train $m "${a[@]}" --device $DEVICE --max-minutes $1 >> runs/$name.out 2>&1 &
+    pids+=($!)
+  done
+  local rc=0
+  for p in "${pids[@]}"; do wait $p || rc=1; done
+  return $rc
+}
+
+fresh=1; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/back/${r##*:}/state.json ] || continue; fresh=0; done
+if [ $fresh = 1 ]; then
+  nvidia-smi -L; python3 -c 'import torch; print("torch", torch.__version__, torch.cuda.get_device_name(0))'
+  psctl train ps-fcn --config configs/tiny.yaml --device $DEVICE --out /tmp/tiny -q || exit 1
+  launch 1.0 || { tail -5 runs/*.out; exit 1; }
+  python3 - $PLAN runs/g_ps_fcn runs/g_ps_fcn_n runs/g_lcnet > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
+import json, statistics, sys
+from pathlib import Path
+plan = float(sys.argv[1])
+for run in map(Path, sys.argv[2:]):
+    recs = [json.loads(l) for l in open(run / "log.jsonl") if '"samples_per_s"' in l]
+    st = json.loads((run / "state.json").read_text())
+    if len(recs) >= 6:  # past the warm-up (the first third of the log lines)
+        rate = statistics.median(r["samples_per_s"] for r in recs[len(recs) // 3:])
+    else:  # a slow device: the whole minute
+        rate = st["samples"] / st["seconds"]
+    t = st["config"]["train"]
+    unit = 5 * t["batch_size"]
+    samples = max(int(rate * plan * 0.9) // unit * unit, 15 * unit)
+    assert st["samples"] < samples // 5, "the learning rate would have changed already"
+    t.update(samples=samples, lr_halve_every=samples // 5, val_every=samples // 15)
+    st["schedule_from_rate"] = {"samples_per_s": rate, "plan_seconds": plan, "at_samples": st["samples"]}
+    (run / "state.json").write_text(json.dumps(st, indent=1))
+    print(f"{run.name}: {rate:.0f} samples/s in the first minute -> samples {samples:,}, "
+          f"lr halved every {samples // 5:,}, validation every {samples // 15:,}")
+PY
+  cat "$OUT/plan.txt"
+  left=$(python3 -c "print(max(0.5, $MIN - 1.0))")
+else
+  left=$MIN
+fi
+launch $left; rc=$?
+tail -n 3 runs/*.out
+if [ -n "$FINAL" ]; then files="best.pt state.json log.jsonl"; else files="model.pt state.json stream.pt log.jsonl"; fi
+list=(); for r in $RUNS; do n=${r##*:}; for f in $files; do [ -f runs/$n/$f ] && list+=(runs/$n/$f); done; list+=(runs/$n.out); done
+tar -cf /tmp/runs.tar "${list[@]}" && split -b 15M /tmp/runs.tar "$OUT/runs.tar.part_" && rm /tmp/runs.tar
+ls -la "$OUT"
+exit $rc
