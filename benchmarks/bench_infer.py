@@ -118,28 +118,34 @@ def model_time(folder: Path, weights: Path, method: str, device: str, repeats: i
     import torch
 
     from psctl.infer import run_network
-    from psctl.io.capture import load_images, load_mask, open_capture
     from psctl.models.weights import build_network, read_weights
 
     model, run = build_network(read_weights(weights), method)
-    cap = open_capture(folder)
-    mask = load_mask(cap)
-    images = load_images(cap)
+    if folder.suffix == ".npz":  # images, lights and mask saved beforehand (a GPU machine without OpenImageIO)
+        with np.load(folder) as z:
+            images, lights, mask = z["images"].astype(np.float32), z["lights"], z["mask"]
+        n_images = len(images)
+    else:
+        from psctl.io.capture import load_images, load_mask, open_capture
+
+        cap = open_capture(folder)
+        mask = load_mask(cap)
+        images, lights, n_images = load_images(cap), cap.lights, cap.n_images
 
     def reader(start, box):
-        for k in range(start, cap.n_images):
+        for k in range(start, n_images):
             yield images[k][box]
 
     gpu = device != "cpu" and torch.cuda.is_available()
     sync = torch.cuda.synchronize if gpu else (lambda: None)
 
     def timed(cfg: dict) -> tuple[list[float], object]:
-        run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)  # warm-up
+        run_network(model, reader, n_images, lights, mask, run["normalization"], run["train_images"], cfg)  # warm-up
         times = []
         for _ in range(repeats):
             sync()
             t0 = time.perf_counter()
-            res = run_network(model, reader, cap.n_images, cap.lights, mask, run["normalization"], run["train_images"], cfg)
+            res = run_network(model, reader, n_images, lights, mask, run["normalization"], run["train_images"], cfg)
             sync()
             times.append(round(time.perf_counter() - t0, 3))
         return times, res
