@@ -16,6 +16,8 @@ a small wrapper process through RUSAGE_CHILDREN; wall = the whole command):
   image's feature map kept, max at the end, as the authors' test code) on the same images, also
   end to end, on the whole frame ("naive-full") and on psctl's crop ("naive-crop");
 * model time only: images already in memory, psctl.infer on ``--device``;
+* ``--export-npz FOLDER OUT.npz`` then ``--model-child OUT.npz WEIGHTS METHOD DEVICE REPEATS``:
+  model time on a machine without OpenImageIO (the GPU machine), from a capture saved here;
 * tiling: a synthetic ``--large`` x ``--large`` all-foreground capture (4 random images made on
   the fly) with 512 px tiles and untiled.
 
@@ -162,6 +164,25 @@ def model_time(folder: Path, weights: Path, method: str, device: str, repeats: i
     print(json.dumps(out))
 
 
+def export_npz(folder: Path, out: Path) -> None:
+    """Save a capture as --model-child reads it on a machine without OpenImageIO (the GPU machine):
+    the images psctl would run on (cropped as psctl crops them, divided by the intensities, float16),
+    the lights and the cropped mask."""
+    import numpy as np
+
+    from psctl.infer import HALO, crop_region
+    from psctl.io.capture import load_images, load_mask, open_capture
+
+    cap = open_capture(folder)
+    mask = load_mask(cap)
+    y0, y1, x0, x1 = crop_region(mask, HALO)
+    box = (slice(y0, y1), slice(x0, x1))
+    images = np.asarray(load_images(cap, box)).astype(np.float16)
+    np.savez_compressed(out, images=images, lights=cap.lights.astype(np.float32), mask=mask[box],
+                        full=np.array([cap.height, cap.width]))
+    print(f"{out}: {images.shape[0]} images of {images.shape[1]} x {images.shape[2]}")
+
+
 def large(side: int, n: int, tile: int) -> None:
     """Child mode: one side x side capture of n random images, mask = everything (tiling)."""
     import numpy as np
@@ -296,6 +317,8 @@ if __name__ == "__main__":
         naive(Path(sys.argv[3]), Path(sys.argv[4]), sys.argv[5], sys.argv[2] == "crop", Path(sys.argv[6]))
     elif len(sys.argv) > 1 and sys.argv[1] == "--large-child":
         large(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]))
+    elif len(sys.argv) > 1 and sys.argv[1] == "--export-npz":
+        export_npz(Path(sys.argv[2]), Path(sys.argv[3]))
     elif len(sys.argv) > 1 and sys.argv[1] == "--model-child":
         model_time(Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4], sys.argv[5], int(sys.argv[6]))
     else:

@@ -13,7 +13,7 @@
 set -u
 cd "$(dirname "$0")/.."
 DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
-MIN=${1:?minutes}; PLAN=${2:-1250}; FINAL=${3:-}
+MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
 RUNS="ps-fcn:configs/ps_fcn_gpu_stage8.yaml:g_ps_fcn ps-fcn-n:configs/ps_fcn_n_gpu_stage6.yaml:g_ps_fcn_n lcnet:configs/lcnet_gpu_stage6.yaml:g_lcnet"
