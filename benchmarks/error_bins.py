@@ -7,7 +7,9 @@ pixels binned by how often they are dark across the images (below 5 % of the pix
 observation: shadows, attached and cast) and by the zenith angle of the ground-truth normal;
 each bin as (mean error, share of the object's pixels). Comparing real objects with synthetic
 ones of the same shapes' kind says whether a gap lives in the shadows, at grazing angles, or
-everywhere.
+everywhere. "attached p95": the 95th percentile, over observations in attached shadow
+(ground-truth n.l < -0.1), of the observation over the pixel's brightest (intensities divided
+out), which only light from elsewhere than the lamp makes nonzero.
 """
 
 from __future__ import annotations
@@ -41,6 +43,14 @@ def error_bins(path: str, method: str, weights: str | None = None) -> dict:
     dark = (grey < 0.05 * (grey.max(0) + 1e-8)).mean(0)
     zen = np.degrees(np.arccos(np.clip(gt[m][:, 2], -1, 1)))
     out: dict = {"mae": round(float(err.mean()), 2)}
+    if cap.lights is not None:
+        # light where no lamp reaches: observations in attached shadow (ground-truth n.l < -0.1)
+        # relative to the pixel's brightest, intensities divided out (a direct-only renderer
+        # gives 0; interreflections, ambient light and calibration error do not)
+        rel = grey / cap.intensities.mean(1)[:, None]
+        rel = rel / (rel.max(0) + 1e-8)
+        att = (cap.lights @ gt[m].T) < -0.1
+        out["attached p95"] = round(float(np.quantile(rel[att], 0.95)), 3) if att.any() else None
     for name, vals, bins in (("dark", dark, DARK_BINS), ("zenith", zen, ZENITH_BINS)):
         for lo, hi in bins:
             s = (vals >= lo) & (vals < hi)

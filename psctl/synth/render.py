@@ -15,6 +15,7 @@ Cast shadows come from the depth map seen as a height field (z toward the camera
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 import torch.nn.functional as F
@@ -241,3 +242,131 @@ def quantize(images: Tensor, bits: int = 16) -> Tensor:
     """Clip to [0, 1] and round to ``bits`` bits, as a camera writing integer pixels does."""
     peak = float(2**bits - 1)
     return torch.round(images.clamp(0.0, 1.0) * peak) / peak
+
+
+# --------------------------------------------------------------------------------------------
+# Interreflections (one or more diffuse bounces, screen space)
+# --------------------------------------------------------------------------------------------
+
+
+def interreflection_offsets(max_px: float = 48.0, growth: float = 1.15) -> tuple[Tensor, Tensor]:
+    """Pixel offsets sampled around a pixel and the screen area (pixels^2) each stands for.
+
+    Every offset within 3 pixels; beyond, rings at geometrically growing radii with about
+    8 pixels of arc between samples (far patches matter less: 1/r^2). Offsets landing on
+    the same integer pixel are merged (areas add), and the set is made mirror-symmetric.
+    Returns:
+        offsets [K, 2] long (columns, rows), area [K] float.
+    """
+    acc: dict[tuple[int, int], float] = {}
+    for dy in range(-3, 4):
+        for dx in range(-3, 4):
+            if 0 < dx * dx + dy * dy <= 9:
+                acc[(dx, dy)] = 1.0
+    r_in = 3.5
+    while r_in < max_px:
+        r_out = max(r_in + 1.0, r_in * growth)
+        r = 0.5 * (r_in + r_out)
+        m = max(8, int(math.ceil(2 * math.pi * r / 8.0)))
+        area = math.pi * (r_out * r_out - r_in * r_in) / m
+        for k in range(m):
+            phi = 2 * math.pi * (k + 0.5 * (len(acc) % 2)) / m
+            key = (round(r * math.cos(phi)), round(r * math.sin(phi)))
+            acc[key] = acc.get(key, 0.0) + area
+        r_in = r_out
+    # mirror-symmetric in x and y (no preferred direction): each offset's area averaged over
+    # its four mirror images, all of which are sampled
+    sym: dict[tuple[int, int], float] = {}
+    for (dx, dy) in acc:
+        mirrors = {(sx * dx, sy * dy) for sx in (1, -1) for sy in (1, -1)}
+        for key in mirrors:
+            sym[key] = sum(acc.get(m, 0.0) for m in mirrors) / len(mirrors)
+    keys = sorted(sym)
+    return torch.tensor(keys, dtype=torch.long), torch.tensor([sym[k] for k in keys])
+
+
+def interreflection_kernel(depth: Tensor, normals: Tensor, max_px: float | None = None, bias_px: float = 0.5,
+                           min_nz: float = 0.1) -> Tensor:
+    """Form factors between the pixels of one view, for diffuse interreflections.
+
+    E_p = sum_q G[p, q] B_q: the irradiance at pixel p from the radiance B_q leaving the
+    surface at q, G = cos_p cos_q A_q / r^2 (A_q the surface area under pixel q), for q within
+    ``max_px`` pixels (default: the image diagonal) that p and q face and that the height
+    field does not hide (three samples along the segment). Orthographic camera, image
+    spanning [-1, 1]. Checked against the exact view factor of a V-groove's face: within 6 %
+    on a 64 px groove (2 % at 128 px), up to 15 % within 3 pixels of the crease
+    (tests/test_interreflection.py).
+
+    Args:
+        depth: [1, 1, H, W] (BACKGROUND off the object); normals: [1, 3, H, W].
+        min_nz: the area under a pixel is px^2 / max(n_z, min_nz) (grazing patches capped).
+    Returns:
+        sparse CSR [P, P], P = H * W.
+    """
+    _, _, hgt, wid = depth.shape
+    px = 2.0 / wid
+    z = depth[0, 0]
+    obj = z > BACKGROUND / 2
+    n = normals[0]
+    offs, areas = interreflection_offsets(max_px if max_px is not None else math.hypot(hgt, wid))
+    rows_all, cols_all, vals_all = [], [], []
+    ii, jj = torch.meshgrid(torch.arange(hgt), torch.arange(wid), indexing="ij")
+    for (dx, dy), a in zip(offs.tolist(), areas.tolist()):
+        qi, qj = ii + dy, jj + dx
+        ok = obj & (qi >= 0) & (qi < hgt) & (qj >= 0) & (qj < wid)
+        qi_c, qj_c = qi.clamp(0, hgt - 1), qj.clamp(0, wid - 1)
+        ok &= obj[qi_c, qj_c]
+        if not bool(ok.any()):
+            continue
+        dz = z[qi_c, qj_c] - z
+        d = torch.stack([torch.full_like(dz, dx * px), torch.full_like(dz, -dy * px), dz])  # [3, H, W]
+        r2 = (d * d).sum(0)
+        cos_p = (n * d).sum(0) / r2.sqrt()
+        nq = n[:, qi_c, qj_c]
+        cos_q = -(nq * d).sum(0) / r2.sqrt()
+        ok &= (cos_p > 0) & (cos_q > 0)
+        for t in (0.25, 0.5, 0.75):  # the height field between p and q must stay below the segment
+            si = (ii + round(t * dy)).clamp(0, hgt - 1)
+            sj = (jj + round(t * dx)).clamp(0, wid - 1)
+            ok &= z[si, sj] <= z + t * dz + bias_px * px
+        if not bool(ok.any()):
+            continue
+        area = px * px * a / nq[2].clamp_min(min_nz)
+        g = cos_p * cos_q * area / r2
+        p_idx = (ii * wid + jj)[ok]
+        q_idx = (qi_c * wid + qj_c)[ok]
+        rows_all.append(p_idx)
+        cols_all.append(q_idx)
+        vals_all.append(g[ok])
+    p = hgt * wid
+    if not rows_all:  # a convex view: nothing to exchange
+        rows_all, cols_all, vals_all = [torch.zeros(0, dtype=torch.long)], [torch.zeros(0, dtype=torch.long)], [torch.zeros(0)]
+    idx = torch.stack([torch.cat(rows_all), torch.cat(cols_all)])
+    with warnings.catch_warnings():  # torch calls sparse CSR "beta"; only constructor and matmul are used
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_coo_tensor(idx, torch.cat(vals_all), (p, p), check_invariants=True).coalesce().to_sparse_csr()
+
+
+def diffuse_bounces(kernel: Tensor, direct: Tensor, albedo: Tensor, bounces: int = 1) -> Tensor:
+    """Radiance added by diffuse interreflections.
+
+    Args:
+        kernel: [P, P] from ``interreflection_kernel``.
+        direct: [N, 3, P] radiance leaving each pixel by diffuse reflection of the lights
+            (kd / pi * e * max(n.l, 0) * visibility): the source of the first bounce. Glossy
+            reflection toward other surface points is not followed (a lower bound for shiny
+            materials).
+        albedo: [3, P] diffuse albedo kd (0 off the object).
+        bounces: how many bounces to follow.
+    Returns:
+        [N, 3, P]: sum over bounces of kd / pi * (G @ B).
+    """
+    nl, c, p = direct.shape
+    src = direct.reshape(nl * c, p).T  # [P, N*3]
+    alb = albedo.reshape(1, c, p) / math.pi
+    total = torch.zeros_like(direct)
+    for _ in range(bounces):
+        src = (alb * (kernel @ src).T.reshape(nl, c, p))  # [N, 3, P]
+        total += src
+        src = src.reshape(nl * c, p).T
+    return total

@@ -161,12 +161,27 @@ def _describe(mat: M.Material, table: M.MerlTable) -> str:
     return f"ggx-dielectric alpha={float(mat['alpha'][0]):.3f} ior={float(mat['ior'][0]):.2f}"
 
 
+def diffuse_albedo(obj: SynthObject) -> torch.Tensor:
+    """kd per pixel, [3, H*W] (texture and blend applied, 0 off the object)."""
+    g = obj.view
+    h, w = g.size
+    kd = obj.mat["kd"][0][:, None].expand(3, h * w)
+    if obj.mat_b is not None:
+        wt = obj.weights.reshape(1, h * w)
+        kd = wt * kd + (1 - wt) * obj.mat_b["kd"][0][:, None]
+    if obj.texture is not None:
+        kd = kd * obj.texture.reshape(3, h * w)
+    return kd * g.mask.reshape(1, h * w)
+
+
 def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shadows: bool = True,
-                  chunk: int = 16) -> torch.Tensor:
+                  chunk: int = 16, bounces: int = 0, kernel: torch.Tensor | None = None) -> torch.Tensor:
     """e * radiance, [N, 3, H, W] (not yet exposed or quantised).
 
     ``visibility`` [1, N, H*W] may be passed in when several objects share a view and lights;
-    otherwise it is computed here (with ``shadows``) by marching the depth map.
+    otherwise it is computed here (with ``shadows``) by marching the depth map. ``bounces`` > 0
+    adds that many diffuse interreflection bounces (``R.interreflection_kernel``; ``kernel``
+    may be passed in as visibility).
     """
     g = obj.view
     h, w = g.size
@@ -174,6 +189,9 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
         visibility = R.march_shadows(g.depth, obj.lights[None]).reshape(1, -1, h * w)
     n = g.normals.reshape(1, 3, h * w)
     tex = None if obj.texture is None else obj.texture.reshape(1, 3, h * w)
+    if bounces > 0:
+        kernel = kernel if kernel is not None else R.interreflection_kernel(g.depth, g.normals)
+        kd = diffuse_albedo(obj)
     out = []
     for s in range(0, len(obj.lights), chunk):
         lc, ec = obj.lights[None, s:s + chunk], obj.intensities[None, s:s + chunk]
@@ -182,7 +200,13 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
         if obj.mat_b is not None:
             wt = obj.weights.reshape(1, 1, 1, h * w)
             img = wt * img + (1 - wt) * R.shade(n, lc, obj.mat_b, vc, ec, tex)
-        out.append(img[0].reshape(-1, 3, h, w))
+        img = img[0]
+        if bounces > 0:  # the first bounce's source: the lights' diffuse reflection kd / pi * e * cos * vis
+            cos = torch.einsum("cp,nc->np", n[0], lc[0]).clamp_min(0.0) * (n[0, 2] > 0) * ec[0][:, None]
+            if vc is not None:
+                cos = cos * vc[0]
+            img = img + R.diffuse_bounces(kernel, kd[None] / math.pi * cos[:, None], kd, bounces)
+        out.append(img.reshape(-1, 3, h, w))
     return torch.cat(out)
 
 
@@ -240,7 +264,7 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
                  sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
-                 progress=None) -> dict:
+                 interreflections: int = 0, progress=None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
@@ -250,6 +274,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         sensor_noise: standard deviation of Gaussian read noise added before quantisation.
         light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
         intensities: unit | random | directional | mixed (psctl.synth.lights), per object.
+        interreflections: diffuse bounces to add (0: none, as the training stream).
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds"}.
     """
@@ -258,6 +283,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     t0 = time.perf_counter()
     out = Path(out)
     check_output_dir(out)
+    if interreflections < 0:
+        raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
     objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
     ensure_writable_dir(out)
     # objects.txt marks a complete set: it goes now and comes back when every object is written,
@@ -268,18 +295,23 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     sheet_rows = []
     on_sheet = set(np.linspace(0, len(objs) - 1, min(len(objs), SHEET_ROWS)).round().astype(int).tolist())
     cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
+    kernels: dict[int, torch.Tensor] = {}  # and so are the interreflection form factors
     for i, obj in enumerate(objs):
         key = id(obj.view)
         if shadows and key not in cache:
             h, w = obj.view.size
             cache = {key: R.march_shadows(obj.view.depth, obj.lights[None]).reshape(1, -1, h * w)}
-        images = render_object(obj, cache.get(key), shadows)
+        if interreflections and key not in kernels:
+            kernels = {key: R.interreflection_kernel(obj.view.depth, obj.view.normals)}
+        images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key))
         scale = exposure_scale(images, obj.view.mask[0, 0], gen)
         images = images * scale
         if sensor_noise > 0:
             images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
         images = R.quantize(images, 16) * obj.view.mask[0]
         obj.meta["exposure"] = scale
+        if interreflections:
+            obj.meta["interreflections"] = interreflections
         tmp = Path(tempfile.mkdtemp(prefix=f".{obj.name}.tmp.", dir=out))
         try:
             write_object(tmp, obj, images)
