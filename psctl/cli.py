@@ -195,7 +195,8 @@ def synth(
     light_dist: Annotated[str, typer.Option("--light-dist", help="Zenith band of the lights: hemisphere (0-90 degrees) | diligent (0-45, like DiLiGenT's rig) | poles (0-30) | equator (60-90).")] = "hemisphere",
     intensities: Annotated[str, typer.Option("--intensities", help="Light intensities, drawn per object: unit | random (uniform in [0.2, 2], independent per image) | directional (a smooth function of the light direction, as rigs whose LEDs dim towards the rim) | mixed.")] = "unit",
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
-    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none; the training stream has none).")] = 0,
+    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none).")] = 0,
+    ir_albedo: Annotated[Optional[float], typer.Option("--ir-albedo", help="With --interreflections: the surface lights itself as a source of albedo A * kd / max(kd) (default: kd).")] = None,
     preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
@@ -213,7 +214,7 @@ def synth(
                 typer.echo(f"preview: {report['preview']}")
 
         _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials, light_dist=light_dist,
-                                           intensities=intensities, interreflections=interreflections,
+                                           intensities=intensities, interreflections=interreflections, ir_albedo=ir_albedo,
                                            preview=preview, progress=progress),
              json_out, quiet, show)
 

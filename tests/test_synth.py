@@ -173,6 +173,28 @@ def test_stream_ambient_option_leaves_no_black_shadow():
         assert ((b["images"][m] == 0).any()) == black, amb
 
 
+def test_stream_interreflection_option_lights_attached_shadows():
+    """With interreflections a Lambertian sample's observations where n.l < 0 are no longer all
+    black on a concave G-buffer (the first mesh or blobby views have concavities), and only
+    samples drawn for it change."""
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "noise": 0.0, "texture": 0.0, "blend": 0.0, "materials": {"lambert": 1.0}, "pool": 4,
+           "shadows": False}
+    out = {}
+    for a in (0.0, 0.9):
+        out[a] = SynthStream({**cfg, "interreflection": {"p": 1.0, "albedo": [a, a]}}, seed=2).next_batch()
+    b0, b1 = out[0.0], out[0.9]
+    assert torch.equal(b0["normals"], b1["normals"]) and torch.equal(b0["lights"], b1["lights"])
+    nl = torch.einsum("bnc,bchw->bnhw", b0["lights"], b0["normals"])
+    away = (nl < -0.05) & b0["masks"].bool()  # attached shadow, [B, N, H, W]
+    grey0, grey1 = b0["images"].mean(2), b1["images"].mean(2)
+    assert float(grey0[away].abs().max()) == 0.0
+    assert float((grey1[away] > 0).float().mean()) > 0.05
+    transfer = SynthStream({**cfg, "interreflection": {"p": 1.0}}, seed=2).pool.transfer
+    assert transfer is not None and float(transfer[..., 9].max()) < 1.0  # a view factor
+
+
 # --- materials --------------------------------------------------------------------------------
 
 

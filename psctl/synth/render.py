@@ -30,7 +30,7 @@ VIEW = (0.0, 0.0, 1.0)
 def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | None = None,
           intensities: Tensor | None = None, texture: Tensor | None = None,
           mat_b: Material | None = None, weights: Tensor | None = None,
-          ambient: Tensor | None = None) -> Tensor:
+          ambient: Tensor | None = None, indirect: Tensor | None = None) -> Tensor:
     """Render B samples of P pixels under N lights each.
 
     Args:
@@ -42,6 +42,8 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         intensities: [B, N] light intensities e, or None for 1.
         texture: [B, 3, P] multiplier of the diffuse albedo, or None.
         ambient: [B] strength of a light-independent term ambient * kd (added once per image).
+        indirect: [B, N, 3, P] irradiance from interreflections (``indirect_irradiance``),
+            reflected as kd / pi (times the texture).
     Returns:
         [B, N, 3, P] linear radiance.
     """
@@ -69,9 +71,12 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         out = torch.matmul(torch.stack(coefs, -1)[:, None], torch.stack(terms, 2))  # [B, N, 3, P]
         if texture is not None:
             out.addcmul_((m["kd"][:, :, None] / math.pi * texture)[:, None], cos[:, :, None])
-        if ambient is not None:
+        if ambient is not None or indirect is not None:
             alb = m["kd"][:, :, None] * (texture if texture is not None else 1.0) * (nz > 0)  # [B, 3, P]
+        if ambient is not None:
             out.add_((ambient[:, None, None] * alb)[:, None])
+        if indirect is not None:
+            out.addcmul_((alb / math.pi)[:, None], indirect)
         return out
 
     img = one(mat)
@@ -347,26 +352,77 @@ def interreflection_kernel(depth: Tensor, normals: Tensor, max_px: float | None 
         return torch.sparse_coo_tensor(idx, torch.cat(vals_all), (p, p), check_invariants=True).coalesce().to_sparse_csr()
 
 
-def diffuse_bounces(kernel: Tensor, direct: Tensor, albedo: Tensor, bounces: int = 1) -> Tensor:
+def diffuse_bounces(kernel: Tensor, direct: Tensor, albedo: Tensor, bounces: int = 1,
+                    receiver: Tensor | None = None) -> Tensor:
     """Radiance added by diffuse interreflections.
 
     Args:
         kernel: [P, P] from ``interreflection_kernel``.
         direct: [N, 3, P] radiance leaving each pixel by diffuse reflection of the lights
-            (kd / pi * e * max(n.l, 0) * visibility): the source of the first bounce. Glossy
+            (albedo / pi * e * max(n.l, 0) * visibility): the source of the first bounce. Glossy
             reflection toward other surface points is not followed (a lower bound for shiny
             materials).
-        albedo: [3, P] diffuse albedo kd (0 off the object).
+        albedo: [3, P] diffuse albedo of the surface as a source of further bounces (0 off the
+            object).
         bounces: how many bounces to follow.
+        receiver: [3, P] the albedo that reflects the indirect light toward the camera
+            (default ``albedo``; the training stream's ``interreflection`` option makes the
+            surface a brighter source than its kd, and so does the writer's ``ir_albedo``).
     Returns:
-        [N, 3, P]: sum over bounces of kd / pi * (G @ B).
+        [N, 3, P]: receiver / pi * sum over bounces of the irradiance G @ B.
     """
     nl, c, p = direct.shape
     src = direct.reshape(nl * c, p).T  # [P, N*3]
-    alb = albedo.reshape(1, c, p) / math.pi
-    total = torch.zeros_like(direct)
+    irr = torch.zeros_like(direct)
     for _ in range(bounces):
-        src = (alb * (kernel @ src).T.reshape(nl, c, p))  # [N, 3, P]
-        total += src
-        src = src.reshape(nl * c, p).T
-    return total
+        e = (kernel @ src).T.reshape(nl, c, p)  # irradiance of this bounce
+        irr += e
+        src = (albedo.reshape(1, c, p) / math.pi * e).reshape(nl * c, p).T
+    rec = albedo if receiver is None else receiver
+    return rec.reshape(1, c, p) / math.pi * irr
+
+
+# Clamped cosine in real spherical harmonics up to order 2: max(n.l, 0) ~= sum_j A_j Y_j(n) Y_j(l)
+# (Ramamoorthi and Hanrahan 2001: A = pi, 2 pi / 3, pi / 4 for orders 0, 1, 2; about 2 % of
+# the irradiance off, negative lobes small). It lets a G-buffer store light-independent transfer.
+SH_COSINE = (math.pi,) + (2 * math.pi / 3,) * 3 + (math.pi / 4,) * 5
+
+
+def sh9(d: Tensor, dim: int = -1) -> Tensor:
+    """Real spherical harmonics Y_0..Y_8 of unit directions along ``dim`` (a new axis of 9 there)."""
+    x, y, z = d.unbind(dim)
+    c0, c1, c2, c3 = 0.282095, 0.488603, 1.092548, 0.315392
+    return torch.stack([torch.full_like(x, c0), c1 * y, c1 * z, c1 * x, c2 * x * y, c2 * y * z,
+                        c3 * (3 * z * z - 1), c2 * x * z, 0.546274 * (x * x - y * y)], dim)
+
+
+def interreflection_transfer(kernel: Tensor, normals: Tensor, mask: Tensor) -> Tensor:
+    """What a G-buffer needs to add interreflections under any distant light, per pixel.
+
+    T_j = sum_q G[p, q] A_j Y_j(n_q) and F = sum_q G[p, q] / pi (the share of p's hemisphere
+    that the surface fills), so that a unit light l lighting a Lambertian surface of albedo rho
+    gives the first bounce's irradiance rho / pi * sum_j T_j Y_j(l) (cast shadows on the
+    sources ignored), and all bounces about that / (1 - rho F).
+    Args:
+        kernel: [P, P] from ``interreflection_kernel``; normals [3, P]; mask [P] (bool).
+    Returns:
+        [P, 10]: T_0..T_8, F.
+    """
+    y = sh9(normals.T) * normals.new_tensor(SH_COSINE) * mask[:, None]  # [P, 9]
+    ones = mask[:, None].to(normals.dtype)
+    return torch.cat([kernel @ y, (kernel @ ones) / math.pi], 1)
+
+
+def indirect_irradiance(transfer: Tensor, lights: Tensor, rho: Tensor) -> Tensor:
+    """Irradiance from interreflections (all bounces, approximately) for B samples.
+
+    Args:
+        transfer: [B, 10, P] (``interreflection_transfer``, transposed, per sample).
+        lights: [B, N, 3] in the transfer's frame; rho: [B, 3] the surface's diffuse albedo as
+            a source of indirect light.
+    Returns:
+        [B, N, 3, P] (multiply by the receiving kd / pi and the light's intensity).
+    """
+    first = torch.einsum("bnj,bjp->bnp", sh9(lights), transfer[:, :9]).clamp_min(0.0)  # [B, N, P]
+    scale = rho[:, :, None] / math.pi / (1.0 - rho.amax(1)[:, None, None] * transfer[:, 9:10]).clamp_min(0.1)
+    return first[:, :, None] * scale[:, None]  # [B, N, 3, P]

@@ -68,6 +68,12 @@ DEFAULT_CONFIG: dict = {
     "shadows": True,
     "horizon_dirs": 32,  # azimuths of the horizon map
     "ambient": 0.0,  # ambient strength drawn uniformly in [0, ambient]
+    # diffuse interreflections: with chance p a sample's surface also lights itself, as a
+    # Lambertian source of albedo a * kd / max(kd), a uniform in `albedo` (the material's own
+    # kd only sets the colour: exposure hides absolute albedo, and real objects are often
+    # brighter than the MERL fits). G-buffers then store light-independent transfer
+    # (render.interreflection_transfer); cast shadows on the sources are ignored.
+    "interreflection": None,  # None or {"p": 0.5, "albedo": [0.0, 0.9]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
     "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
@@ -127,6 +133,9 @@ class GeometryPool:
         m = cfg["pool"]
         self.data = torch.zeros(m, self.size * self.size, 4, device=self.device)
         self.horizon = torch.zeros(m, self.size * self.size, self.k, dtype=torch.float16, device=self.device)
+        self.transfer = None  # [M, S*S, 10] with interreflections
+        if cfg["interreflection"]:
+            self.transfer = torch.zeros(m, self.size * self.size, 10, device=self.device)
         self.cum = torch.zeros(m, self.size * self.size, device=self.device)  # cumulative mask
         self.names = [""] * m
         self.records = torch.zeros(m, 3, dtype=torch.int64)  # per slot: chunk seed, chunk size, index in chunk
@@ -155,6 +164,11 @@ class GeometryPool:
         self.data[dst] = torch.cat([g.normals, g.mask.float()], 1)[idx].flatten(2).transpose(1, 2)
         self.horizon[dst] = hz[idx].flatten(2).transpose(1, 2).half()
         self.cum[dst] = g.mask[idx].flatten(1).float().cumsum(1)
+        if self.transfer is not None:
+            for w, slot in zip(which, slots):
+                kern = R.interreflection_kernel(g.depth[w:w + 1].cpu(), g.normals[w:w + 1].cpu())
+                t = R.interreflection_transfer(kern, g.normals[w].flatten(1).cpu(), g.mask[w].flatten().cpu())
+                self.transfer[slot] = t.to(self.device)
         for w, s in zip(which, slots):
             self.names[s] = g.names[w]
             self.records[s] = torch.tensor([seed, k, w])
@@ -266,7 +280,8 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
 
     Returns normals [b, 3, P] in the output frame, mask [b, 1, P] (float 0/1), horizon
     [b, K, P] in the source frame, the 2 x 2 map ``to_src`` taking output-frame (x, y-up)
-    directions to source-frame ones, and ``slot`` [b].
+    directions to source-frame ones, ``slot`` [b], and ``transfer`` [b, 10, P] (source frame;
+    None without interreflections).
     """
     dev = pool.device
     s, c = pool.size, cfg["crop"]
@@ -313,6 +328,7 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     out = out.transpose(1, 2)  # [b, 4, P]
     idx = (py.round().clamp(0, s - 1) * s + px.round().clamp(0, s - 1)).long()
     horizon = pool.horizon[slot[:, None], idx].transpose(1, 2).float()  # [b, K, P]
+    transfer = None if pool.transfer is None else pool.transfer[slot[:, None], idx].transpose(1, 2)  # [b, 10, P]
     msk = (out[:, 3:4] > 0.5).float()
     n_src = torch.nn.functional.normalize(out[:, :3], dim=1)
     # directions: output (x, y-up) -> grid (x, y-down) is diag(1, -1); output_grid = F Rot(-theta) source_grid
@@ -325,7 +341,7 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     rot = torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)  # [b, 2, 2] grid
     fl = torch.diag_embed(torch.stack([flip, torch.ones_like(flip)], -1))
     to_src = d @ rot @ fl @ d
-    return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot}
+    return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot, "transfer": transfer}
 
 
 def object_mean(img: Tensor, msk: Tensor) -> Tensor:
@@ -457,15 +473,25 @@ class SynthStream:
         lights = L.sample_lights((b, n), gen, cfg["lights"], cfg["max_zenith"])
         ints = L.sample_intensities((b, n), gen, cfg["intensities"], lights=lights)
         vis = None
+        l_src = torch.cat([torch.einsum("bij,bnj->bni", crops["to_src"], lights[..., :2]), lights[..., 2:]], -1)
         if cfg["shadows"]:
-            l_src = torch.cat([torch.einsum("bij,bnj->bni", crops["to_src"], lights[..., :2]), lights[..., 2:]], -1)
             vis = R.horizon_visibility(crops["horizon"], l_src)
         ambient = cfg["ambient"] * torch.rand(b, generator=gen, device=dev) if cfg["ambient"] else None
+        indirect = None
+        if cfg["interreflection"]:  # (draws only when enabled: older recipes keep their batches)
+            ir = cfg["interreflection"]
+            lo_a, hi_a = ir.get("albedo", (0.0, 0.9))
+            on = torch.rand(b, generator=gen, device=dev) < float(ir.get("p", 0.5))
+            a = (lo_a + (hi_a - lo_a) * torch.rand(b, generator=gen, device=dev)) * on
+            kd = mat["kd"]
+            rho = a[:, None] * kd / kd.amax(1, keepdim=True).clamp_min(1e-6)
+            indirect = R.indirect_irradiance(crops["transfer"], l_src, rho)
 
-        img = R.shade(normals, lights, mat, vis, texture=texture, ambient=ambient)  # [b, n, 3, p]
+        img = R.shade(normals, lights, mat, vis, texture=texture, ambient=ambient, indirect=indirect)  # [b, n, 3, p]
         if mat_b is not None:  # blends: f = w f_A + (1 - w) f_B on the blended samples only
             img_b = R.shade(normals[sv], lights[sv], mat_b, None if vis is None else vis[sv],
-                            texture=None if texture is None else texture[sv], ambient=None if ambient is None else ambient[sv])
+                            texture=None if texture is None else texture[sv], ambient=None if ambient is None else ambient[sv],
+                            indirect=None if indirect is None else indirect[sv])
             w = weights[:, None]
             img[sv] = w * img[sv] + (1.0 - w) * img_b
         # exposure: scale each sample so its mean object radiance hits a random target

@@ -175,13 +175,16 @@ def diffuse_albedo(obj: SynthObject) -> torch.Tensor:
 
 
 def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shadows: bool = True,
-                  chunk: int = 16, bounces: int = 0, kernel: torch.Tensor | None = None) -> torch.Tensor:
+                  chunk: int = 16, bounces: int = 0, kernel: torch.Tensor | None = None,
+                  ir_albedo: float | None = None) -> torch.Tensor:
     """e * radiance, [N, 3, H, W] (not yet exposed or quantised).
 
     ``visibility`` [1, N, H*W] may be passed in when several objects share a view and lights;
     otherwise it is computed here (with ``shadows``) by marching the depth map. ``bounces`` > 0
     adds that many diffuse interreflection bounces (``R.interreflection_kernel``; ``kernel``
-    may be passed in as visibility).
+    may be passed in as visibility). ``ir_albedo`` a: the surface lights itself as a source of
+    albedo a * kd / max(kd) (the training stream's ``interreflection`` option) instead of kd;
+    the camera still sees the indirect light reflected by kd.
     """
     g = obj.view
     h, w = g.size
@@ -192,6 +195,7 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
     if bounces > 0:
         kernel = kernel if kernel is not None else R.interreflection_kernel(g.depth, g.normals)
         kd = diffuse_albedo(obj)
+        src = kd if ir_albedo is None else ir_albedo * kd / kd.amax(0, keepdim=True).clamp_min(1e-6)
     out = []
     for s in range(0, len(obj.lights), chunk):
         lc, ec = obj.lights[None, s:s + chunk], obj.intensities[None, s:s + chunk]
@@ -205,7 +209,7 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
             cos = torch.einsum("cp,nc->np", n[0], lc[0]).clamp_min(0.0) * (n[0, 2] > 0) * ec[0][:, None]
             if vc is not None:
                 cos = cos * vc[0]
-            img = img + R.diffuse_bounces(kernel, kd[None] / math.pi * cos[:, None], kd, bounces)
+            img = img + R.diffuse_bounces(kernel, src[None] / math.pi * cos[:, None], src, bounces, receiver=kd)
         out.append(img.reshape(-1, 3, h, w))
     return torch.cat(out)
 
@@ -264,7 +268,7 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
                  sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
-                 interreflections: int = 0, progress=None) -> dict:
+                 interreflections: int = 0, ir_albedo: float | None = None, progress=None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
@@ -274,7 +278,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         sensor_noise: standard deviation of Gaussian read noise added before quantisation.
         light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
         intensities: unit | random | directional | mixed (psctl.synth.lights), per object.
-        interreflections: diffuse bounces to add (0: none, as the training stream).
+        interreflections: diffuse bounces to add (0: none).
+        ir_albedo: with interreflections, the albedo of the surface as a source of indirect
+            light, a * kd / max(kd) (None: kd itself; see ``render_object``).
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds"}.
     """
@@ -285,6 +291,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     check_output_dir(out)
     if interreflections < 0:
         raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
+    if ir_albedo is not None and not 0 <= ir_albedo < 1:
+        raise PsctlError(None, f"--ir-albedo must be in [0, 1) (got {ir_albedo})")
     objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
     ensure_writable_dir(out)
     # objects.txt marks a complete set: it goes now and comes back when every object is written,
@@ -303,7 +311,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             cache = {key: R.march_shadows(obj.view.depth, obj.lights[None]).reshape(1, -1, h * w)}
         if interreflections and key not in kernels:
             kernels = {key: R.interreflection_kernel(obj.view.depth, obj.view.normals)}
-        images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key))
+        images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key),
+                               ir_albedo=ir_albedo)
         scale = exposure_scale(images, obj.view.mask[0, 0], gen)
         images = images * scale
         if sensor_noise > 0:
@@ -312,6 +321,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         obj.meta["exposure"] = scale
         if interreflections:
             obj.meta["interreflections"] = interreflections
+            if ir_albedo is not None:
+                obj.meta["ir_albedo"] = ir_albedo
         tmp = Path(tempfile.mkdtemp(prefix=f".{obj.name}.tmp.", dir=out))
         try:
             write_object(tmp, obj, images)
