@@ -1,4 +1,5 @@
-"""Image formation: m = e * f(n, l, v) * max(n.l, 0) * visibility (+ ambient), plus camera effects.
+"""Image formation: m = e * f(n, l, v) * max(n.l, 0) * visibility (+ ambient, + diffuse
+interreflections), plus camera effects.
 
 Orthographic camera, v = (0, 0, 1) everywhere, distant lights. So h = normalize(l + v) and l.h
 depend only on the light, and a pixel needs just n.l, n.h and n.v: shading a batch is a few
@@ -10,6 +11,10 @@ Cast shadows come from the depth map seen as a height field (z toward the camera
   * ``horizon_map`` precomputes, per pixel and for K azimuths, the elevation of the horizon;
     then ``horizon_visibility`` answers any light with two look-ups (used by the training
     stream, where one G-buffer serves many samples). Both only ever darken.
+
+Interreflections: ``interreflection_kernel`` (form factors between the pixels of a view) and
+``diffuse_bounces`` follow bounces exactly (the folder writer); ``interreflection_transfer``
+and ``indirect_irradiance`` store them per pixel in spherical harmonics (the stream).
 """
 
 from __future__ import annotations
@@ -315,7 +320,7 @@ def interreflection_kernel(depth: Tensor, normals: Tensor, max_px: float | None 
     n = normals[0]
     offs, areas = interreflection_offsets(max_px if max_px is not None else math.hypot(hgt, wid))
     rows_all, cols_all, vals_all = [], [], []
-    ii, jj = torch.meshgrid(torch.arange(hgt), torch.arange(wid), indexing="ij")
+    ii, jj = torch.meshgrid(torch.arange(hgt, device=z.device), torch.arange(wid, device=z.device), indexing="ij")
     for (dx, dy), a in zip(offs.tolist(), areas.tolist()):
         qi, qj = ii + dy, jj + dx
         ok = obj & (qi >= 0) & (qi < hgt) & (qj >= 0) & (qj < wid)
@@ -345,7 +350,8 @@ def interreflection_kernel(depth: Tensor, normals: Tensor, max_px: float | None 
         vals_all.append(g[ok])
     p = hgt * wid
     if not rows_all:  # a convex view: nothing to exchange
-        rows_all, cols_all, vals_all = [torch.zeros(0, dtype=torch.long)], [torch.zeros(0, dtype=torch.long)], [torch.zeros(0)]
+        empty = torch.zeros(0, dtype=torch.long, device=z.device)
+        rows_all, cols_all, vals_all = [empty], [empty], [z.new_zeros(0)]
     idx = torch.stack([torch.cat(rows_all), torch.cat(cols_all)])
     with warnings.catch_warnings():  # torch calls sparse CSR "beta"; only constructor and matmul are used
         warnings.simplefilter("ignore", UserWarning)

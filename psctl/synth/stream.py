@@ -16,7 +16,8 @@ How a batch is made (why it is fast enough not to slow training down):
      crop, so it only touches crop x crop pixels.
   3. Random materials (MERL ABC fits, GGX, Lambertian; two-material blends; albedo
      textures), random lights (and intensities), shading with cast shadows from the horizon
-     map, exposure, saturation, the paper's uniform noise.
+     map (and, optionally, diffuse interreflections from per-pixel transfer), exposure,
+     saturation, the paper's uniform noise.
 
 Test shapes (bunny, dragon, armadillo, sphere) are never used. Without mesh files the stream
 uses procedural shapes only (or views from a .npz made by ``python -m psctl.synth.meshes``).
@@ -166,9 +167,8 @@ class GeometryPool:
         self.cum[dst] = g.mask[idx].flatten(1).float().cumsum(1)
         if self.transfer is not None:
             for w, slot in zip(which, slots):
-                kern = R.interreflection_kernel(g.depth[w:w + 1].cpu(), g.normals[w:w + 1].cpu())
-                t = R.interreflection_transfer(kern, g.normals[w].flatten(1).cpu(), g.mask[w].flatten().cpu())
-                self.transfer[slot] = t.to(self.device)
+                kern = R.interreflection_kernel(g.depth[w:w + 1], g.normals[w:w + 1])
+                self.transfer[slot] = R.interreflection_transfer(kern, g.normals[w].flatten(1), g.mask[w].flatten())
         for w, s in zip(which, slots):
             self.names[s] = g.names[w]
             self.records[s] = torch.tensor([seed, k, w])

@@ -13,8 +13,9 @@ Presets
     dragon-svbrdf  dragon x {ramp, checker, irregular} blends of two MERL materials, K pairs
     blobby         K procedural blobby shapes with training-distribution materials
 Images come from the same renderer as the training stream, with exact cast shadows (depth-map
-marching per light). Each object folder is built in a hidden temporary folder and renamed into
-place, so a folder is either complete or absent. This is the only synth module that reads or
+marching per light) and, with ``interreflections``, exact diffuse bounces. Each object folder
+is built in a hidden temporary folder and renamed into place, so a folder is either complete
+or absent. This is the only synth module that reads or
 writes image files (OpenImageIO is imported lazily, the training stream never needs it).
 """
 
