@@ -234,6 +234,9 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
     for name in names:
         # on the CPU: Adam's step counters must stay there (load_state_dict moves the moments to
         # the parameters' device); a CUDA step counter costs a GPU sync every iteration
+        if not (run / name).is_file():
+            raise PsctlError(run / name, "optimiser state listed in state.json is missing (to resume with fresh Adam "
+                                         "moments, set \"optim_files\": [] there)")
         part = torch.load(run / name, map_location="cpu", weights_only=True)
         state.update(part["state"])
         groups = groups or part["param_groups"]

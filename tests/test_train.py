@@ -111,7 +111,7 @@ def test_a_run_without_its_optimiser_state_resumes_with_fresh_moments(tmp_path):
         f.unlink()
     state = tmp_path / "run" / "state.json"
     st = json.loads(state.read_text())
-    with pytest.raises(FileNotFoundError):  # listed but missing: not silently fresh
+    with pytest.raises(PsctlError, match="optim.*missing"):  # listed but missing: not silently fresh
         train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")
     st["optim_files"] = []
     state.write_text(json.dumps(st))
