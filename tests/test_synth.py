@@ -688,6 +688,17 @@ def test_cli_synth(tmp_path):
                            "--light-dist", "ring"], capture_output=True, text=True)
     assert proc.returncode == 2 and "unknown light distribution 'ring'" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "e").exists()
+    # interreflections: recorded in synth.json; a bad albedo is a one-line error and writes nothing
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "i"), "--preset", "blobby",
+                           "--size", "24", "--lights", "6", "--materials", "1", "--interreflections", "2",
+                           "--ir-albedo", "0.5", "--json"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    meta = json.loads((tmp_path / "i" / "blobby_01" / "synth.json").read_text())
+    assert meta["interreflections"] == 2 and meta["ir_albedo"] == 0.5
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "j"), "--preset", "blobby",
+                           "--interreflections", "1", "--ir-albedo", "1.5"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and "--ir-albedo must be in [0, 1)" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "j").exists()
 
 
 def test_syntest_preset_with_shared_meshes(tmp_path):

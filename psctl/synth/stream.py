@@ -328,7 +328,8 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     out = out.transpose(1, 2)  # [b, 4, P]
     idx = (py.round().clamp(0, s - 1) * s + px.round().clamp(0, s - 1)).long()
     horizon = pool.horizon[slot[:, None], idx].transpose(1, 2).float()  # [b, K, P]
-    transfer = None if pool.transfer is None else pool.transfer[slot[:, None], idx].transpose(1, 2)  # [b, 10, P]
+    pool_transfer = getattr(pool, "transfer", None)  # (a pool-like object may lack it)
+    transfer = None if pool_transfer is None else pool_transfer[slot[:, None], idx].transpose(1, 2)  # [b, 10, P]
     msk = (out[:, 3:4] > 0.5).float()
     n_src = torch.nn.functional.normalize(out[:, :3], dim=1)
     # directions: output (x, y-up) -> grid (x, y-down) is diag(1, -1); output_grid = F Rot(-theta) source_grid
