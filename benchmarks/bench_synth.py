@@ -4,6 +4,7 @@
     python benchmarks/bench_synth.py --threads 1           # one core
     python benchmarks/bench_synth.py --threads 1 --workers 2 --skip pieces,writer   # + 2 DataLoader workers
     python benchmarks/bench_synth.py --device cuda --batches 50 --pool 512 --reuse 512 --refresh-chunk 32
+    python benchmarks/bench_synth.py --threads 1 --skip pieces,writer --batches 64 --interreflection 0.5
 
 Measures
   * the training stream: samples per second (a sample = --images images of --crop x --crop
@@ -52,6 +53,8 @@ def bench_stream(args, device: torch.device) -> dict:
            "intensities": args.intensities}
     if args.no_meshes:
         cfg["shapes"] = {"blobby": 1.0}
+    if args.interreflection:
+        cfg["interreflection"] = {"p": args.interreflection, "albedo": [0.0, 0.9]}
     holder = {}
     wall_init, _ = _timed(lambda: holder.setdefault("s", SynthStream(cfg)), device)
     stream = holder["s"]
@@ -153,6 +156,9 @@ def main() -> None:
     ap.add_argument("--refresh-chunk", type=int, default=8, help="new G-buffers rendered per call")
     ap.add_argument("--intensities", default="unit")
     ap.add_argument("--batches", type=int, default=20)
+    ap.add_argument("--interreflection", type=float, default=0.0,
+                    help="stream option interreflection.p (0: off); the pool then computes form factors per G-buffer, "
+                         "one refresh chunk every refresh_chunk * reuse / batch_size batches (32 by default): time >= 64")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--shapes", type=int, default=16, help="shapes/views for the geometry timings")
     ap.add_argument("--no-meshes", action="store_true", help="procedural shapes only")
