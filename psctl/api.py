@@ -197,7 +197,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
 
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
-                     device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> np.ndarray:
+                     device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
+                     refine: bool = True) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -213,6 +214,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lcnet: sdps: the LCNet weights file (default: the installed one).
         views: network methods: average 1, 2, 4 or 8 symmetric views of the capture (turned and
             mirrored about the view axis; ``views`` times the work; docs/models.md).
+        refine: sdps: refine LCNet's lights against the first normals and run the second stage
+            again (``psctl.lights.refine_lights``; docs/uncalibrated.md, "Light refinement").
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -242,10 +245,25 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.infer import array_normals
         from psctl.lights import array_lights
 
+        from psctl.lights import refine_estimate
+
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
-        images = images / est.intensities[:, None, None, None]
-        return array_normals(images, est.directions, mask, second, weights, {"device": device, "views": views}).normals
+        cfg = {"device": device, "views": views}
+        normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, weights,
+                                cfg).normals
+        if refine:
+            m = np.ones(images.shape[1:3], bool) if mask is None else mask
+
+            def reader(start: int, box: tuple[slice, slice]):
+                for k in range(start, len(images)):
+                    yield images[k][box]
+
+            est = refine_estimate(est, reader, len(images), m, normals, method=_SHOWN[second])
+            if est.info["refine"]["weight"] > 0:
+                normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
+                                        weights, cfg).normals
+        return normals
     if method in NETWORKS:
         from psctl.infer import array_normals
 
@@ -261,7 +279,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 formats: tuple[str, ...] | list[str] = ("png16", "exr"), n_images: int | None = None,
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> dict:
+                device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
+                refine: bool = True) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -272,7 +291,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
     light_mae and intensity_re (None without ground-truth lights). ``views`` (1, 2, 4 or 8): the
     network methods average that many symmetric views of the capture (psctl.infer.run_views;
-    ``views`` times the work).
+    ``views`` times the work). ``refine`` (sdps): LCNet's lights are refined against the first
+    normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
+    light_mae is then the refined lights' and lcnet_light_mae LCNet's own.
     """
     from psctl.classic import L2Accumulator
     from psctl.symmetry import check_views
@@ -321,17 +342,33 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
+        from psctl.lights import refine_estimate
+
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
+        net_cfg = {"device": device, "views": views}
         lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-        net = capture_normals(lit, mask, second, weights, {"device": device, "views": views}, progress)
+        net = capture_normals(lit, mask, second, weights, net_cfg, progress)
+        gt_ints = cap.intensities if cap.intensities_given else None
+        lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
+        if refine:
+            raw = replace(cap, intensities=np.ones_like(cap.intensities))
+
+            def raw_reader(start: int, box: tuple[slice, slice]):
+                yield from iter_images(raw.subset(range(start, raw.n_images)), box)
+
+            est = refine_estimate(est, raw_reader, cap.n_images, mask, net.normals, method=_SHOWN[second])
+            if est.info["refine"]["weight"] > 0:
+                lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+                net = capture_normals(lit, mask, second, weights, net_cfg, progress)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
-        light_stats = light_errors(est.directions, est.intensities, cap.lights,
-                                   cap.intensities if cap.intensities_given else None)
+        light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if light_stats["light_mae"] is not None:
-            notes.append(f"lcnet: light direction error {light_stats['light_mae']:.2f}° (mean)" + (
+            refined = refine and est.info["refine"]["weight"] > 0
+            notes.append(f"lights: direction error {light_stats['light_mae']:.2f}° (mean)" + (
                 "" if light_stats["intensity_re"] is None else
-                f", intensity relative error {light_stats['intensity_re']:.3f}"))
+                f", intensity relative error {light_stats['intensity_re']:.3f}") + (
+                f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     elif method in NETWORKS:
         from psctl.infer import capture_normals
 
@@ -389,6 +426,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lcnet_views"] = lc_cfg["views"]
         report["light_mae"] = light_stats["light_mae"]
         report["intensity_re"] = light_stats["intensity_re"]
+        report["lcnet_light_mae"] = lcnet_stats["light_mae"]  # before refinement
+        report["lcnet_intensity_re"] = lcnet_stats["intensity_re"]
+        report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
 
     # --- write ---------------------------------------------------------------------------------
     if write:

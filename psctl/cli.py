@@ -31,6 +31,7 @@ OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output fold
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
+RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
@@ -120,6 +121,7 @@ def normals(
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
+    refine: RefineOpt = True,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -133,7 +135,7 @@ def normals(
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                          views=views),
+                                          views=views, refine=refine),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -149,6 +151,7 @@ def evaluate(
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
+    refine: RefineOpt = True,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -159,7 +162,7 @@ def evaluate(
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views),
+                                            views=views, refine=refine),
              json_out, quiet, render_benchmark)
 
 
@@ -173,6 +176,8 @@ def lights(
     images: Images = None,
     seed: Seed = None,
     device: DeviceOpt = "auto",
+    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
+    normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -181,7 +186,8 @@ def lights(
         from psctl.lights import render_lights, run_lights
 
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
-                                         views=views, n_images=images, seed=seed, progress=progress),
+                                         views=views, n_images=images, seed=seed, progress=progress,
+                                         refine=refine, normals_weights=normals_weights),
              json_out, quiet, render_lights)
 
 

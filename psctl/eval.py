@@ -54,12 +54,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   n_images: int | None = None, seed: int | None = None,
                   out: str | os.PathLike | None = None,
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
-                  device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1) -> dict:
+                  device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
+                  refine: bool = True) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
-    ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet`` to sdps.
+    ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``
+    and ``refine`` to sdps.
     sdps also gives each object's "light_mae" and "intensity_re", their means "mean_light_mae"
     and "mean_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
@@ -83,12 +85,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     for folder in folders:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
-                        weights=weights, device=device, lcnet=lcnet, views=views)
+                        weights=weights, device=device, lcnet=lcnet, views=views, refine=refine)
         used.append(r["method"])
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
         if "light_mae" in r:  # sdps: the lights LCNet estimated
-            objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"])
+            objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"],
+                               lcnet_light_mae=r["lcnet_light_mae"], lcnet_intensity_re=r["lcnet_intensity_re"],
+                               lights_refined=r["lights_refined"])
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
     result = {
@@ -100,7 +104,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
     }
     if any("light_mae" in o for o in objects):
-        for key in ("light_mae", "intensity_re"):
+        for key in ("light_mae", "intensity_re", "lcnet_light_mae", "lcnet_intensity_re"):
             vals = [o.get(key) for o in objects]
             result[f"mean_{key}"] = None if any(v is None for v in vals) else float(np.mean(vals))
         lights = PAPER_DILIGENT_LIGHTS if benchmark == "diligent" else {}

@@ -283,6 +283,177 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     return res
 
 
+# --- refinement against the normals (sdps) ---------------------------------------------------
+
+# Why: LCNet classifies each image's light from a 128 x 128 view; once a network has estimated
+# the normals from those lights, the full-resolution pixels pin each light down better wherever
+# the surface is mostly diffuse. Chosen on synthetic folders (docs/uncalibrated.md, "Light
+# refinement"); the gate keeps LCNet's lights where a Lambertian fit explains the pixels badly
+# (metals, deep concavities).
+DEFAULT_REFINE = {
+    "pixels": 20000,  # mask pixels sampled for the fit (seeded): enough to fix 3 numbers per light
+    "iters": 5,  # alternations of per-pixel albedo and per-image light
+    "margin": 0.1,  # a light lights a pixel when n.s > margin |s|: keeps the terminator out of the fit
+    # per image, only pixels whose observed / predicted ratio lies within these quantiles: cast
+    # shadows and interreflections (low) and highlights (high) out
+    "trim": (0.1, 0.9),
+    # the fit's relative residual q (median |o - rho n.s| / median o over lit observations): at or
+    # below gate[0] the fitted lights are used, at or above gate[1] LCNet's are kept, blended between
+    "gate": (0.05, 0.10),
+    # a fitted light further than this from its start (degrees) means the fit went astray (on a
+    # mirror-like surface it can shrink the lit set until a few pixels fit): the start is kept.
+    # Not the horizon: fits of lights at grazing angles land slightly below it (syntest)
+    "max_change": 30.0,
+    "seed": 0,
+}
+
+
+@dataclass
+class Refinement:
+    directions: np.ndarray  # [N, 3] unit
+    intensities: np.ndarray  # [N], on the scale of the intensities passed in (their geometric mean)
+    quality: float  # q, the fit's relative residual (inf when nothing was fitted)
+    weight: float  # in [0, 1]: 1 = the fitted lights, 0 = the ones passed in
+    status: str = "fitted"  # fitted | too few pixels | astray (see DEFAULT_REFINE["max_change"])
+
+
+def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
+                  intensities: np.ndarray, config: dict | None = None) -> Refinement:
+    """Refine lights by a robust Lambertian fit against known normals.
+
+    Model: o[j, p] = rho[p] * max(n[p] . s[j], 0) with s[j] = e[j] l[j]. Starting from the given
+    lights, alternate rho (least squares per pixel over the observations it is lit in) and s[j]
+    (least squares per image over lit pixels, trimmed by ``trim``). The fit's residual q decides,
+    through ``gate``, how much of it replaces the lights passed in.
+
+    Args:
+        observations: [N, P] grey values as captured (not divided by any intensity).
+        normals: [P, 3] unit normals of the same pixels (e.g. PS-FCN's from the lights below).
+        directions: [N, 3] unit light directions to start from (LCNet's).
+        intensities: [N] their intensities.
+        config: overrides of DEFAULT_REFINE.
+    Returns:
+        Refinement (directions [N, 3], intensities [N], quality q, weight, status).
+    """
+    cfg = {**DEFAULT_REFINE, **(config or {})}
+    o = np.asarray(observations, np.float64)
+    n = np.asarray(normals, np.float64)
+    d0 = np.asarray(directions, np.float64)
+    e0 = np.asarray(intensities, np.float64).reshape(-1)
+    if o.ndim != 2 or n.shape != (o.shape[1], 3) or d0.shape != (o.shape[0], 3) or e0.shape != (o.shape[0],):
+        raise ValueError(f"shapes: observations {o.shape}, normals {n.shape}, directions {d0.shape}, "
+                         f"intensities {e0.shape}")
+    keep = Refinement(d0.astype(np.float32), e0.astype(np.float32), float("inf"), 0.0, "too few pixels")
+    ok = np.isfinite(o).all(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
+    o, n = o[:, ok], n[ok]
+    if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
+        return keep
+    lo_q, hi_q = cfg["trim"]
+    s = d0 * e0[:, None]
+
+    def albedo(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        sh = n @ s.T  # [P, N] shading
+        lit = sh > cfg["margin"] * np.linalg.norm(s, axis=1)[None]
+        den = (sh ** 2 * lit).sum(1)
+        rho = np.where(den > 0, (o.T * sh * lit).sum(1) / np.maximum(den, 1e-300), 0.0)
+        return sh, lit, rho
+
+    for _ in range(int(cfg["iters"])):
+        sh, lit, rho = albedo(s)
+        new = s.copy()
+        for j in range(len(s)):
+            use = np.flatnonzero(lit[:, j] & (rho > 0))
+            if use.size < 10:
+                continue  # (nearly) no lit pixel for this light: keep it
+            ratio = o[j, use] / (rho[use] * sh[use, j])
+            lo, hi = np.quantile(ratio, (lo_q, hi_q))
+            use = use[(ratio >= lo) & (ratio <= hi)]
+            if use.size < 10:
+                continue
+            sol = np.linalg.lstsq(rho[use, None] * n[use], o[j, use], rcond=None)[0]
+            if np.isfinite(sol).all() and np.linalg.norm(sol) > 0:
+                new[j] = sol
+        s = new / np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
+    if not np.isfinite(s).all():
+        return keep
+    fitted = s / np.linalg.norm(s, axis=1, keepdims=True)
+    change = np.degrees(np.arccos(np.clip((fitted * d0).sum(1), -1, 1)))
+    if (change > cfg["max_change"]).any():
+        return replace(keep, status="astray")
+    sh, lit, rho = albedo(s)
+    if not lit.any():
+        return keep
+    obs = o.T[lit]
+    q = float(np.median(np.abs(obs - (rho[:, None] * sh)[lit])) / max(float(np.median(obs)), 1e-12))
+    lo_g, hi_g = cfg["gate"]
+    w = float(np.clip((hi_g - q) / (hi_g - lo_g), 0.0, 1.0)) if np.isfinite(q) else 0.0
+    e = np.linalg.norm(s, axis=1)
+    d = w * (s / e[:, None]) + (1 - w) * d0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # intensities blended in log space, each set first divided by its geometric mean; the result
+    # is given the geometric mean of the intensities passed in
+    g0 = np.exp(np.log(e0).mean())
+    e = g0 * np.exp(w * (np.log(e) - np.log(e).mean()) + (1 - w) * (np.log(e0) - np.log(g0)))
+    return Refinement(d.astype(np.float32), e.astype(np.float32), q, w)
+
+
+def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
+                        config: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Grey observations [n, P] and normals [P, 3] at up to ``pixels`` seeded mask pixels.
+
+    ``reader(start, box)`` yields the images as captured (see ``psctl.infer.Reader``); they are
+    read once, and only the sampled pixels are kept (P values per image)."""
+    from psctl.io.capture import bounding_box
+
+    cfg = {**DEFAULT_REFINE, **(config or {})}
+    mask = np.asarray(mask, bool) & (np.linalg.norm(normals, axis=-1) > 0.5)
+    if not mask.any():
+        return np.zeros((n, 0), np.float32), np.zeros((0, 3), np.float32)
+    box = bounding_box(mask)
+    ys, xs = np.nonzero(mask[box])
+    if ys.size > cfg["pixels"]:
+        pick = np.sort(np.random.default_rng(cfg["seed"]).choice(ys.size, int(cfg["pixels"]), replace=False))
+        ys, xs = ys[pick], xs[pick]
+    obs = np.empty((n, ys.size), np.float32)
+    k = 0
+    for img in reader(0, box):
+        if k >= n:
+            break
+        img = np.asarray(img, np.float32)
+        obs[k] = img[ys, xs].mean(-1) if img.ndim == 3 else img[ys, xs]
+        k += 1
+    if k != n:
+        raise PsctlError(None, f"expected {n} images, got {k}")
+    return obs, np.asarray(normals, np.float32)[box][ys, xs]
+
+
+def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
+                    config: dict | None = None, method: str = "PS-FCN") -> LightEstimate:
+    """``est`` with its lights refined against ``normals`` [H, W, 3] (``refine_lights``); the
+    capture is read once more. ``info["refine"]`` and a note say what happened."""
+    t0 = time.perf_counter()
+    obs, nrm = sample_observations(reader, n, mask, normals, config)
+    ref = refine_lights(obs, nrm, est.directions, est.intensities, config)
+    cfg = {**DEFAULT_REFINE, **(config or {})}
+    info = {**est.info, "refine": {"quality": None if not np.isfinite(ref.quality) else round(ref.quality, 4),
+                                   "weight": round(ref.weight, 3), "status": ref.status, "pixels": int(obs.shape[1]),
+                                   "gate": list(cfg["gate"]), "seconds": round(time.perf_counter() - t0, 3)}}
+    if ref.status == "astray":
+        note = (f"lights: LCNet's lights kept (refitting them against {method}'s normals moved a light by more than "
+                f"{cfg['max_change']:g} degrees)")
+    elif not np.isfinite(ref.quality):
+        note = "lights: too few usable pixels to refine LCNet's lights against the normals; LCNet's kept"
+    elif ref.weight >= 1:
+        note = f"lights: LCNet's lights refined against {method}'s normals (Lambertian fit residual {ref.quality:.3f})"
+    elif ref.weight <= 0:
+        note = (f"lights: LCNet's lights kept (a Lambertian fit against {method}'s normals explains this object "
+                f"poorly: residual {ref.quality:.3f} >= {cfg['gate'][1]})")
+    else:
+        note = (f"lights: LCNet's lights {ref.weight:.0%} refined against {method}'s normals (Lambertian fit "
+                f"residual {ref.quality:.3f})")
+    return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
+
+
 # --- errors -----------------------------------------------------------------------------------
 
 def intensity_error(est: np.ndarray, gt: np.ndarray) -> float:
@@ -420,12 +591,18 @@ def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensiti
 def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "soft",
                n_images: int | None = None, seed: int | None = None, write: bool = True,
-               progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"]) -> dict:
+               progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
+               refine: bool = True, normals_weights: str | os.PathLike | None = None) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
+    ``refine``: when a network that estimates normals from lights is installed (sdps' second
+    stage, or ``normals_weights``), LCNet's lights are refined against its normals
+    (``refine_estimate``; off with refine=False or when none is installed, which a note says).
+
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
-    intensity_re (None without ground truth), outputs, plus path, weights, decode, views, seconds
-    and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
+    intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
+    refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re (LCNet's
+    own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, staged_outputs
@@ -446,8 +623,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         check_output_dir(out_dir)
     mask = load_mask(cap)
     est = capture_lights(cap, mask, weights, {"device": device, "decode": decode, "views": views}, progress)
-    errors = light_errors(est.directions, est.intensities, cap.lights,
-                          cap.intensities if cap.intensities_given else None)
+    gt_ints = cap.intensities if cap.intensities_given else None
+    lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
+    if refine:
+        est = _refine_capture(cap, mask, est, normals_weights, device, progress)
+    errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,
         "path": str(cap.path),
@@ -457,6 +637,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "outputs": {},
         "decode": est.info["decode"],
         "views": est.info["views"],
+        "refined": est.info.get("refine"),
+        "lcnet_light_mae": lcnet_errors["light_mae"],
+        "lcnet_intensity_re": lcnet_errors["intensity_re"],
         "device": est.info["device"],
         "seconds": round(time.perf_counter() - t0, 3),
         "notes": est.notes,
@@ -471,6 +654,28 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     return report
 
 
+def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
+                    device: str, progress: "ProgressFactory | None") -> LightEstimate:
+    """LCNet's lights refined against the normals that sdps' second stage gives from them."""
+    from psctl.api import _SHOWN, sdps_second_stage
+    from psctl.infer import capture_normals
+    from psctl.io.capture import iter_images
+    from psctl.models.weights import installed_path
+
+    if weights is None and not any(installed_path(m) for m in ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")):
+        return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
+                                               "LCNet's lights are not refined"])
+    second = sdps_second_stage(weights)[0]
+    lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+    net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
+    raw = replace(cap, intensities=np.ones_like(cap.intensities))
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        yield from iter_images(raw.subset(range(start, raw.n_images)), box)
+
+    return refine_estimate(est, reader, cap.n_images, mask, net.normals, method=_SHOWN[second])
+
+
 def render_lights(r: dict) -> None:
     """The human-readable summary of ``run_lights``'s report (Rich, stdout)."""
     from rich.console import Console
@@ -479,8 +684,12 @@ def render_lights(r: dict) -> None:
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {note}", highlight=False)
     line = f"[bold]{r['object']}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
+    if r.get("refined") and r["refined"]["weight"] > 0:
+        line += f", refined against the normals (weight {r['refined']['weight']:.2f})"
     if r["light_mae"] is not None:
         line += f"\n  light direction error [bold]{r['light_mae']:.2f}°[/] (mean)"
+        if r.get("refined") and r["refined"]["weight"] > 0 and r.get("lcnet_light_mae") is not None:
+            line += f" (LCNet alone {r['lcnet_light_mae']:.2f}°)"
     if r["intensity_re"] is not None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
     con.print(line, highlight=False, soft_wrap=True)

@@ -412,7 +412,7 @@ def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_pa
         est = array_lights(images, mask, folder / "lcnet.pt", {"device": "cpu"})
         want = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, "ps-fcn-n",
                              folder / "ps_fcn_n.pt", {"device": "cpu"}).normals
-        got = estimate_normals(images, None, mask, method="sdps", device="cpu")
+        got = estimate_normals(images, None, mask, method="sdps", device="cpu", refine=False)
         assert np.abs(got - want).max() < 1e-5
     finally:
         del os.environ["PSCTL_WEIGHTS"]

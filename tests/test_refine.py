@@ -1,0 +1,213 @@
+"""Light refinement (psctl.lights.refine_lights): LCNet's lights refitted against known normals."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from psctl.lights import DEFAULT_REFINE, LightEstimate, refine_estimate, refine_lights, sample_observations
+from psctl.metrics import light_direction_error
+from tests.conftest import hemisphere_lights, sphere, write_capture
+from tests.test_lcnet import fake_weights, psctl  # noqa: F401 (a fixture)
+
+
+def rotate_randomly(dirs: np.ndarray, degrees: float, seed: int) -> np.ndarray:
+    """Each direction turned by ``degrees`` about a random axis perpendicular to it."""
+    rng = np.random.default_rng(seed)
+    axis = np.cross(dirs, rng.normal(size=dirs.shape))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    t = np.radians(degrees)
+    out = dirs * np.cos(t) + np.cross(axis, dirs) * np.sin(t)  # Rodrigues, axis . dir = 0
+    return (out / np.linalg.norm(out, axis=1, keepdims=True)).astype(np.float32)
+
+
+def scene(n: int = 24, size: int = 64, specular: float = 0.0, diffuse: float = 1.0, noise: float = 0.0, seed: int = 0):
+    """Grey observations [n, P] of a textured sphere (Lambertian + an optional Phong lobe), with
+    optional multiplicative log-normal noise."""
+    rng = np.random.default_rng(seed)
+    normals, mask = sphere(size)
+    nrm = normals[mask]
+    lights = hemisphere_lights(n, 40.0, seed)
+    ints = rng.uniform(0.5, 1.5, n).astype(np.float32)
+    albedo = rng.uniform(0.3, 1.0, len(nrm))
+    cos = np.clip(nrm @ lights.T, 0, None)  # [P, n]
+    refl = 2 * cos[..., None] * nrm[:, None] - lights[None]  # mirror direction of each light
+    spec = np.clip(refl[..., 2], 0, None) ** 60 * (cos > 0)  # the camera looks down +z
+    obs = (diffuse * albedo[:, None] * cos + specular * spec) * ints[None]
+    obs *= np.exp(noise * rng.normal(size=obs.shape))
+    return obs.T.astype(np.float32), nrm, lights, ints
+
+
+def test_refine_recovers_perturbed_lights_despite_highlights():
+    obs, nrm, lights, ints = scene(specular=0.8)
+    start = rotate_randomly(lights, 8.0, seed=1)
+    start_ints = ints * np.random.default_rng(2).uniform(0.7, 1.3, len(ints))
+    assert light_direction_error(start, lights).mean() == pytest.approx(8.0, abs=1e-3)
+    ref = refine_lights(obs, nrm, start, start_ints)
+    assert ref.weight == 1.0 and ref.quality < DEFAULT_REFINE["gate"][0]
+    assert light_direction_error(ref.directions, lights).mean() < 1.0
+    rel = ref.intensities / ints
+    assert np.abs(rel / rel.mean() - 1).max() < 0.03  # relative intensities, up to one scale
+    # the scale of the intensities passed in is kept (their geometric mean)
+    assert np.exp(np.log(ref.intensities).mean()) == pytest.approx(np.exp(np.log(start_ints).mean()), rel=1e-5)
+
+
+def test_the_gate_keeps_the_lights_when_a_lambertian_fit_explains_nothing():
+    obs, nrm, lights, ints = scene(specular=1.0, diffuse=0.0)  # a mirror-like material: no diffuse part
+    start = rotate_randomly(lights, 8.0, seed=1)
+    ref = refine_lights(obs, nrm, start, ints)
+    assert ref.weight == 0.0 and ref.status == "astray"  # the fit shrinks the lit set to a few pixels
+    np.testing.assert_allclose(ref.directions, start, atol=1e-6)
+    np.testing.assert_allclose(ref.intensities, ints, rtol=1e-5)
+    # observations a Lambertian model explains badly (here: strong noise): the gate keeps LCNet's lights
+    obs, nrm, lights, ints = scene(noise=0.3)
+    ref = refine_lights(obs, nrm, start, ints)
+    assert ref.status == "fitted" and ref.quality > DEFAULT_REFINE["gate"][1] and ref.weight == 0.0
+    np.testing.assert_allclose(ref.directions, start, atol=1e-6)
+
+
+def test_blend_between_the_gate_values():
+    obs, nrm, lights, ints = scene()
+    start = rotate_randomly(lights, 8.0, seed=1)
+    q = refine_lights(obs, nrm, start, ints).quality
+    half = refine_lights(obs, nrm, start, ints, {"gate": (q - 0.01, q + 0.01)})
+    assert half.weight == pytest.approx(0.5, abs=1e-6)
+    err = light_direction_error(half.directions, lights).mean()
+    assert 2.0 < err < 6.0  # halfway between LCNet's 8 degrees and the fit's ~0
+
+
+def test_refine_input_checks_and_too_few_pixels():
+    obs, nrm, lights, ints = scene(size=8)  # ~40 pixels: too few to fit
+    ref = refine_lights(obs, nrm, lights, ints)
+    assert ref.weight == 0.0 and not np.isfinite(ref.quality) and ref.status == "too few pixels"
+    with pytest.raises(ValueError, match="shapes"):
+        refine_lights(obs[:, :-1], nrm, lights, ints)
+
+
+def test_sample_observations_reads_the_sampled_pixels_once():
+    normals, mask = sphere(40)
+    rng = np.random.default_rng(0)
+    images = rng.uniform(0, 1, (5, 40, 40, 3)).astype(np.float32)
+    calls = []
+
+    def reader(start, box):
+        calls.append(start)
+        for k in range(start, 5):
+            yield images[k][box]
+
+    obs, nrm = sample_observations(reader, 5, mask, normals, {"pixels": 100, "seed": 3})
+    assert obs.shape == (5, 100) and nrm.shape == (100, 3) and calls == [0]
+    # every sample is a mask pixel: its grey value and its normal
+    ys, xs = np.nonzero(mask)
+    grey = images.mean(-1)[:, ys, xs]
+    for p in range(100):
+        k = np.flatnonzero(np.all(normals[ys, xs] == nrm[p], axis=1))
+        assert k.size == 1 and np.allclose(grey[:, k[0]], obs[:, p], atol=1e-6)
+    again, _ = sample_observations(reader, 5, mask, normals, {"pixels": 100, "seed": 3})
+    assert np.array_equal(obs, again)  # seeded
+    obs_all, _ = sample_observations(reader, 5, mask, normals, {"pixels": 10**6})
+    assert obs_all.shape == (5, int(mask.sum()))
+
+
+def test_refine_estimate_says_what_it_did():
+    normals, mask = sphere(48)
+    lights = hemisphere_lights(12, 35.0, 0)
+    images = np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None)[..., None].repeat(3, -1) * 0.7
+    est = LightEstimate(rotate_randomly(lights, 6.0, 4), np.ones(12, np.float32), {}, {"decode": "soft"}, ["lcnet: x"])
+
+    def reader(start, box):
+        for k in range(start, 12):
+            yield images[k][box]
+
+    out = refine_estimate(est, reader, 12, mask, normals)
+    assert light_direction_error(out.directions, lights).mean() < 2.0  # from 6 (12 lights in a 35-degree cone)
+    assert out.info["refine"]["weight"] == 1.0 and out.info["decode"] == "soft"
+    assert out.notes[0] == "lcnet: x" and "refined against PS-FCN's normals" in out.notes[-1]
+    flat = refine_estimate(est, reader, 12, mask, np.zeros_like(normals))  # no usable normal
+    assert flat.info["refine"]["weight"] == 0.0 and "too few usable pixels" in flat.notes[-1]
+    np.testing.assert_array_equal(flat.directions, est.directions)
+
+
+@pytest.fixture
+def stand_in_networks(monkeypatch):
+    """sdps' two stages replaced by stand-ins (the wiring of the refinement is tested, not the
+    networks): "LCNet" gives the true lights turned by 8 degrees, the second stage the capture's
+    ground-truth normals."""
+    import psctl.infer
+    import psctl.lights
+    from psctl.io.capture import load_ground_truth
+
+    calls = []
+
+    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights"):
+        n = capture.n_images
+        return LightEstimate(rotate_randomly(capture.lights, 8.0, 5), np.ones(n, np.float32), {},
+                             {"decode": "soft", "views": 8, "device": "cpu"}, [])
+
+    def capture_normals(capture, mask, method, weights=None, config=None, progress=None):
+        calls.append(np.array(capture.lights))
+        gt = load_ground_truth(capture)
+        return psctl.infer.InferResult(gt.astype(np.float32), np.zeros(mask.shape, bool), {}, [])
+
+    monkeypatch.setattr(psctl.lights, "capture_lights", capture_lights)
+    monkeypatch.setattr(psctl.infer, "capture_normals", capture_normals)
+    return calls
+
+
+def test_sdps_and_lights_use_the_refined_lights(tmp_path, fake_weights, stand_in_networks):
+    from psctl.api import run_normals
+    from psctl.lights import run_lights
+
+    data = write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+        assert r["lights_refined"]["weight"] == 1.0 and r["lights_refined"]["status"] == "fitted"
+        assert r["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3) and r["light_mae"] < 2.0
+        assert len(stand_in_networks) == 2  # the second stage ran again, on the refined lights
+        assert light_direction_error(stand_in_networks[1], data["lights"]).mean() == pytest.approx(r["light_mae"],
+                                                                                                   abs=1e-4)
+        assert any("refined against PS-FCN†'s normals" in n for n in r["notes"])
+        r0 = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", refine=False)
+        assert r0["lights_refined"] is None and r0["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+        assert len(stand_in_networks) == 3
+
+        rl = run_lights(tmp_path / "aPNG", out=tmp_path / "lights", device="cpu")
+        assert rl["refined"]["weight"] == 1.0 and rl["light_mae"] == pytest.approx(r["light_mae"], abs=1e-4)
+        assert rl["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3)
+        written = np.loadtxt(tmp_path / "lights" / "light_directions.txt")
+        assert light_direction_error(written, data["lights"]).mean() == pytest.approx(rl["light_mae"], abs=1e-4)
+        rl0 = run_lights(tmp_path / "aPNG", write=False, device="cpu", refine=False)
+        assert rl0["refined"] is None and rl0["light_mae"] == pytest.approx(8.0, abs=1e-3)
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
+def test_lights_without_a_normals_network_says_so(tmp_path, fake_weights):
+    import shutil
+
+    from psctl.lights import run_lights
+
+    folder = tmp_path / "w"
+    folder.mkdir()
+    shutil.copy(fake_weights / "lcnet.pt", folder / "lcnet.pt")
+    write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    os.environ["PSCTL_WEIGHTS"] = str(folder)
+    try:
+        r = run_lights(tmp_path / "aPNG", write=False, device="cpu")
+        assert r["refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+        assert any("not refined" in n for n in r["notes"])
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+
+
+def test_cli_no_refine_flag(tmp_path, fake_weights):
+    write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    proc = psctl("lights", tmp_path / "aPNG", "--weights", fake_weights / "lcnet.pt", "--no-refine", "--json",
+                 "--out", tmp_path / "o", env={"PSCTL_WEIGHTS": str(fake_weights)})
+    assert proc.returncode == 0, proc.stderr
+    r = json.loads(proc.stdout)
+    assert r["refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
