@@ -172,7 +172,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
-                    decode: str = "soft", device: str = "auto", views: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                    decode: str = "soft", device: str = "auto", views: int = 8,
+                    refine: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -185,13 +186,33 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         views: symmetric views averaged, 1, 2, 4 or 8 (the default: the images turned and
             mirrored about the view axis, estimates turned back and averaged; 1 is the paper's
             single pass; docs/uncalibrated.md).
+        refine: when a normals network is installed (PS-FCN†, PS-FCN or PS-FCN+N), refine
+            LCNet's lights against the normals it gives from them (as ``psctl lights``;
+            ``psctl.lights.refine_lights``); without one, LCNet's lights.
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative: LCNet's scale, in [0.2, 2.0]).
     """
-    from psctl.lights import array_lights
+    from psctl.lights import array_lights, refine_estimate
+    from psctl.models.weights import installed_path
 
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
+    if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
+        from psctl.infer import array_normals
+
+        images = np.asarray(images, np.float32)
+        if images.ndim == 3:
+            images = np.repeat(images[..., None], 3, axis=-1)
+        second = sdps_second_stage(None)[0]
+        normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
+                                {"device": device}).normals
+        m = np.ones(images.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
+
+        def reader(start: int, box: tuple[slice, slice]):
+            for k in range(start, len(images)):
+                yield images[k][box]
+
+        est = refine_estimate(est, reader, len(images), m, normals, method=_SHOWN[second])
     return est.directions, est.intensities
 
 

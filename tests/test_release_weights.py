@@ -63,6 +63,10 @@ def test_release_lcnet_finds_the_lights(scene):
     assert err.mean() < 10.0
     assert dirs.shape == (24, 3) and ints.shape == (24,)
     assert np.ptp(ints) <= 0.5 * ints.mean()  # all 24 lights have the same intensity
+    # refined against the installed PS-FCN's normals (the default) vs LCNet alone
+    alone, _ = estimate_lights(images, mask, weights=release("lcnet.pt"), device="cpu", refine=False)
+    err_alone = np.degrees(np.arccos(np.clip((alone * lights).sum(-1), -1, 1)))
+    assert err.mean() < err_alone.mean()
 
 
 def test_release_sdps_solves_a_sphere_without_lights(scene):

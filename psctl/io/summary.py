@@ -129,6 +129,9 @@ def render_benchmark(result: dict) -> None:
             if all(o.get(key) is None for o in objs):  # no ground truth to score against
                 continue
             t.add_row(f"{label} (psctl)", *[fmt(o.get(key)) for o in objs], fmt(result[f"mean_{key}"]))
+            if any((o.get("lights_refined") or {}).get("weight", 0) > 0 for o in objs):  # refined: LCNet's own too
+                t.add_row(f"{label} (LCNet)", *[fmt(o.get(f"lcnet_{key}")) for o in objs],
+                          fmt(result.get(f"mean_lcnet_{key}")), style="dim")
             if paper_l:
                 vals = [paper_l.get(o["name"], {}).get(key) for o in objs]
                 avg = float(np.mean(vals)) if all(v is not None for v in vals) else None
