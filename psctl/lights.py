@@ -25,6 +25,9 @@ The pipeline (psctl.models.lcnet has the network and the discretisation):
    ``psctl.symmetry``); each view's directions are turned back and the unit mean
    of the views is the estimate, the intensities their mean. Exact for an orthographic camera
    and isotropic materials; it costs ``views`` times the network work.
+6. Refinement (``run_lights(refine=True)``, sdps): a normals network turns the lights into
+   normals and ``refine_lights`` refits each light by a robust Lambertian fit against them,
+   gated by how well that fit explains the pixels.
 
 Outputs are in DiLiGenT's format: light_directions.txt (N x 3, unit, x right / y up / z toward
 the camera) and light_intensities.txt (N x 3, the same value in R, G and B; only relative
