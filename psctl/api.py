@@ -191,7 +191,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             ``psctl.lights.refine_lights``); without one, LCNet's lights.
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
-        intensities [N] float32 (relative: LCNet's scale, in [0.2, 2.0]).
+        intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.lights import array_lights, refine_estimate
     from psctl.models.weights import installed_path
@@ -200,9 +200,12 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
         from psctl.infer import array_normals
 
+        from psctl.io.images import to_rgb
+
         images = np.asarray(images, np.float32)
         if images.ndim == 3:
-            images = np.repeat(images[..., None], 3, axis=-1)
+            images = images[..., None]
+        images = np.ascontiguousarray(to_rgb(images))  # grey / RGBA as array_lights reads them
         second = sdps_second_stage(None)[0]
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
                                 {"device": device}).normals

@@ -62,8 +62,10 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``
     and ``refine`` to sdps.
-    sdps also gives each object's "light_mae" and "intensity_re", their means "mean_light_mae"
-    and "mean_intensity_re", and "paper_lights" (None where the folder has no ground truth).
+    sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
+    not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
+    means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
+    "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
     from psctl.io.capture import find_objects, object_name, open_capture
 

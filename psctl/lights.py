@@ -82,7 +82,7 @@ OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities":
 @dataclass
 class LightEstimate:
     directions: np.ndarray  # [N, 3] float32 unit vectors (x right, y up, z toward the camera)
-    intensities: np.ndarray  # [N] float32, relative (LCNet's scale, in [0.2, 2.0])
+    intensities: np.ndarray  # [N] float32, relative (LCNet's scale, in [0.2, 2.0] unless refined)
     logits: dict[str, np.ndarray]  # {"dir_x": [N, K_d], "dir_y": [N, K_d], "ints": [N, K_e]}, the first view's
     info: dict = field(default_factory=dict)  # device, box, size, chunk, passes, seconds, ...
     notes: list[str] = field(default_factory=list)
@@ -305,7 +305,8 @@ DEFAULT_REFINE = {
     "gate": (0.05, 0.10),
     # a fitted light further than this from its start (degrees) means the fit went astray (on a
     # mirror-like surface it can shrink the lit set until a few pixels fit): the start is kept.
-    # Not the horizon: fits of lights at grazing angles land slightly below it (syntest)
+    # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
+    # written and used as it is
     "max_change": 30.0,
     "seed": 0,
 }
@@ -604,8 +605,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
-    refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re (LCNet's
-    own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
+    lights_refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re
+    (LCNet's own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, staged_outputs
@@ -630,6 +631,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refine:
         est = _refine_capture(cap, mask, est, normals_weights, device, progress)
+    elif normals_weights is not None:
+        est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,
@@ -640,7 +643,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "outputs": {},
         "decode": est.info["decode"],
         "views": est.info["views"],
-        "refined": est.info.get("refine"),
+        "lights_refined": est.info.get("refine"),
         "lcnet_light_mae": lcnet_errors["light_mae"],
         "lcnet_intensity_re": lcnet_errors["intensity_re"],
         "device": est.info["device"],
@@ -687,11 +690,11 @@ def render_lights(r: dict) -> None:
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {note}", highlight=False)
     line = f"[bold]{r['object']}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
-    if r.get("refined") and r["refined"]["weight"] > 0:
-        line += f", refined against the normals (weight {r['refined']['weight']:.2f})"
+    if r.get("lights_refined") and r["lights_refined"]["weight"] > 0:
+        line += f", refined against the normals (weight {r['lights_refined']['weight']:.2f})"
     if r["light_mae"] is not None:
         line += f"\n  light direction error [bold]{r['light_mae']:.2f}°[/] (mean)"
-        if r.get("refined") and r["refined"]["weight"] > 0 and r.get("lcnet_light_mae") is not None:
+        if r.get("lights_refined") and r["lights_refined"]["weight"] > 0 and r.get("lcnet_light_mae") is not None:
             line += f" (LCNet alone {r['lcnet_light_mae']:.2f}°)"
     if r["intensity_re"] is not None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"

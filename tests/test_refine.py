@@ -55,7 +55,7 @@ def test_refine_recovers_perturbed_lights_despite_highlights():
     assert np.exp(np.log(ref.intensities).mean()) == pytest.approx(np.exp(np.log(start_ints).mean()), rel=1e-5)
 
 
-def test_the_gate_keeps_the_lights_when_a_lambertian_fit_explains_nothing():
+def test_astray_fits_and_badly_explained_pixels_keep_the_lights():
     obs, nrm, lights, ints = scene(specular=1.0, diffuse=0.0)  # a mirror-like material: no diffuse part
     start = rotate_randomly(lights, 8.0, seed=1)
     ref = refine_lights(obs, nrm, start, ints)
@@ -167,6 +167,9 @@ def test_sdps_and_lights_use_the_refined_lights(tmp_path, fake_weights, stand_in
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
         assert r["lights_refined"]["weight"] == 1.0 and r["lights_refined"]["status"] == "fitted"
         assert r["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3) and r["light_mae"] < 2.0
+        # the stand-in LCNet says all intensities are 1; the fit on the raw (grey) images gets closer
+        # to the true RGB ones (the array test below checks the division exactly)
+        assert r["intensity_re"] < r["lcnet_intensity_re"]
         assert len(stand_in_networks) == 2  # the second stage ran again, on the refined lights
         assert light_direction_error(stand_in_networks[1], data["lights"]).mean() == pytest.approx(r["light_mae"],
                                                                                                    abs=1e-4)
@@ -176,12 +179,12 @@ def test_sdps_and_lights_use_the_refined_lights(tmp_path, fake_weights, stand_in
         assert len(stand_in_networks) == 3
 
         rl = run_lights(tmp_path / "aPNG", out=tmp_path / "lights", device="cpu")
-        assert rl["refined"]["weight"] == 1.0 and rl["light_mae"] == pytest.approx(r["light_mae"], abs=1e-4)
+        assert rl["lights_refined"]["weight"] == 1.0 and rl["light_mae"] == pytest.approx(r["light_mae"], abs=1e-4)
         assert rl["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3)
         written = np.loadtxt(tmp_path / "lights" / "light_directions.txt")
         assert light_direction_error(written, data["lights"]).mean() == pytest.approx(rl["light_mae"], abs=1e-4)
         rl0 = run_lights(tmp_path / "aPNG", write=False, device="cpu", refine=False)
-        assert rl0["refined"] is None and rl0["light_mae"] == pytest.approx(8.0, abs=1e-3)
+        assert rl0["lights_refined"] is None and rl0["light_mae"] == pytest.approx(8.0, abs=1e-3)
     finally:
         del os.environ["PSCTL_WEIGHTS"]
 
@@ -198,7 +201,7 @@ def test_lights_without_a_normals_network_says_so(tmp_path, fake_weights):
     os.environ["PSCTL_WEIGHTS"] = str(folder)
     try:
         r = run_lights(tmp_path / "aPNG", write=False, device="cpu")
-        assert r["refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+        assert r["lights_refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
         assert any("not refined" in n for n in r["notes"])
     finally:
         del os.environ["PSCTL_WEIGHTS"]
@@ -210,4 +213,56 @@ def test_cli_no_refine_flag(tmp_path, fake_weights):
                  "--out", tmp_path / "o", env={"PSCTL_WEIGHTS": str(fake_weights)})
     assert proc.returncode == 0, proc.stderr
     r = json.loads(proc.stdout)
-    assert r["refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+    assert r["lights_refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+
+
+def test_sdps_runs_the_second_stage_once_when_the_gate_keeps_lcnets_lights(tmp_path, fake_weights, stand_in_networks,
+                                                                           monkeypatch):
+    import psctl.lights
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "aPNG", n=12, size=48, seed=1)
+    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "gate", (-2.0, -1.0))  # every fit counts as bad
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+    assert r["lights_refined"]["weight"] == 0.0 and len(stand_in_networks) == 1
+    assert r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
+    assert any("LCNet's lights kept" in n for n in r["notes"])
+
+
+def test_array_sdps_refines_too(monkeypatch, fake_weights):
+    """estimate_normals(method="sdps"): LCNet, the second stage, the fit on the raw images, the
+    second stage again on the refined lights (stand-ins for both networks)."""
+    import psctl.infer
+    import psctl.lights
+    from psctl.api import estimate_normals
+    from tests.conftest import render_lambertian
+
+    normals, mask = sphere(48)
+    lights = hemisphere_lights(24, 35.0, 0)
+    ints = np.random.default_rng(0).uniform(0.5, 1.5, 24).astype(np.float32)
+    images = render_lambertian(normals, mask, lights, 0.7) * ints[:, None, None, None]
+    seen = []
+
+    def array_lights(images, mask=None, weights=None, config=None, model=None, progress=None):
+        return LightEstimate(rotate_randomly(lights, 8.0, 5), np.ones(24, np.float32), {}, {}, [])
+
+    def array_normals(imgs, dirs, mask, method, weights=None, config=None, progress=None):
+        seen.append((np.array(dirs), np.array(imgs)))
+        return psctl.infer.InferResult(normals, np.zeros(mask.shape, bool), {}, [])
+
+    monkeypatch.setattr(psctl.lights, "array_lights", array_lights)
+    monkeypatch.setattr(psctl.infer, "array_normals", array_normals)
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        out = estimate_normals(images, None, mask, method="sdps", device="cpu")
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+    assert len(seen) == 2 and np.array_equal(out, normals)
+    assert light_direction_error(seen[1][0], lights).mean() < 4.0  # the second pass got the refined lights (LCNet: 8)
+    # and images divided by the refined intensities: the same up to one scale in every image
+    ratio = seen[1][1][:, mask].mean(-1).mean(-1) / (images[:, mask].mean(-1).mean(-1) / ints)
+    assert np.ptp(ratio) < 0.2 * ratio.mean()  # (about 1.0 with LCNet's intensities of 1)
