@@ -3,7 +3,7 @@
     python benchmarks/light_rotation.py OBJ [OBJ ...] [--json]
 
 For each capture folder with ground-truth lights: LCNet's lights (sdps' settings), PS-FCN's
-normals from them, the refined lights (psctl.lights.refine_estimate), and for both the mean
+normals from them, the refined lights (psctl.lights.refine_capture), and for both the mean
 direction error before and after the best single rotation of all the lights onto the true ones
 (orthogonal Procrustes, no reflection). A Lambertian refit against normals estimated from
 rotated lights cannot remove a rotation shared by all the lights (turning the normals and the
@@ -21,8 +21,8 @@ import numpy as np
 
 from psctl.api import sdps_lcnet_config, sdps_second_stage
 from psctl.infer import capture_normals
-from psctl.io.capture import iter_images, load_mask, open_capture
-from psctl.lights import capture_lights, refine_estimate
+from psctl.io.capture import load_mask, open_capture
+from psctl.lights import capture_lights, refine_capture
 from psctl.metrics import light_direction_error
 
 
@@ -42,9 +42,7 @@ def measure(path: str) -> dict:
     est = capture_lights(cap, mask, None, sdps_lcnet_config(second, None, "auto"))
     lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
     net = capture_normals(lit, mask, second, None, {})
-    raw = replace(cap, intensities=np.ones_like(cap.intensities))
-    ref = refine_estimate(est, lambda s, box: iter_images(raw.subset(range(s, raw.n_images)), box),
-                          cap.n_images, mask, net.normals)
+    ref = refine_capture(cap, mask, est, net.normals)
     out = {"object": cap.name, "refine_weight": ref.info["refine"]["weight"]}
     for name, d in (("lcnet", est.directions), ("refined", ref.directions)):
         r = best_rotation(d, cap.lights)

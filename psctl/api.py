@@ -193,13 +193,12 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
-    from psctl.lights import array_lights, refine_estimate
+    from psctl.lights import array_lights, refine_arrays
     from psctl.models.weights import installed_path
 
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
         from psctl.infer import array_normals
-
         from psctl.io.images import to_rgb
 
         images = np.asarray(images, np.float32)
@@ -209,13 +208,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         second = sdps_second_stage(None)[0]
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
                                 {"device": device}).normals
-        m = np.ones(images.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
-
-        def reader(start: int, box: tuple[slice, slice]):
-            for k in range(start, len(images)):
-                yield images[k][box]
-
-        est = refine_estimate(est, reader, len(images), m, normals, method=_SHOWN[second])
+        est = refine_arrays(images, mask, est, normals, _SHOWN[second])
     return est.directions, est.intensities
 
 
@@ -267,9 +260,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
         from psctl.infer import array_normals
-        from psctl.lights import array_lights
-
-        from psctl.lights import refine_estimate
+        from psctl.lights import array_lights, refine_arrays
 
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
@@ -277,13 +268,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, weights,
                                 cfg).normals
         if refine:
-            m = np.ones(images.shape[1:3], bool) if mask is None else mask
-
-            def reader(start: int, box: tuple[slice, slice]):
-                for k in range(start, len(images)):
-                    yield images[k][box]
-
-            est = refine_estimate(est, reader, len(images), m, normals, method=_SHOWN[second])
+            est = refine_arrays(images, mask, est, normals, _SHOWN[second])
             if est.info["refine"]["weight"] > 0:
                 normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
                                         weights, cfg).normals
@@ -362,12 +347,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from dataclasses import replace
 
         from psctl.infer import capture_normals
-        from psctl.lights import capture_lights, light_errors
+        from psctl.lights import capture_lights, light_errors, refine_capture
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
-        from psctl.lights import refine_estimate
-
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         net_cfg = {"device": device, "views": views}
         lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
@@ -375,12 +358,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if refine:
-            raw = replace(cap, intensities=np.ones_like(cap.intensities))
-
-            def raw_reader(start: int, box: tuple[slice, slice]):
-                yield from iter_images(raw.subset(range(start, raw.n_images)), box)
-
-            est = refine_estimate(est, raw_reader, cap.n_images, mask, net.normals, method=_SHOWN[second])
+            est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress)
             if est.info["refine"]["weight"] > 0:
                 lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
                 net = capture_normals(lit, mask, second, weights, net_cfg, progress)

@@ -402,7 +402,7 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
 
 
 def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
-                        config: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                        config: dict | None = None, advance=None) -> tuple[np.ndarray, np.ndarray]:
     """Grey observations [n, P] and normals [P, 3] at up to ``pixels`` seeded mask pixels.
 
     ``reader(start, box)`` yields the images as captured (see ``psctl.infer.Reader``); they are
@@ -426,17 +426,21 @@ def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.
         img = np.asarray(img, np.float32)
         obs[k] = img[ys, xs].mean(-1) if img.ndim == 3 else img[ys, xs]
         k += 1
+        if advance is not None:
+            advance(1)
     if k != n:
         raise PsctlError(None, f"expected {n} images, got {k}")
     return obs, np.asarray(normals, np.float32)[box][ys, xs]
 
 
 def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
-                    config: dict | None = None, method: str = "PS-FCN") -> LightEstimate:
+                    config: dict | None = None, method: str = "PS-FCN", progress: "ProgressFactory | None" = None,
+                    label: str = "reading for the light fit") -> LightEstimate:
     """``est`` with its lights refined against ``normals`` [H, W, 3] (``refine_lights``); the
     capture is read once more. ``info["refine"]`` and a note say what happened."""
     t0 = time.perf_counter()
-    obs, nrm = sample_observations(reader, n, mask, normals, config)
+    advance = progress(label, n) if progress is not None else None
+    obs, nrm = sample_observations(reader, n, mask, normals, config, advance)
     ref = refine_lights(obs, nrm, est.directions, est.intensities, config)
     cfg = {**DEFAULT_REFINE, **(config or {})}
     info = {**est.info, "refine": {"quality": None if not np.isfinite(ref.quality) else round(ref.quality, 4),
@@ -456,6 +460,33 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
         note = (f"lights: LCNet's lights {ref.weight:.0%} refined against {method}'s normals (Lambertian fit "
                 f"residual {ref.quality:.3f})")
     return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
+
+
+def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,
+                   method: str = "PS-FCN", progress: "ProgressFactory | None" = None) -> LightEstimate:
+    """``refine_estimate`` on a capture folder's images as captured (its light_intensities.txt,
+    if any, is not applied: the fit estimates the intensities)."""
+    from psctl.io.capture import iter_images
+
+    raw = replace(capture, intensities=np.ones_like(capture.intensities))
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        yield from iter_images(raw.subset(range(start, raw.n_images)), box)
+
+    return refine_estimate(est, reader, capture.n_images, mask, normals, method=method, progress=progress,
+                           label=f"{capture.name}: reading for the light fit")
+
+
+def refine_arrays(images: np.ndarray, mask: np.ndarray | None, est: LightEstimate, normals: np.ndarray,
+                  method: str = "PS-FCN") -> LightEstimate:
+    """``refine_estimate`` on in-memory images [N, H, W, 3] as captured."""
+    m = np.ones(images.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
+
+    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        for k in range(start, len(images)):
+            yield images[k][box]
+
+    return refine_estimate(est, reader, len(images), m, normals, method=method)
 
 
 # --- errors -----------------------------------------------------------------------------------
@@ -663,23 +694,17 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
                     device: str, progress: "ProgressFactory | None") -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them."""
-    from psctl.api import _SHOWN, sdps_second_stage
+    from psctl.api import _SHOWN, SDPS_SECOND, sdps_second_stage
     from psctl.infer import capture_normals
-    from psctl.io.capture import iter_images
     from psctl.models.weights import installed_path
 
-    if weights is None and not any(installed_path(m) for m in ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")):
+    if weights is None and not any(installed_path(m) for m in SDPS_SECOND):
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
     second = sdps_second_stage(weights)[0]
     lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
     net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
-    raw = replace(cap, intensities=np.ones_like(cap.intensities))
-
-    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        yield from iter_images(raw.subset(range(start, raw.n_images)), box)
-
-    return refine_estimate(est, reader, cap.n_images, mask, net.normals, method=_SHOWN[second])
+    return refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress)
 
 
 def render_lights(r: dict) -> None:
