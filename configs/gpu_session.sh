@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Three fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
-# From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs:
+# From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
+# (RUNS below, method:recipe:run folder): session 17's configs/ps_fcn_dagger_gpu_stage7.yaml,
+# configs/lcnet_gpu_stage7_ir.yaml, configs/ps_fcn_n_gpu_stage8_ir.yaml; session 14 ran
 # configs/ps_fcn_gpu_stage8.yaml, configs/ps_fcn_n_gpu_stage6.yaml, configs/lcnet_gpu_stage6.yaml.
-# The first call starts them, trains one minute, then sets each run's length from its own measured
+# The first call starts them, trains 1.5 minutes, then sets each run's length from its own measured
 # rate (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
 # on for MINUTES. A later call resumes them for MINUTES. Each call copies model.pt, state.json,
@@ -16,13 +18,13 @@ DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
 MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
-RUNS="ps-fcn:configs/ps_fcn_gpu_stage8.yaml:g_ps_fcn ps-fcn-n:configs/ps_fcn_n_gpu_stage6.yaml:g_ps_fcn_n lcnet:configs/lcnet_gpu_stage6.yaml:g_lcnet"
+RUNS=${RUNS:-"ps-fcn-dagger:configs/ps_fcn_dagger_gpu_stage7.yaml:g_dagger7 lcnet:configs/lcnet_gpu_stage7_ir.yaml:g_lcnet7 ps-fcn-n:configs/ps_fcn_n_gpu_stage8_ir.yaml:g_ps_fcn_n8"}
 psctl() { python3 -c 'import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()' "$@"; }
 
-# train.init files: the release files of the commits the recipes name
-[ -f .cache/gpu/ps_fcn_stage7.pt ] || cp weights/ps_fcn.pt .cache/gpu/ps_fcn_stage7.pt
-[ -f .cache/gpu/ps_fcn_n_stage5.pt ] || cp weights/ps_fcn_n.pt .cache/gpu/ps_fcn_n_stage5.pt
-[ -f .cache/gpu/lcnet_stage5.pt ] || cp weights/lcnet.pt .cache/gpu/lcnet_stage5.pt
+# train.init (and the frozen LCNet) files: the release files of the commit the recipes name
+# (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb)
+INITS=${INITS:-"ps_fcn_stage10.pt:weights/ps_fcn.pt ps_fcn_n_stage6.pt:weights/ps_fcn_n.pt lcnet_gpu6.pt:weights/lcnet.pt"}
+for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
 restore() {  # a fresh machine: the last returned state, without the optimiser's
@@ -55,9 +57,13 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
 fresh=1; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/back/${r##*:}/state.json ] || continue; fresh=0; done
 if [ $fresh = 1 ]; then
   nvidia-smi -L; python3 -c 'import torch; print("torch", torch.__version__, torch.cuda.get_device_name(0))'
-  psctl train ps-fcn --config configs/tiny.yaml --device $DEVICE --out /tmp/tiny -q || exit 1
-  launch 1.0 || { tail -5 runs/*.out; exit 1; }
-  python3 - $PLAN runs/g_ps_fcn runs/g_ps_fcn_n runs/g_lcnet > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
+  psctl train ps-fcn --config configs/tiny.yaml --device $DEVICE --out /tmp/tiny_$$ -q || exit 1
+  # the same with interreflections (their kernel runs on the stream's device)
+  sed 's/^data: {/data: {interreflection: {p: 1.0, albedo: [0.5, 0.9]}, /' configs/tiny.yaml > /tmp/tiny_ir.yaml
+  psctl train ps-fcn --config /tmp/tiny_ir.yaml --device $DEVICE --out /tmp/tiny_ir_$$ -q || exit 1
+  launch 1.5 || { tail -5 runs/*.out; exit 1; }
+  names=(); for r in $RUNS; do names+=(runs/${r##*:}); done
+  python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
 import json, statistics, sys
 from pathlib import Path
 plan = float(sys.argv[1])
@@ -79,7 +85,7 @@ for run in map(Path, sys.argv[2:]):
           f"lr halved every {samples // 5:,}, validation every {samples // 15:,}")
 PY
   cat "$OUT/plan.txt"
-  left=$(python3 -c "print(max(0.5, $MIN - 1.0))")
+  left=$(python3 -c "print(max(0.5, $MIN - 1.5))")
 else
   left=$MIN
 fi
