@@ -81,3 +81,46 @@ def test_bounces_only_add_light_and_reach_the_face_in_attached_shadow():
     right = n[0, 0] < 0
     assert float(direct[0][:, right].abs().max()) == 0.0
     assert float(one[0][:, right].min()) > 0.0
+
+
+def _kernel_one_offset_at_a_time(depth, normals, bias_px=0.5, min_nz=0.1):
+    """The form factors as first written: one offset per Python step, all pixels at once (what
+    the batched kernel must reproduce bit for bit)."""
+    _, _, h, w = depth.shape
+    px, z, n = 2.0 / w, depth[0, 0], normals[0]
+    obj = z > -5.0  # BACKGROUND is -10
+    offs, areas = R.interreflection_offsets(math.hypot(h, w))
+    ii, jj = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    rows, cols, vals = [], [], []
+    for (dx, dy), a in zip(offs.tolist(), areas.tolist()):
+        qi, qj = ii + dy, jj + dx
+        ok = obj & (qi >= 0) & (qi < h) & (qj >= 0) & (qj < w)
+        qi, qj = qi.clamp(0, h - 1), qj.clamp(0, w - 1)
+        ok &= obj[qi, qj]
+        dz = z[qi, qj] - z
+        d = torch.stack([torch.full_like(dz, dx * px), torch.full_like(dz, -dy * px), dz])
+        r2 = (d * d).sum(0)
+        cos_p = (n * d).sum(0) / r2.sqrt()
+        nq = n[:, qi, qj]
+        cos_q = -(nq * d).sum(0) / r2.sqrt()
+        ok &= (cos_p > 0) & (cos_q > 0)
+        for t in (0.25, 0.5, 0.75):
+            si, sj = (ii + round(t * dy)).clamp(0, h - 1), (jj + round(t * dx)).clamp(0, w - 1)
+            ok &= z[si, sj] <= z + t * dz + bias_px * px
+        g = cos_p * cos_q * (px * px * a / nq[2].clamp_min(min_nz)) / r2
+        rows.append((ii * w + jj)[ok]), cols.append((qi * w + qj)[ok]), vals.append(g[ok])
+    return torch.sparse_coo_tensor(torch.stack([torch.cat(rows), torch.cat(cols)]), torch.cat(vals),
+                                   (h * w, h * w), check_invariants=True).coalesce()
+
+
+def test_batched_kernel_reproduces_the_one_offset_at_a_time_kernel_exactly():
+    from psctl.synth.shapes import BACKGROUND, blobby_gbuffers
+
+    assert BACKGROUND == -10.0
+    g = blobby_gbuffers(2, 40, torch.Generator().manual_seed(3))
+    for w in range(2):
+        ref = _kernel_one_offset_at_a_time(g.depth[w:w + 1], g.normals[w:w + 1])
+        got = R.interreflection_kernel(g.depth[w:w + 1], g.normals[w:w + 1]).to_sparse_coo().coalesce()
+        assert ref._nnz() > 1000
+        assert torch.equal(ref.indices(), got.indices())
+        assert torch.equal(ref.values(), got.values())
