@@ -22,6 +22,10 @@ by default as psctl lights; the paper: argmax, one view), each for every --views
               syntest_dl with directional intensities, each object its own rig (`psctl synth
               .cache/syntest_dl_dir --preset syntest --lights 96 --light-dist diligent
               --intensities directional`)
+  syntest_dl_ir
+              syntest_dl's recipe with 3 diffuse interreflection bounces from a bright surface
+              (`psctl synth .cache/syntest_dl_ir --preset syntest --light-dist diligent --lights 96
+              --interreflections 3 --ir-albedo 0.8`; session 17 added it to the LCNet rule)
   dev         the DiLiGenT dev split (../shared/data); reported, never used for choosing
 
 The synthetic sets (all but dev) choose; ``dev`` only reports.
@@ -43,8 +47,9 @@ from bench_infer import machine  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 DILIGENT = REPO.parent / "shared" / "data" / "diligent" / "pmsData_crop"
 FOLDERS = {"syntest": REPO / ".cache" / "syntest", "syntest_dl": REPO / ".cache" / "syntest_dl",
-           "syntest_dl_dir": REPO / ".cache" / "syntest_dl_dir", "dev": DILIGENT}
-SETS = ("hemi", "cone45", "hemi_dir", "cone45_dir", "syntest", "syntest_dl", "syntest_dl_dir", "dev")
+           "syntest_dl_dir": REPO / ".cache" / "syntest_dl_dir", "syntest_dl_ir": REPO / ".cache" / "syntest_dl_ir",
+           "dev": DILIGENT}
+SETS = ("hemi", "cone45", "hemi_dir", "cone45_dir", "syntest", "syntest_dl", "syntest_dl_dir", "syntest_dl_ir", "dev")
 STREAM_SETS = {"hemi": ("hemisphere", "random"), "cone45": ("diligent", "random"),
                "hemi_dir": ("hemisphere", "directional"), "cone45_dir": ("diligent", "directional")}
 
