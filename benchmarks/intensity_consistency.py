@@ -10,7 +10,7 @@ psctl.lights.intensity_error). A light_intensities.txt that the images agree wit
 RE; a large one means the file and the images disagree (or the surface is far from Lambertian
 where it is lit), and no estimator that reads the images can score better without being wrong
 about the images. Also printed: the first 20 images' mean ratio of fitted to listed intensity
-over the other images' (DiLiGenT's bear is known for its first 20 images).
+over the other images' (on DiLiGenT's bear the first 20 stand out).
 """
 
 from __future__ import annotations
