@@ -1,6 +1,7 @@
 """How well each capture's images agree with its light_intensities.txt (run by hand; a diagnostic).
 
     python benchmarks/intensity_consistency.py OBJ [OBJ ...] [--dark 0.02] [--json FILE]
+        [--write-fitted DIR]
 
 The floor of any intensity estimate made from the images: with the ground-truth normals and
 light directions, a robust Lambertian fit of one intensity per image (grey) and one albedo per
@@ -9,7 +10,10 @@ images), scored with the metric `psctl lights` reports (scale-invariant RE,
 psctl.lights.intensity_error). A light_intensities.txt that the images agree with gives a small
 RE; a large one means the file and the images disagree (or the surface is far from Lambertian
 where it is lit), and no estimator that reads the images can score better without being wrong
-about the images. Also printed: the first 20 images' mean ratio of fitted to listed intensity
+about the images. `--write-fitted DIR` writes, for each object, DIR/<name>PNG: links to its
+files with light_intensities.txt replaced by the listed ones times the fit's per-image ratio
+(an oracle: it used the ground-truth normals), to see what the fit's intensities would do to a
+calibrated method (`psctl eval --benchmark folder --root DIR`). Also printed: the first 20 images' mean ratio of fitted to listed intensity
 over the other images' (on DiLiGenT's bear the first 20 stand out).
 """
 
@@ -39,7 +43,7 @@ def fit_intensities(obs: np.ndarray, shading: np.ndarray, min_shading: float = 0
     return e
 
 
-def measure(path: str, dark: float = 0.02) -> dict:
+def measure(path: str, dark: float = 0.02, write_fitted: Path | None = None) -> dict:
     cap = open_capture(path)
     normals = load_ground_truth(cap)
     if not cap.calibrated or normals is None:
@@ -51,6 +55,14 @@ def measure(path: str, dark: float = 0.02) -> dict:
     e = fit_intensities(grey, shading, dark=dark)
     listed = np.asarray(cap.intensities, np.float64).reshape(len(e), -1)
     ratio = e / (listed.mean(1) / listed.mean())
+    if write_fitted is not None:
+        out = write_fitted / f"{cap.name}PNG"
+        out.mkdir(parents=True, exist_ok=True)
+        src = Path(path).resolve()
+        for f in src.iterdir():
+            if f.name != "light_intensities.txt" and not (out / f.name).exists():
+                (out / f.name).symlink_to(f)
+        np.savetxt(out / "light_intensities.txt", listed * (ratio / ratio.mean())[:, None], fmt="%.6f")
     return {"object": cap.name, "n_images": len(e), "intensity_re": intensity_error(e, listed),
             "first20_over_rest": float(ratio[:20].mean() / ratio[20:].mean())}
 
@@ -60,8 +72,9 @@ def main() -> None:
     ap.add_argument("objects", nargs="+", help="capture folders with lights, intensities and normals")
     ap.add_argument("--dark", type=float, default=0.02, help="observations below this are left out (shadow)")
     ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument("--write-fitted", type=Path, help="write copies of the captures with the fit's intensities here")
     args = ap.parse_args()
-    rows = [measure(o, args.dark) for o in args.objects]
+    rows = [measure(o, args.dark, args.write_fitted) for o in args.objects]
     print("| object | images | RE of the ground-truth-normal fit | first 20 / rest |")
     print("|---|---:|---:|---:|")
     for r in rows:
