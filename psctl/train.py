@@ -537,6 +537,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
+    if config["data"].get("intensity_error") and method == "lcnet":
+        raise PsctlError(None, "config 'data.intensity_error' is for calibrated training: LCNet learns the "
+                               "intensities themselves")
     if make_stream is synth_stream:  # bad stream options fail here, before the run folder exists
         from psctl.synth.stream import make_config
 

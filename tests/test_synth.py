@@ -195,6 +195,35 @@ def test_stream_interreflection_option_lights_attached_shadows():
     assert transfer is not None and float(transfer[..., 9].max()) < 1.0  # a view factor
 
 
+def test_stream_intensity_error_scales_a_group_of_images_and_keeps_the_listed_intensities():
+    """Mis-calibrated intensities: the chosen images are brighter by the group's factor than the
+    same batch without the option, the others are unchanged, and the batch's intensities (what a
+    calibrated network is told) do not change."""
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "noise": 0.0, "clip": None, "intensities": "random"}
+    plain = SynthStream(cfg, seed=4).next_batch()
+    err = SynthStream({**cfg, "intensity_error": {"p": 1.0, "share": [0.5, 0.5], "scale": [1.25, 1.25]}},
+                      seed=4).next_batch()
+    assert torch.equal(plain["intensities"], err["intensities"]) and torch.equal(plain["normals"], err["normals"])
+    m = plain["masks"].bool()[:, None].expand_as(plain["images"])  # masks [B, 1, H, W] -> [B, N, 3, H, W]
+    num = torch.where(m, err["images"], 0).flatten(2).sum(-1)
+    den = torch.where(m, plain["images"], 0).flatten(2).sum(-1)
+    ratio = num / den  # [B, N]
+    scaled = (ratio - 1.25).abs() < 1e-4
+    assert bool((scaled | ((ratio - 1.0).abs() < 1e-4)).all())
+    assert 0.3 < float(scaled.float().mean()) < 0.7
+
+
+def test_lcnet_training_refuses_intensity_errors(tmp_path):
+    from psctl.train import load_config, train
+
+    cfg = load_config(None)
+    cfg["data"]["intensity_error"] = {"p": 0.5}
+    with pytest.raises(PsctlError, match="intensity_error"):
+        train("lcnet", cfg, tmp_path / "run")
+
+
 # --- materials --------------------------------------------------------------------------------
 
 

@@ -75,6 +75,13 @@ DEFAULT_CONFIG: dict = {
     # brighter than the MERL fits). G-buffers then store light-independent transfer
     # (render.interreflection_transfer); cast shadows on the sources are ignored.
     "interreflection": None,  # None or {"p": 0.5, "albedo": [0.0, 0.9]}
+    # mis-calibrated intensities (calibrated training only): with chance p a sample's images each
+    # join, with a chance drawn uniformly in `share`, a group whose true intensity is one factor
+    # (log-uniform in `scale`) off what the network is told, as DiLiGenT's bear, whose first 20
+    # images are ~27 % brighter than light_intensities.txt lists (docs/training.md). The factor
+    # applies before the camera (clipping, noise, rounding); the `intensities` batch key is the
+    # listed one, unchanged. Not for LCNet, whose labels are the intensities.
+    "intensity_error": None,  # None or {"p": 0.5, "share": [0.0, 0.4], "scale": [0.7, 1.4]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
     "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
@@ -90,6 +97,18 @@ DEFAULT_CONFIG: dict = {
     "device": "cpu",
     "seed": 0,
 }
+
+
+def intensity_errors(b: int, n: int, opts: dict, gen: torch.Generator, device) -> Tensor:
+    """[b, n] true / listed intensity factors for ``intensity_error`` (1 where listed is true)."""
+    lo_s, hi_s = opts.get("share", (0.0, 0.4))
+    lo_f, hi_f = opts.get("scale", (0.7, 1.4))
+    on = torch.rand(b, generator=gen, device=device) < float(opts.get("p", 0.5))
+    share = lo_s + (hi_s - lo_s) * torch.rand(b, generator=gen, device=device)
+    member = torch.rand(b, n, generator=gen, device=device) < (share * on)[:, None]
+    u = torch.rand(b, generator=gen, device=device)
+    factor = torch.exp(math.log(lo_f) + (math.log(hi_f) - math.log(lo_f)) * u)
+    return torch.where(member, factor[:, None], torch.ones((), device=device))
 
 
 def make_config(config: dict | None = None, **overrides) -> dict:
@@ -499,7 +518,10 @@ class SynthStream:
         lo, hi = cfg["exposure"]
         target = torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * torch.rand(b, generator=gen, device=dev))
         mean = object_mean(img, msk)  # shading is non-negative: the clamp there changes nothing
-        img.mul_(((target / mean.clamp_min(1e-8))[:, None] * ints)[..., None, None])  # exposure x intensity
+        true_ints = ints
+        if cfg["intensity_error"]:  # (draws only when enabled: older recipes keep their batches)
+            true_ints = ints * intensity_errors(b, n, cfg["intensity_error"], gen, dev)
+        img.mul_(((target / mean.clamp_min(1e-8))[:, None] * true_ints)[..., None, None])  # exposure x intensity
         if cfg["clip"] is not None:
             img.clamp_(max=cfg["clip"])
         if cfg["noise"]:
