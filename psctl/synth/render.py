@@ -326,8 +326,9 @@ def interreflection_kernel(depth: Tensor, normals: Tensor, max_px: float | None 
     ii, jj = torch.meshgrid(torch.arange(hgt, device=z.device), torch.arange(wid, device=z.device), indexing="ij")
     # Offsets are taken `step` at a time: the cheap tests (both pixels on the object) on [step, H, W],
     # the rest only on the pairs that pass them. One Python step per offset launched ~40 tiny
-    # kernels each, which made the kernel launch-bound on a GPU (about 4 s per 128 px view with
-    # three trainings sharing an H100). On a CPU smaller steps stay in cache (128 px, one thread:
+    # kernels each, which made the kernel launch-bound on a GPU (three trainings sharing an H100
+    # ran at ~30 samples/s each, i.e. ~4 s per 128 px view at 128 samples per view). On a CPU
+    # smaller steps stay in cache (128 px, one thread:
     # 0.6 s per view with 2^18 elements per step, 1.0 s with 2^22 or one offset per step).
     step = max(1, (1 << (18 if z.device.type == "cpu" else 22)) // (hgt * wid))
     rows_all, cols_all, vals_all = [], [], []
