@@ -3,14 +3,14 @@
     python benchmarks/intensity_consistency.py OBJ [OBJ ...] [--dark 0.02] [--json FILE]
         [--write-fitted DIR]
 
-The floor of any intensity estimate made from the images: with the ground-truth normals and
+A reference for intensity estimates made from the images: with the ground-truth normals and
 light directions, a robust Lambertian fit of one intensity per image (grey) and one albedo per
 pixel, alternated (each the median of observed / predicted over the lit, unsaturated pixels or
 images), scored with the metric `psctl lights` reports (scale-invariant RE,
 psctl.lights.intensity_error). A light_intensities.txt that the images agree with gives a small
 RE; a large one means the file and the images disagree (or the surface is far from Lambertian
-where it is lit), and no estimator that reads the images can score better without being wrong
-about the images. `--write-fitted DIR` writes, for each object, DIR/<name>PNG: links to its
+where it is lit). It is a reference, not a lower bound: an estimator that does not assume a
+Lambertian surface can score lower (psctl's sdps does on bear and pot2). `--write-fitted DIR` writes, for each object, DIR/<name>PNG: links to its
 files with light_intensities.txt replaced by the listed ones times the fit's per-image ratio
 (an oracle: it used the ground-truth normals), to see what the fit's intensities would do to a
 calibrated method (`psctl eval --benchmark folder --root DIR`). Also printed: the first 20 images' mean ratio of fitted to listed intensity

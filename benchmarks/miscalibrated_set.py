@@ -33,6 +33,8 @@ def main() -> None:
     for obj in sorted(p for p in args.src.iterdir() if (p / "light_intensities.txt").exists()):
         listed = np.loadtxt(obj / "light_intensities.txt", ndmin=2)
         n = len(listed)
+        if n < args.block:
+            raise SystemExit(f"{obj / 'light_intensities.txt'}: {n} images, fewer than --block {args.block}")
         start = int(rng.integers(0, n - args.block + 1))
         f = math.exp(rng.uniform(math.log(args.scale[0]), math.log(args.scale[1])))
         if rng.random() < 0.5:

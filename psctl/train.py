@@ -537,14 +537,17 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
-    if config["data"].get("intensity_error") and method == "lcnet":
-        raise PsctlError(None, "config 'data.intensity_error' is for calibrated training: LCNet learns the "
-                               "intensities themselves")
+    val_data = {**config["data"], **(config["val"].get("data") or {})}
+    if (config["data"].get("intensity_error") or val_data.get("intensity_error")) and method not in ("ps-fcn", "ps-fcn-n"):
+        # only the calibrated networks are told the listed intensities: LCNet learns them (its labels
+        # would be wrong), UPS-FCN never sees them and PS-FCN† divides by LCNet's estimates
+        raise PsctlError(None, f"config 'data.intensity_error' is for calibrated training (ps-fcn, ps-fcn-n), "
+                               f"not {method}")
     if make_stream is synth_stream:  # bad stream options fail here, before the run folder exists
         from psctl.synth.stream import make_config
 
         make_config(config["data"])
-        make_config({**config["data"], **(config["val"].get("data") or {})})
+        make_config(val_data)
     t = config["train"]
     run.mkdir(parents=True, exist_ok=True)
 

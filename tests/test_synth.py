@@ -16,7 +16,8 @@ from psctl.synth import materials as M
 from psctl.synth import render as R
 from psctl.synth.shapes import BACKGROUND, GBuffer, blobby_gbuffers, sphere_gbuffer
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
 
 
 @pytest.fixture(autouse=True)
@@ -195,33 +196,87 @@ def test_stream_interreflection_option_lights_attached_shadows():
     assert transfer is not None and float(transfer[..., 9].max()) < 1.0  # a view factor
 
 
+def _image_ratios(cfg: dict, err: dict, seed: int = 4):
+    """Per-image ratio [B, N] of the object's summed pixels with ``intensity_error`` = err over the
+    same batch without it, and both batches."""
+    from psctl.synth.stream import SynthStream
+
+    plain = SynthStream(cfg, seed=seed).next_batch()
+    bad = SynthStream({**cfg, "intensity_error": err}, seed=seed).next_batch()
+    m = plain["masks"].bool()[:, None].expand_as(plain["images"])  # masks [B, 1, H, W] -> [B, N, 3, H, W]
+    num = torch.where(m, bad["images"], 0).flatten(2).sum(-1)
+    den = torch.where(m, plain["images"], 0).flatten(2).sum(-1)
+    return num / den, plain, bad
+
+
 def test_stream_intensity_error_scales_a_group_of_images_and_keeps_the_listed_intensities():
     """Mis-calibrated intensities: the chosen images are brighter by the group's factor than the
     same batch without the option, the others are unchanged, and the batch's intensities (what a
     calibrated network is told) do not change."""
-    from psctl.synth.stream import SynthStream
-
     cfg = {**SMALL, "noise": 0.0, "clip": None, "intensities": "random"}
-    plain = SynthStream(cfg, seed=4).next_batch()
-    err = SynthStream({**cfg, "intensity_error": {"p": 1.0, "share": [0.5, 0.5], "scale": [1.25, 1.25]}},
-                      seed=4).next_batch()
+    ratio, plain, err = _image_ratios(cfg, {"p": 1.0, "share": [0.5, 0.5], "scale": [1.25, 1.25]})
     assert torch.equal(plain["intensities"], err["intensities"]) and torch.equal(plain["normals"], err["normals"])
-    m = plain["masks"].bool()[:, None].expand_as(plain["images"])  # masks [B, 1, H, W] -> [B, N, 3, H, W]
-    num = torch.where(m, err["images"], 0).flatten(2).sum(-1)
-    den = torch.where(m, plain["images"], 0).flatten(2).sum(-1)
-    ratio = num / den  # [B, N]
     scaled = (ratio - 1.25).abs() < 1e-4
     assert bool((scaled | ((ratio - 1.0).abs() < 1e-4)).all())
     assert 0.3 < float(scaled.float().mean()) < 0.7
 
 
-def test_lcnet_training_refuses_intensity_errors(tmp_path):
+def test_stream_intensity_error_one_factor_per_sample_and_some_samples_exact():
+    """One factor per sample (shared by its chosen images, different between samples, inside
+    `scale`), and with p = 0.5 some samples have no wrong image at all."""
+    cfg = {**SMALL, "batch_size": 16, "n_images": 12, "noise": 0.0, "clip": None}
+    ratio, _, _ = _image_ratios(cfg, {"p": 0.5, "share": [0.3, 0.6], "scale": [0.7, 1.4]})
+    off = (ratio - 1.0).abs() > 1e-4  # [B, N]
+    factors = []
+    for r, o in zip(ratio, off):
+        if o.any():
+            f = r[o]
+            assert float(f.max() - f.min()) < 1e-4 * float(f.max())  # one factor per sample
+            assert 0.7 - 1e-4 <= float(f[0]) <= 1.4 + 1e-4
+            factors.append(float(f[0]))
+    exact = int((~off.any(1)).sum())
+    assert 2 <= exact <= 14 and len(factors) >= 2
+    assert max(factors) - min(factors) > 1e-3  # drawn per sample
+
+
+def test_stream_intensity_error_applies_before_the_sensor_clips():
+    """The error is the scene's, not the file's: a brighter image saturates at the clip like any
+    other, it is not scaled past it."""
+    cfg = {**SMALL, "noise": 0.0, "clip": 1.0, "exposure": (2.0, 2.0)}  # bright enough to clip
+    _, plain, bad = _image_ratios(cfg, {"p": 1.0, "share": [1.0, 1.0], "scale": [1.4, 1.4]})
+    assert float(plain["images"].max()) == 1.0 and float(bad["images"].max()) <= 1.0
+
+
+@pytest.mark.parametrize("opts, msg", [
+    ({"p": 0.5, "shares": [0, 0.4]}, "unknown key"),
+    ({"p": 1.5}, "0 <= p <= 1"),
+    ({"share": [0.5, 0.2]}, "share lo <= hi"),
+    ({"scale": [0.0, 1.4]}, "0 < scale lo"),
+    ({"scale": 1.3}, "two numbers"),
+    (True, "mapping"),
+])
+def test_stream_rejects_bad_intensity_error_options(opts, msg):
+    from psctl.synth.stream import make_config
+
+    with pytest.raises(PsctlError, match=msg):
+        make_config({"intensity_error": opts})
+
+
+@pytest.mark.parametrize("method, where", [("lcnet", "data"), ("ups-fcn", "data"), ("lcnet", "val")])
+def test_uncalibrated_training_refuses_intensity_errors(tmp_path, method, where):
+    """Only PS-FCN and PS-FCN+N are told the listed intensities; the refusal comes before the run
+    folder exists (also when only the validation data asks for it)."""
     from psctl.train import load_config, train
 
-    cfg = load_config(None)
-    cfg["data"]["intensity_error"] = {"p": 0.5}
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    err = {"p": 0.5}
+    if where == "data":
+        cfg["data"]["intensity_error"] = err
+    else:
+        cfg["val"]["data"] = {"intensity_error": err}
     with pytest.raises(PsctlError, match="intensity_error"):
-        train("lcnet", cfg, tmp_path / "run")
+        train(method, cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 # --- materials --------------------------------------------------------------------------------

@@ -75,12 +75,13 @@ DEFAULT_CONFIG: dict = {
     # brighter than the MERL fits). G-buffers then store light-independent transfer
     # (render.interreflection_transfer); cast shadows on the sources are ignored.
     "interreflection": None,  # None or {"p": 0.5, "albedo": [0.0, 0.9]}
-    # mis-calibrated intensities (calibrated training only): with chance p a sample's images each
-    # join, with a chance drawn uniformly in `share`, a group whose true intensity is one factor
-    # (log-uniform in `scale`) off what the network is told, as DiLiGenT's bear, whose first 20
-    # images are ~27 % brighter than light_intensities.txt lists (docs/training.md). The factor
-    # applies before the camera (clipping, noise, rounding); the `intensities` batch key is the
-    # listed one, unchanged. Not for LCNet, whose labels are the intensities.
+    # mis-calibrated intensities (PS-FCN and PS-FCN+N training only): with chance p a sample's
+    # images each join, with a chance drawn uniformly in `share`, a group whose true intensity is
+    # one factor (log-uniform in `scale`) off what the network is told, as DiLiGenT's bear, whose
+    # first 20 images are ~11-27 % brighter, relative to the rest, than light_intensities.txt
+    # lists (docs/training.md). The factor applies before the camera (clipping, noise, rounding);
+    # the `intensities` batch key is the listed one, unchanged. Not for LCNet, whose labels are
+    # the intensities, nor for networks that are never told them (UPS-FCN, PS-FCN†).
     "intensity_error": None,  # None or {"p": 0.5, "share": [0.0, 0.4], "scale": [0.7, 1.4]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
@@ -111,6 +112,42 @@ def intensity_errors(b: int, n: int, opts: dict, gen: torch.Generator, device) -
     return torch.where(member, factor[:, None], torch.ones((), device=device))
 
 
+INTENSITY_ERROR_KEYS = ("p", "share", "scale")
+
+
+def check_intensity_error(opts) -> None:
+    """Raise PsctlError unless ``opts`` is None or a valid ``intensity_error`` dict (keys p, share,
+    scale; 0 <= p <= 1, 0 <= share lo <= hi <= 1, 0 < scale lo <= hi)."""
+    if opts is None:
+        return
+    where = "synth stream option 'intensity_error'"
+    if not isinstance(opts, dict):
+        raise PsctlError(None, f"{where}: expected a mapping with keys p, share, scale, got {opts!r}")
+    bad = set(opts) - set(INTENSITY_ERROR_KEYS)
+    if bad:
+        raise PsctlError(None, f"{where}: unknown key(s) {', '.join(sorted(map(str, bad)))} (known: p, share, scale)")
+
+    def pair(key: str, default: tuple) -> tuple[float, float]:
+        v = opts.get(key, default)
+        try:
+            lo, hi = (float(x) for x in v)
+        except (TypeError, ValueError):
+            raise PsctlError(None, f"{where}: '{key}' must be two numbers [lo, hi], got {v!r}") from None
+        return lo, hi
+
+    try:
+        p = float(opts.get("p", 0.5))
+    except (TypeError, ValueError):
+        raise PsctlError(None, f"{where}: 'p' must be a number, got {opts.get('p')!r}") from None
+    (s_lo, s_hi), (f_lo, f_hi) = pair("share", (0.0, 0.4)), pair("scale", (0.7, 1.4))
+    if not 0.0 <= p <= 1.0:
+        raise PsctlError(None, f"{where}: need 0 <= p <= 1, got {p}")
+    if not 0.0 <= s_lo <= s_hi <= 1.0:
+        raise PsctlError(None, f"{where}: need 0 <= share lo <= hi <= 1, got [{s_lo}, {s_hi}]")
+    if not (0.0 < f_lo <= f_hi and math.isfinite(f_hi)):
+        raise PsctlError(None, f"{where}: need 0 < scale lo <= hi, got [{f_lo}, {f_hi}]")
+
+
 def make_config(config: dict | None = None, **overrides) -> dict:
     """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
     cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
@@ -129,6 +166,7 @@ def make_config(config: dict | None = None, **overrides) -> dict:
         raise PsctlError(None, f"need 0 < windows <= crop (windows {cfg['windows']}, crop {cfg['crop']})")
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
     L.check_intensities(cfg["intensities"])  # before the geometry pool is built
+    check_intensity_error(cfg["intensity_error"])
     return cfg
 
 
