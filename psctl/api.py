@@ -156,9 +156,9 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         from psctl.models.weights import installed_path
 
         # PS-FCN first: the release ps_fcn.pt beats ps_fcn_n.pt on the synthetic test sets
-        # (weights/README.md: syntest 4.98 vs 5.84, DiLiGenT-like lights 4.25 vs 4.75, stage 10 vs
-        # stage 6; spatially varying dragons 8.97 vs 9.58 degrees with the stage-4 PS-FCN and
-        # stage-2 PS-FCN+N), unlike the paper's networks
+        # (weights/README.md: syntest 4.88 vs 5.68, DiLiGenT-like lights 4.16 vs 4.71, stage 11 vs
+        # the miscal stage; spatially varying dragons 8.97 vs 9.58 degrees with the stage-4 PS-FCN
+        # and stage-2 PS-FCN+N), unlike the paper's networks
         for m in ("ps-fcn", "ps-fcn-n"):
             if installed_path(m) is not None:
                 return m, None
