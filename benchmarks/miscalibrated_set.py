@@ -1,6 +1,7 @@
-"""A copy of a benchmark folder whose light_intensities.txt is wrong for one block of images.
+"""A copy of a benchmark folder whose light_intensities.txt (or light_directions.txt) is wrong.
 
     python benchmarks/miscalibrated_set.py SRC DST [--seed 51] [--block 20] [--scale 1.15 1.4]
+    python benchmarks/miscalibrated_set.py SRC DST --directions [--seed 52] [--zenith 1.03 1.06] [--jitter 0.5]
 
 For each object folder in SRC, DST/<object> links every file except light_intensities.txt, which
 lists, for one block of `--block` consecutive images at a random start, the source intensities
@@ -8,6 +9,13 @@ divided by a factor f (log-uniform in `--scale`, and its inverse with chance 1/2
 are f times brighter (or darker) than listed, as DiLiGenT's bear's first 20 images are ~1.27
 times brighter than its file says (benchmarks/intensity_consistency.py). A set for choosing
 calibrated networks that should tolerate such files; run by hand.
+
+With `--directions`, light_directions.txt is the one replaced: every listed zenith angle is the
+true one times one factor per object (uniform in `--zenith`, its inverse with chance 1/2), each
+direction then turned by a random angle (Gaussian per tangent component, sd `--jitter` degrees).
+With DiLiGenT's ground-truth normals a Lambertian fit puts ball's and bear's lights ~2 degrees
+further from the view axis than listed, ~1.2 more than on a synthetic object (docs/training.md):
+a factor of ~1.04 at DiLiGenT's zenith angles.
 """
 
 from __future__ import annotations
@@ -27,7 +35,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=51)
     ap.add_argument("--block", type=int, default=20)
     ap.add_argument("--scale", type=float, nargs=2, default=(1.15, 1.4))
+    ap.add_argument("--directions", action="store_true", help="make light_directions.txt wrong instead")
+    ap.add_argument("--zenith", type=float, nargs=2, default=(1.03, 1.06))
+    ap.add_argument("--jitter", type=float, default=0.5)
     args = ap.parse_args()
+    if args.directions:
+        return wrong_directions(args)
     rng = np.random.default_rng(args.seed)
     made = {}
     for obj in sorted(p for p in args.src.iterdir() if (p / "light_intensities.txt").exists()):
@@ -48,6 +61,32 @@ def main() -> None:
         wrong[start:start + args.block] /= f
         np.savetxt(out / "light_intensities.txt", wrong, fmt="%.6f")
         made[obj.name] = {"start": start, "block": args.block, "brighter_than_listed": f}
+    (args.dst / "miscalibration.json").write_text(json.dumps({"src": str(args.src), "seed": args.seed, "objects": made}, indent=1))
+    print(f"{len(made)} objects in {args.dst}")
+
+
+def wrong_directions(args: argparse.Namespace) -> None:
+    rng = np.random.default_rng(args.seed)
+    made = {}
+    for obj in sorted(p for p in args.src.iterdir() if (p / "light_directions.txt").exists()):
+        true = np.loadtxt(obj / "light_directions.txt", ndmin=2)
+        f = rng.uniform(*args.zenith)
+        if rng.random() < 0.5:
+            f = 1 / f
+        zen = np.minimum(np.arccos(np.clip(true[:, 2], -1, 1)) * f, np.radians(89.0))
+        azi = np.arctan2(true[:, 1], true[:, 0])
+        d = np.stack([np.sin(zen) * np.cos(azi), np.sin(zen) * np.sin(azi), np.cos(zen)], 1)
+        noise = rng.normal(0.0, np.radians(args.jitter), d.shape)
+        d = d + noise - (noise * d).sum(1, keepdims=True) * d
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out = args.dst / obj.name
+        out.mkdir(parents=True, exist_ok=False)
+        for p in obj.iterdir():
+            if p.name != "light_directions.txt":
+                (out / p.name).symlink_to(p.resolve())
+        np.savetxt(out / "light_directions.txt", d, fmt="%.6f")
+        ang = np.degrees(np.arccos(np.clip((d * true).sum(1), -1, 1)))
+        made[obj.name] = {"zenith_factor": f, "jitter_deg": args.jitter, "mean_change_deg": float(ang.mean())}
     (args.dst / "miscalibration.json").write_text(json.dumps({"src": str(args.src), "seed": args.seed, "objects": made}, indent=1))
     print(f"{len(made)} objects in {args.dst}")
 

@@ -538,11 +538,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
     val_data = {**config["data"], **(config["val"].get("data") or {})}
-    if (config["data"].get("intensity_error") or val_data.get("intensity_error")) and method not in ("ps-fcn", "ps-fcn-n"):
-        # only the calibrated networks are told the listed intensities: LCNet learns them (its labels
-        # would be wrong), UPS-FCN never sees them and PS-FCN† divides by LCNet's estimates
-        raise PsctlError(None, f"config 'data.intensity_error' is for calibrated training (ps-fcn, ps-fcn-n), "
-                               f"not {method}")
+    for key, what in (("intensity_error", "intensities"), ("direction_error", "directions")):
+        if (config["data"].get(key) or val_data.get(key)) and method not in ("ps-fcn", "ps-fcn-n"):
+            # only the calibrated networks are told the listed lights: LCNet learns them (its labels
+            # would be wrong), UPS-FCN never sees them and PS-FCN† gets LCNet's estimates
+            raise PsctlError(None, f"config 'data.{key}' (wrong listed {what}) is for calibrated training "
+                                   f"(ps-fcn, ps-fcn-n), not {method}")
     if make_stream is synth_stream:  # bad stream options fail here, before the run folder exists
         from psctl.synth.stream import make_config
 

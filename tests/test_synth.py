@@ -279,6 +279,72 @@ def test_uncalibrated_training_refuses_intensity_errors(tmp_path, method, where)
     assert not (tmp_path / "run").exists()
 
 
+
+def test_stream_direction_error_keeps_the_images_and_lists_turned_lights():
+    """Mis-calibrated directions: the images (rendered with the true lights) are the batch without
+    the option, the listed lights are unit vectors above the horizon, exact for the samples that
+    drew no error, and for the others off by about their zenith factor."""
+    import math
+
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "batch_size": 16}
+    plain = SynthStream(cfg, seed=5).next_batch()
+    err = SynthStream({**cfg, "direction_error": {"p": 0.5, "zenith_scale": [1.1, 1.1], "jitter": [0.0, 0.0]}},
+                      seed=5).next_batch()
+    assert torch.equal(plain["images"], err["images"]) and torch.equal(plain["normals"], err["normals"])
+    assert torch.allclose(err["lights"].norm(dim=-1), torch.ones(()), atol=1e-5)
+    assert bool((err["lights"][..., 2] > 0).all())
+    zen_true = torch.acos(plain["lights"][..., 2].clamp(-1, 1))
+    zen_listed = torch.acos(err["lights"][..., 2].clamp(-1, 1))
+    exact = (err["lights"] - plain["lights"]).abs().amax((1, 2)) < 1e-6  # [B]
+    assert 2 <= int(exact.sum()) <= 14
+    off = ~exact
+    want = (zen_true[off] * 1.1).clamp(max=math.radians(89.0))
+    assert torch.allclose(zen_listed[off], want, atol=1e-4)
+    azi = lambda d: torch.atan2(d[..., 1], d[..., 0])  # noqa: E731
+    big = zen_true[off] > 0.1  # the azimuth of a light at the zenith is noise
+    assert torch.allclose(azi(err["lights"][off])[big], azi(plain["lights"][off])[big], atol=1e-3)
+
+
+def test_stream_direction_jitter_turns_each_light_by_about_its_sd():
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "batch_size": 8, "n_images": 32}
+    plain = SynthStream(cfg, seed=6).next_batch()
+    err = SynthStream({**cfg, "direction_error": {"p": 1.0, "zenith_scale": [1.0, 1.0], "jitter": [2.0, 2.0]}},
+                      seed=6).next_batch()
+    ang = torch.rad2deg(torch.acos((err["lights"] * plain["lights"]).sum(-1).clamp(-1, 1)))
+    # a 2-degree sd per tangent component: the angle is Rayleigh with mean 2 * sqrt(pi / 2) = 2.51
+    assert 2.0 < float(ang.mean()) < 3.0 and float(ang.min()) > 0.0
+
+
+@pytest.mark.parametrize("opts, msg", [
+    ({"p": 0.5, "zenith": [0.9, 1.1]}, "unknown key"),
+    ({"p": -0.1}, "0 <= p <= 1"),
+    ({"zenith_scale": [1.1, 0.9]}, "zenith_scale lo <= hi"),
+    ({"zenith_scale": [0.0, 1.1]}, "0 < zenith_scale lo"),
+    ({"jitter": [0.0, 20.0]}, "jitter lo <= hi <= 10"),
+    ({"jitter": "1"}, "two numbers"),
+    ([0.5], "mapping"),
+])
+def test_stream_rejects_bad_direction_error_options(opts, msg):
+    from psctl.synth.stream import make_config
+
+    with pytest.raises(PsctlError, match=msg):
+        make_config({"direction_error": opts})
+
+
+@pytest.mark.parametrize("method", ["lcnet", "ups-fcn", "ps-fcn-dagger"])
+def test_uncalibrated_training_refuses_direction_errors(tmp_path, method):
+    from psctl.train import load_config, train
+
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    cfg["data"]["direction_error"] = {"p": 0.5}
+    with pytest.raises(PsctlError, match="direction_error"):
+        train(method, cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
 # --- materials --------------------------------------------------------------------------------
 
 

@@ -27,7 +27,7 @@ The stream never imports OpenImageIO, so it runs where only torch is installed.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
@@ -83,6 +83,15 @@ DEFAULT_CONFIG: dict = {
     # the `intensities` batch key is the listed one, unchanged. Not for LCNet, whose labels are
     # the intensities, nor for networks that are never told them (UPS-FCN, PS-FCN†).
     "intensity_error": None,  # None or {"p": 0.5, "share": [0.0, 0.4], "scale": [0.7, 1.4]}
+    # mis-calibrated directions (PS-FCN and PS-FCN+N training only): with chance p a sample's
+    # listed directions are its true ones with every zenith angle times one factor (uniform in
+    # `zenith_scale`; the error a calibration sphere of the wrong radius or centre makes), each
+    # then turned by a small random angle (Gaussian per component, sd uniform in `jitter`
+    # degrees per sample). With DiLiGenT's ground-truth normals a Lambertian fit puts ball's and
+    # bear's lights ~2 degrees further from the view axis than listed, ~1.2 more than the same fit
+    # on a synthetic object (docs/training.md). The images are rendered with the true lights; the
+    # `lights` batch key is the listed one.
+    "direction_error": None,  # None or {"p": 0.5, "zenith_scale": [0.94, 1.06], "jitter": [0.0, 1.0]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
     "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
@@ -112,20 +121,47 @@ def intensity_errors(b: int, n: int, opts: dict, gen: torch.Generator, device) -
     return torch.where(member, factor[:, None], torch.ones((), device=device))
 
 
+def direction_errors(lights: Tensor, opts: dict, gen: torch.Generator) -> Tensor:
+    """[b, n, 3] listed directions for ``direction_error`` from the true unit ``lights`` [b, n, 3]
+    (the true ones where a sample drew no error)."""
+    b, n, _ = lights.shape
+    dev = lights.device
+    lo_z, hi_z = opts.get("zenith_scale", (0.94, 1.06))
+    lo_j, hi_j = opts.get("jitter", (0.0, 1.0))
+    on = torch.rand(b, generator=gen, device=dev) < float(opts.get("p", 0.5))
+    f = lo_z + (hi_z - lo_z) * torch.rand(b, generator=gen, device=dev)
+    sd = math.radians(1.0) * (lo_j + (hi_j - lo_j) * torch.rand(b, generator=gen, device=dev))
+    noise = torch.randn(b, n, 3, generator=gen, device=dev) * sd[:, None, None]
+    zen = torch.acos(lights[..., 2].clamp(-1.0, 1.0))
+    azi = torch.atan2(lights[..., 1], lights[..., 0])
+    zen = (zen * f[:, None]).clamp(max=math.radians(89.0))  # a listed light stays above the horizon
+    d = torch.stack([zen.sin() * azi.cos(), zen.sin() * azi.sin(), zen.cos()], -1)
+    d = d + noise - (noise * d).sum(-1, keepdim=True) * d  # turned in the tangent plane
+    d = d / d.norm(dim=-1, keepdim=True)
+    return torch.where(on[:, None, None], d, lights)
+
+
 INTENSITY_ERROR_KEYS = ("p", "share", "scale")
+DIRECTION_ERROR_KEYS = ("p", "zenith_scale", "jitter")
 
 
-def check_intensity_error(opts) -> None:
-    """Raise PsctlError unless ``opts`` is None or a valid ``intensity_error`` dict (keys p, share,
-    scale; 0 <= p <= 1, 0 <= share lo <= hi <= 1, 0 < scale lo <= hi)."""
+def _error_opts(name: str, opts, keys: tuple[str, ...]) -> Callable[[str, tuple], tuple[float, float]] | None:
+    """Shared checks of the ``*_error`` options (a mapping of known keys); returns a reader of
+    [lo, hi] pairs, or None for ``opts`` None."""
     if opts is None:
-        return
-    where = "synth stream option 'intensity_error'"
+        return None
+    where = f"synth stream option '{name}'"
     if not isinstance(opts, dict):
-        raise PsctlError(None, f"{where}: expected a mapping with keys p, share, scale, got {opts!r}")
-    bad = set(opts) - set(INTENSITY_ERROR_KEYS)
+        raise PsctlError(None, f"{where}: expected a mapping with keys {', '.join(keys)}, got {opts!r}")
+    bad = set(opts) - set(keys)
     if bad:
-        raise PsctlError(None, f"{where}: unknown key(s) {', '.join(sorted(map(str, bad)))} (known: p, share, scale)")
+        raise PsctlError(None, f"{where}: unknown key(s) {', '.join(sorted(map(str, bad)))} (known: {', '.join(keys)})")
+    try:
+        p = float(opts.get("p", 0.5))
+    except (TypeError, ValueError):
+        raise PsctlError(None, f"{where}: 'p' must be a number, got {opts.get('p')!r}") from None
+    if not 0.0 <= p <= 1.0:
+        raise PsctlError(None, f"{where}: need 0 <= p <= 1, got {p}")
 
     def pair(key: str, default: tuple) -> tuple[float, float]:
         v = opts.get(key, default)
@@ -135,13 +171,31 @@ def check_intensity_error(opts) -> None:
             raise PsctlError(None, f"{where}: '{key}' must be two numbers [lo, hi], got {v!r}") from None
         return lo, hi
 
-    try:
-        p = float(opts.get("p", 0.5))
-    except (TypeError, ValueError):
-        raise PsctlError(None, f"{where}: 'p' must be a number, got {opts.get('p')!r}") from None
+    return pair
+
+
+def check_direction_error(opts) -> None:
+    """Raise PsctlError unless ``opts`` is None or a valid ``direction_error`` dict (keys p,
+    zenith_scale, jitter; 0 <= p <= 1, 0 < zenith_scale lo <= hi <= 1.5, 0 <= jitter lo <= hi <= 10)."""
+    pair = _error_opts("direction_error", opts, DIRECTION_ERROR_KEYS)
+    if pair is None:
+        return
+    where = "synth stream option 'direction_error'"
+    (z_lo, z_hi), (j_lo, j_hi) = pair("zenith_scale", (0.94, 1.06)), pair("jitter", (0.0, 1.0))
+    if not 0.0 < z_lo <= z_hi <= 1.5:
+        raise PsctlError(None, f"{where}: need 0 < zenith_scale lo <= hi <= 1.5, got [{z_lo}, {z_hi}]")
+    if not 0.0 <= j_lo <= j_hi <= 10.0:
+        raise PsctlError(None, f"{where}: need 0 <= jitter lo <= hi <= 10 (degrees), got [{j_lo}, {j_hi}]")
+
+
+def check_intensity_error(opts) -> None:
+    """Raise PsctlError unless ``opts`` is None or a valid ``intensity_error`` dict (keys p, share,
+    scale; 0 <= p <= 1, 0 <= share lo <= hi <= 1, 0 < scale lo <= hi)."""
+    pair = _error_opts("intensity_error", opts, INTENSITY_ERROR_KEYS)
+    if pair is None:
+        return
+    where = "synth stream option 'intensity_error'"
     (s_lo, s_hi), (f_lo, f_hi) = pair("share", (0.0, 0.4)), pair("scale", (0.7, 1.4))
-    if not 0.0 <= p <= 1.0:
-        raise PsctlError(None, f"{where}: need 0 <= p <= 1, got {p}")
     if not 0.0 <= s_lo <= s_hi <= 1.0:
         raise PsctlError(None, f"{where}: need 0 <= share lo <= hi <= 1, got [{s_lo}, {s_hi}]")
     if not (0.0 < f_lo <= f_hi and math.isfinite(f_hi)):
@@ -167,6 +221,7 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
     L.check_intensities(cfg["intensities"])  # before the geometry pool is built
     check_intensity_error(cfg["intensity_error"])
+    check_direction_error(cfg["direction_error"])
     return cfg
 
 
@@ -582,5 +637,7 @@ class SynthStream:
         }
         if cfg["windows"] is not None:  # drawn here, from the stream's generator: a resume repeats them
             out["windows"] = object_windows(msk.reshape(b, c * c), c, int(cfg["windows"]), gen)
+        if cfg["direction_error"]:  # drawn last, only when enabled: the batch is otherwise unchanged
+            out["lights"] = direction_errors(lights, cfg["direction_error"], gen)  # listed; rendered with `lights`
         self.pool.refresh(b)
         return out
