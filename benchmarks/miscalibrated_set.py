@@ -13,9 +13,9 @@ calibrated networks that should tolerate such files; run by hand.
 With `--directions`, light_directions.txt is the one replaced: every listed zenith angle is the
 true one times one factor per object (uniform in `--zenith`, its inverse with chance 1/2), each
 direction then turned by a random angle (Gaussian per tangent component, sd `--jitter` degrees).
-With DiLiGenT's ground-truth normals a Lambertian fit puts ball's and bear's lights ~2 degrees
-further from the view axis than listed, ~1.2 more than on a synthetic object (docs/training.md):
-a factor of ~1.04 at DiLiGenT's zenith angles.
+The default (1.0-1.8 degrees per light on syntest_dl's lights) is the size of the change that
+moves the release PS-FCN's dev split by 0.1-0.2 degrees (docs/training.md, "Listed light
+directions").
 """
 
 from __future__ import annotations

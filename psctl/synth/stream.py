@@ -87,10 +87,9 @@ DEFAULT_CONFIG: dict = {
     # listed directions are its true ones with every zenith angle times one factor (uniform in
     # `zenith_scale`; the error a calibration sphere of the wrong radius or centre makes), each
     # then turned by a small random angle (Gaussian per component, sd uniform in `jitter`
-    # degrees per sample). With DiLiGenT's ground-truth normals a Lambertian fit puts ball's and
-    # bear's lights ~2 degrees further from the view axis than listed, ~1.2 more than the same fit
-    # on a synthetic object (docs/training.md). The images are rendered with the true lights; the
-    # `lights` batch key is the listed one.
+    # degrees per sample): a listed direction is a measurement too (docs/training.md, "Listed
+    # light directions"). The images are rendered with the true lights; the `lights` batch key
+    # is the listed one.
     "direction_error": None,  # None or {"p": 0.5, "zenith_scale": [0.94, 1.06], "jitter": [0.0, 1.0]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
