@@ -1,6 +1,7 @@
 """How well each capture's images agree with its light_directions.txt (run by hand; a diagnostic).
 
     python benchmarks/direction_consistency.py OBJ [OBJ ...] [--pixels 20000] [--json FILE]
+        [--trim LO HI] [--margin M]
 
 With the ground-truth normals, psctl's robust Lambertian light fit (psctl.lights.refine_lights,
 the sdps refinement, here always applied: no gate, no max change) is started at the listed
@@ -9,7 +10,9 @@ fitted and the listed directions, the mean change of the zenith angle (fitted mi
 further from the view axis), the mean of what is not along the zenith, and the angle of the best
 rotation from listed to fitted (a rig turned as a whole). On a synthetic object (exact lights)
 the same numbers measure the fit's own bias; on a real one, what is beyond that is the file's
-error (or the surface's departure from Lambertian where it is lit: compare q).
+error (or the surface's departure from Lambertian where it is lit: compare q). `--trim` and
+`--margin` override the fit's (psctl.lights.DEFAULT_REFINE) to see what they do to that bias; the
+last line is the mean angle over the objects the sdps gate would refine (q < its upper end).
 """
 
 from __future__ import annotations
@@ -21,10 +24,10 @@ import numpy as np
 
 from psctl.io.capture import load_ground_truth, load_mask, open_capture
 from psctl.io.images import read_image, to_rgb
-from psctl.lights import refine_lights
+from psctl.lights import DEFAULT_REFINE, refine_lights
 
 
-def measure(path: str, pixels: int = 20000) -> dict:
+def measure(path: str, pixels: int = 20000, fit: dict | None = None) -> dict:
     cap = open_capture(path)
     normals = load_ground_truth(cap)
     if not cap.calibrated or normals is None:
@@ -36,7 +39,7 @@ def measure(path: str, pixels: int = 20000) -> dict:
     grey = np.stack([to_rgb(read_image(p)[0])[ys, xs].mean(-1) for p in cap.image_paths])  # [N, P]
     listed = np.asarray(cap.lights, np.float64)
     ints = np.asarray(cap.intensities, np.float64).reshape(len(listed), -1).mean(1)
-    r = refine_lights(grey, normals[ys, xs], listed, ints, {"gate": (10.0, 20.0), "max_change": 90.0})
+    r = refine_lights(grey, normals[ys, xs], listed, ints, {**(fit or {}), "gate": (10.0, 20.0), "max_change": 90.0})
     fit = r.directions.astype(np.float64)
     ang = np.degrees(np.arccos(np.clip((fit * listed).sum(1), -1, 1)))
     dz = np.degrees(np.arccos(np.clip(fit[:, 2], -1, 1)) - np.arccos(np.clip(listed[:, 2], -1, 1)))
@@ -54,14 +57,21 @@ def main() -> None:
     ap.add_argument("objects", nargs="+")
     ap.add_argument("--pixels", type=int, default=20000)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--trim", type=float, nargs=2, default=None)
+    ap.add_argument("--margin", type=float, default=None)
     args = ap.parse_args()
+    fit = {k: v for k, v in (("trim", args.trim), ("margin", args.margin)) if v is not None}
     rows = []
     print(f"{'object':26s} {'q':>6s} {'angle':>6s} {'zenith':>7s} {'sd':>5s} {'other':>6s} {'rot':>5s}")
     for path in args.objects:
-        m = measure(path, args.pixels)
+        m = measure(path, args.pixels, fit)
         rows.append(m)
         print(f"{m['object']:26s} {m['q']:6.3f} {m['mean_angle']:6.2f} {m['zenith_change']:+7.2f} "
               f"{m['zenith_change_sd']:5.2f} {m['off_zenith']:6.2f} {m['rotation']:5.2f}")
+    gated_in = [m["mean_angle"] for m in rows if m["q"] < DEFAULT_REFINE["gate"][1]]
+    if gated_in:
+        print(f"mean angle over the {len(gated_in)} objects with q < {DEFAULT_REFINE['gate'][1]}: "
+              f"{np.mean(gated_in):.2f}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
