@@ -145,9 +145,12 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     if method == "auto" and (not calibrated or lcnet is not None):
         from psctl.models.weights import installed_path
 
-        if lcnet is None and installed_path("ups-fcn") is not None and (
-                installed_path("lcnet") is None or installed_path("ps-fcn-dagger") is None):
-            return "ups-fcn", "auto: no light_directions.txt and no sdps weights installed: ups-fcn"
+        # sdps runs when LCNet and any second stage are installed (PS-FCN†, else the calibrated
+        # networks on LCNet's lights); UPS-FCN, single-stage and weaker, only when it cannot
+        sdps_ready = installed_path("lcnet") is not None and (
+            weights is not None or any(installed_path(m) is not None for m in SDPS_SECOND))
+        if lcnet is None and installed_path("ups-fcn") is not None and not sdps_ready:
+            return "ups-fcn", "auto: no light_directions.txt and the sdps weights are not installed: ups-fcn"
         note = check_sdps_weights(None, lcnet)
         return "sdps", f"auto: no light_directions.txt; {note}"
     if method == "sdps":

@@ -232,6 +232,22 @@ def test_installed_weights_found_by_method(tmp_path, monkeypatch):
     assert not n[~mask].any()
 
 
+
+def test_auto_on_an_uncalibrated_folder_prefers_sdps_over_ups_fcn(tmp_path, monkeypatch):
+    """Without light_directions.txt, auto takes UPS-FCN only while sdps cannot run (no LCNet, or
+    no second stage); with LCNet and a calibrated network installed it is sdps, PS-FCN† or not."""
+    from psctl.api import resolve_method
+    from psctl.models.lcnet import LCNet
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    save_weights(tmp_path / "ups_fcn.pt", model(lights=False), {"method": "ups-fcn", "train_images": 32})
+    assert resolve_method("auto", False)[0] == "ups-fcn"
+    save_weights(tmp_path / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
+    assert resolve_method("auto", False)[0] == "ups-fcn"  # LCNet alone: no second stage
+    save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    method, note = resolve_method("auto", False)
+    assert method == "sdps" and "PS-FCN" in note
+
 # --- normalisation ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("variant", ["per-channel", "per-pixel"])
