@@ -13,9 +13,9 @@ calibrated networks that should tolerate such files; run by hand.
 With `--directions`, light_directions.txt is the one replaced: every listed zenith angle is the
 true one times one factor per object (uniform in `--zenith`, its inverse with chance 1/2), each
 direction then turned by a random angle (Gaussian per tangent component, sd `--jitter` degrees).
-The default (1.0-1.8 degrees per light on syntest_dl's lights) is the size of the change that
-moves the release PS-FCN's dev split by 0.1-0.2 degrees (docs/training.md, "Listed light
-directions").
+The default (1.0-1.8 degrees per light on syntest_dl's lights) is about the size of a 4 % zenith
+scale at DiLiGenT's lights (~1.1 degrees), which moves the stage-11 PS-FCN's dev-split mean by
+-0.08 (x 1.04) and +0.17 (x 0.96) degrees (docs/training.md, "Listed light directions").
 """
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from psctl.synth.stream import turn_directions
 
 
 def main() -> None:
@@ -52,17 +55,23 @@ def main() -> None:
         f = math.exp(rng.uniform(math.log(args.scale[0]), math.log(args.scale[1])))
         if rng.random() < 0.5:
             f = 1 / f
-        out = args.dst / obj.name
-        out.mkdir(parents=True, exist_ok=False)
-        for p in obj.iterdir():
-            if p.name != "light_intensities.txt":
-                (out / p.name).symlink_to(p.resolve())
+        out = link_except(obj, args.dst, "light_intensities.txt")
         wrong = listed.copy()
         wrong[start:start + args.block] /= f
         np.savetxt(out / "light_intensities.txt", wrong, fmt="%.6f")
         made[obj.name] = {"start": start, "block": args.block, "brighter_than_listed": f}
     (args.dst / "miscalibration.json").write_text(json.dumps({"src": str(args.src), "seed": args.seed, "objects": made}, indent=1))
     print(f"{len(made)} objects in {args.dst}")
+
+
+def link_except(obj: Path, dst: Path, name: str) -> Path:
+    """DST/<object>: a link to each of the object's files but ``name`` (written by the caller)."""
+    out = dst / obj.name
+    out.mkdir(parents=True, exist_ok=False)
+    for p in obj.iterdir():
+        if p.name != name:
+            (out / p.name).symlink_to(p.resolve())
+    return out
 
 
 def wrong_directions(args: argparse.Namespace) -> None:
@@ -73,17 +82,10 @@ def wrong_directions(args: argparse.Namespace) -> None:
         f = rng.uniform(*args.zenith)
         if rng.random() < 0.5:
             f = 1 / f
-        zen = np.minimum(np.arccos(np.clip(true[:, 2], -1, 1)) * f, np.radians(89.0))
-        azi = np.arctan2(true[:, 1], true[:, 0])
-        d = np.stack([np.sin(zen) * np.cos(azi), np.sin(zen) * np.sin(azi), np.cos(zen)], 1)
-        noise = rng.normal(0.0, np.radians(args.jitter), d.shape)
-        d = d + noise - (noise * d).sum(1, keepdims=True) * d
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        out = args.dst / obj.name
-        out.mkdir(parents=True, exist_ok=False)
-        for p in obj.iterdir():
-            if p.name != "light_directions.txt":
-                (out / p.name).symlink_to(p.resolve())
+        noise = rng.normal(0.0, np.radians(args.jitter), true.shape)
+        # the training stream's geometry (psctl.synth.stream.turn_directions), in float64
+        d = turn_directions(torch.from_numpy(true), torch.tensor(f, dtype=torch.float64), torch.from_numpy(noise)).numpy()
+        out = link_except(obj, args.dst, "light_directions.txt")
         np.savetxt(out / "light_directions.txt", d, fmt="%.6f")
         ang = np.degrees(np.arccos(np.clip((d * true).sum(1), -1, 1)))
         made[obj.name] = {"zenith_factor": f, "jitter_deg": args.jitter, "mean_change_deg": float(ang.mean())}

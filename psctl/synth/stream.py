@@ -85,7 +85,7 @@ DEFAULT_CONFIG: dict = {
     "intensity_error": None,  # None or {"p": 0.5, "share": [0.0, 0.4], "scale": [0.7, 1.4]}
     # mis-calibrated directions (PS-FCN and PS-FCN+N training only): with chance p a sample's
     # listed directions are its true ones with every zenith angle times one factor (uniform in
-    # `zenith_scale`; the error a calibration sphere of the wrong radius or centre makes), each
+    # `zenith_scale`: an error that grows with the zenith angle), each
     # then turned by a small random angle (Gaussian per component, sd uniform in `jitter`
     # degrees per sample): a listed direction is a measurement too (docs/training.md, "Listed
     # light directions"). The images are rendered with the true lights; the `lights` batch key
@@ -131,13 +131,18 @@ def direction_errors(lights: Tensor, opts: dict, gen: torch.Generator) -> Tensor
     f = lo_z + (hi_z - lo_z) * torch.rand(b, generator=gen, device=dev)
     sd = math.radians(1.0) * (lo_j + (hi_j - lo_j) * torch.rand(b, generator=gen, device=dev))
     noise = torch.randn(b, n, 3, generator=gen, device=dev) * sd[:, None, None]
-    zen = torch.acos(lights[..., 2].clamp(-1.0, 1.0))
-    azi = torch.atan2(lights[..., 1], lights[..., 0])
-    zen = (zen * f[:, None]).clamp(max=math.radians(89.0))  # a listed light stays above the horizon
-    d = torch.stack([zen.sin() * azi.cos(), zen.sin() * azi.sin(), zen.cos()], -1)
-    d = d + noise - (noise * d).sum(-1, keepdim=True) * d  # turned in the tangent plane
-    d = d / d.norm(dim=-1, keepdim=True)
-    return torch.where(on[:, None, None], d, lights)
+    return torch.where(on[:, None, None], turn_directions(lights, f[:, None], noise), lights)
+
+
+def turn_directions(d: Tensor, factor: Tensor, noise: Tensor) -> Tensor:
+    """Unit directions [..., 3] with every zenith angle times ``factor`` (broadcast to [...];
+    capped at 89 degrees: a listed light stays above the horizon), then moved by the tangent part
+    of ``noise`` [..., 3] (radians) and renormalised. Also used by benchmarks/miscalibrated_set.py."""
+    zen = (torch.acos(d[..., 2].clamp(-1.0, 1.0)) * factor).clamp(max=math.radians(89.0))
+    azi = torch.atan2(d[..., 1], d[..., 0])
+    out = torch.stack([zen.sin() * azi.cos(), zen.sin() * azi.sin(), zen.cos()], -1)
+    out = out + noise - (noise * out).sum(-1, keepdim=True) * out
+    return out / out.norm(dim=-1, keepdim=True)
 
 
 INTENSITY_ERROR_KEYS = ("p", "share", "scale")
