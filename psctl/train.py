@@ -120,9 +120,15 @@ def load_config(path: str | os.PathLike | None) -> dict:
     if not isinstance(raw, dict):
         raise PsctlError(path, "a config must be a mapping of sections")
     try:
-        return merge(DEFAULT_CONFIG, raw)
+        config = merge(DEFAULT_CONFIG, raw)
+        # the stream options are checked again by train(); here a bad one is named with its file
+        from psctl.synth.stream import make_config
+
+        make_config(config["data"])
+        make_config({**config["data"], **(config["val"].get("data") or {})})
     except PsctlError as e:
         raise PsctlError(path, e.message) from None
+    return config
 
 
 def amp_settings(amp: str, device: torch.device) -> tuple[bool, torch.dtype]:

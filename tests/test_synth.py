@@ -335,6 +335,16 @@ def test_stream_rejects_bad_direction_error_options(opts, msg):
         make_config({"direction_error": opts})
 
 
+def test_a_bad_stream_option_in_a_recipe_names_the_file(tmp_path):
+    from psctl.train import load_config
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("data:\n  direction_error: {p: 2}\n")
+    with pytest.raises(PsctlError, match="0 <= p <= 1") as e:
+        load_config(bad)
+    assert e.value.path == str(bad)
+
+
 @pytest.mark.parametrize("method", ["lcnet", "ups-fcn", "ps-fcn-dagger"])
 def test_uncalibrated_training_refuses_direction_errors(tmp_path, method):
     from psctl.train import load_config, train
