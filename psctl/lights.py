@@ -308,6 +308,12 @@ DEFAULT_REFINE = {
     # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
     # written and used as it is
     "max_change": 30.0,
+    # the shading model: "lambertian", o = rho max(n.s, 0); or "shifted", o = rho (n.s + b) with
+    # b <= 0 per image, a cosine that falls to zero before the terminator. Cast shadows and most
+    # real reflectances fall off faster than a cosine near the terminator, which pulls a Lambertian
+    # fit's lights outward (docs/uncalibrated.md, "Falloff"); b > 0 (a flatter falloff: glossy
+    # surfaces) is refused because there the extra freedom lets the fit run away
+    "falloff": "lambertian",
     "seed": 0,
 }
 
@@ -323,12 +329,14 @@ class Refinement:
 
 def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
                   intensities: np.ndarray, config: dict | None = None) -> Refinement:
-    """Refine lights by a robust Lambertian fit against known normals.
+    """Refine lights by a robust Lambertian (or shifted-cosine) fit against known normals.
 
-    Model: o[j, p] = rho[p] * max(n[p] . s[j], 0) with s[j] = e[j] l[j]. Starting from the given
-    lights, alternate rho (least squares per pixel over the observations it is lit in) and s[j]
-    (least squares per image over lit pixels, trimmed by ``trim``). The fit's residual q decides,
-    through ``gate``, how much of it replaces the lights passed in.
+    Model: o[j, p] = rho[p] * max(n[p] . s[j] + b[j], 0) with s[j] = |s[j]| l[j]; b = 0 for the
+    "lambertian" falloff, b[j] <= 0 fitted per image for "shifted" (then e[j] = |s[j]| + b[j], the
+    brightness where n = l). Starting from the given lights, alternate rho (least squares per
+    pixel over the observations it is lit in) and s[j], b[j] (least squares per image over lit
+    pixels, trimmed by ``trim``). The fit's residual q decides, through ``gate``, how much of it
+    replaces the lights passed in.
 
     Args:
         observations: [N, P] grey values as captured (not divided by any intensity).
@@ -352,19 +360,25 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     o, n = o[:, ok], n[ok]
     if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
         return keep
+    if cfg["falloff"] not in ("lambertian", "shifted"):
+        raise ValueError(f"falloff must be 'lambertian' or 'shifted', not {cfg['falloff']!r}")
+    shifted = cfg["falloff"] == "shifted"
     lo_q, hi_q = cfg["trim"]
     s = d0 * e0[:, None]
+    b = np.zeros(len(s))
 
-    def albedo(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def albedo(s: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         sh = n @ s.T  # [P, N] shading
         lit = sh > cfg["margin"] * np.linalg.norm(s, axis=1)[None]
+        sh = sh + b[None]
+        lit &= sh > 0
         den = (sh ** 2 * lit).sum(1)
         rho = np.where(den > 0, (o.T * sh * lit).sum(1) / np.maximum(den, 1e-300), 0.0)
         return sh, lit, rho
 
     for _ in range(int(cfg["iters"])):
-        sh, lit, rho = albedo(s)
-        new = s.copy()
+        sh, lit, rho = albedo(s, b)
+        new, new_b = s.copy(), b.copy()
         for j in range(len(s)):
             use = np.flatnonzero(lit[:, j] & (rho > 0))
             if use.size < 10:
@@ -374,25 +388,31 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
             use = use[(ratio >= lo) & (ratio <= hi)]
             if use.size < 10:
                 continue
-            sol = np.linalg.lstsq(rho[use, None] * n[use], o[j, use], rcond=None)[0]
-            if np.isfinite(sol).all() and np.linalg.norm(sol) > 0:
-                new[j] = sol
-        s = new / np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
-    if not np.isfinite(s).all():
+            a = rho[use, None] * n[use]
+            sol, off = np.linalg.lstsq(a, o[j, use], rcond=None)[0], 0.0
+            if shifted:
+                sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), o[j, use], rcond=None)[0]
+                if sol4[3] < 0 and np.linalg.norm(sol4[:3]) + sol4[3] > 0:  # else b = 0, the Lambertian fit
+                    sol, off = sol4[:3], sol4[3]
+            if np.isfinite(sol).all() and np.isfinite(off) and np.linalg.norm(sol) > 0:
+                new[j], new_b[j] = sol, off
+        k = np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
+        s, b = new / k, new_b / k
+    if not (np.isfinite(s).all() and np.isfinite(b).all()):
         return keep
     fitted = s / np.linalg.norm(s, axis=1, keepdims=True)
     change = np.degrees(np.arccos(np.clip((fitted * d0).sum(1), -1, 1)))
     if (change > cfg["max_change"]).any():
         return replace(keep, status="astray")
-    sh, lit, rho = albedo(s)
+    sh, lit, rho = albedo(s, b)
     if not lit.any():
         return keep
     obs = o.T[lit]
     q = float(np.median(np.abs(obs - (rho[:, None] * sh)[lit])) / max(float(np.median(obs)), 1e-12))
     lo_g, hi_g = cfg["gate"]
     w = float(np.clip((hi_g - q) / (hi_g - lo_g), 0.0, 1.0)) if np.isfinite(q) else 0.0
-    e = np.linalg.norm(s, axis=1)
-    d = w * (s / e[:, None]) + (1 - w) * d0
+    e = np.linalg.norm(s, axis=1) + b  # the brightness of a pixel facing the light (b = 0: |s|)
+    d = w * fitted + (1 - w) * d0
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     # intensities blended in log space, each set first divided by its geometric mean; the result
     # is given the geometric mean of the intensities passed in
