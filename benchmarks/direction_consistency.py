@@ -1,7 +1,7 @@
 """How well each capture's images agree with its light_directions.txt (run by hand; a diagnostic).
 
     python benchmarks/direction_consistency.py OBJ [OBJ ...] [--pixels 20000] [--json FILE]
-        [--trim LO HI] [--margin M] [--falloff lambertian|shifted]
+        [--trim LO HI] [--margin M] [--falloff lambertian|shifted] [--iters K]
 
 With the ground-truth normals, psctl's robust Lambertian light fit (psctl.lights.refine_lights,
 the sdps refinement, here always applied: no gate, no max change) is started at the listed
@@ -11,7 +11,7 @@ further from the view axis), the mean of what is not along the zenith, and the a
 rotation from listed to fitted (a rig turned as a whole). On a synthetic object (exact lights)
 the same numbers measure the fit's own bias; on a real one, what is beyond that is the file's
 error (or the surface's departure from Lambertian where it is lit: compare q). `--trim`,
-`--margin` and `--falloff` override the fit's (psctl.lights.DEFAULT_REFINE) to see what they do to that bias; the
+`--margin`, `--falloff` and `--iters` override the fit's (psctl.lights.DEFAULT_REFINE) to see what they do to that bias; the
 last line is the mean angle over the objects the sdps gate would refine (q < its upper end).
 """
 
@@ -60,8 +60,10 @@ def main() -> None:
     ap.add_argument("--trim", type=float, nargs=2, default=None)
     ap.add_argument("--margin", type=float, default=None)
     ap.add_argument("--falloff", choices=("lambertian", "shifted"), default=None)
+    ap.add_argument("--iters", type=int, default=None)
     args = ap.parse_args()
-    fit = {k: v for k, v in (("trim", args.trim), ("margin", args.margin), ("falloff", args.falloff))
+    fit = {k: v for k, v in (("trim", args.trim), ("margin", args.margin), ("falloff", args.falloff),
+                                        ("iters", args.iters))
            if v is not None}
     rows = []
     print(f"{'object':26s} {'q':>6s} {'angle':>6s} {'zenith':>7s} {'sd':>5s} {'other':>6s} {'rot':>5s}")

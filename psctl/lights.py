@@ -308,12 +308,13 @@ DEFAULT_REFINE = {
     # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
     # written and used as it is
     "max_change": 30.0,
-    # the shading model: "lambertian", o = rho max(n.s, 0); or "shifted", o = rho (n.s + b) with
-    # b <= 0 per image, a cosine that falls to zero before the terminator. Cast shadows and most
-    # real reflectances fall off faster than a cosine near the terminator, which pulls a Lambertian
-    # fit's lights outward (docs/uncalibrated.md, "Falloff"); b > 0 (a flatter falloff: glossy
-    # surfaces) is refused because there the extra freedom lets the fit run away
-    "falloff": "lambertian",
+    # the shading model: "shifted", o = rho (n.s + b) with b <= 0 per image, a cosine that falls
+    # to zero before the terminator; or "lambertian", o = rho max(n.s, 0) (b = 0; the default until
+    # session 20). Cast shadows and many real reflectances fall off faster than a cosine near the
+    # terminator, which pulls a Lambertian fit's lights outward (docs/uncalibrated.md, "Falloff");
+    # b > 0 (a flatter falloff: glossy surfaces) is refused because there the extra freedom lets
+    # the fit run away
+    "falloff": "shifted",
     "seed": 0,
 }
 

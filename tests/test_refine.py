@@ -24,9 +24,11 @@ def rotate_randomly(dirs: np.ndarray, degrees: float, seed: int) -> np.ndarray:
     return (out / np.linalg.norm(out, axis=1, keepdims=True)).astype(np.float32)
 
 
-def scene(n: int = 24, size: int = 64, specular: float = 0.0, diffuse: float = 1.0, noise: float = 0.0, seed: int = 0):
+def scene(n: int = 24, size: int = 64, specular: float = 0.0, diffuse: float = 1.0, noise: float = 0.0, seed: int = 0,
+          shift: float = 0.0):
     """Grey observations [n, P] of a textured sphere (Lambertian + an optional Phong lobe), with
-    optional multiplicative log-normal noise."""
+    optional multiplicative log-normal noise; ``shift`` > 0 makes the diffuse part max(n.l - shift, 0)
+    (a falloff steeper than a cosine, as cast shadows and many real surfaces give)."""
     rng = np.random.default_rng(seed)
     normals, mask = sphere(size)
     nrm = normals[mask]
@@ -34,9 +36,10 @@ def scene(n: int = 24, size: int = 64, specular: float = 0.0, diffuse: float = 1
     ints = rng.uniform(0.5, 1.5, n).astype(np.float32)
     albedo = rng.uniform(0.3, 1.0, len(nrm))
     cos = np.clip(nrm @ lights.T, 0, None)  # [P, n]
+    diffuse = diffuse * np.clip(cos - shift, 0, None)
     refl = 2 * cos[..., None] * nrm[:, None] - lights[None]  # mirror direction of each light
     spec = np.clip(refl[..., 2], 0, None) ** 60 * (cos > 0)  # the camera looks down +z
-    obs = (diffuse * albedo[:, None] * cos + specular * spec) * ints[None]
+    obs = (albedo[:, None] * diffuse + specular * spec) * ints[None]
     obs *= np.exp(noise * rng.normal(size=obs.shape))
     return obs.T.astype(np.float32), nrm, lights, ints
 
@@ -58,15 +61,44 @@ def test_refine_recovers_perturbed_lights_despite_highlights():
 def test_astray_fits_and_badly_explained_pixels_keep_the_lights():
     obs, nrm, lights, ints = scene(specular=1.0, diffuse=0.0)  # a mirror-like material: no diffuse part
     start = rotate_randomly(lights, 8.0, seed=1)
-    ref = refine_lights(obs, nrm, start, ints)
+    ref = refine_lights(obs, nrm, start, ints, {"falloff": "lambertian"})
     assert ref.weight == 0.0 and ref.status == "astray"  # the fit shrinks the lit set to a few pixels
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
     np.testing.assert_allclose(ref.intensities, ints, rtol=1e-5)
+    ref = refine_lights(obs, nrm, start, ints)  # the shifted falloff stays near, but explains it badly
+    assert ref.weight == 0.0 and ref.quality > DEFAULT_REFINE["gate"][1]
+    np.testing.assert_allclose(ref.directions, start, atol=1e-6)
     # observations a Lambertian model explains badly (here: strong noise): the gate keeps LCNet's lights
     obs, nrm, lights, ints = scene(noise=0.3)
     ref = refine_lights(obs, nrm, start, ints)
     assert ref.status == "fitted" and ref.quality > DEFAULT_REFINE["gate"][1] and ref.weight == 0.0
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
+
+
+def test_shifted_falloff_undoes_the_outward_bias_of_a_steep_falloff():
+    obs, nrm, lights, ints = scene(shift=0.25)
+    start = rotate_randomly(lights, 8.0, seed=1)
+    zenith = lambda d: np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))  # noqa: E731
+    lam = refine_lights(obs, nrm, start, ints, {"falloff": "lambertian", "gate": (10.0, 20.0)})
+    assert (zenith(lam.directions) - zenith(lights)).mean() > 2.0  # the Lambertian fit: pulled outward
+    assert light_direction_error(lam.directions, lights).mean() > 8.0  # worse than where it started
+    sh = refine_lights(obs, nrm, start, ints)  # the default falloff
+    assert sh.weight == 1.0 and light_direction_error(sh.directions, lights).mean() < 6.0  # the defaults: 5 steps
+    # the model is exact here: without the trim, enough alternations converge to the true lights
+    exact = refine_lights(obs, nrm, start, ints, {"falloff": "shifted", "trim": (0.0, 1.0), "iters": 50})
+    assert light_direction_error(exact.directions, lights).mean() < 0.05
+    rel = exact.intensities / ints
+    assert np.abs(rel / rel.mean() - 1).max() < 1e-3  # |s| + b: the brightness where n = l
+    lam = refine_lights(obs, nrm, start, ints, {"falloff": "lambertian", "trim": (0.0, 1.0), "iters": 50,
+                                                "gate": (10.0, 20.0)})
+    assert light_direction_error(lam.directions, lights).mean() > 8.0
+    # on a Lambertian surface both falloffs agree (b would be > 0 or ~0: the Lambertian fit is kept)
+    obs, nrm, lights, ints = scene()
+    a = refine_lights(obs, nrm, start, ints, {"falloff": "lambertian"})
+    b = refine_lights(obs, nrm, start, ints)
+    assert light_direction_error(a.directions, b.directions).max() < 0.2
+    with pytest.raises(ValueError, match="falloff"):
+        refine_lights(obs, nrm, start, ints, {"falloff": "cosine"})
 
 
 def test_blend_between_the_gate_values():
