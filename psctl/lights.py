@@ -308,10 +308,6 @@ DEFAULT_REFINE = {
     # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
     # written and used as it is
     "max_change": 30.0,
-    # what an astray light does: "object", all the lights passed in are kept (status "astray");
-    # "light", that light alone is held at its start direction (its scale and offset still fitted)
-    # while the others are fitted
-    "astray": "object",
     # the shading model: "shifted", o = rho (n.s + b) with b <= 0 per image, a cosine that falls
     # to zero before the terminator; or "lambertian", o = rho max(n.s, 0) (b = 0; the default until
     # session 20). Cast shadows and many real reflectances fall off faster than a cosine near the
@@ -330,7 +326,6 @@ class Refinement:
     quality: float  # q, the fit's relative residual (inf when nothing was fitted)
     weight: float  # in [0, 1]: 1 = the fitted lights, 0 = the ones passed in
     status: str = "fitted"  # fitted | too few pixels | astray (see DEFAULT_REFINE["max_change"])
-    held: int = 0  # lights held at their start direction (DEFAULT_REFINE["astray"] = "light")
 
 
 def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
@@ -369,10 +364,6 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     if cfg["falloff"] not in ("lambertian", "shifted"):
         raise ValueError(f"falloff must be 'lambertian' or 'shifted', not {cfg['falloff']!r}")
     shifted = cfg["falloff"] == "shifted"
-    if cfg["astray"] not in ("object", "light"):
-        raise ValueError(f"astray must be 'object' or 'light', not {cfg['astray']!r}")
-    per_light, cos_max = cfg["astray"] == "light", np.cos(np.radians(cfg["max_change"]))
-    held = np.zeros(len(d0), bool)
     lo_q, hi_q = cfg["trim"]
     s = d0 * e0[:, None]
     b = np.zeros(len(s))
@@ -404,15 +395,6 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
                 sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), o[j, use], rcond=None)[0]
                 if sol4[3] < 0 and np.linalg.norm(sol4[:3]) + sol4[3] > 0:  # else b = 0, the Lambertian fit
                     sol, off = sol4[:3], sol4[3]
-            if per_light and np.linalg.norm(sol) > 0 and (sol @ d0[j]) < cos_max * np.linalg.norm(sol):
-                held[j] = True  # astray: this light keeps its start direction; fit its scale (and offset)
-                a1 = rho[use, None] * (n[use] @ d0[j])[:, None]
-                sol2, off = np.linalg.lstsq(a1, o[j, use], rcond=None)[0], 0.0
-                if shifted:
-                    sol3 = np.linalg.lstsq(np.concatenate([a1, rho[use, None]], 1), o[j, use], rcond=None)[0]
-                    if sol3[1] < 0 and sol3[0] + sol3[1] > 0:
-                        sol2, off = sol3[:1], sol3[1]
-                sol, off = (sol2[0] * d0[j], off) if sol2[0] > 0 else (new[j], new_b[j])
             if np.isfinite(sol).all() and np.isfinite(off) and np.linalg.norm(sol) > 0:
                 new[j], new_b[j] = sol, off
         k = np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
@@ -437,7 +419,7 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     # is given the geometric mean of the intensities passed in
     g0 = np.exp(np.log(e0).mean())
     e = g0 * np.exp(w * (np.log(e) - np.log(e).mean()) + (1 - w) * (np.log(e0) - np.log(g0)))
-    return Refinement(d.astype(np.float32), e.astype(np.float32), q, w, held=int(held.sum()))
+    return Refinement(d.astype(np.float32), e.astype(np.float32), q, w)
 
 
 def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
@@ -483,8 +465,7 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
     ref = refine_lights(obs, nrm, est.directions, est.intensities, config)
     cfg = {**DEFAULT_REFINE, **(config or {})}
     info = {**est.info, "refine": {"quality": None if not np.isfinite(ref.quality) else round(ref.quality, 4),
-                                   "weight": round(ref.weight, 3), "status": ref.status, "held": ref.held,
-                                   "pixels": int(obs.shape[1]),
+                                   "weight": round(ref.weight, 3), "status": ref.status, "pixels": int(obs.shape[1]),
                                    "gate": list(cfg["gate"]), "seconds": round(time.perf_counter() - t0, 3)}}
     if ref.status == "astray":
         note = (f"lights: LCNet's lights kept (refitting them against {method}'s normals moved a light by more than "
