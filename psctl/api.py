@@ -176,7 +176,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
-                    refine: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                    refine: bool = True, falloff: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -192,13 +192,16 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         refine: when a normals network is installed (PS-FCN†, PS-FCN or PS-FCN+N), refine
             LCNet's lights against the normals it gives from them (as ``psctl lights``;
             ``psctl.lights.refine_lights``); without one, LCNet's lights.
+        falloff: the refinement's shading model, "shifted" or "lambertian" (None: the default,
+            ``psctl.lights.DEFAULT_REFINE``; docs/uncalibrated.md, "Falloff").
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
-    from psctl.lights import array_lights, refine_arrays
+    from psctl.lights import array_lights, refine_arrays, refine_config
     from psctl.models.weights import installed_path
 
+    fit = refine_config(falloff)
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
         from psctl.infer import array_normals
@@ -211,14 +214,14 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         second = sdps_second_stage(None)[0]
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
                                 {"device": device}).normals
-        est = refine_arrays(images, mask, est, normals, _SHOWN[second])
+        est = refine_arrays(images, mask, est, normals, _SHOWN[second], fit)
     return est.directions, est.intensities
 
 
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                     refine: bool = True) -> np.ndarray:
+                     refine: bool = True, falloff: str | None = None) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -236,6 +239,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             mirrored about the view axis; ``views`` times the work; docs/models.md).
         refine: sdps: refine LCNet's lights against the first normals and run the second stage
             again (``psctl.lights.refine_lights``; docs/uncalibrated.md, "Light refinement").
+        falloff: sdps: the refinement's shading model, "shifted" or "lambertian" (None: the
+            default, ``psctl.lights.DEFAULT_REFINE``).
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -263,15 +268,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
         from psctl.infer import array_normals
-        from psctl.lights import array_lights, refine_arrays
+        from psctl.lights import array_lights, refine_arrays, refine_config
 
+        fit = refine_config(falloff)
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
         cfg = {"device": device, "views": views}
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, weights,
                                 cfg).normals
         if refine:
-            est = refine_arrays(images, mask, est, normals, _SHOWN[second])
+            est = refine_arrays(images, mask, est, normals, _SHOWN[second], fit)
             if est.info["refine"]["weight"] > 0:
                 normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
                                         weights, cfg).normals
@@ -292,7 +298,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                refine: bool = True) -> dict:
+                refine: bool = True, falloff: str | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -305,9 +311,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     network methods average that many symmetric views of the capture (psctl.infer.run_views;
     ``views`` times the work). ``refine`` (sdps): LCNet's lights are refined against the first
     normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
-    light_mae is then the refined lights' and lcnet_light_mae LCNet's own.
+    light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
+    ("shifted" or "lambertian", None: the default) is the refinement's shading model.
     """
     from psctl.classic import L2Accumulator
+    from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, staged_outputs
     from psctl.io.capture import bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images
@@ -317,6 +325,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: _noop)
+    fit = refine_config(falloff)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
@@ -361,7 +370,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if refine:
-            est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress)
+            est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, fit)
             if est.info["refine"]["weight"] > 0:
                 lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
                 net = capture_normals(lit, mask, second, weights, net_cfg, progress)

@@ -32,6 +32,7 @@ MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-f
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
+FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
@@ -122,6 +123,7 @@ def normals(
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
     refine: RefineOpt = True,
+    falloff: FalloffOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -135,7 +137,7 @@ def normals(
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                          views=views, refine=refine),
+                                          views=views, refine=refine, falloff=falloff),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -152,6 +154,7 @@ def evaluate(
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
     refine: RefineOpt = True,
+    falloff: FalloffOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -162,7 +165,7 @@ def evaluate(
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views, refine=refine),
+                                            views=views, refine=refine, falloff=falloff),
              json_out, quiet, render_benchmark)
 
 
@@ -178,6 +181,7 @@ def lights(
     device: DeviceOpt = "auto",
     refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
     normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
+    falloff: FalloffOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -187,7 +191,7 @@ def lights(
 
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
                                          views=views, n_images=images, seed=seed, progress=progress,
-                                         refine=refine, normals_weights=normals_weights),
+                                         refine=refine, normals_weights=normals_weights, falloff=falloff),
              json_out, quiet, render_lights)
 
 

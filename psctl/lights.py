@@ -26,8 +26,9 @@ The pipeline (psctl.models.lcnet has the network and the discretisation):
    of the views is the estimate, the intensities their mean. Exact for an orthographic camera
    and isotropic materials; it costs ``views`` times the network work.
 6. Refinement (``run_lights(refine=True)``, sdps): a normals network turns the lights into
-   normals and ``refine_lights`` refits each light by a robust Lambertian fit against them,
-   gated by how well that fit explains the pixels.
+   normals and ``refine_lights`` refits each light by a robust fit of a diffuse model (a cosine
+   that may fall to zero before the terminator) against them, gated by how well that fit
+   explains the pixels.
 
 Outputs are in DiLiGenT's format: light_directions.txt (N x 3, unit, x right / y up / z toward
 the camera) and light_intensities.txt (N x 3, the same value in R, G and B; only relative
@@ -291,7 +292,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
 # Why: LCNet classifies each image's light from a 128 x 128 view; once a network has estimated
 # the normals from those lights, the full-resolution pixels pin each light down better wherever
 # the surface is mostly diffuse. Chosen on synthetic folders (docs/uncalibrated.md, "Light
-# refinement"); the gate keeps LCNet's lights where a Lambertian fit explains the pixels badly
+# refinement"); the gate keeps LCNet's lights where a diffuse model explains the pixels badly
 # (metals, deep concavities).
 DEFAULT_REFINE = {
     "pixels": 20000,  # mask pixels sampled for the fit (seeded): enough to fix 3 numbers per light
@@ -466,25 +467,37 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
     cfg = {**DEFAULT_REFINE, **(config or {})}
     info = {**est.info, "refine": {"quality": None if not np.isfinite(ref.quality) else round(ref.quality, 4),
                                    "weight": round(ref.weight, 3), "status": ref.status, "pixels": int(obs.shape[1]),
-                                   "gate": list(cfg["gate"]), "seconds": round(time.perf_counter() - t0, 3)}}
+                                   "gate": list(cfg["gate"]), "falloff": cfg["falloff"],
+                                   "seconds": round(time.perf_counter() - t0, 3)}}
     if ref.status == "astray":
         note = (f"lights: LCNet's lights kept (refitting them against {method}'s normals moved a light by more than "
                 f"{cfg['max_change']:g} degrees)")
     elif not np.isfinite(ref.quality):
         note = "lights: too few usable pixels to refine LCNet's lights against the normals; LCNet's kept"
     elif ref.weight >= 1:
-        note = f"lights: LCNet's lights refined against {method}'s normals (Lambertian fit residual {ref.quality:.3f})"
+        note = f"lights: LCNet's lights refined against {method}'s normals (fit residual {ref.quality:.3f})"
     elif ref.weight <= 0:
-        note = (f"lights: LCNet's lights kept (a Lambertian fit against {method}'s normals explains this object "
+        note = (f"lights: LCNet's lights kept (a diffuse fit against {method}'s normals explains this object "
                 f"poorly: residual {ref.quality:.3f} >= {cfg['gate'][1]})")
     else:
-        note = (f"lights: LCNet's lights {ref.weight:.0%} refined against {method}'s normals (Lambertian fit "
+        note = (f"lights: LCNet's lights {ref.weight:.0%} refined against {method}'s normals (fit "
                 f"residual {ref.quality:.3f})")
     return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
 
 
+def refine_config(falloff: str | None) -> dict | None:
+    """The refinement's config for a user's ``--falloff`` (None: DEFAULT_REFINE's); one-line error
+    for anything but "shifted" or "lambertian"."""
+    if falloff is None:
+        return None
+    if falloff not in ("shifted", "lambertian"):
+        raise PsctlError(None, f"--falloff must be shifted or lambertian, not {falloff!r}")
+    return {"falloff": falloff}
+
+
 def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,
-                   method: str = "PS-FCN", progress: "ProgressFactory | None" = None) -> LightEstimate:
+                   method: str = "PS-FCN", progress: "ProgressFactory | None" = None,
+                   config: dict | None = None) -> LightEstimate:
     """``refine_estimate`` on a capture folder's images as captured (its light_intensities.txt,
     if any, is not applied: the fit estimates the intensities)."""
     from psctl.io.capture import iter_images
@@ -494,12 +507,12 @@ def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, nor
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(raw.subset(range(start, raw.n_images)), box)
 
-    return refine_estimate(est, reader, capture.n_images, mask, normals, method=method, progress=progress,
+    return refine_estimate(est, reader, capture.n_images, mask, normals, config, method=method, progress=progress,
                            label=f"{capture.name}: reading for the light fit")
 
 
 def refine_arrays(images: np.ndarray, mask: np.ndarray | None, est: LightEstimate, normals: np.ndarray,
-                  method: str = "PS-FCN") -> LightEstimate:
+                  method: str = "PS-FCN", config: dict | None = None) -> LightEstimate:
     """``refine_estimate`` on in-memory images [N, H, W, 3] as captured."""
     m = np.ones(images.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
 
@@ -507,7 +520,7 @@ def refine_arrays(images: np.ndarray, mask: np.ndarray | None, est: LightEstimat
         for k in range(start, len(images)):
             yield images[k][box]
 
-    return refine_estimate(est, reader, len(images), m, normals, method=method)
+    return refine_estimate(est, reader, len(images), m, normals, config, method=method)
 
 
 # --- errors -----------------------------------------------------------------------------------
@@ -648,12 +661,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "soft",
                n_images: int | None = None, seed: int | None = None, write: bool = True,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
-               refine: bool = True, normals_weights: str | os.PathLike | None = None) -> dict:
+               refine: bool = True, normals_weights: str | os.PathLike | None = None,
+               falloff: str | None = None) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``refine``: when a network that estimates normals from lights is installed (sdps' second
     stage, or ``normals_weights``), LCNet's lights are refined against its normals
-    (``refine_estimate``; off with refine=False or when none is installed, which a note says).
+    (``refine_estimate``; off with refine=False or when none is installed, which a note says);
+    ``falloff`` "shifted" or "lambertian" overrides DEFAULT_REFINE's.
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
@@ -665,6 +680,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.io.capture import load_mask, open_capture, select_images
 
     t0 = time.perf_counter()
+    fit = refine_config(falloff)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     out_dir = Path(out) if out is not None else cap.path / "psctl"
@@ -682,7 +698,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refine:
-        est = _refine_capture(cap, mask, est, normals_weights, device, progress)
+        est = _refine_capture(cap, mask, est, normals_weights, device, progress, fit)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
@@ -713,7 +729,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
-                    device: str, progress: "ProgressFactory | None") -> LightEstimate:
+                    device: str, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them."""
     from psctl.api import _SHOWN, SDPS_SECOND, sdps_second_stage
     from psctl.infer import capture_normals
@@ -725,7 +741,7 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
     second = sdps_second_stage(weights)[0]
     lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
     net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
-    return refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress)
+    return refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, config)
 
 
 def render_lights(r: dict) -> None:

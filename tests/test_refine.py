@@ -248,6 +248,33 @@ def test_cli_no_refine_flag(tmp_path, fake_weights):
     assert r["lights_refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
 
 
+def test_falloff_option_reaches_the_fit(tmp_path, fake_weights, stand_in_networks):
+    from psctl.api import run_normals
+    from psctl.errors import PsctlError
+    from psctl.lights import run_lights
+
+    write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+        assert r["lights_refined"]["falloff"] == "shifted"  # the default
+        for fall in ("lambertian", "shifted"):
+            r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", falloff=fall)
+            assert r["lights_refined"]["falloff"] == fall
+            rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff=fall)
+            assert rl["lights_refined"]["falloff"] == fall
+        with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian"):
+            run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff="cosine")
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+    for cmd in (["lights", tmp_path / "aPNG", "--out", tmp_path / "o"], ["normals", tmp_path / "aPNG", "-m", "sdps"],
+                ["eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps"]):
+        proc = psctl(*cmd, "--falloff", "cosine", env={"PSCTL_WEIGHTS": str(fake_weights)})
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr
+        assert proc.stderr.strip().splitlines() == ["error: --falloff must be shifted or lambertian, not 'cosine'"]
+    assert not (tmp_path / "o").exists() and not (tmp_path / "aPNG" / "psctl").exists()
+
+
 def test_sdps_runs_the_second_stage_once_when_the_gate_keeps_lcnets_lights(tmp_path, fake_weights, stand_in_networks,
                                                                            monkeypatch):
     import psctl.lights
