@@ -3,8 +3,9 @@
     python benchmarks/direction_consistency.py OBJ [OBJ ...] [--pixels 20000] [--json FILE]
         [--trim LO HI] [--margin M] [--falloff lambertian|shifted] [--iters K]
 
-With the ground-truth normals, psctl's robust Lambertian light fit (psctl.lights.refine_lights,
-the sdps refinement, here always applied: no gate, no max change) is started at the listed
+With the ground-truth normals, psctl's robust light fit (psctl.lights.refine_lights, the sdps
+refinement with its default falloff, "shifted" since session 20, or `--falloff lambertian`; here
+always applied: no gate, no max change) is started at the listed
 lights; printed per object: the fit's relative residual q, the mean angle (degrees) between the
 fitted and the listed directions, the mean change of the zenith angle (fitted minus listed; + is
 further from the view axis), the mean of what is not along the zenith, and the angle of the best

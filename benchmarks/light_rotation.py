@@ -5,7 +5,7 @@
 For each capture folder with ground-truth lights: LCNet's lights (sdps' settings), PS-FCN's
 normals from them, the refined lights (psctl.lights.refine_capture), and for both the mean
 direction error before and after the best single rotation of all the lights onto the true ones
-(orthogonal Procrustes, no reflection). A Lambertian refit against normals estimated from
+(orthogonal Procrustes, no reflection). A refit (Lambertian or shifted falloff) against normals estimated from
 rotated lights cannot remove a rotation shared by all the lights (turning the normals and the
 lights together leaves every n.l unchanged), so what the rotation explains is what the
 refinement leaves for an absolute cue to fix.

@@ -244,6 +244,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     Returns:
         [H, W, 3] float32 unit normals.
     """
+    from psctl.lights import refine_config
+
+    fit = refine_config(falloff)  # a bad value stops before any work, whatever the method
     images = np.asarray(images, np.float32)
     if images.ndim == 3:
         images = np.repeat(images[..., None], 3, axis=-1)  # grey: the same value in R, G, B
@@ -268,9 +271,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
         from psctl.infer import array_normals
-        from psctl.lights import array_lights, refine_arrays, refine_config
+        from psctl.lights import array_lights, refine_arrays
 
-        fit = refine_config(falloff)
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
         cfg = {"device": device, "views": views}
@@ -330,6 +332,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     notes = [note] if note else []
+    if falloff is not None and (method != "sdps" or not refine):
+        notes.append("lights: --falloff is unused " + ("without --refine" if method == "sdps" else
+                                                        "(only sdps refines lights)"))
     views = check_views(views)
     if views > 1 and method == "l2":
         notes.append("views: l2 gives the same normals in every view; one pass")

@@ -294,6 +294,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
 # the surface is mostly diffuse. Chosen on synthetic folders (docs/uncalibrated.md, "Light
 # refinement"); the gate keeps LCNet's lights where a diffuse model explains the pixels badly
 # (metals, deep concavities).
+FALLOFFS = ("shifted", "lambertian")  # refine_lights' shading models (DEFAULT_REFINE["falloff"])
 DEFAULT_REFINE = {
     "pixels": 20000,  # mask pixels sampled for the fit (seeded): enough to fix 3 numbers per light
     "iters": 5,  # alternations of per-pixel albedo and per-image light
@@ -301,8 +302,10 @@ DEFAULT_REFINE = {
     # per image, only pixels whose observed / predicted ratio lies within these quantiles: cast
     # shadows and interreflections (low) and highlights (high) out
     "trim": (0.1, 0.9),
-    # the fit's relative residual q (median |o - rho n.s| / median o over lit observations): at or
-    # below gate[0] the fitted lights are used, at or above gate[1] LCNet's are kept, blended between
+    # the fit's relative residual q (median |o - rho (n.s + b)| / median o over lit observations,
+    # n.s + b > 0 too: the two falloffs score slightly different pixel sets, and these values were
+    # set for the Lambertian one): at or below gate[0] the fitted lights are used, at or above
+    # gate[1] LCNet's are kept, blended between
     "gate": (0.05, 0.10),
     # a fitted light further than this from its start (degrees) means the fit went astray (on a
     # mirror-like surface it can shrink the lit set until a few pixels fit): the start is kept.
@@ -357,13 +360,13 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     if o.ndim != 2 or n.shape != (o.shape[1], 3) or d0.shape != (o.shape[0], 3) or e0.shape != (o.shape[0],):
         raise ValueError(f"shapes: observations {o.shape}, normals {n.shape}, directions {d0.shape}, "
                          f"intensities {e0.shape}")
+    if cfg["falloff"] not in FALLOFFS:
+        raise ValueError(f"falloff must be one of {FALLOFFS}, not {cfg['falloff']!r}")
     keep = Refinement(d0.astype(np.float32), e0.astype(np.float32), float("inf"), 0.0, "too few pixels")
     ok = np.isfinite(o).all(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
     o, n = o[:, ok], n[ok]
     if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
         return keep
-    if cfg["falloff"] not in ("lambertian", "shifted"):
-        raise ValueError(f"falloff must be 'lambertian' or 'shifted', not {cfg['falloff']!r}")
     shifted = cfg["falloff"] == "shifted"
     lo_q, hi_q = cfg["trim"]
     s = d0 * e0[:, None]
@@ -490,8 +493,8 @@ def refine_config(falloff: str | None) -> dict | None:
     for anything but "shifted" or "lambertian"."""
     if falloff is None:
         return None
-    if falloff not in ("shifted", "lambertian"):
-        raise PsctlError(None, f"--falloff must be shifted or lambertian, not {falloff!r}")
+    if falloff not in FALLOFFS:
+        raise PsctlError(None, f"--falloff must be {' or '.join(FALLOFFS)}, not {falloff!r}")
     return {"falloff": falloff}
 
 
@@ -701,6 +704,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         est = _refine_capture(cap, mask, est, normals_weights, device, progress, fit)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
+    if not refine and falloff is not None:
+        est = replace(est, notes=[*est.notes, "lights: --falloff is unused without --refine"])
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,

@@ -66,7 +66,7 @@ def test_astray_fits_and_badly_explained_pixels_keep_the_lights():
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
     np.testing.assert_allclose(ref.intensities, ints, rtol=1e-5)
     ref = refine_lights(obs, nrm, start, ints)  # the shifted falloff stays near, but explains it badly
-    assert ref.weight == 0.0 and ref.quality > DEFAULT_REFINE["gate"][1]
+    assert ref.status == "fitted" and ref.weight == 0.0 and ref.quality > DEFAULT_REFINE["gate"][1]
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
     # observations a Lambertian model explains badly (here: strong noise): the gate keeps LCNet's lights
     obs, nrm, lights, ints = scene(noise=0.3)
@@ -248,25 +248,32 @@ def test_cli_no_refine_flag(tmp_path, fake_weights):
     assert r["lights_refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
 
 
-def test_falloff_option_reaches_the_fit(tmp_path, fake_weights, stand_in_networks):
-    from psctl.api import run_normals
+def test_falloff_option_reaches_the_fit(tmp_path, fake_weights, stand_in_networks, monkeypatch):
+    from psctl.api import estimate_lights, estimate_normals, run_normals
     from psctl.errors import PsctlError
     from psctl.lights import run_lights
 
-    write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
-        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
-        assert r["lights_refined"]["falloff"] == "shifted"  # the default
-        for fall in ("lambertian", "shifted"):
-            r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", falloff=fall)
-            assert r["lights_refined"]["falloff"] == fall
-            rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff=fall)
-            assert rl["lights_refined"]["falloff"] == fall
-        with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian"):
-            run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff="cosine")
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
+    data = write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+    assert r["lights_refined"]["falloff"] == DEFAULT_REFINE["falloff"] == "shifted"
+    for fall in ("lambertian", "shifted"):
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", falloff=fall)
+        assert r["lights_refined"]["falloff"] == fall
+        rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff=fall)
+        assert rl["lights_refined"]["falloff"] == fall
+    r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", falloff="lambertian", refine=False)
+    assert r["lights_refined"] is None and any("--falloff is unused without --refine" in n for n in r["notes"])
+    r = run_normals(tmp_path / "aPNG", method="l2", write=False, falloff="lambertian")
+    assert any("--falloff is unused (only sdps" in n for n in r["notes"])
+    rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff="lambertian", refine=False)
+    assert any("--falloff is unused without --refine" in n for n in rl["notes"])
+    with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian"):
+        run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff="cosine")
+    for call in (lambda: estimate_normals(data["images"], data["lights"], method="l2", falloff="cosine"),
+                 lambda: estimate_lights(data["images"], falloff="cosine")):
+        with pytest.raises(PsctlError, match="--falloff must be"):
+            call()
     for cmd in (["lights", tmp_path / "aPNG", "--out", tmp_path / "o"], ["normals", tmp_path / "aPNG", "-m", "sdps"],
                 ["eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps"]):
         proc = psctl(*cmd, "--falloff", "cosine", env={"PSCTL_WEIGHTS": str(fake_weights)})
