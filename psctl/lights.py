@@ -303,10 +303,11 @@ DEFAULT_REFINE = {
     # shadows and interreflections (low) and highlights (high) out
     "trim": (0.1, 0.9),
     # the fit's relative residual q (median |o - rho (n.s + b)| / median o over lit observations,
-    # n.s + b > 0 too: the two falloffs score slightly different pixel sets, and these values were
-    # set for the Lambertian one): at or below gate[0] the fitted lights are used, at or above
-    # gate[1] LCNet's are kept, blended between
-    "gate": (0.05, 0.10),
+    # n.s + b > 0 too): at or below gate[0] the fitted lights are used, at or above gate[1]
+    # LCNet's are kept, blended between. gate[1] was 0.10 for the Lambertian fit (sessions 16-19);
+    # 0.15 since session 20, chosen with the shifted falloff on synthetic folders
+    # (docs/uncalibrated.md, "Falloff")
+    "gate": (0.05, 0.15),
     # a fitted light further than this from its start (degrees) means the fit went astray (on a
     # mirror-like surface it can shrink the lit set until a few pixels fit): the start is kept.
     # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
