@@ -484,7 +484,7 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
         note = (f"lights: LCNet's lights kept (a diffuse fit against {method}'s normals explains this object "
                 f"poorly: residual {ref.quality:.3f} >= {cfg['gate'][1]})")
     else:
-        note = (f"lights: LCNet's lights {ref.weight:.0%} refined against {method}'s normals (fit "
+        note = (f"lights: LCNet's lights {info['refine']['weight']:.0%} refined against {method}'s normals (fit "
                 f"residual {ref.quality:.3f})")
     return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
 
@@ -759,7 +759,7 @@ def render_lights(r: dict) -> None:
         con.print(f"[yellow]note:[/] {note}", highlight=False)
     line = f"[bold]{r['object']}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
     if r.get("lights_refined") and r["lights_refined"]["weight"] > 0:
-        line += f", refined against the normals (weight {r['lights_refined']['weight']:.2f})"
+        line += f", {r['lights_refined']['weight']:.0%} refined against the normals"  # as the note says
     if r["light_mae"] is not None:
         line += f"\n  light direction error [bold]{r['light_mae']:.2f}°[/] (mean)"
         if r.get("lights_refined") and r["lights_refined"]["weight"] > 0 and r.get("lcnet_light_mae") is not None:
