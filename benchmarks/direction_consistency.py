@@ -25,7 +25,7 @@ import numpy as np
 
 from psctl.io.capture import load_ground_truth, load_mask, open_capture
 from psctl.io.images import read_image, to_rgb
-from psctl.lights import DEFAULT_REFINE, refine_lights
+from psctl.lights import DEFAULT_REFINE, FALLOFFS, refine_lights
 
 
 def measure(path: str, pixels: int = 20000, fit: dict | None = None) -> dict:
@@ -60,12 +60,10 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     ap.add_argument("--trim", type=float, nargs=2, default=None)
     ap.add_argument("--margin", type=float, default=None)
-    ap.add_argument("--falloff", choices=("lambertian", "shifted"), default=None)
+    ap.add_argument("--falloff", choices=FALLOFFS, default=None)
     ap.add_argument("--iters", type=int, default=None)
     args = ap.parse_args()
-    fit = {k: v for k, v in (("trim", args.trim), ("margin", args.margin), ("falloff", args.falloff),
-                                        ("iters", args.iters))
-           if v is not None}
+    fit = {k: getattr(args, k) for k in ("trim", "margin", "falloff", "iters") if getattr(args, k) is not None}
     rows = []
     print(f"{'object':26s} {'q':>6s} {'angle':>6s} {'zenith':>7s} {'sd':>5s} {'other':>6s} {'rot':>5s}")
     for path in args.objects:

@@ -68,7 +68,6 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
     from psctl.io.capture import find_objects, object_name, open_capture
-
     from psctl.lights import refine_config
 
     refine_config(falloff)  # a bad value stops before any object runs

@@ -395,11 +395,11 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
             if use.size < 10:
                 continue
             a = rho[use, None] * n[use]
-            sol, off = np.linalg.lstsq(a, o[j, use], rcond=None)[0], 0.0
-            if shifted:
-                sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), o[j, use], rcond=None)[0]
-                if sol4[3] < 0 and np.linalg.norm(sol4[:3]) + sol4[3] > 0:  # else b = 0, the Lambertian fit
-                    sol, off = sol4[:3], sol4[3]
+            sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), o[j, use], rcond=None)[0] if shifted else None
+            if sol4 is not None and sol4[3] < 0 and np.linalg.norm(sol4[:3]) + sol4[3] > 0:
+                sol, off = sol4[:3], sol4[3]
+            else:  # b = 0: the Lambertian fit
+                sol, off = np.linalg.lstsq(a, o[j, use], rcond=None)[0], 0.0
             if np.isfinite(sol).all() and np.isfinite(off) and np.linalg.norm(sol) > 0:
                 new[j], new_b[j] = sol, off
         k = np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
