@@ -453,14 +453,24 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
     from psctl.models.weights import read_weights
 
     w = read_weights(path)
-    if dict(w.metadata.get("architecture", {})) != dict(model.config):  # names the network family too
+    arch, own = dict(w.metadata.get("architecture", {})), dict(model.config)
+    state = {k: v.float() for k, v in w.state_dict.items()}
+    adapted = None
+    if arch != own and {**arch, "lights": False} == own and "extractor.conv1.0.weight" in state:
+        # UPS-FCN from PS-FCN weights: the same network without the light input. conv1 sees
+        # [image (3), light direction (3)]; its image filters are kept and the light ones dropped
+        # (a constant per image: what they added is left for fine-tuning to relearn from shading)
+        state["extractor.conv1.0.weight"] = state["extractor.conv1.0.weight"][:, :3].contiguous()
+        adapted = "light input channels of extractor.conv1 dropped (PS-FCN -> UPS-FCN)"
+    elif arch != own:  # names the network family too
         raise PsctlError(path, f"train.init: holds {w.method or w.kind} weights with architecture "
-                               f"{w.metadata.get('architecture')}; this run's network is {dict(model.config)}")
-    model.load_state_dict({k: v.float() for k, v in w.state_dict.items()})
+                               f"{w.metadata.get('architecture')}; this run's network is {own}")
+    model.load_state_dict(state)
     m = w.metadata
-    return {"path": _portable(path), "method": w.method, "samples_seen": m.get("samples_seen"),
-            "wall_seconds": m.get("wall_seconds"), "device": m.get("device"), "metrics": m.get("metrics"),
-            "normalization": m.get("normalization")}
+    out = {"path": _portable(path), "method": w.method, "samples_seen": m.get("samples_seen"),
+           "wall_seconds": m.get("wall_seconds"), "device": m.get("device"), "metrics": m.get("metrics"),
+           "normalization": m.get("normalization")}
+    return {**out, "adapted": adapted} if adapted else out
 
 
 def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:

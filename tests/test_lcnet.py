@@ -534,6 +534,30 @@ def test_ps_fcn_dagger_trains_on_windows_from_an_init_file(tmp_path):
         train("ps-fcn-dagger", cfg, tmp_path / "bad", device="cpu", lcnet=tmp_path / "lc.pt")
 
 
+def test_ups_fcn_starts_from_ps_fcn_weights_without_their_light_channels(tmp_path):
+    from psctl.train import merge, train
+
+    torch.set_num_threads(2)
+    start = PSFCN()
+    with torch.no_grad():
+        start.extractor.conv1[0].weight[:, 3:] = 7.0  # the light filters: must not survive
+    save_weights(tmp_path / "ps.pt", start, {"method": "ps-fcn", "train_images": 8, "samples_seen": 45})
+    base = tiny(8, lr=0.0)
+    cfg = merge(base, {"train": {**base["train"], "init": str(tmp_path / "ps.pt")}})
+    st = train("ups-fcn", cfg, tmp_path / "run", device="cpu")
+    w = read_weights(tmp_path / "run" / "best.pt")
+    assert st["finished"] and w.method == "ups-fcn" and w.metadata["architecture"]["lights"] is False
+    assert w.metadata["init"]["samples_seen"] == 45 and "dropped" in w.metadata["init"]["adapted"]
+    ref = start.state_dict()
+    assert torch.equal(w.state_dict["extractor.conv1.0.weight"], ref["extractor.conv1.0.weight"][:, :3])
+    assert all(torch.equal(w.state_dict[k], v) for k, v in ref.items() if k != "extractor.conv1.0.weight")
+    # the other way (a PS-FCN run from UPS-FCN weights) has no light filters to start from: refused
+    save_weights(tmp_path / "ups.pt", PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 8})
+    cfg["train"]["init"] = str(tmp_path / "ups.pt")
+    with pytest.raises(PsctlError, match="train.init"):
+        train("ps-fcn", cfg, tmp_path / "bad", device="cpu")
+
+
 def test_lcnet_resume_continues_exactly(tmp_path):
     """16 + 16 samples with a stop in between == 32 samples in one go (same batches, same Adam state)."""
     from psctl.train import merge, train
