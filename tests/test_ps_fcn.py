@@ -221,6 +221,8 @@ def test_installed_weights_found_by_method(tmp_path, monkeypatch):
     images, lights, mask = scene(6, 20, 24)
     with pytest.raises(PsctlError, match=r"no weights are installed for ps-fcn .*--weights FILE"):
         estimate_normals(images, lights, mask, method="ps-fcn")
+    with pytest.raises(PsctlError, match=r"installed for ups-fcn .*UPS-FCN_B_S_32.pth.tar.*--method sdps$"):
+        estimate_normals(images, None, mask, method="ups-fcn")  # needs no lights: sdps, not l2
     assert resolve_method("auto", True)[0] == "l2"
     save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
     assert resolve_method("auto", True) == ("ps-fcn-n", None)

@@ -110,6 +110,13 @@ def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
             f"needed, see docs/training.md), or pass a weights file with {flag} FILE: psctl's own "
             f"or the authors' {official} (docs/uncalibrated.md)",
         )
+    if method == "ups-fcn":  # no lights: l2 is no alternative, sdps is
+        return PsctlError(
+            None,
+            f"no weights are installed for ups-fcn (looked for {where}; set ${ENV_VAR} to use another "
+            f"folder). Pass a weights file with --weights FILE: psctl's own format or the authors' "
+            f"UPS-FCN_B_S_32.pth.tar (docs/models.md), or use --method sdps",
+        )
     return PsctlError(
         None,
         f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
