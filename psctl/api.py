@@ -29,7 +29,7 @@ SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light
 # sdps's second stage, in order of preference: PS-FCN† was trained on LCNet's lights (the
 # paper's choice); without it, a calibrated network runs on the estimated lights instead, PS-FCN
 # before PS-FCN+N (on LCNet's lights it measured better on syntest and the dev split with every
-# LCNet so far; weights/README.md).
+# LCNet so far; docs/weights-history.md).
 SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")
 _SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
 
@@ -159,7 +159,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         from psctl.models.weights import installed_path
 
         # PS-FCN first: the release ps_fcn.pt beats ps_fcn_n.pt on the synthetic test sets
-        # (weights/README.md: syntest 4.88 vs 5.68, DiLiGenT-like lights 4.16 vs 4.71, stage 11 vs
+        # (weights/README.md and docs/weights-history.md: syntest 4.88 vs 5.68, DiLiGenT-like lights 4.16 vs 4.71, stage 11 vs
         # the miscal stage; spatially varying dragons 8.97 vs 9.58 degrees with the stage-4 PS-FCN
         # and stage-2 PS-FCN+N), unlike the paper's networks
         for m in ("ps-fcn", "ps-fcn-n"):

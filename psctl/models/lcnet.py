@@ -133,7 +133,7 @@ class LCNet(nn.Module):
         2-core development CPU (torch 2.13.0, oneDNN) the bf16 backward of its last stride-2
         conv on a 1 x 1 map (64 px inputs) gave non-zero, later NaN, weight gradients on kernel
         taps that only see zero padding, which is how the release LCNet got NaN weights
-        (weights/README.md). Its maps are at most 8 x 8: cheap next to the extractor."""
+        (docs/weights-history.md, LCNet stage 2). Its maps are at most 8 x 8: cheap next to the extractor."""
         x = torch.cat([feats, fused.expand_as(feats)], 1)
         dtype = next(self.classifier.parameters()).dtype
         with torch.autocast(x.device.type, enabled=False):
