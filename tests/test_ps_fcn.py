@@ -489,6 +489,25 @@ def test_ups_fcn_without_lights(tmp_path):
         estimate_normals(images, np.eye(3)[[2, 2, 2, 2]], mask, method="l2", weights=path)
 
 
+def test_ups_fcn_ignores_a_folders_light_files(tmp_path):
+    """UPS-FCN reads the images as captured (trained under unknown intensities), as sdps does."""
+    import shutil
+
+    from psctl.api import run_normals
+
+    torch.manual_seed(0)
+    path = save_weights(tmp_path / "ups.pt", model(lights=False), {"method": "ups-fcn", "train_images": 32})
+    write_capture(tmp_path / "lit", n=6, size=24)  # intensities 0.3-0.9, listed
+    shutil.copytree(tmp_path / "lit", tmp_path / "bare")
+    for name in ("light_directions.txt", "light_intensities.txt"):
+        (tmp_path / "bare" / name).unlink()
+    runs = {k: run_normals(tmp_path / k, "ups-fcn", tmp_path / f"out_{k}", ("npy",), weights=path, device="cpu")
+            for k in ("lit", "bare")}
+    assert any("light_directions.txt and light_intensities.txt not used" in n for n in runs["lit"]["notes"])
+    assert not any("not used" in n for n in runs["bare"]["notes"])
+    np.testing.assert_array_equal(np.load(tmp_path / "out_lit" / "normal.npy"), np.load(tmp_path / "out_bare" / "normal.npy"))
+
+
 # --- the command -----------------------------------------------------------------------------
 
 def test_cli_network_methods(tmp_path):
