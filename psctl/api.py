@@ -391,18 +391,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in NETWORKS:
         from psctl.infer import capture_normals
 
-        run_cap = cap
-        if method == "ups-fcn":
-            # UPS-FCN is trained on images as captured, under unknown intensities: like sdps, it
-            # reads them undivided and the folder's light files are not used
-            from dataclasses import replace
-
-            given = [n for n, used in (("light_directions.txt", cap.calibrated),
-                                       ("light_intensities.txt", cap.intensities_given)) if used]
-            if given:
-                notes.append(f"ups-fcn: {' and '.join(given)} not used (UPS-FCN estimates normals from the images alone)")
-            run_cap = replace(cap, intensities=np.ones_like(cap.intensities), intensities_given=False)
-        net = capture_normals(run_cap, mask, method, weights, {"device": device, "views": views}, progress)
+        net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
         normals, dark = net.normals, net.dark
         notes += net.notes
     else:

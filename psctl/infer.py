@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -493,6 +493,13 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
         raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
+    unused = []
+    if not model.uses_lights:
+        # a network without light input (UPS-FCN) is trained on images as captured, under unknown
+        # intensities: like sdps, it reads them undivided and the folder's light files are not used
+        unused = [n for n, used in (("light_directions.txt", capture.calibrated),
+                                    ("light_intensities.txt", capture.intensities_given)) if used]
+        capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
@@ -501,6 +508,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                     run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"),
                     run.get("input_clip"))
     res.notes.append(note)
+    if unused:
+        res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))
     return res
 
