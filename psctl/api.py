@@ -176,7 +176,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
-                    refine: bool = True, falloff: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    refine: bool = True, falloff: str | None = None,
+                    roll: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -194,14 +195,17 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             ``psctl.lights.refine_lights``); without one, LCNet's lights.
         falloff: the refinement's shading model, "shifted" or "lambertian" (None: the default,
             ``psctl.lights.DEFAULT_REFINE``; docs/uncalibrated.md, "Falloff").
+        roll: turn the refined lights about the view axis by the roll that makes the normals they
+            give most integrable (``psctl.lights.roll_estimate``; None: the default,
+            ``DEFAULT_REFINE["roll"]``; docs/uncalibrated.md, "Roll from integrability").
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
-    from psctl.lights import array_lights, refine_arrays, refine_config
+    from psctl.lights import array_lights, refine_arrays, refine_config, roll_estimate, wants_roll
     from psctl.models.weights import installed_path
 
-    fit = refine_config(falloff)
+    fit = refine_config(falloff, roll)
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
         from psctl.infer import array_normals
@@ -215,13 +219,18 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
                                 {"device": device}).normals
         est = refine_arrays(images, mask, est, normals, _SHOWN[second], fit)
+        if wants_roll(fit):  # the roll is read from the normals of the final lights
+            if est.info["refine"]["weight"] > 0:
+                normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
+                                        None, {"device": device}).normals
+            est = roll_estimate(est, normals, mask, fit)[0]
     return est.directions, est.intensities
 
 
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                     refine: bool = True, falloff: str | None = None) -> np.ndarray:
+                     refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -241,12 +250,14 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             again (``psctl.lights.refine_lights``; docs/uncalibrated.md, "Light refinement").
         falloff: sdps: the refinement's shading model, "shifted" or "lambertian" (None: the
             default, ``psctl.lights.DEFAULT_REFINE``).
+        roll: sdps: turn the refined lights and the normals about the view axis by the normals'
+            roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
     Returns:
         [H, W, 3] float32 unit normals.
     """
     from psctl.lights import refine_config
 
-    fit = refine_config(falloff)  # a bad value stops before any work, whatever the method
+    fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
     images = np.asarray(images, np.float32)
     if images.ndim == 3:
         images = np.repeat(images[..., None], 3, axis=-1)  # grey: the same value in R, G, B
@@ -271,7 +282,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
         from psctl.infer import array_normals
-        from psctl.lights import array_lights, refine_arrays
+        from psctl.lights import array_lights, refine_arrays, roll_estimate
 
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
@@ -283,6 +294,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             if est.info["refine"]["weight"] > 0:
                 normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
                                         weights, cfg).normals
+            normals = roll_estimate(est, normals, mask, fit)[1]
         return normals
     if method in NETWORKS:
         from psctl.infer import array_normals
@@ -300,7 +312,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                refine: bool = True, falloff: str | None = None) -> dict:
+                refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -314,7 +326,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     ``views`` times the work). ``refine`` (sdps): LCNet's lights are refined against the first
     normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
-    ("shifted" or "lambertian", None: the default) is the refinement's shading model.
+    ("shifted" or "lambertian", None: the default) is the refinement's shading model; ``roll``
+    (None: the default) turns the refined lights and the normals about the view axis by the
+    normals' roll (``psctl.lights.roll_estimate``).
     """
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
@@ -327,14 +341,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: _noop)
-    fit = refine_config(falloff)
+    fit = refine_config(falloff, roll)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     notes = [note] if note else []
-    if falloff is not None and (method != "sdps" or not refine):
-        notes.append("lights: --falloff is unused " + ("without --refine" if method == "sdps" else
-                                                        "(only sdps refines lights)"))
+    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
+        if value is not None and (method != "sdps" or not refine):
+            notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
+                                                          "(only sdps refines lights)"))
     views = check_views(views)
     if views > 1 and method == "l2":
         notes.append("views: l2 gives the same normals in every view; one pass")
@@ -364,7 +379,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from dataclasses import replace
 
         from psctl.infer import capture_normals
-        from psctl.lights import capture_lights, light_errors, refine_capture
+        from psctl.lights import capture_lights, light_errors, refine_capture, roll_estimate
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
@@ -379,6 +394,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if est.info["refine"]["weight"] > 0:
                 lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
                 net = capture_normals(lit, mask, second, weights, net_cfg, progress)
+            est, rolled = roll_estimate(est, net.normals, mask, fit)
+            net = replace(net, normals=rolled)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
         light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)

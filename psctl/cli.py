@@ -33,6 +33,7 @@ WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Net
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
+RollOpt = Annotated[Optional[bool], typer.Option("--roll/--no-roll", help="After the light refinement, turn the lights and normals about the view axis by the roll that makes the normals most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
@@ -124,6 +125,7 @@ def normals(
     views: ViewsOpt = 1,
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
+    roll: RollOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -137,7 +139,7 @@ def normals(
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                          views=views, refine=refine, falloff=falloff),
+                                          views=views, refine=refine, falloff=falloff, roll=roll),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -155,6 +157,7 @@ def evaluate(
     views: ViewsOpt = 1,
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
+    roll: RollOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -165,7 +168,7 @@ def evaluate(
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views, refine=refine, falloff=falloff),
+                                            views=views, refine=refine, falloff=falloff, roll=roll),
              json_out, quiet, render_benchmark)
 
 
@@ -182,6 +185,7 @@ def lights(
     refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
     normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
     falloff: FalloffOpt = None,
+    roll: RollOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -191,7 +195,8 @@ def lights(
 
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
                                          views=views, n_images=images, seed=seed, progress=progress,
-                                         refine=refine, normals_weights=normals_weights, falloff=falloff),
+                                         refine=refine, normals_weights=normals_weights, falloff=falloff,
+                                         roll=roll),
              json_out, quiet, render_lights)
 
 

@@ -55,13 +55,13 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   out: str | os.PathLike | None = None,
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                  refine: bool = True, falloff: str | None = None) -> dict:
+                  refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
-    ``refine`` and ``falloff`` to sdps.
+    ``refine``, ``falloff`` and ``roll`` to sdps.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
     not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
@@ -70,7 +70,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.io.capture import find_objects, object_name, open_capture
     from psctl.lights import refine_config
 
-    refine_config(falloff)  # a bad value stops before any object runs
+    refine_config(falloff, roll)  # a bad value stops before any object runs
     benchmark = benchmark.lower()
     if benchmark not in BENCHMARKS:
         raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
@@ -90,7 +90,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
                         n_images=n_images, seed=seed, write=out is not None, progress=progress,
                         weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
-                        falloff=falloff)
+                        falloff=falloff, roll=roll)
         used.append(r["method"])
         objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                         "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})

@@ -321,6 +321,14 @@ DEFAULT_REFINE = {
     # the fit run away
     "falloff": "shifted",
     "seed": 0,
+    # after the fit, turn the lights and the final normals about the view axis by the roll that
+    # makes those normals most integrable (``integrability_roll``): the one part of a rotation
+    # shared by lights and normals that the fit cannot see and integrability can
+    # (docs/uncalibrated.md, "Roll from integrability"; on since session 22: lower normal and light
+    # errors on all four synthetic decision sets)
+    "roll": True,
+    "roll_erode": 3,  # mask pixels this close to the edge left out (rims and silhouettes are unreliable)
+    "max_roll": 15.0,  # a larger roll (degrees) is refused and the lights kept: not a small correction
 }
 
 
@@ -489,14 +497,104 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
     return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
 
 
-def refine_config(falloff: str | None) -> dict | None:
-    """The refinement's config for a user's ``--falloff`` (None: DEFAULT_REFINE's); one-line error
-    for anything but "shifted" or "lambertian"."""
-    if falloff is None:
-        return None
-    if falloff not in FALLOFFS:
+def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erode: int = 3) -> tuple[float, float, int]:
+    """The turn about the view axis that makes a normal map most integrable.
+
+    A surface's gradient field (dz/dcol, dz/drow) = (-nx/nz, +ny/nz) has no curl; scaled by
+    nz^2 (bounded where the surface is steep) the curl is, per 2 x 2 block of pixels,
+    r = -nz dnx/drow + nx dnz/drow - nz dny/dcol + ny dnz/dcol. Turning the normals by an angle t
+    about the view axis leaves nz and turns (nx, ny), so r(t) = cos(t) r(0) + sin(t) r(90 deg) and
+    the t minimising the sum of r(t)^2 has a closed form. Turns about in-plane axes change r far
+    less (docs/uncalibrated.md, "Roll from integrability"), so only the roll is estimated.
+
+    Args:
+        normals: [H, W, 3] normals, x right / y up / z toward the camera.
+        mask: [H, W] bool (None: the pixels with a nonzero normal).
+        erode: pixels this close to the mask's edge are left out.
+    Returns:
+        (roll in degrees, counterclockwise seen from the camera: turning the normals by it makes
+        them most integrable; the residual's relative drop sum r(0)^2 / sum r(roll)^2 >= 1; the
+        number of 2 x 2 blocks used). (0, 1, k) when fewer than 100 blocks are usable.
+    """
+    from scipy.ndimage import binary_erosion
+
+    n = np.asarray(normals, np.float64)
+    ok = np.isfinite(n).all(-1)
+    n = np.where(ok[..., None], n, 0.0)
+    ok &= np.linalg.norm(n, axis=-1) > 0.5
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    if erode > 0:
+        ok = binary_erosion(ok, iterations=int(erode))
+    block = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:]
+    k = int(block.sum())
+    if k < 100:
+        return 0.0, 1.0, k
+
+    def curl(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray) -> np.ndarray:
+        c = lambda a: a[:-1, :-1]  # noqa: E731
+        drow = lambda a: a[1:, :-1] - a[:-1, :-1]  # noqa: E731
+        dcol = lambda a: a[:-1, 1:] - a[:-1, :-1]  # noqa: E731
+        return (-c(nz) * drow(nx) + c(nx) * drow(nz) - c(nz) * dcol(ny) + c(ny) * dcol(nz))[block]
+
+    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
+    aa, ab, bb = float(a0 @ a0), float(a0 @ a90), float(a90 @ a90)
+    # E(t) = (aa + bb)/2 + (aa - bb)/2 cos 2t + ab sin 2t, smallest where (cos 2t, sin 2t) points
+    # against ((aa - bb)/2, ab)
+    t = 0.5 * np.arctan2(-2.0 * ab, bb - aa)
+    e = np.cos(t) ** 2 * aa + 2 * np.cos(t) * np.sin(t) * ab + np.sin(t) ** 2 * bb
+    return float(np.degrees(t)), float(aa / e) if e > 0 else 1.0, k
+
+
+def turn_about_view_axis(vectors: np.ndarray, degrees: float) -> np.ndarray:
+    """[..., 3] vectors turned counterclockwise (seen from the camera) about the z axis."""
+    t = np.radians(degrees)
+    c, s = np.cos(t), np.sin(t)
+    v = np.asarray(vectors)
+    out = v.copy()
+    out[..., 0] = c * v[..., 0] - s * v[..., 1]
+    out[..., 1] = s * v[..., 0] + c * v[..., 1]
+    return out
+
+
+def wants_roll(config: dict | None = None) -> bool:
+    """Whether the refinement ``config`` (over DEFAULT_REFINE) turns the lights by the normals' roll."""
+    return bool({**DEFAULT_REFINE, **(config or {})}["roll"])
+
+
+def roll_estimate(est: LightEstimate, normals: np.ndarray, mask: np.ndarray | None,
+                  config: dict | None = None) -> tuple[LightEstimate, np.ndarray]:
+    """``est`` and the normals it gave [H, W, 3], both turned about the view axis by the normals'
+    ``integrability_roll`` when ``config`` (over DEFAULT_REFINE) has "roll" on; unchanged
+    otherwise. ``info["refine"]["roll"]`` and a note say what happened."""
+    cfg = {**DEFAULT_REFINE, **(config or {})}
+    if not cfg["roll"]:
+        return est, normals
+    t, gain, k = integrability_roll(normals, mask, cfg["roll_erode"])
+    if k < 100:
+        status, note = "too few pixels", "lights: too few pixels to check the normals' roll; not turned"
+    elif abs(t) > cfg["max_roll"]:
+        status, note = "refused", (f"lights: not turned about the view axis (the normals' roll, {t:+.1f} degrees, "
+                                   f"is beyond {cfg['max_roll']:g})")
+    else:
+        status, note = "applied", f"lights and normals turned {t:+.1f} degrees about the view axis (integrability)"
+    info = {**est.info, "refine": {**(est.info.get("refine") or {}),
+                                   "roll": {"degrees": round(t, 3), "gain": round(gain, 5), "status": status}}}
+    est = replace(est, info=info, notes=[*est.notes, note])
+    if status != "applied":
+        return est, normals
+    est = replace(est, directions=turn_about_view_axis(est.directions, t).astype(np.float32))
+    return est, turn_about_view_axis(normals, t).astype(np.float32)
+
+
+def refine_config(falloff: str | None, roll: bool | None = None) -> dict | None:
+    """The refinement's config for a user's ``--falloff`` and ``--roll/--no-roll`` (None:
+    DEFAULT_REFINE's); one-line error for a falloff other than "shifted" or "lambertian"."""
+    if falloff is not None and falloff not in FALLOFFS:
         raise PsctlError(None, f"--falloff must be {' or '.join(FALLOFFS)}, not {falloff!r}")
-    return {"falloff": falloff}
+    cfg = {k: v for k, v in (("falloff", falloff), ("roll", roll)) if v is not None}
+    return cfg or None
 
 
 def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,
@@ -666,13 +764,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                n_images: int | None = None, seed: int | None = None, write: bool = True,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
-               falloff: str | None = None) -> dict:
+               falloff: str | None = None, roll: bool | None = None) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``refine``: when a network that estimates normals from lights is installed (sdps' second
     stage, or ``normals_weights``), LCNet's lights are refined against its normals
     (``refine_estimate``; off with refine=False or when none is installed, which a note says);
-    ``falloff`` "shifted" or "lambertian" overrides DEFAULT_REFINE's.
+    ``falloff`` "shifted" or "lambertian" and ``roll`` (turn the refined lights by the roll of the
+    normals they give, ``roll_estimate``) override DEFAULT_REFINE's.
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
@@ -684,7 +783,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.io.capture import load_mask, open_capture, select_images
 
     t0 = time.perf_counter()
-    fit = refine_config(falloff)
+    fit = refine_config(falloff, roll)
     cap = open_capture(path)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     out_dir = Path(out) if out is not None else cap.path / "psctl"
@@ -705,8 +804,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         est = _refine_capture(cap, mask, est, normals_weights, device, progress, fit)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
-    if not refine and falloff is not None:
-        est = replace(est, notes=[*est.notes, "lights: --falloff is unused without --refine"])
+    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
+        if not refine and value is not None:
+            est = replace(est, notes=[*est.notes, f"lights: {flag} is unused without --refine"])
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,
@@ -736,7 +836,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
                     device: str, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
-    """LCNet's lights refined against the normals that sdps' second stage gives from them."""
+    """LCNet's lights refined against the normals that sdps' second stage gives from them (and
+    turned by the roll of the normals from the refined lights when the config says so)."""
     from psctl.api import _SHOWN, SDPS_SECOND, sdps_second_stage
     from psctl.infer import capture_normals
     from psctl.models.weights import installed_path
@@ -747,7 +848,13 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
     second = sdps_second_stage(weights)[0]
     lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
     net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
-    return refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, config)
+    est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, config)
+    if not wants_roll(config):
+        return est
+    if est.info["refine"]["weight"] > 0:  # the roll is read from the normals of the final lights, as in sdps
+        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+        net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
+    return roll_estimate(est, net.normals, mask, config)[0]
 
 
 def render_lights(r: dict) -> None:

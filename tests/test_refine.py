@@ -332,3 +332,138 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     # and images divided by the refined intensities: the same up to one scale in every image
     ratio = seen[1][1][:, mask].mean(-1).mean(-1) / (images[:, mask].mean(-1).mean(-1) / ints)
     assert np.ptp(ratio) < 0.2 * ratio.mean()  # (about 1.0 with LCNet's intensities of 1)
+
+
+def bumps(size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Normals [H, W, 3] of a smooth, asymmetric height field (three Gaussian bumps on a tilted
+    plane, orthographic), from its analytic gradient, and a disc mask [H, W]."""
+    c = (np.arange(size) + 0.5) / size * 2 - 1
+    x, y = np.meshgrid(c, -c)  # row 0 is the top: y up
+    zx, zy = np.full_like(x, 0.2), np.full_like(x, -0.1)
+    for (cx, cy, h, s) in ((-0.3, 0.2, 0.6, 0.35), (0.35, -0.1, 0.4, 0.25), (0.0, -0.45, 0.5, 0.3)):
+        g = h * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s * s))
+        zx, zy = zx - g * (x - cx) / (s * s), zy - g * (y - cy) / (s * s)
+    n = np.stack([-zx, -zy, np.ones_like(x)], -1)  # z = f(x, y): normal (-f_x, -f_y, 1)
+    mask = x**2 + y**2 < 0.85
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32), mask
+
+
+@pytest.mark.parametrize("shape", ["bumps", "sphere"])
+def test_integrability_roll_undoes_a_turn_about_the_view_axis(shape):
+    from psctl.lights import integrability_roll, turn_about_view_axis
+
+    normals, mask = bumps() if shape == "bumps" else sphere(64)
+    t0, gain0, k = integrability_roll(normals, mask)
+    assert abs(t0) < 0.2 and gain0 == pytest.approx(1.0, abs=1e-3) and k > 1000
+    for turn in (-6.0, 3.0, 10.0):
+        t, gain, _ = integrability_roll(turn_about_view_axis(normals, turn), mask)
+        assert t == pytest.approx(-turn, abs=0.3) and gain > 1.0
+    # turns about an in-plane axis are not what it measures: a 6-degree tilt gives a small roll
+    tilt = np.radians(6.0)
+    rx = np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
+    assert abs(integrability_roll(normals @ rx.T, mask)[0]) < 1.5
+    # the mask's edge is left out: garbage in a 2-pixel rim changes nothing
+    from scipy.ndimage import binary_erosion
+
+    rim = mask & ~binary_erosion(mask, iterations=2)
+    noisy = normals.copy()
+    junk = np.random.default_rng(0).normal(size=(rim.sum(), 3))
+    noisy[rim] = junk / np.linalg.norm(junk, axis=1, keepdims=True)
+    assert integrability_roll(noisy, mask)[0] == pytest.approx(t0, abs=1e-9)
+    assert integrability_roll(normals, np.zeros_like(mask))[2] == 0
+
+
+def test_roll_estimate_turns_lights_and_normals_together():
+    from psctl.lights import integrability_roll, roll_estimate, turn_about_view_axis
+
+    normals, mask = bumps()
+    lights = hemisphere_lights(12, 35.0, 0)
+    est = LightEstimate(turn_about_view_axis(lights, 5.0), np.ones(12, np.float32), {}, {"refine": {"weight": 1.0}}, [])
+    turned = turn_about_view_axis(normals, 5.0)
+    same, n = roll_estimate(est, turned, mask, {"roll": False})
+    assert same is est and n is turned
+    out, n = roll_estimate(est, turned, mask, {"roll": True})
+    assert out.info["refine"]["roll"]["status"] == "applied" and out.info["refine"]["weight"] == 1.0
+    assert out.info["refine"]["roll"]["degrees"] == pytest.approx(-5.0, abs=0.3)
+    assert light_direction_error(out.directions, lights).mean() < 0.3
+    assert np.degrees(np.arccos(np.clip((n * normals).sum(-1)[mask], -1, 1))).mean() < 0.3
+    assert "turned -5.0 degrees about the view axis" in out.notes[-1]
+    t = integrability_roll(turned, mask)[0]
+    np.testing.assert_allclose(out.directions, turn_about_view_axis(est.directions, t), atol=1e-6)
+    far, n = roll_estimate(est, turned, mask, {"roll": True, "max_roll": 2.0})
+    assert far.info["refine"]["roll"]["status"] == "refused" and n is turned
+    np.testing.assert_array_equal(far.directions, est.directions)
+    few, _ = roll_estimate(est, turned, mask & (np.arange(64)[:, None] < 8), {"roll": True})
+    assert few.info["refine"]["roll"]["status"] == "too few pixels"
+
+
+def test_sdps_and_lights_apply_the_roll_when_it_is_on(tmp_path, fake_weights, monkeypatch):
+    """With "roll" on, sdps and psctl lights read the roll from the normals of the refined lights
+    and turn both; they give the same lights. Stand-ins: "LCNet" gives the true lights turned 8
+    degrees about random axes, the second stage the ground-truth normals turned 6 degrees about
+    the view axis (the rotation the fit cannot see)."""
+    import psctl.infer
+    import psctl.lights
+    from psctl.api import run_normals
+    from psctl.io.capture import load_ground_truth
+    from psctl.lights import run_lights, turn_about_view_axis
+
+    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights"):
+        return LightEstimate(rotate_randomly(capture.lights, 8.0, 5), np.ones(capture.n_images, np.float32), {},
+                             {"decode": "soft", "views": 8, "device": "cpu"}, [])
+
+    calls = []
+
+    def capture_normals(capture, mask, method, weights=None, config=None, progress=None):
+        calls.append(1)
+        gt = load_ground_truth(capture)
+        return psctl.infer.InferResult(turn_about_view_axis(gt, 6.0).astype(np.float32), np.zeros(mask.shape, bool),
+                                       {}, [])
+
+    monkeypatch.setattr(psctl.lights, "capture_lights", capture_lights)
+    monkeypatch.setattr(psctl.infer, "capture_normals", capture_normals)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    write_capture(tmp_path / "aPNG", n=24, size=64, seed=1)
+    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "roll", False)
+    off = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "roll", True)
+    calls.clear()
+    on = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
+    assert len(calls) == 2  # the roll needs no third pass: the normals are turned as the lights are
+    assert on["lights_refined"]["roll"]["status"] == "applied"
+    assert on["lights_refined"]["roll"]["degrees"] == pytest.approx(-6.0, abs=1.0)
+    # a turn about the view axis moves lights near it little: 6 sin(zenith) degrees
+    assert off["light_mae"] > 1.5 and on["light_mae"] < 0.6
+    assert off["mae"] > 3.0 and on["mae"] < 0.1
+    calls.clear()
+    lights = run_lights(tmp_path / "aPNG", write=False, device="cpu")
+    assert len(calls) == 2  # psctl lights runs the second stage again on the refined lights to read the roll
+    assert lights["light_mae"] == pytest.approx(on["light_mae"], abs=1e-4)
+    assert lights["lights_refined"]["roll"] == on["lights_refined"]["roll"]
+    r0 = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", refine=False)
+    assert r0["lights_refined"] is None  # --no-refine: no fit and no roll
+
+
+def test_roll_option_reaches_sdps_lights_and_eval(tmp_path, fake_weights, stand_in_networks, monkeypatch):
+    from psctl.api import estimate_lights, run_normals
+    from psctl.lights import run_lights
+
+    data = write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    for roll in (True, False):
+        r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", roll=roll)
+        assert ("roll" in r["lights_refined"]) is roll
+        rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", roll=roll)
+        assert ("roll" in rl["lights_refined"]) is roll
+        if roll:  # the stand-in second stage gives the ground truth: nothing to turn
+            assert abs(r["lights_refined"]["roll"]["degrees"]) < 0.5
+    r = run_normals(tmp_path / "aPNG", method="l2", write=False, roll=True)
+    assert any("--roll/--no-roll is unused (only sdps" in n for n in r["notes"])
+    rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", roll=False, refine=False)
+    assert any("--roll/--no-roll is unused without --refine" in n for n in rl["notes"])
+    d, e = estimate_lights(data["images"], data["mask"], device="cpu", roll=True)
+    assert d.shape == (24, 3) and e.shape == (24,)
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps", "--roll", "--json", "-q",
+                 env={"PSCTL_WEIGHTS": str(fake_weights)})
+    assert proc.returncode == 0, proc.stderr  # real (fake-weight) networks: the flag reaches the report
+    assert "roll" in json.loads(proc.stdout)["objects"][0]["lights_refined"]
