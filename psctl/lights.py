@@ -28,7 +28,8 @@ The pipeline (psctl.models.lcnet has the network and the discretisation):
 6. Refinement (``run_lights(refine=True)``, sdps): a normals network turns the lights into
    normals and ``refine_lights`` refits each light by a robust fit of a diffuse model (a cosine
    that may fall to zero before the terminator) against them, gated by how well that fit
-   explains the pixels.
+   explains the pixels. Then (``roll``, on by default) the lights are turned about the view axis
+   by the roll that makes the normals from them most integrable (``integrability_roll``).
 
 Outputs are in DiLiGenT's format: light_directions.txt (N x 3, unit, x right / y up / z toward
 the camera) and light_intensities.txt (N x 3, the same value in R, G and B; only relative
@@ -573,12 +574,13 @@ def roll_estimate(est: LightEstimate, normals: np.ndarray, mask: np.ndarray | No
         return est, normals
     t, gain, k = integrability_roll(normals, mask, cfg["roll_erode"])
     if k < 100:
-        status, note = "too few pixels", "lights: too few pixels to check the normals' roll; not turned"
+        status, note = "too few pixels", "lights: too few pixels to read the normals' roll; not turned"
     elif abs(t) > cfg["max_roll"]:
         status, note = "refused", (f"lights: not turned about the view axis (the normals' roll, {t:+.1f} degrees, "
                                    f"is beyond {cfg['max_roll']:g})")
     else:
-        status, note = "applied", f"lights and normals turned {t:+.1f} degrees about the view axis (integrability)"
+        status, note = "applied", (f"lights: turned {t:+.1f} degrees about the view axis, the roll that makes the "
+                                   "normals from them most integrable")
     info = {**est.info, "refine": {**(est.info.get("refine") or {}),
                                    "roll": {"degrees": round(t, 3), "gain": round(gain, 5), "status": status}}}
     est = replace(est, info=info, notes=[*est.notes, note])
