@@ -59,7 +59,7 @@ def test_release_ups_fcn_solves_a_sphere_without_lights(scene):
 
     images, _, normals, mask = scene
     est = estimate_normals(images, None, mask, method="ups-fcn", weights=release("ups_fcn.pt"), device="cpu")
-    assert angular_error(est, normals, mask).mean() < 20.0  # 6.0 measured (session 21); its init file: 47
+    assert angular_error(est, normals, mask).mean() < 20.0  # 6.3 measured (session 22; 6.0 the session-21 file); its init file: 47
 
 
 def test_release_lcnet_finds_the_lights(scene):
