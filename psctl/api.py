@@ -379,7 +379,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from dataclasses import replace
 
         from psctl.infer import capture_normals
-        from psctl.lights import capture_lights, light_errors, refine_capture, roll_estimate
+        from psctl.lights import capture_lights, light_errors, lights_changed, refine_capture, roll_estimate
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
@@ -400,7 +400,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes += est.notes + net.notes
         light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if light_stats["light_mae"] is not None:
-            refined = refine and est.info["refine"]["weight"] > 0
+            refined = refine and lights_changed(est.info["refine"])
             notes.append(f"lights: direction error {light_stats['light_mae']:.2f}° (mean)" + (
                 "" if light_stats["intensity_re"] is None else
                 f", intensity relative error {light_stats['intensity_re']:.3f}") + (

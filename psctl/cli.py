@@ -33,7 +33,7 @@ WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Net
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
-RollOpt = Annotated[Optional[bool], typer.Option("--roll/--no-roll", help="After the light refinement, turn the lights and normals about the view axis by the roll that makes the normals most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
+RollOpt = Annotated[Optional[bool], typer.Option("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 

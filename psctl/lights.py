@@ -502,7 +502,8 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
     """The turn about the view axis that makes a normal map most integrable.
 
     A surface's gradient field (dz/dcol, dz/drow) = (-nx/nz, +ny/nz) has no curl; scaled by
-    nz^2 (bounded where the surface is steep) the curl is, per 2 x 2 block of pixels,
+    nz^2 (bounded where the surface is steep) the curl is, per pixel and its right and lower
+    neighbours (forward differences),
     r = -nz dnx/drow + nx dnz/drow - nz dny/dcol + ny dnz/dcol. Turning the normals by an angle t
     about the view axis leaves nz and turns (nx, ny), so r(t) = cos(t) r(0) + sin(t) r(90 deg) and
     the t minimising the sum of r(t)^2 has a closed form. Turns about in-plane axes change r far
@@ -515,7 +516,8 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
     Returns:
         (roll in degrees, counterclockwise seen from the camera: turning the normals by it makes
         them most integrable; the residual's relative drop sum r(0)^2 / sum r(roll)^2 >= 1; the
-        number of 2 x 2 blocks used). (0, 1, k) when fewer than 100 blocks are usable.
+        number of pixels used, each with both neighbours inside). (0, 1, k) when fewer than 100
+        are usable.
     """
     from scipy.ndimage import binary_erosion
 
@@ -533,10 +535,14 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
         return 0.0, 1.0, k
 
     def curl(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray) -> np.ndarray:
-        c = lambda a: a[:-1, :-1]  # noqa: E731
-        drow = lambda a: a[1:, :-1] - a[:-1, :-1]  # noqa: E731
-        dcol = lambda a: a[:-1, 1:] - a[:-1, :-1]  # noqa: E731
-        return (-c(nz) * drow(nx) + c(nx) * drow(nz) - c(nz) * dcol(ny) + c(ny) * dcol(nz))[block]
+        def drow(a: np.ndarray) -> np.ndarray:  # forward differences down the rows
+            return a[1:, :-1] - a[:-1, :-1]
+
+        def dcol(a: np.ndarray) -> np.ndarray:  # and along the columns
+            return a[:-1, 1:] - a[:-1, :-1]
+
+        x, y, z = nx[:-1, :-1], ny[:-1, :-1], nz[:-1, :-1]
+        return (-z * drow(nx) + x * drow(nz) - z * dcol(ny) + y * dcol(nz))[block]
 
     nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
     a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
@@ -557,6 +563,12 @@ def turn_about_view_axis(vectors: np.ndarray, degrees: float) -> np.ndarray:
     out[..., 0] = c * v[..., 0] - s * v[..., 1]
     out[..., 1] = s * v[..., 0] + c * v[..., 1]
     return out
+
+
+def lights_changed(info: dict | None) -> bool:
+    """Whether a refinement report (``info["refine"]``) says LCNet's lights were changed: fitted
+    with some weight, or turned by the roll."""
+    return bool(info) and (info["weight"] > 0 or (info.get("roll") or {}).get("status") == "applied")
 
 
 def wants_roll(config: dict | None = None) -> bool:
@@ -595,6 +607,8 @@ def refine_config(falloff: str | None, roll: bool | None = None) -> dict | None:
     DEFAULT_REFINE's); one-line error for a falloff other than "shifted" or "lambertian"."""
     if falloff is not None and falloff not in FALLOFFS:
         raise PsctlError(None, f"--falloff must be {' or '.join(FALLOFFS)}, not {falloff!r}")
+    if roll is not None and not isinstance(roll, (bool, np.bool_)):
+        raise PsctlError(None, f"roll must be True, False or None, not {roll!r}")
     cfg = {k: v for k, v in (("falloff", falloff), ("roll", roll)) if v is not None}
     return cfg or None
 
@@ -871,7 +885,7 @@ def render_lights(r: dict) -> None:
         line += f", {r['lights_refined']['weight']:.0%} refined against the normals"  # as the note says
     if r["light_mae"] is not None:
         line += f"\n  light direction error [bold]{r['light_mae']:.2f}°[/] (mean)"
-        if r.get("lights_refined") and r["lights_refined"]["weight"] > 0 and r.get("lcnet_light_mae") is not None:
+        if lights_changed(r.get("lights_refined")) and r.get("lcnet_light_mae") is not None:
             line += f" (LCNet alone {r['lcnet_light_mae']:.2f}°)"
     if r["intensity_re"] is not None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"

@@ -461,9 +461,53 @@ def test_roll_option_reaches_sdps_lights_and_eval(tmp_path, fake_weights, stand_
     assert any("--roll/--no-roll is unused (only sdps" in n for n in r["notes"])
     rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", roll=False, refine=False)
     assert any("--roll/--no-roll is unused without --refine" in n for n in rl["notes"])
-    d, e = estimate_lights(data["images"], data["mask"], device="cpu", roll=True)
-    assert d.shape == (24, 3) and e.shape == (24,)
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps", "--roll", "--json", "-q",
-                 env={"PSCTL_WEIGHTS": str(fake_weights)})
-    assert proc.returncode == 0, proc.stderr  # real (fake-weight) networks: the flag reaches the report
-    assert "roll" in json.loads(proc.stdout)["objects"][0]["lights_refined"]
+    from psctl.errors import PsctlError
+
+    with pytest.raises(PsctlError, match="roll must be True, False or None"):
+        estimate_lights(data["images"], data["mask"], device="cpu", roll="no")
+    # the CLI flags reach the reports (real networks with fake weights, in a subprocess: the
+    # default is on, so --no-roll is what shows that a flag got through)
+    env = {"PSCTL_WEIGHTS": str(fake_weights)}
+    for cmd, key in ((["eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps"], "eval"),
+                     (["normals", tmp_path / "aPNG", "-m", "sdps", "--out", tmp_path / "n"], "normals"),
+                     (["lights", tmp_path / "aPNG", "--out", tmp_path / "l"], "lights")):
+        for flag in ("--roll", "--no-roll"):
+            proc = psctl(*cmd, flag, "--json", "-q", env=env)
+            assert proc.returncode == 0, proc.stderr
+            out = json.loads(proc.stdout)
+            refined = out["objects"][0]["lights_refined"] if key == "eval" else out["lights_refined"]
+            assert ("roll" in refined) is (flag == "--roll"), (cmd, flag)
+
+
+def test_array_api_applies_the_roll(monkeypatch, fake_weights):
+    """estimate_normals(method="sdps") and estimate_lights with a second stage whose normals are
+    the truth turned 6 degrees about the view axis (stand-ins for both networks)."""
+    import psctl.infer
+    import psctl.lights
+    from psctl.api import estimate_lights, estimate_normals
+    from psctl.lights import turn_about_view_axis
+    from tests.conftest import render_lambertian
+
+    normals, mask = bumps()
+    lights = hemisphere_lights(24, 35.0, 0)
+    images = render_lambertian(normals, mask, lights, 0.7)
+
+    def array_lights(images, mask=None, weights=None, config=None, model=None, progress=None):
+        return LightEstimate(rotate_randomly(lights, 8.0, 5), np.ones(24, np.float32), {}, {}, [])
+
+    def array_normals(imgs, dirs, mask, method, weights=None, config=None, progress=None):
+        return psctl.infer.InferResult(turn_about_view_axis(normals, 6.0), np.zeros(mask.shape, bool), {}, [])
+
+    monkeypatch.setattr(psctl.lights, "array_lights", array_lights)
+    monkeypatch.setattr(psctl.infer, "array_normals", array_normals)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+
+    def err(n):
+        return float(np.degrees(np.arccos(np.clip((n * normals).sum(-1)[mask], -1, 1))).mean())
+
+    on = estimate_normals(images, None, mask, method="sdps", device="cpu")  # the default
+    off = estimate_normals(images, None, mask, method="sdps", device="cpu", roll=False)
+    assert err(off) > 3.0 and err(on) < 0.5
+    d_on, _ = estimate_lights(images, mask, device="cpu")
+    d_off, _ = estimate_lights(images, mask, device="cpu", roll=False)
+    assert light_direction_error(d_on, lights).mean() < light_direction_error(d_off, lights).mean() - 1.0
