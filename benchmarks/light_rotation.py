@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 
 import numpy as np
 
 from psctl.api import sdps_lcnet_config, sdps_second_stage
 from psctl.infer import capture_normals
 from psctl.io.capture import load_mask, open_capture
-from psctl.lights import capture_lights, refine_capture
+from psctl.lights import capture_lights, lit_capture, refine_capture
 from psctl.metrics import light_direction_error
 
 
@@ -40,8 +39,7 @@ def measure(path: str) -> dict:
     mask = load_mask(cap)
     second = sdps_second_stage(None)[0]
     est = capture_lights(cap, mask, None, sdps_lcnet_config(second, None, "auto"))
-    lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-    net = capture_normals(lit, mask, second, None, {})
+    net = capture_normals(lit_capture(cap, est), mask, second, None, {})
     ref = refine_capture(cap, mask, est, net.normals)
     out = {"object": cap.name, "refine_weight": ref.info["refine"]["weight"]}
     for name, d in (("lcnet", est.directions), ("refined", ref.directions)):

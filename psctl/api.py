@@ -379,21 +379,20 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from dataclasses import replace
 
         from psctl.infer import capture_normals
-        from psctl.lights import capture_lights, light_errors, lights_changed, refine_capture, roll_estimate
+        from psctl.lights import (capture_lights, light_errors, lights_changed, lit_capture, refine_capture,
+                                  roll_estimate)
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         net_cfg = {"device": device, "views": views}
-        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-        net = capture_normals(lit, mask, second, weights, net_cfg, progress)
+        net = capture_normals(lit_capture(cap, est), mask, second, weights, net_cfg, progress)
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if refine:
             est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, fit)
             if est.info["refine"]["weight"] > 0:
-                lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-                net = capture_normals(lit, mask, second, weights, net_cfg, progress)
+                net = capture_normals(lit_capture(cap, est), mask, second, weights, net_cfg, progress)
             est, rolled = roll_estimate(est, net.normals, mask, fit)
             net = replace(net, normals=rolled)
         normals, dark = net.normals, net.dark

@@ -613,6 +613,12 @@ def refine_config(falloff: str | None, roll: bool | None = None) -> dict | None:
     return cfg or None
 
 
+def lit_capture(capture: "Capture", est: LightEstimate) -> "Capture":
+    """``capture`` with ``est``'s lights in place of its light files (the same intensity in R, G
+    and B): what sdps' second stage reads."""
+    return replace(capture, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+
+
 def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,
                    method: str = "PS-FCN", progress: "ProgressFactory | None" = None,
                    config: dict | None = None) -> LightEstimate:
@@ -862,14 +868,12 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
     second = sdps_second_stage(weights)[0]
-    lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-    net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
+    net = capture_normals(lit_capture(cap, est), mask, second, weights, {"device": device}, progress)
     est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, config)
     if not wants_roll(config):
         return est
     if est.info["refine"]["weight"] > 0:  # the roll is read from the normals of the final lights, as in sdps
-        lit = replace(cap, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
-        net = capture_normals(lit, mask, second, weights, {"device": device}, progress)
+        net = capture_normals(lit_capture(cap, est), mask, second, weights, {"device": device}, progress)
     return roll_estimate(est, net.normals, mask, config)[0]
 
 
