@@ -18,11 +18,11 @@ import json
 
 import numpy as np
 
-from psctl.api import sdps_lcnet_config, sdps_second_stage
 from psctl.infer import capture_normals
 from psctl.io.capture import load_mask, open_capture
 from psctl.lights import capture_lights, lit_capture, refine_capture
 from psctl.metrics import light_direction_error
+from psctl.sdps import sdps_lcnet_config, sdps_second_stage
 
 
 def best_rotation(est: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ import numpy as np
 
 from psctl.errors import PsctlError
 from psctl.models import NETWORK_METHODS
+from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
 # progress(description, total) -> advance(n): how library code reports progress without
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
@@ -23,96 +24,10 @@ ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
-# sdps (uncalibrated): LCNet estimates the lights (weights/lcnet.pt or --lcnet FILE), then PS-FCN†
-# estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); see psctl/lights.py.
-SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light_directions.txt only scores the lights)"
-# sdps's second stage, in order of preference: PS-FCN† was trained on LCNet's lights (the
-# paper's choice); without it, a calibrated network runs on the estimated lights instead, PS-FCN
-# before PS-FCN+N (on LCNet's lights it measured better on syntest and the dev split with every
-# LCNet so far; docs/weights-history.md).
-SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")
-_SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
-
-
-def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, str]:
-    """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
-
-    ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
-    None: the first installed of PS-FCN†, PS-FCN, PS-FCN+N. Raises when there is none.
-    """
-    from psctl.models.weights import installed_path, no_weights_error, read_weights
-
-    if weights is not None:
-        w = read_weights(weights)
-        kind = w.method or w.metadata.get("kind")
-        if w.official and kind == "ps-fcn" and w.lights:  # the authors' NENet has PS-FCN's keys
-            kind = "ps-fcn-dagger"
-        if kind not in SDPS_SECOND:
-            raise PsctlError(weights, f"holds {_SHOWN.get(kind, kind)} weights; --weights for sdps takes "
-                                      "PS-FCN† (or PS-FCN / PS-FCN+N) weights")
-        method = kind
-    else:
-        method = next((m for m in SDPS_SECOND if installed_path(m) is not None), None)
-        if method is None:
-            raise no_weights_error("ps-fcn-dagger")
-    if method == "ps-fcn-dagger":
-        return method, SDPS_NOTE
-    return method, (f"sdps: lights estimated by LCNet, then normals by {_SHOWN[method]} on those lights "
-                    "(PS-FCN†, trained on LCNet's lights, is not installed; a light_directions.txt only "
-                    "scores the lights)")
-
-
-def sdps_decode(method: str, weights: str | os.PathLike | None = None) -> str:
-    """How sdps turns LCNet's classes into lights: the decoding the PS-FCN† file was trained on
-    (its metadata ``lcnet.decode``), so it sees the kind of lights it learned from; argmax (the
-    paper's) for the authors' files; soft-argmax for a calibrated second stage, which learned
-    from continuous lights (sdps on syntest: 9.53 vs 9.83 degrees with argmax; weights/README.md)."""
-    from psctl.models.weights import installed_path, read_weights
-
-    if method != "ps-fcn-dagger":
-        return "soft"
-    path = weights if weights is not None else installed_path(method)
-    lc = read_weights(path).metadata.get("lcnet") if path is not None else None
-    return lc.get("decode", "argmax") if isinstance(lc, dict) else "argmax"
-
-
-def sdps_lcnet_config(method: str, weights: str | os.PathLike | None, device: str) -> dict:
-    """LCNet options for sdps (psctl.lights.DEFAULT_LIGHTS): the decoding of ``sdps_decode``;
-    with argmax (a PS-FCN† trained on bin-centre lights, or the authors' file) one view, so that
-    the second stage still gets bin centres; otherwise the default symmetric views."""
-    from psctl.lights import DEFAULT_LIGHTS
-
-    decode = sdps_decode(method, weights)
-    return {"device": device, "decode": decode, "views": 1 if decode == "argmax" else DEFAULT_LIGHTS["views"]}
 
 
 def _noop(_: int) -> None:
     pass
-
-
-def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> str:
-    """Fail early, in one line, when sdps lacks weights: which files are missing and how to get
-    them. Returns the note naming the second stage (``sdps_second_stage``)."""
-    from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, read_weights, weights_dir
-
-    # a given file must hold what its flag is for, checked before minutes of LCNet work
-    if lcnet is not None:
-        w = read_weights(lcnet)
-        kind = w.method or w.metadata.get("kind")
-        if kind != "lcnet":
-            raise PsctlError(lcnet, f"holds {_SHOWN.get(kind, kind)} weights; --lcnet for sdps takes LCNet weights")
-    second = weights is not None or any(installed_path(m) is not None for m in SDPS_SECOND)
-    if lcnet is None and installed_path("lcnet") is None:
-        if second:
-            raise no_weights_error("lcnet", "--lcnet")
-        where = weights_dir()
-        raise PsctlError(None, f"sdps needs the LCNet and PS-FCN† weights, and neither is installed (looked for "
-                               f"{where / file_name('lcnet')} and {where / file_name('ps-fcn-dagger')}; set ${ENV_VAR} "
-                               f"to use another folder). Train them on a GPU with `psctl train lcnet --config "
-                               f"configs/lcnet.yaml --install`, then `psctl train ps-fcn-dagger --config "
-                               f"configs/ps_fcn_dagger.yaml --install` (docs/training.md), or pass --lcnet FILE and "
-                               f"--weights FILE (docs/uncalibrated.md)")
-    return sdps_second_stage(weights)[1]
 
 
 def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None,
@@ -202,28 +117,21 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
-    from psctl.lights import array_lights, refine_arrays, refine_config, roll_estimate, wants_roll
+    from psctl.lights import array_lights, refine_config
     from psctl.models.weights import installed_path
+    from psctl.sdps import array_source, second_stage
 
     fit = refine_config(falloff, roll)
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
-        from psctl.infer import array_normals
         from psctl.io.images import to_rgb
 
         images = np.asarray(images, np.float32)
         if images.ndim == 3:
             images = images[..., None]
         images = np.ascontiguousarray(to_rgb(images))  # grey / RGBA as array_lights reads them
-        second = sdps_second_stage(None)[0]
-        normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, None,
-                                {"device": device}).normals
-        est = refine_arrays(images, mask, est, normals, _SHOWN[second], fit)
-        if wants_roll(fit):  # the roll is read from the normals of the final lights
-            if est.info["refine"]["weight"] > 0:
-                normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
-                                        None, {"device": device}).normals
-            est = roll_estimate(est, normals, mask, fit)[0]
+        source = array_source(images, mask, sdps_second_stage(None)[0], None, {"device": device})
+        est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
 
 
@@ -281,21 +189,13 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
-        from psctl.infer import array_normals
-        from psctl.lights import array_lights, refine_arrays, roll_estimate
+        from psctl.lights import array_lights
+        from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
-        cfg = {"device": device, "views": views}
-        normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second, weights,
-                                cfg).normals
-        if refine:
-            est = refine_arrays(images, mask, est, normals, _SHOWN[second], fit)
-            if est.info["refine"]["weight"] > 0:
-                normals = array_normals(images / est.intensities[:, None, None, None], est.directions, mask, second,
-                                        weights, cfg).normals
-            normals = roll_estimate(est, normals, mask, fit)[1]
-        return normals
+        source = array_source(images, mask, second, weights, {"device": device, "views": views})
+        return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS:
         from psctl.infer import array_normals
 
@@ -376,25 +276,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     # --- solve -------------------------------------------------------------------------------
     light_stats = None
     if method == "sdps":
-        from dataclasses import replace
-
-        from psctl.infer import capture_normals
-        from psctl.lights import (capture_lights, light_errors, lights_changed, lit_capture, refine_capture,
-                                  roll_estimate)
+        from psctl.lights import capture_lights, light_errors, lights_changed
+        from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
-        net_cfg = {"device": device, "views": views}
-        net = capture_normals(lit_capture(cap, est), mask, second, weights, net_cfg, progress)
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-        if refine:
-            est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, fit)
-            if est.info["refine"]["weight"] > 0:
-                net = capture_normals(lit_capture(cap, est), mask, second, weights, net_cfg, progress)
-            est, rolled = roll_estimate(est, net.normals, mask, fit)
-            net = replace(net, normals=rolled)
+        source = capture_source(cap, mask, second, weights, {"device": device, "views": views}, progress)
+        est, net = second_stage(source, est, refine, fit)
         normals, dark = net.normals, net.dark
         notes += est.notes + net.notes
         light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)

@@ -860,21 +860,14 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
                     device: str, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
     turned by the roll of the normals from the refined lights when the config says so)."""
-    from psctl.api import _SHOWN, SDPS_SECOND, sdps_second_stage
-    from psctl.infer import capture_normals
     from psctl.models.weights import installed_path
+    from psctl.sdps import SDPS_SECOND, capture_source, sdps_second_stage, second_stage
 
     if weights is None and not any(installed_path(m) for m in SDPS_SECOND):
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
-    second = sdps_second_stage(weights)[0]
-    net = capture_normals(lit_capture(cap, est), mask, second, weights, {"device": device}, progress)
-    est = refine_capture(cap, mask, est, net.normals, _SHOWN[second], progress, config)
-    if not wants_roll(config):
-        return est
-    if est.info["refine"]["weight"] > 0:  # the roll is read from the normals of the final lights, as in sdps
-        net = capture_normals(lit_capture(cap, est), mask, second, weights, {"device": device}, progress)
-    return roll_estimate(est, net.normals, mask, config)[0]
+    source = capture_source(cap, mask, sdps_second_stage(weights)[0], weights, {"device": device}, progress)
+    return second_stage(source, est, True, config, normals=False)[0]
 
 
 def render_lights(r: dict) -> None:

@@ -364,7 +364,8 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
 
 
 def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_weights):
-    from psctl.api import run_normals, sdps_decode
+    from psctl.api import run_normals
+    from psctl.sdps import sdps_decode
     from psctl.models.ps_fcn import PSFCN
 
     write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)

@@ -511,3 +511,45 @@ def test_array_api_applies_the_roll(monkeypatch, fake_weights):
     d_on, _ = estimate_lights(images, mask, device="cpu")
     d_off, _ = estimate_lights(images, mask, device="cpu", roll=False)
     assert light_direction_error(d_on, lights).mean() < light_direction_error(d_off, lights).mean() - 1.0
+
+
+@pytest.mark.parametrize("weight", [0.0, 0.6])
+def test_second_stage_runs_the_network_only_when_needed(weight):
+    """psctl.sdps.second_stage over a stand-in Source: how often the second stage runs, and what
+    comes back, for sdps (normals) and psctl lights (lights alone), with the roll on and off."""
+    import psctl.infer
+    from psctl.lights import turn_about_view_axis
+    from psctl.sdps import Source, second_stage
+
+    normals, mask = bumps()
+    lights = hemisphere_lights(12, 35.0, 0)
+    lcnet = LightEstimate(lights, np.ones(12, np.float32), {}, {}, [])
+    refined = turn_about_view_axis(lights, 1.0).astype(np.float32)
+    seen = []
+
+    def run(est):  # the truth turned 4 degrees about the view axis, whatever the lights
+        seen.append(est.directions)
+        return psctl.infer.InferResult(turn_about_view_axis(normals, 4.0), np.zeros(mask.shape, bool), {}, ["net"])
+
+    def refine(est, n, config):
+        return LightEstimate(refined if weight else est.directions, est.intensities, {}, {"refine": {"weight": weight}},
+                             [])
+
+    source = Source(run, refine, mask)
+    for roll, want_normals, passes in ((True, True, 1 + (weight > 0)), (False, True, 1 + (weight > 0)),
+                                       (True, False, 1 + (weight > 0)), (False, False, 1)):
+        seen.clear()
+        est, net = second_stage(source, lcnet, True, {"roll": roll}, normals=want_normals)
+        assert len(seen) == passes, (roll, want_normals)
+        np.testing.assert_array_equal(seen[0], lights)  # the first pass gets LCNet's lights
+        if passes == 2:
+            np.testing.assert_array_equal(seen[1], refined)
+        assert ("roll" in est.info["refine"]) is roll
+        if want_normals:
+            err = np.degrees(np.arccos(np.clip((net.normals * normals).sum(-1)[mask], -1, 1))).mean()
+            assert (err < 0.2) if roll else (err > 1.0)  # turned back with the lights, or left (4 sin(zenith))
+        else:
+            assert net is None
+    seen.clear()
+    est, net = second_stage(source, lcnet, False, {"roll": True})  # --no-refine: one pass, LCNet's lights
+    assert len(seen) == 1 and est is lcnet and "refine" not in est.info
