@@ -7,16 +7,21 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psctl.errors import PsctlError
-from psctl.models import NETWORK_METHODS
+from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
+
+if TYPE_CHECKING:
+    from psctl.io.atomic import OutputBatch
 
 # progress(description, total) -> advance(n): how library code reports progress without
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
@@ -212,7 +217,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 seed: int | None = None, write: bool = True,
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> dict:
+                refine: bool = True, falloff: str | None = None, roll: bool | None = None,
+                batch: "OutputBatch | None" = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -228,13 +234,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
     ("shifted" or "lambertian", None: the default) is the refinement's shading model; ``roll``
     (None: the default) turns the refined lights and the normals about the view axis by the
-    normals' roll (``psctl.lights.roll_estimate``).
+    normals' roll (``psctl.lights.roll_estimate``). ``batch`` (``psctl.io.atomic.OutputBatch``):
+    stage the files there, to appear with the other runs of the batch (``psctl eval --out``).
+    The out folder holds one run's outputs: psctl's output files there that this run does not
+    write (another ``formats``, no ground truth) are removed, and a note says so.
     """
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, staged_outputs
-    from psctl.io.capture import bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images
+    from psctl.io.capture import (bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images,
+                                  selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
     from psctl.metrics import angular_error, summarize
@@ -242,10 +252,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: _noop)
     fit = refine_config(falloff, roll)
+    check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path)
+    picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
-    notes = [note] if note else []
+    notes = ([note] if note else []) + picked
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
         if value is not None and (method != "sdps" or not refine):
             notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
@@ -259,15 +271,27 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
         if cap.n_images < 3:
             raise PsctlError(cap.path, f"l2 needs at least 3 images (got {cap.n_images})")
+        s = np.linalg.svd(cap.lights.astype(np.float64), compute_uv=False)  # before any image is read
+        if s[-1] < 1e-3 * s[0]:  # L2Accumulator's test on L^T L, 1e-6, on L itself
+            raise PsctlError(cap.path / "light_directions.txt", "light directions are (nearly) coplanar: l2 "
+                             f"cannot determine the normals from these {cap.n_images}")
     out_dir = Path(out) if out is not None else cap.path / "psctl"
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
+    all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write
     if write:
+        if out_dir.resolve() == cap.path.resolve():  # normal.png there would be read as ground truth next time
+            raise PsctlError(out_dir, "is the capture folder: its files are inputs; choose another --out "
+                                      "(the default is PATH/psctl)")
         inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
         clash = [n for n in names if (out_dir / n).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
+        stale = [n for n in all_names if n not in names and (out_dir / n).is_file()]
+        if stale:
+            notes.append(f"outputs: {', '.join(stale)} in {out_dir} came from an earlier run and will be removed "
+                         "(a folder holds one run's outputs)")
 
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
@@ -308,6 +332,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             acc.add(img, cap.lights[k])
             advance(1)
         res = acc.solve()
+        if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
+            raise PsctlError(cap.path, "all images are black inside the mask")
         normals = np.zeros((cap.height, cap.width, 3), np.float32)
         normals[box] = res.normals
         dark = np.zeros(mask.shape, bool)
@@ -359,13 +385,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     # --- write ---------------------------------------------------------------------------------
     if write:
         report["outputs"] = {_output_key(n): str(out_dir / n) for n in names}
-        with staged_outputs(out_dir) as stage:
+        staging = staged_outputs(out_dir, all_names) if batch is None else \
+            contextlib.nullcontext(batch.stage(out_dir, all_names).path)
+        with staging as stage:
             for f in formats:
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
             if error is not None:
                 write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"])
+            report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
+            if error is not None:
                 write_json(stage / "report.json", report)
-        report["seconds"] = round(time.perf_counter() - t0, 3)
     return report
 
 

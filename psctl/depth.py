@@ -742,13 +742,14 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
 def render_depth(r: dict, quiet: bool = False) -> None:
     """Print a ``run_depth`` report for people (Rich, stdout)."""
     from rich.console import Console
+    from rich.markup import escape
 
     con = Console()
     for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {note}", highlight=False, soft_wrap=True)
-    con.print(f"[bold]{r['object']}[/]: {r['method']} ({r['projection']}), {r['n_pixels']} pixels, "
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    con.print(f"[bold]{escape(r['object'])}[/]: {r['method']} ({r['projection']}), {r['n_pixels']} pixels, "
               f"{r['n_vertices']} vertices, {r['n_faces']} triangles, {r['seconds']:.2f} s", highlight=False,
               soft_wrap=True)
     if not quiet:
         for p in r["outputs"].values():
-            con.print(f"  wrote {p}", highlight=False)
+            con.print(f"  wrote {p}", highlight=False, markup=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -67,6 +68,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
+    from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import find_objects, object_name, open_capture
     from psctl.lights import refine_config
 
@@ -84,20 +86,23 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     for folder in folders:
         if open_capture(folder).gt_path is None:
             raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png / normal.png)")
+    names = [object_name(f) for f in folders]
+    for name in dict.fromkeys(names):
+        same = [f.name for f, n in zip(folders, names) if n == name]
+        if len(same) > 1:  # one column (and one out/<object>/ folder) each
+            raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
+    if out is not None:
+        check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
-    for folder in folders:
-        r = run_normals(folder, method=method, out=None if out is None else Path(out) / object_name(folder),
-                        n_images=n_images, seed=seed, write=out is not None, progress=progress,
-                        weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
-                        falloff=falloff, roll=roll)
-        used.append(r["method"])
-        objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
-                        "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
-        if "light_mae" in r:  # sdps: the lights LCNet estimated
-            objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"],
-                               lcnet_light_mae=r["lcnet_light_mae"], lcnet_intensity_re=r["lcnet_intensity_re"],
-                               lights_refined=r["lights_refined"])
+    # with --out every object's files appear together at the end, or none do
+    with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
+        for folder, name in zip(folders, names):
+            r = run_normals(folder, method=method, out=None if out is None else Path(out) / name,
+                            n_images=n_images, seed=seed, write=out is not None, progress=progress,
+                            weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
+                            falloff=falloff, roll=roll, batch=batch)
+            _collect(objects, used, r)
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
     result = {
@@ -115,3 +120,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         lights = PAPER_DILIGENT_LIGHTS if benchmark == "diligent" else {}
         result["paper_lights"] = {o["name"]: lights[o["name"]] for o in objects if o["name"] in lights}
     return result
+
+
+def _collect(objects: list[dict], used: list[str], r: dict) -> None:
+    """One object's row of the table from its ``run_normals`` report."""
+    used.append(r["method"])
+    objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
+                    "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
+    if "light_mae" in r:  # sdps: the lights LCNet estimated
+        objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"],
+                           lcnet_light_mae=r["lcnet_light_mae"], lcnet_intensity_re=r["lcnet_intensity_re"],
+                           lights_refined=r["lights_refined"])

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.errors import PsctlError
+from psctl.models import check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
 
 if TYPE_CHECKING:
@@ -148,7 +149,7 @@ def pick_device(name: str = "auto") -> "torch.device":
     """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error."""
     import torch
 
-    name = (name or "auto").lower()
+    name = check_device_name(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cpu":
@@ -158,7 +159,7 @@ def pick_device(name: str = "auto") -> "torch.device":
             raise PsctlError(None, f"--device {name}: torch sees no CUDA GPU (torch {torch.__version__}); "
                                    "use --device cpu or auto")
         return torch.device(name)
-    raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
+    raise AssertionError(name)  # check_device_name let it through
 
 
 def cpu_has_bf16() -> bool:
@@ -504,9 +505,14 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
 
-    res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
-                    run["train_images"], config, progress, f"{capture.name}: reading + {method}", run.get("input_mean"),
-                    run.get("input_clip"))
+    try:
+        res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
+                        run["train_images"], config, progress, f"{capture.name}: reading + {method}",
+                        run.get("input_mean"), run.get("input_clip"))
+    except PsctlError as e:
+        if e.path is not None:
+            raise
+        raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
     res.notes.append(note)
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")

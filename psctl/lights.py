@@ -802,11 +802,12 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, staged_outputs
-    from psctl.io.capture import load_mask, open_capture, select_images
+    from psctl.io.capture import load_mask, open_capture, select_images, selection_notes
 
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
     cap = open_capture(path)
+    picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     out_dir = Path(out) if out is not None else cap.path / "psctl"
     if write:
@@ -844,7 +845,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "lcnet_intensity_re": lcnet_errors["intensity_re"],
         "device": est.info["device"],
         "seconds": round(time.perf_counter() - t0, 3),
-        "notes": est.notes,
+        "notes": picked + est.notes,
     }
     if write:
         report["outputs"] = {k: str(out_dir / v) for k, v in OUTPUT_FILES.items()}
@@ -873,11 +874,12 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
 def render_lights(r: dict) -> None:
     """The human-readable summary of ``run_lights``'s report (Rich, stdout)."""
     from rich.console import Console
+    from rich.markup import escape
 
     con = Console()
     for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {note}", highlight=False)
-    line = f"[bold]{r['object']}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    line = f"[bold]{escape(r['object'])}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
     if r.get("lights_refined") and r["lights_refined"]["weight"] > 0:
         line += f", {r['lights_refined']['weight']:.0%} refined against the normals"  # as the note says
     if r["light_mae"] is not None:
@@ -888,4 +890,4 @@ def render_lights(r: dict) -> None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
     con.print(line, highlight=False, soft_wrap=True)
     for p in r["outputs"].values():
-        con.print(f"  wrote {p}", highlight=False)
+        con.print(f"  wrote {p}", highlight=False, markup=False)

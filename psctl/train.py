@@ -32,13 +32,12 @@ from __future__ import annotations
 
 import base64
 import copy
-import io
 import json
 import math
 import os
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any

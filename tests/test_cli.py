@@ -37,7 +37,7 @@ def test_normals_writes_outputs_and_json(capture, tmp_path):
     pixels, info = read_image(out / "normal.png")
     assert info.bits == 16 and pixels.shape == (40, 40, 3)
     report = json.loads((out / "report.json").read_text())
-    assert report["mae"] == pytest.approx(r["mae"])
+    assert report["mae"] == pytest.approx(r["mae"]) and report["seconds"] == r["seconds"]
     # the PNG decodes to the same normals as the EXR, and both agree with the metric
     a, b = read_normal_map(out / "normal.png"), read_normal_map(out / "normal.exr")
     m = np.linalg.norm(b, axis=-1) > 0
@@ -136,6 +136,27 @@ def _break(kind: str, folder: Path) -> str:
         rows[3] = "1 0 1"
         (folder / "light_intensities.txt").write_text("\n".join(rows) + "\n")
         return "light_intensities.txt"
+    if kind in ("tiny intensity", "huge intensity"):  # 0 or inf once in float32
+        rows = (folder / "light_intensities.txt").read_text().splitlines()
+        rows[4] = "1e-46 1 1" if kind == "tiny intensity" else "1 1e39 1"
+        (folder / "light_intensities.txt").write_text("\n".join(rows) + "\n")
+        return "light_intensities.txt"
+    if kind == "coplanar lights":
+        rows = [f"{np.cos(t):.6f} 0 {np.sin(t):.6f}" for t in np.linspace(0.3, 1.2, 12)]  # all in the plane y = 0
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind == "black images":
+        for k in range(12):
+            write_image(folder / f"{k + 1:03d}.png", np.zeros((40, 40, 3)), "uint16")
+        return str(folder.name)
+    if kind == "listed folder":
+        (folder / "003.png").unlink()
+        (folder / "003.png").mkdir()
+        return "003.png"
+    if kind == "mask folder":
+        (folder / "mask.png").unlink()
+        (folder / "mask.png").mkdir()
+        return "mask.png"
     if kind == "image size":
         write_image(folder / "005.png", np.zeros((30, 40, 3)), "uint16")
         return "005.png"
@@ -174,14 +195,15 @@ def _break(kind: str, folder: Path) -> str:
 
 BAD = ["missing image", "count mismatch", "malformed light", "nan light", "zero-length light", "short light row",
        "bad intensity", "image size", "mask size", "gt size", "empty mask", "corrupt image", "truncated image",
-       "nan image", "too few images"]
+       "nan image", "too few images", "tiny intensity", "huge intensity", "coplanar lights", "black images",
+       "listed folder", "mask folder"]
 
 
 @pytest.mark.parametrize("kind", BAD)
 def test_bad_input(kind, capture, tmp_path):
     before = {p.name: p.read_bytes() for p in capture.iterdir()}
     culprit = _break(kind, capture)
-    damaged = {p.name: p.read_bytes() for p in capture.iterdir()}
+    damaged = {p.name: p.read_bytes() if p.is_file() else None for p in capture.iterdir()}
     out = tmp_path / "out"
     proc = psctl("normals", capture, "--method", "l2", "--out", out)
     assert proc.returncode == 2, (kind, proc.stdout, proc.stderr)
@@ -190,7 +212,7 @@ def test_bad_input(kind, capture, tmp_path):
     assert culprit in lines[0], (kind, lines[0])
     assert "Traceback" not in proc.stderr
     assert not out.exists() or not any(out.iterdir())  # no partial output
-    assert {p.name: p.read_bytes() for p in capture.iterdir()} == damaged  # inputs untouched
+    assert {p.name: p.read_bytes() if p.is_file() else None for p in capture.iterdir()} == damaged  # inputs untouched
     assert before  # (the fixture was a valid folder before _break)
 
 
@@ -226,6 +248,47 @@ def test_other_user_errors(args, needle, capture):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["normals", "{capture}", "-m", "l2", "-n", "5", "--seed", "-1"], "--seed must be 0 or more"),
+    (["lights", "{capture}", "-n", "5", "--seed", "-1"], "--seed must be 0 or more"),
+    (["normals", "{capture}", "-m", "l2", "--device", "gpu"], "unknown --device 'gpu'"),
+])
+def test_bad_options_before_any_work(args, needle, capture, tmp_path):
+    proc = psctl(*[a.replace("{capture}", str(capture)) for a in args], "--out", tmp_path / "o")
+    assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+def test_messages_show_brackets_as_they_are(tmp_path):
+    folder = tmp_path / "cap[red]x"
+    write_capture(folder)
+    (folder / "light_directions.txt").write_text("0 0 1\n")  # one row for 12 images
+    proc = psctl("normals", folder, "-m", "l2")
+    assert proc.returncode == 2 and "cap[red]x/light_directions.txt" in proc.stderr, proc.stderr
+    (folder / "light_directions.txt").unlink()
+    r = psctl("normals", folder, "-m", "l2", "--out", tmp_path / "o")
+    assert r.returncode == 2 and "cap[red]x" in r.stderr
+
+
+def test_notes_for_an_image_selection_that_does_nothing(capture, tmp_path):
+    r = json.loads(psctl("normals", capture, "-m", "l2", "-n", "100", "--out", tmp_path / "o", "--json",
+                         check=True).stdout)
+    assert r["n_images"] == 12 and any("all 12 used" in n for n in r["notes"])
+    r = json.loads(psctl("normals", capture, "-m", "l2", "--seed", "3", "--out", tmp_path / "o", "--json",
+                         check=True).stdout)
+    assert any("--seed is unused" in n for n in r["notes"])
+
+
+def test_synth_never_writes_into_a_capture_or_other_data(capture, tmp_path):
+    before = sorted(os.listdir(capture))
+    proc = psctl("synth", capture, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1")
+    assert proc.returncode == 2 and "not a psctl synth folder" in proc.stderr and "Traceback" not in proc.stderr
+    assert sorted(os.listdir(capture)) == before
+    out = tmp_path / "set"
+    for _ in range(2):  # its own folder again is fine
+        psctl("synth", out, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1", check=True)
+
+
 def test_uncalibrated_folder_with_l2(capture, tmp_path):
     (capture / "light_directions.txt").unlink()
     proc = psctl("normals", capture, "-m", "l2", "--out", tmp_path / "o")
@@ -254,8 +317,13 @@ def test_outputs_never_overwrite_inputs(capture):
     (capture / "Normal_gt.mat").unlink()  # so normal.png is this folder's ground truth
     before = (capture / "normal.png").read_bytes()
     proc = psctl("normals", capture, "-m", "l2", "--out", capture)
-    assert proc.returncode == 2 and "normal.png" in proc.stderr and "input" in proc.stderr
+    assert proc.returncode == 2 and "capture folder" in proc.stderr and "input" in proc.stderr
     assert (capture / "normal.png").read_bytes() == before
+    # and a run on a folder without ground truth never writes a normal.png that the next run
+    # would read as its ground truth
+    (capture / "normal.png").unlink()
+    proc = psctl("normals", capture, "-m", "l2", "--out", capture)
+    assert proc.returncode == 2 and not (capture / "normal.png").exists()
 
 
 def test_failed_write_leaves_no_output_folder(tmp_path):
@@ -267,6 +335,72 @@ def test_failed_write_leaves_no_output_folder(tmp_path):
             (stage / "half.png").write_bytes(b"x")
             raise RuntimeError("disk full")
     assert not out.exists()
+
+
+def test_a_folder_in_the_way_stops_the_whole_output(capture, tmp_path):
+    out = tmp_path / "out"
+    (out / "normal.exr").mkdir(parents=True)  # where a file will go
+    proc = psctl("normals", capture, "-m", "l2", "--out", out)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "normal.exr" in proc.stderr
+    assert sorted(os.listdir(out)) == ["normal.exr"]  # nothing else written, no staging folder left
+
+
+def test_failed_rename_puts_everything_back(tmp_path, monkeypatch):
+    from psctl.errors import PsctlError
+    from psctl.io.atomic import staged_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("old a")
+    (out / "stale.txt").write_text("old stale")
+    real = os.replace
+
+    def flaky(src, dst):
+        if Path(dst).name == "b.txt" and ".psctl-staging" in str(src):
+            raise OSError(28, "No space left on device")
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", flaky)
+    with pytest.raises(PsctlError, match="nothing was changed"):
+        with staged_outputs(out, replaces=("a.txt", "b.txt", "stale.txt")) as stage:
+            (stage / "a.txt").write_text("new a")
+            (stage / "b.txt").write_text("new b")
+    assert sorted(os.listdir(out)) == ["a.txt", "stale.txt"]
+    assert (out / "a.txt").read_text() == "old a" and (out / "stale.txt").read_text() == "old stale"
+
+
+def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
+    out = tmp_path / "out"
+    psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16,exr,npy", check=True)
+    (capture / "Normal_gt.mat").unlink()
+    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16", "--json",
+                         check=True).stdout)
+    assert sorted(os.listdir(out)) == ["normal.png"]  # no old error map, report or EXR beside the new normals
+    assert any("error.png, normal.exr, normal.npy, report.json" in n or
+               all(x in n for x in ("normal.exr", "report.json", "earlier run")) for n in r["notes"]), r["notes"]
+
+
+def test_eval_out_is_all_or_nothing(tmp_path):
+    for k, name in enumerate(("aPNG", "bPNG", "cPNG")):
+        write_capture(tmp_path / "root" / name, n=6, seed=k)
+    data = (tmp_path / "root" / "cPNG" / "003.png").read_bytes()
+    (tmp_path / "root" / "cPNG" / "003.png").write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out"
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
+    assert proc.returncode == 2 and "003.png" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()  # a and b were done, and are not written either
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
+    assert proc.returncode == 2 and sorted(os.listdir(out)) == ["keep.txt"]
+
+
+def test_eval_refuses_two_objects_of_the_same_name(tmp_path):
+    write_capture(tmp_path / "root" / "cat", n=6, seed=1)
+    write_capture(tmp_path / "root" / "catPNG", n=6, seed=2)
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2")
+    assert proc.returncode == 2 and "cat, catPNG" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_train_command(tmp_path):

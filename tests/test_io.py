@@ -144,3 +144,61 @@ def test_grey_alpha_mask_uses_grey(tmp_path):
     m = truth["mask"].astype(np.float32)
     write_image(folder / "mask.png", np.stack([m, np.ones_like(m)], -1), "uint8")  # grey + opaque alpha
     assert (load_mask(open_capture(folder)) == truth["mask"]).all()
+
+
+def _write_rgba_png(path, rgb, alpha):
+    """A PNG whose colour is stored as is beside its alpha (PNG's own, unassociated)."""
+    import OpenImageIO as oiio
+
+    h, w = rgb.shape[:2]
+    px = np.concatenate([rgb, np.broadcast_to(alpha, (h, w, 1))], -1).astype(np.float32)
+    spec = oiio.ImageSpec(w, h, px.shape[-1], "uint16")
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(px) and out.close()
+
+
+def test_alpha_is_ignored(tmp_path):
+    """docs/formats.md: a partly or wholly transparent pixel keeps its colour (OpenImageIO would
+    multiply it by alpha unless told not to)."""
+    folder = tmp_path / "o"
+    truth = write_capture(folder, n=6)
+    img, _ = read_image(folder / "002.png")
+    for a in (0.0, 0.25, 1.0):
+        _write_rgba_png(folder / "002.png", img, np.full((40, 40, 1), a))
+        got = load_images(open_capture(folder))[1] * open_capture(folder).intensities[1]
+        np.testing.assert_allclose(got, img, atol=2e-5)
+    m = truth["mask"].astype(np.float32)[..., None]
+    _write_rgba_png(folder / "mask.png", np.repeat(m, 3, -1), np.full_like(m, 0.4))
+    assert (load_mask(open_capture(folder)) == truth["mask"]).all()
+
+
+def test_select_images_refuses_a_negative_seed_and_notes_what_it_did():
+    from psctl.io.capture import selection_notes
+
+    with pytest.raises(PsctlError, match="--seed must be 0 or more"):
+        select_images(10, 3, -1)
+    assert "all 10 used" in selection_notes(10, 100, None)[0]
+    assert "--seed is unused" in selection_notes(10, None, 4)[0]
+    assert selection_notes(10, 3, 4) == [] and selection_notes(10, None, None) == []
+
+
+def test_light_rows_of_any_magnitude(tmp_path):
+    import warnings
+
+    from psctl.io.capture import read_intensities, read_lights
+
+    p = tmp_path / "light_directions.txt"
+    p.write_text("1e300 0 1e300\n0 2e-3 0\n0.1 0.2 0.9\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow on the way
+        lights = read_lights(p)
+    np.testing.assert_allclose(lights[:2], [[0.70710677, 0, 0.70710677], [0, 1, 0]], atol=1e-6)
+    p.write_text("1 0 0\n0 1e-7 0\n")
+    with pytest.raises(PsctlError, match="row 2: zero-length"):
+        read_lights(p)
+    q = tmp_path / "light_intensities.txt"
+    for bad in ("1e-46", "1e39", "1e300"):
+        q.write_text(f"1 1 1\n1 {bad} 1\n")
+        with pytest.raises(PsctlError, match="row 2: intensity"):
+            read_intensities(q)

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from psctl.errors import PsctlError
@@ -86,25 +87,127 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+class Staging:
+    """Files written into a hidden folder inside ``out_dir``, then moved into ``out_dir`` together.
+
+    ``replaces``: names of files an earlier run of the same command may have left in ``out_dir``;
+    those this run does not write are removed when it commits, so that a folder never mixes two
+    runs' outputs (``psctl depth`` reading an old normal.exr beside a new normal.png, an old
+    report.json beside new normals). ``commit`` is all or nothing: a file whose place is taken by a
+    folder stops it before anything moves, and a rename that fails puts every file back.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> None:
+        self.out_dir = Path(out_dir)
+        self.created = not self.out_dir.exists()
+        ensure_writable_dir(self.out_dir)
+        self.path = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=self.out_dir))
+        self.replaces = tuple(replaces)
+
+    def _names(self) -> tuple[list[str], list[str]]:
+        new = sorted(f.name for f in self.path.iterdir())
+        stale = [n for n in self.replaces if n not in new and (self.out_dir / n).is_file()]
+        return new, stale
+
+    def check(self) -> None:
+        """Raise (naming the file) when a file cannot take its place: a folder or other non-file
+        stands there."""
+        for name in self._names()[0]:
+            target = self.out_dir / name
+            if os.path.lexists(target) and not (target.is_file() or target.is_symlink()):
+                raise PsctlError(target, "is in the way of an output file (it is not a file); move it away "
+                                         "or choose another --out")
+
+    def commit(self) -> None:
+        self.check()
+        new, stale = self._names()
+        old = self.path / ".replaced"
+        old.mkdir()
+        self._moved, self._placed = [], []
+        try:
+            for name in new + stale:  # what is there now goes aside first, so that it can come back
+                if os.path.lexists(self.out_dir / name):
+                    os.replace(self.out_dir / name, old / name)
+                    self._moved.append(name)
+            for name in new:
+                os.replace(self.path / name, self.out_dir / name)
+                self._placed.append(name)
+        except OSError as e:
+            self.rollback()
+            raise PsctlError(self.out_dir, f"could not move the outputs into place ({e.strerror or e}); "
+                                           "nothing was changed") from None
+
+    def rollback(self) -> None:
+        """Undo ``commit`` (before ``discard``): this run's files back out, the old ones back in."""
+        for name in getattr(self, "_placed", []):
+            with contextlib.suppress(OSError):
+                os.replace(self.out_dir / name, self.path / name)
+        for name in getattr(self, "_moved", []):
+            with contextlib.suppress(OSError):
+                os.replace(self.path / ".replaced" / name, self.out_dir / name)
+        self._placed, self._moved = [], []
+
+    def discard(self, remove_created: bool = True) -> None:
+        """Remove the staging folder (and what commit set aside), and ``out_dir`` too when this
+        staging created it and nothing else is in it."""
+        shutil.rmtree(self.path, ignore_errors=True)
+        if remove_created and self.created:
+            with contextlib.suppress(OSError):
+                self.out_dir.rmdir()
+
+
 @contextlib.contextmanager
-def staged_outputs(out_dir: str | os.PathLike) -> Iterator[Path]:
+def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Iterator[Path]:
     """Yield a hidden staging folder inside ``out_dir``; when the block succeeds, move every file
-    written there into ``out_dir``. On error nothing appears in ``out_dir`` (and ``out_dir``
-    itself is removed again if this call created it): a run gives all of its files or none."""
-    out_dir = Path(out_dir)
-    created = not out_dir.exists()
-    out_dir = ensure_writable_dir(out_dir)
-    stage = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=out_dir))
+    written there into ``out_dir`` (``Staging``). On error nothing appears in ``out_dir`` (and
+    ``out_dir`` itself is removed again if this call created it): a run gives all of its files or
+    none."""
+    stage = Staging(out_dir, replaces)
     ok = False
     try:
-        yield stage
-        for f in sorted(stage.iterdir()):
-            os.replace(f, out_dir / f.name)
+        yield stage.path
+        stage.commit()
         ok = True
     finally:
-        for f in stage.iterdir():
-            f.unlink()
-        stage.rmdir()
-        if not ok and created:
-            with contextlib.suppress(OSError):
-                out_dir.rmdir()
+        stage.discard(remove_created=not ok)
+
+
+class OutputBatch:
+    """Several runs' outputs (``psctl eval --out``: one folder per object) that appear together
+    or not at all: each run stages its files (``stage``), and they are committed only when the
+    ``with`` block ends without an error, after every folder has been checked."""
+
+    def __init__(self, root: str | os.PathLike) -> None:
+        self.root = Path(root)
+        self.created = not self.root.exists()
+        self.stagings: list[Staging] = []
+
+    def stage(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Staging:
+        self.stagings.append(Staging(out_dir, replaces))
+        return self.stagings[-1]
+
+    def __enter__(self) -> "OutputBatch":
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        ok = False
+        try:
+            if kind is None:
+                for s in self.stagings:
+                    s.check()
+                done = []
+                try:
+                    for s in self.stagings:
+                        s.commit()
+                        done.append(s)
+                except PsctlError:
+                    for s in reversed(done):
+                        s.rollback()
+                    raise
+                ok = True
+        finally:
+            for s in self.stagings:
+                s.discard(remove_created=not ok)
+            if not ok and self.created:
+                with contextlib.suppress(OSError):
+                    self.root.rmdir()

@@ -142,11 +142,16 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
 def read_lights(path: Path) -> np.ndarray:
     """light_directions.txt -> [N, 3] float32 unit vectors (rows normalised)."""
     lights = read_matrix(path, (3,), "light directions")
-    norms = np.linalg.norm(lights, axis=1)
-    bad = np.flatnonzero(norms < 1e-6)
+    scale = np.abs(lights).max(axis=1)  # rows scaled to a largest |value| of 1 first: 1e300 0 0 cannot overflow
+    unit = lights / np.where(scale > 0, scale, 1.0)[:, None]
+    length = np.linalg.norm(unit, axis=1)  # 1 to sqrt(3) for a nonzero row
+    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
     if bad.size:
         raise PsctlError(path, f"row {bad[0] + 1}: zero-length light direction")
-    return (lights / norms[:, None]).astype(np.float32)
+    return (unit / length[:, None]).astype(np.float32)
+
+
+INTENSITY_RANGE = (1e-12, 1e12)
 
 
 def read_intensities(path: Path) -> np.ndarray:
@@ -155,6 +160,11 @@ def read_intensities(path: Path) -> np.ndarray:
     bad = np.flatnonzero((e <= 0).any(axis=1))
     if bad.size:
         raise PsctlError(path, f"row {bad[0] + 1}: intensities must be positive")
+    lo, hi = INTENSITY_RANGE  # images are divided by these in float32: keep the results finite and nonzero
+    bad = np.flatnonzero(((e < lo) | (e > hi)).any(axis=1))
+    if bad.size:
+        v = e[bad[0]][(e[bad[0]] < lo) | (e[bad[0]] > hi)][0]
+        raise PsctlError(path, f"row {bad[0] + 1}: intensity {v:g} is outside [{lo:g}, {hi:g}]")
     if e.shape[1] == 1:
         e = np.repeat(e, 3, axis=1)
     return e.astype(np.float32)
@@ -164,6 +174,8 @@ def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     for n in names:
         if (folder / n).is_file():
             return folder / n
+        if (folder / n).exists():  # a folder named mask.png is a mistake, not "no mask"
+            raise PsctlError(folder / n, "is not a file")
     return None
 
 
@@ -222,6 +234,8 @@ def open_capture(path: str | os.PathLike) -> Capture:
     if list_file is not None:
         image_paths = [path / n for n in _read_list(list_file)]
         for p in image_paths:
+            if p.is_dir():
+                raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
             if not p.is_file():
                 raise PsctlError(p, f"listed in {list_file.name} but missing")
     else:
@@ -358,10 +372,21 @@ def load_images(capture: Capture, box: tuple[slice, slice] | None = None,
 
 def select_images(n: int, k: int | None, seed: int | None) -> np.ndarray:
     """Indices of the images to use: all, the first ``k``, or a seeded random ``k``-subset."""
+    if k is not None and k < 1:
+        raise PsctlError(None, f"--images must be at least 1 (got {k})")
+    if seed is not None and seed < 0:
+        raise PsctlError(None, f"--seed must be 0 or more (got {seed})")
     if k is None or k >= n:
         return np.arange(n)
-    if k < 1:
-        raise PsctlError(None, f"--images must be at least 1 (got {k})")
     if seed is None:
         return np.arange(k)
     return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
+
+
+def selection_notes(n: int, k: int | None, seed: int | None) -> list[str]:
+    """What ``select_images`` did that a user may not expect, for the report's notes."""
+    if k is not None and k > n:
+        return [f"images: --images {k} asks for more than the {n} there are; all {n} used"]
+    if seed is not None and k is None:
+        return ["images: --seed is unused without --images (all images used)"]
+    return []

@@ -47,9 +47,11 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
     path = Path(path)
     if not path.is_file():
         raise PsctlError(path, "image file is missing")
-    inp = oiio.ImageInput.open(str(path))
+    with _quiet_stderr():  # libpng prints its own line for a garbage file; the error below says it
+        inp = oiio.ImageInput.open(str(path))
+        err = oiio.geterror() if inp is None else ""
     if inp is None:
-        raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+        raise PsctlError(path, f"cannot open image ({_clean(err)})")
     try:
         spec = inp.spec()
         dtype = str(spec.format)
@@ -70,8 +72,12 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     oiio = _oiio()
     path = Path(path)
     info = image_info(path)
+    # Without this hint OpenImageIO multiplies a PNG's or TIFF's colour by its alpha as it reads;
+    # psctl ignores alpha (docs/formats.md): a photo's pixels are what they are.
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
     with _quiet_stderr():
-        inp = oiio.ImageInput.open(str(path))
+        inp = oiio.ImageInput.open(str(path), config)
         if inp is None:
             raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
         try:

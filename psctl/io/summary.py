@@ -13,10 +13,12 @@ from psctl.errors import PsctlError
 def describe_capture(path: str | os.PathLike) -> dict:
     """What a capture folder holds, as a JSON-ready dict."""
     from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import image_info
 
     cap = open_capture(path)
     mask = load_mask(cap)
     e = cap.intensities
+    kinds = sorted({(i.bits, i.dtype) for i in map(image_info, cap.image_paths)})  # headers only
     return {
         "kind": "capture",
         "object": cap.name,
@@ -25,8 +27,10 @@ def describe_capture(path: str | os.PathLike) -> dict:
         "height": cap.height,
         "width": cap.width,
         "channels": cap.channels,
-        "bit_depth": cap.bits,
+        "bit_depth": cap.bits,  # the first image's
         "sample_type": cap.dtype,
+        "bit_depths": sorted({b for b, _ in kinds}),  # every image's: more than one when they are mixed
+        "sample_types": list(dict.fromkeys(t for _, t in kinds)),  # in the order of bit_depths
         "calibrated": cap.calibrated,
         "intensities": "light_intensities.txt" if cap.intensities_given else "none (all ones)",
         "intensity_range": [float(e.min()), float(e.max())],
@@ -52,6 +56,13 @@ def describe(path: str | os.PathLike) -> dict:
     return describe_capture(path)
 
 
+def escape(text: object) -> str:
+    """``text`` shown as it is by Rich (a path like cap[red]x is not markup)."""
+    from rich.markup import escape as _escape
+
+    return _escape(str(text))
+
+
 def _console():
     from rich.console import Console
 
@@ -63,26 +74,29 @@ def render_info(report: dict) -> None:
 
     con = _console()
     if report["kind"] == "benchmark":
-        t = Table(title=f"benchmark root {report['path']}")
+        t = Table(title=f"benchmark root {escape(report['path'])}")
         for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth"):
             t.add_column(col)
         for o in report["objects"]:
-            t.add_row(o["object"], str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
-                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", o["ground_truth"] or "-")
+            t.add_row(escape(o["object"]), str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
+                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", escape(o["ground_truth"] or "-"))
         con.print(t)
         return
     r = report
-    t = Table(title=f"{r['object']}  ({r['path']})", show_header=False)
+    t = Table(title=escape(f"{r['object']}  ({r['path']})"), show_header=False)
     t.add_column("", style="bold")
     t.add_column("")
-    t.add_row("images", f"{r['n_images']} ({r['first_image']} .. {r['last_image']})")
+    t.add_row("images", escape(f"{r['n_images']} ({r['first_image']} .. {r['last_image']})"))
     t.add_row("size", f"{r['width']} x {r['height']}, {r['channels']} channels")
-    t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
+    if len(r.get("sample_types", [r["sample_type"]])) > 1:  # psctl reads each at its own depth
+        t.add_row("bit depth", f"mixed: {'/'.join(map(str, r['bit_depths']))} ({'/'.join(r['sample_types'])})")
+    else:
+        t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
     t.add_row("calibrated", "yes (light_directions.txt)" if r["calibrated"] else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
     t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
-    t.add_row("mask", f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})")
-    t.add_row("ground truth", r["ground_truth"] or "none")
+    t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
+    t.add_row("ground truth", escape(r["ground_truth"] or "none"))
     con.print(t)
 
 
@@ -93,8 +107,8 @@ def _fmt(x: float | None) -> str:
 def render_normals(r: dict, quiet: bool = False) -> None:
     con = _console()
     for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {note}")
-    line = f"[bold]{r['object']}[/]: {r['method']}, {r['n_images']} images, {r['width']}x{r['height']}, {r['seconds']:.2f} s"
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    line = f"[bold]{escape(r['object'])}[/]: {r['method']}, {r['n_images']} images, {r['width']}x{r['height']}, {r['seconds']:.2f} s"
     if r["mae"] is not None:
         w = r["within"]
         line += (f"\n  mean angular error [bold]{r['mae']:.2f}°[/], median {r['median']:.2f}°, "
@@ -103,7 +117,7 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
     con.print(line, highlight=False, soft_wrap=True)
     for key, p in r["outputs"].items():
-        con.print(f"  wrote {p}", highlight=False)
+        con.print(f"  wrote {p}", highlight=False, markup=False)
 
 
 def render_benchmark(result: dict) -> None:
@@ -111,10 +125,10 @@ def render_benchmark(result: dict) -> None:
 
     con = _console()
     objs = result["objects"]
-    t = Table(title=f"{result['benchmark']}: mean angular error (degrees), {result['root']}")
+    t = Table(title=escape(f"{result['benchmark']}: mean angular error (degrees), {result['root']}"))
     t.add_column("method")
     for o in objs:
-        t.add_column(o["name"], justify="right")
+        t.add_column(escape(o["name"]), justify="right")
     t.add_column("avg", justify="right", style="bold")
     t.add_row(f"{result['method']} (psctl)", *[_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]))
     paper = result.get("paper") or {}

@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from psctl.errors import PsctlError
+
 # method name -> what the network needs. "normalization" is the default +N variant for the
 # method; our own weights files record the variant they were trained with (see weights.py).
 # ps-fcn-dagger (PS-FCN†) is PS-FCN trained on the lights a frozen LCNet estimates (discretised
@@ -26,4 +28,14 @@ LIGHT_METHODS: dict[str, dict] = {
 # Every method that has a weights file.
 WEIGHTS_METHODS: dict[str, dict] = {**NETWORK_METHODS, **LIGHT_METHODS}
 
-__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "WEIGHTS_METHODS"]
+
+def check_device_name(name: str | None) -> str:
+    """``--device`` spelled auto, cpu, cuda or cuda:K (lower case returned); one-line error
+    otherwise, before any work (also for methods that do not use it)."""
+    name = (name or "auto").lower()
+    if name in ("auto", "cpu", "cuda") or (name.startswith("cuda:") and name[5:].isdigit()):
+        return name
+    raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
+
+
+__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "WEIGHTS_METHODS", "check_device_name"]

@@ -253,6 +253,20 @@ def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
     write_text_atomic(folder / "synth.json", json.dumps(obj.meta, indent=2) + "\n")
 
 
+def _check_synth_root(out: Path) -> None:
+    """``out`` must be new, empty, or a folder psctl synth wrote before (objects.txt, preview.png
+    and object folders holding synth.json): it never writes into a capture or someone's data."""
+    if not out.is_dir():
+        return
+    for entry in sorted(out.iterdir()):
+        if entry.name.startswith(".") or entry.name in ("objects.txt", "preview.png"):
+            continue
+        if entry.is_dir() and (entry / "synth.json").is_file():
+            continue
+        raise PsctlError(out, f"is not empty and not a psctl synth folder ({entry.name} is there); "
+                              "choose a new or empty folder")
+
+
 def _replace_dir(tmp: Path, final: Path) -> None:
     """Move a finished temporary folder into place, replacing an older one of the same name."""
     old = None
@@ -290,6 +304,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     t0 = time.perf_counter()
     out = Path(out)
     check_output_dir(out)
+    _check_synth_root(out)
     if interreflections < 0:
         raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
     if ir_albedo is not None and not 0 <= ir_albedo < 1:
