@@ -595,7 +595,9 @@ def roll_estimate(est: LightEstimate, normals: np.ndarray, mask: np.ndarray | No
                                    "normals from them most integrable")
     info = {**est.info, "refine": {**(est.info.get("refine") or {}),
                                    "roll": {"degrees": round(t, 3), "gain": round(gain, 5), "status": status}}}
-    est = replace(est, info=info, notes=[*est.notes, note])
+    if status == "applied" and abs(t) < 0.05:  # "+0.0 degrees" says nothing; the report keeps the value
+        note = None
+    est = replace(est, info=info, notes=[*est.notes, *([note] if note else [])])
     if status != "applied":
         return est, normals
     est = replace(est, directions=turn_about_view_axis(est.directions, t).astype(np.float32))

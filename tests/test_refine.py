@@ -395,6 +395,8 @@ def test_roll_estimate_turns_lights_and_normals_together():
     np.testing.assert_array_equal(far.directions, est.directions)
     few, _ = roll_estimate(est, turned, mask & (np.arange(64)[:, None] < 8), {"roll": True})
     assert few.info["refine"]["roll"]["status"] == "too few pixels"
+    still, _ = roll_estimate(est, normals, mask, {"roll": True})  # a roll of -0.04 degrees: no "+0.0" note
+    assert still.info["refine"]["roll"]["status"] == "applied" and still.notes == est.notes
 
 
 def test_sdps_and_lights_apply_the_roll_when_it_is_on(tmp_path, fake_weights, monkeypatch):
