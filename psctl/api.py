@@ -236,15 +236,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     (None: the default) turns the refined lights and the normals about the view axis by the
     normals' roll (``psctl.lights.roll_estimate``). ``batch`` (``psctl.io.atomic.OutputBatch``):
     stage the files there, to appear with the other runs of the batch (``psctl eval --out``).
-    The out folder holds one run's outputs: psctl's output files there that this run does not
-    write (another ``formats``, no ground truth) are removed, and a note says so.
+    The out folder holds one run's outputs: the files an earlier run of psctl normals wrote there
+    (its list, OUTPUTS_LIST) that this run does not write (another ``formats``, no ground truth)
+    are removed, and a note says so; no other file is. ``out`` may not hold a capture.
     """
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, staged_outputs
-    from psctl.io.capture import (bounding_box, iter_images, load_ground_truth, load_mask, open_capture, select_images,
-                                  selection_notes)
+    from psctl.io.capture import (bounding_box, holds_capture, iter_images, load_ground_truth, load_mask, open_capture,
+                                  select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
     from psctl.metrics import angular_error, summarize
@@ -279,18 +280,23 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
     all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write
+    stale: list[str] = []
     if write:
         if out_dir.resolve() == cap.path.resolve():  # normal.png there would be read as ground truth next time
             raise PsctlError(out_dir, "is the capture folder: its files are inputs; choose another --out "
                                       "(the default is PATH/psctl)")
+        if holds_capture(out_dir):  # another capture: the same, and its normal.png may be its ground truth
+            raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth); choose another --out")
         inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
         clash = [n for n in names if (out_dir / n).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
-        stale = [n for n in all_names if n not in names and (out_dir / n).is_file()]
+        # psctl's own files from an earlier run there (its list says which), that this run does not write
+        stale = sorted(n for n in read_outputs_list(out_dir)
+                       if n in all_names and n not in names and (out_dir / n).is_file())
         if stale:
-            notes.append(f"outputs: {', '.join(stale)} in {out_dir} came from an earlier run and will be removed "
+            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl normals run "
                          "(a folder holds one run's outputs)")
 
     mask = load_mask(cap)
@@ -385,9 +391,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     # --- write ---------------------------------------------------------------------------------
     if write:
         report["outputs"] = {_output_key(n): str(out_dir / n) for n in names}
-        staging = staged_outputs(out_dir, all_names) if batch is None else \
-            contextlib.nullcontext(batch.stage(out_dir, all_names).path)
+        staging = staged_outputs(out_dir, stale) if batch is None else \
+            contextlib.nullcontext(batch.stage(out_dir, stale).path)
         with staging as stage:
+            (stage / OUTPUTS_LIST).write_text("".join(f"{n}\n" for n in names))
             for f in formats:
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
             if error is not None:
@@ -396,6 +403,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if error is not None:
                 write_json(stage / "report.json", report)
     return report
+
+
+OUTPUTS_LIST = ".psctl-normals"  # in an output folder: the files psctl normals wrote there last
+
+
+def read_outputs_list(out_dir: Path) -> list[str]:
+    """The files the last psctl normals run wrote into ``out_dir`` (none without its list)."""
+    try:
+        return (out_dir / OUTPUTS_LIST).read_text().split()
+    except (OSError, UnicodeDecodeError):
+        return []
 
 
 def _output_key(filename: str) -> str:

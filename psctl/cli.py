@@ -307,9 +307,9 @@ def train(
         best = "-" if st["best_val"] is None else f"{st['best_val']:.2f}°"
         state = "finished" if st["finished"] else "stopped (resume with --resume)"
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "
-                  f"weights {Path(run_dir) / 'best.pt'}", highlight=False, soft_wrap=True)
+                  f"weights {Path(run_dir) / 'best.pt'}", highlight=False, soft_wrap=True, markup=False)
         if install and st["finished"]:
-            con.print(f"installed {install_weights(run_dir, method)}", highlight=False)
+            con.print(f"installed {install_weights(run_dir, method)}", highlight=False, markup=False)
 
 
 @app.callback(invoke_without_command=True)

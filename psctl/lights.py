@@ -804,7 +804,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, staged_outputs
-    from psctl.io.capture import load_mask, open_capture, select_images, selection_notes
+    from psctl.io.capture import holds_capture, load_mask, open_capture, select_images, selection_notes
 
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
@@ -816,6 +816,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         if out_dir.resolve() == cap.path.resolve():
             raise PsctlError(out_dir, "is the capture folder: its light_directions.txt / light_intensities.txt "
                                       "are inputs and are never overwritten; choose another --out")
+        if holds_capture(out_dir):  # another capture: its light files are its inputs
+            raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth); its light files would be "
+                                      "overwritten; choose another --out")
         inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
         clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
         if clash:

@@ -33,7 +33,7 @@ def test_normals_writes_outputs_and_json(capture, tmp_path):
                 "mae", "median", "within"):
         assert key in r
     assert r["object"] == "sphere" and r["n_images"] == 12 and set(r["within"]) == {"11.25", "22.5", "30"}
-    assert sorted(os.listdir(out)) == ["error.png", "normal.exr", "normal.png", "report.json"]
+    assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "report.json"]
     pixels, info = read_image(out / "normal.png")
     assert info.bits == 16 and pixels.shape == (40, 40, 3)
     report = json.loads((out / "report.json").read_text())
@@ -47,7 +47,8 @@ def test_normals_writes_outputs_and_json(capture, tmp_path):
 def test_default_output_folder_and_formats(capture):
     proc = psctl("normals", capture, "-m", "l2", "--format", "png8,npy", "--quiet")
     assert proc.returncode == 0, proc.stderr
-    assert sorted(os.listdir(capture / "psctl")) == ["error.png", "normal.npy", "normal_8bit.png", "report.json"]
+    assert sorted(os.listdir(capture / "psctl")) == [".psctl-normals", "error.png", "normal.npy", "normal_8bit.png",
+                                                     "report.json"]
     assert "ball" not in proc.stdout and "sphere" in proc.stdout
 
 
@@ -370,15 +371,72 @@ def test_failed_rename_puts_everything_back(tmp_path, monkeypatch):
     assert (out / "a.txt").read_text() == "old a" and (out / "stale.txt").read_text() == "old stale"
 
 
+@pytest.mark.parametrize("failure", ["putting back fails too", "ctrl-c"])
+def test_earlier_outputs_are_never_lost(tmp_path, monkeypatch, failure):
+    """A commit that fails and cannot put the earlier files back leaves them in the staging
+    folder and says where; Ctrl-C between two renames puts everything back."""
+    from psctl.errors import PsctlError
+    from psctl.io.atomic import staged_outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("a.txt", "b.txt"):
+        (out / name).write_text(f"old {name}")
+    real = os.replace
+    interrupted = []
+
+    def flaky(src, dst):
+        if Path(dst).name == "b.txt" and Path(dst).parent == out and ".psctl-staging" in str(src):
+            if failure == "ctrl-c" and not interrupted:
+                interrupted.append(1)  # once: the rollback's own renames go through
+                raise KeyboardInterrupt
+            if failure != "ctrl-c":
+                raise OSError(13, "Permission denied")
+        if failure != "ctrl-c" and Path(src).parent.name == ".replaced":
+            raise OSError(13, "Permission denied")  # and the earlier files cannot come back
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", flaky)
+    with pytest.raises(KeyboardInterrupt if failure == "ctrl-c" else PsctlError) as err:
+        with staged_outputs(out) as stage:
+            (stage / "a.txt").write_text("new a")
+            (stage / "b.txt").write_text("new b")
+    monkeypatch.setattr(os, "replace", real)
+    if failure == "ctrl-c":
+        assert sorted(os.listdir(out)) == ["a.txt", "b.txt"]
+        assert [(out / n).read_text() for n in ("a.txt", "b.txt")] == ["old a.txt", "old b.txt"]
+    else:
+        kept = Path(err.value.path)
+        assert "could not be put back" in str(err.value) and kept.parent.parent == out
+        assert sorted((kept / n).read_text() for n in os.listdir(kept)) == ["old a.txt", "old b.txt"]
+
+
 def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
     psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16,exr,npy", check=True)
     (capture / "Normal_gt.mat").unlink()
     r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16", "--json",
                          check=True).stdout)
-    assert sorted(os.listdir(out)) == ["normal.png"]  # no old error map, report or EXR beside the new normals
-    assert any("error.png, normal.exr, normal.npy, report.json" in n or
-               all(x in n for x in ("normal.exr", "report.json", "earlier run")) for n in r["notes"]), r["notes"]
+    # no old error map, report or EXR beside the new normals; the user's file stays
+    assert sorted(os.listdir(out)) == [".psctl-normals", "normal.png", "notes.txt"]
+    assert any("removed error.png, normal.exr, normal.npy, report.json" in n for n in r["notes"]), r["notes"]
+    # files psctl normals did not write there are never removed, even with its names
+    (out / ".psctl-normals").unlink()
+    write_image(out / "error.png", np.zeros((4, 4)), "uint8")
+    psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", check=True)
+    assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt"]
+
+
+def test_outputs_never_go_into_another_capture(capture, tmp_path):
+    other = tmp_path / "otherPNG"
+    write_capture(other, gt="png")  # its ground truth is Normal_gt.png; a normal.png would count too
+    before = sorted(os.listdir(other))
+    for cmd in (["normals", capture, "-m", "l2"], ["lights", capture]):
+        proc = psctl(*cmd, "--out", other)
+        assert proc.returncode == 2 and "holds a capture" in proc.stderr and "Traceback" not in proc.stderr
+    assert sorted(os.listdir(other)) == before
 
 
 def test_eval_out_is_all_or_nothing(tmp_path):

@@ -169,8 +169,21 @@ def test_alpha_is_ignored(tmp_path):
         got = load_images(open_capture(folder))[1] * open_capture(folder).intensities[1]
         np.testing.assert_allclose(got, img, atol=2e-5)
     m = truth["mask"].astype(np.float32)[..., None]
-    _write_rgba_png(folder / "mask.png", np.repeat(m, 3, -1), np.full_like(m, 0.4))
+    _write_rgba_png(folder / "mask.png", np.repeat(m, 3, -1), np.full_like(m, 0.4))  # one alpha: ignored
     assert (load_mask(open_capture(folder)) == truth["mask"]).all()
+    _write_rgba_png(folder / "mask.png", np.ones((40, 40, 3)), m)  # a cut-out: white, the object opaque
+    assert (load_mask(open_capture(folder)) == truth["mask"]).all()
+
+
+def test_info_reports_mixed_bit_depths(tmp_path):
+    from psctl.io.summary import describe
+
+    folder = tmp_path / "o"
+    write_capture(folder, n=6)
+    img, _ = read_image(folder / "003.png")
+    write_image(folder / "003.png", img, "uint8")
+    r = describe(folder)
+    assert r["bit_depth"] == 16 and r["bit_depths"] == [8, 16] and r["sample_types"] == ["uint8", "uint16"]
 
 
 def test_select_images_refuses_a_negative_seed_and_notes_what_it_did():

@@ -527,7 +527,8 @@ def test_cli_network_methods(tmp_path):
     assert proc.returncode == 0, proc.stderr
     r = json.loads(proc.stdout)
     assert r["method"] == "ps-fcn-n" and r["n_images"] == 6 and r["mae"] is not None
-    assert sorted(os.listdir(tmp_path / "o1")) == ["error.png", "normal.exr", "normal.png", "report.json"]
+    assert sorted(os.listdir(tmp_path / "o1")) == [".psctl-normals", "error.png", "normal.exr", "normal.png",
+                                                   "report.json"]
     assert r["views"] == 1
     proc = psctl("normals", folder, "--weights", weights, "--device", "cpu", "--views", "2", "--json", "--out",
                  tmp_path / "o2")

@@ -90,11 +90,12 @@ def check_output_dir(path: str | os.PathLike) -> Path:
 class Staging:
     """Files written into a hidden folder inside ``out_dir``, then moved into ``out_dir`` together.
 
-    ``replaces``: names of files an earlier run of the same command may have left in ``out_dir``;
-    those this run does not write are removed when it commits, so that a folder never mixes two
-    runs' outputs (``psctl depth`` reading an old normal.exr beside a new normal.png, an old
-    report.json beside new normals). ``commit`` is all or nothing: a file whose place is taken by a
-    folder stops it before anything moves, and a rename that fails puts every file back.
+    ``replaces``: names of files an earlier run left in ``out_dir`` that this run supersedes
+    (the caller knows they are psctl's own: ``psctl normals`` keeps a list, OUTPUTS_LIST); those
+    this run does not write are removed when it commits. ``commit`` is all or nothing: a file
+    whose place is taken by a folder stops it before anything moves, and a failure while moving
+    (an OSError, Ctrl-C) puts every file back. Should putting back fail too, the earlier files are
+    left in the staging folder, and the error names it: they are never deleted.
     """
 
     def __init__(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> None:
@@ -103,9 +104,12 @@ class Staging:
         ensure_writable_dir(self.out_dir)
         self.path = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=self.out_dir))
         self.replaces = tuple(replaces)
+        self._moved: list[str] = []  # earlier files set aside by commit (in path / ".replaced")
+        self._placed: list[str] = []  # this run's files moved into out_dir by commit
+        self.keep = False  # rollback could not restore everything: discard must not delete
 
     def _names(self) -> tuple[list[str], list[str]]:
-        new = sorted(f.name for f in self.path.iterdir())
+        new = sorted(f.name for f in self.path.iterdir() if f.name != ".replaced")
         stale = [n for n in self.replaces if n not in new and (self.out_dir / n).is_file()]
         return new, stale
 
@@ -122,8 +126,7 @@ class Staging:
         self.check()
         new, stale = self._names()
         old = self.path / ".replaced"
-        old.mkdir()
-        self._moved, self._placed = [], []
+        old.mkdir(exist_ok=True)
         try:
             for name in new + stale:  # what is there now goes aside first, so that it can come back
                 if os.path.lexists(self.out_dir / name):
@@ -132,24 +135,37 @@ class Staging:
             for name in new:
                 os.replace(self.path / name, self.out_dir / name)
                 self._placed.append(name)
-        except OSError as e:
+        except BaseException as e:  # OSError, and Ctrl-C between two renames
             self.rollback()
-            raise PsctlError(self.out_dir, f"could not move the outputs into place ({e.strerror or e}); "
-                                           "nothing was changed") from None
+            if isinstance(e, OSError):
+                raise PsctlError(self.out_dir, f"could not move the outputs into place ({e.strerror or e}); "
+                                               "nothing was changed") from None
+            raise
 
     def rollback(self) -> None:
-        """Undo ``commit`` (before ``discard``): this run's files back out, the old ones back in."""
-        for name in getattr(self, "_placed", []):
+        """Undo ``commit``: this run's files back out, the earlier ones back in. What cannot be
+        put back stays in the staging folder (``keep``), and a PsctlError names it."""
+        for name in self._placed:
             with contextlib.suppress(OSError):
                 os.replace(self.out_dir / name, self.path / name)
-        for name in getattr(self, "_moved", []):
-            with contextlib.suppress(OSError):
+        lost = []
+        for name in self._moved:
+            try:
                 os.replace(self.path / ".replaced" / name, self.out_dir / name)
+            except OSError:
+                lost.append(name)
         self._placed, self._moved = [], []
+        if lost:
+            self.keep = True
+            raise PsctlError(self.path / ".replaced", f"writing the outputs failed and {', '.join(lost)} from an "
+                                                      f"earlier run could not be put back into {self.out_dir}: "
+                                                      "they are here; move them back by hand")
 
     def discard(self, remove_created: bool = True) -> None:
         """Remove the staging folder (and what commit set aside), and ``out_dir`` too when this
-        staging created it and nothing else is in it."""
+        staging created it and nothing else is in it; nothing when ``keep``."""
+        if self.keep:
+            return
         shutil.rmtree(self.path, ignore_errors=True)
         if remove_created and self.created:
             with contextlib.suppress(OSError):
@@ -175,7 +191,8 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> 
 class OutputBatch:
     """Several runs' outputs (``psctl eval --out``: one folder per object) that appear together
     or not at all: each run stages its files (``stage``), and they are committed only when the
-    ``with`` block ends without an error, after every folder has been checked."""
+    ``with`` block ends without an error, after every folder has been checked; a failure while
+    committing one folder undoes the folders committed before it."""
 
     def __init__(self, root: str | os.PathLike) -> None:
         self.root = Path(root)
@@ -200,9 +217,15 @@ class OutputBatch:
                     for s in self.stagings:
                         s.commit()
                         done.append(s)
-                except PsctlError:
+                except BaseException:
+                    kept = []
                     for s in reversed(done):
-                        s.rollback()
+                        try:
+                            s.rollback()
+                        except PsctlError as e:  # what could not be put back is kept (s.keep): say where
+                            kept.append(e)
+                    if kept:
+                        raise kept[0] from None
                     raise
                 ok = True
         finally:

@@ -96,6 +96,18 @@ def _image_files(folder: Path) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
+def holds_capture(path: str | os.PathLike) -> bool:
+    """Whether ``path`` holds someone's capture (images other than psctl's outputs, an image list,
+    a mask or ground truth): never an output folder, where psctl's files would overwrite its
+    inputs or be read as its ground truth. Light files alone do not count (psctl lights writes
+    them)."""
+    path = Path(path)
+    if not path.is_dir():
+        return False
+    named = (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
+    return any((path / n).exists() for n in named) or bool(_image_files(path))
+
+
 def _read_list(path: Path) -> list[str]:
     try:
         text = path.read_text()
@@ -289,7 +301,11 @@ def load_mask(capture: Capture) -> np.ndarray:
     if capture.mask_path is None:
         return np.ones((capture.height, capture.width), bool)
     pixels, _ = read_image(capture.mask_path)
-    mask = to_rgb(pixels).max(axis=-1) > 0.5  # colour channels only: alpha is ignored
+    mask = to_rgb(pixels).max(axis=-1) > 0.5  # any colour channel
+    if pixels.shape[-1] in (2, 4):
+        alpha = pixels[..., -1] > 0.5
+        if alpha.any() and not alpha.all():  # a cut-out (white, the object opaque): transparent is background
+            mask &= alpha
     if not mask.any():
         raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel)")
     return mask

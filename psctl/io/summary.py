@@ -88,7 +88,7 @@ def render_info(report: dict) -> None:
     t.add_column("")
     t.add_row("images", escape(f"{r['n_images']} ({r['first_image']} .. {r['last_image']})"))
     t.add_row("size", f"{r['width']} x {r['height']}, {r['channels']} channels")
-    if len(r.get("sample_types", [r["sample_type"]])) > 1:  # psctl reads each at its own depth
+    if len(r.get("bit_depths", [])) > 1 or len(r.get("sample_types", [])) > 1:  # each is read at its own depth
         t.add_row("bit depth", f"mixed: {'/'.join(map(str, r['bit_depths']))} ({'/'.join(r['sample_types'])})")
     else:
         t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
