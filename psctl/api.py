@@ -44,6 +44,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     PS-FCN†), else ups-fcn when only its weights are installed, else an error naming the
     missing weights. ``lcnet`` (a file) is sdps's LCNet.
     """
+    if not isinstance(method, str):
+        raise PsctlError(None, f"method must be one of {', '.join(METHODS)}, not {method!r}")
     method = method.lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -102,8 +104,10 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
 
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images as captured, not divided by any
-            light intensity.
-        mask: [H, W] bool, the object (None: the whole image).
+            light intensity; float on the scale psctl reads files at (integer value / (2^bits -
+            1)), or integer arrays, which are scaled so. LCNet depends on that scale (trained on
+            exposures of that range): a float capture on another scale should be divided first.
+        mask: [H, W] bool or numbers (above 0.5 is the object; None: the whole image).
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
         device: auto | cpu | cuda.
@@ -126,15 +130,13 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
+    from psctl.arrays import as_images, as_mask
+
     fit = refine_config(falloff, roll)
+    images = as_images(images)
+    mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
-        from psctl.io.images import to_rgb
-
-        images = np.asarray(images, np.float32)
-        if images.ndim == 3:
-            images = images[..., None]
-        images = np.ascontiguousarray(to_rgb(images))  # grey / RGBA as array_lights reads them
         source = array_source(images, mask, sdps_second_stage(None)[0], None, {"device": device})
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
@@ -148,10 +150,12 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images, already divided by light
-            intensities (sdps: as captured; it estimates the intensities).
-        lights: [N, 3] unit light directions, x right / y up / z toward the camera (None for
-            ups-fcn and sdps).
-        mask: [H, W] bool; normals outside are 0.
+            intensities (sdps: as captured; it estimates the intensities); float on the scale
+            psctl reads files at (integer value / (2^bits - 1)), or integer arrays, which are
+            scaled so (``psctl.arrays.as_images``).
+        lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
+            (None for ups-fcn and sdps, which do not use them).
+        mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0.
         method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps
             the PS-FCN† file).
@@ -170,28 +174,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     """
     from psctl.lights import refine_config
 
-    fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
-    images = np.asarray(images, np.float32)
-    if images.ndim == 3:
-        images = np.repeat(images[..., None], 3, axis=-1)  # grey: the same value in R, G, B
-    if images.ndim != 4 or images.shape[-1] not in (1, 3, 4):
-        raise PsctlError(None, f"images must be [N, H, W, 3] (or [N, H, W]), got shape {images.shape}")
-    if images.shape[-1] != 3:  # grey or RGBA, as the capture reader does
-        from psctl.io.images import to_rgb
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black
+    from psctl.symmetry import check_views
 
-        images = np.ascontiguousarray(to_rgb(images))
-    if mask is not None:
-        mask = np.asarray(mask, bool)
-        if mask.shape != images.shape[1:3]:
-            raise PsctlError(None, f"mask must be [H, W] = {list(images.shape[1:3])}, got {list(mask.shape)}")
-        if not mask.any():
-            raise PsctlError(None, "mask is empty")
-    if not np.isfinite(images).all():
-        raise PsctlError(None, "images contain NaN or infinite values")
-    if lights is not None:
-        lights = np.asarray(lights, np.float32)
-        if lights.shape != (images.shape[0], 3):
-            raise PsctlError(None, f"lights must be [{images.shape[0]}, 3], got {lights.shape}")
+    fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
+    check_device_name(device)  # typos are errors for l2 too, which uses neither
+    views = check_views(views)
+    images = as_images(images)
+    mask = as_mask(mask, images.shape[1:3])
+    lights = as_lights(lights, images.shape[0])
+    check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if method == "sdps":
         from psctl.lights import array_lights
@@ -243,7 +235,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
-    from psctl.io.atomic import check_output_dir, staged_outputs
+    from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import (bounding_box, holds_capture, iter_images, load_ground_truth, load_mask, open_capture,
                                   select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
@@ -276,7 +268,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if s[-1] < 1e-3 * s[0]:  # L2Accumulator's test on L^T L, 1e-6, on L itself
             raise PsctlError(cap.path / "light_directions.txt", "light directions are (nearly) coplanar: l2 "
                              f"cannot determine the normals from these {cap.n_images}")
-    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    out_dir = output_folder(out, cap.path)
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
     all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write

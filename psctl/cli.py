@@ -271,6 +271,10 @@ def train(
     with _user_errors():
         from psctl.train import install_weights, load_config, train as run_training
 
+        from psctl.errors import PsctlError
+
+        if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
+            raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")

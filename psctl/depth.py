@@ -80,6 +80,27 @@ DEFAULT_CONFIG = {
 K_FILE = "K.txt"
 
 
+def depth_config(config: dict | None) -> dict:
+    """DEFAULT_CONFIG with ``config``'s overrides; an unknown key or a value that is not a finite
+    number of the default's kind is a one-line error."""
+    if config is None:
+        return dict(DEFAULT_CONFIG)
+    if not isinstance(config, dict):
+        raise PsctlError(None, f"config must be a dict of DEFAULT_CONFIG's keys, not {type(config).__name__}")
+    unknown = sorted(set(config) - set(DEFAULT_CONFIG))
+    if unknown:
+        raise PsctlError(None, f"unknown depth config keys: {', '.join(map(str, unknown))} "
+                               f"(known: {', '.join(DEFAULT_CONFIG)})")
+    for key, value in config.items():
+        want_int = isinstance(DEFAULT_CONFIG[key], int)
+        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and \
+            np.isfinite(value) and (not want_int or float(value).is_integer())
+        if not ok:
+            raise PsctlError(None, f"depth config {key!r} must be a finite {'integer' if want_int else 'number'}, "
+                                   f"not {value!r}")
+    return {**DEFAULT_CONFIG, **{k: int(v) if isinstance(DEFAULT_CONFIG[k], int) else float(v) for k, v in config.items()}}
+
+
 # ----------------------------------------------------------------------------------------------
 # Public API
 # ----------------------------------------------------------------------------------------------
@@ -130,7 +151,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     """``integrate_normals`` with the bookkeeping: rejected counts, components, iterations."""
     import scipy.sparse.csgraph as csgraph
 
-    cfg = {**DEFAULT_CONFIG, **(config or {})}
+    cfg = depth_config(config)
     method = str(method).lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown depth method {method!r}; choose from {', '.join(METHODS)}")
@@ -578,8 +599,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     """
-    from psctl.io.atomic import check_output_dir
-    from psctl.io.capture import bounding_box, iter_images, load_images, open_capture
+    from psctl.io.atomic import check_output_dir, output_folder
+    from psctl.io.capture import bounding_box, holds_capture, iter_images, load_images, open_capture
 
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: (lambda k: None))
@@ -587,8 +608,11 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     if method not in METHODS:
         raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
     cap = open_capture(path)
-    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    out_dir = output_folder(out, cap.path)
     if write:
+        if out_dir.resolve() == cap.path.resolve() or holds_capture(out_dir):  # inputs are never touched
+            raise PsctlError(out_dir, "is or holds a capture folder (images, a mask or ground truth); "
+                                      "choose another --out (the default is PATH/psctl)")
         check_output_dir(out_dir)
     notes: list[str] = []
 

@@ -468,12 +468,15 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
                   weights: str | Path | None = None, config: dict | None = None,
                   progress: "ProgressFactory | None" = None) -> InferResult:
     """A network method on in-memory images [N, H, W, 3] (or [N, H, W]), lights [N, 3]."""
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black
+
     model, run, note = _prepare_network(method, weights, config)
-    images = np.asarray(images, np.float32)
+    images = as_images(images)  # integer arrays scaled as image files are; grey / RGBA to RGB
     n, H, W = images.shape[:3]
-    mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
-    if mask.shape != (H, W):
-        raise PsctlError(None, f"mask must be [{H}, {W}], got {mask.shape}")
+    mask = as_mask(mask, (H, W))
+    lights = as_lights(lights, n)
+    check_not_black(images, mask)
+    mask = np.ones((H, W), bool) if mask is None else mask
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k in range(start, n):
@@ -513,6 +516,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         if e.path is not None:
             raise
         raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
+    if res.dark[mask].all():  # PS-FCN+N's per-pixel normalisation would answer anyway
+        raise PsctlError(capture.path, "all images are black inside the mask")
     res.notes.append(note)
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")

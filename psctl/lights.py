@@ -165,6 +165,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     advance = (progress or (lambda d, t: (lambda k: None)))(label, n + max(0, n - n_cache))
     mask_t = torch.from_numpy(crop_mask)[None, None].to(device, dtype)
 
+    peak = [0.0]  # the brightest pixel inside the mask read so far
+
     def chunks(start: int) -> Iterator[torch.Tensor]:
         """Network inputs [c, 4, size, size] of images start.. in chunks."""
         pending: list[np.ndarray] = []
@@ -180,6 +182,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
             if not np.isfinite(img).all():
                 raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
             pending.append(img * crop_mask[..., None])
+            peak[0] = max(peak[0], float(pending[-1].max()))
             advance(1)
             k += 1
             if len(pending) == chunk or k == n:
@@ -208,6 +211,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
                 if take > 0:
                     cache[v].append(f[:take].clone())
             kept += max(take, 0)
+        if not peak[0] > 0:  # LCNet would still answer, with lights that mean nothing
+            raise PsctlError(None, "all images are black inside the mask")
         if not fuse_max:
             fused = [f / n for f in fused]
         logits: list[dict[str, list[torch.Tensor]]] = [{"dir_x": [], "dir_y": [], "ints": []} for _ in syms]
@@ -244,17 +249,13 @@ def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: st
                  progress: "ProgressFactory | None" = None) -> LightEstimate:
     """Lights from in-memory images [N, H, W, 3] (or [N, H, W]), as captured (not divided by any
     intensity). ``model`` (an LCNet) replaces loading ``weights`` / the installed weights."""
-    images = np.asarray(images, np.float32)
-    if images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[-1] not in (1, 3, 4)):
-        raise PsctlError(None, f"images must be [N, H, W, 3] or [N, H, W], got shape {images.shape}")
-    if images.ndim == 4 and images.shape[-1] != 3:  # grey or RGBA, as the capture reader does
-        from psctl.io.images import to_rgb
+    from psctl.arrays import as_images, as_mask, check_not_black
 
-        images = np.ascontiguousarray(to_rgb(images))
+    images = as_images(images)  # integer arrays scaled as image files are; grey / RGBA to RGB
     n, H, W = images.shape[:3]
-    mask = np.ones((H, W), bool) if mask is None else np.asarray(mask, bool)
-    if mask.shape != (H, W):
-        raise PsctlError(None, f"mask must be [{H}, {W}], got {mask.shape}")
+    mask = as_mask(mask, (H, W))
+    check_not_black(images, mask)
+    mask = np.ones((H, W), bool) if mask is None else mask
     note = None
     if model is None:
         model, w = load_lcnet(weights)
@@ -283,7 +284,12 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(raw.subset(range(start, raw.n_images)), box)
 
-    res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
+    try:
+        res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
+    except PsctlError as e:
+        if e.path is not None:
+            raise
+        raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
     return res
 
@@ -803,7 +809,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     (LCNet's own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
-    from psctl.io.atomic import check_output_dir, staged_outputs
+    from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import holds_capture, load_mask, open_capture, select_images, selection_notes
 
     t0 = time.perf_counter()
@@ -811,7 +817,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     cap = open_capture(path)
     picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
-    out_dir = Path(out) if out is not None else cap.path / "psctl"
+    out_dir = output_folder(out, cap.path)
     if write:
         if out_dir.resolve() == cap.path.resolve():
             raise PsctlError(out_dir, "is the capture folder: its light_directions.txt / light_intensities.txt "
@@ -872,7 +878,8 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
     if weights is None and not any(installed_path(m) for m in SDPS_SECOND):
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
-    source = capture_source(cap, mask, sdps_second_stage(weights)[0], weights, {"device": device}, progress)
+    second = sdps_second_stage(weights, flag="--normals-weights")[0]
+    source = capture_source(cap, mask, second, weights, {"device": device}, progress)
     return second_stage(source, est, True, config, normals=False)[0]
 
 

@@ -35,11 +35,12 @@ SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")
 SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
 
 
-def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, str]:
+def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--weights for sdps") -> tuple[str, str]:
     """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
 
     ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
-    None: the first installed of PS-FCN†, PS-FCN, PS-FCN+N. Raises when there is none.
+    None: the first installed of PS-FCN†, PS-FCN, PS-FCN+N. Raises when there is none, or when
+    the file holds another network (``flag`` names the option that passed it).
     """
     from psctl.models.weights import installed_path, no_weights_error, read_weights
 
@@ -49,7 +50,7 @@ def sdps_second_stage(weights: str | os.PathLike | None = None) -> tuple[str, st
         if w.official and kind == "ps-fcn" and w.lights:  # the authors' NENet has PS-FCN's keys
             kind = "ps-fcn-dagger"
         if kind not in SDPS_SECOND:
-            raise PsctlError(weights, f"holds {SHOWN.get(kind, kind)} weights; --weights for sdps takes "
+            raise PsctlError(weights, f"holds {SHOWN.get(kind, kind)} weights; {flag} takes "
                                       "PS-FCN† (or PS-FCN / PS-FCN+N) weights")
         method = kind
     else:

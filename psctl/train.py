@@ -103,6 +103,48 @@ def merge(base: dict, override: dict | None) -> dict:
     return out
 
 
+# recipe values that must be positive (sizes, counts, rates); the rest only need their default's kind
+_NON_NEGATIVE = {("train", "lr"), ("train", "weight_decay"), ("train", "seed"), ("val", "seed")}  # lr 0: frozen
+_POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "lr_halve_every", "samples",
+                                    "log_every", "checkpoint_minutes", "val_every")} | \
+    {("val", k) for k in ("samples", "images", "size", "batch_size")} | {("lcnet", "dirs_cls"), ("lcnet", "ints_cls")}
+_CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max", "mean"),
+            ("lcnet", "decode"): ("argmax", "soft")}
+
+
+def check_recipe(config: dict) -> None:
+    """Each value of the train / val / lcnet / model sections of the kind of its default (YAML
+    reads ``1e-3`` without a dot as a string, ``4.5`` as a float): a one-line error naming the key,
+    before the run folder exists, instead of a torch error minutes later."""
+    for section in ("model", "train", "val", "lcnet"):
+        for key, value in config[section].items():
+            default = DEFAULT_CONFIG[section].get(key)
+            where = f"config '{section}.{key}'"
+            if default is None or key == "data":
+                continue
+            if isinstance(default, bool):
+                ok, want = isinstance(value, bool), "true or false"
+            elif isinstance(default, int):
+                ok, want = isinstance(value, int) and not isinstance(value, bool), "an integer"
+            elif isinstance(default, float):
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                want = "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
+            elif isinstance(default, list):
+                ok = isinstance(value, list) and len(value) == len(default) and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+                want = f"a list of {len(default)} numbers"
+            else:
+                ok, want = isinstance(value, type(default)), f"a {type(default).__name__}"
+            if not ok:
+                raise PsctlError(None, f"{where} must be {want}, not {value!r}")
+            if (section, key) in _POSITIVE and not value > 0:
+                raise PsctlError(None, f"{where} must be positive, not {value!r}")
+            if (section, key) in _NON_NEGATIVE and not value >= 0:
+                raise PsctlError(None, f"{where} must be 0 or more, not {value!r}")
+            if (section, key) in _CHOICES and value not in _CHOICES[section, key]:
+                raise PsctlError(None, f"{where} must be one of {', '.join(_CHOICES[section, key])}, not {value!r}")
+
+
 def load_config(path: str | os.PathLike | None) -> dict:
     """YAML recipe merged over DEFAULT_CONFIG."""
     if path is None:
@@ -110,16 +152,23 @@ def load_config(path: str | os.PathLike | None) -> dict:
     import yaml
 
     path = Path(path)
+    if path.is_dir():
+        raise PsctlError(path, "is a folder; --config takes a YAML file")
     if not path.is_file():
         raise PsctlError(path, "config file is missing")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise PsctlError(path, f"not valid YAML ({' '.join(str(e).split())})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise PsctlError(path, f"cannot read the config ({e})") from None
+    if raw is None:  # an empty file would silently mean the full default recipe (2.5 M samples)
+        raise PsctlError(path, "config file is empty")
     if not isinstance(raw, dict):
         raise PsctlError(path, "a config must be a mapping of sections")
     try:
         config = merge(DEFAULT_CONFIG, raw)
+        check_recipe(config)
         # the stream options are checked again by train(); here a bad one is named with its file
         from psctl.synth.stream import make_config
 
@@ -523,12 +572,21 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if dev.type == "cpu":
         keep_freed_memory()  # about 20 % faster CPU steps (see keep_freed_memory)
     run = Path(run_dir)
+    if run.exists() and not run.is_dir():
+        raise PsctlError(run, "is a file; --out takes a folder for the run")
     state_file = run / "state.json"
     if resume and not state_file.is_file():
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
-    saved = json.loads(state_file.read_text()) if resume else None
+    saved = None
+    if resume:
+        try:
+            saved = json.loads(state_file.read_text())
+            if not isinstance(saved, dict) or "method" not in saved:
+                raise ValueError("not a run's state")
+        except (OSError, UnicodeDecodeError, ValueError) as e:
+            raise PsctlError(state_file, f"is not a readable run state ({e}); the run cannot be resumed") from None
     if saved is not None:
         if saved["method"] != method:
             raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
@@ -549,6 +607,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
     if config is None:
         config = load_config(None)
+    check_recipe(config)  # a recipe given as a dict, not through load_config
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
@@ -565,7 +624,6 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         make_config(config["data"])
         make_config(val_data)
     t = config["train"]
-    run.mkdir(parents=True, exist_ok=True)
 
     use_amp, amp_dtype = amp_settings(t["amp"], dev)
 
@@ -594,7 +652,11 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         from psctl.models.weights import read_weights
 
         w = read_weights(run / "model.pt")
-        model.load_state_dict(w.state_dict)
+        try:
+            model.load_state_dict(w.state_dict)
+        except RuntimeError as e:  # another network's file in this run's folder
+            first = " ".join(str(e).split())[:160]
+            raise PsctlError(run / "model.pt", f"does not hold this {method} run's network ({first})") from None
         load_optimizer(run, optim, st["optim_files"], dev)
 
     stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
@@ -602,6 +664,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if resume and (run / "stream.pt").is_file():
         stream.load_state_dict(torch.load(run / "stream.pt", map_location="cpu", weights_only=True))
     val = validation_set(config, task, dev, make_stream)
+    run.mkdir(parents=True, exist_ok=True)  # only now: a bad recipe (crop > size, ...) leaves no folder behind
     log = open(run / "log.jsonl", "a")
     metric = f"synthetic_val_{task.metric}"
 

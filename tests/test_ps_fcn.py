@@ -638,3 +638,20 @@ def test_score_skips_pixels_without_gt(tmp_path):
     assert holed["n_mask_pixels"] == full["n_mask_pixels"] == int(arrays["mask"].sum())
     assert holed["n_evaluated_pixels"] == full["n_evaluated_pixels"] - len(holes)
     assert holed["mae"] < 1.0  # Lambertian sphere, L2: near exact on the scored pixels, no 90s
+
+
+def test_black_capture_is_an_error_for_ps_fcn_n(tmp_path):
+    """PS-FCN+N normalises each pixel, so it would answer on black images; the folder is named."""
+    from psctl.api import run_normals
+    from psctl.io.images import write_image
+    from tests.conftest import write_capture
+
+    weights = tmp_path / "n.pt"
+    save_weights(weights, model(), {"method": "ps-fcn-n", "train_images": 32})
+    folder = tmp_path / "blackPNG"
+    write_capture(folder, n=6)
+    for k in range(6):
+        write_image(folder / f"{k + 1:03d}.png", np.zeros((40, 40, 3)), "uint16")
+    with pytest.raises(PsctlError, match="all images are black") as e:
+        run_normals(folder, method="ps-fcn-n", weights=weights, write=False, device="cpu")
+    assert e.value.path == str(folder)

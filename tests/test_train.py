@@ -244,3 +244,37 @@ def test_shipped_recipes_load_and_their_data_validate(recipe):
     cfg = load_config(REPO / "configs" / recipe)
     data = make_config(cfg["data"], crop=cfg["train"]["crop"])
     assert data["n_images"] > 0 and cfg["train"]["samples"] > 0
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("train: {lr: 1e-3}", "'train.lr' must be a number"),
+    ("train: {batch_size: four}", "'train.batch_size' must be an integer"),
+    ("train: {batch_size: 4.5}", "'train.batch_size' must be an integer"),
+    ("train: {batch_size: -4}", "'train.batch_size' must be positive"),
+    ("train: {amp: fp8}", "'train.amp' must be one of bf16, fp16, none"),
+    ("train: {betas: [0.9]}", "'train.betas' must be a list of 2 numbers"),
+    ("train: {channels_last: 1}", "'train.channels_last' must be true or false"),
+    ("", "config file is empty"),
+])
+def test_recipe_values_are_checked_with_the_file(tmp_path, text, needle):
+    from psctl.train import load_config
+
+    cfg = tmp_path / "r.yaml"
+    cfg.write_text(text + "\n")
+    with pytest.raises(PsctlError, match=needle) as e:
+        load_config(cfg)
+    assert e.value.path == str(cfg)
+
+
+def test_bad_run_folders_are_one_error(tmp_path):
+    from psctl.train import train
+
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(PsctlError, match="is a file"):
+        train("ps-fcn", None, f, device="cpu")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "state.json").write_text("{not json")
+    with pytest.raises(PsctlError, match="not a readable run state"):
+        train("ps-fcn", None, run, resume=True, device="cpu")

@@ -69,6 +69,16 @@ def ensure_writable_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def output_folder(out: str | os.PathLike | None, capture: Path) -> Path:
+    """The output folder for a capture: ``out``, or ``capture/psctl`` when None. An empty
+    ``out`` is an error (it would quietly mean the current folder)."""
+    if out is None:
+        return capture / "psctl"
+    if not os.fspath(out).strip():
+        raise PsctlError(None, "--out is empty; name a folder (the default is PATH/psctl)")
+    return Path(out)
+
+
 def check_output_dir(path: str | os.PathLike) -> Path:
     """Fail early (before minutes of work) when ``path`` cannot become a writable folder.
 

@@ -296,8 +296,18 @@ def _check_size(info: ImageInfo, ref: ImageInfo) -> None:
                                     f"({ref.width}x{ref.height})")
 
 
-def load_mask(capture: Capture) -> np.ndarray:
+def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
+    """A Capture as it is, or the capture folder at a path opened (``open_capture``)."""
+    if isinstance(capture, Capture):
+        return capture
+    if isinstance(capture, (str, os.PathLike)):
+        return open_capture(capture)
+    raise PsctlError(None, f"expected a Capture (psctl.io.capture.open_capture) or a folder, not {type(capture).__name__}")
+
+
+def load_mask(capture: Capture | str | os.PathLike) -> np.ndarray:
     """bool [H, W]; the whole image when the folder has no mask. An empty mask is an error."""
+    capture = as_capture(capture)
     if capture.mask_path is None:
         return np.ones((capture.height, capture.width), bool)
     pixels, _ = read_image(capture.mask_path)
@@ -359,9 +369,13 @@ def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[
     return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
 
 
-def iter_images(capture: Capture, box: tuple[slice, slice] | None = None,
+def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None) -> Iterator[np.ndarray]:
-    """Yield each image as float32 [h, w, 3] (cropped to ``box``), divided by its intensities."""
+    """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
+    ``bounding_box`` gives), divided by its intensities. ``capture``: a Capture or a folder."""
+    capture = as_capture(capture)
+    if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
+        raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
     for k, p in enumerate(capture.image_paths):
         pixels, info = read_image(p)
         if (info.width, info.height) != (capture.width, capture.height):  # changed since open
@@ -374,9 +388,10 @@ def iter_images(capture: Capture, box: tuple[slice, slice] | None = None,
             progress(1)
 
 
-def load_images(capture: Capture, box: tuple[slice, slice] | None = None,
+def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None) -> np.ndarray:
     """All images at once: float32 [N, h, w, 3]. Prefer ``iter_images`` for large captures."""
+    capture = as_capture(capture)
     out = None
     for k, img in enumerate(iter_images(capture, box, progress)):
         if out is None:

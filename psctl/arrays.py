@@ -1,0 +1,96 @@
+"""In-memory inputs of the Python API, held to the rules of capture folders.
+
+``estimate_normals``, ``estimate_lights``, ``array_normals`` and ``array_lights`` take numpy
+arrays where the CLI takes files; these functions give them the same conventions (integer
+pixels scaled by the largest value of their type, as image files are; light rows normalised;
+a mask is what is above 0.5) and the same one-line ``PsctlError`` for what a folder would be
+refused for (NaN, zero-length lights, an empty mask, all-black images).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+
+def as_images(images: np.ndarray) -> np.ndarray:
+    """[N, H, W, 3] float32 from [N, H, W, C] (C = 1, 2, 3 or 4: grey repeated, alpha dropped) or
+    [N, H, W] grey. Integer arrays are divided by their type's largest value (uint8 by 255,
+    uint16 by 65535), as psctl reads image files; float arrays are taken as they are (linear,
+    on that scale: LCNet, and so sdps and estimate_lights, depends on it)."""
+    try:
+        arr = np.asarray(images)
+    except (TypeError, ValueError) as e:
+        raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array ({e})") from None
+    if arr.dtype.kind not in "biuf":
+        raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array, got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4) and min(arr.shape[:2]) > 4:
+        raise PsctlError(None, f"images of shape {arr.shape} look like one [H, W, 3] image; pass a stack "
+                               "[N, H, W, 3] (or [N, H, W] grey images)")
+    if arr.ndim == 3:
+        arr = arr[..., None]
+    if arr.ndim != 4 or arr.shape[-1] not in (1, 2, 3, 4) or arr.shape[0] < 1:
+        raise PsctlError(None, f"images must be [N, H, W, 3] (or [N, H, W]) with N >= 1, got shape {arr.shape}")
+    scale = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "iu" else 1.0
+    out = arr.astype(np.float32, copy=False)  # a float32 input is not copied (and never written to)
+    if scale != 1.0:
+        out /= scale
+    if not np.isfinite(out).all():
+        raise PsctlError(None, "images contain NaN or infinite values")
+    c = out.shape[-1]
+    if c in (1, 2):
+        out = np.repeat(out[..., :1], 3, axis=-1)
+    elif c == 4:
+        out = out[..., :3]
+    return np.ascontiguousarray(out)
+
+
+def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    """[H, W] bool (None stays None: the whole image). Numbers: above 0.5 is the object, as in
+    mask files. Wrong shape, NaN and an empty mask are errors."""
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != tuple(shape):
+        raise PsctlError(None, f"mask must be [H, W] = {list(shape)}, got {list(m.shape)}")
+    if m.dtype != bool:
+        if m.dtype.kind not in "iuf":
+            raise PsctlError(None, f"mask must be bool or numeric, got dtype {m.dtype}")
+        if not np.isfinite(m).all():
+            raise PsctlError(None, "mask contains NaN or infinite values")
+        m = m > 0.5
+    if not m.any():
+        raise PsctlError(None, "mask is empty (no foreground pixel)")
+    return m
+
+
+def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
+    """[n, 3] float32 unit directions (rows normalised, as light_directions.txt's are); NaN,
+    infinite or zero-length rows and a wrong shape are errors."""
+    if lights is None:
+        return None
+    try:
+        arr = np.asarray(lights, np.float64)
+    except (TypeError, ValueError):
+        raise PsctlError(None, f"lights must be a numeric [{n}, 3] array") from None
+    if arr.shape != (n, 3):
+        raise PsctlError(None, f"lights must be [{n}, 3] (one direction per image), got {list(arr.shape)}")
+    bad = np.flatnonzero(~np.isfinite(arr).all(1))
+    if bad.size:
+        raise PsctlError(None, f"lights row {bad[0] + 1}: NaN or infinite value")
+    scale = np.abs(arr).max(1)
+    unit = arr / np.where(scale > 0, scale, 1.0)[:, None]  # no overflow for huge rows
+    length = np.linalg.norm(unit, axis=1)
+    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
+    if bad.size:
+        raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction")
+    return (unit / length[:, None]).astype(np.float32)
+
+
+def check_not_black(images: np.ndarray, mask: np.ndarray | None) -> None:
+    """An error when every image is black inside the mask: nothing to estimate from (a network
+    would still answer, with normals or lights that mean nothing)."""
+    inside = images if mask is None else images[:, mask]
+    if not (inside > 0).any():
+        raise PsctlError(None, "all images are black inside the mask")

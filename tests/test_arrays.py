@@ -1,0 +1,90 @@
+"""The array API (estimate_normals, estimate_lights, array_normals, integrate_normals) holds
+in-memory inputs to the rules of capture folders: one PsctlError for what a folder would be
+refused for, integer pixels scaled as image files are, inputs never written to."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from psctl.api import estimate_lights, estimate_normals
+from psctl.errors import PsctlError
+from tests.conftest import hemisphere_lights, render_lambertian, sphere
+
+
+@pytest.fixture
+def data():
+    normals, mask = sphere(32)
+    lights = hemisphere_lights(12, seed=3)
+    return render_lambertian(normals, mask, lights, 0.7), lights, mask, normals
+
+
+@pytest.mark.parametrize("change,needle", [
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 2, np.nan, L), m), "lights row 3: NaN"),
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 0, np.inf, L), m), "lights row 1: NaN or infinite"),
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 4, 0.0, L), m), "lights row 5: zero-length"),
+    (lambda i, L, m: (i, L[:5], m), "lights must be [12, 3]"),
+    (lambda i, L, m: (i, [["a", "b", "c"]] * 12, m), "numeric"),
+    (lambda i, L, m: (np.zeros_like(i), L, m), "all images are black"),
+    (lambda i, L, m: (i[0], L, m), "look like one [H, W, 3] image"),
+    (lambda i, L, m: (i, L, np.where(m, np.nan, 0.0)), "mask contains NaN"),
+    (lambda i, L, m: (i, L, np.zeros_like(m)), "mask is empty"),
+    (lambda i, L, m: (i.astype(str), L, m), "numeric"),
+])
+def test_bad_arrays_are_one_error(data, change, needle):
+    images, lights, mask, _ = data
+    i, L, m = change(images.copy(), lights.copy(), mask.copy())
+    with pytest.raises(PsctlError, match=needle.replace("[", r"\[").replace("]", r"\]")):
+        estimate_normals(i, L, m, method="l2")
+
+
+def test_options_are_checked_for_l2_too(data):
+    images, lights, mask, _ = data
+    with pytest.raises(PsctlError, match="unknown --device 'gpu'"):
+        estimate_normals(images, lights, mask, method="l2", device="gpu")
+    with pytest.raises(PsctlError, match="views"):
+        estimate_normals(images, lights, mask, method="l2", views=3)
+
+
+def test_conventions_of_the_files(data):
+    images, lights, mask, normals = data
+    before = images.copy(), lights.copy(), mask.copy()
+    ref = estimate_normals(images, lights, mask, method="l2")
+    # integer arrays are scaled by their type's largest value, as image files are
+    as16 = np.round(np.clip(images, 0, 1) * 65535).astype(np.uint16)
+    np.testing.assert_allclose(estimate_normals(as16, lights, mask, method="l2"), ref, atol=1e-3)
+    # light rows are normalised (l2 would not mind; the networks do); numeric masks: above 0.5
+    from psctl.arrays import as_lights, as_mask
+
+    np.testing.assert_allclose(as_lights(lights * 3, 12), lights, atol=1e-6)
+    assert (as_mask(np.where(mask, 1.0, 0.3), mask.shape) == mask).all()
+    assert (as_mask(mask.astype(np.uint8) * 255, mask.shape) == mask).all()
+    np.testing.assert_allclose(estimate_normals(images, lights * 3, mask.astype(np.float32), method="l2"), ref,
+                               atol=1e-6)
+    for a, b in zip(before, (images, lights, mask)):  # inputs untouched
+        np.testing.assert_array_equal(a, b)
+
+
+def test_lights_refuse_black_images(data):
+    from psctl.lights import array_lights
+    from psctl.models.lcnet import LCNet
+
+    images, _, mask, _ = data
+    with pytest.raises(PsctlError, match="all images are black"):
+        array_lights(np.zeros_like(images), mask, model=LCNet(), config={"device": "cpu", "views": 1})
+    with pytest.raises(PsctlError, match="all images are black"):
+        estimate_lights(np.zeros_like(images), mask, device="cpu", refine=False)  # before any weights are read
+
+
+def test_depth_config_is_checked():
+    from psctl.depth import integrate_normals
+
+    normals, mask = sphere(24)
+    for config, needle in (({"grazing_nzz": 0.1}, "unknown depth config keys: grazing_nzz"),
+                           ({"grazing_nz": "a"}, "'grazing_nz' must be a finite number"),
+                           ({"cg_maxiter": 2.5}, "'cg_maxiter' must be a finite integer"),
+                           ([1], "config must be a dict")):
+        with pytest.raises(PsctlError, match=needle):
+            integrate_normals(normals, mask, config=config)
+    z = integrate_normals(normals, mask, config={"cg_maxiter": 500.0})  # a whole float is fine
+    assert np.isfinite(z[mask]).all()
