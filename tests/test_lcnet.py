@@ -235,9 +235,32 @@ def test_pipeline_reads_each_image_once_when_the_features_fit():
     assert calls == [0]
     calls.clear()
     run_lcnet(net, reader, 6, mask, {"cache_mb": 0})
+    assert calls == [0, 0, 0]  # the exposure's pass, pass 1, pass 2: nothing kept
+    calls.clear()
+    run_lcnet(net, reader, 6, mask, {"cache_mb": 0, "exposure_band": None})
     assert calls == [0, 0]
     with pytest.raises(PsctlError, match="expected 7 images"):
         run_lcnet(net, reader, 7, mask)
+
+
+def test_exposure_guard_scales_only_captures_outside_the_band():
+    """A capture far darker or brighter than LCNet's training exposures is seen at the target
+    mean; one inside the band is seen as it is (identical logits with the guard off)."""
+    net = lcnet()
+    images, mask = scene(n=6)
+    m = float(images[:, mask].mean())
+    base = array_lights(images, mask, model=net, config={"views": 1, "exposure_band": (m / 2, m * 2)})
+    off = array_lights(images, mask, model=net, config={"views": 1, "exposure_band": None})
+    assert base.info["exposure"] == 1.0 and not base.notes
+    for k in base.logits:
+        np.testing.assert_array_equal(base.logits[k], off.logits[k])
+    band = {"views": 1, "exposure_band": (m / 2, m * 2), "exposure_target": m}
+    bright = array_lights(images * 40, mask, model=net, config=band)
+    dark = array_lights(images / 40, mask, model=net, config=band)
+    for est in (bright, dark):
+        assert est.info["exposure"] != 1.0 and "outside the exposures LCNet was trained on" in est.notes[0]
+        for k in base.logits:  # the same images as at the target (the resized mean is within 1 %)
+            np.testing.assert_allclose(est.logits[k], off.logits[k], atol=0.05 * np.abs(off.logits[k]).max())
 
 
 def test_intensity_error_is_scale_invariant_and_colour_blind():
