@@ -327,7 +327,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
         mean = total / (float(stream.mask.sum()) * 3 * n)
         if not mean > 0:
-            raise PsctlError(None, "all images are black inside the mask")
+            raise PsctlError(None, "all images are black inside the mask" if total == 0 else
+                             f"the images' mean inside the mask is {mean:.3g}: linear images are not negative")
         exposure = input_mean / mean
         scale = np.full((1, 1, 1), exposure, np.float32)
 
