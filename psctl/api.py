@@ -105,8 +105,9 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images as captured, not divided by any
             light intensity; float on the scale psctl reads files at (integer value / (2^bits -
-            1)), or integer arrays, which are scaled so. LCNet depends on that scale (trained on
-            exposures of that range): a float capture on another scale should be divided first.
+            1)), or uint8 / uint16 arrays, which are scaled so. LCNet depends on that scale; a
+            capture far outside its training exposures is rescaled for it (the exposure guard,
+            docs/uncalibrated.md).
         mask: [H, W] bool or numbers (above 0.5 is the object; None: the whole image).
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
@@ -151,8 +152,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images, already divided by light
             intensities (sdps: as captured; it estimates the intensities); float on the scale
-            psctl reads files at (integer value / (2^bits - 1)), or integer arrays, which are
-            scaled so (``psctl.arrays.as_images``).
+            psctl reads files at (integer value / (2^bits - 1)), or uint8 / uint16 arrays, which
+            are scaled so (``psctl.arrays.as_images``).
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0.
@@ -180,7 +181,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
     check_device_name(device)  # typos are errors for l2 too, which uses neither
     views = check_views(views)
-    images = as_images(images)
+    images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)
     mask = as_mask(mask, images.shape[1:3])
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)

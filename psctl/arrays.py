@@ -14,20 +14,23 @@ import numpy as np
 from psctl.errors import PsctlError
 
 
-def as_images(images: np.ndarray) -> np.ndarray:
+def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     """[N, H, W, 3] float32 from [N, H, W, C] (C = 1, 2, 3 or 4: grey repeated, alpha dropped) or
     [N, H, W] grey. Integer arrays are divided by their type's largest value (uint8 by 255,
     uint16 by 65535), as psctl reads image files; float arrays are taken as they are (linear,
-    on that scale: LCNet, and so sdps and estimate_lights, depends on it)."""
+    on that scale; LCNet's exposure guard rescales captures far outside it). ``n``: the number
+    of images when known (from the lights): [N, H, W] with W = 3 or 4 is then a grey stack, not
+    one colour image."""
     try:
         arr = np.asarray(images)
     except (TypeError, ValueError) as e:
         raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array ({e})") from None
-    if arr.dtype.kind not in "biuf":
-        raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array, got dtype {arr.dtype}")
-    if arr.ndim == 3 and arr.shape[-1] in (3, 4) and min(arr.shape[:2]) > 4:
+    if arr.dtype.kind not in "buf" or (arr.dtype.kind == "u" and arr.dtype.itemsize > 2):
+        raise PsctlError(None, f"images must be float, uint8 or uint16 (scaled by 255 or 65535, as image "
+                               f"files are), got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4) and min(arr.shape[:2]) > 4 and n != arr.shape[0]:
         raise PsctlError(None, f"images of shape {arr.shape} look like one [H, W, 3] image; pass a stack "
-                               "[N, H, W, 3] (or [N, H, W] grey images)")
+                               "[N, H, W, 3] (grey images of width 3 or 4: [N, H, W, 1])")
     if arr.ndim == 3:
         arr = arr[..., None]
     if arr.ndim != 4 or arr.shape[-1] not in (1, 2, 3, 4) or arr.shape[0] < 1:
@@ -59,6 +62,8 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
             raise PsctlError(None, f"mask must be bool or numeric, got dtype {m.dtype}")
         if not np.isfinite(m).all():
             raise PsctlError(None, "mask contains NaN or infinite values")
+        if m.dtype.kind in "iu" and m.max() > 1:  # 0/255 or 0/65535: scaled as a mask file is
+            m = m / np.iinfo(m.dtype).max
         m = m > 0.5
     if not m.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")

@@ -401,6 +401,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     }
     if exposure is not None:
         info["exposure_scale"] = round(exposure, 6)
+    info["peak"] = float(stream.peak[: stream.rh, : stream.rw][inside].max()) if inside.any() else 0.0
     return InferResult(normals, dark, info)
 
 
@@ -472,7 +473,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
 
     model, run, note = _prepare_network(method, weights, config)
-    images = as_images(images)  # integer arrays scaled as image files are; grey / RGBA to RGB
+    images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # as image files are
     n, H, W = images.shape[:3]
     mask = as_mask(mask, (H, W))
     lights = as_lights(lights, n)
@@ -517,7 +518,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         if e.path is not None:
             raise
         raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
-    if res.dark[mask].all():  # PS-FCN+N's per-pixel normalisation would answer anyway
+    if not res.info.get("peak", 1.0) > 0:  # PS-FCN+N's per-pixel normalisation would answer anyway
         raise PsctlError(capture.path, "all images are black inside the mask")
     res.notes.append(note)
     if unused:

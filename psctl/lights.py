@@ -137,7 +137,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
 
     Args:
         model: an LCNet (eval mode is set here).
-        reader: see ``psctl.infer.Reader``; called once, or twice for captures larger than the cache.
+        reader: see ``psctl.infer.Reader``; called once, twice when the features do not fit in
+            cache_mb, and once more when the exposure guard's inputs do not (info["passes"]).
         n: number of images.
         mask: [H, W] bool object mask (the full image size).
         config: overrides of DEFAULT_LIGHTS.
@@ -170,15 +171,17 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     chunk = int(cfg["chunk"] or (64 if device.type == "cuda" else 8))
     feat_bytes = FEATURES * (-(-size // 16)) ** 2 * torch.finfo(dtype).bits // 8
     n_cache = max(0, int(cfg["cache_mb"] * 2**20) // (feat_bytes * views))
-    passes = 1 if n <= n_cache else 2
-    reads = n + max(0, n - n_cache)
-    if cfg["exposure_band"] is not None and n * 4 * size * size * torch.finfo(dtype).bits // 8 > \
-            cfg["cache_mb"] * 2**20:
-        reads += n  # the exposure's own pass (see below)
+    # the exposure guard reads every image before pass 1; it keeps the network inputs (4 channels
+    # at `size`) for pass 1 when they fit in cache_mb, else pass 1 reads them again
+    keep_inputs = n * 4 * size * size * torch.finfo(dtype).bits // 8 <= cfg["cache_mb"] * 2**20
+    guard = cfg["exposure_band"] is not None
+    passes = int(guard) + int(not (guard and keep_inputs)) + int(n > n_cache)  # reads of the capture
+    reads = n * int(guard) + n * int(not (guard and keep_inputs)) + max(0, n - n_cache)
     advance = (progress or (lambda d, t: (lambda k: None)))(label, reads)
     mask_t = torch.from_numpy(crop_mask)[None, None].to(device, dtype)
 
     peak = [0.0]  # the brightest pixel inside the mask read so far
+    level = [0.0, 0.0]  # sum and count of the values inside the mask (the exposure guard's mean)
 
     def chunks(start: int) -> Iterator[torch.Tensor]:
         """Network inputs [c, 4, size, size] of images start.. in chunks."""
@@ -196,6 +199,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
                 raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
             pending.append(img * crop_mask[..., None])
             peak[0] = max(peak[0], float(pending[-1].max()))
+            level[0] += float(pending[-1].sum(dtype=np.float64))  # inside the mask (zero outside)
+            level[1] += 3.0 * float(crop_mask.sum())
             advance(1)
             k += 1
             if len(pending) == chunk or k == n:
@@ -209,22 +214,18 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         if k != n or pending:
             raise PsctlError(None, f"expected {n} images, got {k}")
 
-    # exposure: the mean of the network's inputs inside the (resized) mask, before any feature;
-    # the inputs are kept for pass 1 when they fit in the cache (no second read), else read again
+    # exposure: the mean inside the mask over all images, as read (full resolution), before any
+    # feature; the network inputs are kept for pass 1 when they fit in cache_mb, else read again
     factor, buffered, mean = 1.0, None, None
     band = cfg["exposure_band"]
     if band is not None:
-        keep = n * 4 * size * size * torch.finfo(dtype).bits // 8 <= cfg["cache_mb"] * 2**20
-        total, count, xs = 0.0, 0.0, []
+        buffered = []
         with torch.inference_mode():
             for x in chunks(0):
-                m = (x[:, 3:4] > 0.5) if x.shape[1] > 3 else torch.ones_like(x[:, :1], dtype=torch.bool)
-                total += float((x[:, :3].double() * m).sum())
-                count += 3.0 * float(m.sum())
-                if keep:
-                    xs.append(x)
-        buffered = xs if keep else None
-        mean = total / max(count, 1.0)
+                if keep_inputs:
+                    buffered.append(x)
+        buffered = buffered if keep_inputs else None
+        mean = level[0] / max(level[1], 1.0)
         if mean > 0 and not band[0] <= mean <= band[1]:
             factor = float(cfg["exposure_target"]) / mean
 
@@ -266,6 +267,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
             for f in cache[v]:
                 classify(v, f)
         cache.clear()
+        buffered = None  # pass 1 is done with them
         if kept < n:
             for x in scaled(chunks(kept)):
                 for v, sym in enumerate(syms):
@@ -303,6 +305,8 @@ def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: st
     if model is None:
         model, w = load_lcnet(weights)
         note = f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else "")
+        if w.official:  # the guard's band describes psctl's training exposures, not the authors'
+            config = {"exposure_band": None, **(config or {})}
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k in range(start, n):
@@ -322,6 +326,8 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     from psctl.io.capture import iter_images
 
     model, w = load_lcnet(weights, flag)
+    if w.official:  # the guard's band describes psctl's training exposures, not the authors'
+        config = {"exposure_band": None, **(config or {})}
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:

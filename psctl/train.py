@@ -34,6 +34,7 @@ import base64
 import copy
 import json
 import math
+import numbers
 import os
 import signal
 import time
@@ -104,34 +105,38 @@ def merge(base: dict, override: dict | None) -> dict:
 
 
 # recipe values that must be positive (sizes, counts, rates); the rest only need their default's kind
-_NON_NEGATIVE = {("train", "lr"), ("train", "weight_decay"), ("train", "seed"), ("val", "seed")}  # lr 0: frozen
+_NON_NEGATIVE = {("train", "lr"), ("train", "weight_decay"), ("train", "seed"), ("val", "seed"),
+                 ("train", "checkpoint_minutes")}  # lr 0: frozen weights; checkpoint_minutes 0: every step
 _POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "lr_halve_every", "samples",
-                                    "log_every", "checkpoint_minutes", "val_every")} | \
+                                    "log_every", "val_every")} | \
     {("val", k) for k in ("samples", "images", "size", "batch_size")} | {("lcnet", "dirs_cls"), ("lcnet", "ints_cls")}
 _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max", "mean"),
             ("lcnet", "decode"): ("argmax", "soft")}
 
 
-def check_recipe(config: dict) -> None:
+def check_recipe(config: dict) -> dict:
     """Each value of the train / val / lcnet / model sections of the kind of its default (YAML
     reads ``1e-3`` without a dot as a string, ``4.5`` as a float): a one-line error naming the key,
-    before the run folder exists, instead of a torch error minutes later."""
+    before the run folder exists, instead of a torch error minutes later. Returns a copy with
+    whole numbers given as floats (2.5e+6) turned into ints and tuples into lists."""
+    config = copy.deepcopy(config)
     for section in ("model", "train", "val", "lcnet"):
         for key, value in config[section].items():
             default = DEFAULT_CONFIG[section].get(key)
             where = f"config '{section}.{key}'"
             if default is None or key == "data":
                 continue
+            def number(v: Any) -> bool:
+                return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
             if isinstance(default, bool):
                 ok, want = isinstance(value, bool), "true or false"
-            elif isinstance(default, int):
-                ok, want = isinstance(value, int) and not isinstance(value, bool), "an integer"
+            elif isinstance(default, int):  # 2.5e+6 (a float in YAML) is a whole number too
+                ok, want = number(value) and float(value).is_integer(), "an integer"
             elif isinstance(default, float):
-                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                want = "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
+                ok, want = number(value), "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
             elif isinstance(default, list):
-                ok = isinstance(value, list) and len(value) == len(default) and all(
-                    isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+                ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(number, value))
                 want = f"a list of {len(default)} numbers"
             else:
                 ok, want = isinstance(value, type(default)), f"a {type(default).__name__}"
@@ -143,6 +148,11 @@ def check_recipe(config: dict) -> None:
                 raise PsctlError(None, f"{where} must be 0 or more, not {value!r}")
             if (section, key) in _CHOICES and value not in _CHOICES[section, key]:
                 raise PsctlError(None, f"{where} must be one of {', '.join(_CHOICES[section, key])}, not {value!r}")
+            if isinstance(default, int) and not isinstance(default, bool):
+                config[section][key] = int(value)
+            elif isinstance(default, list):
+                config[section][key] = [float(v) for v in value]
+    return config
 
 
 def load_config(path: str | os.PathLike | None) -> dict:
@@ -167,8 +177,7 @@ def load_config(path: str | os.PathLike | None) -> dict:
     if not isinstance(raw, dict):
         raise PsctlError(path, "a config must be a mapping of sections")
     try:
-        config = merge(DEFAULT_CONFIG, raw)
-        check_recipe(config)
+        config = check_recipe(merge(DEFAULT_CONFIG, raw))
         # the stream options are checked again by train(); here a bad one is named with its file
         from psctl.synth.stream import make_config
 
@@ -607,7 +616,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
     if config is None:
         config = load_config(None)
-    check_recipe(config)  # a recipe given as a dict, not through load_config
+    config = check_recipe(config)  # a recipe given as a dict, not through load_config
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")

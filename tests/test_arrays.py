@@ -29,7 +29,7 @@ def data():
     (lambda i, L, m: (i[0], L, m), "look like one [H, W, 3] image"),
     (lambda i, L, m: (i, L, np.where(m, np.nan, 0.0)), "mask contains NaN"),
     (lambda i, L, m: (i, L, np.zeros_like(m)), "mask is empty"),
-    (lambda i, L, m: (i.astype(str), L, m), "numeric"),
+    (lambda i, L, m: (i.astype(str), L, m), "float, uint8 or uint16"),
 ])
 def test_bad_arrays_are_one_error(data, change, needle):
     images, lights, mask, _ = data
@@ -88,3 +88,30 @@ def test_depth_config_is_checked():
             integrate_normals(normals, mask, config=config)
     z = integrate_normals(normals, mask, config={"cg_maxiter": 500.0})  # a whole float is fine
     assert np.isfinite(z[mask]).all()
+
+
+def test_grey_stacks_integer_masks_and_types(data):
+    images, lights, mask, _ = data
+    grey = images[..., 0][:, :, :3]  # 12 grey images 32 x 3: a stack, since 12 lights are given
+    out = estimate_normals(grey, lights, None, method="l2")
+    assert out.shape == (32, 3, 3)
+    with pytest.raises(PsctlError, match=r"\[N, H, W, 1\]"):
+        estimate_lights(grey, None, device="cpu", refine=False)  # no lights: ambiguous, refused
+    from psctl.arrays import as_mask
+
+    m255 = mask.astype(np.uint8) * 255
+    assert (as_mask(m255, mask.shape) == mask).all()
+    assert (as_mask(np.where(mask, 200, 100).astype(np.uint8), mask.shape) == mask).all()  # 100 / 255: background
+    with pytest.raises(PsctlError, match="mask is empty"):
+        as_mask(np.full(mask.shape, 100, np.uint8), mask.shape)  # 100 / 255 < 0.5, as in a mask file
+    with pytest.raises(PsctlError, match="float, uint8 or uint16"):
+        estimate_normals((images * 65535).astype(np.int32), lights, mask, method="l2")
+
+
+def test_recipes_given_as_dicts():
+    from psctl.train import DEFAULT_CONFIG, check_recipe, merge
+
+    cfg = check_recipe(merge(DEFAULT_CONFIG, {"train": {"betas": (0.9, 0.99), "samples": 2.5e6,
+                                                         "batch_size": np.int64(8), "lr": np.float32(1e-4)}}))
+    assert cfg["train"]["samples"] == 2_500_000 and isinstance(cfg["train"]["samples"], int)
+    assert cfg["train"]["betas"] == [0.9, 0.99] and cfg["train"]["batch_size"] == 8

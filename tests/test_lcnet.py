@@ -216,7 +216,7 @@ def test_streamed_and_chunked_equal_all_at_once():
         est = array_lights(images, mask, model=net, config={**config, "views": 1})
         for k in ref:
             np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)  # logits are returned as float32
-    assert est.info["passes"] == 2 and est.info["cached_features"] == 5
+    assert est.info["passes"] == 3 and est.info["cached_features"] == 5  # the exposure read, pass 1, pass 2
     assert est.directions.shape == (11, 3) and est.intensities.shape == (11,)
     np.testing.assert_allclose(np.linalg.norm(est.directions, axis=1), 1, atol=1e-6)
 
@@ -261,6 +261,16 @@ def test_exposure_guard_scales_only_captures_outside_the_band():
         assert est.info["exposure"] != 1.0 and "outside the exposures LCNet was trained on" in est.notes[0]
         for k in base.logits:  # the same images as at the target (the resized mean is within 1 %)
             np.testing.assert_allclose(est.logits[k], off.logits[k], atol=0.05 * np.abs(off.logits[k]).max())
+
+
+def test_exposure_guard_reads_the_mean_inside_the_mask_only():
+    """Bright background outside the mask (and LCNet without a mask channel) does not move it."""
+    images, mask = scene(n=6)
+    images = images * 0.1  # inside: mean 0.025, in the band
+    images[:, ~mask] = 0.9
+    for net in (lcnet(), lcnet(in_mask=False)):
+        est = array_lights(images, mask, model=net, config={"views": 1})
+        assert est.info["exposure"] == 1.0, net.config
 
 
 def test_intensity_error_is_scale_invariant_and_colour_blind():
