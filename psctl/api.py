@@ -127,11 +127,10 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
+    from psctl.arrays import as_images, as_mask
     from psctl.lights import array_lights, refine_config
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
-
-    from psctl.arrays import as_images, as_mask
 
     fit = refine_config(falloff, roll)
     images = as_images(images)

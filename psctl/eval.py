@@ -92,6 +92,10 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         if len(same) > 1:  # one column (and one out/<object>/ folder) each
             raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
     if out is not None:
+        if not os.fspath(out).strip():
+            raise PsctlError(None, "--out is empty; name a folder")
+        if Path(out).resolve() == root.resolve():
+            raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)

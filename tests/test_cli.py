@@ -454,6 +454,13 @@ def test_eval_out_is_all_or_nothing(tmp_path):
     assert proc.returncode == 2 and sorted(os.listdir(out)) == ["keep.txt"]
 
 
+def test_eval_out_may_not_be_the_root(tmp_path):
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "root")
+    assert proc.returncode == 2 and "benchmark root" in proc.stderr
+    assert sorted(os.listdir(tmp_path / "root")) == ["aPNG"]
+
+
 def test_eval_refuses_two_objects_of_the_same_name(tmp_path):
     write_capture(tmp_path / "root" / "cat", n=6, seed=1)
     write_capture(tmp_path / "root" / "catPNG", n=6, seed=2)
