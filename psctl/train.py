@@ -104,7 +104,8 @@ def merge(base: dict, override: dict | None) -> dict:
     return out
 
 
-# recipe values that must be positive (sizes, counts, rates); the rest only need their default's kind
+# recipe values that must be 0 or more, or positive (sizes, counts); the others only need their
+# default's kind (check_recipe)
 _NON_NEGATIVE = {("train", "lr"), ("train", "weight_decay"), ("train", "seed"), ("val", "seed"),
                  ("train", "checkpoint_minutes")}  # lr 0: frozen weights; checkpoint_minutes 0: every step
 _POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "lr_halve_every", "samples",
@@ -112,6 +113,11 @@ _POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "
     {("val", k) for k in ("samples", "images", "size", "batch_size")} | {("lcnet", "dirs_cls"), ("lcnet", "ints_cls")}
 _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max", "mean"),
             ("lcnet", "decode"): ("argmax", "soft")}
+
+
+def _number(v: Any) -> bool:
+    """A finite real number that is not a bool (YAML's true is an int to Python)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def check_recipe(config: dict) -> dict:
@@ -126,17 +132,14 @@ def check_recipe(config: dict) -> dict:
             where = f"config '{section}.{key}'"
             if default is None or key == "data":
                 continue
-            def number(v: Any) -> bool:
-                return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-
             if isinstance(default, bool):
                 ok, want = isinstance(value, bool), "true or false"
             elif isinstance(default, int):  # 2.5e+6 (a float in YAML) is a whole number too
-                ok, want = number(value) and float(value).is_integer(), "an integer"
+                ok, want = _number(value) and float(value).is_integer(), "an integer"
             elif isinstance(default, float):
-                ok, want = number(value), "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
+                ok, want = _number(value), "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
             elif isinstance(default, list):
-                ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(number, value))
+                ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(_number, value))
                 want = f"a list of {len(default)} numbers"
             else:
                 ok, want = isinstance(value, type(default)), f"a {type(default).__name__}"
