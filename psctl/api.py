@@ -236,7 +236,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (bounding_box, holds_capture, iter_images, load_ground_truth, load_mask, open_capture,
+    from psctl.io.capture import (bounding_box, check_not_capture, iter_images, load_ground_truth, load_mask, open_capture,
                                   select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
@@ -274,11 +274,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write
     stale: list[str] = []
     if write:
-        if out_dir.resolve() == cap.path.resolve():  # normal.png there would be read as ground truth next time
-            raise PsctlError(out_dir, "is the capture folder: its files are inputs; choose another --out "
-                                      "(the default is PATH/psctl)")
-        if holds_capture(out_dir):  # another capture: the same, and its normal.png may be its ground truth
-            raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth); choose another --out")
+        check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
         inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
         clash = [n for n in names if (out_dir / n).resolve() in inputs]
         if clash:

@@ -84,13 +84,22 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     bad = np.flatnonzero(~np.isfinite(arr).all(1))
     if bad.size:
         raise PsctlError(None, f"lights row {bad[0] + 1}: NaN or infinite value")
-    scale = np.abs(arr).max(1)
-    unit = arr / np.where(scale > 0, scale, 1.0)[:, None]  # no overflow for huge rows
-    length = np.linalg.norm(unit, axis=1)
-    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
+    unit, bad = unit_rows(arr)
     if bad.size:
         raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction")
-    return (unit / length[:, None]).astype(np.float32)
+    return unit
+
+
+def unit_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Finite rows [N, 3] -> (the rows normalised, float32; the indices of rows shorter than 1e-6,
+    which have no direction). Rows are first scaled to a largest |value| of 1, so that 1e300 0 0
+    does not overflow; light_directions.txt and the array API share this."""
+    rows = np.asarray(rows, np.float64)
+    scale = np.abs(rows).max(axis=1)
+    unit = rows / np.where(scale > 0, scale, 1.0)[:, None]
+    length = np.linalg.norm(unit, axis=1)  # 1 to sqrt(3) for a nonzero row
+    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
+    return (unit / np.where(length > 0, length, 1.0)[:, None]).astype(np.float32), bad
 
 
 def check_not_black(images: np.ndarray, mask: np.ndarray | None) -> None:

@@ -600,7 +600,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     """
     from psctl.io.atomic import check_output_dir, output_folder
-    from psctl.io.capture import bounding_box, holds_capture, iter_images, load_images, open_capture
+    from psctl.io.capture import bounding_box, check_not_capture, iter_images, load_images, open_capture
 
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: (lambda k: None))
@@ -610,9 +610,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     cap = open_capture(path)
     out_dir = output_folder(out, cap.path)
     if write:
-        if out_dir.resolve() == cap.path.resolve() or holds_capture(out_dir):  # inputs are never touched
-            raise PsctlError(out_dir, "is or holds a capture folder (images, a mask or ground truth); "
-                                      "choose another --out (the default is PATH/psctl)")
+        check_not_capture(out_dir, cap)  # inputs are never touched
         check_output_dir(out_dir)
     notes: list[str] = []
 

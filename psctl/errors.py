@@ -6,7 +6,9 @@ The CLI prints ``str(err)`` as a single line and exits with code 2; library user
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 
 
 class PsctlError(ValueError):
@@ -21,3 +23,15 @@ class PsctlError(ValueError):
         self.path = None if path is None else os.fspath(path)
         self.message = message
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+@contextlib.contextmanager
+def naming(path: str | os.PathLike) -> Iterator[None]:
+    """Errors raised inside that name no file get ``path`` (the capture folder being read), so
+    that a message like "all images are black inside the mask" says where."""
+    try:
+        yield
+    except PsctlError as e:
+        if e.path is not None:
+            raise
+        raise PsctlError(path, e.message) from None

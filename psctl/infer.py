@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, naming
 from psctl.models import check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
 
@@ -401,7 +401,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     }
     if exposure is not None:
         info["exposure_scale"] = round(exposure, 6)
-    info["peak"] = float(stream.peak[: stream.rh, : stream.rw][inside].max()) if inside.any() else 0.0
+    if not (stream.peak[: stream.rh, : stream.rw][inside] > 0).any():  # PS-FCN+N would answer anyway
+        raise PsctlError(None, "all images are black inside the mask")
     return InferResult(normals, dark, info)
 
 
@@ -510,16 +511,10 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(capture.subset(range(start, capture.n_images)), box)
 
-    try:
+    with naming(capture.path):  # all images black, ...
         res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
-    except PsctlError as e:
-        if e.path is not None:
-            raise
-        raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
-    if not res.info.get("peak", 1.0) > 0:  # PS-FCN+N's per-pixel normalisation would answer anyway
-        raise PsctlError(capture.path, "all images are black inside the mask")
     res.notes.append(note)
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")

@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, naming
 
 if TYPE_CHECKING:
     import torch
@@ -333,12 +333,8 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(raw.subset(range(start, raw.n_images)), box)
 
-    try:
+    with naming(capture.path):  # all images black, ...
         res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
-    except PsctlError as e:
-        if e.path is not None:
-            raise
-        raise PsctlError(capture.path, e.message) from None  # name the folder (all images black, ...)
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
     return res
 
@@ -859,7 +855,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import holds_capture, load_mask, open_capture, select_images, selection_notes
+    from psctl.io.capture import check_not_capture, load_mask, open_capture, select_images, selection_notes
 
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
@@ -868,12 +864,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     out_dir = output_folder(out, cap.path)
     if write:
-        if out_dir.resolve() == cap.path.resolve():
-            raise PsctlError(out_dir, "is the capture folder: its light_directions.txt / light_intensities.txt "
-                                      "are inputs and are never overwritten; choose another --out")
-        if holds_capture(out_dir):  # another capture: its light files are its inputs
-            raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth); its light files would be "
-                                      "overwritten; choose another --out")
+        check_not_capture(out_dir, cap)  # its light files are inputs
         inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
         clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
         if clash:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from psctl.arrays import unit_rows
 from psctl.errors import PsctlError
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, to_rgb
 
@@ -108,6 +109,18 @@ def holds_capture(path: str | os.PathLike) -> bool:
     return any((path / n).exists() for n in named) or bool(_image_files(path))
 
 
+def check_not_capture(out_dir: Path, capture: "Capture") -> None:
+    """Refuse an output folder that is ``capture``'s own folder or holds a capture (``holds_capture``):
+    its files are inputs (psctl lights' files would overwrite its light files, psctl normals'
+    normal.png would become its ground truth)."""
+    if out_dir.resolve() == capture.path.resolve():
+        raise PsctlError(out_dir, "is the capture folder: its files are inputs and are never overwritten; "
+                                  "choose another --out (the default is PATH/psctl)")
+    if holds_capture(out_dir):
+        raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth), whose files are inputs; "
+                                  "choose another --out")
+
+
 def _read_list(path: Path) -> list[str]:
     try:
         text = path.read_text()
@@ -153,14 +166,10 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
 
 def read_lights(path: Path) -> np.ndarray:
     """light_directions.txt -> [N, 3] float32 unit vectors (rows normalised)."""
-    lights = read_matrix(path, (3,), "light directions")
-    scale = np.abs(lights).max(axis=1)  # rows scaled to a largest |value| of 1 first: 1e300 0 0 cannot overflow
-    unit = lights / np.where(scale > 0, scale, 1.0)[:, None]
-    length = np.linalg.norm(unit, axis=1)  # 1 to sqrt(3) for a nonzero row
-    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
+    unit, bad = unit_rows(read_matrix(path, (3,), "light directions"))
     if bad.size:
         raise PsctlError(path, f"row {bad[0] + 1}: zero-length light direction")
-    return (unit / length[:, None]).astype(np.float32)
+    return unit
 
 
 INTENSITY_RANGE = (1e-12, 1e12)
