@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -91,14 +91,7 @@ def depth_config(config: dict | None) -> dict:
     if unknown:
         raise PsctlError(None, f"unknown depth config keys: {', '.join(map(str, unknown))} "
                                f"(known: {', '.join(DEFAULT_CONFIG)})")
-    for key, value in config.items():
-        want_int = isinstance(DEFAULT_CONFIG[key], int)
-        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and \
-            np.isfinite(value) and (not want_int or float(value).is_integer())
-        if not ok:
-            raise PsctlError(None, f"depth config {key!r} must be a finite {'integer' if want_int else 'number'}, "
-                                   f"not {value!r}")
-    return {**DEFAULT_CONFIG, **{k: int(v) if isinstance(DEFAULT_CONFIG[k], int) else float(v) for k, v in config.items()}}
+    return {**DEFAULT_CONFIG, **{k: like_default(f"depth config {k!r}", v, DEFAULT_CONFIG[k]) for k, v in config.items()}}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -7,8 +7,11 @@ The CLI prints ``str(err)`` as a single line and exits with code 2; library user
 from __future__ import annotations
 
 import contextlib
+import math
+import numbers
 import os
 from collections.abc import Iterator
+from typing import Any
 
 
 class PsctlError(ValueError):
@@ -35,3 +38,39 @@ def naming(path: str | os.PathLike) -> Iterator[None]:
         if e.path is not None:
             raise
         raise PsctlError(path, e.message) from None
+
+
+def is_number(value: Any) -> bool:
+    """A finite real number that is not a bool (YAML's true is an int to Python); numpy scalars
+    count."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def like_default(where: str, value: Any, default: Any) -> Any:
+    """``value`` checked against the kind of ``default`` (a setting's default: bool, int, float,
+    list of numbers or str) and returned in that kind (whole floats such as 2.5e+6 as ints,
+    tuples as lists of floats); otherwise a one-line error naming ``where``."""
+    if isinstance(default, bool):
+        ok, want = isinstance(value, bool), "true or false"
+    elif isinstance(default, int):
+        ok, want = is_number(value) and float(value).is_integer(), "a finite integer"
+    elif isinstance(default, float):
+        ok, want = is_number(value), "a finite number"
+        if isinstance(value, str):  # YAML reads 1e-3 (no dot) as text
+            want += " (write 1.0e-3, not 1e-3: YAML reads that as text)"
+    elif isinstance(default, list):
+        ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(is_number, value))
+        want = f"a list of {len(default)} numbers"
+    else:
+        ok, want = isinstance(value, type(default)), f"a {type(default).__name__}"
+    if not ok:
+        raise PsctlError(None, f"{where} must be {want}, not {value!r}")
+    if isinstance(default, bool):
+        return value
+    if isinstance(default, int):
+        return int(value)
+    if isinstance(default, float):
+        return float(value)
+    if isinstance(default, list):
+        return [float(v) for v in value]
+    return value

@@ -34,7 +34,6 @@ import base64
 import copy
 import json
 import math
-import numbers
 import os
 import signal
 import time
@@ -45,7 +44,7 @@ from typing import Any
 
 import torch
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, like_default
 
 DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"fuse": "max"},
@@ -115,11 +114,6 @@ _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max
             ("lcnet", "decode"): ("argmax", "soft")}
 
 
-def _number(v: Any) -> bool:
-    """A finite real number that is not a bool (YAML's true is an int to Python)."""
-    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def check_recipe(config: dict) -> dict:
     """Each value of the train / val / lcnet / model sections of the kind of its default (YAML
     reads ``1e-3`` without a dot as a string, ``4.5`` as a float): a one-line error naming the key,
@@ -132,29 +126,13 @@ def check_recipe(config: dict) -> dict:
             where = f"config '{section}.{key}'"
             if default is None or key == "data":
                 continue
-            if isinstance(default, bool):
-                ok, want = isinstance(value, bool), "true or false"
-            elif isinstance(default, int):  # 2.5e+6 (a float in YAML) is a whole number too
-                ok, want = _number(value) and float(value).is_integer(), "an integer"
-            elif isinstance(default, float):
-                ok, want = _number(value), "a number (write 1.0e-3, not 1e-3: YAML reads that as text)"
-            elif isinstance(default, list):
-                ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(_number, value))
-                want = f"a list of {len(default)} numbers"
-            else:
-                ok, want = isinstance(value, type(default)), f"a {type(default).__name__}"
-            if not ok:
-                raise PsctlError(None, f"{where} must be {want}, not {value!r}")
+            value = config[section][key] = like_default(where, value, default)
             if (section, key) in _POSITIVE and not value > 0:
                 raise PsctlError(None, f"{where} must be positive, not {value!r}")
             if (section, key) in _NON_NEGATIVE and not value >= 0:
                 raise PsctlError(None, f"{where} must be 0 or more, not {value!r}")
             if (section, key) in _CHOICES and value not in _CHOICES[section, key]:
                 raise PsctlError(None, f"{where} must be one of {', '.join(_CHOICES[section, key])}, not {value!r}")
-            if isinstance(default, int) and not isinstance(default, bool):
-                config[section][key] = int(value)
-            elif isinstance(default, list):
-                config[section][key] = [float(v) for v in value]
     return config
 
 

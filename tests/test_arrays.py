@@ -115,3 +115,17 @@ def test_recipes_given_as_dicts():
                                                          "batch_size": np.int64(8), "lr": np.float32(1e-4)}}))
     assert cfg["train"]["samples"] == 2_500_000 and isinstance(cfg["train"]["samples"], int)
     assert cfg["train"]["betas"] == [0.9, 0.99] and cfg["train"]["batch_size"] == 8
+
+
+def test_settings_take_the_kind_of_their_default():
+    """One check for recipe values and depth settings: whole floats become ints, numpy scalars
+    count as numbers, bools are not numbers, lists keep their length."""
+    from psctl.errors import like_default
+
+    assert like_default("k", 2.5e6, 1) == 2_500_000 and type(like_default("k", 2.5e6, 1)) is int
+    assert type(like_default("k", np.float32(0.5), 1.0)) is float
+    assert like_default("k", np.int64(3), 1) == 3
+    assert like_default("k", (1, 2), [0.9, 0.99]) == [1.0, 2.0]
+    for value, default in ((True, 1), (np.nan, 1.0), ("1e-3", 1.0), ([1.0], [0.9, 0.99]), (1, True)):
+        with pytest.raises(PsctlError, match="'k' must be"):
+            like_default("'k'", value, default)
