@@ -210,7 +210,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                batch: "OutputBatch | None" = None) -> dict:
+                batch: "OutputBatch | None" = None, encoding: str = "auto") -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -231,13 +231,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     The out folder holds one run's outputs: the files an earlier run of psctl normals wrote there
     (its list, OUTPUTS_LIST) that this run does not write (another ``formats``, no ground truth)
     are removed, and a note says so; no other file is. ``out`` may not hold a capture.
+    ``encoding`` (auto | linear | srgb): how the images' values map to radiance
+    (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
     """
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (bounding_box, check_not_capture, iter_images, load_ground_truth, load_mask, open_capture,
-                                  select_images, selection_notes)
+    from psctl.io.capture import (bounding_box, check_not_capture, encoding_notes, iter_images, load_ground_truth,
+                                  load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
     from psctl.metrics import angular_error, summarize
@@ -246,11 +248,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     progress = progress or (lambda desc, total: _noop)
     fit = refine_config(falloff, roll)
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
-    cap = open_capture(path)
+    cap = open_capture(path, encoding)
     picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
-    notes = ([note] if note else []) + picked
+    notes = ([note] if note else []) + picked + encoding_notes(cap)
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
         if value is not None and (method != "sdps" or not refine):
             notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else

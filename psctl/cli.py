@@ -35,6 +35,7 @@ RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: ref
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 RollOpt = Annotated[Optional[bool], typer.Option("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
+EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 
@@ -100,12 +101,13 @@ def _print_json(obj: dict) -> None:
 
 
 @app.command()
-def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")], json_out: Json = False) -> None:
+def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")],
+         encoding: EncodingOpt = "auto", json_out: Json = False) -> None:
     """Show what psctl detects in a folder: images, size, bit depth, lights, mask, ground truth."""
     with _user_errors():
         from psctl.io.summary import describe
 
-        report = describe(path)
+        report = describe(path, encoding)
         if json_out:
             _print_json(report)
         else:
@@ -129,6 +131,7 @@ def normals(
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
+    encoding: EncodingOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -142,7 +145,7 @@ def normals(
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                          views=views, refine=refine, falloff=falloff, roll=roll),
+                                          views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -161,6 +164,7 @@ def evaluate(
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
+    encoding: EncodingOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -171,7 +175,7 @@ def evaluate(
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views, refine=refine, falloff=falloff, roll=roll),
+                                            views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding),
              json_out, quiet, render_benchmark)
 
 
@@ -189,6 +193,7 @@ def lights(
     normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
+    encoding: EncodingOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -199,7 +204,7 @@ def lights(
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
                                          views=views, n_images=images, seed=seed, progress=progress,
                                          refine=refine, normals_weights=normals_weights, falloff=falloff,
-                                         roll=roll),
+                                         roll=roll, encoding=encoding),
              json_out, quiet, render_lights)
 
 

@@ -56,13 +56,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   out: str | os.PathLike | None = None,
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                  refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> dict:
+                  refine: bool = True, falloff: str | None = None, roll: bool | None = None,
+                  encoding: str = "auto") -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
-    ``refine``, ``falloff`` and ``roll`` to sdps.
+    ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` to every object's capture.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
     not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
@@ -84,7 +85,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     folders = find_objects(root)
     # every object must be scorable before any is run (and before any output is written)
     for folder in folders:
-        if open_capture(folder).gt_path is None:
+        if open_capture(folder, encoding).gt_path is None:
             raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png / normal.png)")
     names = [object_name(f) for f in folders]
     for name in dict.fromkeys(names):
@@ -105,7 +106,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             r = run_normals(folder, method=method, out=None if out is None else Path(out) / name,
                             n_images=n_images, seed=seed, write=out is not None, progress=progress,
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
-                            falloff=falloff, roll=roll, batch=batch)
+                            falloff=falloff, roll=roll, batch=batch, encoding=encoding)
             _collect(objects, used, r)
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}

@@ -839,8 +839,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                n_images: int | None = None, seed: int | None = None, write: bool = True,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
-               falloff: str | None = None, roll: bool | None = None) -> dict:
+               falloff: str | None = None, roll: bool | None = None, encoding: str = "auto") -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
+
+    ``encoding`` (auto | linear | srgb): how the images' values map to radiance
+    (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
 
     ``refine``: when a network that estimates normals from lights is installed (sdps' second
     stage, or ``normals_weights``), LCNet's lights are refined against its normals
@@ -855,13 +858,15 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import check_not_capture, load_mask, open_capture, select_images, selection_notes
+    from psctl.io.capture import (check_not_capture, encoding_notes, load_mask, open_capture, select_images,
+                                  selection_notes)
 
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
-    cap = open_capture(path)
+    cap = open_capture(path, encoding)
     picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
+    picked += encoding_notes(cap)
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap)  # its light files are inputs

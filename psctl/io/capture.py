@@ -25,7 +25,7 @@ import numpy as np
 
 from psctl.arrays import unit_rows
 from psctl.errors import PsctlError
-from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, to_rgb
+from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 
 LIST_FILES = ("filenames.txt", "names.txt")
 LIGHTS_FILE = "light_directions.txt"
@@ -55,6 +55,7 @@ class Capture:
     intensities_given: bool = False
     mask_path: Path | None = None
     gt_path: Path | None = None
+    encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
 
     @property
     def n_images(self) -> int:
@@ -63,6 +64,11 @@ class Capture:
     @property
     def calibrated(self) -> bool:
         return self.lights is not None
+
+    def is_srgb(self, k: int) -> bool:
+        """Whether image ``k`` is decoded from sRGB to linear (``encoding``: srgb, or auto and
+        a JPEG)."""
+        return self.encoding == "srgb" or (self.encoding == "auto" and self.image_paths[k].suffix.lower() in JPEG)
 
     def subset(self, indices: Sequence[int]) -> "Capture":
         """The same capture restricted to some images (in the given order)."""
@@ -73,6 +79,14 @@ class Capture:
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
+
+
+# how pixel values map to radiance. Photometric stereo needs values proportional to radiance:
+# DiLiGenT's PNGs and raw-converted TIFFs are linear; a camera's JPEGs carry the sRGB tone curve
+# (their headers, like most PNGs', say sRGB whatever the data are, so only the kind of file or the
+# user can tell). auto: JPEGs are sRGB, every other file linear.
+ENCODINGS = ("auto", "linear", "srgb")
+JPEG = (".jpg", ".jpeg")
 
 
 def object_name(path: str | os.PathLike) -> str:
@@ -237,12 +251,16 @@ def is_benchmark_root(path: str | os.PathLike) -> bool:
     )
 
 
-def open_capture(path: str | os.PathLike) -> Capture:
+def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     """Validate a capture folder without decoding pixels.
 
     Checks: images exist and share one size, light and intensity rows match the image count and
-    are well formed, mask and ground truth (headers) have the image size.
+    are well formed, mask and ground truth (headers) have the image size. ``encoding`` (one of
+    ENCODINGS): how the images' values map to radiance, applied when they are read; auto decodes
+    JPEGs from sRGB and reads every other file as linear.
     """
+    if encoding not in ENCODINGS:
+        raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
     path = Path(path)
     if not path.exists():
         raise PsctlError(path, "folder does not exist")
@@ -295,7 +313,7 @@ def open_capture(path: str | os.PathLike) -> Capture:
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
-        gt_path=gt_path,
+        gt_path=gt_path, encoding=encoding,
     )
 
 
@@ -392,6 +410,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         rgb = to_rgb(pixels)
         if box is not None:
             rgb = rgb[box]
+        if capture.is_srgb(k):
+            rgb = srgb_to_linear(rgb)
         yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
         if progress is not None:
             progress(1)
@@ -408,6 +428,18 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         out[k] = img
     assert out is not None
     return out
+
+
+def encoding_notes(capture: Capture) -> list[str]:
+    """A note when images are decoded from sRGB, so that a result never silently depends on it."""
+    n = sum(capture.is_srgb(k) for k in range(capture.n_images))
+    if not n:
+        return []
+    which = "all images" if n == capture.n_images else f"{n} of {capture.n_images} images"
+    if capture.encoding == "srgb":
+        return [f"encoding: {which} decoded from sRGB to linear (--encoding srgb)"]
+    return [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
+            f"(--encoding linear reads them as stored)"]
 
 
 def select_images(n: int, k: int | None, seed: int | None) -> np.ndarray:

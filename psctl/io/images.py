@@ -2,7 +2,9 @@
 
 Pillow, imageio and skimage.io silently reduce 16-bit RGB PNGs to 8 bits; DiLiGenT is 16-bit,
 so everything goes through OpenImageIO. Integer pixels become linear float32 in [0, 1] as
-``value / (2**bits - 1)``; float files (EXR, float TIFF) are returned as stored.
+``value / (2**bits - 1)``; float files (EXR, float TIFF) are returned as stored. Photometric
+stereo needs pixel values proportional to radiance: ``srgb_to_linear`` undoes the sRGB tone curve
+of camera JPEGs (psctl.io.capture decides which images need it).
 """
 
 from __future__ import annotations
@@ -94,6 +96,14 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     if not allow_nonfinite and not np.isfinite(pixels).all():
         raise PsctlError(path, "image contains NaN or infinite values")
     return pixels, info
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """The sRGB decoding curve (IEC 61966-2-1), element-wise: an sRGB-encoded value in [0, 1]
+    (a camera JPEG's pixel / 255) -> linear radiance in [0, 1]. Values above 1 follow the power
+    segment and negative ones the linear segment, so float data stays finite and monotonic."""
+    v = np.asarray(values, dtype=np.float32)
+    return np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def to_rgb(pixels: np.ndarray) -> np.ndarray:

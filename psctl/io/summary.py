@@ -10,13 +10,14 @@ import numpy as np
 from psctl.errors import PsctlError
 
 
-def describe_capture(path: str | os.PathLike) -> dict:
+def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
     """What a capture folder holds, as a JSON-ready dict."""
     from psctl.io.capture import load_mask, open_capture
     from psctl.io.images import image_info
 
-    cap = open_capture(path)
+    cap = open_capture(path, encoding)
     mask = load_mask(cap)
+    srgb = sum(cap.is_srgb(k) for k in range(cap.n_images))
     e = cap.intensities
     kinds = sorted({(i.bits, i.dtype) for i in map(image_info, cap.image_paths)})  # headers only
     return {
@@ -31,6 +32,9 @@ def describe_capture(path: str | os.PathLike) -> dict:
         "sample_type": cap.dtype,
         "bit_depths": sorted({b for b, _ in kinds}),  # every image's: more than one when they are mixed
         "sample_types": list(dict.fromkeys(t for _, t in kinds)),  # in the order of bit_depths
+        # how the values are read: linear, srgb (decoded to linear), or mixed
+        "encoding": "linear" if srgb == 0 else "srgb" if srgb == cap.n_images else "mixed",
+        "srgb_images": srgb,
         "calibrated": cap.calibrated,
         "intensities": "light_intensities.txt" if cap.intensities_given else "none (all ones)",
         "intensity_range": [float(e.min()), float(e.max())],
@@ -43,7 +47,7 @@ def describe_capture(path: str | os.PathLike) -> dict:
     }
 
 
-def describe(path: str | os.PathLike) -> dict:
+def describe(path: str | os.PathLike, encoding: str = "auto") -> dict:
     """A capture folder's description, or a benchmark root's with one entry per object."""
     from psctl.io.capture import find_objects, is_benchmark_root
 
@@ -52,8 +56,8 @@ def describe(path: str | os.PathLike) -> dict:
         raise PsctlError(path, "folder does not exist")
     if is_benchmark_root(path):
         return {"kind": "benchmark", "path": str(path),
-                "objects": [describe_capture(f) for f in find_objects(path)]}
-    return describe_capture(path)
+                "objects": [describe_capture(f, encoding) for f in find_objects(path)]}
+    return describe_capture(path, encoding)
 
 
 def escape(text: object) -> str:
@@ -92,6 +96,9 @@ def render_info(report: dict) -> None:
         t.add_row("bit depth", f"mixed: {'/'.join(map(str, r['bit_depths']))} ({'/'.join(r['sample_types'])})")
     else:
         t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
+    enc = r.get("encoding", "linear")
+    t.add_row("encoding", "linear" if enc == "linear" else "sRGB, decoded to linear" if enc == "srgb" else
+              f"mixed: {r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear")
     t.add_row("calibrated", "yes (light_directions.txt)" if r["calibrated"] else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
     t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
