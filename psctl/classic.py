@@ -4,6 +4,12 @@
 images, already divided by light intensity) are fitted as m_k = l_k . b; the normal is b / |b|
 and |b| the albedo. The solution b = (L^T L)^-1 L^T m only needs the 3 x 3 matrix L^T L and the
 running sum sum_k l_k m_k, so images are streamed and memory does not grow with their number.
+
+``l2-trimmed``: the same fit per pixel on the middle of its observations only. Shadows (attached
+and cast) are a pixel's darkest observations and specular highlights its brightest, and both
+break m_k = l_k . b; sorting each pixel's observations and dropping the darkest ``low`` and the
+brightest ``high`` shares keeps those that a Lambertian model explains. Needs every observation
+of a pixel at once: [N, P] grey values.
 """
 
 from __future__ import annotations
@@ -94,3 +100,92 @@ def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
     if k + 1 != len(lights):
         raise PsctlError(None, f"{k + 1} images but {len(lights)} light directions")
     return acc.solve()
+
+
+# The shares dropped per pixel, chosen on synthetic test sets only (benchmarks/trim_grid.py,
+# docs/usage.md "l2-trimmed")
+DEFAULT_TRIM = {"low": 0.6, "high": 0.3}
+_CHUNK = 16384  # pixels solved at once (bounds the [K, chunk, 3] temporaries)
+
+
+def trimmed_range(n: int, low: float, high: float) -> tuple[int, int]:
+    """(first, stop): the sorted observations kept out of ``n``; at least 3 (all when n < 4)."""
+    if not (0 <= low and 0 <= high and low + high < 1):
+        raise PsctlError(None, f"trim shares must be >= 0 with low + high < 1 (got low={low}, high={high})")
+    keep = min(n, max(3, int(round((1 - low - high) * n))))
+    first = min(int(round(low * n)), n - keep)
+    return first, first + keep
+
+
+def trimmed_l2_solve(grey: np.ndarray, lights: np.ndarray, low: float = DEFAULT_TRIM["low"],
+                     high: float = DEFAULT_TRIM["high"]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares per pixel on its middle observations.
+
+    Args:
+        grey: [N, P] grey observations (intensity-normalised), lights: [N, 3].
+    Returns:
+        b [P, 3] (normal times albedo), dark [P] bool (no light: b is 0), and fallback [P] bool:
+        pixels whose kept lights were (nearly) coplanar, solved on all observations instead.
+    """
+    n, p = grey.shape
+    if n < 3:
+        raise PsctlError(None, f"L2 photometric stereo needs at least 3 images (got {n})")
+    lights = np.asarray(lights, np.float64)
+    s = np.linalg.svd(lights, compute_uv=False)
+    if s[-1] < 1e-3 * s[0]:
+        raise PsctlError(None, "light directions are (nearly) coplanar: L2 cannot determine the normals")
+    first, stop = trimmed_range(n, low, high)
+    full = np.linalg.pinv(lights)  # [3, N]: the all-observation solution, for degenerate pixels
+    b = np.zeros((p, 3), np.float64)
+    fallback = np.zeros(p, bool)
+    for a in range(0, p, _CHUNK):
+        g = np.asarray(grey[:, a:a + _CHUNK], np.float64)
+        idx = np.argsort(g, axis=0, kind="stable")[first:stop]  # [K, c]
+        lk = lights[idx]  # [K, c, 3]
+        mk = np.take_along_axis(g, idx, 0)  # [K, c]
+        lhs = np.einsum("kci,kcj->cij", lk, lk)
+        rhs = np.einsum("kci,kc->ci", lk, mk)
+        ev = np.linalg.eigvalsh(lhs)  # ascending
+        bad = ev[:, 0] < 1e-6 * ev[:, 2]
+        lhs[bad] = np.eye(3)
+        x = np.linalg.solve(lhs, rhs[..., None])[..., 0]
+        x[bad] = (full @ g[:, bad]).T
+        b[a:a + _CHUNK], fallback[a:a + _CHUNK] = x, bad
+    dark = (grey.max(0) < DARK) | (np.linalg.norm(b, axis=1) < 1e-12)
+    b[dark] = 0
+    return b, dark, fallback
+
+
+def trimmed_result(b: np.ndarray, dark: np.ndarray, mask: np.ndarray) -> L2Result:
+    """An L2Result from ``trimmed_l2_solve``'s b and dark over the pixels of ``mask``."""
+    albedo = np.linalg.norm(b, axis=1)
+    n = b / np.maximum(albedo, 1e-12)[:, None]
+    n[dark] = DEFAULT_NORMAL
+    h, w = mask.shape
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[mask] = n
+    alb = np.zeros((h, w), np.float32)
+    alb[mask] = np.where(dark, 0.0, albedo)
+    dark_map = np.zeros((h, w), bool)
+    dark_map[mask] = dark
+    return L2Result(normals, alb, dark_map)
+
+
+def trimmed_l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
+                       mask: np.ndarray | None = None, low: float = DEFAULT_TRIM["low"],
+                       high: float = DEFAULT_TRIM["high"]) -> L2Result:
+    """Least-squares normals from each pixel's middle observations (the darkest ``low`` and
+    brightest ``high`` shares dropped); arguments as ``l2_normals``."""
+    lights = np.asarray(lights, np.float64)
+    grey = []
+    for img in images:
+        img = np.asarray(img, np.float32)
+        if mask is None:
+            mask = np.ones(img.shape[:2], bool)
+        grey.append((img @ GREY if img.ndim == 3 else img)[mask])
+    if not grey:
+        raise PsctlError(None, "no images")
+    if len(grey) != len(lights):
+        raise PsctlError(None, f"{len(grey)} images but {len(lights)} light directions")
+    b, dark, _ = trimmed_l2_solve(np.stack(grey), lights, low, high)
+    return trimmed_result(b, dark, np.asarray(mask, bool))
