@@ -746,8 +746,8 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
 
     report["outputs"] = {name.replace(".", "_"): str(out_dir / name) for name in OUTPUTS}
     with staged_outputs(out_dir) as stage:
-        write_image(stage / "depth.exr", depth.astype(np.float32), "float")
-        write_image(stage / "depth.png", depth_preview(depth, valid), "uint16")
+        write_image(stage / "depth.exr", depth.astype(np.float32), "float", kind="data")
+        write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")
         write_ply(stage / "mesh.ply", mesh, binary=binary_ply,
                   comment=f"psctl depth --method {report['method']} ({report['projection']}) of {report['object']}")
         write_image(stage / "shading.png", np.stack([shading, valid.astype(np.float32)], -1), "uint8")

@@ -124,6 +124,42 @@ def test_normal_map_round_trip(tmp_path, fmt, name, tol):
     assert np.all(back[~m] == 0)
 
 
+def _png_chunks(path) -> list[str]:
+    """The chunk types of a PNG file, read from its bytes (no image library involved)."""
+    import struct
+
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    kinds, i = [], 8
+    while i < len(data):
+        size, kind = struct.unpack(">I4s", data[i:i + 8])
+        kinds.append(kind.decode())
+        i += 12 + size
+    return kinds
+
+
+def test_data_pngs_carry_no_colour_tag_and_round_exactly(tmp_path):
+    """A normal map holds numbers: tagged sRGB (OpenImageIO's default), a colour-managed reader
+    would bend them. Pictures keep the sRGB tag. png16 is round((n + 1) / 2 * 65535) exactly."""
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(64, 64, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    m = np.ones((64, 64), bool)
+    write_normal_map(tmp_path / "n.png", n, m, "png16")
+    write_normal_map(tmp_path / "n8.png", n, m, "png8")
+    write_image(tmp_path / "pic.png", np.full((4, 4, 3), 0.5, np.float32), "uint8")
+    for f in ("n.png", "n8.png"):
+        assert not {"sRGB", "gAMA", "cHRM", "iCCP"} & set(_png_chunks(tmp_path / f)), f
+    assert "sRGB" in _png_chunks(tmp_path / "pic.png")
+    inp = oiio.ImageInput.open(str(tmp_path / "n.png"))
+    stored = np.asarray(inp.read_image(0, 0, 0, 3, oiio.UINT16)).reshape(64, 64, 3)
+    inp.close()
+    expect = np.round((n.astype(np.float64) + 1) / 2 * 65535)
+    assert np.array_equal(stored, expect)
+
+
 def test_12bit_tiff_full_scale_is_one(tmp_path):
     import OpenImageIO as oiio
 

@@ -114,11 +114,19 @@ def to_rgb(pixels: np.ndarray) -> np.ndarray:
     return pixels[..., :3]
 
 
-def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16") -> None:
+# What a PNG says its values are (OpenImageIO's colour-space names). Left to itself OpenImageIO
+# tags every PNG sRGB (sRGB, gAMA and cHRM chunks), and a colour-managed reader would then bend a
+# normal map's or depth map's numbers through the sRGB curve.
+COLOR_TAGS = {"picture": None, "data": "Raw", "linear": "lin_rec709"}
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16", kind: str = "picture") -> None:
     """Write [H, W] or [H, W, C] float pixels atomically.
 
-    ``dtype`` is "uint8", "uint16" (values in [0, 1], rounded) or "float"/"half" (stored as is).
-    The format follows the file extension (png, tif, exr, ...).
+    ``dtype`` is "uint8", "uint16" (values in [0, 1], rounded in float64) or "float"/"half"
+    (stored as is). The format follows the file extension (png, tif, exr, ...). ``kind``: a
+    "picture" for display (PNGs tagged sRGB), "data" (numbers: normal and depth maps, masks; no
+    colour tag) or "linear" (radiance, as DiLiGenT's images: tagged linear).
     """
     oiio = _oiio()
     path = Path(path)
@@ -128,7 +136,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     h, w, c = arr.shape
     if dtype in ("uint8", "uint16"):
         peak = 255 if dtype == "uint8" else 65535
-        arr = np.round(np.clip(arr, 0.0, 1.0) * peak).astype(np.uint8 if dtype == "uint8" else np.uint16)
+        arr = np.round(np.clip(arr.astype(np.float64), 0.0, 1.0) * peak).astype(np.uint8 if dtype == "uint8" else np.uint16)
         fmt = oiio.UINT8 if dtype == "uint8" else oiio.UINT16
     elif dtype == "half":
         arr = arr.astype(np.float16)
@@ -137,6 +145,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         arr = arr.astype(np.float32)
         fmt = oiio.FLOAT
     spec = oiio.ImageSpec(w, h, c, fmt)
+    if COLOR_TAGS[kind] is not None:
+        spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
     with atomic_path(path) as tmp:

@@ -29,7 +29,7 @@ def parse_formats(spec: str) -> list[str]:
 
 def encode_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """[H, W, 3] unit normals -> [H, W, 3] values in [0, 1], zero outside the mask."""
-    return np.where(mask[..., None], (normals + 1.0) / 2.0, 0.0).astype(np.float32)
+    return np.where(mask[..., None], (np.asarray(normals, np.float64) + 1.0) / 2.0, 0.0)  # float64: exact rounding
 
 
 def decode_normal_pixels(pixels: np.ndarray, info: ImageInfo | None = None) -> np.ndarray:
@@ -71,11 +71,11 @@ def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndar
     """Write one encoding atomically. ``fmt`` is one of FORMATS."""
     normals = np.where(mask[..., None], normals, 0.0).astype(np.float32)
     if fmt == "png16":
-        write_image(path, encode_png(normals, mask), "uint16")
+        write_image(path, encode_png(normals, mask), "uint16", kind="data")
     elif fmt == "png8":
-        write_image(path, encode_png(normals, mask), "uint8")
+        write_image(path, encode_png(normals, mask), "uint8", kind="data")
     elif fmt == "exr":
-        write_image(path, normals, "float")
+        write_image(path, normals, "float", kind="data")
     elif fmt == "npy":
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:

@@ -241,13 +241,13 @@ def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
     names = [f"{i + 1:0{width}d}.png" for i in range(n)]
     arr = images.permute(0, 2, 3, 1).numpy()
     for name, img in zip(names, arr):
-        write_image(folder / name, img, "uint16")
+        write_image(folder / name, img, "uint16", kind="linear")
     write_text_atomic(folder / "filenames.txt", "".join(f"{x}\n" for x in names))
     write_text_atomic(folder / "light_directions.txt",
                       "".join(f"{a:.6f} {b:.6f} {c:.6f}\n" for a, b, c in obj.lights.tolist()))
     write_text_atomic(folder / "light_intensities.txt",
                       "".join(f"{e:.6f} {e:.6f} {e:.6f}\n" for e in obj.intensities.tolist()))
-    write_image(folder / "mask.png", mask.astype(np.float32), "uint8")
+    write_image(folder / "mask.png", mask.astype(np.float32), "uint8", kind="data")
     scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
     write_normal_map(folder / "Normal_gt.png", normals, mask, "png16")
     write_text_atomic(folder / "synth.json", json.dumps(obj.meta, indent=2) + "\n")
