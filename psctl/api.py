@@ -21,17 +21,13 @@ from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
 if TYPE_CHECKING:
-    from psctl.classic import L2Result
     from psctl.io.atomic import OutputBatch
-    from psctl.io.capture import Capture
 
 # progress(description, total) -> advance(n): how library code reports progress without
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
-METHODS = ("auto", "l2", "l2-trimmed", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
-CLASSIC = ("l2", "l2-trimmed")  # no weights, calibrated lights, one pass (psctl.classic)
-TRIM_BUDGET_MB = 1024  # l2-trimmed holds every observation of the pixels it solves: bands above this
+METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
 
 
@@ -160,7 +156,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0.
-        method: "l2", "l2-trimmed", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps" or "auto".
+        method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps
             the PS-FCN† file).
         device: auto | cpu | cuda, for the network methods.
@@ -203,9 +199,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         return array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")
-    from psctl.classic import l2_normals, trimmed_l2_normals
+    from psctl.classic import l2_normals
 
-    return (trimmed_l2_normals if method == "l2-trimmed" else l2_normals)(images, lights, mask).normals
+    return l2_normals(images, lights, mask).normals
 
 
 def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
@@ -262,17 +258,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
                                                           "(only sdps refines lights)"))
     views = check_views(views)
-    if views > 1 and method in CLASSIC:
-        notes.append(f"views: {method} gives the same normals in every view; one pass")
+    if views > 1 and method == "l2":
+        notes.append("views: l2 gives the same normals in every view; one pass")
         views = 1
-    if method in CLASSIC:
+    if method == "l2":
         if not cap.calibrated:
-            raise PsctlError(cap.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
+            raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
         if cap.n_images < 3:
-            raise PsctlError(cap.path, f"{method} needs at least 3 images (got {cap.n_images})")
+            raise PsctlError(cap.path, f"l2 needs at least 3 images (got {cap.n_images})")
         s = np.linalg.svd(cap.lights.astype(np.float64), compute_uv=False)  # before any image is read
         if s[-1] < 1e-3 * s[0]:  # L2Accumulator's test on L^T L, 1e-6, on L itself
-            raise PsctlError(cap.path / "light_directions.txt", f"light directions are (nearly) coplanar: {method} "
+            raise PsctlError(cap.path / "light_directions.txt", "light directions are (nearly) coplanar: l2 "
                              f"cannot determine the normals from these {cap.n_images}")
     out_dir = output_folder(out, cap.path)
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
@@ -326,15 +322,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         normals, dark = net.normals, net.dark
         notes += net.notes
     else:
-        if method == "l2-trimmed":
-            res = _trimmed_capture(cap, mask, box, progress, notes)
-        else:
-            acc = L2Accumulator(mask[box])
-            advance = progress(f"{cap.name}: reading + l2", cap.n_images)
-            for k, img in enumerate(iter_images(cap, box)):
-                acc.add(img, cap.lights[k])
-                advance(1)
-            res = acc.solve()
+        acc = L2Accumulator(mask[box])
+        advance = progress(f"{cap.name}: reading + l2", cap.n_images)
+        for k, img in enumerate(iter_images(cap, box)):
+            acc.add(img, cap.lights[k])
+            advance(1)
+        res = acc.solve()
         if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
             raise PsctlError(cap.path, "all images are black inside the mask")
         normals = np.zeros((cap.height, cap.width, 3), np.float32)
@@ -403,47 +396,6 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
 
 OUTPUTS_LIST = ".psctl-normals"  # in an output folder: the files psctl normals wrote there last
-
-
-def _trimmed_capture(cap: "Capture", mask: np.ndarray, box: tuple[slice, slice], progress: ProgressFactory,
-                     notes: list[str], budget_mb: float = TRIM_BUDGET_MB) -> "L2Result":
-    """l2-trimmed over a capture's box: every observation of the mask's pixels is held ([N, P]
-    float32); above ``budget_mb`` the box is cut into bands of rows, each reading the images
-    again (a note says how many passes)."""
-    from psctl.classic import GREY, trimmed_l2_solve, trimmed_result
-    from psctl.io.capture import iter_images
-
-    m = mask[box]
-    per_row = m.sum(1) * cap.n_images * 4 / 2**20  # MB of observations per row of the box
-    bands, start, used = [], 0, 0.0
-    for r, mb in enumerate(per_row):
-        if used + mb > budget_mb and r > start:
-            bands.append((start, r))
-            start, used = r, 0.0
-        used += mb
-    bands.append((start, m.shape[0]))
-    if len(bands) > 1:
-        notes.append(f"l2-trimmed: the observations exceed {budget_mb:g} MB; solved in {len(bands)} bands of rows, "
-                     f"reading the images {len(bands)} times")
-    b = np.zeros((int(m.sum()), 3))
-    dark = np.zeros(len(b), bool)
-    fallback = 0
-    done = 0
-    advance = progress(f"{cap.name}: reading + l2-trimmed", cap.n_images * len(bands))
-    for r0, r1 in bands:
-        band = (slice(box[0].start + r0, box[0].start + r1), box[1])
-        mb = m[r0:r1]
-        grey = np.empty((cap.n_images, int(mb.sum())), np.float32)
-        for k, img in enumerate(iter_images(cap, band)):
-            grey[k] = (img @ GREY)[mb]
-            advance(1)
-        bb, dd, ff = trimmed_l2_solve(grey, cap.lights)
-        b[done:done + len(bb)], dark[done:done + len(bb)] = bb, dd
-        fallback += int(ff.sum())
-        done += len(bb)
-    if fallback:
-        notes.append(f"l2-trimmed: {fallback} pixels' kept lights were (nearly) coplanar; solved on all their images")
-    return trimmed_result(b, dark, m)
 
 
 def read_outputs_list(out_dir: Path) -> list[str]:

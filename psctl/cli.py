@@ -28,7 +28,7 @@ Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on std
 Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: the first K, or a random K with --seed.")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
-MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | l2-trimmed | ps-fcn | ps-fcn-n | ups-fcn | sdps (l2-trimmed: least squares on each pixel's middle observations, shadows and highlights dropped; auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]

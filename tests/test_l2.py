@@ -94,3 +94,50 @@ def test_diligent_dev_split_l2_near_published():
     for o in res["objects"]:
         assert np.isfinite(o["mae"])
         assert abs(o["mae"] - PAPER_DILIGENT["l2"][o["name"]]) < 1.5, o
+
+
+def _shiny_sphere(n_lights: int = 40):
+    """A Lambertian sphere plus a sharp specular lobe, lights up to 60 degrees off the view."""
+    n, m = sphere(48)
+    lights = hemisphere_lights(n_lights, 60)
+    half = lights + np.array([0.0, 0.0, 1.0])
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    spec = np.clip(np.einsum("hwc,nc->nhw", n, half), 0, 1) ** 200
+    images = render_lambertian(n, m, lights) + 3 * spec[..., None] * m[None, ..., None]
+    return images.astype(np.float32), lights, n, m
+
+
+def test_trimmed_l2_drops_shadows_and_highlights():
+    """Plain L2 is bent by highlights and attached shadows; the trimmed fit keeps the
+    observations Lambert's law explains (measured: 7.6 vs 0.25 degrees on this sphere)."""
+    from psctl.classic import trimmed_l2_normals
+
+    images, lights, n, m = _shiny_sphere()
+    plain = angular_error(l2_normals(images, lights, m).normals, n, m).mean()
+    trimmed = angular_error(trimmed_l2_normals(images, lights, m).normals, n, m).mean()
+    assert plain > 5 and trimmed < 0.5
+
+
+def test_trimmed_range_keeps_at_least_three():
+    from psctl.classic import trimmed_range
+
+    assert trimmed_range(96, 0.55, 0.25) == (53, 72)
+    assert trimmed_range(5, 0.6, 0.3) == (2, 5)
+    assert trimmed_range(3, 0.6, 0.3) == (0, 3)
+    assert trimmed_range(10, 0.0, 0.0) == (0, 10)
+    with pytest.raises(PsctlError, match="low \\+ high < 1"):
+        trimmed_range(10, 0.6, 0.4)
+
+
+def test_trimmed_l2_degenerate_kept_lights_fall_back_to_all():
+    """Where a pixel's kept lights are coplanar (here: three of them, in a plane through the
+    view axis), it is solved on all its observations instead, never left NaN."""
+    from psctl.classic import trimmed_l2_solve
+
+    lights = np.array([[0, 0, 1], [0.5, 0, 0.866], [-0.5, 0, 0.866], [0, 0.5, 0.866], [0, -0.5, 0.866]], np.float64)
+    b_true = np.array([0.1, 0.2, 0.9])
+    grey = (lights @ b_true)[:, None].astype(np.float32)
+    grey[3, 0], grey[4, 0] = 0.0, 5.0  # the out-of-plane lights are the darkest and brightest: dropped
+    b, dark, fallback = trimmed_l2_solve(grey, lights, 0.2, 0.2)
+    assert fallback[0] and not dark[0] and np.isfinite(b).all()
+
