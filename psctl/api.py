@@ -238,7 +238,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (bounding_box, check_not_capture, encoding_notes, iter_images, load_ground_truth,
+    from psctl.io.capture import (bounding_box, check_not_capture, capture_notes, iter_images, load_ground_truth,
                                   load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
@@ -252,7 +252,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
-    notes = ([note] if note else []) + picked + encoding_notes(cap)
+    notes = ([note] if note else []) + picked + capture_notes(cap)
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
         if value is not None and (method != "sdps" or not refine):
             notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
@@ -277,7 +277,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     stale: list[str] = []
     if write:
         check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
-        inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
+        inputs = {p.resolve() for p in cap.input_paths}
         clash = [n for n in names if (out_dir / n).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")

@@ -858,7 +858,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
     """
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (check_not_capture, encoding_notes, load_mask, open_capture, select_images,
+    from psctl.io.capture import (check_not_capture, capture_notes, load_mask, open_capture, select_images,
                                   selection_notes)
 
     t0 = time.perf_counter()
@@ -866,11 +866,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     cap = open_capture(path, encoding)
     picked = selection_notes(cap.n_images, n_images, seed)
     cap = cap.subset(select_images(cap.n_images, n_images, seed))
-    picked += encoding_notes(cap)
+    picked += capture_notes(cap)
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap)  # its light files are inputs
-        inputs = {p.resolve() for p in (*cap.image_paths, cap.mask_path, cap.gt_path) if p is not None}
+        inputs = {p.resolve() for p in cap.input_paths}
         clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")

@@ -31,9 +31,11 @@ LIST_FILES = ("filenames.txt", "names.txt")
 LIGHTS_FILE = "light_directions.txt"
 INTENSITIES_FILE = "light_intensities.txt"
 MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
+# an image taken with every light off (room light, sensor offset): subtracted from each image
+AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "ambient.jpg", "ambient.jpeg")
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images.
-_NOT_IMAGES = re.compile(r"^(mask|normal|normal_gt|error|depth|shading|lights)([._-].*)?$", re.I)
+_NOT_IMAGES = re.compile(r"^(mask|normal|normal_gt|error|depth|shading|lights|ambient)([._-].*)?$", re.I)
 
 Progress = Callable[[int], None]
 
@@ -56,6 +58,7 @@ class Capture:
     mask_path: Path | None = None
     gt_path: Path | None = None
     encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
+    ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
 
     @property
     def n_images(self) -> int:
@@ -65,10 +68,16 @@ class Capture:
     def calibrated(self) -> bool:
         return self.lights is not None
 
-    def is_srgb(self, k: int) -> bool:
-        """Whether image ``k`` is decoded from sRGB to linear (``encoding``: srgb, or auto and
-        a JPEG)."""
-        return self.encoding == "srgb" or (self.encoding == "auto" and self.image_paths[k].suffix.lower() in JPEG)
+    def is_srgb(self, k: int | Path) -> bool:
+        """Whether image ``k`` (an index, or a file such as the ambient image) is decoded from
+        sRGB to linear (``encoding``: srgb, or auto and a JPEG)."""
+        path = self.image_paths[k] if isinstance(k, int) else k
+        return self.encoding == "srgb" or (self.encoding == "auto" and path.suffix.lower() in JPEG)
+
+    @property
+    def input_paths(self) -> tuple[Path, ...]:
+        """Every file the capture reads: images, mask, ground truth, ambient image."""
+        return (*self.image_paths, *(p for p in (self.mask_path, self.gt_path, self.ambient_path) if p is not None))
 
     def subset(self, indices: Sequence[int]) -> "Capture":
         """The same capture restricted to some images (in the given order)."""
@@ -119,7 +128,7 @@ def holds_capture(path: str | os.PathLike) -> bool:
     path = Path(path)
     if not path.is_dir():
         return False
-    named = (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
+    named = (*LIST_FILES, *MASK_FILES, *AMBIENT_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
     return any((path / n).exists() for n in named) or bool(_image_files(path))
 
 
@@ -282,6 +291,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         if not image_paths:
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)})")
 
+    ambient_path = _first_existing(path, AMBIENT_FILES)
+    if ambient_path is not None and list_file is not None and ambient_path in image_paths:
+        raise PsctlError(ambient_path, f"is the ambient image (subtracted from every image) but is also listed "
+                                       f"in {list_file.name} as an input image")
     infos = [image_info(p) for p in image_paths]
     first = infos[0]
     for info in infos[1:]:
@@ -308,12 +321,14 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     gt_path = _first_existing(path, GT_FILES)
     if gt_path is not None and gt_path.suffix.lower() != ".mat":
         _check_size(image_info(gt_path), first)
+    if ambient_path is not None:
+        _check_size(image_info(ambient_path), first)
 
     return Capture(
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
-        gt_path=gt_path, encoding=encoding,
+        gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
     )
 
 
@@ -403,6 +418,11 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
+    ambient = None
+    if capture.ambient_path is not None:  # read once; in linear values, as the images
+        ambient = to_rgb(read_image(capture.ambient_path)[0])
+        ambient = ambient if box is None else ambient[box]
+        ambient = srgb_to_linear(ambient) if capture.is_srgb(capture.ambient_path) else ambient
     for k, p in enumerate(capture.image_paths):
         pixels, info = read_image(p)
         if (info.width, info.height) != (capture.width, capture.height):  # changed since open
@@ -412,6 +432,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rgb = rgb[box]
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
+        if ambient is not None:
+            rgb = np.maximum(rgb - ambient, 0.0)
         yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
         if progress is not None:
             progress(1)
@@ -430,16 +452,18 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     return out
 
 
-def encoding_notes(capture: Capture) -> list[str]:
-    """A note when images are decoded from sRGB, so that a result never silently depends on it."""
+def capture_notes(capture: Capture) -> list[str]:
+    """Notes on how the images are read when it is not as stored (ambient image subtracted,
+    sRGB decoded), so that a result never silently depends on it."""
+    notes = [f"ambient: {capture.ambient_path.name} subtracted from every image"] if capture.ambient_path else []
     n = sum(capture.is_srgb(k) for k in range(capture.n_images))
     if not n:
-        return []
+        return notes
     which = "all images" if n == capture.n_images else f"{n} of {capture.n_images} images"
     if capture.encoding == "srgb":
-        return [f"encoding: {which} decoded from sRGB to linear (--encoding srgb)"]
-    return [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
-            f"(--encoding linear reads them as stored)"]
+        return notes + [f"encoding: {which} decoded from sRGB to linear (--encoding srgb)"]
+    return notes + [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
+                    f"(--encoding linear reads them as stored)"]
 
 
 def select_images(n: int, k: int | None, seed: int | None) -> np.ndarray:

@@ -42,6 +42,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
         "mask_coverage": float(mask.mean()),
         "mask_pixels": int(mask.sum()),
         "ground_truth": cap.gt_path.name if cap.gt_path else None,
+        "ambient": cap.ambient_path.name if cap.ambient_path else None,
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
     }
@@ -104,6 +105,8 @@ def render_info(report: dict) -> None:
     t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
     t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
+    if r.get("ambient"):
+        t.add_row("ambient", escape(f"{r['ambient']}, subtracted from every image"))
     con.print(t)
 
 
