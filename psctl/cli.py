@@ -249,6 +249,7 @@ def depth(
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
     out: OutDir = None,
     K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,
+    encoding: EncodingOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -256,7 +257,8 @@ def depth(
     with _user_errors():
         from psctl.depth import render_depth, run_depth
 
-        _run(lambda progress: run_depth(path, normals=normals, method=method, out=out, K=K, progress=progress),
+        _run(lambda progress: run_depth(path, normals=normals, method=method, out=out, K=K, progress=progress,
+                                        encoding=encoding),
              json_out, quiet, lambda r: render_depth(r, quiet=quiet))
 
 

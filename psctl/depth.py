@@ -583,7 +583,7 @@ OUTPUTS = ("depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.js
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",
               out: str | os.PathLike | None = None, K: str | os.PathLike | np.ndarray | None = None,
               write: bool = True, binary_ply: bool = True, config: dict | None = None,
-              progress: ProgressFactory | None = None) -> dict:
+              progress: ProgressFactory | None = None, encoding: str = "auto") -> dict:
     """Integrate a capture folder's normal map into depth.exr, depth.png, mesh.ply, shading.png
     and depth_report.json (in ``out``, default PATH/psctl; all files or none).
 
@@ -591,21 +591,23 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     normal.png, else estimated from the images (``psctl normals --method auto``). Mask: the
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
+    The images (for estimated normals and the mesh's vertex colours) are read as
+    ``psctl.io.capture.open_capture`` says for ``encoding``, ambient image subtracted.
     """
     from psctl.io.atomic import check_output_dir, output_folder
-    from psctl.io.capture import bounding_box, check_not_capture, iter_images, load_images, open_capture
+    from psctl.io.capture import bounding_box, capture_notes, check_not_capture, iter_images, load_images, open_capture
 
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: (lambda k: None))
     method = str(method).lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
-    cap = open_capture(path)
+    cap = open_capture(path, encoding)
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap)  # inputs are never touched
         check_output_dir(out_dir)
-    notes: list[str] = []
+    notes: list[str] = capture_notes(cap)  # the images are read for the vertex colours at least
 
     # --- intrinsics ----------------------------------------------------------------------------
     k_source = None

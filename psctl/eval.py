@@ -131,7 +131,7 @@ def _collect(objects: list[dict], used: list[str], r: dict) -> None:
     """One object's row of the table from its ``run_normals`` report."""
     used.append(r["method"])
     objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
-                    "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"]})
+                    "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"], "notes": r["notes"]})
     if "light_mae" in r:  # sdps: the lights LCNet estimated
         objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"],
                            lcnet_light_mae=r["lcnet_light_mae"], lcnet_intensity_re=r["lcnet_intensity_re"],

@@ -66,3 +66,45 @@ def test_ambient_errors_and_info(tmp_path):
     (folder / "filenames.txt").write_text(names + "ambient.png\n")
     with pytest.raises(PsctlError, match="is the ambient image"):
         open_capture(folder)
+
+
+def test_ambient_name_case_two_files_and_a_wiped_image(tmp_path):
+    folder = tmp_path / "roomPNG"
+    _with_ambient(folder)
+    (folder / "ambient.png").rename(folder / "Ambient.PNG")  # the image list leaves it out: so must this
+    assert open_capture(folder).ambient_path == folder / "Ambient.PNG"
+    assert run_normals(folder, method="l2", write=False)["mae"] < 1.5
+    write_image(folder / "ambient.exr", np.zeros((40, 40, 3), np.float32), "float")
+    with pytest.raises(PsctlError, match="holds 2 ambient images"):
+        open_capture(folder)
+    (folder / "ambient.exr").unlink()
+    write_image(folder / "Ambient.PNG", np.ones((40, 40, 3), np.float32), "uint16")  # brighter than any image
+    with pytest.raises(PsctlError, match="Ambient.PNG: subtracting it leaves 001.png black"):
+        run_normals(folder, method="l2", write=False)
+
+
+def test_ambient_listed_by_another_path_is_refused(tmp_path):
+    folder = tmp_path / "roomPNG"
+    _with_ambient(folder)
+    (folder / "sub").mkdir()
+    names = (folder / "filenames.txt").read_text().split()
+    (folder / "filenames.txt").write_text("\n".join(names[:-1] + ["sub/../ambient.png"]) + "\n")
+    with pytest.raises(PsctlError, match="is the ambient image"):
+        open_capture(folder)
+
+
+def test_ambient_and_encoding_reach_eval_and_depth(tmp_path):
+    root = tmp_path / "bench"
+    _with_ambient(root / "room")
+    runner = CliRunner()
+    r = runner.invoke(app, ["eval", "--benchmark", "folder", "--root", str(root), "-m", "l2", "--json"])
+    assert r.exit_code == 0, r.output
+    notes = json.loads(r.stdout)["objects"][0]["notes"]
+    assert any(n.startswith("ambient: ambient.png subtracted") for n in notes)
+    r = runner.invoke(app, ["eval", "--benchmark", "folder", "--root", str(root), "-m", "l2"])
+    assert "room: ambient: ambient.png subtracted" in r.output
+    r = runner.invoke(app, ["depth", str(root / "room"), "-o", str(tmp_path / "d"), "--encoding", "LINEAR", "--json"])
+    assert r.exit_code == 0, r.output
+    assert any(n.startswith("ambient:") for n in json.loads(r.stdout)["notes"])
+    r = runner.invoke(app, ["info", str(root), "--encoding", "SRGB"])  # any case, as --method
+    assert r.exit_code == 0 and "srgb" in r.output and "ambien" in r.output  # columns shown (80-column runner)

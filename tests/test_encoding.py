@@ -105,4 +105,5 @@ def test_encoding_on_the_command_line(tmp_path):
     assert r.exit_code == 2 and "--encoding must be one of auto, linear, srgb" in r.output
     assert "Traceback" not in r.output and not (tmp_path / "out").exists()
     with pytest.raises(PsctlError, match="--encoding must be one of"):
-        open_capture(folder, "sRGB")
+        open_capture(folder, "gamma")
+    assert open_capture(folder, "sRGB").encoding == "srgb"  # any case, as --method

@@ -214,6 +214,17 @@ def read_intensities(path: Path) -> np.ndarray:
     return e.astype(np.float32)
 
 
+def _find_ambient(folder: Path) -> Path | None:
+    """The folder's ambient image, whatever the case of its name (ambient.JPG is one too, and
+    the image list leaves such files out); two of them are an error, not a silent choice."""
+    found = sorted(p for p in folder.iterdir() if p.name.lower() in AMBIENT_FILES)
+    if len(found) > 1:
+        raise PsctlError(folder, f"holds {len(found)} ambient images ({', '.join(p.name for p in found)}); keep one")
+    if found and not found[0].is_file():
+        raise PsctlError(found[0], "is not a file")
+    return found[0] if found else None
+
+
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     for n in names:
         if (folder / n).is_file():
@@ -268,8 +279,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     ENCODINGS): how the images' values map to radiance, applied when they are read; auto decodes
     JPEGs from sRGB and reads every other file as linear.
     """
-    if encoding not in ENCODINGS:
+    if not isinstance(encoding, str) or encoding.lower() not in ENCODINGS:
         raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
+    encoding = encoding.lower()  # as --method and --device
     path = Path(path)
     if not path.exists():
         raise PsctlError(path, "folder does not exist")
@@ -291,8 +303,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         if not image_paths:
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)})")
 
-    ambient_path = _first_existing(path, AMBIENT_FILES)
-    if ambient_path is not None and list_file is not None and ambient_path in image_paths:
+    ambient_path = _find_ambient(path)
+    if ambient_path is not None and list_file is not None and \
+            ambient_path.resolve() in {p.resolve() for p in image_paths}:
         raise PsctlError(ambient_path, f"is the ambient image (subtracted from every image) but is also listed "
                                        f"in {list_file.name} as an input image")
     infos = [image_info(p) for p in image_paths]
@@ -433,7 +446,11 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None:
+            lit = rgb.any()
             rgb = np.maximum(rgb - ambient, 0.0)
+            if lit and not rgb.any():
+                raise PsctlError(capture.ambient_path, f"subtracting it leaves {p.name} black: is it brighter than "
+                                                       f"the images (taken with a light on)?")
         yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
         if progress is not None:
             progress(1)
@@ -455,7 +472,10 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
 def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
-    notes = [f"ambient: {capture.ambient_path.name} subtracted from every image"] if capture.ambient_path else []
+    notes = []
+    if capture.ambient_path is not None:
+        decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
+        notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
     n = sum(capture.is_srgb(k) for k in range(capture.n_images))
     if not n:
         return notes

@@ -43,6 +43,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
         "mask_pixels": int(mask.sum()),
         "ground_truth": cap.gt_path.name if cap.gt_path else None,
         "ambient": cap.ambient_path.name if cap.ambient_path else None,
+        "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
     }
@@ -80,11 +81,14 @@ def render_info(report: dict) -> None:
     con = _console()
     if report["kind"] == "benchmark":
         t = Table(title=f"benchmark root {escape(report['path'])}")
-        for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth"):
+        extra = any(o.get("encoding", "linear") != "linear" or o.get("ambient") for o in report["objects"])
+        for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth") + (
+                ("encoding", "ambient") if extra else ()):
             t.add_column(col)
         for o in report["objects"]:
             t.add_row(escape(o["object"]), str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
-                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", escape(o["ground_truth"] or "-"))
+                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", escape(o["ground_truth"] or "-"),
+                      *((o.get("encoding", "linear"), escape(o.get("ambient") or "-")) if extra else ()))
         con.print(t)
         return
     r = report
@@ -106,7 +110,8 @@ def render_info(report: dict) -> None:
     t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
     if r.get("ambient"):
-        t.add_row("ambient", escape(f"{r['ambient']}, subtracted from every image"))
+        decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
+        t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
     con.print(t)
 
 
@@ -164,3 +169,7 @@ def render_benchmark(result: dict) -> None:
     n = {o["n_images"] for o in objs}
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} objects, {'/'.join(map(str, sorted(n)))} images each, {secs:.1f} s", highlight=False)
+    # how the images were read, where not as stored (the other notes are in --json and --out's reports)
+    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith(("ambient:", "encoding:"))]
+    for name, note in read:
+        con.print(escape(f"  {name}: {note}"), highlight=False)
