@@ -336,6 +336,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         dark[box] = res.dark
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
+    if method != "sdps" and cap.calibrated:
+        notes += mirror_notes(normals, mask)
 
     # --- evaluate ------------------------------------------------------------------------------
     error = None
@@ -396,6 +398,26 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
 
 OUTPUTS_LIST = ".psctl-normals"  # in an output folder: the files psctl normals wrote there last
+
+
+# A light file with one axis flipped (y down, as image rows, is the usual case) gives the mirror
+# image of the normals, which is far less integrable than the true field. On the DiLiGenT dev
+# split the ratio was 1.1-8.8 with the files as given and 0.2-0.9 with y flipped (L2 and PS-FCN;
+# the ball, a sphere, is the weak case), on syntest and syntest_dl see docs/usage.md
+MIRROR_NOTE = 0.5
+
+
+def mirror_notes(normals: np.ndarray, mask: np.ndarray) -> list[str]:
+    """A note when the normals' mirror image is far more integrable than they are
+    (``psctl.lights.mirror_ratio`` below MIRROR_NOTE): the light directions probably have an axis
+    flipped."""
+    from psctl.lights import mirror_ratio
+
+    r = mirror_ratio(normals, mask)
+    if r is None or r >= MIRROR_NOTE:
+        return []
+    return [f"lights: these normals are {1 / r:.1f} times less integrable than their mirror image; is an axis of "
+            "light_directions.txt flipped? psctl wants x right, y up (not down, as image rows), z toward the camera"]
 
 
 def read_outputs_list(out_dir: Path) -> list[str]:

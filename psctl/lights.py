@@ -570,6 +570,22 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
         number of pixels used, each with both neighbours inside). (0, 1, k) when fewer than 100
         are usable.
     """
+    terms = _curl_terms(normals, mask, erode)
+    if terms[3] < 100:
+        return 0.0, 1.0, terms[3]
+    aa, ab, bb, k = terms
+    # E(t) = (aa + bb)/2 + (aa - bb)/2 cos 2t + ab sin 2t, smallest where (cos 2t, sin 2t) points
+    # against ((aa - bb)/2, ab)
+    t = 0.5 * np.arctan2(-2.0 * ab, bb - aa)
+    e = np.cos(t) ** 2 * aa + 2 * np.cos(t) * np.sin(t) * ab + np.sin(t) ** 2 * bb
+    return float(np.degrees(t)), float(aa / e) if e > 0 else 1.0, k
+
+
+def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
+                mirror: bool = False) -> tuple[float, float, float, int]:
+    """(aa, ab, bb, k): the sums r0.r0, r0.r90, r90.r90 of integrability_roll's curl residual
+    r0 of the normals (x negated when ``mirror``) and r90 of the same turned by 90 degrees, over
+    the k usable pixels."""
     from scipy.ndimage import binary_erosion
 
     n = np.asarray(normals, np.float64)
@@ -583,7 +599,7 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
     block = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:]
     k = int(block.sum())
     if k < 100:
-        return 0.0, 1.0, k
+        return 0.0, 0.0, 0.0, k
 
     def curl(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray) -> np.ndarray:
         def drow(a: np.ndarray) -> np.ndarray:  # forward differences down the rows
@@ -595,14 +611,27 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
         x, y, z = nx[:-1, :-1], ny[:-1, :-1], nz[:-1, :-1]
         return (-z * drow(nx) + x * drow(nz) - z * dcol(ny) + y * dcol(nz))[block]
 
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
+    nx, ny, nz = (-1.0 if mirror else 1.0) * n[..., 0], n[..., 1], n[..., 2]
     a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
-    aa, ab, bb = float(a0 @ a0), float(a0 @ a90), float(a90 @ a90)
-    # E(t) = (aa + bb)/2 + (aa - bb)/2 cos 2t + ab sin 2t, smallest where (cos 2t, sin 2t) points
-    # against ((aa - bb)/2, ab)
-    t = 0.5 * np.arctan2(-2.0 * ab, bb - aa)
-    e = np.cos(t) ** 2 * aa + 2 * np.cos(t) * np.sin(t) * ab + np.sin(t) ** 2 * bb
-    return float(np.degrees(t)), float(aa / e) if e > 0 else 1.0, k
+    return float(a0 @ a0), float(a0 @ a90), float(a90 @ a90), k
+
+
+def mirror_ratio(normals: np.ndarray, mask: np.ndarray | None = None, erode: int = 3) -> float | None:
+    """How much less integrable a normal map is than its mirror image: the smallest curl residual
+    over turns about the view axis (integrability_roll) of the normals with x negated, over that
+    of the normals as they are. Below 1 the mirrored field is the more integrable one, which is
+    what a light file with one axis flipped (y down, as image rows) gives: L2 then returns exactly
+    the mirrored normals, and the networks nearly. x and y flips cannot be told apart (they
+    differ by a half turn). None when fewer than 100 pixels are usable."""
+    def smallest(aa: float, ab: float, bb: float) -> float:
+        return (aa + bb) / 2 - float(np.sqrt(((aa - bb) / 2) ** 2 + ab ** 2))
+
+    given = _curl_terms(normals, mask, erode)
+    if given[3] < 100:
+        return None
+    e0 = smallest(*given[:3])
+    e1 = smallest(*_curl_terms(normals, mask, erode, mirror=True)[:3])
+    return float(e1 / e0) if e0 > 0 else None
 
 
 def turn_about_view_axis(vectors: np.ndarray, degrees: float) -> np.ndarray:

@@ -141,3 +141,17 @@ def test_trimmed_l2_degenerate_kept_lights_fall_back_to_all():
     b, dark, fallback = trimmed_l2_solve(grey, lights, 0.2, 0.2)
     assert fallback[0] and not dark[0] and np.isfinite(b).all()
 
+
+
+def test_a_flipped_light_axis_is_noted(tmp_path):
+    """y down (image rows) in light_directions.txt mirrors the normals, which makes them far
+    less integrable: a note says so; the file as written gets none."""
+    from tests.conftest import write_capture
+
+    data = write_capture(tmp_path / "okPNG", n=12, size=48)
+    ok = run_normals(tmp_path / "okPNG", method="l2", write=False)
+    assert not any("integrable" in n for n in ok["notes"])
+    write_capture(tmp_path / "flipPNG", n=12, size=48)
+    np.savetxt(tmp_path / "flipPNG" / "light_directions.txt", data["lights"] * [1, -1, 1], fmt="%.6f")
+    flipped = run_normals(tmp_path / "flipPNG", method="l2", write=False)
+    assert flipped["mae"] > 10 and any("less integrable than their mirror image" in n for n in flipped["notes"])
