@@ -27,6 +27,7 @@ VARIANTS = {"guard": {}, "always": {"exposure_band": (DEFAULT_LIGHTS["exposure_t
 def main() -> None:
     import psctl.lights as lights_module
 
+    means = {v: [] for v in VARIANTS}
     for root in sys.argv[1:]:
         errs = {v: [] for v in VARIANTS}
         for folder in find_objects(root):
@@ -40,9 +41,14 @@ def main() -> None:
                     lights_module.DEFAULT_LIGHTS.clear()
                     lights_module.DEFAULT_LIGHTS.update(saved)
                 errs[name].append(r["light_mae"])
-                row.append(f"{name} {r['light_mae']:.2f}")
+                row.append(f"{name} {r['light_mae']:.4f}")
             print(f"  {folder.name:28s} " + "  ".join(row), flush=True)
-        print(root, "  ".join(f"{k}: {np.mean(v):.3f}" for k, v in errs.items()), flush=True)
+        print(root, "  ".join(f"{k}: {np.mean(v):.6f}" for k, v in errs.items()), flush=True)
+        for k, v in errs.items():
+            means[k].append(float(np.mean(v)))
+    # the rule's number: the mean over the roots given, unrounded
+    print("mean over the roots", "  ".join(f"{k}: {np.mean(v)!r}" for k, v in means.items()),
+          f"fall: {np.mean(means['guard']) - np.mean(means['always'])!r}", flush=True)
 
 
 if __name__ == "__main__":

@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
-from psctl.classic import GREY, trimmed_l2_solve, trimmed_result
+from psctl.classic import GREY, l2_result, trimmed_l2_solve
 from psctl.io.capture import bounding_box, find_objects, load_ground_truth, load_images, load_mask, open_capture
 from psctl.metrics import angular_error
 
@@ -34,7 +35,7 @@ HIGHS = (0.0, 0.1, 0.2, 0.25, 0.3, 0.35, 0.4)
 GRID = [(lo, hi) for lo in LOWS for hi in HIGHS if lo + hi <= 0.9 + 1e-9]
 
 
-def object_errors(folder, quant: bool = False) -> dict:
+def object_errors(folder: Path, quant: bool = False) -> dict:
     cap = open_capture(folder)
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
@@ -51,7 +52,7 @@ def object_errors(folder, quant: bool = False) -> dict:
     out = {}
     for lo, hi in GRID:
         b, dark, _ = trimmed_l2_solve(grey, cap.lights, lo, hi)
-        out[(lo, hi)] = float(angular_error(trimmed_result(b, dark, m).normals, gt[box], valid).mean())
+        out[(lo, hi)] = float(angular_error(l2_result(b, dark, m).normals, gt[box], valid).mean())
     return out
 
 

@@ -264,12 +264,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method == "l2":
         if not cap.calibrated:
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
-        if cap.n_images < 3:
-            raise PsctlError(cap.path, f"l2 needs at least 3 images (got {cap.n_images})")
-        s = np.linalg.svd(cap.lights.astype(np.float64), compute_uv=False)  # before any image is read
-        if s[-1] < 1e-3 * s[0]:  # L2Accumulator's test on L^T L, 1e-6, on L itself
-            raise PsctlError(cap.path / "light_directions.txt", "light directions are (nearly) coplanar: l2 "
-                             f"cannot determine the normals from these {cap.n_images}")
+        from psctl.classic import lights_problem
+
+        problem = lights_problem(cap.lights)  # before any image is read
+        if problem:
+            raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")
     out_dir = output_folder(out, cap.path)
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
@@ -336,8 +335,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         dark[box] = res.dark
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
-    if method != "sdps" and cap.calibrated:
-        notes += mirror_notes(normals, mask)
+    if method == "l2" or (method in NETWORKS and NETWORK_METHODS[method]["lights"]):  # the light file's methods
+        notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
 
     # --- evaluate ------------------------------------------------------------------------------
     error = None

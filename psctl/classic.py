@@ -37,6 +37,34 @@ class L2Result:
     dark: np.ndarray  # [H, W] bool, pixels dark in every image (given DEFAULT_NORMAL)
 
 
+def lights_problem(lights: np.ndarray) -> str | None:
+    """Why least squares cannot solve for normals with these light directions [N, 3], or None:
+    fewer than three, or (nearly) coplanar, which leaves the normal undetermined."""
+    lights = np.asarray(lights, np.float64).reshape(-1, 3)
+    if len(lights) < 3:
+        return f"needs at least 3 images (got {len(lights)})"
+    s = np.linalg.svd(lights, compute_uv=False)
+    if s[-1] < 1e-3 * s[0]:
+        return f"light directions are (nearly) coplanar: they cannot determine the normals (from these {len(lights)})"
+    return None
+
+
+def l2_result(b: np.ndarray, dark: np.ndarray, mask: np.ndarray) -> "L2Result":
+    """Normal, albedo and dark maps [H, W, ...] from per-pixel solutions b [P, 3] (normal times
+    albedo) and dark [P] over the pixels of ``mask``; dark pixels get DEFAULT_NORMAL."""
+    albedo = np.linalg.norm(b, axis=1)
+    n = b / np.maximum(albedo, 1e-12)[:, None]
+    n[dark] = DEFAULT_NORMAL
+    h, w = mask.shape
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[mask] = n
+    alb = np.zeros((h, w), np.float32)
+    alb[mask] = np.where(dark, 0.0, albedo)
+    dark_map = np.zeros((h, w), bool)
+    dark_map[mask] = dark
+    return L2Result(normals, alb, dark_map)
+
+
 class L2Accumulator:
     """Streaming least squares: ``add`` one image at a time, then ``solve``."""
 
@@ -46,7 +74,7 @@ class L2Accumulator:
         self.lhs = np.zeros((3, 3), np.float64)
         self.rhs = np.zeros((3, p), np.float64)
         self.peak = np.zeros(p, np.float32)
-        self.count = 0
+        self.lights: list[np.ndarray] = []
 
     def add(self, image: np.ndarray, light: np.ndarray) -> None:
         """image: [H, W, 3] or [H, W] linear, intensity-normalised; light: [3]."""
@@ -56,28 +84,15 @@ class L2Accumulator:
         self.lhs += np.outer(light, light)
         self.rhs += light[:, None] * m[None, :]
         np.maximum(self.peak, m, out=self.peak, casting="unsafe")
-        self.count += 1
+        self.lights.append(light)
 
     def solve(self) -> L2Result:
-        if self.count < 3:
-            raise PsctlError(None, f"L2 photometric stereo needs at least 3 images (got {self.count})")
-        # Condition check: coplanar lights leave the normal undetermined.
-        s = np.linalg.svd(self.lhs, compute_uv=False)
-        if s[-1] < 1e-6 * s[0]:
-            raise PsctlError(None, "light directions are (nearly) coplanar: L2 cannot determine the normals")
-        b = np.linalg.solve(self.lhs, self.rhs)  # [3, P]
-        albedo = np.linalg.norm(b, axis=0)
-        dark = (self.peak < DARK) | (albedo < 1e-12)
-        n = b / np.maximum(albedo, 1e-12)
-        n[:, dark] = DEFAULT_NORMAL[:, None]
-        h, w = self.mask.shape
-        normals = np.zeros((h, w, 3), np.float32)
-        normals[self.mask] = n.T
-        alb = np.zeros((h, w), np.float32)
-        alb[self.mask] = np.where(dark, 0.0, albedo)
-        dark_map = np.zeros((h, w), bool)
-        dark_map[self.mask] = dark
-        return L2Result(normals, alb, dark_map)
+        problem = lights_problem(np.array(self.lights))
+        if problem:
+            raise PsctlError(None, f"L2: {problem}")
+        b = np.linalg.solve(self.lhs, self.rhs).T  # [P, 3]
+        dark = (self.peak < DARK) | (np.linalg.norm(b, axis=1) < 1e-12)
+        return l2_result(b, dark, self.mask)
 
 
 def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
@@ -106,7 +121,7 @@ def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
 
 
 # The shares dropped per pixel, chosen on synthetic test sets only (benchmarks/trim_grid.py,
-# docs/usage.md "l2-trimmed"). First rule (syntest, syntest_dl, syntest_dl_ir): 0.6 / 0.3, which
+# docs/usage.md "A trimmed L2: tried, not a method"). First rule (syntest, syntest_dl, syntest_dl_ir): 0.6 / 0.3, which
 # lost to L2 on the DiLiGenT dev split; second rule, adding a wrong intensity file and an 8-bit
 # dark capture: 0.55 / 0.25 (mean over the five sets 7.85, L2 11.80), which lost too (10.60 vs 9.46)
 DEFAULT_TRIM = {"low": 0.55, "high": 0.25}
@@ -133,12 +148,12 @@ def trimmed_l2_solve(grey: np.ndarray, lights: np.ndarray, low: float = DEFAULT_
         pixels whose kept lights were (nearly) coplanar, solved on all observations instead.
     """
     n, p = grey.shape
-    if n < 3:
-        raise PsctlError(None, f"L2 photometric stereo needs at least 3 images (got {n})")
     lights = np.asarray(lights, np.float64)
-    s = np.linalg.svd(lights, compute_uv=False)
-    if s[-1] < 1e-3 * s[0]:
-        raise PsctlError(None, "light directions are (nearly) coplanar: L2 cannot determine the normals")
+    if lights.shape != (n, 3):
+        raise PsctlError(None, f"{n} images but light directions of shape {lights.shape}")
+    problem = lights_problem(lights)
+    if problem:
+        raise PsctlError(None, f"L2: {problem}")
     first, stop = trimmed_range(n, low, high)
     full = np.linalg.pinv(lights)  # [3, N]: the all-observation solution, for degenerate pixels
     b = np.zeros((p, 3), np.float64)
@@ -161,27 +176,13 @@ def trimmed_l2_solve(grey: np.ndarray, lights: np.ndarray, low: float = DEFAULT_
     return b, dark, fallback
 
 
-def trimmed_result(b: np.ndarray, dark: np.ndarray, mask: np.ndarray) -> L2Result:
-    """An L2Result from ``trimmed_l2_solve``'s b and dark over the pixels of ``mask``."""
-    albedo = np.linalg.norm(b, axis=1)
-    n = b / np.maximum(albedo, 1e-12)[:, None]
-    n[dark] = DEFAULT_NORMAL
-    h, w = mask.shape
-    normals = np.zeros((h, w, 3), np.float32)
-    normals[mask] = n
-    alb = np.zeros((h, w), np.float32)
-    alb[mask] = np.where(dark, 0.0, albedo)
-    dark_map = np.zeros((h, w), bool)
-    dark_map[mask] = dark
-    return L2Result(normals, alb, dark_map)
-
-
 def trimmed_l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
                        mask: np.ndarray | None = None, low: float = DEFAULT_TRIM["low"],
                        high: float = DEFAULT_TRIM["high"]) -> L2Result:
     """Least-squares normals from each pixel's middle observations (the darkest ``low`` and
     brightest ``high`` shares dropped); arguments as ``l2_normals``."""
     lights = np.asarray(lights, np.float64)
+    mask = None if mask is None else np.asarray(mask).astype(bool)  # as L2Accumulator
     grey = []
     for img in images:
         img = np.asarray(img, np.float32)
@@ -193,4 +194,4 @@ def trimmed_l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.nda
     if len(grey) != len(lights):
         raise PsctlError(None, f"{len(grey)} images but {len(lights)} light directions")
     b, dark, _ = trimmed_l2_solve(np.stack(grey), lights, low, high)
-    return trimmed_result(b, dark, np.asarray(mask, bool))
+    return l2_result(b, dark, mask)

@@ -43,21 +43,27 @@ def naming(path: str | os.PathLike) -> Iterator[None]:
 def is_number(value: Any) -> bool:
     """A finite real number that is not a bool (YAML's true is an int to Python); numpy scalars
     count."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value) and math.isfinite(float(value))  # an int of 400 digits is no float
+    except OverflowError:
+        return False
 
 
-def like_default(where: str, value: Any, default: Any) -> Any:
+def like_default(where: str, value: Any, default: Any, text_hint: str = "") -> Any:
     """``value`` checked against the kind of ``default`` (a setting's default: bool, int, float,
     list of numbers or str) and returned in that kind (whole floats such as 2.5e+6 as ints,
-    tuples as lists of floats); otherwise a one-line error naming ``where``."""
+    tuples as lists of floats); otherwise a one-line error naming ``where``, with ``text_hint``
+    added when a number was given as text."""
     if isinstance(default, bool):
         ok, want = isinstance(value, bool), "true or false"
     elif isinstance(default, int):
         ok, want = is_number(value) and float(value).is_integer(), "a finite integer"
     elif isinstance(default, float):
         ok, want = is_number(value), "a finite number"
-        if isinstance(value, str):  # YAML reads 1e-3 (no dot) as text
-            want += " (write 1.0e-3, not 1e-3: YAML reads that as text)"
+        if isinstance(value, str):
+            want += text_hint
     elif isinstance(default, list):
         ok = isinstance(value, (list, tuple)) and len(value) == len(default) and all(map(is_number, value))
         want = f"a list of {len(default)} numbers"

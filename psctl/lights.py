@@ -570,22 +570,26 @@ def integrability_roll(normals: np.ndarray, mask: np.ndarray | None = None, erod
         number of pixels used, each with both neighbours inside). (0, 1, k) when fewer than 100
         are usable.
     """
-    terms = _curl_terms(normals, mask, erode)
-    if terms[3] < 100:
-        return 0.0, 1.0, terms[3]
-    aa, ab, bb, k = terms
-    # E(t) = (aa + bb)/2 + (aa - bb)/2 cos 2t + ab sin 2t, smallest where (cos 2t, sin 2t) points
-    # against ((aa - bb)/2, ab)
-    t = 0.5 * np.arctan2(-2.0 * ab, bb - aa)
-    e = np.cos(t) ** 2 * aa + 2 * np.cos(t) * np.sin(t) * ab + np.sin(t) ** 2 * bb
+    terms, k = _curl_terms(normals, mask, erode)
+    if k < 100:
+        return 0.0, 1.0, k
+    aa, ab, bb = terms[0]
+    t = 0.5 * np.arctan2(-2.0 * ab, bb - aa)  # where E(t) below is smallest
+    e = _smallest_residual(aa, ab, bb)
     return float(np.degrees(t)), float(aa / e) if e > 0 else 1.0, k
 
 
+def _smallest_residual(aa: float, ab: float, bb: float) -> float:
+    """min over t of E(t) = (aa + bb)/2 + (aa - bb)/2 cos 2t + ab sin 2t, the curl residual of
+    the normals turned by t (the minimum is where (cos 2t, sin 2t) points against ((aa - bb)/2, ab))."""
+    return (aa + bb) / 2 - float(np.sqrt(((aa - bb) / 2) ** 2 + ab ** 2))
+
+
 def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
-                mirror: bool = False) -> tuple[float, float, float, int]:
-    """(aa, ab, bb, k): the sums r0.r0, r0.r90, r90.r90 of integrability_roll's curl residual
-    r0 of the normals (x negated when ``mirror``) and r90 of the same turned by 90 degrees, over
-    the k usable pixels."""
+                mirrors: tuple[bool, ...] = (False,)) -> tuple[list[tuple[float, float, float]], int]:
+    """([(aa, ab, bb) per entry of ``mirrors``], k): the sums r0.r0, r0.r90, r90.r90 of
+    integrability_roll's curl residual r0 of the normals (x negated for a True entry) and r90 of
+    the same turned by 90 degrees, over the k usable pixels (no sums when k < 100)."""
     from scipy.ndimage import binary_erosion
 
     n = np.asarray(normals, np.float64)
@@ -599,7 +603,7 @@ def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
     block = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:]
     k = int(block.sum())
     if k < 100:
-        return 0.0, 0.0, 0.0, k
+        return [], k
 
     def curl(nx: np.ndarray, ny: np.ndarray, nz: np.ndarray) -> np.ndarray:
         def drow(a: np.ndarray) -> np.ndarray:  # forward differences down the rows
@@ -611,9 +615,12 @@ def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
         x, y, z = nx[:-1, :-1], ny[:-1, :-1], nz[:-1, :-1]
         return (-z * drow(nx) + x * drow(nz) - z * dcol(ny) + y * dcol(nz))[block]
 
-    nx, ny, nz = (-1.0 if mirror else 1.0) * n[..., 0], n[..., 1], n[..., 2]
-    a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
-    return float(a0 @ a0), float(a0 @ a90), float(a90 @ a90), k
+    sums = []
+    for mirror in mirrors:
+        nx, ny, nz = (-1.0 if mirror else 1.0) * n[..., 0], n[..., 1], n[..., 2]
+        a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
+        sums.append((float(a0 @ a0), float(a0 @ a90), float(a90 @ a90)))
+    return sums, k
 
 
 def mirror_ratio(normals: np.ndarray, mask: np.ndarray | None = None, erode: int = 3) -> float | None:
@@ -623,14 +630,10 @@ def mirror_ratio(normals: np.ndarray, mask: np.ndarray | None = None, erode: int
     what a light file with one axis flipped (y down, as image rows) gives: L2 then returns exactly
     the mirrored normals, and the networks nearly. x and y flips cannot be told apart (they
     differ by a half turn). None when fewer than 100 pixels are usable."""
-    def smallest(aa: float, ab: float, bb: float) -> float:
-        return (aa + bb) / 2 - float(np.sqrt(((aa - bb) / 2) ** 2 + ab ** 2))
-
-    given = _curl_terms(normals, mask, erode)
-    if given[3] < 100:
+    terms, k = _curl_terms(normals, mask, erode, mirrors=(False, True))
+    if k < 100:
         return None
-    e0 = smallest(*given[:3])
-    e1 = smallest(*_curl_terms(normals, mask, erode, mirror=True)[:3])
+    e0, e1 = (_smallest_residual(*t) for t in terms)
     return float(e1 / e0) if e0 > 0 else None
 
 

@@ -126,7 +126,8 @@ def check_recipe(config: dict) -> dict:
             where = f"config '{section}.{key}'"
             if default is None or key == "data":
                 continue
-            value = config[section][key] = like_default(where, value, default)
+            value = config[section][key] = like_default(where, value, default,
+                                                        " (write 1.0e-3, not 1e-3: YAML reads that as text)")
             if (section, key) in _POSITIVE and not value > 0:
                 raise PsctlError(None, f"{where} must be positive, not {value!r}")
             if (section, key) in _NON_NEGATIVE and not value >= 0:

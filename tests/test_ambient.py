@@ -93,6 +93,17 @@ def test_ambient_listed_by_another_path_is_refused(tmp_path):
         open_capture(folder)
 
 
+def test_only_the_ambient_name_itself_is_kept_out_of_the_images(tmp_path):
+    """ambient_room.png is not the ambient image, so it stays an input image (here one too many
+    for the light file: an error that names it), never silently dropped."""
+    folder = tmp_path / "roomPNG"
+    _with_ambient(folder)
+    (folder / "filenames.txt").unlink()
+    (folder / "ambient.png").rename(folder / "ambient_room.png")
+    with pytest.raises(PsctlError, match="12 light rows but 13 images"):
+        open_capture(folder)
+
+
 def test_ambient_and_encoding_reach_eval_and_depth(tmp_path):
     root = tmp_path / "bench"
     _with_ambient(root / "room")
@@ -106,5 +117,5 @@ def test_ambient_and_encoding_reach_eval_and_depth(tmp_path):
     r = runner.invoke(app, ["depth", str(root / "room"), "-o", str(tmp_path / "d"), "--encoding", "LINEAR", "--json"])
     assert r.exit_code == 0, r.output
     assert any(n.startswith("ambient:") for n in json.loads(r.stdout)["notes"])
-    r = runner.invoke(app, ["info", str(root), "--encoding", "SRGB"])  # any case, as --method
-    assert r.exit_code == 0 and "srgb" in r.output and "ambien" in r.output  # columns shown (80-column runner)
+    r = runner.invoke(app, ["info", str(root), "--encoding", "SRGB"], env={"COLUMNS": "200"})  # any case, as --method
+    assert r.exit_code == 0 and "srgb" in r.output and "ambient.png" in r.output  # the columns shown

@@ -83,6 +83,7 @@ def test_depth_config_is_checked():
     for config, needle in (({"grazing_nzz": 0.1}, "unknown depth config keys: grazing_nzz"),
                            ({"grazing_nz": "a"}, "'grazing_nz' must be a finite number"),
                            ({"cg_maxiter": 2.5}, "'cg_maxiter' must be a finite integer"),
+                           ({"cg_maxiter": 10 ** 400}, "'cg_maxiter' must be a finite integer"),
                            ([1], "config must be a dict")):
         with pytest.raises(PsctlError, match=needle):
             integrate_normals(normals, mask, config=config)

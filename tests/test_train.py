@@ -249,6 +249,7 @@ def test_shipped_recipes_load_and_their_data_validate(recipe):
 @pytest.mark.parametrize("text,needle", [
     ("train: {lr: 1e-3}", "'train.lr' must be a finite number \\(write 1.0e-3"),
     ("train: {lr: .inf}", "'train.lr' must be a finite number, not inf"),
+    ("train: {lr: 1" + "0" * 400 + "}", "'train.lr' must be a finite number"),
     ("train: {batch_size: four}", "'train.batch_size' must be a finite integer"),
     ("train: {batch_size: 4.5}", "'train.batch_size' must be a finite integer"),
     ("train: {checkpoint_minutes: -1.0}", "'train.checkpoint_minutes' must be 0 or more"),

@@ -35,7 +35,7 @@ MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
 AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "ambient.jpg", "ambient.jpeg")
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images.
-_NOT_IMAGES = re.compile(r"^(mask|normal|normal_gt|error|depth|shading|lights|ambient)([._-].*)?$", re.I)
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights)([._-].*)?|ambient)$", re.I)
 
 Progress = Callable[[int], None]
 
@@ -71,7 +71,7 @@ class Capture:
     def is_srgb(self, k: int | Path) -> bool:
         """Whether image ``k`` (an index, or a file such as the ambient image) is decoded from
         sRGB to linear (``encoding``: srgb, or auto and a JPEG)."""
-        path = self.image_paths[k] if isinstance(k, int) else k
+        path = self.image_paths[int(k)] if isinstance(k, (int, np.integer)) else k
         return self.encoding == "srgb" or (self.encoding == "auto" and path.suffix.lower() in JPEG)
 
     @property
@@ -122,7 +122,7 @@ def _image_files(folder: Path) -> list[Path]:
 
 def holds_capture(path: str | os.PathLike) -> bool:
     """Whether ``path`` holds someone's capture (images other than psctl's outputs, an image list,
-    a mask or ground truth): never an output folder, where psctl's files would overwrite its
+    a mask, an ambient image or ground truth): never an output folder, where psctl's files would overwrite its
     inputs or be read as its ground truth. Light files alone do not count (psctl lights writes
     them)."""
     path = Path(path)
@@ -140,7 +140,7 @@ def check_not_capture(out_dir: Path, capture: "Capture") -> None:
         raise PsctlError(out_dir, "is the capture folder: its files are inputs and are never overwritten; "
                                   "choose another --out (the default is PATH/psctl)")
     if holds_capture(out_dir):
-        raise PsctlError(out_dir, "holds a capture (images, a mask or ground truth), whose files are inputs; "
+        raise PsctlError(out_dir, "holds a capture (images, a mask, an ambient image or ground truth), whose files are inputs; "
                                   "choose another --out")
 
 

@@ -144,6 +144,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     else:
         arr = arr.astype(np.float32)
         fmt = oiio.FLOAT
+    if kind not in COLOR_TAGS:
+        raise ValueError(f"kind must be one of {', '.join(COLOR_TAGS)}, not {kind!r}")
     spec = oiio.ImageSpec(w, h, c, fmt)
     if COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
