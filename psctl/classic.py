@@ -129,7 +129,7 @@ _CHUNK = 16384  # pixels solved at once (bounds the [K, chunk, 3] temporaries)
 
 
 def trimmed_range(n: int, low: float, high: float) -> tuple[int, int]:
-    """(first, stop): the sorted observations kept out of ``n``; at least 3 (all when n < 4)."""
+    """(first, stop): the sorted observations kept out of ``n``; at least 3 (all when n <= 3)."""
     if not (0 <= low and 0 <= high and low + high < 1):
         raise PsctlError(None, f"trim shares must be >= 0 with low + high < 1 (got low={low}, high={high})")
     keep = min(n, max(3, int(round((1 - low - high) * n))))

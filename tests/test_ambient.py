@@ -119,3 +119,13 @@ def test_ambient_and_encoding_reach_eval_and_depth(tmp_path):
     assert any(n.startswith("ambient:") for n in json.loads(r.stdout)["notes"])
     r = runner.invoke(app, ["info", str(root), "--encoding", "SRGB"], env={"COLUMNS": "200"})  # any case, as --method
     assert r.exit_code == 0 and "srgb" in r.output and "ambient.png" in r.output  # the columns shown
+
+
+def test_an_out_folder_with_an_ambient_image_of_any_case_is_a_capture(tmp_path):
+    from psctl.io.capture import holds_capture
+
+    out = tmp_path / "out"
+    out.mkdir()
+    assert not holds_capture(out)
+    write_image(out / "Ambient.PNG", np.zeros((4, 4, 3), np.float32), "uint8")
+    assert holds_capture(out)

@@ -128,8 +128,9 @@ def holds_capture(path: str | os.PathLike) -> bool:
     path = Path(path)
     if not path.is_dir():
         return False
-    named = (*LIST_FILES, *MASK_FILES, *AMBIENT_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
-    return any((path / n).exists() for n in named) or bool(_image_files(path))
+    named = (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
+    return any((path / n).exists() for n in named) or bool(_image_files(path)) or \
+        any(p.name.lower() in AMBIENT_FILES for p in path.iterdir())  # any case, as _find_ambient
 
 
 def check_not_capture(out_dir: Path, capture: "Capture") -> None:
