@@ -75,6 +75,11 @@ class Capture:
         return self.encoding == "srgb" or (self.encoding == "auto" and path.suffix.lower() in JPEG)
 
     @property
+    def srgb_images(self) -> int:
+        """How many of the images are decoded from sRGB (``is_srgb``)."""
+        return sum(self.is_srgb(k) for k in range(self.n_images))
+
+    @property
     def input_paths(self) -> tuple[Path, ...]:
         """Every file the capture reads: images, mask, ground truth, ambient image."""
         return (*self.image_paths, *(p for p in (self.mask_path, self.gt_path, self.ambient_path) if p is not None))
@@ -470,6 +475,9 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     return out
 
 
+READ_NOTES = ("ambient:", "encoding:")  # how capture_notes' notes begin
+
+
 def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
@@ -477,7 +485,7 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
-    n = sum(capture.is_srgb(k) for k in range(capture.n_images))
+    n = capture.srgb_images
     if not n:
         return notes
     which = "all images" if n == capture.n_images else f"{n} of {capture.n_images} images"

@@ -17,7 +17,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
-    srgb = sum(cap.is_srgb(k) for k in range(cap.n_images))
+    srgb = cap.srgb_images
     e = cap.intensities
     kinds = sorted({(i.bits, i.dtype) for i in map(image_info, cap.image_paths)})  # headers only
     return {
@@ -170,6 +170,8 @@ def render_benchmark(result: dict) -> None:
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} objects, {'/'.join(map(str, sorted(n)))} images each, {secs:.1f} s", highlight=False)
     # how the images were read, where not as stored (the other notes are in --json and --out's reports)
-    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith(("ambient:", "encoding:"))]
+    from psctl.io.capture import READ_NOTES
+
+    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith(READ_NOTES)]
     for name, note in read:
         con.print(escape(f"  {name}: {note}"), highlight=False)
