@@ -270,18 +270,24 @@ def train(
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
-    install: Annotated[bool, typer.Option(help="When finished, copy the best weights to weights/ (release).")] = False,
+    install: Annotated[bool, typer.Option(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
     with _user_errors():
-        from psctl.train import install_weights, load_config, train as run_training
+        from psctl.train import install_weights, installed_file, load_config, train as run_training
 
         from psctl.errors import PsctlError
 
         if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
             raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
+        if force and not install:
+            raise PsctlError("--force", "only replaces an installed file together with --install")
+        if install and not force and installed_file(method).is_file():  # say so before hours of training
+            raise PsctlError(installed_file(method), "already installed: --install replaces it only with --force "
+                                                     "(or install later with psctl.train.install_weights)")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
@@ -320,7 +326,7 @@ def train(
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "
                   f"weights {Path(run_dir) / 'best.pt'}", highlight=False, soft_wrap=True, markup=False)
         if install and st["finished"]:
-            con.print(f"installed {install_weights(run_dir, method)}", highlight=False, markup=False)
+            con.print(f"installed {install_weights(run_dir, method, replace=force)}", highlight=False, markup=False)
 
 
 @app.callback(invoke_without_command=True)

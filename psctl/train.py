@@ -747,9 +747,18 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 
 
-def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
+def installed_file(method: str) -> Path:
+    """Where ``install_weights`` puts ``method``'s release file (weights/ or $PSCTL_WEIGHTS)."""
+    from psctl.models.weights import file_name, weights_dir
+
+    return weights_dir() / file_name(method)
+
+
+def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:
     """Copy a run's best weights into the weights folder as the release file for ``method``.
 
+    An installed file is replaced only with ``replace=True``: the release files are chosen by
+    rules on synthetic sets (docs/training.md), and a smoke run must not overwrite them silently.
     A file over RELEASE_MAX_BYTES (LCNet's 4.4 M parameters take 17.6 MB in float32) is stored
     with float16 tensors instead, recorded as ``stored_dtype`` in its metadata; loading casts
     them back to the network's float32 parameters.
@@ -759,7 +768,7 @@ def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
     import torch
 
     from psctl.io.atomic import atomic_path
-    from psctl.models.weights import file_name, read_weights, save_weights, weights_dir
+    from psctl.models.weights import read_weights, save_weights
 
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
@@ -767,7 +776,9 @@ def install_weights(run_dir: str | os.PathLike, method: str) -> Path:
     w = read_weights(src)
     if w.method != method:
         raise PsctlError(src, f"holds {w.method} weights, not {method}")
-    dst = weights_dir() / file_name(method)
+    dst = installed_file(method)
+    if dst.is_file() and not replace:
+        raise PsctlError(dst, f"already installed; {src} was not copied (replace it on purpose with --install --force)")
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.stat().st_size <= RELEASE_MAX_BYTES:
         with atomic_path(dst) as tmp:

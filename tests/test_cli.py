@@ -17,9 +17,9 @@ from psctl.metrics import angular_error
 from tests.conftest import write_capture
 
 
-def psctl(*args: str, check: bool = False) -> subprocess.CompletedProcess:
+def psctl(*args: str, check: bool = False, env: dict | None = None) -> subprocess.CompletedProcess:
     proc = subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True,
-                          env={**os.environ, "COLUMNS": "100"})
+                          env={**os.environ, "COLUMNS": "100", **(env or {})})
     if check and proc.returncode != 0:
         raise AssertionError(proc.stderr)
     return proc
@@ -476,3 +476,20 @@ def test_train_command(tmp_path):
     assert "finished" in proc.stderr and (tmp_path / "run" / "best.pt").is_file()
     proc = psctl("train", "magic", "--config", cfg, "--out", tmp_path / "run2", "--quiet")
     assert proc.returncode == 2 and "magic" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_train_install_refuses_to_replace_a_release_file(tmp_path):
+    """--install never overwrites an installed file silently: refused before training, unless --force."""
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+    wdir = tmp_path / "w"
+    wdir.mkdir()
+    (wdir / "ps_fcn.pt").write_bytes(b"release")
+    env = {"PSCTL_WEIGHTS": str(wdir)}
+    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "-q", env=env)
+    assert proc.returncode == 2 and "already installed" in proc.stderr and "--force" in proc.stderr
+    assert not (tmp_path / "run").exists() and (wdir / "ps_fcn.pt").read_bytes() == b"release"
+    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--force", "-q", env=env)
+    assert proc.returncode == 2 and "--install" in proc.stderr
+    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "--force", "-q", env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert (wdir / "ps_fcn.pt").read_bytes() == (tmp_path / "run" / "best.pt").read_bytes()

@@ -189,8 +189,10 @@ def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeyp
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
     small = T.install_weights(run, "ps-fcn")  # under the limit: a byte copy
     assert small.read_bytes() == (run / "best.pt").read_bytes()
+    with pytest.raises(PsctlError, match="already installed"):  # a release file is replaced on purpose only
+        T.install_weights(run, "ps-fcn")
     monkeypatch.setattr(T, "RELEASE_MAX_BYTES", small.stat().st_size - 1)
-    half = T.install_weights(run, "ps-fcn")
+    half = T.install_weights(run, "ps-fcn", replace=True)
     w = read_weights(half)
     assert w.metadata["stored_dtype"] == "float16" and half.stat().st_size < (run / "best.pt").stat().st_size
     assert all(v.dtype == torch.float16 for v in w.state_dict.values() if v.is_floating_point())
@@ -200,7 +202,7 @@ def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeyp
         assert v.dtype == torch.float32 and torch.allclose(v, ref[k], rtol=1e-3, atol=1e-4)
     monkeypatch.setattr(T, "RELEASE_MAX_BYTES", 100)
     with pytest.raises(PsctlError, match="even in float16"):
-        T.install_weights(run, "ps-fcn")
+        T.install_weights(run, "ps-fcn", replace=True)
     assert read_weights(half).metadata["stored_dtype"] == "float16"  # the last good file is kept
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["ps_fcn.pt"]
 
