@@ -249,9 +249,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     fit = refine_config(falloff, roll)
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
-    picked = selection_notes(cap.n_images, n_images, seed)
-    cap = cap.subset(select_images(cap.n_images, n_images, seed))
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
+    # an --images subset is spread over the light directions only where the method reads them
+    by_lights = cap.calibrated and method in ("l2", "ps-fcn", "ps-fcn-n")
+    picked = selection_notes(cap.n_images, n_images, seed, by_lights)
+    cap = cap.subset(select_images(cap.n_images, n_images, seed, cap.lights if by_lights else None))
     notes = ([note] if note else []) + picked + capture_notes(cap)
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
         if value is not None and (method != "sdps" or not refine):

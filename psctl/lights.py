@@ -88,6 +88,7 @@ DEFAULT_LIGHTS = {
 
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png"}
+SUBSET_FILE = "light_images.txt"  # with --images: the image each light file row belongs to
 
 
 @dataclass
@@ -896,9 +897,13 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
     cap = open_capture(path, encoding)
-    picked = selection_notes(cap.n_images, n_images, seed)
-    cap = cap.subset(select_images(cap.n_images, n_images, seed))
+    n_all = cap.n_images
+    picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer
+    cap = cap.subset(select_images(n_all, n_images, seed))
     picked += capture_notes(cap)
+    subset = cap.n_images < n_all
+    if subset:
+        picked.append(f"images: the light files have {cap.n_images} rows, one per image listed in {SUBSET_FILE}")
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap)  # its light files are inputs
@@ -937,8 +942,15 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     }
     if write:
         report["outputs"] = {k: str(out_dir / v) for k, v in OUTPUT_FILES.items()}
-        with staged_outputs(out_dir) as stage:
+        if subset:
+            report["outputs"]["light_images"] = str(out_dir / SUBSET_FILE)
+        elif (out_dir / SUBSET_FILE).is_file():
+            report["notes"].append(f"outputs: removed {SUBSET_FILE}, left by an earlier psctl lights --images run "
+                                   "(these light files have a row for every image)")
+        with staged_outputs(out_dir, replaces=[SUBSET_FILE]) as stage:  # an earlier subset's list goes
             write_light_files(stage, est.directions, est.intensities)
+            if subset:
+                (stage / SUBSET_FILE).write_text("".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
                               errors["light_mae"])
         report["seconds"] = round(time.perf_counter() - t0, 3)

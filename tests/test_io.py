@@ -99,7 +99,7 @@ def test_benchmark_root(tmp_path):
 
 def test_select_images():
     assert list(select_images(10, None, None)) == list(range(10))
-    assert list(select_images(10, 3, None)) == [0, 1, 2]
+    assert list(select_images(10, 3, None)) == [0, 4, 9]  # evenly spaced without lights
     a, b = select_images(10, 4, seed=1), select_images(10, 4, seed=1)
     assert list(a) == list(b) and len(set(a)) == 4
 
@@ -230,6 +230,25 @@ def test_select_images_refuses_a_negative_seed_and_notes_what_it_did():
     assert "all 10 used" in selection_notes(10, 100, None)[0]
     assert "--seed is unused" in selection_notes(10, None, 4)[0]
     assert selection_notes(10, 3, 4) == [] and selection_notes(10, None, None) == []
+    assert "evenly spaced" in selection_notes(10, 3, None)[0]
+    assert "spread over the light directions" in selection_notes(10, 3, None, by_lights=True)[0]
+
+
+def test_images_subset_spreads_over_the_lights():
+    """--images K without --seed: K lights far apart, not the first K of the rig order (a DiLiGenT-like
+    rig listed column by column: its first 6 lights lie in one plane, hopeless for L2)."""
+    from psctl.io.capture import spread_lights
+
+    x, y = np.meshgrid(np.linspace(-0.5, 0.5, 8), np.linspace(-0.4, 0.4, 12), indexing="ij")
+    rig = np.stack([x.ravel(), y.ravel(), np.ones(96)], axis=1)  # 8 columns of 12, listed column by column
+    rig /= np.linalg.norm(rig, axis=1, keepdims=True)
+    cond = lambda idx: np.linalg.cond(rig[idx])
+    assert cond(np.arange(6)) > 1e6  # the first 6: coplanar
+    for k in (3, 6, 12):
+        idx = select_images(96, k, None, rig)
+        assert len(idx) == k == len(set(idx)) and list(idx) == sorted(idx) and cond(idx) < 5
+        assert list(idx) == list(spread_lights(rig, k))  # deterministic
+    assert list(select_images(96, 12, 3, rig)) == list(select_images(96, 12, 3))  # a seed ignores the lights
 
 
 def test_light_rows_of_any_magnitude(tmp_path):

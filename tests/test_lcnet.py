@@ -701,3 +701,22 @@ def test_classifier_gradients_stay_off_padding_only_taps_under_bf16():
         g = net.classifier.conv4[0].weight.grad.clone()
         g[:, :, 1, 1] = 0
         assert torch.count_nonzero(g) == 0
+
+
+def test_lights_subset_lists_its_images(tmp_path, fake_weights):
+    """psctl lights --images K: K rows, and light_images.txt says which image each row is; a later
+    run over every image removes that list (its rows would no longer match)."""
+    from psctl.lights import run_lights
+
+    write_capture(tmp_path / "cap", n=10, size=40)
+    names = (tmp_path / "cap" / "filenames.txt").read_text().split()
+    out = tmp_path / "out"
+    r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", n_images=3,
+                   refine=False, views=1)
+    assert r["n_images"] == 3 and np.loadtxt(out / "light_directions.txt").shape == (3, 3)
+    assert (out / "light_images.txt").read_text().split() == [names[i] for i in (0, 4, 9)]  # evenly spaced
+    assert r["outputs"]["light_images"] == str(out / "light_images.txt")
+    assert any("evenly spaced" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
+    r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", refine=False, views=1)
+    assert not (out / "light_images.txt").exists() and "light_images" not in r["outputs"]
+    assert any("removed light_images.txt" in n for n in r["notes"])

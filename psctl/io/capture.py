@@ -495,23 +495,47 @@ def capture_notes(capture: Capture) -> list[str]:
                     f"(--encoding linear reads them as stored)"]
 
 
-def select_images(n: int, k: int | None, seed: int | None) -> np.ndarray:
-    """Indices of the images to use: all, the first ``k``, or a seeded random ``k``-subset."""
+def select_images(n: int, k: int | None, seed: int | None, lights: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the images to use, sorted: all, a seeded random ``k``-subset, or ``k`` spread out.
+
+    Without a seed the ``k`` images are spread over the light directions ``lights`` [n, 3] when
+    given (``spread_lights``), else evenly through the list. Not the first ``k``: captures list
+    their lights in rig order, and DiLiGenT's first 3-6 lights are nearly coplanar (condition
+    number 4e4-1e6), its first 12 all on one side of the rig."""
     if k is not None and k < 1:
         raise PsctlError(None, f"--images must be at least 1 (got {k})")
     if seed is not None and seed < 0:
         raise PsctlError(None, f"--seed must be 0 or more (got {seed})")
     if k is None or k >= n:
         return np.arange(n)
-    if seed is None:
-        return np.arange(k)
-    return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
+    if seed is not None:
+        return np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
+    if lights is not None:
+        return spread_lights(lights, k)
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
 
 
-def selection_notes(n: int, k: int | None, seed: int | None) -> list[str]:
+def spread_lights(lights: np.ndarray, k: int) -> np.ndarray:
+    """Sorted indices of ``k`` lights [N, 3] spread over their directions: farthest-point
+    sampling by angle, from the light nearest their mean direction (deterministic)."""
+    d = lights / np.maximum(np.linalg.norm(lights, axis=1, keepdims=True), 1e-12)
+    c = d.sum(0)
+    first = int(np.argmax(d @ (c / max(float(np.linalg.norm(c)), 1e-12))))
+    picked, gap = [first], np.arccos(np.clip(d @ d[first], -1.0, 1.0))
+    while len(picked) < min(k, len(d)):
+        i = int(np.argmax(gap))
+        picked.append(i)
+        gap = np.minimum(gap, np.arccos(np.clip(d @ d[i], -1.0, 1.0)))
+    return np.sort(np.asarray(picked, dtype=np.int64))
+
+
+def selection_notes(n: int, k: int | None, seed: int | None, by_lights: bool = False) -> list[str]:
     """What ``select_images`` did that a user may not expect, for the report's notes."""
     if k is not None and k > n:
         return [f"images: --images {k} asks for more than the {n} there are; all {n} used"]
     if seed is not None and k is None:
         return ["images: --seed is unused without --images (all images used)"]
+    if k is not None and k < n and seed is None:
+        how = "spread over the light directions" if by_lights else "evenly spaced through the list"
+        return [f"images: {k} of {n}, {how} (--seed S: a random {k})"]
     return []
