@@ -216,7 +216,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
     n_images, height, width, seconds, outputs, mae, median, within, plus n_dark and notes.
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
-    ``formats``; with ground truth also ``error.png`` and ``report.json``. Default folder:
+    ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
     ``PATH/psctl``. Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
     cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
     light_mae and intensity_re (None without ground-truth lights). ``views`` (1, 2, 4 or 8): the
@@ -273,7 +273,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")
     out_dir = output_folder(out, cap.path)
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
-    names = [FORMATS[f] for f in formats] + (["error.png", "report.json"] if cap.gt_path else [])
+    # report.json always: without ground truth it still records the method, notes and timings
+    names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + ["report.json"]
     all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write
     stale: list[str] = []
     if write:
@@ -393,8 +394,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if error is not None:
                 write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"])
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
-            if error is not None:
-                write_json(stage / "report.json", report)
+            write_json(stage / "report.json", report)
     return report
 
 

@@ -135,7 +135,7 @@ def normals(
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
-    """Estimate a normal map: normal.png (16-bit), normal.exr, and error.png + report.json with ground truth."""
+    """Estimate a normal map: normal.png (16-bit), normal.exr, report.json, and error.png with ground truth."""
     with _user_errors():
         from psctl.api import run_normals
         from psctl.io.normals import parse_formats

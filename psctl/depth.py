@@ -576,7 +576,8 @@ def display_colors(mean_image: np.ndarray, valid: np.ndarray) -> np.ndarray:
 # Capture folders: psctl depth
 # ----------------------------------------------------------------------------------------------
 
-NORMAL_FILES = ("normal.exr", "normal.png")  # what `psctl normals` writes into PATH/psctl/
+# what `psctl normals` writes into PATH/psctl/ (-f exr, npy, png16, png8), the most precise first
+NORMAL_FILES = ("normal.exr", "normal.npy", "normal.png", "normal_8bit.png")
 OUTPUTS = ("depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.json")
 
 
@@ -587,8 +588,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     """Integrate a capture folder's normal map into depth.exr, depth.png, mesh.ply, shading.png
     and depth_report.json (in ``out``, default PATH/psctl; all files or none).
 
-    Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else PATH/psctl/normal.exr or
-    normal.png, else estimated from the images (``psctl normals --method auto``). Mask: the
+    Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else the first of NORMAL_FILES in
+    PATH/psctl (normal.exr, normal.npy, normal.png, normal_8bit.png), else estimated from the images (``psctl normals --method auto``). Mask: the
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     The images (for estimated normals and the mesh's vertex colours) are read as

@@ -419,14 +419,17 @@ def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     (capture / "Normal_gt.mat").unlink()
     r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16", "--json",
                          check=True).stdout)
-    # no old error map, report or EXR beside the new normals; the user's file stays
-    assert sorted(os.listdir(out)) == [".psctl-normals", "normal.png", "notes.txt"]
-    assert any("removed error.png, normal.exr, normal.npy, report.json" in n for n in r["notes"]), r["notes"]
+    # no old error map or EXR beside the new normals; the user's file stays; the report is this run's
+    assert sorted(os.listdir(out)) == [".psctl-normals", "normal.png", "notes.txt", "report.json"]
+    assert any("removed error.png, normal.exr, normal.npy" in n for n in r["notes"]), r["notes"]
+    saved = json.loads((out / "report.json").read_text())
+    assert saved["mae"] is None and saved["method"] == "l2" and saved["notes"] == r["notes"]
     # files psctl normals did not write there are never removed, even with its names
     (out / ".psctl-normals").unlink()
     write_image(out / "error.png", np.zeros((4, 4)), "uint8")
     psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", check=True)
-    assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt"]
+    assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt",
+                                       "report.json"]
 
 
 def test_outputs_never_go_into_another_capture(capture, tmp_path):

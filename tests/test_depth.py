@@ -362,6 +362,10 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
     report = run_depth(capture, write=False)
     assert report["normals"].endswith("normal.exr") and report["outputs"] == {}
     assert report["n_pixels"] == data["mask"].sum() and report["n_regions"] == 1
+    (capture / "psctl" / "normal.exr").unlink()  # psctl normals -f npy: found too, not re-estimated
+    write_normal_map(capture / "psctl" / "normal.npy", data["normals"], data["mask"], "npy")
+    report = run_depth(capture, write=False)
+    assert report["normals"].endswith("normal.npy") and not any("estimated" in n for n in report["notes"])
 
 
 def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):
