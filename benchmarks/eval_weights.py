@@ -2,6 +2,12 @@
 
     python benchmarks/eval_weights.py --method ps-fcn --weights runs/ps_fcn/best.pt weights/ps_fcn.pt \
         [--config configs/ps_fcn_cpu.yaml] [--sets val syntest syntest_dl dev ballpng] [--out card.json]
+    python benchmarks/eval_weights.py --method ps-fcn-n --weights best.pt weights/ps_fcn_n.pt --sets rule
+
+``--sets rule`` is the selection rule the PS-FCN and PS-FCN+N stages since session 19 were judged
+by (written into their recipes before each run): the seven synthetic sets below, each mean rounded
+to 0.01, summed (``rule_sum``). ``val`` then uses configs/ps_fcn_cpu.yaml unless --config says
+otherwise (the recipes' "val" set, once kept as .cache/ps_fcn_n_val_hemi.yaml, is that file's).
 
 For each file, in this order (cheapest and most important first: checkpoints are chosen on the
 synthetic sets, DiLiGenT is only reported):
@@ -10,10 +16,18 @@ synthetic sets, DiLiGenT is only reported):
   syntest     `psctl eval --benchmark folder --root .cache/syntest` (sphere, bunny, dragon,
               armadillo; 4 MERL materials each, 100 hemisphere lights)
   syntest_dl  the same shapes under 96 DiLiGenT-like lights, 4 other materials (.cache/syntest_dl)
+  truncated   syntest_dl scaled to an object mean of 0.02 and truncated to 8 bits, as DiLiGenT's
+              crops (benchmarks/quantization.py --means 0.02 --floor)
+  syntest_dl_ir      syntest_dl's objects with 3 bounces of diffuse interreflection (albedo 0.8)
+  syntest_dl_miscal  syntest_dl with 20 consecutive images per object 1.15-1.4 times brighter or
+                     darker than light_intensities.txt lists (benchmarks/miscalibrated_set.py --seed 51)
+  syntest_dl_dircal  syntest_dl with every listed zenith angle 3-6 % off, then jittered
+                     (benchmarks/miscalibrated_set.py --directions --seed 52)
   dev         the DiLiGenT dev split, cropped 8-bit, all 96 images (../shared/data)
   ballpng     the full-size 16-bit ballPNG
-Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores).
-Prints one JSON object (and writes it with --out): per file and set, per-object MAE and the mean.
+Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores) or
+miscalibrated_set.py. Prints one JSON object (and writes it with --out): per file and set,
+per-object MAE and the mean, and with all seven rule sets the rule's sum.
 """
 
 from __future__ import annotations
@@ -22,6 +36,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -29,11 +44,43 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 DATA = REPO.parent / "shared" / "data" / "diligent"
-SYNTH = {  # set -> (folder, psctl synth arguments)
-    "syntest": (REPO / ".cache" / "syntest", ["--preset", "syntest"]),
-    "syntest_dl": (REPO / ".cache" / "syntest_dl", ["--preset", "syntest", "--lights", "96", "--light-dist", "diligent"]),
+CACHE = REPO / ".cache"
+DL = ["--preset", "syntest", "--lights", "96", "--light-dist", "diligent"]
+SYNTH = {  # set -> (folder, how to make it: psctl synth arguments, or a miscalibrated copy of syntest_dl)
+    "syntest": (CACHE / "syntest", ["synth", "--preset", "syntest"]),
+    "syntest_dl": (CACHE / "syntest_dl", ["synth", *DL]),
+    "syntest_dl_ir": (CACHE / "syntest_dl_ir", ["synth", *DL, "--interreflections", "3", "--ir-albedo", "0.8"]),
+    "syntest_dl_miscal": (CACHE / "syntest_dl_miscal", ["miscal", "--seed", "51"]),
+    "syntest_dl_dircal": (CACHE / "syntest_dl_dircal", ["miscal", "--directions", "--seed", "52"]),
 }
-SETS = ("val", "syntest", "syntest_dl", "dev", "ballpng")
+RULE = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal")
+SETS = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
+        "dev", "ballpng")
+
+
+def make_set(name: str) -> Path:
+    """The synthetic folder of ``name``, made first if missing (deterministic: fixed seeds)."""
+    folder, how = SYNTH[name]
+    if not (folder / "objects.txt").is_file() and not (folder / "miscalibration.json").is_file():
+        if how[0] == "synth":
+            subprocess.run(["psctl", "synth", str(folder), *how[1:], "--quiet"], check=True)
+        else:
+            src = make_set("syntest_dl")
+            subprocess.run([sys.executable, str(REPO / "benchmarks" / "miscalibrated_set.py"), str(src), str(folder),
+                            *how[1:]], check=True)
+    return folder
+
+
+def truncated(method: str, weights: str) -> dict:
+    """syntest_dl at object mean 0.02, truncated to 8 bits (quantization.py, as the rules ran it)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "q.json"
+        subprocess.run([sys.executable, str(REPO / "benchmarks" / "quantization.py"), "--root", str(make_set("syntest_dl")),
+                        "--methods", method, "--weights", weights, "--means", "0.02", "--floor", "--out", str(out)],
+                       check=True, capture_output=True, text=True)
+        q = json.loads(out.read_text())
+    key = f"{method} 8bit@0.02"
+    return {"objects": {k: round(v[key], 2) for k, v in q["objects"].items()}, "mean": round(q["mean"][key], 2)}
 
 
 def synthetic_val(config: str, method: str, paths: list[str]) -> dict:
@@ -55,9 +102,13 @@ def main() -> None:
     ap.add_argument("--method", required=True, help="ps-fcn | ps-fcn-n | ups-fcn")
     ap.add_argument("--weights", nargs="+", required=True)
     ap.add_argument("--config", help="the recipe whose validation set to use (needed for 'val')")
-    ap.add_argument("--sets", nargs="+", choices=SETS, default=list(SETS))
+    ap.add_argument("--sets", nargs="+", choices=(*SETS, "rule"), default=["val", "syntest", "syntest_dl", "dev", "ballpng"],
+                    help="'rule': the seven sets of the selection rule (see above)")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
+    if "rule" in args.sets:
+        args.sets = list(dict.fromkeys([*RULE, *(s for s in args.sets if s != "rule")]))
+        args.config = args.config or str(REPO / "configs" / "ps_fcn_cpu.yaml")
 
     from psctl.api import run_normals
 
@@ -70,14 +121,12 @@ def main() -> None:
         result["val_l2"] = mae.pop("l2")
         for w in args.weights:
             result["weights"][w]["val"] = mae[w]
-    for name in ("syntest", "syntest_dl"):
+    for name in ("syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal"):
         if name not in args.sets:
             continue
-        folder, synth_args = SYNTH[name]
-        if not (folder / "objects.txt").is_file():
-            subprocess.run(["psctl", "synth", str(folder), *synth_args, "--quiet"], check=True)
         for w in args.weights:
-            result["weights"][w][name] = benchmark("folder", folder, args.method, w)
+            result["weights"][w][name] = (truncated(args.method, w) if name == "truncated"
+                                          else benchmark("folder", make_set(name), args.method, w))
     if "dev" in args.sets or "ballpng" in args.sets:
         if not DATA.is_dir():
             print(f"{DATA}: not found, DiLiGenT sets skipped", file=sys.stderr)
@@ -87,6 +136,11 @@ def main() -> None:
             if "ballpng" in args.sets:
                 r = run_normals(DATA / "pmsData" / "ballPNG", method=args.method, weights=w, write=False, device="cpu")
                 result["weights"][w]["ballpng"] = round(r["mae"], 2)
+    if all(s in args.sets for s in RULE):
+        for w in args.weights:
+            r = result["weights"][w]
+            parts = [round(r[s] if s == "val" else r[s]["mean"], 2) for s in RULE]
+            r["rule_sum"] = round(sum(parts), 2)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     text = json.dumps(result, indent=1)
     if args.out:

@@ -1,29 +1,37 @@
 #!/usr/bin/env bash
-# Three fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
+# Fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
-# (RUNS below, method:recipe:run folder): session 17's configs/ps_fcn_dagger_gpu_stage7.yaml,
-# configs/lcnet_gpu_stage7_ir.yaml, configs/ps_fcn_n_gpu_stage8_ir.yaml; session 14 ran
-# configs/ps_fcn_gpu_stage8.yaml, configs/ps_fcn_n_gpu_stage6.yaml, configs/lcnet_gpu_stage6.yaml.
-# The first call starts them, trains 1.5 minutes, then sets each run's length from its own measured
-# rate (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
+# (RUNS below, method:recipe:run folder) default to session 25's plan for a session with 15
+# minutes of device time, one call on a fresh machine:
+#   bash configs/gpu_session.sh 7 360 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
+# which trains configs/ps_fcn_n_gpu_stage9.yaml alone. Session 14 ran configs/ps_fcn_gpu_stage8.yaml,
+# configs/ps_fcn_n_gpu_stage6.yaml and configs/lcnet_gpu_stage6.yaml side by side in three calls
+# (7.3 1200, 8.6 1200, 7.5 1200 final); session 17 started configs/ps_fcn_dagger_gpu_stage7.yaml,
+# configs/lcnet_gpu_stage7_ir.yaml and configs/ps_fcn_n_gpu_stage8_ir.yaml (RUNS=... INITS=...).
+# The first call checks CUDA with configs/tiny.yaml (and with interreflections when a run uses
+# them), times the interreflection stream for later plans (IR_BENCH=0 skips it; at most 45 s),
+# starts the runs, trains 1.5 minutes, then sets each run's length from its own measured rate
+# (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
-# on for MINUTES. A later call resumes them for MINUTES. Each call copies model.pt, state.json,
-# stream.pt and the logs to $OUT (with 'final': best.pt instead of model.pt and stream.pt), in
-# parts of 15 MB (the device tool returns files of at most 16 MB). A run folder missing on the
-# machine (a fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments.
+# on for the rest of MINUTES. A later call resumes them for MINUTES. Each call copies model.pt,
+# state.json, stream.pt and the logs to $OUT (with 'final': best.pt and the Adam state as well, so
+# that a later session can continue the run exactly), in parts of 15 MB (the device tool returns
+# files of at most 16 MB): cat runs.tar.part_* | tar -x. A run folder missing on the machine (a
+# fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments.
 set -u
 cd "$(dirname "$0")/.."
 DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
 MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
-RUNS=${RUNS:-"ps-fcn-dagger:configs/ps_fcn_dagger_gpu_stage7.yaml:g_dagger7 lcnet:configs/lcnet_gpu_stage7_ir.yaml:g_lcnet7 ps-fcn-n:configs/ps_fcn_n_gpu_stage8_ir.yaml:g_ps_fcn_n8"}
+RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage9.yaml:g_ps_fcn_n9"}
 psctl() { python3 -c 'import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()' "$@"; }
 
 # train.init (and the frozen LCNet) files: the release files of the commit the recipes name
-# (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb)
-INITS=${INITS:-"ps_fcn_stage10.pt:weights/ps_fcn.pt ps_fcn_n_stage6.pt:weights/ps_fcn_n.pt lcnet_gpu6.pt:weights/lcnet.pt"}
+# (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
+# session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt)
+INITS=${INITS:-"ps_fcn_n_miscal.pt:weights/ps_fcn_n.pt"}
 for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
@@ -58,9 +66,15 @@ fresh=1; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/b
 if [ $fresh = 1 ]; then
   nvidia-smi -L; python3 -c 'import torch; print("torch", torch.__version__, torch.cuda.get_device_name(0))'
   psctl train ps-fcn --config configs/tiny.yaml --device $DEVICE --out /tmp/tiny_$$ -q || exit 1
-  # the same with interreflections (their kernel runs on the stream's device)
-  sed 's/^data: {/data: {interreflection: {p: 1.0, albedo: [0.5, 0.9]}, /' configs/tiny.yaml > /tmp/tiny_ir.yaml
-  psctl train ps-fcn --config /tmp/tiny_ir.yaml --device $DEVICE --out /tmp/tiny_ir_$$ -q || exit 1
+  # the same with interreflections (their kernel runs on the stream's device), when a run uses them
+  ir=0; for r in $RUNS; do IFS=: read -r m c name <<< "$r"; grep -q '^ *interreflection:' $c && ir=1; done
+  if [ $ir = 1 ]; then
+    sed 's/^data: {/data: {interreflection: {p: 1.0, albedo: [0.5, 0.9]}, /' configs/tiny.yaml > /tmp/tiny_ir.yaml
+    psctl train ps-fcn --config /tmp/tiny_ir.yaml --device $DEVICE --out /tmp/tiny_ir_$$ -q || exit 1
+  fi
+  # the interreflection stream's speed on this device (unmeasured on a GPU since its kernel was batched)
+  [ "${IR_BENCH:-1}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
+    --batches 8 --warmup 1 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 || echo "ir bench: rc $? (45 s cap)" >> "$OUT/ir_bench.txt"
   launch 1.5 || { tail -5 runs/*.out; exit 1; }
   names=(); for r in $RUNS; do names+=(runs/${r##*:}); done
   python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
@@ -91,7 +105,8 @@ else
 fi
 launch $left; rc=$?
 tail -n 3 runs/*.out
-if [ -n "$FINAL" ]; then files="best.pt state.json log.jsonl"; else files="model.pt state.json stream.pt log.jsonl"; fi
+files="model.pt state.json stream.pt log.jsonl"
+[ -n "$FINAL" ] && files="best.pt $files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"
 list=(); for r in $RUNS; do n=${r##*:}; for f in $files; do [ -f runs/$n/$f ] && list+=(runs/$n/$f); done; list+=(runs/$n.out); done
 tar -cf /tmp/runs.tar "${list[@]}" && split -b 15M /tmp/runs.tar "$OUT/runs.tar.part_" && rm /tmp/runs.tar
 ls -la "$OUT"
