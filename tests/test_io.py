@@ -270,3 +270,14 @@ def test_light_rows_of_any_magnitude(tmp_path):
         q.write_text(f"1 1 1\n1 {bad} 1\n")
         with pytest.raises(PsctlError, match="row 2: intensity"):
             read_intensities(q)
+
+
+def test_load_images_as_captured_skips_the_intensities(tmp_path):
+    """as_captured: the images as the files hold them (what estimate_lights takes), not divided."""
+    from psctl.io.capture import load_images
+
+    write_capture(tmp_path / "cap", n=4, size=16)
+    cap = open_capture(tmp_path / "cap")
+    assert not np.allclose(cap.intensities, 1)
+    divided, raw = load_images(cap), load_images(cap, as_captured=True)
+    np.testing.assert_allclose(divided * cap.intensities[:, None, None, :], raw, rtol=1e-5, atol=1e-7)

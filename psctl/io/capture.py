@@ -463,9 +463,13 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
 
 
 def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
-                progress: Progress | None = None) -> np.ndarray:
-    """All images at once: float32 [N, h, w, 3]. Prefer ``iter_images`` for large captures."""
+                progress: Progress | None = None, as_captured: bool = False) -> np.ndarray:
+    """All images at once: float32 [N, h, w, 3], divided by their light intensities (as
+    ``iter_images``), or with ``as_captured`` not (what ``psctl.estimate_lights`` takes). Prefer
+    ``iter_images`` for large captures."""
     capture = as_capture(capture)
+    if as_captured:
+        capture = replace(capture, intensities=np.ones_like(capture.intensities))
     out = None
     for k, img in enumerate(iter_images(capture, box, progress)):
         if out is None:

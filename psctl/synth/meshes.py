@@ -54,7 +54,8 @@ def find_mesh(name: str, folder: str | os.PathLike | None = None) -> Path:
     folder = Path(folder) if folder is not None else mesh_dir()
     p = folder / f"{name}.obj"
     if not p.is_file():
-        raise PsctlError(p, f"mesh {name!r} not found (set PSCTL_MESHES or PSCTL_DATA, or pass the .obj path)")
+        raise PsctlError(p, f"mesh {name!r} not found: put {name}.obj there, or set PSCTL_MESHES to a folder "
+                            f"that holds it (psctl ships no meshes; docs/synthetic.md, 'Meshes')")
     return p
 
 
