@@ -89,7 +89,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
                 return m, None
         return "l2", "auto: no trained network weights are installed yet, using l2 (least squares)"
     if weights is not None and method not in NETWORKS:
-        raise PsctlError(weights, f"--weights is for the network methods ({', '.join(NETWORKS)}), not {method}")
+        raise PsctlError(weights, f"--weights is for the network methods ({', '.join(NETWORKS)}) and sdps (its normals "
+                                  f"network), not {method}")
     if method in NETWORKS and NETWORK_METHODS[method]["lights"] and not calibrated:
         raise PsctlError(None, f"{method} needs light directions (light_directions.txt); "
                                "ups-fcn works without them")

@@ -232,7 +232,8 @@ def synth(
         from psctl.synth.write import write_preset  # (preset_objects checks --light-dist before writing)
 
         def show(report: dict) -> None:
-            typer.echo(f"wrote {len(report['objects'])} objects to {report['out']} ({report['seconds']:.1f} s)")
+            n = len(report["objects"])
+            typer.echo(f"wrote {n} object{'s' if n != 1 else ''} to {report['out']} ({report['seconds']:.1f} s)")
             if report["preview"]:
                 typer.echo(f"preview: {report['preview']}")
 

@@ -104,11 +104,13 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
         if second:
             raise no_weights_error("lcnet", "--lcnet")
         where = weights_dir()
-        raise PsctlError(None, f"sdps needs the LCNet and PS-FCN† weights, and neither is installed (looked for "
-                               f"{where / file_name('lcnet')} and {where / file_name('ps-fcn-dagger')}; set ${ENV_VAR} "
-                               f"to use another folder). Train them on a GPU with `psctl train lcnet --config "
-                               f"configs/lcnet.yaml --install`, then `psctl train ps-fcn-dagger --config "
-                               f"configs/ps_fcn_dagger.yaml --install` (docs/training.md), or pass --lcnet FILE and "
+        raise PsctlError(None, f"sdps needs LCNet's weights and a normals network's (PS-FCN†, else PS-FCN or PS-FCN+N), "
+                               f"and none is installed (looked for {where / file_name('lcnet')}, "
+                               f"{where / file_name('ps-fcn-dagger')}, {where / file_name('ps-fcn')} and "
+                               f"{where / file_name('ps-fcn-n')}; set ${ENV_VAR} to use another folder; a clone of "
+                               f"psctl ships lcnet.pt and ps_fcn.pt in weights/). Train them with `psctl train lcnet "
+                               f"--config configs/lcnet.yaml --install` and `psctl train ps-fcn --config "
+                               f"configs/ps_fcn.yaml --install` (docs/training.md), or pass --lcnet FILE and "
                                f"--weights FILE (docs/uncalibrated.md)")
     return sdps_second_stage(weights)[1]
 

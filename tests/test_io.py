@@ -281,3 +281,21 @@ def test_load_images_as_captured_skips_the_intensities(tmp_path):
     assert not np.allclose(cap.intensities, 1)
     divided, raw = load_images(cap), load_images(cap, as_captured=True)
     np.testing.assert_allclose(divided * cap.intensities[:, None, None, :], raw, rtol=1e-5, atol=1e-7)
+
+
+def test_a_stray_image_is_named_in_the_count_error(tmp_path):
+    """Without filenames.txt every image file counts: the count error names the odd one out."""
+    write_capture(tmp_path / "cap", n=6, size=16)
+    (tmp_path / "cap" / "filenames.txt").unlink()
+    write_image(tmp_path / "cap" / "thumb.png", np.zeros((16, 16, 3)), "uint8")
+    with pytest.raises(PsctlError, match=r"6 light rows but 7 images .*not named like the others: thumb.png"):
+        open_capture(tmp_path / "cap")
+
+
+def test_a_capture_given_as_a_benchmark_root_says_so(tmp_path):
+    write_capture(tmp_path / "cap", n=4, size=16)
+    with pytest.raises(PsctlError, match="no object folders found .*one capture folder: psctl normals"):
+        find_objects(tmp_path / "cap")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(PsctlError, match=r"no object folders found \(expected subfolders with images, or objects.txt\)$"):
+        find_objects(tmp_path / "empty")

@@ -150,6 +150,20 @@ def check_not_capture(out_dir: Path, capture: "Capture") -> None:
                                   "choose another --out")
 
 
+def _found_note(paths: list[Path]) -> str:
+    """For a count mismatch in a folder without an image list, which is often a stray file taken
+    as an image: the files not named like most (digits aside), and how to leave files out."""
+    import collections
+    import re
+
+    pattern = [re.sub(r"\d+", "#", p.name.lower()) for p in paths]
+    common = collections.Counter(pattern).most_common(1)[0][0]
+    odd = [p.name for p, k in zip(paths, pattern) if k != common]
+    named = f"; not named like the others: {', '.join(odd[:3])}{' ...' if len(odd) > 3 else ''}" if odd else ""
+    return (f" (every image file in the folder counts{named}; list the images in filenames.txt to leave "
+            f"files out)")
+
+
 def _read_list(path: Path) -> list[str]:
     try:
         text = path.read_text()
@@ -264,7 +278,8 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
     folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")
                       and p.name != "psctl" and is_capture_folder(p)), key=lambda p: natural_key(p.name))
     if not folders:
-        raise PsctlError(root, "no object folders found (expected subfolders with images, or objects.txt)")
+        hint = "; it is one capture folder: psctl normals PATH runs it" if is_capture_folder(root) else ""
+        raise PsctlError(root, f"no object folders found (expected subfolders with images, or objects.txt){hint}")
     return folders
 
 
@@ -321,18 +336,19 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
                                         f"{first.path.name} ({first.width}x{first.height})")
     n = len(image_paths)
+    found = "" if list_file is not None else _found_note(image_paths)
 
     lights = None
     if (path / LIGHTS_FILE).is_file():
         lights = read_lights(path / LIGHTS_FILE)
         if len(lights) != n:
-            raise PsctlError(path / LIGHTS_FILE, f"{len(lights)} light rows but {n} images")
+            raise PsctlError(path / LIGHTS_FILE, f"{len(lights)} light rows but {n} images{found}")
     intensities = np.ones((n, 3), np.float32)
     given = (path / INTENSITIES_FILE).is_file()
     if given:
         intensities = read_intensities(path / INTENSITIES_FILE)
         if len(intensities) != n:
-            raise PsctlError(path / INTENSITIES_FILE, f"{len(intensities)} intensity rows but {n} images")
+            raise PsctlError(path / INTENSITIES_FILE, f"{len(intensities)} intensity rows but {n} images{found}")
 
     mask_path = _first_existing(path, MASK_FILES)
     if mask_path is not None:

@@ -168,7 +168,8 @@ def render_benchmark(result: dict) -> None:
     con.print(t)
     n = {o["n_images"] for o in objs}
     secs = sum(o["seconds"] for o in objs)
-    con.print(f"{len(objs)} objects, {'/'.join(map(str, sorted(n)))} images each, {secs:.1f} s", highlight=False)
+    con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
+              f"{secs:.1f} s", highlight=False)
     # how the images were read, where not as stored (the other notes are in --json and --out's reports)
     from psctl.io.capture import READ_NOTES
 
