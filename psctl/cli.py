@@ -25,7 +25,7 @@ app = typer.Typer(
 
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
 Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
-Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions (evenly through the list where the method does not read lights: sdps, ups-fcn, lights), or a random K with --seed.")]
+Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (seed 0 where the method does not read lights: sdps, ups-fcn, lights).")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]

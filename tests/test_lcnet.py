@@ -706,6 +706,7 @@ def test_classifier_gradients_stay_off_padding_only_taps_under_bf16():
 def test_lights_subset_lists_its_images(tmp_path, fake_weights):
     """psctl lights --images K: K rows, and light_images.txt says which image each row is; a later
     run over every image removes that list (its rows would no longer match)."""
+    from psctl.io.capture import select_images
     from psctl.lights import run_lights
 
     write_capture(tmp_path / "cap", n=10, size=40)
@@ -714,9 +715,9 @@ def test_lights_subset_lists_its_images(tmp_path, fake_weights):
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", n_images=3,
                    refine=False, views=1)
     assert r["n_images"] == 3 and np.loadtxt(out / "light_directions.txt").shape == (3, 3)
-    assert (out / "light_images.txt").read_text().split() == [names[i] for i in (0, 4, 9)]  # evenly spaced
+    assert (out / "light_images.txt").read_text().split() == [names[i] for i in select_images(10, 3, 0)]
     assert r["outputs"]["light_images"] == str(out / "light_images.txt")
-    assert any("evenly spaced" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
+    assert any("seed 0" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", refine=False, views=1)
     assert not (out / "light_images.txt").exists() and "light_images" not in r["outputs"]
     assert any("removed light_images.txt" in n for n in r["notes"])
