@@ -7,6 +7,7 @@ Heavy imports happen inside the commands so that ``psctl --help`` is instant.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import sys
 from collections.abc import Callable, Iterator
@@ -14,6 +15,10 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+
+# a flag takes no value: without an empty metavar some Typer versions show "<bool>" after it,
+# and `--json true` is then an error
+_flag = functools.partial(typer.Option, metavar="")
 
 app = typer.Typer(
     name="psctl",
@@ -23,17 +28,17 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars.")]
-Json = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+Quiet = Annotated[bool, _flag("--quiet", "-q", help="No progress bars.")]
+Json = Annotated[bool, _flag("--json", help="Print one JSON object on stdout.")]
 Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (seed 0 where the method does not read lights: sdps, ups-fcn, lights).")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
-RefineOpt = Annotated[bool, typer.Option("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
+RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
-RollOpt = Annotated[Optional[bool], typer.Option("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
+RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
@@ -189,7 +194,7 @@ def lights(
     images: Images = None,
     seed: Seed = None,
     device: DeviceOpt = "auto",
-    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
+    refine: Annotated[bool, _flag("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
     normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
@@ -220,7 +225,7 @@ def synth(
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
     interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none).")] = 0,
     ir_albedo: Annotated[Optional[float], typer.Option("--ir-albedo", help="With --interreflections: the surface lights itself as a source of albedo A * kd / max(kd) (default: kd).")] = None,
-    preview: Annotated[bool, typer.Option("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
+    preview: Annotated[bool, _flag("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -271,8 +276,8 @@ def train(
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
-    install: Annotated[bool, typer.Option(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
-    force: Annotated[bool, typer.Option("--force", help="With --install: replace the installed release file.")] = False,
+    install: Annotated[bool, _flag(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
+    force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
     quiet: Quiet = False,
 ) -> None:
@@ -331,7 +336,7 @@ def train(
 
 
 @app.callback(invoke_without_command=True)
-def _root(version: Annotated[bool, typer.Option("--version", help="Print the version.")] = False) -> None:
+def _root(version: Annotated[bool, _flag("--version", help="Print the version.")] = False) -> None:
     if version:
         from psctl import __version__
 
