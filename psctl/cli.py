@@ -241,6 +241,8 @@ def synth(
             typer.echo(f"wrote {n} object{'s' if n != 1 else ''} to {report['out']} ({report['seconds']:.1f} s)")
             if report["preview"]:
                 typer.echo(f"preview: {report['preview']}")
+            if report.get("removed"):
+                typer.echo(f"removed {', '.join(report['removed'])}, left by an earlier psctl synth run")
 
         _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials, light_dist=light_dist,
                                            intensities=intensities, interreflections=interreflections, ir_albedo=ir_albedo,

@@ -790,9 +790,11 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
         assert json.loads((folder / "synth.json").read_text())["shape"] == "blobby"
     res = run_benchmark("folder", root=out, method="l2")
     assert [o["name"] for o in res["objects"]] == rep["objects"] and np.isfinite(res["mean_mae"])
-    # writing again replaces the folders in place, leaving no temporary folder behind
-    write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=2)
-    assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "blobby_02", "objects.txt", "preview.png"]
+    # writing again replaces the folders in place, leaving no temporary folder behind, and nothing
+    # of the earlier set that this one does not have (its second object, its contact sheet)
+    again = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
+    assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "objects.txt"]
+    assert again["removed"] == ["blobby_02", "preview.png"]
     with pytest.raises(PsctlError, match="unknown preset"):
         write_preset(out, "teapot")
 

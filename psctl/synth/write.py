@@ -297,7 +297,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         ir_albedo: with interreflections, the albedo of the surface as a source of indirect
             light, a * kd / max(kd) (None: kd itself; see ``render_object``).
     Returns:
-        {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds"}.
+        {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds",
+        "removed"} (removed: what an earlier psctl synth run left in ``out`` and this one replaced).
     """
     from psctl.io.atomic import check_output_dir, ensure_writable_dir, write_text_atomic
 
@@ -356,9 +357,18 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
         preview_path = out / "preview.png"
         write_image(preview_path, _sheet(sheet_rows), "uint8")
+    # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
+    # here is psctl synth's), so that the folder holds this set alone
+    names = {o.name for o in objs}
+    removed = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")
+                     and p.name not in names and (p / "synth.json").is_file())
+    if not preview and (out / "preview.png").is_file():
+        removed.append("preview.png")
+    for name in removed:
+        (shutil.rmtree if (out / name).is_dir() else os.remove)(out / name)
     return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
             "intensities": intensities, "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
-            "seconds": round(time.perf_counter() - t0, 3)}
+            "seconds": round(time.perf_counter() - t0, 3), "removed": removed}
 
 
 # --------------------------------------------------------------------------------------------
