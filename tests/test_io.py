@@ -299,3 +299,54 @@ def test_a_capture_given_as_a_benchmark_root_says_so(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(PsctlError, match=r"no object folders found \(expected subfolders with images, or objects.txt\)$"):
         find_objects(tmp_path / "empty")
+
+
+@pytest.mark.parametrize("ext", ["tif", "jpg"])
+def test_exif_orientation_is_applied_as_openimageio_reorients(tmp_path, ext):
+    """Phone JPEGs are stored sideways with an Orientation tag: read upright, as viewers show them
+    (the same pixels as OpenImageIO's own reorient), and the header's size is the upright one."""
+    import OpenImageIO as oiio
+
+    from psctl.io.images import image_info
+
+    a = np.random.default_rng(0).random((5, 7, 3)).astype(np.float32)
+    for o in range(1, 9):
+        path = str(tmp_path / f"o{o}.{ext}")
+        spec = oiio.ImageSpec(7, 5, 3, "uint16" if ext == "tif" else "uint8")
+        spec.attribute("Orientation", o)
+        out = oiio.ImageOutput.create(path)
+        assert out.open(path, spec) and out.write_image(a)
+        out.close()
+        ref = oiio.ImageBufAlgo.reorient(oiio.ImageBuf(path)).get_pixels(oiio.FLOAT)
+        mine, info = read_image(path)
+        assert info.orientation == o and mine.shape == ref.shape == (*((7, 5) if o >= 5 else (5, 7)), 3)
+        assert (image_info(path).height, image_info(path).width) == mine.shape[:2]
+        np.testing.assert_array_equal(mine, ref)
+
+
+def test_a_capture_of_turned_photos_reads_upright_with_a_note(tmp_path):
+    """Images stored sideways with Orientation 6 give the normals of the upright ones, and say so."""
+    import OpenImageIO as oiio
+
+    from psctl.api import run_normals
+
+    data = write_capture(tmp_path / "upright", n=8, size=24, intensities=False)
+    turned = tmp_path / "turned"
+    turned.mkdir()
+    for f in ("light_directions.txt", "mask.png", "Normal_gt.mat"):
+        (turned / f).write_bytes((tmp_path / "upright" / f).read_bytes())
+    names = []
+    for k, img in enumerate(data["images"]):
+        stored = np.rot90(img, 1)  # what a camera held sideways stores; Orientation 6 turns it back
+        spec = oiio.ImageSpec(stored.shape[1], stored.shape[0], 3, "uint16")
+        spec.attribute("Orientation", 6)
+        path = str(turned / f"{k:03d}.tif")
+        out = oiio.ImageOutput.create(path)
+        assert out.open(path, spec) and out.write_image(np.ascontiguousarray(stored, dtype=np.float32))
+        out.close()
+        names.append(f"{k:03d}.tif")
+    (turned / "filenames.txt").write_text("\n".join(names) + "\n")
+    a = run_normals(tmp_path / "upright", method="l2", write=False)
+    b = run_normals(turned, method="l2", write=False)
+    assert b["mae"] == pytest.approx(a["mae"], abs=0.05) and a["mae"] < 2
+    assert any("8 of 8 images turned upright" in n for n in b["notes"])

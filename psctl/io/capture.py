@@ -59,6 +59,7 @@ class Capture:
     gt_path: Path | None = None
     encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
+    orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
 
     @property
     def n_images(self) -> int:
@@ -73,6 +74,11 @@ class Capture:
         sRGB to linear (``encoding``: srgb, or auto and a JPEG)."""
         path = self.image_paths[int(k)] if isinstance(k, (int, np.integer)) else k
         return self.encoding == "srgb" or (self.encoding == "auto" and path.suffix.lower() in JPEG)
+
+    @property
+    def turned(self) -> int:
+        """How many of the images an EXIF orientation tag turns upright as they are read."""
+        return sum(o != 1 for o in self.orientations)
 
     @property
     def srgb_images(self) -> int:
@@ -90,6 +96,7 @@ class Capture:
         return replace(
             self,
             image_paths=tuple(self.image_paths[i] for i in idx),
+            orientations=tuple(self.orientations[i] for i in idx) if self.orientations else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -364,6 +371,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
+        orientations=tuple(i.orientation for i in infos),
     )
 
 
@@ -502,6 +510,9 @@ def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
     notes = []
+    if capture.turned:
+        notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
+                     f"orientation tag, as photo viewers show them (the mask and lights refer to that frame)")
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")

@@ -41,6 +41,27 @@ class ImageInfo:
     channels: int
     dtype: str  # "uint8", "uint16", "half", "float", ...
     bits: int  # bits per sample (8, 16, 32)
+    orientation: int = 1  # the EXIF Orientation tag (1-8); width and height are the upright image's
+
+
+# EXIF orientation -> how to turn the stored pixels [H, W, C] upright, as a photo viewer shows
+# them (and as a user draws a mask on them): 2 mirror, 3 half turn, 4 flip, 5 transpose,
+# 6 quarter turn clockwise, 7 transverse, 8 quarter turn counterclockwise
+_UPRIGHT = {
+    2: lambda a: a[:, ::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: a[::-1],
+    5: lambda a: a.transpose(1, 0, 2),
+    6: lambda a: np.rot90(a, -1),
+    7: lambda a: a[::-1, ::-1].transpose(1, 0, 2),
+    8: lambda a: np.rot90(a, 1),
+}
+
+
+def upright(pixels: np.ndarray, orientation: int) -> np.ndarray:
+    """Stored pixels [H, W, C] turned upright by their EXIF ``orientation`` (1: as stored)."""
+    turn = _UPRIGHT.get(int(orientation))
+    return pixels if turn is None else np.ascontiguousarray(turn(pixels))
 
 
 def image_info(path: str | os.PathLike) -> ImageInfo:
@@ -58,7 +79,10 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         spec = inp.spec()
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
-        return ImageInfo(path, spec.width, spec.height, spec.nchannels, dtype, int(bits))
+        orientation = spec.get_int_attribute("Orientation", 1)
+        orientation = orientation if orientation in _UPRIGHT else 1
+        w, h = (spec.height, spec.width) if orientation >= 5 else (spec.width, spec.height)
+        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation)
     finally:
         inp.close()
 
@@ -66,7 +90,8 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
 def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 [H, W, C] plus its header info.
 
-    Integer images are scaled to [0, 1] by the maximum of their true bit depth, so a 16-bit
+    An image with an EXIF Orientation tag (phone and camera JPEGs) is turned upright, as photo
+    viewers show it: a mask drawn on it and the light directions refer to that frame. Integer images are scaled to [0, 1] by the maximum of their true bit depth, so a 16-bit
     PNG is divided by 65535 and an 8-bit one by 255. Corrupt or truncated files raise
     PsctlError naming the file, as do NaN/inf pixels unless ``allow_nonfinite`` (normal maps,
     where NaN marks "no normal" and the caller counts such pixels).
@@ -90,7 +115,8 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
             inp.close()
     if pixels is None or err:
         raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(info.height, info.width, info.channels)
+    stored = (info.width, info.height) if info.orientation >= 5 else (info.height, info.width)
+    pixels = upright(np.asarray(pixels, dtype=np.float32).reshape(*stored, info.channels), info.orientation)
     # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
     # OpenImageIO already rescales them to the container's full range.
     if not allow_nonfinite and not np.isfinite(pixels).all():
