@@ -350,3 +350,37 @@ def test_a_capture_of_turned_photos_reads_upright_with_a_note(tmp_path):
     b = run_normals(turned, method="l2", write=False)
     assert b["mae"] == pytest.approx(a["mae"], abs=0.05) and a["mae"] < 2
     assert any("8 of 8 images turned upright" in n for n in b["notes"])
+
+
+def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
+    """Mask.PNG and Light_Directions.txt are the mask and the light file; two masks are an error;
+    a file that looks meant for psctl but is not read (light_intensity.txt) gets a note."""
+    from psctl.io.capture import capture_notes
+
+    cap_dir = tmp_path / "cap"
+    write_capture(cap_dir, n=6, size=16)
+    (cap_dir / "mask.png").rename(cap_dir / "Mask.PNG")
+    (cap_dir / "light_directions.txt").rename(cap_dir / "Light_Directions.txt")
+    (cap_dir / "light_intensities.txt").rename(cap_dir / "light_intensity.txt")
+    cap = open_capture(cap_dir)
+    assert cap.mask_path.name == "Mask.PNG" and cap.calibrated and not cap.intensities_given
+    assert any(n.startswith("files: not read: light_intensity.txt") for n in capture_notes(cap))
+    write_image(cap_dir / "mask.tif", np.ones((16, 16)), "uint8")
+    with pytest.raises(PsctlError, match=r"holds 2 masks \(Mask.PNG, mask.tif\); keep one"):
+        open_capture(cap_dir)
+
+
+def test_capture_text_files_with_a_byte_order_mark_and_list_mistakes(tmp_path):
+    cap_dir = tmp_path / "cap"
+    write_capture(cap_dir, n=6, size=16)
+    for name in ("filenames.txt", "light_directions.txt"):  # Excel's "CSV UTF-8" writes a BOM
+        (cap_dir / name).write_bytes(b"\xef\xbb\xbf" + (cap_dir / name).read_bytes())
+    cap = open_capture(cap_dir)
+    assert cap.n_images == 6 and cap.image_paths[0].name == "001.png"
+    names = (cap_dir / "filenames.txt").read_text(encoding="utf-8-sig").split()
+    (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + ["mask.png"]) + "\n")
+    with pytest.raises(PsctlError, match="is the mask but is also listed in filenames.txt"):
+        open_capture(cap_dir)
+    (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + names[:1]) + "\n")
+    with pytest.raises(PsctlError, match="001.png: listed twice in filenames.txt"):
+        open_capture(cap_dir)

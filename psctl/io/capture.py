@@ -60,6 +60,7 @@ class Capture:
     encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
     orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
+    unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
 
     @property
     def n_images(self) -> int:
@@ -173,7 +174,7 @@ def _found_note(paths: list[Path]) -> str:
 
 def _read_list(path: Path) -> list[str]:
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
     except (OSError, UnicodeDecodeError) as e:
         raise PsctlError(path, f"cannot read file ({e})") from None
     names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
@@ -188,7 +189,7 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
     Errors name the file and line: malformed numbers, wrong column counts, NaN/inf.
     """
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
     except (OSError, UnicodeDecodeError) as e:
         raise PsctlError(path, f"cannot read {what} ({e})") from None
     rows: list[list[float]] = []
@@ -252,13 +253,30 @@ def _find_ambient(folder: Path) -> Path | None:
     return found[0] if found else None
 
 
-def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
-    for n in names:
-        if (folder / n).is_file():
-            return folder / n
-        if (folder / n).exists():  # a folder named mask.png is a mistake, not "no mask"
-            raise PsctlError(folder / n, "is not a file")
-    return None
+def _first_existing(folder: Path, names: Sequence[str], only: str | None = None) -> Path | None:
+    """The first of ``names`` in ``folder``, whatever the case of the file's name (Mask.PNG is the
+    mask, Light_Directions.txt the light file). With ``only`` (what they are, for the message),
+    two matching files are an error, not a silent choice (mask.png beside mask.tif)."""
+    by_name: dict[str, list[Path]] = {}
+    for p in folder.iterdir():
+        by_name.setdefault(p.name.lower(), []).append(p)
+    hits = [p for n in dict.fromkeys(n.lower() for n in names) for p in sorted(by_name.get(n, []))]
+    if only and len(hits) > 1:
+        raise PsctlError(folder, f"holds {len(hits)} {only} ({', '.join(p.name for p in hits)}); keep one")
+    if hits and not hits[0].is_file():  # a folder named mask.png is a mistake, not "no mask"
+        raise PsctlError(hits[0], "is not a file")
+    return hits[0] if hits else None
+
+
+# words in the names of files a capture means psctl to read: such a file that psctl does not
+# read (light_intensity.txt, mask_obj.png) gets a note, since without it the run goes on silently
+_LOOKS_USED = ("mask", "normal", "light", "intensit", "direction", "ambient")
+
+
+def _unread(folder: Path, used: set[Path]) -> tuple[str, ...]:
+    known = {n.lower() for n in (*LIST_FILES, LIGHTS_FILE, INTENSITIES_FILE, *MASK_FILES, *GT_FILES, *AMBIENT_FILES)}
+    return tuple(sorted(p.name for p in folder.iterdir() if p.is_file() and p not in used
+                        and p.name.lower() not in known and any(w in p.name.lower() for w in _LOOKS_USED)))
 
 
 def is_capture_folder(path: str | os.PathLike) -> bool:
@@ -318,7 +336,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     if is_benchmark_root(path):
         raise PsctlError(path, "holds several objects (a benchmark root); pass one object folder, or use `psctl eval`")
 
-    list_file = _first_existing(path, LIST_FILES)
+    list_file = _first_existing(path, LIST_FILES, "image lists")
     if list_file is not None:
         image_paths = [path / n for n in _read_list(list_file)]
         for p in image_paths:
@@ -346,18 +364,20 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     found = "" if list_file is not None else _found_note(image_paths)
 
     lights = None
-    if (path / LIGHTS_FILE).is_file():
-        lights = read_lights(path / LIGHTS_FILE)
+    lights_path = _first_existing(path, [LIGHTS_FILE], "light direction files")
+    if lights_path is not None:
+        lights = read_lights(lights_path)
         if len(lights) != n:
-            raise PsctlError(path / LIGHTS_FILE, f"{len(lights)} light rows but {n} images{found}")
+            raise PsctlError(lights_path, f"{len(lights)} light rows but {n} images{found}")
     intensities = np.ones((n, 3), np.float32)
-    given = (path / INTENSITIES_FILE).is_file()
+    intensities_path = _first_existing(path, [INTENSITIES_FILE], "light intensity files")
+    given = intensities_path is not None
     if given:
-        intensities = read_intensities(path / INTENSITIES_FILE)
+        intensities = read_intensities(intensities_path)
         if len(intensities) != n:
-            raise PsctlError(path / INTENSITIES_FILE, f"{len(intensities)} intensity rows but {n} images{found}")
+            raise PsctlError(intensities_path, f"{len(intensities)} intensity rows but {n} images{found}")
 
-    mask_path = _first_existing(path, MASK_FILES)
+    mask_path = _first_existing(path, MASK_FILES, "masks")
     if mask_path is not None:
         _check_size(image_info(mask_path), first)
     gt_path = _first_existing(path, GT_FILES)
@@ -365,6 +385,14 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         _check_size(image_info(gt_path), first)
     if ambient_path is not None:
         _check_size(image_info(ambient_path), first)
+    if list_file is not None:  # a listed mask or ground truth would be read as an image
+        listed = [p.resolve() for p in image_paths]
+        twice = next((p for p, r in zip(image_paths, listed) if listed.count(r) > 1), None)
+        if twice is not None:
+            raise PsctlError(twice, f"listed twice in {list_file.name}")
+        for kind, p in (("mask", mask_path), ("ground truth", gt_path)):
+            if p is not None and p.resolve() in listed:
+                raise PsctlError(p, f"is the {kind} but is also listed in {list_file.name} as an input image")
 
     return Capture(
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
@@ -372,6 +400,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
         orientations=tuple(i.orientation for i in infos),
+        unread=_unread(path, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
+                                                           gt_path, ambient_path) if p is not None)}),
     )
 
 
@@ -503,13 +533,16 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     return out
 
 
-READ_NOTES = ("ambient:", "encoding:")  # how capture_notes' notes begin
+READ_NOTES = ("files:", "orientation:", "ambient:", "encoding:")  # how capture_notes' notes begin
 
 
 def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
     notes = []
+    if capture.unread:
+        notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
+                     f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
                      f"orientation tag, as photo viewers show them (the mask and lights refer to that frame)")
