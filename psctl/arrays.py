@@ -50,11 +50,16 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
 
 
 def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
-    """[H, W] bool (None stays None: the whole image). Numbers: above 0.5 is the object, as in
-    mask files. Wrong shape, NaN and an empty mask are errors."""
+    """[H, W] bool (None stays None: the whole image; [H, W, 1] is squeezed). Numbers: above 0.5
+    is the object, as in mask files; uint8 and uint16 masks above 1 (0/255, 0/65535) are first
+    divided by their type's largest value, as mask files are; other integer masks above 1 (a
+    label image, numpy's default int64 * 255) are the object where nonzero. Wrong shape, NaN and
+    an empty mask are errors."""
     if mask is None:
         return None
     m = np.asarray(mask)
+    if m.ndim == 3 and m.shape[2] == 1:
+        m = m[..., 0]
     if m.shape != tuple(shape):
         raise PsctlError(None, f"mask must be [H, W] = {list(shape)}, got {list(m.shape)}")
     if m.dtype != bool:
@@ -62,8 +67,10 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
             raise PsctlError(None, f"mask must be bool or numeric, got dtype {m.dtype}")
         if not np.isfinite(m).all():
             raise PsctlError(None, "mask contains NaN or infinite values")
-        if m.dtype.kind in "iu" and m.max() > 1:  # 0/255 or 0/65535: scaled as a mask file is
-            m = m / np.iinfo(m.dtype).max
+        if m.dtype.kind in "iu" and m.max() > 1:
+            # 0/255 or 0/65535 in an image's type: scaled as a mask file is; any other integer
+            # type's largest value says nothing about the mask (int64 * 255 would be empty)
+            m = m / np.iinfo(m.dtype).max if m.dtype in (np.uint8, np.uint16) else m != 0
         m = m > 0.5
     if not m.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")

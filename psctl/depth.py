@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from psctl.arrays import as_mask
 from psctl.errors import PsctlError, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
@@ -154,11 +155,13 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     h, w = normals.shape[:2]
     if mask is None:
         mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)
-    mask = np.asarray(mask, bool)
-    if mask.shape != (h, w):
-        raise PsctlError(None, f"normal map is {w}x{h} but the mask is {mask.shape[1]}x{mask.shape[0]}")
-    if not mask.any():
-        raise PsctlError(None, "the mask is empty (no foreground pixel)")
+        if not mask.any():
+            raise PsctlError(None, "the mask is empty (no foreground pixel)")
+    else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
+        m = np.asarray(mask)
+        if m.shape[:2] != (h, w):
+            raise PsctlError(None, f"normal map is {w}x{h} but the mask is {m.shape[1]}x{m.shape[0]}")
+        mask = as_mask(m, (h, w))
     K = None if K is None else check_intrinsics(K)
 
     # --- per-pixel terms: gradient = t / s along columns (u) and rows (v) ------------------------

@@ -107,6 +107,18 @@ def test_grey_stacks_integer_masks_and_types(data):
         as_mask(np.full(mask.shape, 100, np.uint8), mask.shape)  # 100 / 255 < 0.5, as in a mask file
     with pytest.raises(PsctlError, match="float, uint8 or uint16"):
         estimate_normals((images * 65535).astype(np.int32), lights, mask, method="l2")
+    # other integer types say nothing by their largest value: nonzero is the object (numpy's
+    # default int64 * 255 was an empty mask), and [H, W, 1] is squeezed
+    for m in (mask.astype(np.int64) * 255, mask.astype(np.int32) * 2, mask.astype(np.uint32) * 7):
+        assert (as_mask(m, mask.shape) == mask).all()
+    assert (as_mask(mask[..., None].astype(np.uint8), mask.shape) == mask).all()
+    from psctl.depth import integrate
+
+    n = np.zeros((*mask.shape, 3), np.float32)
+    n[..., 2] = 1
+    assert integrate(n, mask.astype(np.int64) * 255).n_mask == mask.sum()  # read as estimate_normals reads it
+    with pytest.raises(PsctlError, match="NaN"):
+        integrate(n, np.where(mask, np.nan, 0.0))
 
 
 def test_recipes_given_as_dicts():
