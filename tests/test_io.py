@@ -384,3 +384,19 @@ def test_capture_text_files_with_a_byte_order_mark_and_list_mistakes(tmp_path):
     (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + names[:1]) + "\n")
     with pytest.raises(PsctlError, match="001.png: listed twice in filenames.txt"):
         open_capture(cap_dir)
+
+
+def test_lights_behind_the_object(tmp_path):
+    """z away from the camera in every row is an error naming the file; in some rows, a note."""
+    from psctl.io.capture import capture_notes
+
+    write_capture(tmp_path / "cap", n=6, size=16)
+    f = tmp_path / "cap" / "light_directions.txt"
+    rows = np.loadtxt(f)
+    np.savetxt(f, rows * [1, 1, -1])
+    with pytest.raises(PsctlError, match="light_directions.txt: every light has z <= 0"):
+        open_capture(tmp_path / "cap")
+    rows[[1, 4], 2] *= -1
+    np.savetxt(f, rows)
+    assert any(n.startswith("light file: 2 of 6 light directions have z <= 0") and "rows 2, 5" in n
+               for n in capture_notes(open_capture(tmp_path / "cap")))

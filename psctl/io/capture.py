@@ -369,6 +369,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         lights = read_lights(lights_path)
         if len(lights) != n:
             raise PsctlError(lights_path, f"{len(lights)} light rows but {n} images{found}")
+        if (lights[:, 2] <= 0).all():  # every light behind the object: the z axis points away
+            raise PsctlError(lights_path, "every light has z <= 0 (behind the object); psctl wants z toward the "
+                                          "camera (x right, y up): negate the z column if the file's z points away")
     intensities = np.ones((n, 3), np.float32)
     intensities_path = _first_existing(path, [INTENSITIES_FILE], "light intensity files")
     given = intensities_path is not None
@@ -533,13 +536,18 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     return out
 
 
-READ_NOTES = ("files:", "orientation:", "ambient:", "encoding:")  # how capture_notes' notes begin
+READ_NOTES = ("light file:", "files:", "orientation:", "ambient:", "encoding:")  # how capture_notes' notes begin
 
 
 def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
     notes = []
+    behind = [] if capture.lights is None else np.flatnonzero(capture.lights[:, 2] <= 0)
+    if len(behind):
+        rows = ", ".join(str(i + 1) for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
+        notes.append(f"light file: {len(behind)} of {capture.n_images} light directions have z <= 0, behind the object "
+                     f"(rows {rows}); psctl wants z toward the camera")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
