@@ -354,6 +354,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         error[valid] = angular_error(normals, gt, valid)
         stats = summarize(error[valid])
         n_eval = int(valid.sum())
+        notes += convention_notes(normals, gt, valid, stats["mae"], cap.gt_path.name)
 
     seconds = time.perf_counter() - t0
     report = {
@@ -420,6 +421,29 @@ def mirror_notes(normals: np.ndarray, mask: np.ndarray) -> list[str]:
         return []
     return [f"lights: these normals are {1 / r:.1f} times less integrable than their mirror image; is an axis of "
             "light_directions.txt flipped? psctl wants x right, y up (not down, as image rows), z toward the camera"]
+
+
+def convention_notes(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray, mae: float, gt_name: str) -> list[str]:
+    """A note when the error says more about axes than about the method: ground truth whose normals
+    point away from the camera, or normals that match the ground truth far better with x or y
+    flipped (the light file or the ground truth uses another axis; psctl: x right, y up, z toward
+    the camera)."""
+    from psctl.metrics import angular_error
+
+    notes = []
+    if float(gt[valid][:, 2].mean()) < 0:
+        notes.append(f"ground truth: {gt_name}'s normals point away from the camera on average (mean nz < 0); "
+                     "psctl's z is toward the camera")
+    if mae > 10:  # a good method's error says nothing about axes
+        for axis, name in ((0, "x"), (1, "y")):
+            flipped = gt.copy()
+            flipped[..., axis] *= -1
+            e = float(angular_error(normals, flipped, valid).mean())
+            if e < mae / 2:
+                notes.append(f"ground truth: these normals match {gt_name} with {name} flipped far better ({e:.1f} vs "
+                             f"{mae:.1f} degrees): does the light file or the ground truth use {name} "
+                             f"{'left' if axis == 0 else 'down'}? psctl wants x right, y up")
+    return notes
 
 
 def read_outputs_list(out_dir: Path) -> list[str]:

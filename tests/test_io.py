@@ -400,3 +400,28 @@ def test_lights_behind_the_object(tmp_path):
     np.savetxt(f, rows)
     assert any(n.startswith("light file: 2 of 6 light directions have z <= 0") and "rows 2, 5" in n
                for n in capture_notes(open_capture(tmp_path / "cap")))
+
+
+def test_ground_truth_mistakes_are_refused_or_noted(tmp_path):
+    """A 1-channel Normal_gt.png is refused; ground truth with y down or z away gets a note; NaN in
+    a float ground truth means no normal, as in float normal maps."""
+    from psctl.api import run_normals
+    from psctl.io.normals import write_normal_map
+
+    data = write_capture(tmp_path / "cap", n=8, size=24, gt="png")
+    gt_file = tmp_path / "cap" / "Normal_gt.png"
+    write_image(gt_file, np.full((24, 24), 0.5), "uint16")
+    with pytest.raises(PsctlError, match="Normal_gt.png: ground truth needs 3 channels"):
+        run_normals(tmp_path / "cap", method="l2", write=False)
+    n, m = data["normals"], data["mask"]
+    for flip, needle in (([1, -1, 1], "with y flipped far better"), ([1, 1, -1], "point away from the camera")):
+        write_normal_map(gt_file, n * flip, m, "png16")
+        r = run_normals(tmp_path / "cap", method="l2", write=False)
+        assert any(needle in note for note in r["notes"]), r["notes"]
+    write_normal_map(gt_file, n, m, "png16")
+    assert not any(note.startswith("ground truth") for note in run_normals(tmp_path / "cap", method="l2", write=False)["notes"])
+    gt_file.unlink()
+    exr = np.where(m[..., None], n, np.nan).astype(np.float32)
+    write_image(tmp_path / "cap" / "Normal_gt.exr", exr, "float")
+    r = run_normals(tmp_path / "cap", method="l2", write=False)
+    assert r["mae"] < 2 and r["n_evaluated_pixels"] == m.sum()

@@ -462,8 +462,13 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
     else:
         from psctl.io.normals import decode_normal_pixels
 
-        pixels, info = read_image(p)
+        pixels, info = read_image(p, allow_nonfinite=True)  # NaN in a float map: no normal
+        if info.channels < 3:
+            raise PsctlError(p, f"ground truth needs 3 channels (nx, ny, nz), this image has {info.channels}")
+        if info.dtype not in ("half", "float", "double") and not np.isfinite(pixels).all():
+            raise PsctlError(p, "image contains NaN or infinite values")
         gt = decode_normal_pixels(pixels, info)
+        gt = np.where(np.isfinite(gt).all(axis=-1, keepdims=True), gt, 0.0)
     if not np.isfinite(gt).all():
         raise PsctlError(p, "ground truth contains NaN or infinite values")
     norm = np.linalg.norm(gt, axis=-1, keepdims=True)
