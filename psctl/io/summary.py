@@ -170,9 +170,10 @@ def render_benchmark(result: dict) -> None:
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
               f"{secs:.1f} s", highlight=False)
-    # how the images were read, where not as stored (the other notes are in --json and --out's reports)
+    # how the images were read, where not as stored, and ground truth that looks like another axis
+    # convention: both change what the table means (the other notes are in --json and --out's reports)
     from psctl.io.capture import READ_NOTES
 
-    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith(READ_NOTES)]
+    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith((*READ_NOTES, "ground truth:"))]
     for name, note in read:
         con.print(escape(f"  {name}: {note}"), highlight=False)
