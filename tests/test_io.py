@@ -425,3 +425,27 @@ def test_ground_truth_mistakes_are_refused_or_noted(tmp_path):
     write_image(tmp_path / "cap" / "Normal_gt.exr", exr, "float")
     r = run_normals(tmp_path / "cap", method="l2", write=False)
     assert r["mae"] < 2 and r["n_evaluated_pixels"] == m.sum()
+
+
+def test_linked_folder_keeps_its_name_and_broken_image_links_are_named(tmp_path):
+    import os
+
+    write_capture(tmp_path / "cap_real", n=6, size=16)
+    os.symlink(tmp_path / "cap_real", tmp_path / "ballPNG")
+    assert open_capture(tmp_path / "ballPNG").name == "ball"  # the name the user gave, not the target's
+    (tmp_path / "cap_real" / "filenames.txt").unlink()
+    (tmp_path / "cap_real" / "006.png").rename(tmp_path / "elsewhere.png")
+    os.symlink(tmp_path / "gone.png", tmp_path / "cap_real" / "006.png")  # a broken link: not an image
+    with pytest.raises(PsctlError, match=r"6 light rows but 5 images .*not files, so not read: 006.png"):
+        open_capture(tmp_path / "cap_real")
+
+
+def test_tensors_that_require_grad_are_read(tmp_path):
+    import torch
+
+    from psctl.api import estimate_normals
+
+    data = write_capture(tmp_path / "cap", n=8, size=16, intensities=False)
+    imgs = torch.tensor(data["images"], requires_grad=True)
+    n = estimate_normals(imgs, torch.tensor(data["lights"], requires_grad=True), torch.tensor(data["mask"]), method="l2")
+    assert n.shape == (16, 16, 3)

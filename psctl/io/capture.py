@@ -113,7 +113,7 @@ JPEG = (".jpg", ".jpeg")
 
 def object_name(path: str | os.PathLike) -> str:
     """Folder name with a trailing ``PNG`` removed (``ballPNG`` -> ``ball``)."""
-    name = Path(path).resolve().name
+    name = Path(os.path.abspath(path)).name  # not resolved: a link to a folder is named as the link
     return name[:-3] if name.endswith("PNG") and len(name) > 3 else name
 
 
@@ -158,9 +158,10 @@ def check_not_capture(out_dir: Path, capture: "Capture") -> None:
                                   "choose another --out")
 
 
-def _found_note(paths: list[Path]) -> str:
+def _found_note(folder: Path, paths: list[Path]) -> str:
     """For a count mismatch in a folder without an image list, which is often a stray file taken
-    as an image: the files not named like most (digits aside), and how to leave files out."""
+    as an image (or one left out): the files not named like most (digits aside), entries named
+    like images that are not files (a folder, a broken link), and how to choose the images."""
     import collections
     import re
 
@@ -168,8 +169,10 @@ def _found_note(paths: list[Path]) -> str:
     common = collections.Counter(pattern).most_common(1)[0][0]
     odd = [p.name for p, k in zip(paths, pattern) if k != common]
     named = f"; not named like the others: {', '.join(odd[:3])}{' ...' if len(odd) > 3 else ''}" if odd else ""
-    return (f" (every image file in the folder counts{named}; list the images in filenames.txt to leave "
-            f"files out)")
+    skipped = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
+    if skipped:
+        named += f"; not files, so not read: {', '.join(skipped[:3])}{' ...' if len(skipped) > 3 else ''}"
+    return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
 
 
 def _read_list(path: Path) -> list[str]:
@@ -361,14 +364,14 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
                                         f"{first.path.name} ({first.width}x{first.height})")
     n = len(image_paths)
-    found = "" if list_file is not None else _found_note(image_paths)
+    found = "" if list_file is not None else _found_note(path, image_paths)
 
     lights = None
     lights_path = _first_existing(path, [LIGHTS_FILE], "light direction files")
     if lights_path is not None:
         lights = read_lights(lights_path)
         if len(lights) != n:
-            raise PsctlError(lights_path, f"{len(lights)} light rows but {n} images{found}")
+            raise PsctlError(lights_path, f"{len(lights)} light rows but {n} image{'s' * (n != 1)}{found}")
         if (lights[:, 2] <= 0).all():  # every light behind the object: the z axis points away
             raise PsctlError(lights_path, "every light has z <= 0 (behind the object); psctl wants z toward the "
                                           "camera (x right, y up): negate the z column if the file's z points away")
@@ -378,7 +381,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     if given:
         intensities = read_intensities(intensities_path)
         if len(intensities) != n:
-            raise PsctlError(intensities_path, f"{len(intensities)} intensity rows but {n} images{found}")
+            raise PsctlError(intensities_path, f"{len(intensities)} intensity rows but {n} image{'s' * (n != 1)}{found}")
 
     mask_path = _first_existing(path, MASK_FILES, "masks")
     if mask_path is not None:
