@@ -67,8 +67,11 @@ def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
 def test_info(capture):
     r = json.loads(psctl("info", capture, "--json", check=True).stdout)
     assert r["n_images"] == 12 and r["bit_depth"] == 16 and r["calibrated"] and r["ground_truth"] == "Normal_gt.mat"
-    assert 0 < r["mask_coverage"] < 1
+    assert 0 < r["mask_coverage"] < 1 and r["notes"] == []
     assert "sphere" in psctl("info", capture, check=True).stdout
+    (capture / "mask_obj.png").write_bytes((capture / "mask.png").read_bytes())  # looks like a mask, is not read
+    assert json.loads(psctl("info", capture, "--json", check=True).stdout)["notes"][0].startswith("files: not read: mask_obj.png")
+    assert "note: files: not read: mask_obj.png" in psctl("info", capture, check=True).stdout
 
 
 def test_eval_on_a_folder_of_objects(tmp_path):

@@ -12,7 +12,7 @@ from psctl.errors import PsctlError
 
 def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
     """What a capture folder holds, as a JSON-ready dict."""
-    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.capture import capture_notes, load_mask, open_capture
     from psctl.io.images import image_info
 
     cap = open_capture(path, encoding)
@@ -46,6 +46,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
         "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
+        "notes": capture_notes(cap),  # what normals, lights and depth will say about how they read it
     }
 
 
@@ -113,6 +114,9 @@ def render_info(report: dict) -> None:
         decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
     con.print(t)
+    for note in r.get("notes", []):
+        if not note.startswith(("ambient:", "encoding:")):  # those two are rows above
+            con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
 
 
 def _fmt(x: float | None) -> str:
