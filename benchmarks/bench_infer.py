@@ -292,7 +292,7 @@ def main() -> None:
                        model_s=lt["model_s"], tiles=lt["info"]["tiles"], passes=lt["info"]["passes"])
 
     print()
-    print(f"| configuration | images | wall s | peak RSS MB | notes |")
+    print("| configuration | images | wall s | peak RSS MB | notes |")
     print("|---|---:|---:|---:|---|")
     for r in results["runs"]:
         note = ", ".join(f"{k}={v}" for k, v in r.items() if k not in ("name", "images", "wall_s", "peak_rss_mb", "info"))

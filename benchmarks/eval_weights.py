@@ -76,7 +76,7 @@ def truncated(method: str, weights: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "q.json"
         subprocess.run([sys.executable, str(REPO / "benchmarks" / "quantization.py"), "--root", str(make_set("syntest_dl")),
-                        "--methods", method, "--weights", weights, "--means", "0.02", "--floor", "--out", str(out)],
+                        "--methods", method, "--weights", weights, "--means", "0.02", "--floor", "--no-float", "--out", str(out)],
                        check=True, capture_output=True, text=True)
         q = json.loads(out.read_text())
     key = f"{method} 8bit@0.02"

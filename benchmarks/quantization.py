@@ -41,10 +41,11 @@ def main() -> None:
     ap.add_argument("--weights", nargs="*", default=None, help="one file per method (default: installed)")
     ap.add_argument("--means", nargs="+", type=float, default=[0.06, 0.02])
     ap.add_argument("--floor", action="store_true", help="truncate instead of rounding (DiLiGenT's crops)")
+    ap.add_argument("--no-float", action="store_true", help="skip the images as read (only the 8-bit variants)")
     ap.add_argument("--out")
     args = ap.parse_args()
     weights = args.weights or [None] * len(args.methods)
-    variants = ["float"] + [f"8bit@{m:g}" for m in args.means]
+    variants = ([] if args.no_float else ["float"]) + [f"8bit@{m:g}" for m in args.means]
     rows: dict = {}
     for folder in find_objects(args.root):
         cap = open_capture(folder)
@@ -52,15 +53,16 @@ def main() -> None:
         valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
         images = load_images(cap)
         inputs = {"float": images, **{f"8bit@{m:g}": capture_8bit(images, mask, m, args.floor) for m in args.means}}
+        # unrounded in the file (a selection rule rounds once), rounded to 0.001 where printed
         row = {}
         for method, w in zip(args.methods, weights):
             for v in variants:
                 n = array_normals(inputs[v], cap.lights, mask, method, w, {"device": "cpu"}).normals
-                row[f"{method} {v}"] = round(float(angular_error(n, gt, valid).mean()), 3)
+                row[f"{method} {v}"] = float(angular_error(n, gt, valid).mean())
         rows[cap.name] = row
-        print(cap.name, row, flush=True)
-    mean = {k: round(float(np.mean([r[k] for r in rows.values()])), 3) for k in next(iter(rows.values()))}
-    print("mean", mean)
+        print(cap.name, {k: round(v, 3) for k, v in row.items()}, flush=True)
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
+    print("mean", {k: round(v, 3) for k, v in mean.items()})
     if args.out:
         Path(args.out).write_text(json.dumps({"root": args.root, "objects": rows, "mean": mean}, indent=1))
 

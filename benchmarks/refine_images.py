@@ -43,6 +43,7 @@ def main() -> None:
     ap.add_argument("--dev", action="store_true")
     ap.add_argument("--out")
     args = ap.parse_args()
+    args.ks = sorted(set(args.ks))
     result: dict = {"ks": args.ks, "folders": {}, "dev": {}}
     t0 = time.perf_counter()
     sets = [(f, "folder", REPO / ".cache" / f) for f in FOLDERS] + ([("dev", "diligent", DEV)] if args.dev else [])
@@ -59,11 +60,15 @@ def main() -> None:
     sums = {str(k): {v: round(sum(result["folders"][f][str(k)][v]["normals"] for f in FOLDERS), 4)
                      for v in VARIANTS} for k in args.ks}
     ok = [sums[str(k)]["default"] <= sums[str(k)]["no-refine"] for k in args.ks]
-    k_star = next(k for i, k in enumerate(args.ks + [None]) if k is None or all(ok[i:]))
-    result.update(sums=sums, k_star=k_star, change=k_star != args.ks[0], seconds=round(time.perf_counter() - t0))
+    k_star = next((k for i, k in enumerate(args.ks) if all(ok[i:])), None)
+    result.update(sums=sums, k_star=k_star, change=None if k_star is None else k_star != args.ks[0],
+                  seconds=round(time.perf_counter() - t0))
     for k in args.ks:
         print(f"K={k}: sum default {sums[str(k)]['default']:.3f}, no-refine {sums[str(k)]['no-refine']:.3f}")
-    print("K* =", k_star, "(no change)" if k_star == args.ks[0] else "-> refine only from K* images")
+    if k_star is None:
+        print("no K of the grid qualifies: by the rule, run again with 48 and 64 added (--ks ... 48 64)")
+    else:
+        print(f"K* = {k_star}", "(no change)" if k_star == args.ks[0] else f"-> refine only from {k_star} images")
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
 

@@ -4,14 +4,14 @@
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
 # (RUNS below, method:recipe:run folder) default to session 25's plan for a session with 15
 # minutes of device time, one call on a fresh machine:
-#   bash configs/gpu_session.sh 7 360 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
+#   bash configs/gpu_session.sh 7 330 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
 # which trains configs/ps_fcn_n_gpu_stage9.yaml alone. Session 14 ran configs/ps_fcn_gpu_stage8.yaml,
 # configs/ps_fcn_n_gpu_stage6.yaml and configs/lcnet_gpu_stage6.yaml side by side in three calls
 # (7.3 1200, 8.6 1200, 7.5 1200 final); session 17 started configs/ps_fcn_dagger_gpu_stage7.yaml,
 # configs/lcnet_gpu_stage7_ir.yaml and configs/ps_fcn_n_gpu_stage8_ir.yaml (RUNS=... INITS=...).
 # The first call checks CUDA with configs/tiny.yaml (and with interreflections when a run uses
 # them), times the interreflection stream for later plans (IR_BENCH=0 skips it; at most 45 s),
-# starts the runs, trains 1.5 minutes, then sets each run's length from its own measured rate
+# starts the runs, trains FIRST minutes (0.6), then sets each run's length from its own measured rate
 # (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
 # on for the rest of MINUTES. A later call resumes them for MINUTES. Each call copies model.pt,
@@ -23,6 +23,10 @@ set -u
 cd "$(dirname "$0")/.."
 DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
 MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
+# FIRST: the first launch's minutes, before the plan; it must stay well under a fifth of PLAN's
+# samples (the lr first halves there). DEADLINE: seconds from the start by which training stops,
+# so that the files are packed and returned inside the device tool's call (its timeout_s)
+FIRST=${FIRST:-0.6}; DEADLINE=${DEADLINE:-530}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
 RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage9.yaml:g_ps_fcn_n9"}
@@ -74,8 +78,9 @@ if [ $fresh = 1 ]; then
   fi
   # the interreflection stream's speed on this device (unmeasured on a GPU since its kernel was batched)
   [ "${IR_BENCH:-1}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
-    --batches 8 --warmup 1 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 || echo "ir bench: rc $? (45 s cap)" >> "$OUT/ir_bench.txt"
-  launch 1.5 || { tail -5 runs/*.out; exit 1; }
+    --batches 4 --warmup 1 --pool 16 --reuse 16 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 \
+    || echo "ir bench: rc $? (45 s cap: 8 interreflection views did not fit)" >> "$OUT/ir_bench.txt"
+  launch $FIRST || { tail -5 runs/*.out; exit 1; }
   names=(); for r in $RUNS; do names+=(runs/${r##*:}); done
   python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
 import json, statistics, sys
@@ -99,10 +104,12 @@ for run in map(Path, sys.argv[2:]):
           f"lr halved every {samples // 5:,}, validation every {samples // 15:,}")
 PY
   cat "$OUT/plan.txt"
-  left=$(python3 -c "print(max(0.5, $MIN - 1.5))")
+  left=$(python3 -c "print(max(0.5, $MIN - $FIRST))")
 else
   left=$MIN
 fi
+left=$(python3 -c "print(round(max(0.5, min($left, ($DEADLINE - $SECONDS - 45) / 60)), 2))")  # 45 s: startup, last checkpoint
+echo "training $left more minutes ($SECONDS s since the start)"
 launch $left; rc=$?
 tail -n 3 runs/*.out
 files="model.pt state.json stream.pt log.jsonl"

@@ -14,7 +14,7 @@ import numpy as np
 from psctl.errors import PsctlError
 
 
-def _plain(x: object) -> object:
+def plain(x: object) -> object:
     """A torch tensor as a plain CPU tensor (one that requires grad, or lives on a GPU, cannot
     become a numpy array as it is); anything else as it is."""
     return x.detach().cpu() if hasattr(x, "detach") and hasattr(x, "cpu") else x
@@ -28,7 +28,7 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     of images when known (from the lights): [N, H, W] with W = 3 or 4 is then a grey stack, not
     one colour image."""
     try:
-        arr = np.asarray(_plain(images))
+        arr = np.asarray(plain(images))
     except (TypeError, ValueError) as e:
         raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array ({e})") from None
     if arr.dtype.kind not in "buf" or (arr.dtype.kind == "u" and arr.dtype.itemsize > 2):
@@ -63,7 +63,7 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
     an empty mask are errors."""
     if mask is None:
         return None
-    m = np.asarray(_plain(mask))
+    m = np.asarray(plain(mask))
     if m.ndim == 3 and m.shape[2] == 1:
         m = m[..., 0]
     if m.shape != tuple(shape):
@@ -89,7 +89,7 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     if lights is None:
         return None
     try:
-        arr = np.asarray(_plain(lights), np.float64)
+        arr = np.asarray(plain(lights), np.float64)
     except (TypeError, ValueError):
         raise PsctlError(None, f"lights must be a numeric [{n}, 3] array") from None
     if arr.shape != (n, 3):

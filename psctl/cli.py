@@ -295,7 +295,7 @@ def train(
             raise PsctlError("--force", "only replaces an installed file together with --install")
         if install and not force and installed_file(method).is_file():  # say so before hours of training
             raise PsctlError(installed_file(method), "already installed: --install replaces it only with --force "
-                                                     "(or install later with psctl.train.install_weights)")
+                                                     "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")

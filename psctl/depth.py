@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.arrays import as_mask
+from psctl.arrays import as_mask, plain
 from psctl.errors import PsctlError, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
@@ -149,7 +149,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     method = str(method).lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown depth method {method!r}; choose from {', '.join(METHODS)}")
-    normals = np.asarray(normals)
+    normals = np.asarray(plain(normals))
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise PsctlError(None, f"normals must be [H, W, 3], got shape {normals.shape}")
     h, w = normals.shape[:2]
@@ -158,7 +158,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         if not mask.any():
             raise PsctlError(None, "the mask is empty (no foreground pixel)")
     else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
-        m = np.asarray(mask)
+        m = np.asarray(plain(mask))
         if m.shape[:2] != (h, w):
             raise PsctlError(None, f"normal map is {w}x{h} but the mask is {m.shape[1]}x{m.shape[0]}")
         mask = as_mask(m, (h, w))

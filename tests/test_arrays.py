@@ -142,3 +142,15 @@ def test_settings_take_the_kind_of_their_default():
     for value, default in ((True, 1), (np.nan, 1.0), ("1e-3", 1.0), ([1.0], [0.9, 0.99]), (1, True)):
         with pytest.raises(PsctlError, match="'k' must be"):
             like_default("'k'", value, default)
+
+
+def test_integrate_takes_tensors_that_require_grad():
+    import torch
+
+    from psctl.depth import integrate_normals
+
+    n = np.zeros((8, 8, 3), np.float32)
+    n[..., 2] = 1
+    m = np.ones((8, 8), bool)
+    z = integrate_normals(torch.tensor(n, requires_grad=True), torch.tensor(m))
+    assert z.shape == (8, 8) and np.isfinite(z).all()

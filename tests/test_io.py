@@ -449,3 +449,24 @@ def test_tensors_that_require_grad_are_read(tmp_path):
     imgs = torch.tensor(data["images"], requires_grad=True)
     n = estimate_normals(imgs, torch.tensor(data["lights"], requires_grad=True), torch.tensor(data["mask"]), method="l2")
     assert n.shape == (16, 16, 3)
+
+
+def test_any_case_names_also_make_a_capture_and_spread_never_repeats(tmp_path):
+    """Filenames.txt (images in a subfolder) is a capture's list, Mask.PNG makes a folder a capture
+    (never an output folder); a spread subset of repeated lights has no image twice."""
+    from psctl.io.capture import holds_capture, spread_lights
+
+    cap = tmp_path / "cap"
+    write_capture(cap / "img", n=6, size=16)
+    names = (cap / "img" / "filenames.txt").read_text().split()
+    (cap / "Filenames.txt").write_text("".join(f"img/{n}\n" for n in names))
+    for f in ("light_directions.txt", "light_intensities.txt", "mask.png"):
+        (cap / "img" / f).rename(cap / f)
+    (cap / "img" / "filenames.txt").unlink()
+    (cap / "img" / "Normal_gt.mat").unlink()
+    assert open_capture(cap).n_images == 6
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "Mask.PNG").write_bytes((cap / "mask.png").read_bytes())
+    assert holds_capture(tmp_path / "out")
+    rig = np.array([[0, 0, 1], [0.3, 0, 1], [0, 0.3, 1], [-0.3, 0, 1]] * 2, float)
+    assert len(set(spread_lights(rig, 6))) == 6

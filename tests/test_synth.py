@@ -792,9 +792,12 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     assert [o["name"] for o in res["objects"]] == rep["objects"] and np.isfinite(res["mean_mae"])
     # writing again replaces the folders in place, leaving no temporary folder behind, and nothing
     # of the earlier set that this one does not have (its second object, its contact sheet)
+    (tmp_path / "other" / "x").mkdir(parents=True)
+    (tmp_path / "other" / "x" / "synth.json").write_text("{}")
+    (out / "linked").symlink_to(tmp_path / "other" / "x")  # a link to someone's folder: never removed
     again = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
-    assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "objects.txt"]
-    assert again["removed"] == ["blobby_02", "preview.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "linked", "objects.txt"]
+    assert again["removed"] == ["blobby_02", "preview.png"] and (tmp_path / "other" / "x" / "synth.json").is_file()
     with pytest.raises(PsctlError, match="unknown preset"):
         write_preset(out, "teapot")
 

@@ -141,9 +141,10 @@ def holds_capture(path: str | os.PathLike) -> bool:
     path = Path(path)
     if not path.is_dir():
         return False
-    named = (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr")
-    return any((path / n).exists() for n in named) or bool(_image_files(path)) or \
-        any(p.name.lower() in AMBIENT_FILES for p in path.iterdir())  # any case, as _find_ambient
+    named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr",
+                                 *AMBIENT_FILES)}
+    # any case, as open_capture matches them (_first_existing, _find_ambient)
+    return any(p.name.lower() in named for p in path.iterdir()) or bool(_image_files(path))
 
 
 def check_not_capture(out_dir: Path, capture: "Capture") -> None:
@@ -284,10 +285,10 @@ def _unread(folder: Path, used: set[Path]) -> tuple[str, ...]:
 
 def is_capture_folder(path: str | os.PathLike) -> bool:
     path = Path(path)
-    return path.is_dir() and (
-        any((path / f).is_file() for f in LIST_FILES) and not (path / "objects.txt").is_file()
-        or bool(_image_files(path))
-    )
+    if not path.is_dir():
+        return False
+    listed = any(p.name.lower() in LIST_FILES and p.is_file() for p in path.iterdir())  # any case
+    return listed and not (path / "objects.txt").is_file() or bool(_image_files(path))
 
 
 def find_objects(root: str | os.PathLike) -> list[Path]:
@@ -604,10 +605,12 @@ def spread_lights(lights: np.ndarray, k: int) -> np.ndarray:
     c = d.sum(0)
     first = int(np.argmax(d @ (c / max(float(np.linalg.norm(c)), 1e-12))))
     picked, gap = [first], np.arccos(np.clip(d @ d[first], -1.0, 1.0))
+    gap[first] = -np.inf  # never picked twice, even when lights repeat (all gaps 0)
     while len(picked) < min(k, len(d)):
         i = int(np.argmax(gap))
         picked.append(i)
         gap = np.minimum(gap, np.arccos(np.clip(d @ d[i], -1.0, 1.0)))
+        gap[picked] = -np.inf
     return np.sort(np.asarray(picked, dtype=np.int64))
 
 

@@ -360,8 +360,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
     # here is psctl synth's), so that the folder holds this set alone
     names = {o.name for o in objs}
-    removed = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")
-                     and p.name not in names and (p / "synth.json").is_file())
+    removed = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.is_symlink() and not p.name.startswith(".")
+                     and p.name not in names and (p / "synth.json").is_file())  # a link: someone else's folder
     if not preview and (out / "preview.png").is_file():
         removed.append("preview.png")
     for name in removed:
