@@ -470,3 +470,23 @@ def test_any_case_names_also_make_a_capture_and_spread_never_repeats(tmp_path):
     assert holds_capture(tmp_path / "out")
     rig = np.array([[0, 0, 1], [0.3, 0, 1], [0, 0.3, 1], [-0.3, 0, 1]] * 2, float)
     assert len(set(spread_lights(rig, 6))) == 6
+
+
+def test_a_tiff_stack_is_named_in_the_count_error(tmp_path):
+    """A multi-page TIFF counts as one image: the count error says how many pages it holds."""
+    import OpenImageIO as oiio
+
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    path = str(cap / "stack.tif")
+    spec = oiio.ImageSpec(8, 8, 3, "uint16")
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, [spec] * 4)
+    for i in range(4):
+        if i:
+            assert out.open(path, spec, "AppendSubimage")
+        assert out.write_image(np.full((8, 8, 3), (i + 1) / 5, np.float32))
+    out.close()
+    np.savetxt(cap / "light_directions.txt", [[0, 0, 1], [0.3, 0, 1], [0, 0.3, 1], [-0.3, 0, 1]])
+    with pytest.raises(PsctlError, match=r"4 light rows but 1 image .*stack.tif holds 4 pages: psctl reads one image per file"):
+        open_capture(cap)

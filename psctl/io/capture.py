@@ -159,6 +159,12 @@ def check_not_capture(out_dir: Path, capture: "Capture") -> None:
                                   "choose another --out")
 
 
+def _pages_note(infos: list[ImageInfo]) -> str:
+    """For a count mismatch: files holding several images (a TIFF stack) count as one."""
+    stacks = [f"{i.path.name} holds {i.pages} pages" for i in infos if i.pages > 1]
+    return f" ({'; '.join(stacks[:3])}: psctl reads one image per file, its first page)" if stacks else ""
+
+
 def _found_note(folder: Path, paths: list[Path]) -> str:
     """For a count mismatch in a folder without an image list, which is often a stray file taken
     as an image (or one left out): the files not named like most (digits aside), entries named
@@ -365,7 +371,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
                                         f"{first.path.name} ({first.width}x{first.height})")
     n = len(image_paths)
-    found = "" if list_file is not None else _found_note(path, image_paths)
+    found = _pages_note(infos) if list_file is not None else _found_note(path, image_paths) + _pages_note(infos)
 
     lights = None
     lights_path = _first_existing(path, [LIGHTS_FILE], "light direction files")

@@ -42,6 +42,7 @@ class ImageInfo:
     dtype: str  # "uint8", "uint16", "half", "float", ...
     bits: int  # bits per sample (8, 16, 32)
     orientation: int = 1  # the EXIF Orientation tag (1-8); width and height are the upright image's
+    pages: int = 1  # subimages in the file (a multi-page TIFF); psctl reads the first
 
 
 # EXIF orientation -> how to turn the stored pixels [H, W, C] upright, as a photo viewer shows
@@ -82,7 +83,10 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         orientation = spec.get_int_attribute("Orientation", 1)
         orientation = orientation if orientation in _UPRIGHT else 1
         w, h = (spec.height, spec.width) if orientation >= 5 else (spec.width, spec.height)
-        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation)
+        pages = 1
+        while pages < 10_000 and inp.seek_subimage(pages, 0):
+            pages += 1
+        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation, pages)
     finally:
         inp.close()
 
