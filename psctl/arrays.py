@@ -68,6 +68,7 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
         m = m[..., 0]
     if m.shape != tuple(shape):
         raise PsctlError(None, f"mask must be [H, W] = {list(shape)}, got {list(m.shape)}")
+    hint = ""
     if m.dtype != bool:
         if m.dtype.kind not in "iuf":
             raise PsctlError(None, f"mask must be bool or numeric, got dtype {m.dtype}")
@@ -76,10 +77,15 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
         if m.dtype.kind in "iu" and m.max() > 1:
             # 0/255 or 0/65535 in an image's type: scaled as a mask file is; any other integer
             # type's largest value says nothing about the mask (int64 * 255 would be empty)
-            m = m / np.iinfo(m.dtype).max if m.dtype in (np.uint8, np.uint16) else m != 0
+            if m.dtype in (np.uint8, np.uint16):
+                top = np.iinfo(m.dtype).max
+                hint = f" ({m.dtype} masks are divided by {top}, as mask files are: pass bool, or 0/{top})"
+                m = m / top
+            else:
+                m = m != 0
         m = m > 0.5
     if not m.any():
-        raise PsctlError(None, "mask is empty (no foreground pixel)")
+        raise PsctlError(None, f"mask is empty (no foreground pixel){hint}")
     return m
 
 

@@ -490,3 +490,44 @@ def test_a_tiff_stack_is_named_in_the_count_error(tmp_path):
     np.savetxt(cap / "light_directions.txt", [[0, 0, 1], [0.3, 0, 1], [0, 0.3, 1], [-0.3, 0, 1]])
     with pytest.raises(PsctlError, match=r"4 light rows but 1 image .*stack.tif holds 4 pages: psctl reads one image per file"):
         open_capture(cap)
+
+
+def test_more_capture_mistakes_name_their_cause(tmp_path):
+    """Case in filenames.txt, images skipped by their names, UTF-16 text, a second ground-truth
+    file listed as an image, NaN in a .mat ground truth (no normal), a uint16 0/255 API mask."""
+    import scipy.io
+
+    from psctl.arrays import as_mask
+
+    cap = tmp_path / "cap"
+    data = write_capture(cap, n=6, size=16)
+    names = (cap / "filenames.txt").read_text().split()
+    (cap / "filenames.txt").write_text("\n".join([names[0].upper(), *names[1:]]) + "\n")
+    with pytest.raises(PsctlError, match=r"listed in filenames.txt but missing \(001.png is there"):
+        open_capture(cap)
+    (cap / "filenames.txt").write_text("\n".join(names) + "\n", encoding="utf-16")
+    with pytest.raises(PsctlError, match="filenames.txt: is not UTF-8 text"):
+        open_capture(cap)
+    (cap / "filenames.txt").write_text("\n".join([*names, "Normal_gt.png"]) + "\n")
+    write_image(cap / "Normal_gt.png", np.zeros((16, 16, 3)), "uint16")
+    np.savetxt(cap / "light_directions.txt", np.vstack([data["lights"], [[0, 0, 1]]]))
+    np.savetxt(cap / "light_intensities.txt", np.ones((7, 3)))
+    with pytest.raises(PsctlError, match="Normal_gt.png: is named as a mask or ground truth but is listed"):
+        open_capture(cap)
+    gt = np.where(data["mask"][..., None], data["normals"], np.nan)
+    scipy.io.savemat(cap / "Normal_gt.mat", {"Normal_gt": gt})
+    (cap / "Normal_gt.png").unlink()
+    (cap / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(cap / "light_directions.txt", data["lights"])
+    np.savetxt(cap / "light_intensities.txt", np.ones((6, 3)))
+    from psctl.io.capture import load_ground_truth
+
+    assert np.isfinite(load_ground_truth(open_capture(cap))).all()
+    other = tmp_path / "named"
+    other.mkdir()
+    for k in range(3):
+        write_image(other / f"lights_{k}.png", np.zeros((8, 8, 3)), "uint8")
+    with pytest.raises(PsctlError, match="no images found .*lights_0.png.* are taken for a mask, normals or outputs"):
+        open_capture(other)
+    with pytest.raises(PsctlError, match=r"mask is empty .*uint16 masks are divided by 65535"):
+        as_mask(np.full((4, 4), 255, np.uint16), (4, 4))

@@ -892,3 +892,17 @@ def test_stream_windows_sit_on_the_object_and_repeat_with_the_seed():
     assert "windows" not in plain and torch.equal(plain["images"], a["images"])  # same draws otherwise
     with pytest.raises(PsctlError, match="windows"):
         SynthStream({**cfg, "windows": 40})
+
+
+def test_written_object_folders_follow_the_umask(tmp_path):
+    """Object folders get the mode mkdir would give, not mkdtemp's 0700 (others could not read them)."""
+    import os
+
+    from psctl.synth.write import write_preset
+
+    old = os.umask(0o022)
+    try:
+        write_preset(tmp_path / "set", "blobby", seed=1, size=16, n_lights=6, k=1)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "set" / "blobby_01").stat().st_mode & 0o777 == 0o755

@@ -185,7 +185,9 @@ def _found_note(folder: Path, paths: list[Path]) -> str:
 def _read_list(path: Path) -> list[str]:
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
-    except (OSError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError:
+        raise PsctlError(path, "is not UTF-8 text (Excel's 'Unicode text' is UTF-16): save it as UTF-8") from None
+    except OSError as e:
         raise PsctlError(path, f"cannot read file ({e})") from None
     names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     if not names:
@@ -200,7 +202,9 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
     """
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
-    except (OSError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError:
+        raise PsctlError(path, "is not UTF-8 text (Excel's 'Unicode text' is UTF-16): save it as UTF-8") from None
+    except OSError as e:
         raise PsctlError(path, f"cannot read {what} ({e})") from None
     rows: list[list[float]] = []
     for lineno, line in enumerate(text.splitlines(), 1):
@@ -271,6 +275,10 @@ def _first_existing(folder: Path, names: Sequence[str], only: str | None = None)
     for p in folder.iterdir():
         by_name.setdefault(p.name.lower(), []).append(p)
     hits = [p for n in dict.fromkeys(n.lower() for n in names) for p in sorted(by_name.get(n, []))]
+    unique: dict[Path, Path] = {}  # Mask.png linked to mask.png is one mask
+    for p in hits:
+        unique.setdefault(p.resolve() if p.exists() else p, p)
+    hits = list(unique.values())
     if only and len(hits) > 1:
         raise PsctlError(folder, f"holds {len(hits)} {only} ({', '.join(p.name for p in hits)}); keep one")
     if hits and not hits[0].is_file():  # a folder named mask.png is a mistake, not "no mask"
@@ -353,11 +361,16 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             if p.is_dir():
                 raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
             if not p.is_file():
-                raise PsctlError(p, f"listed in {list_file.name} but missing")
+                other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
+                hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
+                raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
     else:
         image_paths = _image_files(path)
         if not image_paths:
-            raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)})")
+            left_out = sorted(p.name for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+            hint = (f"; {', '.join(left_out[:3])}{' ...' if len(left_out) > 3 else ''} are taken for a mask, normals "
+                    f"or outputs by their names: list the images in filenames.txt") if left_out else ""
+            raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
     ambient_path = _find_ambient(path)
     if ambient_path is not None and list_file is not None and \
@@ -406,6 +419,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         for kind, p in (("mask", mask_path), ("ground truth", gt_path)):
             if p is not None and p.resolve() in listed:
                 raise PsctlError(p, f"is the {kind} but is also listed in {list_file.name} as an input image")
+        named = {n.lower() for n in (*MASK_FILES, *GT_FILES)}
+        for p in image_paths:  # a second mask or ground-truth file, not the one used, is no image either
+            if p.name.lower() in named:
+                raise PsctlError(p, f"is named as a mask or ground truth but is listed in {list_file.name} as an input image")
 
     return Capture(
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
@@ -464,6 +481,7 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
         if "Normal_gt" not in mat:
             raise PsctlError(p, "has no variable 'Normal_gt'")
         gt = np.asarray(mat["Normal_gt"], dtype=np.float32)
+        gt = np.where(np.isnan(gt).any(axis=-1, keepdims=True), 0.0, gt) if gt.ndim == 3 else gt  # NaN: no normal
         if gt.ndim != 3 or gt.shape[2] != 3:
             raise PsctlError(p, f"Normal_gt has shape {gt.shape}, expected H x W x 3")
         if gt.shape[:2] != (capture.height, capture.width):
@@ -562,7 +580,7 @@ def capture_notes(capture: Capture) -> list[str]:
     if len(behind):
         rows = ", ".join(str(i + 1) for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
         notes.append(f"light file: {len(behind)} of {capture.n_images} light directions have z <= 0, behind the object "
-                     f"(rows {rows}); psctl wants z toward the camera")
+                     f"({'row' if len(behind) == 1 else 'rows'} {rows}); psctl wants z toward the camera")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")

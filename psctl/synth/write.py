@@ -319,6 +319,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     gen = torch.Generator().manual_seed(seed + 1)
     sheet_rows = []
     on_sheet = set(np.linspace(0, len(objs) - 1, min(len(objs), SHEET_ROWS)).round().astype(int).tolist())
+    umask = os.umask(0)  # read the process's umask (set back at once): a folder's mode as mkdir would give
+    os.umask(umask)
+    folder_mode = 0o777 & ~umask
     cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
     kernels: dict[int, torch.Tensor] = {}  # and so are the interreflection form factors
     for i, obj in enumerate(objs):
@@ -341,6 +344,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             if ir_albedo is not None:
                 obj.meta["ir_albedo"] = ir_albedo
         tmp = Path(tempfile.mkdtemp(prefix=f".{obj.name}.tmp.", dir=out))
+        tmp.chmod(folder_mode)  # mkdtemp's 0700 would become the object folder's: others could not read it
         try:
             write_object(tmp, obj, images)
             _replace_dir(tmp, out / obj.name)
