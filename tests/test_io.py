@@ -364,6 +364,7 @@ def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
     (cap_dir / "light_intensities.txt").rename(cap_dir / "light_intensity.txt")
     cap = open_capture(cap_dir)
     assert cap.mask_path.name == "Mask.PNG" and cap.calibrated and not cap.intensities_given
+    assert cap.lights_path.name == "Light_Directions.txt" and cap.intensities_path is None  # as named (psctl info)
     assert any(n.startswith("files: not read: light_intensity.txt") for n in capture_notes(cap))
     write_image(cap_dir / "mask.tif", np.ones((16, 16)), "uint8")
     with pytest.raises(PsctlError, match=r"holds 2 masks \(Mask.PNG, mask.tif\); keep one"):

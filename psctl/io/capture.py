@@ -61,6 +61,8 @@ class Capture:
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
     orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
+    lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
+    intensities_path: Path | None = None  # light_intensities.txt likewise
 
     @property
     def n_images(self) -> int:
@@ -429,7 +431,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
-        orientations=tuple(i.orientation for i in infos),
+        orientations=tuple(i.orientation for i in infos), lights_path=lights_path, intensities_path=intensities_path,
         unread=_unread(path, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )

@@ -36,7 +36,8 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
         "encoding": "linear" if srgb == 0 else "srgb" if srgb == cap.n_images else "mixed",
         "srgb_images": srgb,
         "calibrated": cap.calibrated,
-        "intensities": "light_intensities.txt" if cap.intensities_given else "none (all ones)",
+        "intensities": cap.intensities_path.name if cap.intensities_path else "none (all ones)",
+        "lights": cap.lights_path.name if cap.lights_path else None,
         "intensity_range": [float(e.min()), float(e.max())],
         "mask": cap.mask_path.name if cap.mask_path else None,
         "mask_coverage": float(mask.mean()),
@@ -105,7 +106,8 @@ def render_info(report: dict) -> None:
     enc = r.get("encoding", "linear")
     t.add_row("encoding", "linear" if enc == "linear" else "sRGB, decoded to linear" if enc == "srgb" else
               f"mixed: {r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear")
-    t.add_row("calibrated", "yes (light_directions.txt)" if r["calibrated"] else "no light_directions.txt: uncalibrated")
+    t.add_row("calibrated", escape(f"yes ({r.get('lights') or 'light_directions.txt'})") if r["calibrated"]
+              else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
     t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
     t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
