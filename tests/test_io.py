@@ -532,3 +532,13 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
         open_capture(other)
     with pytest.raises(PsctlError, match=r"mask is empty .*uint16 masks are divided by 65535"):
         as_mask(np.full((4, 4), 255, np.uint16), (4, 4))
+
+
+def test_a_broken_link_named_as_the_mask_says_so(tmp_path):
+    import os
+
+    write_capture(tmp_path / "cap", n=4, size=16)
+    (tmp_path / "cap" / "mask.png").unlink()
+    os.symlink(tmp_path / "gone.png", tmp_path / "cap" / "mask.png")
+    with pytest.raises(PsctlError, match=r"mask.png: is a broken link \(to .*gone.png\)"):
+        open_capture(tmp_path / "cap")

@@ -284,7 +284,8 @@ def _first_existing(folder: Path, names: Sequence[str], only: str | None = None)
     if only and len(hits) > 1:
         raise PsctlError(folder, f"holds {len(hits)} {only} ({', '.join(p.name for p in hits)}); keep one")
     if hits and not hits[0].is_file():  # a folder named mask.png is a mistake, not "no mask"
-        raise PsctlError(hits[0], "is not a file")
+        broken = hits[0].is_symlink() and not hits[0].exists()
+        raise PsctlError(hits[0], f"is a broken link (to {os.readlink(hits[0])})" if broken else "is not a file")
     return hits[0] if hits else None
 
 
