@@ -495,7 +495,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk."""
-    from psctl.io.capture import iter_images
+    from psctl.io.capture import black_images_note, iter_images
 
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
@@ -508,14 +508,20 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                                     ("light_intensities.txt", capture.intensities_given)) if used]
         capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
+    black: set[int] = set()  # images black over the mask's box, for a note (every pass sees them)
+
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        yield from iter_images(capture.subset(range(start, capture.n_images)), box)
+        for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
+            if not img.any():
+                black.add(k)
+            yield img
 
     with naming(capture.path):  # all images black, ...
         res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
+    res.notes += black_images_note(capture, black)
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))

@@ -542,3 +542,22 @@ def test_a_broken_link_named_as_the_mask_says_so(tmp_path):
     os.symlink(tmp_path / "gone.png", tmp_path / "cap" / "mask.png")
     with pytest.raises(PsctlError, match=r"mask.png: is a broken link \(to .*gone.png\)"):
         open_capture(tmp_path / "cap")
+
+
+@pytest.mark.parametrize("method", ["l2", "ps-fcn"])
+def test_a_black_image_gets_a_note(tmp_path, method, monkeypatch):
+    """One image black over the object (a light that did not fire): a note names it, for L2 and
+    for the networks (a small random PS-FCN stands in for the release weights)."""
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "cap", n=8, size=24)
+    write_image(tmp_path / "cap" / "003.png", np.zeros((24, 24, 3)), "uint16")
+    weights = None
+    if method != "l2":
+        from psctl.models.ps_fcn import PSFCN
+        from psctl.models.weights import save_weights
+
+        weights = tmp_path / "w.pt"
+        save_weights(weights, PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    r = run_normals(tmp_path / "cap", method=method, weights=weights, write=False, device="cpu")
+    assert any(n.startswith("images: 1 of 8 black over the object (003.png)") for n in r["notes"]), r["notes"]

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -553,6 +553,17 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
         if progress is not None:
             progress(1)
+
+
+def black_images_note(capture: Capture, black: Iterable[int]) -> list[str]:
+    """A note naming the images that were black over the object (indices into ``capture``): a
+    light that did not fire looks like a shadow everywhere to every method."""
+    idx = sorted(set(black))
+    if not idx:
+        return []
+    names = ", ".join(capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+    return [f"images: {len(idx)} of {capture.n_images} black over the object ({names}): a light that did not "
+            f"fire? They count as shadow everywhere; leave them out with filenames.txt"]
 
 
 def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
