@@ -82,7 +82,8 @@ def render_info(report: dict) -> None:
 
     con = _console()
     if report["kind"] == "benchmark":
-        t = Table(title=f"benchmark root {escape(report['path'])}")
+        con.print(escape(f"benchmark root {report['path']}"), highlight=False, soft_wrap=True)
+        t = Table()
         extra = any(o.get("encoding", "linear") != "linear" or o.get("ambient") for o in report["objects"])
         for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth") + (
                 ("encoding", "ambient") if extra else ()):
@@ -94,7 +95,8 @@ def render_info(report: dict) -> None:
         con.print(t)
         return
     r = report
-    t = Table(title=escape(f"{r['object']}  ({r['path']})"), show_header=False)
+    con.print(escape(f"{r['object']}  ({r['path']})"), highlight=False, soft_wrap=True)
+    t = Table(show_header=False)
     t.add_column("", style="bold")
     t.add_column("")
     t.add_row("images", escape(f"{r['n_images']} ({r['first_image']} .. {r['last_image']})"))
@@ -146,11 +148,13 @@ def render_benchmark(result: dict) -> None:
 
     con = _console()
     objs = result["objects"]
-    t = Table(title=escape(f"{result['benchmark']}: mean angular error (degrees), {result['root']}"))
-    t.add_column("method")
-    for o in objs:
-        t.add_column(escape(o["name"]), justify="right")
-    t.add_column("avg", justify="right", style="bold")
+    # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal
+    con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
+    t = Table(title="mean angular error (degrees)")
+    t.add_column("method", min_width=6, overflow="fold")
+    for o in objs:  # numbers keep their width (5: "15.70"); a narrow terminal shrinks the names
+        t.add_column(escape(o["name"]), justify="right", min_width=5, no_wrap=True)
+    t.add_column("avg", justify="right", style="bold", min_width=5, no_wrap=True)
     t.add_row(f"{result['method']} (psctl)", *[_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]))
     paper = result.get("paper") or {}
     if paper:
