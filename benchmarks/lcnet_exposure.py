@@ -28,6 +28,8 @@ def main() -> None:
     import psctl.lights as lights_module
 
     means = {v: [] for v in VARIANTS}
+    if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
+        sys.exit(__doc__)
     for root in sys.argv[1:]:
         errs = {v: [] for v in VARIANTS}
         for folder in find_objects(root):

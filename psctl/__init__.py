@@ -17,7 +17,8 @@ _LAZY = {
     "integrate_normals": "psctl.depth",
     "run_lights": "psctl.lights",
     "open_capture": "psctl.io.capture",
-    "load_capture": "psctl.io.capture",
+    "load_images": "psctl.io.capture",
+    "load_mask": "psctl.io.capture",
     "angular_error": "psctl.metrics",
     "PsctlError": "psctl.errors",
 }

@@ -499,3 +499,11 @@ def test_train_install_refuses_to_replace_a_release_file(tmp_path):
     proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "--force", "-q", env=env)
     assert proc.returncode == 0, proc.stderr
     assert (wdir / "ps_fcn.pt").read_bytes() == (tmp_path / "run" / "best.pt").read_bytes()
+
+
+def test_every_public_name_resolves():
+    """psctl.__all__ lists only names that exist (psctl.load_capture did not: `from psctl import *` failed)."""
+    import psctl
+
+    for name in psctl.__all__:
+        assert getattr(psctl, name) is not None, name
