@@ -285,7 +285,8 @@ def train(
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
     with _user_errors():
-        from psctl.train import install_weights, installed_file, load_config, train as run_training
+        from psctl.models.weights import installed_path
+        from psctl.train import install_weights, load_config, train as run_training
 
         from psctl.errors import PsctlError
 
@@ -293,8 +294,8 @@ def train(
             raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
         if force and not install:
             raise PsctlError("--force", "only replaces an installed file together with --install")
-        if install and not force and installed_file(method).is_file():  # say so before hours of training
-            raise PsctlError(installed_file(method), "already installed: --install replaces it only with --force "
+        if install and not force and installed_path(method) is not None:  # say so before hours of training
+            raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
                                                      "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None

@@ -508,12 +508,16 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                                     ("light_intensities.txt", capture.intensities_given)) if used]
         capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
-    black: set[int] = set()  # images black over the mask's box, for a note (every pass sees them)
+    # images black over the object, for a note: black only if never lit in any tile or pass (a
+    # tile of a large capture may be dark in an image that lights the object elsewhere)
+    seen: set[int] = set()
+    lit: set[int] = set()
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
-            if not img.any():
-                black.add(k)
+            seen.add(k)
+            if img[mask[box]].any():
+                lit.add(k)
             yield img
 
     with naming(capture.path):  # all images black, ...
@@ -521,7 +525,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
-    res.notes += black_images_note(capture, black)
+    res.notes += black_images_note(capture, seen - lit)
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))

@@ -747,13 +747,6 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 
 
-def installed_file(method: str) -> Path:
-    """Where ``install_weights`` puts ``method``'s release file (weights/ or $PSCTL_WEIGHTS)."""
-    from psctl.models.weights import file_name, weights_dir
-
-    return weights_dir() / file_name(method)
-
-
 def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:
     """Copy a run's best weights into the weights folder as the release file for ``method``.
 
@@ -768,7 +761,7 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     import torch
 
     from psctl.io.atomic import atomic_path
-    from psctl.models.weights import read_weights, save_weights
+    from psctl.models.weights import file_name, installed_path, read_weights, save_weights, weights_dir
 
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
@@ -776,8 +769,8 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     w = read_weights(src)
     if w.method != method:
         raise PsctlError(src, f"holds {w.method} weights, not {method}")
-    dst = installed_file(method)
-    if dst.is_file() and not replace:
+    dst = weights_dir() / file_name(method)
+    if installed_path(method) is not None and not replace:
         raise PsctlError(dst, f"already installed; {src} was not copied (replace it on purpose with --install --force)")
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.stat().st_size <= RELEASE_MAX_BYTES:

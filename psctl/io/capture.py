@@ -145,7 +145,7 @@ def holds_capture(path: str | os.PathLike) -> bool:
         return False
     named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr",
                                  *AMBIENT_FILES)}
-    # any case, as open_capture matches them (_first_existing, _find_ambient)
+    # any case, as open_capture matches them (_first_existing)
     return any(p.name.lower() in named for p in path.iterdir()) or bool(_image_files(path))
 
 
@@ -172,7 +172,6 @@ def _found_note(folder: Path, paths: list[Path]) -> str:
     as an image (or one left out): the files not named like most (digits aside), entries named
     like images that are not files (a folder, a broken link), and how to choose the images."""
     import collections
-    import re
 
     pattern = [re.sub(r"\d+", "#", p.name.lower()) for p in paths]
     common = collections.Counter(pattern).most_common(1)[0][0]
@@ -256,17 +255,6 @@ def read_intensities(path: Path) -> np.ndarray:
     if e.shape[1] == 1:
         e = np.repeat(e, 3, axis=1)
     return e.astype(np.float32)
-
-
-def _find_ambient(folder: Path) -> Path | None:
-    """The folder's ambient image, whatever the case of its name (ambient.JPG is one too, and
-    the image list leaves such files out); two of them are an error, not a silent choice."""
-    found = sorted(p for p in folder.iterdir() if p.name.lower() in AMBIENT_FILES)
-    if len(found) > 1:
-        raise PsctlError(folder, f"holds {len(found)} ambient images ({', '.join(p.name for p in found)}); keep one")
-    if found and not found[0].is_file():
-        raise PsctlError(found[0], "is not a file")
-    return found[0] if found else None
 
 
 def _first_existing(folder: Path, names: Sequence[str], only: str | None = None) -> Path | None:
@@ -375,7 +363,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                     f"or outputs by their names: list the images in filenames.txt") if left_out else ""
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
-    ambient_path = _find_ambient(path)
+    ambient_path = _first_existing(path, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
     if ambient_path is not None and list_file is not None and \
             ambient_path.resolve() in {p.resolve() for p in image_paths}:
         raise PsctlError(ambient_path, f"is the ambient image (subtracted from every image) but is also listed "
