@@ -310,7 +310,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         source = capture_source(cap, mask, second, weights, {"device": device, "views": views}, progress)
         est, net = second_stage(source, est, refine, fit)
         normals, dark = net.normals, net.dark
-        notes += est.notes + net.notes
+        notes += list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
         light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         if light_stats["light_mae"] is not None:
             refined = refine and lights_changed(est.info["refine"])

@@ -544,20 +544,25 @@ def test_a_broken_link_named_as_the_mask_says_so(tmp_path):
         open_capture(tmp_path / "cap")
 
 
-@pytest.mark.parametrize("method", ["l2", "ps-fcn"])
+@pytest.mark.parametrize("method", ["l2", "ps-fcn", "sdps", "lights"])
 def test_a_black_image_gets_a_note(tmp_path, method, monkeypatch):
-    """One image black over the object (a light that did not fire): a note names it, for L2 and
-    for the networks (a small random PS-FCN stands in for the release weights)."""
+    """One image black over the object (a light that did not fire): a note names it, once, for L2,
+    the networks, sdps and psctl lights (small random networks stand in for the release weights)."""
     from psctl.api import run_normals
+    from psctl.lights import run_lights
+    from psctl.models.lcnet import LCNet
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
 
     write_capture(tmp_path / "cap", n=8, size=24)
     write_image(tmp_path / "cap" / "003.png", np.zeros((24, 24, 3)), "uint16")
-    weights = None
-    if method != "l2":
-        from psctl.models.ps_fcn import PSFCN
-        from psctl.models.weights import save_weights
-
-        weights = tmp_path / "w.pt"
-        save_weights(weights, PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    r = run_normals(tmp_path / "cap", method=method, weights=weights, write=False, device="cpu")
-    assert any(n.startswith("images: 1 of 8 black over the object (003.png)") for n in r["notes"]), r["notes"]
+    weights, lcnet = tmp_path / "w.pt", tmp_path / "l.pt"
+    save_weights(weights, PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    save_weights(lcnet, LCNet(), {"method": "lcnet", "train_images": 32})
+    if method == "lights":
+        r = run_lights(tmp_path / "cap", weights=lcnet, normals_weights=weights, write=False, device="cpu")
+    else:
+        r = run_normals(tmp_path / "cap", method=method, weights=None if method == "l2" else weights,
+                        lcnet=lcnet if method == "sdps" else None, write=False, device="cpu")
+    hits = [n for n in r["notes"] if n.startswith("images: 1 of 8 black over the object (003.png)")]
+    assert len(hits) == 1, r["notes"]
