@@ -239,7 +239,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (black_images_note, bounding_box, check_not_capture, capture_notes, iter_images,
+    from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
                                   load_ground_truth, load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
     from psctl.io.report import write_error_map, write_json
@@ -327,16 +327,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     else:
         acc = L2Accumulator(mask[box])
         advance = progress(f"{cap.name}: reading + l2", cap.n_images)
-        black = []
+        check = ImageCheck(cap)  # black images, negative values: notes
         for k, img in enumerate(iter_images(cap, box)):
             acc.add(img, cap.lights[k])
-            if not img[mask[box]].any():
-                black.append(k)
+            check.see(k, img[mask[box]])
             advance(1)
         res = acc.solve()
         if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
             raise PsctlError(cap.path, "all images are black inside the mask")
-        notes += black_images_note(cap, black)
+        notes += check.notes()
         normals = np.zeros((cap.height, cap.width, 3), np.float32)
         normals[box] = res.normals
         dark = np.zeros(mask.shape, bool)

@@ -495,7 +495,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk."""
-    from psctl.io.capture import black_images_note, iter_images
+    from psctl.io.capture import ImageCheck, iter_images
 
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
@@ -508,16 +508,11 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                                     ("light_intensities.txt", capture.intensities_given)) if used]
         capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
-    # images black over the object, for a note: black only if never lit in any tile or pass (a
-    # tile of a large capture may be dark in an image that lights the object elsewhere)
-    seen: set[int] = set()
-    lit: set[int] = set()
+    check = ImageCheck(capture)  # black images, negative values: notes
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
-            seen.add(k)
-            if img[mask[box]].any():
-                lit.add(k)
+            check.see(k, img[mask[box]])
             yield img
 
     with naming(capture.path):  # all images black, ...
@@ -525,7 +520,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
-    res.notes += black_images_note(capture, seen - lit)
+    res.notes += check.notes()
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))

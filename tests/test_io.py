@@ -566,3 +566,30 @@ def test_a_black_image_gets_a_note(tmp_path, method, monkeypatch):
                         lcnet=lcnet if method == "sdps" else None, write=False, device="cpu")
     hits = [n for n in r["notes"] if n.startswith("images: 1 of 8 black over the object (003.png)")]
     assert len(hits) == 1, r["notes"]
+
+
+@pytest.mark.parametrize("method", ["l2", "sdps"])
+def test_negative_float_pixels_get_a_note(tmp_path, method):
+    """A float image with negative values over the object (noise about a subtracted black level)
+    is taken as stored, with one note naming it (sdps reads it in both stages, divided by different
+    intensities: still one note)."""
+    from psctl.api import run_normals
+    from psctl.models.lcnet import LCNet
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    arrays = write_capture(tmp_path / "cap", n=8, size=24)
+    img = arrays["images"][2] - 0.05  # the shadowed side goes below zero
+    write_image(tmp_path / "cap" / "003.exr", img, "float")
+    (tmp_path / "cap" / "003.png").unlink()
+    names = (tmp_path / "cap" / "filenames.txt").read_text().replace("003.png", "003.exr")
+    (tmp_path / "cap" / "filenames.txt").write_text(names)
+    kw = {}
+    if method == "sdps":
+        kw = {"weights": tmp_path / "w.pt", "lcnet": tmp_path / "l.pt"}
+        save_weights(kw["weights"], PSFCN(), {"method": "ps-fcn", "train_images": 32})
+        save_weights(kw["lcnet"], LCNet(), {"method": "lcnet", "train_images": 32})
+    r = run_normals(tmp_path / "cap", method=method, write=False, device="cpu", **kw)
+    hits = [n for n in r["notes"] if "negative values" in n]
+    assert hits == ["images: 1 of 8 have negative values over the object (003.exr): taken as stored "
+                    "(noise about a subtracted black level?)"], r["notes"]

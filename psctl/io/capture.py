@@ -543,6 +543,37 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             progress(1)
 
 
+class ImageCheck:
+    """What the readers saw of each image over the object, for notes after a run: images black
+    there in every tile and pass (black only if no tile or view saw it lit: a dark tile of a large
+    capture may be lit elsewhere), and negative values (float files; taken as stored)."""
+
+    def __init__(self, capture: Capture):
+        self.capture = capture
+        self.seen: set[int] = set()
+        self.lit: set[int] = set()
+        self.negative: set[int] = set()
+
+    def see(self, k: int, pixels: np.ndarray) -> None:
+        """``pixels``: image ``k``'s values over the object (any shape)."""
+        self.seen.add(k)
+        if pixels.any():
+            self.lit.add(k)
+            if pixels.min() < 0:
+                self.negative.add(k)
+
+    def notes(self) -> list[str]:
+        """The same words for the same images whatever the reader divided them by (sdps reads a
+        capture twice and shows a note once)."""
+        notes = black_images_note(self.capture, self.seen - self.lit)
+        if self.negative:
+            idx = sorted(self.negative)
+            names = ", ".join(self.capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+            notes.append(f"images: {len(idx)} of {self.capture.n_images} have negative values over the object "
+                         f"({names}): taken as stored (noise about a subtracted black level?)")
+        return notes
+
+
 def black_images_note(capture: Capture, black: Iterable[int]) -> list[str]:
     """A note naming the images that were black over the object (indices into ``capture``): a
     light that did not fire looks like a shadow everywhere to every method."""
