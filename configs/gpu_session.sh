@@ -2,15 +2,18 @@
 # Fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
-# (RUNS below, method:recipe:run folder) default to session 25's plan for a session with 15
+# (RUNS below, method:recipe:run folder) default to session 26's plan for a session with 15
 # minutes of device time, one call on a fresh machine:
 #   bash configs/gpu_session.sh 7 330 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
-# which trains configs/ps_fcn_n_gpu_stage9.yaml alone. Session 14 ran configs/ps_fcn_gpu_stage8.yaml,
+# which trains configs/ps_fcn_n_gpu_stage10.yaml and configs/ps_fcn_gpu_stage14_ir.yaml side by
+# side. Session 26 ran configs/ps_fcn_n_gpu_stage9.yaml alone (this command, session 25's plan),
+# then configs/ps_fcn_gpu_stage13.yaml alone (RUNS=... INITS=... IR_BENCH=0 DEADLINE=370
+# FIRST=0.5 bash configs/gpu_session.sh 6 230 final, timeout_s 420). Session 14 ran configs/ps_fcn_gpu_stage8.yaml,
 # configs/ps_fcn_n_gpu_stage6.yaml and configs/lcnet_gpu_stage6.yaml side by side in three calls
 # (7.3 1200, 8.6 1200, 7.5 1200 final); session 17 started configs/ps_fcn_dagger_gpu_stage7.yaml,
 # configs/lcnet_gpu_stage7_ir.yaml and configs/ps_fcn_n_gpu_stage8_ir.yaml (RUNS=... INITS=...).
 # The first call checks CUDA with configs/tiny.yaml (and with interreflections when a run uses
-# them), times the interreflection stream for later plans (IR_BENCH=0 skips it; at most 45 s),
+# them), times the interreflection stream when IR_BENCH=1 (at most 45 s; session 26: 151 samples/s),
 # starts the runs, trains FIRST minutes (0.6), then sets each run's length from its own measured rate
 # (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
@@ -29,13 +32,14 @@ MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 FIRST=${FIRST:-0.6}; DEADLINE=${DEADLINE:-530}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
-RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage9.yaml:g_ps_fcn_n9"}
+RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage10.yaml:g_ps_fcn_n10 ps-fcn:configs/ps_fcn_gpu_stage14_ir.yaml:g_ps_fcn14"}
 psctl() { python3 -c 'import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()' "$@"; }
 
 # train.init (and the frozen LCNet) files: the release files of the commit the recipes name
 # (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
-# session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt)
-INITS=${INITS:-"ps_fcn_n_miscal.pt:weights/ps_fcn_n.pt"}
+# session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt; session 26: ps_fcn_n_miscal.pt,
+# ps_fcn_stage12.pt)
+INITS=${INITS:-"ps_fcn_n_stage9.pt:weights/ps_fcn_n.pt ps_fcn_stage12.pt:weights/ps_fcn.pt"}
 for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
@@ -77,7 +81,7 @@ if [ $fresh = 1 ]; then
     psctl train ps-fcn --config /tmp/tiny_ir.yaml --device $DEVICE --out /tmp/tiny_ir_$$ -q || exit 1
   fi
   # the interreflection stream's speed on this device (unmeasured on a GPU since its kernel was batched)
-  [ "${IR_BENCH:-1}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
+  [ "${IR_BENCH:-0}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
     --batches 4 --warmup 1 --pool 16 --reuse 16 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 \
     || echo "ir bench: rc $? (45 s cap: 8 interreflection views did not fit)" >> "$OUT/ir_bench.txt"
   launch $FIRST || { tail -5 runs/*.out; exit 1; }
