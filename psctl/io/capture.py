@@ -60,6 +60,7 @@ class Capture:
     encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
     orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
+    kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -100,6 +101,7 @@ class Capture:
             self,
             image_paths=tuple(self.image_paths[i] for i in idx),
             orientations=tuple(self.orientations[i] for i in idx) if self.orientations else (),
+            kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -420,7 +422,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
-        orientations=tuple(i.orientation for i in infos), lights_path=lights_path, intensities_path=intensities_path,
+        orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
+        lights_path=lights_path, intensities_path=intensities_path,
         unread=_unread(path, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )

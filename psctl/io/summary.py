@@ -13,13 +13,12 @@ from psctl.errors import PsctlError
 def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
     """What a capture folder holds, as a JSON-ready dict."""
     from psctl.io.capture import capture_notes, load_mask, open_capture
-    from psctl.io.images import image_info
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
     srgb = cap.srgb_images
     e = cap.intensities
-    kinds = sorted({(i.bits, i.dtype) for i in map(image_info, cap.image_paths)})  # headers only
+    kinds = sorted(set(cap.kinds)) or [(cap.bits, cap.dtype)]  # from the headers open_capture read
     return {
         "kind": "capture",
         "object": cap.name,
