@@ -80,7 +80,7 @@ if [ $fresh = 1 ]; then
     sed 's/^data: {/data: {interreflection: {p: 1.0, albedo: [0.5, 0.9]}, /' configs/tiny.yaml > /tmp/tiny_ir.yaml
     psctl train ps-fcn --config /tmp/tiny_ir.yaml --device $DEVICE --out /tmp/tiny_ir_$$ -q || exit 1
   fi
-  # the interreflection stream's speed on this device (unmeasured on a GPU since its kernel was batched)
+  # the interreflection stream's speed on this device (IR_BENCH=1; session 26 measured it on an H100)
   [ "${IR_BENCH:-0}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
     --batches 4 --warmup 1 --pool 16 --reuse 16 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 \
     || echo "ir bench: rc $? (45 s cap: 8 interreflection views did not fit)" >> "$OUT/ir_bench.txt"
