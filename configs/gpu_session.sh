@@ -28,12 +28,15 @@ DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
 MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 # FIRST: the first launch's minutes, before the plan; it must stay well under a fifth of PLAN's
 # samples (the lr first halves there). DEADLINE: seconds from the start by which training stops,
-# so that the files are packed and returned inside the device tool's call (its timeout_s)
+# so that the files are packed and returned inside the device tool's call (its timeout_s): the
+# minutes of each launch are cut to it, and a run still going 20 s before it (its setup, which
+# --max-minutes does not count, took longer) gets SIGTERM, checkpoints and leaves
 FIRST=${FIRST:-0.6}; DEADLINE=${DEADLINE:-530}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
 RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage10.yaml:g_ps_fcn_n10 ps-fcn:configs/ps_fcn_gpu_stage14_ir.yaml:g_ps_fcn14"}
-psctl() { python3 -c 'import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()' "$@"; }
+PSCTL='import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()'
+psctl() { python3 -c "$PSCTL" "$@"; }
 
 # train.init (and the frozen LCNet) files: the release files of the commit the recipes name
 # (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
@@ -62,11 +65,20 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
     IFS=: read -r m c name <<< "$r"
     restore $name
     if [ -f runs/$name/state.json ]; then a=(--resume runs/$name); else a=(--config $c --out runs/$name); fi
-    psctl train $m "${a[@]}" --device $DEVICE --max-minutes $1 >> runs/$name.out 2>&1 &
+    # --max-minutes counts training only; the setup before it (the validation set, the first
+    # pool; with interreflections both are slow) is not, so SIGTERM at the deadline as well:
+    # the run checkpoints at its next step and leaves, and the files are still packed in time
+    local cap=$((DEADLINE - SECONDS - 20)); [ $cap -ge 30 ] || cap=30
+    timeout -s TERM -k 40 $cap python3 -c "$PSCTL" train $m "${a[@]}" --device $DEVICE --max-minutes $1 \
+      >> runs/$name.out 2>&1 &
     pids+=($!)
   done
-  local rc=0
-  for p in "${pids[@]}"; do wait $p || rc=1; done
+  local rc=0 c
+  for p in "${pids[@]}"; do  # 124: stopped at the deadline, checkpointed (or its last checkpoint kept)
+    wait $p; c=$?
+    [ $c = 124 ] && echo "a run was stopped at the deadline ($SECONDS s since the start)"
+    [ $c = 0 ] || [ $c = 124 ] || rc=1
+  done
   return $rc
 }
 
@@ -84,7 +96,7 @@ if [ $fresh = 1 ]; then
   [ "${IR_BENCH:-0}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
     --batches 4 --warmup 1 --pool 16 --reuse 16 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 \
     || echo "ir bench: rc $? (45 s cap: 8 interreflection views did not fit)" >> "$OUT/ir_bench.txt"
-  launch $FIRST || { tail -5 runs/*.out; exit 1; }
+  launch $FIRST || { for r in $RUNS; do tail -n 5 runs/${r##*:}.out; done; exit 1; }
   names=(); for r in $RUNS; do names+=(runs/${r##*:}); done
   python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
 import json, statistics, sys
@@ -115,7 +127,7 @@ fi
 left=$(python3 -c "print(round(max(0.5, min($left, ($DEADLINE - $SECONDS - 45) / 60)), 2))")  # 45 s: startup, last checkpoint
 echo "training $left more minutes ($SECONDS s since the start)"
 launch $left; rc=$?
-tail -n 3 runs/*.out
+for r in $RUNS; do tail -n 3 runs/${r##*:}.out; done
 files="model.pt state.json stream.pt log.jsonl"
 [ -n "$FINAL" ] && files="best.pt $files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"
 list=(); for r in $RUNS; do n=${r##*:}; for f in $files; do [ -f runs/$n/$f ] && list+=(runs/$n/$f); done; list+=(runs/$n.out); done
