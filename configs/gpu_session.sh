@@ -13,7 +13,8 @@
 # (7.3 1200, 8.6 1200, 7.5 1200 final); session 17 started configs/ps_fcn_dagger_gpu_stage7.yaml,
 # configs/lcnet_gpu_stage7_ir.yaml and configs/ps_fcn_n_gpu_stage8_ir.yaml (RUNS=... INITS=...).
 # The first call checks CUDA with configs/tiny.yaml (and with interreflections when a run uses
-# them), times the interreflection stream when IR_BENCH=1 (at most 45 s; session 26: 151 samples/s),
+# them), times the interreflection stream when IR_BENCH=1 (at most 45 s; session 26: 151 samples/s,
+# far below a training run with them on the H100, 696: docs/performance.md),
 # starts the runs, trains FIRST minutes (0.6), then sets each run's length from its own measured rate
 # (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
