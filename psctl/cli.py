@@ -20,7 +20,28 @@ import typer
 # and `--json true` is then an error
 _flag = functools.partial(typer.Option, metavar="")
 
+
+def _no_flag_type(cls: type | None) -> type | None:
+    """A Typer command class whose --help shows no "<bool>" (the flag takes no value; as _flag).
+    None (Typer's default class) where this Typer has no such class: the GPU machine's may differ."""
+    if cls is None:
+        return None
+
+    class Command(cls):  # type: ignore[misc, valid-type]
+        def get_help_option(self, ctx):  # noqa: ANN001, ANN201 (click's signature)
+            opt = super().get_help_option(ctx)
+            if opt is not None:
+                opt.metavar = ""
+            return opt
+
+    return Command
+
+
+_Command = _no_flag_type(getattr(getattr(typer, "core", None), "TyperCommand", None))
+_Group = _no_flag_type(getattr(getattr(typer, "core", None), "TyperGroup", None))
+
 app = typer.Typer(
+    cls=_Group,
     name="psctl",
     help="Photometric stereo: surface normals (and lights, depth) from images under varying light.",
     no_args_is_help=True,
@@ -105,7 +126,7 @@ def _print_json(obj: dict) -> None:
     sys.stdout.write(json.dumps(obj, indent=2) + "\n")
 
 
-@app.command()
+@app.command(cls=_Command)
 def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")],
          encoding: EncodingOpt = "auto", json_out: Json = False) -> None:
     """Show what psctl detects in a folder: images, size, bit depth, lights, mask, ground truth."""
@@ -121,7 +142,7 @@ def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchm
             render_info(report)
 
 
-@app.command()
+@app.command(cls=_Command)
 def normals(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
     method: MethodOpt = "auto",
@@ -154,7 +175,7 @@ def normals(
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
-@app.command("eval")
+@app.command("eval", cls=_Command)
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder")] = "diligent",
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects).")] = None,
@@ -184,7 +205,7 @@ def evaluate(
              json_out, quiet, render_benchmark)
 
 
-@app.command()
+@app.command(cls=_Command)
 def lights(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
     out: OutDir = None,
@@ -213,7 +234,7 @@ def lights(
              json_out, quiet, render_lights)
 
 
-@app.command()
+@app.command(cls=_Command)
 def synth(
     out: Annotated[Path, typer.Argument(help="Output folder: one capture folder per object, plus objects.txt.")],
     preset: Annotated[str, typer.Option("--preset", "-p", help="syntest | dragon-svbrdf | blobby")],
@@ -250,7 +271,7 @@ def synth(
              json_out, quiet, show)
 
 
-@app.command()
+@app.command(cls=_Command)
 def depth(
     path: Annotated[Path, typer.Argument(help="Capture folder (normals from PATH/psctl/normal.exr|png, or estimated).")],
     normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl 16-bit PNG, EXR or .npy.")] = None,
@@ -270,7 +291,7 @@ def depth(
              json_out, quiet, lambda r: render_depth(r, quiet=quiet))
 
 
-@app.command()
+@app.command(cls=_Command)
 def train(
     method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn | lcnet | ps-fcn-dagger")],
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/).")] = None,

@@ -101,6 +101,7 @@ def test_help_imports_nothing_heavy(argv):
     proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert "Usage" in proc.stdout
+    assert "<bool>" not in proc.stdout  # flags take no value, --help included
 
 
 # --- bad input: one line naming the file, exit code 2, no traceback, no output ---------------------
