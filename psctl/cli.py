@@ -21,11 +21,8 @@ import typer
 _flag = functools.partial(typer.Option, metavar="")
 
 
-def _no_flag_type(cls: type | None) -> type | None:
-    """A Typer command class whose --help shows no "<bool>" (the flag takes no value; as _flag).
-    None (Typer's default class) where this Typer has no such class: the GPU machine's may differ."""
-    if cls is None:
-        return None
+def _no_flag_type(cls: type) -> type:
+    """A Typer command class whose --help shows no "<bool>" (the flag takes no value; as _flag)."""
 
     class Command(cls):  # type: ignore[misc, valid-type]
         def get_help_option(self, ctx):  # noqa: ANN001, ANN201 (click's signature)
@@ -37,8 +34,7 @@ def _no_flag_type(cls: type | None) -> type | None:
     return Command
 
 
-_Command = _no_flag_type(getattr(getattr(typer, "core", None), "TyperCommand", None))
-_Group = _no_flag_type(getattr(getattr(typer, "core", None), "TyperGroup", None))
+_Command, _Group = _no_flag_type(typer.core.TyperCommand), _no_flag_type(typer.core.TyperGroup)
 
 app = typer.Typer(
     cls=_Group,

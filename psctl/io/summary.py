@@ -18,7 +18,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
     mask = load_mask(cap)
     srgb = cap.srgb_images
     e = cap.intensities
-    kinds = sorted(set(cap.kinds)) or [(cap.bits, cap.dtype)]  # from the headers open_capture read
+    kinds = sorted(set(cap.kinds))  # from the headers open_capture read
     return {
         "kind": "capture",
         "object": cap.name,
