@@ -35,9 +35,34 @@ def _no_flag_type(cls: type) -> type:
 
 
 _Command, _Group = _no_flag_type(typer.core.TyperCommand), _no_flag_type(typer.core.TyperGroup)
+# Typer >= 0.23 carries its own copy of click; older Typers use click itself
+_click = getattr(typer.core, "_click", None) or __import__("click")
+
+
+class _Root(_Group):
+    """The root group: a command-line mistake is one line on stderr and exit code 2, as any other
+    user error (Typer would print the usage and a boxed message: five lines or more)."""
+
+    def main(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201 (click's signature)
+        kwargs["standalone_mode"] = False  # errors come back here instead of being printed
+        try:
+            code = super().main(*args, **kwargs)
+        except _click.exceptions.ClickException as e:
+            if type(e).__name__ != "NoArgsIsHelpError":  # that one has printed the help already
+                ctx = getattr(e, "ctx", None)
+                where = f"{ctx.command_path}: " if ctx is not None else ""
+                hint = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
+                print(f"{where}{e.format_message().rstrip('.')}{hint}", file=sys.stderr)
+            sys.exit(e.exit_code)
+        except _click.exceptions.Abort:
+            print("Aborted.", file=sys.stderr)
+            sys.exit(1)
+        # typer.Exit and Ctrl-C come back as an exit code; a finished command as None
+        sys.exit(code if isinstance(code, int) else 0)
+
 
 app = typer.Typer(
-    cls=_Group,
+    cls=_Root,
     name="psctl",
     help="Photometric stereo: surface normals (and lights, depth) from images under varying light.",
     no_args_is_help=True,

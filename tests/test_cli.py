@@ -104,6 +104,21 @@ def test_help_imports_nothing_heavy(argv):
     assert "<bool>" not in proc.stdout  # flags take no value, --help included
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["normals", "x", "--bogus"], "--bogus"),            # an unknown option
+    (["normals"], "'path'"),                               # a missing argument
+    (["normals", "x", "--views", "abc"], "--views"),      # a value of the wrong type
+    (["nosuch"], "nosuch"),                                # an unknown command
+])
+def test_command_line_mistake_is_one_line(argv, says):
+    """Typer's own parse errors follow the user-error rule too: one line, exit code 2, no box."""
+    proc = psctl(*argv)
+    assert proc.returncode == 2 and proc.stdout == ""
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and says in lines[0].lower() and "--help" in lines[0], proc.stderr
+    assert "\u256d" not in proc.stderr and "Traceback" not in proc.stderr
+
+
 # --- bad input: one line naming the file, exit code 2, no traceback, no output ---------------------
 
 

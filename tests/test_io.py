@@ -83,6 +83,17 @@ def test_no_mask_means_whole_image(tmp_path):
     assert load_mask(open_capture(tmp_path / "o")).all()
 
 
+def test_open_capture_lists_the_folder_once(capture, monkeypatch):
+    """Each listing is a round trip on a network drive: opening a capture lists its folder once."""
+    from pathlib import Path
+
+    listed, iterdir = [], Path.iterdir
+    monkeypatch.setattr(Path, "iterdir", lambda self: (listed.append(self.name), iterdir(self))[1])
+    cap = open_capture(capture)  # an image list, lights, intensities, a mask and ground truth: every lookup
+    assert cap.lights_path and cap.intensities_path and cap.mask_path and cap.gt_path
+    assert listed == [capture.name]
+
+
 def test_object_name():
     assert object_name("/x/ballPNG") == "ball" and object_name("/x/PNG") == "PNG" and object_name("cat") == "cat"
 

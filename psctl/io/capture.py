@@ -125,10 +125,14 @@ def natural_key(s: str) -> list:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
 
 
-def _image_files(folder: Path) -> list[Path]:
+def _image_files(entries: list[Path]) -> list[Path]:
+    """The image files among a folder's entries (``list(folder.iterdir())``), in natural order.
+
+    The helpers here take the folder's entries rather than the folder: open_capture lists it once,
+    not once per question (a listing is a round trip on a network drive)."""
     files = [
         p
-        for p in folder.iterdir()
+        for p in entries
         if p.is_file()
         and p.suffix.lower() in IMAGE_EXTENSIONS
         and not p.name.startswith(".")
@@ -148,7 +152,8 @@ def holds_capture(path: str | os.PathLike) -> bool:
     named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr",
                                  *AMBIENT_FILES)}
     # any case, as open_capture matches them (_first_existing)
-    return any(p.name.lower() in named for p in path.iterdir()) or bool(_image_files(path))
+    entries = list(path.iterdir())
+    return any(p.name.lower() in named for p in entries) or bool(_image_files(entries))
 
 
 def check_not_capture(out_dir: Path, capture: "Capture") -> None:
@@ -169,7 +174,7 @@ def _pages_note(infos: list[ImageInfo]) -> str:
     return f" ({'; '.join(stacks[:3])}: psctl reads one image per file, its first page)" if stacks else ""
 
 
-def _found_note(folder: Path, paths: list[Path]) -> str:
+def _found_note(entries: list[Path], paths: list[Path]) -> str:
     """For a count mismatch in a folder without an image list, which is often a stray file taken
     as an image (or one left out): the files not named like most (digits aside), entries named
     like images that are not files (a folder, a broken link), and how to choose the images."""
@@ -179,7 +184,7 @@ def _found_note(folder: Path, paths: list[Path]) -> str:
     common = collections.Counter(pattern).most_common(1)[0][0]
     odd = [p.name for p, k in zip(paths, pattern) if k != common]
     named = f"; not named like the others: {', '.join(odd[:3])}{' ...' if len(odd) > 3 else ''}" if odd else ""
-    skipped = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
+    skipped = sorted(p.name for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
     if skipped:
         named += f"; not files, so not read: {', '.join(skipped[:3])}{' ...' if len(skipped) > 3 else ''}"
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
@@ -259,12 +264,13 @@ def read_intensities(path: Path) -> np.ndarray:
     return e.astype(np.float32)
 
 
-def _first_existing(folder: Path, names: Sequence[str], only: str | None = None) -> Path | None:
+def _first_existing(folder: Path, entries: list[Path], names: Sequence[str], only: str | None = None) -> Path | None:
     """The first of ``names`` in ``folder``, whatever the case of the file's name (Mask.PNG is the
     mask, Light_Directions.txt the light file). With ``only`` (what they are, for the message),
-    two matching files are an error, not a silent choice (mask.png beside mask.tif)."""
+    two matching files are an error, not a silent choice (mask.png beside mask.tif). ``entries``:
+    the folder's (``list(folder.iterdir())``)."""
     by_name: dict[str, list[Path]] = {}
-    for p in folder.iterdir():
+    for p in entries:
         by_name.setdefault(p.name.lower(), []).append(p)
     hits = [p for n in dict.fromkeys(n.lower() for n in names) for p in sorted(by_name.get(n, []))]
     unique: dict[Path, Path] = {}  # Mask.png linked to mask.png is one mask
@@ -284,18 +290,20 @@ def _first_existing(folder: Path, names: Sequence[str], only: str | None = None)
 _LOOKS_USED = ("mask", "normal", "light", "intensit", "direction", "ambient")
 
 
-def _unread(folder: Path, used: set[Path]) -> tuple[str, ...]:
+def _unread(entries: list[Path], used: set[Path]) -> tuple[str, ...]:
     known = {n.lower() for n in (*LIST_FILES, LIGHTS_FILE, INTENSITIES_FILE, *MASK_FILES, *GT_FILES, *AMBIENT_FILES)}
-    return tuple(sorted(p.name for p in folder.iterdir() if p.is_file() and p not in used
+    return tuple(sorted(p.name for p in entries if p.is_file() and p not in used
                         and p.name.lower() not in known and any(w in p.name.lower() for w in _LOOKS_USED)))
 
 
 def is_capture_folder(path: str | os.PathLike) -> bool:
     path = Path(path)
-    if not path.is_dir():
-        return False
-    listed = any(p.name.lower() in LIST_FILES and p.is_file() for p in path.iterdir())  # any case
-    return listed and not (path / "objects.txt").is_file() or bool(_image_files(path))
+    return path.is_dir() and _is_capture(path, list(path.iterdir()))
+
+
+def _is_capture(path: Path, entries: list[Path]) -> bool:
+    listed = any(p.name.lower() in LIST_FILES and p.is_file() for p in entries)  # any case
+    return listed and not (path / "objects.txt").is_file() or bool(_image_files(entries))
 
 
 def find_objects(root: str | os.PathLike) -> list[Path]:
@@ -321,11 +329,13 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
 
 def is_benchmark_root(path: str | os.PathLike) -> bool:
     path = Path(path)
+    return path.is_dir() and _is_benchmark_root(path, list(path.iterdir()))
+
+
+def _is_benchmark_root(path: Path, entries: list[Path]) -> bool:
     if (path / "objects.txt").is_file():
         return True
-    return path.is_dir() and not is_capture_folder(path) and any(
-        p.is_dir() and is_capture_folder(p) for p in path.iterdir()
-    )
+    return not _is_capture(path, entries) and any(p.is_dir() and is_capture_folder(p) for p in entries)
 
 
 def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
@@ -344,10 +354,11 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         raise PsctlError(path, "folder does not exist")
     if not path.is_dir():
         raise PsctlError(path, "not a folder (expected a capture folder of images)")
-    if is_benchmark_root(path):
+    entries = list(path.iterdir())  # listed once (see _image_files)
+    if _is_benchmark_root(path, entries):
         raise PsctlError(path, "holds several objects (a benchmark root); pass one object folder, or use `psctl eval`")
 
-    list_file = _first_existing(path, LIST_FILES, "image lists")
+    list_file = _first_existing(path, entries, LIST_FILES, "image lists")
     if list_file is not None:
         image_paths = [path / n for n in _read_list(list_file)]
         for p in image_paths:
@@ -358,14 +369,14 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                 hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
                 raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
     else:
-        image_paths = _image_files(path)
+        image_paths = _image_files(entries)
         if not image_paths:
-            left_out = sorted(p.name for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+            left_out = sorted(p.name for p in entries if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
             hint = (f"; {', '.join(left_out[:3])}{' ...' if len(left_out) > 3 else ''} are taken for a mask, normals "
                     f"or outputs by their names: list the images in filenames.txt") if left_out else ""
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
-    ambient_path = _first_existing(path, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
+    ambient_path = _first_existing(path, entries, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
     if ambient_path is not None and list_file is not None and \
             ambient_path.resolve() in {p.resolve() for p in image_paths}:
         raise PsctlError(ambient_path, f"is the ambient image (subtracted from every image) but is also listed "
@@ -377,10 +388,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
                                         f"{first.path.name} ({first.width}x{first.height})")
     n = len(image_paths)
-    found = _pages_note(infos) if list_file is not None else _found_note(path, image_paths) + _pages_note(infos)
+    found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
     lights = None
-    lights_path = _first_existing(path, [LIGHTS_FILE], "light direction files")
+    lights_path = _first_existing(path, entries, [LIGHTS_FILE], "light direction files")
     if lights_path is not None:
         lights = read_lights(lights_path)
         if len(lights) != n:
@@ -389,17 +400,17 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(lights_path, "every light has z <= 0 (behind the object); psctl wants z toward the "
                                           "camera (x right, y up): negate the z column if the file's z points away")
     intensities = np.ones((n, 3), np.float32)
-    intensities_path = _first_existing(path, [INTENSITIES_FILE], "light intensity files")
+    intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files")
     given = intensities_path is not None
     if given:
         intensities = read_intensities(intensities_path)
         if len(intensities) != n:
             raise PsctlError(intensities_path, f"{len(intensities)} intensity rows but {n} image{'s' * (n != 1)}{found}")
 
-    mask_path = _first_existing(path, MASK_FILES, "masks")
+    mask_path = _first_existing(path, entries, MASK_FILES, "masks")
     if mask_path is not None:
         _check_size(image_info(mask_path), first)
-    gt_path = _first_existing(path, GT_FILES)
+    gt_path = _first_existing(path, entries, GT_FILES)
     if gt_path is not None and gt_path.suffix.lower() != ".mat":
         _check_size(image_info(gt_path), first)
     if ambient_path is not None:
@@ -424,7 +435,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         lights_path=lights_path, intensities_path=intensities_path,
-        unread=_unread(path, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
+        unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )
 
