@@ -211,7 +211,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                batch: "OutputBatch | None" = None, encoding: str = "auto") -> dict:
+                batch: "OutputBatch | None" = None, encoding: str = "auto",
+                light_distance: float | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -234,7 +235,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     are removed, and a note says so; no other file is. ``out`` may not hold a capture.
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
     (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
+    ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n): the lights are points that far from the
+    mask's centroid along the listed directions; each image is divided by its light's falloff
+    (``psctl.nearlight``, docs/near-lights.md).
     """
+    from dataclasses import replace
+
     from psctl.classic import L2Accumulator
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
@@ -251,6 +257,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
+    if light_distance is not None and method not in ("l2", "ps-fcn", "ps-fcn-n"):
+        raise PsctlError(None, f"--light-distance: {method} does not use the listed light directions, which the "
+                               f"falloff follows; use l2, ps-fcn or ps-fcn-n" + (
+                                   "" if cap.calibrated else f" (with {cap.path / 'light_directions.txt'})"))
     # an --images subset is spread over the light directions only where the method reads them
     by_lights = cap.calibrated and method in ("l2", "ps-fcn", "ps-fcn-n")
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
@@ -295,6 +305,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
     box = bounding_box(mask)
+    if light_distance is not None:
+        from psctl.nearlight import near_lights
+
+        cap = replace(cap, near=near_lights(light_distance, mask))
+        r, c = cap.near.centre
+        notes.append(f"lights: points {cap.near.distance:g} pixels from the object's centre (row {r:.0f}, column "
+                     f"{c:.0f}): each image divided by its light's falloff; directions as listed")
 
     # --- solve -------------------------------------------------------------------------------
     light_stats = None
@@ -375,6 +392,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_evaluated_pixels": n_eval,
         "n_dark": int(dark.sum()),
         "views": views,
+        "light_distance": None if cap.near is None else cap.near.distance,
         "notes": notes,
     }
     if light_stats is not None:

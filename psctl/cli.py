@@ -83,6 +83,7 @@ FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light 
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
+LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n: the lights are points this many image pixels from the object along the listed directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 
@@ -179,6 +180,7 @@ def normals(
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
+    light_distance: LightDistanceOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -192,7 +194,8 @@ def normals(
         formats = parse_formats(fmt)
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                          views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding),
+                                          views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
+                                          light_distance=light_distance),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -212,6 +215,7 @@ def evaluate(
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
+    light_distance: LightDistanceOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -222,7 +226,8 @@ def evaluate(
 
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding),
+                                            views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
+                                            light_distance=light_distance),
              json_out, quiet, render_benchmark)
 
 

@@ -57,13 +57,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                  encoding: str = "auto") -> dict:
+                  encoding: str = "auto", light_distance: float | None = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
-    ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` to every object's capture.
+    ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
+    near point lights: ``psctl.api.run_normals``) to every object's capture.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
     not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
@@ -106,7 +107,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             r = run_normals(folder, method=method, out=None if out is None else Path(out) / name,
                             n_images=n_images, seed=seed, write=out is not None, progress=progress,
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
-                            falloff=falloff, roll=roll, batch=batch, encoding=encoding)
+                            falloff=falloff, roll=roll, batch=batch, encoding=encoding,
+                            light_distance=light_distance)
             _collect(objects, used, r)
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
@@ -116,6 +118,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         "method": used_method,
         "objects": objects,
         "mean_mae": float(np.mean([o["mae"] for o in objects])),
+        "light_distance": None if light_distance is None else float(light_distance),
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
     }
     if any("light_mae" in o for o in objects):

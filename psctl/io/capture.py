@@ -26,6 +26,7 @@ import numpy as np
 from psctl.arrays import unit_rows
 from psctl.errors import PsctlError
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
+from psctl.nearlight import NearLights
 
 LIST_FILES = ("filenames.txt", "names.txt")
 LIGHTS_FILE = "light_directions.txt"
@@ -64,6 +65,7 @@ class Capture:
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
+    near: NearLights | None = None  # point lights: iter_images divides out their falloff (psctl.nearlight)
 
     @property
     def n_images(self) -> int:
@@ -528,7 +530,8 @@ def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
-    ``bounding_box`` gives), divided by its intensities. ``capture``: a Capture or a folder."""
+    ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
+    capture has ``near`` lights. ``capture``: a Capture or a folder."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -537,6 +540,12 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         ambient = to_rgb(read_image(capture.ambient_path)[0])
         ambient = ambient if box is None else ambient[box]
         ambient = srgb_to_linear(ambient) if capture.is_srgb(capture.ambient_path) else ambient
+    if capture.near is not None:
+        if capture.lights is None:
+            raise PsctlError(capture.path / "light_directions.txt", "missing: near lights need the listed directions")
+        rows, cols = np.arange(capture.height), np.arange(capture.width)
+        if box is not None:
+            rows, cols = rows[box[0]], cols[box[1]]
     for k, p in enumerate(capture.image_paths):
         pixels, info = read_image(p)
         if (info.width, info.height) != (capture.width, capture.height):  # changed since open
@@ -552,7 +561,10 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             if lit and not rgb.any():
                 raise PsctlError(capture.ambient_path, f"subtracting it leaves {p.name} black: is it brighter than "
                                                        f"the images (taken with a light on)?")
-        yield np.ascontiguousarray(rgb / capture.intensities[k], dtype=np.float32)
+        rgb = rgb / capture.intensities[k]
+        if capture.near is not None:
+            rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
+        yield np.ascontiguousarray(rgb, dtype=np.float32)
         if progress is not None:
             progress(1)
 

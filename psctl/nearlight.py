@@ -1,0 +1,72 @@
+"""Near point lights: the 1/r^2 falloff of lights at a finite distance, divided out of the images.
+
+Photometric stereo (and every psctl network) assumes distant lights: one direction and one
+intensity per image, the same at every pixel. Real rigs put point lights at a finite distance D
+from the object, so over the object each image is brighter on the side facing its light, by
+about 2 (l . X) / D in relative terms (X: the pixel's offset from the point where the listed
+direction l holds). On DiLiGenT's development objects that gradient is measurable: D is
+1,900-2,700 pixels, 16-23 object radii (`benchmarks/light_distance.py`, docs/near-lights.md), so
+a light 45 degrees off the axis lights the near rim of a 120-pixel object about 7 % more than its
+centre, and the far rim about 7 % less.
+
+``NearLights`` describes such a rig with the listed directions: light k sits at ``distance``
+pixels from ``centre`` (the mask's centroid by default) along direction k, and the camera is
+orthographic (a pixel's offset in the image plane is its offset on the object; depth is taken
+as that of the centre). psctl divides out the falloff only, and leaves the listed directions as
+they are: the falloff needs D alone (where the listed directions hold moves each image's
+factor by a constant, about an intensity error), the per-pixel directions also need that point,
+which a benchmark does not give (docs/near-lights.md measures both).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from psctl.errors import PsctlError
+
+
+@dataclass(frozen=True)
+class NearLights:
+    """Point lights at ``distance`` pixels from ``centre`` (row, column; full-frame pixels)
+    along the listed directions."""
+
+    distance: float
+    centre: tuple[float, float]
+
+    def correction(self, light: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """What to multiply an image by to undo its light's falloff: |D l - X|^2 / D^2.
+
+        light [3] (x right, y up, z toward the camera), rows [h], cols [w] (full-frame pixel
+        indices of the region) -> float32 [h, w]; 1 at the centre, < 1 on the light's side.
+        """
+        d = self.distance
+        x = cols.astype(np.float64)[None, :] - self.centre[1]  # x right
+        y = self.centre[0] - rows.astype(np.float64)[:, None]  # y up: rows grow downwards
+        lx, ly, lz = (float(v) for v in light)
+        r2 = (d * lx - x) ** 2 + (d * ly - y) ** 2 + (d * lz) ** 2
+        return (r2 / (d * d)).astype(np.float32)
+
+
+def near_lights(distance: float | None, mask: np.ndarray) -> NearLights | None:
+    """``NearLights`` at ``distance`` pixels from the centroid of ``mask`` [H, W] (None: distant
+    lights). A distance that is not a positive number, or that does not clear the object (a
+    light inside it), is a user error."""
+    if distance is None:
+        return None
+    try:
+        d = float(distance)
+    except (TypeError, ValueError):
+        raise PsctlError(None, f"--light-distance must be a number of pixels, not {distance!r}") from None
+    if not math.isfinite(d) or d <= 0:
+        raise PsctlError(None, f"--light-distance must be a positive number of pixels, not {distance}")
+    rows, cols = np.nonzero(mask)
+    centre = (float(rows.mean()), float(cols.mean()))
+    reach = float(np.sqrt(((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2).max()))
+    if d <= 2 * reach:  # the first-order picture (and any listed direction) would be meaningless
+        raise PsctlError(None, f"--light-distance {d:g} pixels does not clear the object: its mask reaches "
+                               f"{reach:.0f} pixels from its centre (the distance is in image pixels, from the "
+                               f"object to the lights; it must be over twice that)")
+    return NearLights(d, centre)

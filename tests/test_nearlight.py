@@ -1,0 +1,101 @@
+"""Near point lights (--light-distance): the falloff is divided out exactly, and misuse is a user error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from psctl.api import run_normals
+from psctl.errors import PsctlError
+from psctl.io.images import write_image
+from psctl.nearlight import NearLights, near_lights
+from tests.conftest import write_capture
+from tests.test_cli import psctl
+
+
+def _falloff(light: np.ndarray, distance: float, centre: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:
+    """Irradiance of a point light at ``distance`` along ``light`` from ``centre``, relative to
+    the centre's: D^2 / |P - X|^2 with 3-D points (x right, y up), written out independently."""
+    rows, cols = np.mgrid[: shape[0], : shape[1]]
+    X = np.stack([cols - centre[1], centre[0] - rows, np.zeros(shape)], -1)
+    P = distance * np.asarray(light, np.float64)
+    return distance**2 / ((P - X) ** 2).sum(-1)
+
+
+def test_correction_undoes_the_falloff():
+    near = NearLights(50.0, (10.0, 14.0))
+    rows, cols = np.arange(3, 25), np.arange(30)
+    for light in ([0, 0, 1], [0.6, 0, 0.8], [-0.3, 0.5, np.sqrt(1 - 0.34)]):
+        fall = _falloff(np.array(light), 50.0, (10.0, 14.0), (25, 30))[3:25]
+        corr = near.correction(np.array(light, np.float32), rows, cols)
+        np.testing.assert_allclose(corr * fall, 1.0, rtol=1e-5)
+    # brighter on the light's side, so the correction is below 1 there
+    corr = near.correction(np.array([0.6, 0, 0.8]), np.array([10]), np.array([4, 14, 24]))[0]
+    assert corr[1] == pytest.approx(1.0) and corr[2] < 1.0 < corr[0]
+
+
+def _near_capture(folder, distance: float) -> dict:
+    """The conftest sphere with each image dimmed by its point light's falloff (directions as listed)."""
+    arrays = write_capture(folder, n=16, size=40)
+    m = arrays["mask"]
+    rows, cols = np.nonzero(m)
+    centre = (rows.mean(), cols.mean())
+    for k, light in enumerate(arrays["lights"]):
+        img = arrays["images"][k] * _falloff(light, distance, centre, m.shape)[..., None]  # intensities included
+        write_image(folder / f"{k + 1:03d}.png", 0.5 * img, "uint16")  # 0.5: room for the brighter side
+    return arrays
+
+
+def test_l2_with_the_light_distance_recovers_the_normals(tmp_path):
+    write_capture(tmp_path / "distant", n=16, size=40)  # the same sphere and lights, lit from afar
+    _near_capture(tmp_path / "obj", 60.0)
+    base = run_normals(tmp_path / "distant", method="l2", write=False)["mae"]  # l2's own error (shadows)
+    far = run_normals(tmp_path / "obj", method="l2", write=False)
+    near = run_normals(tmp_path / "obj", method="l2", write=False, light_distance=60)
+    assert near["light_distance"] == 60 and far["light_distance"] is None
+    assert abs(near["mae"] - base) < 0.02 and far["mae"] > base + 3, (base, near["mae"], far["mae"])
+    assert any("falloff" in n for n in near["notes"])
+
+
+def test_network_methods_read_the_corrected_images(tmp_path):
+    """ps-fcn reads the images through the same reader: its input changes with the distance."""
+    torch = pytest.importorskip("torch")
+    from dataclasses import replace
+
+    from psctl.infer import capture_normals
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    _near_capture(tmp_path / "obj", 60.0)
+    torch.manual_seed(0)
+    w = save_weights(tmp_path / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    cap = open_capture(tmp_path / "obj")
+    mask = load_mask(cap)
+    far = capture_normals(cap, mask, "ps-fcn", w).normals
+    near = capture_normals(replace(cap, near=near_lights(60, mask)), mask, "ps-fcn", w).normals
+    assert np.abs(far - near).max() > 1e-3
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--light-distance", "-5"], "positive"),
+    (["--light-distance", "nan"], "positive"),
+    (["--light-distance", "20"], "does not clear the object"),
+    (["--light-distance", "100", "-m", "ups-fcn"], "ups-fcn"),
+])
+def test_light_distance_misuse_is_one_line(tmp_path, argv, says):
+    write_capture(tmp_path / "obj")
+    proc = psctl("normals", tmp_path / "obj", "--out", tmp_path / "out", *argv)
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.splitlines()) == 1 and says in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_near_lights_validates():
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 10:30] = True
+    assert near_lights(None, mask) is None
+    near = near_lights(100, mask)
+    assert near.distance == 100 and near.centre == pytest.approx((19.5, 19.5))
+    with pytest.raises(PsctlError, match="number"):
+        near_lights("far", mask)
