@@ -235,9 +235,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     are removed, and a note says so; no other file is. ``out`` may not hold a capture.
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
     (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
-    ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n): the lights are points that far from the
-    mask's centroid along the listed directions; each image is divided by its light's falloff
-    (``psctl.nearlight``, docs/near-lights.md).
+    ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, sdps): the lights are points that far from
+    the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
+    divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
+    the images as captured.
     """
     from dataclasses import replace
 
@@ -257,10 +258,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
-    if light_distance is not None and method not in ("l2", "ps-fcn", "ps-fcn-n"):
-        raise PsctlError(None, f"--light-distance: {method} does not use the listed light directions, which the "
-                               f"falloff follows; use l2, ps-fcn or ps-fcn-n" + (
-                                   "" if cap.calibrated else f" (with {cap.path / 'light_directions.txt'})"))
+    if light_distance is not None and method not in ("l2", "ps-fcn", "ps-fcn-n", "sdps"):
+        raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
+                               f"use l2, ps-fcn, ps-fcn-n or sdps")
     # an --images subset is spread over the light directions only where the method reads them
     by_lights = cap.calibrated and method in ("l2", "ps-fcn", "ps-fcn-n")
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
@@ -305,13 +305,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
     box = bounding_box(mask)
+    near = None
     if light_distance is not None:
         from psctl.nearlight import near_lights
 
-        cap = replace(cap, near=near_lights(light_distance, mask))
-        r, c = cap.near.centre
-        notes.append(f"lights: points {cap.near.distance:g} pixels from the object's centre (row {r:.0f}, column "
-                     f"{c:.0f}): each image divided by its light's falloff; directions as listed")
+        near = near_lights(light_distance, mask)
+        r, c = near.centre
+        notes.append(f"lights: points {near.distance:g} pixels from the object's centre (row {r:.0f}, column "
+                     f"{c:.0f}): each image divided by its light's falloff; directions as " + (
+                         "estimated (LCNet reads the images as captured)" if method == "sdps" else "listed"))
+        if method != "sdps":
+            cap = replace(cap, near=near)
 
     # --- solve -------------------------------------------------------------------------------
     light_stats = None
@@ -324,7 +328,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-        source = capture_source(cap, mask, second, weights, {"device": device, "views": views}, progress)
+        source = capture_source(replace(cap, near=near), mask, second, weights, {"device": device, "views": views},
+                                progress)
         est, net = second_stage(source, est, refine, fit)
         normals, dark = net.normals, net.dark
         notes += list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
@@ -392,7 +397,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_evaluated_pixels": n_eval,
         "n_dark": int(dark.sum()),
         "views": views,
-        "light_distance": None if cap.near is None else cap.near.distance,
+        "light_distance": None if near is None else near.distance,
         "notes": notes,
     }
     if light_stats is not None:

@@ -83,7 +83,7 @@ FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light 
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
-LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n: the lights are points this many image pixels from the object along the listed directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
+LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 
@@ -246,6 +246,7 @@ def lights(
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
+    light_distance: LightDistanceOpt = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -256,7 +257,7 @@ def lights(
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
                                          views=views, n_images=images, seed=seed, progress=progress,
                                          refine=refine, normals_weights=normals_weights, falloff=falloff,
-                                         roll=roll, encoding=encoding),
+                                         roll=roll, encoding=encoding, light_distance=light_distance),
              json_out, quiet, render_lights)
 
 

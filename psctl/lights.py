@@ -716,7 +716,8 @@ def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, nor
     if any, is not applied: the fit estimates the intensities)."""
     from psctl.io.capture import iter_images
 
-    raw = replace(capture, intensities=np.ones_like(capture.intensities))
+    # the estimate's directions: near lights' falloff follows them (psctl.nearlight)
+    raw = replace(capture, lights=est.directions, intensities=np.ones_like(capture.intensities))
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         yield from iter_images(raw.subset(range(start, raw.n_images)), box)
@@ -876,7 +877,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                n_images: int | None = None, seed: int | None = None, write: bool = True,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
-               falloff: str | None = None, roll: bool | None = None, encoding: str = "auto") -> dict:
+               falloff: str | None = None, roll: bool | None = None, encoding: str = "auto",
+               light_distance: float | None = None) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
@@ -886,7 +888,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     stage, or ``normals_weights``), LCNet's lights are refined against its normals
     (``refine_estimate``; off with refine=False or when none is installed, which a note says);
     ``falloff`` "shifted" or "lambertian" and ``roll`` (turn the refined lights by the roll of the
-    normals they give, ``roll_estimate``) override DEFAULT_REFINE's.
+    normals they give, ``roll_estimate``) override DEFAULT_REFINE's. ``light_distance`` (pixels,
+    with ``refine``): the lights are points that far from the mask's centroid along the estimated
+    directions, and the refinement reads the images with their falloff divided out
+    (``psctl.nearlight``; LCNet reads them as captured).
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
@@ -917,11 +922,21 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
     mask = load_mask(cap)
+    near = None
+    if light_distance is not None:
+        from psctl.nearlight import near_lights
+
+        if not refine:
+            raise PsctlError(None, "--light-distance needs --refine: LCNet reads the images as captured, and only "
+                                   "the refinement divides out the falloff")
+        near = near_lights(light_distance, mask)
+        picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
+                      f"each image by its light's falloff (LCNet reads the images as captured)")
     est = capture_lights(cap, mask, weights, {"device": device, "decode": decode, "views": views}, progress)
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refine:
-        est = _refine_capture(cap, mask, est, normals_weights, device, progress, fit)
+        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, device, progress, fit)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
@@ -941,6 +956,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "lcnet_light_mae": lcnet_errors["light_mae"],
         "lcnet_intensity_re": lcnet_errors["intensity_re"],
         "device": est.info["device"],
+        "light_distance": None if near is None else near.distance,
         "seconds": round(time.perf_counter() - t0, 3),
         "notes": picked + est.notes,
     }

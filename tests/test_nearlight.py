@@ -11,6 +11,7 @@ from psctl.io.images import write_image
 from psctl.nearlight import NearLights, near_lights
 from tests.conftest import write_capture
 from tests.test_cli import psctl
+from tests.test_lcnet import fake_weights  # noqa: F401 (a fixture)
 
 
 def _falloff(light: np.ndarray, distance: float, centre: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:
@@ -75,6 +76,37 @@ def test_network_methods_read_the_corrected_images(tmp_path):
     far = capture_normals(cap, mask, "ps-fcn", w).normals
     near = capture_normals(replace(cap, near=near_lights(60, mask)), mask, "ps-fcn", w).normals
     assert np.abs(far - near).max() > 1e-3
+
+
+def test_sdps_corrects_the_falloff_along_the_estimated_lights(tmp_path, fake_weights, monkeypatch):  # noqa: F811
+    """sdps: LCNet reads the images as captured; its second stage and light fit read them with
+    the falloff of LCNet's lights divided out."""
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    _near_capture(tmp_path / "obj", 60.0)  # its listed lights only score sdps' estimates
+    far = run_normals(tmp_path / "obj", method="sdps", write=False, device="cpu")
+    near = run_normals(tmp_path / "obj", method="sdps", write=False, device="cpu", light_distance=60)
+    assert near["light_distance"] == 60 and any("as estimated" in n for n in near["notes"])
+    assert near["lcnet_light_mae"] == far["lcnet_light_mae"] is not None  # LCNet saw the same images
+    assert near["mae"] != far["mae"]  # the second stage did not
+
+
+def test_psctl_lights_refines_on_corrected_images(tmp_path, fake_weights, monkeypatch):  # noqa: F811
+    from psctl.lights import run_lights
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    _near_capture(tmp_path / "obj", 60.0)
+    far = run_lights(tmp_path / "obj", write=False, device="cpu")
+    near = run_lights(tmp_path / "obj", write=False, device="cpu", light_distance=60)
+    assert near["light_distance"] == 60 and far["light_distance"] is None
+    assert near["lcnet_light_mae"] == far["lcnet_light_mae"]  # LCNet saw the same images
+    assert near["lights_refined"] != far["lights_refined"]  # the light fit did not (random weights: its gate may
+    # keep LCNet's lights, but its residual moves)
+    (tmp_path / "obj" / "light_directions.txt").unlink()  # uncalibrated: the falloff follows LCNet's lights
+    assert run_lights(tmp_path / "obj", write=False, device="cpu", light_distance=60)["light_distance"] == 60
+    proc = psctl("lights", tmp_path / "obj", "--no-refine", "--light-distance", "60", "--out", tmp_path / "o",
+                 env={"PSCTL_WEIGHTS": str(fake_weights)})
+    assert proc.returncode == 2 and "--refine" in proc.stderr and len(proc.stderr.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize("argv, says", [
