@@ -273,6 +273,7 @@ def synth(
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
     interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none).")] = 0,
     ir_albedo: Annotated[Optional[float], typer.Option("--ir-albedo", help="With --interreflections: the surface lights itself as a source of albedo A * kd / max(kd) (default: kd).")] = None,
+    light_distance: Annotated[Optional[float], typer.Option("--light-distance", help="Point lights this many pixels from each object's centre along its light directions (falloff and per-pixel directions; docs/near-lights.md). Default: distant lights.")] = None,
     preview: Annotated[bool, _flag("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
@@ -294,7 +295,7 @@ def synth(
 
         _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials, light_dist=light_dist,
                                            intensities=intensities, interreflections=interreflections, ir_albedo=ir_albedo,
-                                           preview=preview, progress=progress),
+                                           light_distance=light_distance, preview=preview, progress=progress),
              json_out, quiet, show)
 
 

@@ -35,12 +35,14 @@ VIEW = (0.0, 0.0, 1.0)
 def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | None = None,
           intensities: Tensor | None = None, texture: Tensor | None = None,
           mat_b: Material | None = None, weights: Tensor | None = None,
-          ambient: Tensor | None = None, indirect: Tensor | None = None) -> Tensor:
+          ambient: Tensor | None = None, indirect: Tensor | None = None,
+          falloff: Tensor | None = None) -> Tensor:
     """Render B samples of P pixels under N lights each.
 
     Args:
         normals: [B, 3, P] unit normals (0 outside the object gives 0 radiance).
-        lights: [B, N, 3] unit directions toward the lights.
+        lights: [B, N, 3] unit directions toward the lights, or [B, N, 3, P] one per pixel
+            (near point lights, ``near_light_field``).
         mat: B materials; ``mat_b`` optional second materials blended as
             weights * f_A + (1 - weights) * f_B with ``weights`` [B, 1, P] in [0, 1].
         visibility: [B, N, P] in [0, 1] (cast shadows), or None.
@@ -49,15 +51,25 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         ambient: [B] strength of a light-independent term ambient * kd (added once per image).
         indirect: [B, N, 3, P] irradiance from interreflections (``indirect_irradiance``),
             reflected as kd / pi (times the texture).
+        falloff: [B, N, P] irradiance per pixel relative to the lights' intensities (near point
+            lights), or None for 1.
     Returns:
         [B, N, 3, P] linear radiance.
     """
     nz = normals[:, 2:3]  # n.v, [B, 1, P]
-    h = F.normalize(lights + lights.new_tensor(VIEW), dim=-1)  # [B, N, 3]
-    nl = torch.einsum("bcp,bnc->bnp", normals, lights)
-    nh = torch.einsum("bcp,bnc->bnp", normals, h)
-    lh = (lights * h).sum(-1, keepdim=True)  # [B, N, 1]
+    if lights.dim() == 4:  # a direction per pixel: [B, N, 3, P]
+        h = F.normalize(lights + lights.new_tensor(VIEW)[:, None], dim=2)
+        nl = torch.einsum("bcp,bncp->bnp", normals, lights)
+        nh = torch.einsum("bcp,bncp->bnp", normals, h)
+        lh = (lights * h).sum(2)  # [B, N, P]
+    else:
+        h = F.normalize(lights + lights.new_tensor(VIEW), dim=-1)  # [B, N, 3]
+        nl = torch.einsum("bcp,bnc->bnp", normals, lights)
+        nh = torch.einsum("bcp,bnc->bnp", normals, h)
+        lh = (lights * h).sum(-1, keepdim=True)  # [B, N, 1]
     cos = nl.clamp_min(0.0) * (nz > 0)
+    if falloff is not None:
+        cos = cos * falloff
     if visibility is not None:
         cos = cos * visibility
     if intensities is not None:
@@ -89,6 +101,21 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         w = weights[:, None]  # [B, 1, 1, P]
         img = w * img + (1.0 - w) * one(mat_b)
     return img
+
+
+def near_light_field(lights: Tensor, distance: float, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Point lights at ``distance`` pixels from the centroid of ``mask`` [H, W] along ``lights``
+    [N, 3] (orthographic camera, every pixel at the centroid's depth; psctl.nearlight's model):
+    per-pixel directions [N, 3, H*W] and falloff D^2 / |D l - X|^2 [N, H*W]."""
+    h, w = mask.shape
+    rows, cols = torch.nonzero(mask, as_tuple=True)
+    cy, cx = rows.double().mean(), cols.double().mean()
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
+                            indexing="ij")
+    X = torch.stack([xx - cx, cy - yy, torch.zeros_like(xx)]).reshape(3, -1)  # x right, y up
+    v = distance * lights.double()[:, :, None] - X[None]  # [N, 3, P]
+    r2 = (v * v).sum(1)
+    return (v / r2.sqrt()[:, None]).to(lights.dtype), (distance * distance / r2).to(lights.dtype)
 
 
 # --------------------------------------------------------------------------------------------

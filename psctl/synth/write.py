@@ -177,7 +177,7 @@ def diffuse_albedo(obj: SynthObject) -> torch.Tensor:
 
 def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shadows: bool = True,
                   chunk: int = 16, bounces: int = 0, kernel: torch.Tensor | None = None,
-                  ir_albedo: float | None = None) -> torch.Tensor:
+                  ir_albedo: float | None = None, light_distance: float | None = None) -> torch.Tensor:
     """e * radiance, [N, 3, H, W] (not yet exposed or quantised).
 
     ``visibility`` [1, N, H*W] may be passed in when several objects share a view and lights;
@@ -185,10 +185,17 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
     adds that many diffuse interreflection bounces (``R.interreflection_kernel``; ``kernel``
     may be passed in as visibility). ``ir_albedo`` a: the surface lights itself as a source of
     albedo a * kd / max(kd) (the training stream's ``interreflection`` option) instead of kd;
-    the camera still sees the indirect light reflected by kd.
+    the camera still sees the indirect light reflected by kd. ``light_distance`` (pixels): point
+    lights that far from the object's centre along its light directions (``R.near_light_field``:
+    per-pixel directions and falloff; cast shadows still follow the listed directions).
     """
     g = obj.view
     h, w = g.size
+    if light_distance is not None and bounces > 0:
+        raise PsctlError(None, "near lights and interreflections together are not supported")
+    field_dirs = field_fall = None
+    if light_distance is not None:
+        field_dirs, field_fall = R.near_light_field(obj.lights, light_distance, g.mask[0, 0])
     if visibility is None and shadows:
         visibility = R.march_shadows(g.depth, obj.lights[None]).reshape(1, -1, h * w)
     n = g.normals.reshape(1, 3, h * w)
@@ -201,10 +208,13 @@ def render_object(obj: SynthObject, visibility: torch.Tensor | None = None, shad
     for s in range(0, len(obj.lights), chunk):
         lc, ec = obj.lights[None, s:s + chunk], obj.intensities[None, s:s + chunk]
         vc = None if visibility is None else visibility[:, s:s + chunk]
-        img = R.shade(n, lc, obj.mat, vc, ec, tex)
+        fc = None
+        if field_dirs is not None:
+            lc, fc = field_dirs[None, s:s + chunk], field_fall[None, s:s + chunk]
+        img = R.shade(n, lc, obj.mat, vc, ec, tex, falloff=fc)
         if obj.mat_b is not None:
             wt = obj.weights.reshape(1, 1, 1, h * w)
-            img = wt * img + (1 - wt) * R.shade(n, lc, obj.mat_b, vc, ec, tex)
+            img = wt * img + (1 - wt) * R.shade(n, lc, obj.mat_b, vc, ec, tex, falloff=fc)
         img = img[0]
         if bounces > 0:  # the first bounce's source: the lights' diffuse reflection kd / pi * e * cos * vis
             cos = torch.einsum("cp,nc->np", n[0], lc[0]).clamp_min(0.0) * (n[0, 2] > 0) * ec[0][:, None]
@@ -283,7 +293,8 @@ def _replace_dir(tmp: Path, final: Path) -> None:
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
                  sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
-                 interreflections: int = 0, ir_albedo: float | None = None, progress=None) -> dict:
+                 interreflections: int = 0, ir_albedo: float | None = None, light_distance: float | None = None,
+                 progress=None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
@@ -296,6 +307,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         interreflections: diffuse bounces to add (0: none).
         ir_albedo: with interreflections, the albedo of the surface as a source of indirect
             light, a * kd / max(kd) (None: kd itself; see ``render_object``).
+        light_distance: point lights this many pixels from each object's centre along its
+            light directions (``render_object``; psctl normals --light-distance undoes the falloff).
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds",
         "removed"} (removed: what an earlier psctl synth run left in ``out`` and this one replaced).
@@ -310,6 +323,12 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
     if ir_albedo is not None and not 0 <= ir_albedo < 1:
         raise PsctlError(None, f"--ir-albedo must be in [0, 1) (got {ir_albedo})")
+    if light_distance is not None:
+        if not math.isfinite(light_distance) or light_distance <= 2 * size:
+            raise PsctlError(None, f"--light-distance must be over twice the image size, {2 * size} pixels "
+                                   f"(got {light_distance})")
+        if interreflections:
+            raise PsctlError(None, "--light-distance and --interreflections together are not supported")
     objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
     ensure_writable_dir(out)
     # objects.txt marks a complete set: it goes now and comes back when every object is written,
@@ -332,13 +351,15 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         if interreflections and key not in kernels:
             kernels = {key: R.interreflection_kernel(obj.view.depth, obj.view.normals)}
         images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key),
-                               ir_albedo=ir_albedo)
+                               ir_albedo=ir_albedo, light_distance=light_distance)
         scale = exposure_scale(images, obj.view.mask[0, 0], gen)
         images = images * scale
         if sensor_noise > 0:
             images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
         images = R.quantize(images, 16) * obj.view.mask[0]
         obj.meta["exposure"] = scale
+        if light_distance is not None:
+            obj.meta["light_distance"] = light_distance
         if interreflections:
             obj.meta["interreflections"] = interreflections
             if ir_albedo is not None:
