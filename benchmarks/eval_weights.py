@@ -23,7 +23,10 @@ synthetic sets, DiLiGenT is only reported):
                      darker than light_intensities.txt lists (benchmarks/miscalibrated_set.py --seed 51)
   syntest_dl_dircal  syntest_dl with every listed zenith angle 3-6 % off, then jittered
                      (benchmarks/miscalibrated_set.py --directions --seed 52)
+  syntest_dl_near    syntest_dl's objects under point lights 1,000 pixels away (19-26 radii, as
+                     DiLiGenT's; docs/near-lights.md), read as distant lights: robustness, not in the rule
   dev         the DiLiGenT dev split, cropped 8-bit, all 96 images (../shared/data)
+  dev_near    the same with --light-distance 2400 (DiLiGenT's lights, measured on these objects)
   ballpng     the full-size 16-bit ballPNG
 Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores) or
 miscalibrated_set.py. Prints one JSON object (and writes it with --out): per file and set,
@@ -52,10 +55,11 @@ SYNTH = {  # set -> (folder, how to make it: psctl synth arguments, or a miscali
     "syntest_dl_ir": (CACHE / "syntest_dl_ir", ["synth", *DL, "--interreflections", "3", "--ir-albedo", "0.8"]),
     "syntest_dl_miscal": (CACHE / "syntest_dl_miscal", ["miscal", "--seed", "51"]),
     "syntest_dl_dircal": (CACHE / "syntest_dl_dircal", ["miscal", "--directions", "--seed", "52"]),
+    "syntest_dl_near": (CACHE / "syntest_dl_near", ["synth", *DL, "--light-distance", "1000"]),
 }
 RULE = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal")
 SETS = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
-        "dev", "ballpng")
+        "syntest_dl_near", "dev", "dev_near", "ballpng")
 
 
 def make_set(name: str) -> Path:
@@ -90,10 +94,10 @@ def synthetic_val(config: str, method: str, paths: list[str]) -> dict:
     return json.loads(out.stdout)["mae"]
 
 
-def benchmark(kind: str, root: Path, method: str, weights: str) -> dict:
+def benchmark(kind: str, root: Path, method: str, weights: str, light_distance: float | None = None) -> dict:
     from psctl.eval import run_benchmark
 
-    r = run_benchmark(kind, root=root, method=method, weights=weights, device="cpu")
+    r = run_benchmark(kind, root=root, method=method, weights=weights, device="cpu", light_distance=light_distance)
     return {"objects": {o["name"]: round(o["mae"], 2) for o in r["objects"]}, "mean": round(r["mean_mae"], 2)}
 
 
@@ -121,18 +125,21 @@ def main() -> None:
         result["val_l2"] = mae.pop("l2")
         for w in args.weights:
             result["weights"][w]["val"] = mae[w]
-    for name in ("syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal"):
+    for name in ("syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
+                 "syntest_dl_near"):
         if name not in args.sets:
             continue
         for w in args.weights:
             result["weights"][w][name] = (truncated(args.method, w) if name == "truncated"
                                           else benchmark("folder", make_set(name), args.method, w))
-    if "dev" in args.sets or "ballpng" in args.sets:
+    if {"dev", "dev_near", "ballpng"} & set(args.sets):
         if not DATA.is_dir():
             print(f"{DATA}: not found, DiLiGenT sets skipped", file=sys.stderr)
         for w in args.weights if DATA.is_dir() else []:
             if "dev" in args.sets:
                 result["weights"][w]["dev"] = benchmark("diligent", DATA / "pmsData_crop", args.method, w)
+            if "dev_near" in args.sets:
+                result["weights"][w]["dev_near"] = benchmark("diligent", DATA / "pmsData_crop", args.method, w, 2400.0)
             if "ballpng" in args.sets:
                 r = run_normals(DATA / "pmsData" / "ballPNG", method=args.method, weights=w, write=False, device="cpu")
                 result["weights"][w]["ballpng"] = round(r["mae"], 2)

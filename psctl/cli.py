@@ -54,7 +54,7 @@ class _Root(_Group):
                 hint = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
                 print(f"{where}{e.format_message().rstrip('.')}{hint}", file=sys.stderr)
             sys.exit(e.exit_code)
-        except _click.exceptions.Abort:
+        except typer.Abort:  # (typer's own name: its copy of click keeps Abort elsewhere)
             print("Aborted.", file=sys.stderr)
             sys.exit(1)
         # typer.Exit and Ctrl-C come back as an exit code; a finished command as None

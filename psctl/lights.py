@@ -926,9 +926,15 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if light_distance is not None:
         from psctl.nearlight import near_lights
 
+        from psctl.models.weights import installed_path
+        from psctl.sdps import SDPS_SECOND
+
         if not refine:
             raise PsctlError(None, "--light-distance needs --refine: LCNet reads the images as captured, and only "
                                    "the refinement divides out the falloff")
+        if normals_weights is None and not any(installed_path(m) for m in SDPS_SECOND):
+            raise PsctlError(None, "--light-distance needs the light refinement, which needs a normals network "
+                                   "(PS-FCN† / PS-FCN / PS-FCN+N): none is installed; name one with --normals-weights")
         near = near_lights(light_distance, mask)
         picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
                       f"each image by its light's falloff (LCNet reads the images as captured)")

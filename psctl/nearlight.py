@@ -43,11 +43,11 @@ class NearLights:
         indices of the region) -> float32 [h, w]; 1 at the centre, < 1 on the light's side.
         """
         d = self.distance
-        x = cols.astype(np.float64)[None, :] - self.centre[1]  # x right
-        y = self.centre[0] - rows.astype(np.float64)[:, None]  # y up: rows grow downwards
+        x = (cols.astype(np.float64)[None, :] - self.centre[1]) / d  # x right, in units of D
+        y = (self.centre[0] - rows.astype(np.float64)[:, None]) / d  # y up: rows grow downwards
         lx, ly, lz = (float(v) for v in light)
-        r2 = (d * lx - x) ** 2 + (d * ly - y) ** 2 + (d * lz) ** 2
-        return (r2 / (d * d)).astype(np.float32)
+        # |l - X/D|^2 = |D l - X|^2 / D^2, without squaring D (a huge D would overflow)
+        return ((lx - x) ** 2 + (ly - y) ** 2 + lz * lz).astype(np.float32)
 
 
 def near_lights(distance: float | None, mask: np.ndarray) -> NearLights | None:

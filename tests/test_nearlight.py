@@ -82,9 +82,15 @@ def test_sdps_corrects_the_falloff_along_the_estimated_lights(tmp_path, fake_wei
     """sdps: LCNet reads the images as captured; its second stage and light fit read them with
     the falloff of LCNet's lights divided out."""
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
-    _near_capture(tmp_path / "obj", 60.0)  # its listed lights only score sdps' estimates
+    arrays = _near_capture(tmp_path / "obj", 60.0)  # its listed lights only score sdps' estimates
     far = run_normals(tmp_path / "obj", method="sdps", write=False, device="cpu")
+    seen = []  # the directions the falloff followed: LCNet's (or refined), never the listed ones
+    correction = NearLights.correction
+    monkeypatch.setattr(NearLights, "correction", lambda self, light, rows, cols: (
+        seen.append(np.asarray(light, np.float64)), correction(self, light, rows, cols))[1])
     near = run_normals(tmp_path / "obj", method="sdps", write=False, device="cpu", light_distance=60)
+    listed = arrays["lights"].astype(np.float64)
+    assert seen and all(np.abs(listed - s).max(axis=1).min() > 1e-3 for s in seen)
     assert near["light_distance"] == 60 and any("as estimated" in n for n in near["notes"])
     assert near["lcnet_light_mae"] == far["lcnet_light_mae"] is not None  # LCNet saw the same images
     assert near["mae"] != far["mae"]  # the second stage did not
@@ -121,6 +127,12 @@ def test_light_distance_misuse_is_one_line(tmp_path, argv, says):
     assert proc.returncode == 2, proc.stderr
     assert len(proc.stderr.splitlines()) == 1 and says in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_huge_distance_is_distant_lights(tmp_path):
+    write_capture(tmp_path / "obj")
+    far = run_normals(tmp_path / "obj", method="l2", write=False)["mae"]
+    assert run_normals(tmp_path / "obj", method="l2", write=False, light_distance=1e200)["mae"] == pytest.approx(far)
 
 
 def test_near_lights_validates():

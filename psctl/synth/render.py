@@ -113,9 +113,9 @@ def near_light_field(lights: Tensor, distance: float, mask: Tensor) -> tuple[Ten
     yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
                             indexing="ij")
     X = torch.stack([xx - cx, cy - yy, torch.zeros_like(xx)]).reshape(3, -1)  # x right, y up
-    v = distance * lights.double()[:, :, None] - X[None]  # [N, 3, P]
+    v = lights.double()[:, :, None] - X[None] / distance  # [N, 3, P]: (D l - X) / D, D not squared
     r2 = (v * v).sum(1)
-    return (v / r2.sqrt()[:, None]).to(lights.dtype), (distance * distance / r2).to(lights.dtype)
+    return (v / r2.sqrt()[:, None]).to(lights.dtype), (1.0 / r2).to(lights.dtype)
 
 
 # --------------------------------------------------------------------------------------------
