@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -591,24 +591,18 @@ class ImageCheck:
     def notes(self) -> list[str]:
         """The same words for the same images whatever the reader divided them by (sdps reads a
         capture twice and shows a note once)."""
-        notes = black_images_note(self.capture, self.seen - self.lit)
+        notes = []
+        black = sorted(self.seen - self.lit)  # a light that did not fire looks like a shadow everywhere
+        if black:
+            names = ", ".join(self.capture.image_paths[i].name for i in black[:3]) + (" ..." if len(black) > 3 else "")
+            notes.append(f"images: {len(black)} of {self.capture.n_images} black over the object ({names}): a light "
+                         f"that did not fire? They count as shadow everywhere; leave them out with filenames.txt")
         if self.negative:
             idx = sorted(self.negative)
             names = ", ".join(self.capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
             notes.append(f"images: {len(idx)} of {self.capture.n_images} have negative values over the object "
                          f"({names}): taken as stored (noise about a subtracted black level?)")
         return notes
-
-
-def black_images_note(capture: Capture, black: Iterable[int]) -> list[str]:
-    """A note naming the images that were black over the object (indices into ``capture``): a
-    light that did not fire looks like a shadow everywhere to every method."""
-    idx = sorted(set(black))
-    if not idx:
-        return []
-    names = ", ".join(capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
-    return [f"images: {len(idx)} of {capture.n_images} black over the object ({names}): a light that did not "
-            f"fire? They count as shadow everywhere; leave them out with filenames.txt"]
 
 
 def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
