@@ -229,3 +229,47 @@ def test_synth_writes_near_lights(tmp_path):
     assert not np.array_equal(read_image(obj / "001.png")[0], read_image(tmp_path / "far" / obj.name / "001.png")[0])
     with pytest.raises(PsctlError, match="twice the image size"):
         write_preset(tmp_path / "bad", light_distance=50.0, **kw)
+
+
+# --- the training stream's near lights (near_lights option) ----------------------------------------
+
+
+def test_near_field_matches_the_renderer():
+    """The stream's field, in the source frame with no turn, is the renderer's (psctl synth's)."""
+    import torch
+
+    from psctl.synth import render as R
+    from psctl.synth.stream import near_field
+
+    mask = torch.zeros(20, 24, dtype=torch.bool)
+    mask[4:16, 6:18] = True  # centroid (9.5, 11.5)
+    lights = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0], [-0.5, 0.4, 0.8]]), dim=-1)
+    dirs, fall = R.near_light_field(lights, 60.0, mask)
+    rows, cols = torch.meshgrid(torch.arange(20.0), torch.arange(24.0), indexing="ij")
+    src_xy = torch.stack([cols - 11.5, 9.5 - rows]).reshape(1, 2, -1)
+    d2, f2 = near_field(lights[None], src_xy, torch.eye(2)[None], torch.tensor([60.0]))
+    torch.testing.assert_close(d2[0], dirs)
+    torch.testing.assert_close(f2[0], fall)
+    # distant: the listed directions and no falloff; a mirrored frame turns the directions back
+    flip = torch.diag(torch.tensor([-1.0, 1.0]))[None]
+    d3, f3 = near_field(lights[None], src_xy, flip, torch.tensor([float("inf")]))
+    torch.testing.assert_close(f3, torch.ones_like(f3))
+    torch.testing.assert_close(d3[0], (lights * torch.tensor([-1.0, 1.0, 1.0]))[:, :, None].expand(2, 3, 480))
+
+
+def test_stream_near_lights_option():
+    import torch
+
+    from psctl.errors import PsctlError as Err
+    from psctl.synth.stream import SynthStream, make_config
+    from tests.test_synth import SMALL
+
+    cfg = {**SMALL, "noise": 0.0}
+    off = SynthStream({**cfg, "near_lights": {"p": 0.0}}, seed=2).next_batch()
+    far = SynthStream({**cfg, "near_lights": {"p": 1.0, "radii": [1e6, 1e6]}}, seed=2).next_batch()
+    near = SynthStream({**cfg, "near_lights": {"p": 1.0, "radii": [3.0, 3.0]}}, seed=2).next_batch()
+    assert torch.equal(off["lights"], near["lights"]) and torch.equal(off["normals"], near["normals"])
+    torch.testing.assert_close(far["images"], off["images"], atol=1e-4, rtol=1e-4)  # a million radii: distant
+    assert (near["images"] - off["images"]).abs().max() > 0.01
+    with pytest.raises(Err, match="radii"):
+        make_config(near_lights={"radii": [1.0, 5.0]})

@@ -91,6 +91,11 @@ DEFAULT_CONFIG: dict = {
     # light directions"). The images are rendered with the true lights; the `lights` batch key
     # is the listed one.
     "direction_error": None,  # None or {"p": 0.5, "zenith_scale": [0.94, 1.06], "jitter": [0.0, 1.0]}
+    # near point lights: with chance p a sample's lights are points at a distance of `radii`
+    # object radii (uniform per sample) from the object's centroid along their directions, as
+    # DiLiGenT's (16-23 radii, docs/near-lights.md): per-pixel directions and 1/r^2 falloff in the
+    # shading; cast shadows and the `lights` batch key stay the central directions.
+    "near_lights": None,  # None or {"p": 0.5, "radii": [10.0, 40.0]}
     "exposure": (0.1, 0.5),  # mean radiance of the object, log-uniform in this range
     "clip": 1.0,  # sensor saturation of e * radiance (None: no clipping)
     "noise": 0.025,  # uniform noise in [-noise, noise] (the paper's augmentation)
@@ -147,6 +152,7 @@ def turn_directions(d: Tensor, factor: Tensor, noise: Tensor) -> Tensor:
 
 INTENSITY_ERROR_KEYS = ("p", "share", "scale")
 DIRECTION_ERROR_KEYS = ("p", "zenith_scale", "jitter")
+NEAR_LIGHTS_KEYS = ("p", "radii")
 
 
 def _error_opts(name: str, opts, keys: tuple[str, ...]) -> Callable[[str, tuple], tuple[float, float]] | None:
@@ -206,6 +212,31 @@ def check_intensity_error(opts) -> None:
         raise PsctlError(None, f"{where}: need 0 < scale lo <= hi, got [{f_lo}, {f_hi}]")
 
 
+def check_near_lights(opts) -> None:
+    """Raise PsctlError unless ``opts`` is None or a valid ``near_lights`` dict (keys p, radii;
+    0 <= p <= 1, 2 <= radii lo <= hi, finite: a light must clear the object)."""
+    pair = _error_opts("near_lights", opts, NEAR_LIGHTS_KEYS)
+    if pair is None:
+        return
+    lo, hi = pair("radii", (10.0, 40.0))
+    if not (2.0 <= lo <= hi and math.isfinite(hi)):
+        raise PsctlError(None, f"synth stream option 'near_lights': need 2 <= radii lo <= hi, got [{lo}, {hi}]")
+
+
+def near_field(l_src: Tensor, src_xy: Tensor, to_src: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:
+    """Point lights ``distance`` [b] source pixels (inf: distant) from the object's centroid along
+    ``l_src`` [b, n, 3] (source frame, x right, y up), seen from pixels at ``src_xy`` [b, 2, P]
+    (source pixels from the centroid, y up, every pixel at the centroid's depth).
+
+    Returns per-pixel directions in the output frame [b, n, 3, P] (``to_src`` [b, 2, 2] maps
+    output to source directions and is orthogonal) and the falloff D^2 / |D l - X|^2 [b, n, P]."""
+    x = src_xy / distance[:, None, None]  # X / D, 0 for distant lights
+    v = l_src[..., None] - torch.cat([x, torch.zeros_like(x[:, :1])], 1)[:, None]  # (D l - X) / D: [b, n, 3, P]
+    r2 = (v * v).sum(2)
+    xy = torch.einsum("bji,bnjp->bnip", to_src, v[:, :, :2])  # back to the output frame: to_src^T
+    return torch.cat([xy, v[:, :, 2:]], 2) / r2.sqrt()[:, :, None], 1.0 / r2
+
+
 def make_config(config: dict | None = None, **overrides) -> dict:
     """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
     cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
@@ -226,6 +257,7 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     L.check_intensities(cfg["intensities"])  # before the geometry pool is built
     check_intensity_error(cfg["intensity_error"])
     check_direction_error(cfg["direction_error"])
+    check_near_lights(cfg["near_lights"])
     return cfg
 
 
@@ -397,7 +429,9 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     Returns normals [b, 3, P] in the output frame, mask [b, 1, P] (float 0/1), horizon
     [b, K, P] in the source frame, the 2 x 2 map ``to_src`` taking output-frame (x, y-up)
     directions to source-frame ones, ``slot`` [b], and ``transfer`` [b, 10, P] (source frame;
-    None without interreflections).
+    None without interreflections); with ``cfg["near_lights"]`` also ``src_xy`` [b, 2, P], each
+    pixel's source position in source pixels from the G-buffer's object centroid (x right, y up),
+    and ``radius`` [b], the object's radius in source pixels (its area as a disk).
     """
     dev = pool.device
     s, c = pool.size, cfg["crop"]
@@ -458,7 +492,16 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     rot = torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)  # [b, 2, 2] grid
     fl = torch.diag_embed(torch.stack([flip, torch.ones_like(flip)], -1))
     to_src = d @ rot @ fl @ d
-    return {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot, "transfer": transfer}
+    out = {"normals": normals, "mask": msk, "horizon": horizon, "to_src": to_src, "slot": slot, "transfer": transfer}
+    if cfg.get("near_lights"):  # where the object's centre is, for near_field (no random draws)
+        inside = (data[slot, :, 3] > 0.5).float()  # [b, S*S]
+        area = inside.sum(1).clamp_min(1.0)
+        grid = torch.arange(s * s, device=dev)
+        col, row = (grid % s).float(), (grid // s).float()
+        ccol, crow = (inside * col).sum(1) / area, (inside * row).sum(1) / area
+        out["src_xy"] = torch.stack([px - ccol[:, None], crow[:, None] - py], 1)  # y up
+        out["radius"] = (area / math.pi).sqrt()
+    return out
 
 
 def object_mean(img: Tensor, msk: Tensor) -> Tensor:
@@ -604,11 +647,21 @@ class SynthStream:
             rho = a[:, None] * kd / kd.amax(1, keepdim=True).clamp_min(1e-6)
             indirect = R.indirect_irradiance(crops["transfer"], l_src, rho)
 
-        img = R.shade(normals, lights, mat, vis, texture=texture, ambient=ambient, indirect=indirect)  # [b, n, 3, p]
+        shade_lights, fall = lights, None
+        if cfg["near_lights"]:  # (draws only when enabled: older recipes keep their batches)
+            near = cfg["near_lights"]
+            lo_r, hi_r = near.get("radii", (10.0, 40.0))
+            on = torch.rand(b, generator=gen, device=dev) < float(near.get("p", 0.5))
+            radii = lo_r + (hi_r - lo_r) * torch.rand(b, generator=gen, device=dev)
+            dist = torch.where(on, radii * crops["radius"], torch.full_like(radii, math.inf))
+            shade_lights, fall = near_field(l_src, crops["src_xy"], crops["to_src"], dist)
+
+        img = R.shade(normals, shade_lights, mat, vis, texture=texture, ambient=ambient, indirect=indirect,
+                      falloff=fall)  # [b, n, 3, p]
         if mat_b is not None:  # blends: f = w f_A + (1 - w) f_B on the blended samples only
-            img_b = R.shade(normals[sv], lights[sv], mat_b, None if vis is None else vis[sv],
+            img_b = R.shade(normals[sv], shade_lights[sv], mat_b, None if vis is None else vis[sv],
                             texture=None if texture is None else texture[sv], ambient=None if ambient is None else ambient[sv],
-                            indirect=None if indirect is None else indirect[sv])
+                            indirect=None if indirect is None else indirect[sv], falloff=None if fall is None else fall[sv])
             w = weights[:, None]
             img[sv] = w * img[sv] + (1.0 - w) * img_b
         # exposure: scale each sample so its mean object radiance hits a random target
