@@ -35,7 +35,7 @@ def _no_flag_type(cls: type) -> type:
 
 
 _Command, _Group = _no_flag_type(typer.core.TyperCommand), _no_flag_type(typer.core.TyperGroup)
-# Typer >= 0.23 carries its own copy of click; older Typers use click itself
+# newer Typers carry their own copy of click (typer._click; 0.29 does), older ones use click itself
 _click = getattr(typer.core, "_click", None) or __import__("click")
 
 
