@@ -523,3 +523,32 @@ def test_every_public_name_resolves():
 
     for name in psctl.__all__:
         assert getattr(psctl, name) is not None, name
+
+
+def test_root_group_exit_codes(capsys):
+    """psctl's root group: 0 when a command finishes, 1 with one line for an abort (an EOFError
+    inside a command), the command's own code for typer.Exit."""
+    import typer
+
+    from psctl.cli import _Root
+
+    app = typer.Typer(cls=_Root, add_completion=False)
+
+    @app.command()
+    def ok() -> None:
+        pass
+
+    @app.command()
+    def eof() -> None:
+        raise EOFError
+
+    @app.command()
+    def three() -> None:
+        raise typer.Exit(3)
+
+    for name, code in (("ok", 0), ("eof", 1), ("three", 3)):
+        with pytest.raises(SystemExit) as e:
+            typer.main.get_command(app).main([name], prog_name="psctl")
+        assert e.value.code == code, name
+    err = capsys.readouterr().err
+    assert "Aborted" in err and "Traceback" not in err
