@@ -146,7 +146,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
 def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
-                     refine: bool = True, falloff: str | None = None, roll: bool | None = None) -> np.ndarray:
+                     refine: bool = True, falloff: str | None = None, roll: bool | None = None,
+                     light_distance: float | None = None) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -170,6 +171,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             default, ``psctl.lights.DEFAULT_REFINE``).
         roll: sdps: turn the refined lights and the normals about the view axis by the normals'
             roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
+        light_distance: l2, ps-fcn, ps-fcn-n: the lights are points this many pixels from the
+            mask's centroid along ``lights``; each image is divided by its light's falloff first
+            (``psctl.nearlight``, docs/near-lights.md).
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -186,6 +190,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
+    if light_distance is not None:
+        if method not in ("l2", "ps-fcn", "ps-fcn-n"):
+            raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
+                                   f"the falloff follows; use l2, ps-fcn or ps-fcn-n (or psctl.run_normals on a folder)")
+        from psctl.nearlight import near_lights
+
+        h, w = images.shape[1:3]
+        near = near_lights(light_distance, np.ones((h, w), bool) if mask is None else mask)
+        rows, cols = np.arange(h), np.arange(w)
+        images = np.stack([img * near.correction(lt, rows, cols)[..., None] for img, lt in zip(images, lights)])
     if method == "sdps":
         from psctl.lights import array_lights
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage

@@ -58,6 +58,29 @@ def test_l2_with_the_light_distance_recovers_the_normals(tmp_path):
     assert any("falloff" in n for n in near["notes"])
 
 
+def test_estimate_normals_on_arrays_takes_the_light_distance(tmp_path):
+    from psctl.api import estimate_normals
+    from psctl.metrics import angular_error
+
+    arrays = write_capture(tmp_path / "distant", n=16, size=40)
+    m, lights = arrays["mask"], arrays["lights"]
+    rows, cols = np.nonzero(m)
+    centre = (rows.mean(), cols.mean())
+    distant = np.stack([img / e for img, e in zip(arrays["images"], arrays["intensities"])])
+    near_imgs = np.stack([img * _falloff(lt, 60.0, centre, m.shape)[..., None] for img, lt in zip(distant, lights)])
+    gt = arrays["normals"]
+
+    def mae(n):
+        return float(angular_error(n[m], gt[m]).mean())
+
+    base = mae(estimate_normals(distant, lights, m))
+    far = mae(estimate_normals(near_imgs, lights, m))
+    near = mae(estimate_normals(near_imgs, lights, m, light_distance=60))
+    assert abs(near - base) < 1e-3 and far > base + 3, (base, near, far)
+    with pytest.raises(PsctlError, match="ups-fcn"):
+        estimate_normals(near_imgs, None, m, method="ups-fcn", light_distance=60)
+
+
 def test_network_methods_read_the_corrected_images(tmp_path):
     """ps-fcn reads the images through the same reader: its input changes with the distance."""
     torch = pytest.importorskip("torch")
