@@ -29,6 +29,7 @@ ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
+LISTED_LIGHTS = ("l2", "ps-fcn", "ps-fcn-n")  # the methods that read light_directions.txt
 
 
 def _noop(_: int) -> None:
@@ -191,7 +192,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
     if light_distance is not None:
-        if method not in ("l2", "ps-fcn", "ps-fcn-n"):
+        if method not in LISTED_LIGHTS:
             raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
                                    f"the falloff follows; use l2, ps-fcn or ps-fcn-n (or psctl.run_normals on a folder)")
         from psctl.nearlight import near_lights
@@ -272,11 +273,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
-    if light_distance is not None and method not in ("l2", "ps-fcn", "ps-fcn-n", "sdps"):
+    if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n or sdps")
     # an --images subset is spread over the light directions only where the method reads them
-    by_lights = cap.calibrated and method in ("l2", "ps-fcn", "ps-fcn-n")
+    by_lights = cap.calibrated and method in LISTED_LIGHTS
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
     cap = cap.subset(select_images(cap.n_images, n_images, seed, cap.lights if by_lights else None))
     notes = ([note] if note else []) + picked + capture_notes(cap)

@@ -924,9 +924,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     mask = load_mask(cap)
     near = None
     if light_distance is not None:
-        from psctl.nearlight import near_lights
-
         from psctl.models.weights import installed_path
+        from psctl.nearlight import near_lights
         from psctl.sdps import SDPS_SECOND
 
         if not refine:

@@ -262,7 +262,7 @@ def test_near_field_matches_the_renderer():
     import torch
 
     from psctl.synth import render as R
-    from psctl.synth.stream import near_field
+    from psctl.synth.render import near_field
 
     mask = torch.zeros(20, 24, dtype=torch.bool)
     mask[4:16, 6:18] = True  # centroid (9.5, 11.5)

@@ -103,19 +103,34 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
     return img
 
 
+def near_field(lights: Tensor, xy: Tensor, to_src: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:
+    """Point lights ``distance`` [b] pixels (inf: distant) from an object's centroid along
+    ``lights`` [b, n, 3] (source frame, x right, y up), seen from pixels at ``xy`` [b, 2, P]
+    (pixels from the centroid, y up, every pixel at the centroid's depth; orthographic camera,
+    psctl.nearlight's model).
+
+    Returns per-pixel directions [b, n, 3, P] in the output frame (``to_src`` [b, 2, 2] maps
+    output to source directions and is orthogonal; the identity for psctl synth) and the falloff
+    D^2 / |D l - X|^2 [b, n, P]."""
+    x = xy / distance[:, None, None]  # X / D, 0 for distant lights
+    v = lights[..., None] - torch.cat([x, torch.zeros_like(x[:, :1])], 1)[:, None]  # (D l - X) / D, D not squared
+    r2 = (v * v).sum(2)
+    out_xy = torch.einsum("bji,bnjp->bnip", to_src, v[:, :, :2])  # back to the output frame: to_src^T
+    return torch.cat([out_xy, v[:, :, 2:]], 2) / r2.sqrt()[:, :, None], 1.0 / r2
+
+
 def near_light_field(lights: Tensor, distance: float, mask: Tensor) -> tuple[Tensor, Tensor]:
-    """Point lights at ``distance`` pixels from the centroid of ``mask`` [H, W] along ``lights``
-    [N, 3] (orthographic camera, every pixel at the centroid's depth; psctl.nearlight's model):
-    per-pixel directions [N, 3, H*W] and falloff D^2 / |D l - X|^2 [N, H*W]."""
+    """``near_field`` for one view: point lights at ``distance`` pixels from the centroid of
+    ``mask`` [H, W] along ``lights`` [N, 3] -> per-pixel directions [N, 3, H*W] and falloff [N, H*W]."""
     h, w = mask.shape
     rows, cols = torch.nonzero(mask, as_tuple=True)
     cy, cx = rows.double().mean(), cols.double().mean()
     yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
                             indexing="ij")
-    X = torch.stack([xx - cx, cy - yy, torch.zeros_like(xx)]).reshape(3, -1)  # x right, y up
-    v = lights.double()[:, :, None] - X[None] / distance  # [N, 3, P]: (D l - X) / D, D not squared
-    r2 = (v * v).sum(1)
-    return (v / r2.sqrt()[:, None]).to(lights.dtype), (1.0 / r2).to(lights.dtype)
+    xy = torch.stack([xx - cx, cy - yy]).reshape(1, 2, -1)  # x right, y up
+    dirs, fall = near_field(lights.double()[None], xy, torch.eye(2, dtype=torch.float64)[None],
+                            torch.tensor([float(distance)], dtype=torch.float64))
+    return dirs[0].to(lights.dtype), fall[0].to(lights.dtype)
 
 
 # --------------------------------------------------------------------------------------------

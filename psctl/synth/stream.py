@@ -223,20 +223,6 @@ def check_near_lights(opts) -> None:
         raise PsctlError(None, f"synth stream option 'near_lights': need 2 <= radii lo <= hi, got [{lo}, {hi}]")
 
 
-def near_field(l_src: Tensor, src_xy: Tensor, to_src: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:
-    """Point lights ``distance`` [b] source pixels (inf: distant) from the object's centroid along
-    ``l_src`` [b, n, 3] (source frame, x right, y up), seen from pixels at ``src_xy`` [b, 2, P]
-    (source pixels from the centroid, y up, every pixel at the centroid's depth).
-
-    Returns per-pixel directions in the output frame [b, n, 3, P] (``to_src`` [b, 2, 2] maps
-    output to source directions and is orthogonal) and the falloff D^2 / |D l - X|^2 [b, n, P]."""
-    x = src_xy / distance[:, None, None]  # X / D, 0 for distant lights
-    v = l_src[..., None] - torch.cat([x, torch.zeros_like(x[:, :1])], 1)[:, None]  # (D l - X) / D: [b, n, 3, P]
-    r2 = (v * v).sum(2)
-    xy = torch.einsum("bji,bnjp->bnip", to_src, v[:, :, :2])  # back to the output frame: to_src^T
-    return torch.cat([xy, v[:, :, 2:]], 2) / r2.sqrt()[:, :, None], 1.0 / r2
-
-
 def make_config(config: dict | None = None, **overrides) -> dict:
     """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
     cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
@@ -430,7 +416,8 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     [b, K, P] in the source frame, the 2 x 2 map ``to_src`` taking output-frame (x, y-up)
     directions to source-frame ones, ``slot`` [b], and ``transfer`` [b, 10, P] (source frame;
     None without interreflections); with ``cfg["near_lights"]`` also ``src_xy`` [b, 2, P], each
-    pixel's source position in source pixels from the G-buffer's object centroid (x right, y up),
+    pixel's source position in source pixels from the G-buffer's object centroid (x right, y up,
+    for ``render.near_field``),
     and ``radius`` [b], the object's radius in source pixels (its area as a disk).
     """
     dev = pool.device
@@ -654,7 +641,7 @@ class SynthStream:
             on = torch.rand(b, generator=gen, device=dev) < float(near.get("p", 0.5))
             radii = lo_r + (hi_r - lo_r) * torch.rand(b, generator=gen, device=dev)
             dist = torch.where(on, radii * crops["radius"], torch.full_like(radii, math.inf))
-            shade_lights, fall = near_field(l_src, crops["src_xy"], crops["to_src"], dist)
+            shade_lights, fall = R.near_field(l_src, crops["src_xy"], crops["to_src"], dist)
 
         img = R.shade(normals, shade_lights, mat, vis, texture=texture, ambient=ambient, indirect=indirect,
                       falloff=fall)  # [b, n, 3, p]
