@@ -25,10 +25,13 @@ synthetic sets, DiLiGenT is only reported):
                      (benchmarks/miscalibrated_set.py --directions --seed 52)
   syntest_dl_near    syntest_dl's objects under point lights 1,000 pixels away (19-26 radii, as
                      DiLiGenT's; docs/near-lights.md), read as distant lights: robustness, not in the rule
+  syntest_dl_384     syntest_dl rendered at 384 px instead of 128 (objects up to 346 px across instead of
+                     116; DiLiGenT's crops: 141-407 px; training views: at most 128 px): scale, not in the rule
   dev         the DiLiGenT dev split, cropped 8-bit, all 96 images (../shared/data)
   dev_near    the same with --light-distance 2400 (DiLiGenT's lights, measured on these objects)
   ballpng     the full-size 16-bit ballPNG
-Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores) or
+Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores; syntest_dl_384
+about 2 minutes on one) or
 miscalibrated_set.py. Prints one JSON object (and writes it with --out): per file and set,
 per-object MAE and the mean, and with all seven rule sets the rule's sum.
 """
@@ -56,10 +59,11 @@ SYNTH = {  # set -> (folder, how to make it: psctl synth arguments, or a miscali
     "syntest_dl_miscal": (CACHE / "syntest_dl_miscal", ["miscal", "--seed", "51"]),
     "syntest_dl_dircal": (CACHE / "syntest_dl_dircal", ["miscal", "--directions", "--seed", "52"]),
     "syntest_dl_near": (CACHE / "syntest_dl_near", ["synth", *DL, "--light-distance", "1000"]),
+    "syntest_dl_384": (CACHE / "syntest_dl_384", ["synth", *DL, "--size", "384"]),
 }
 RULE = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal")
 SETS = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
-        "syntest_dl_near", "dev", "dev_near", "ballpng")
+        "syntest_dl_near", "syntest_dl_384", "dev", "dev_near", "ballpng")
 
 
 def make_set(name: str) -> Path:
@@ -126,7 +130,7 @@ def main() -> None:
         for w in args.weights:
             result["weights"][w]["val"] = mae[w]
     for name in ("syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
-                 "syntest_dl_near"):
+                 "syntest_dl_near", "syntest_dl_384"):
         if name not in args.sets:
             continue
         for w in args.weights:
