@@ -324,7 +324,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if light_distance is not None:
         from psctl.nearlight import near_lights
 
-        near = near_lights(light_distance, mask)
+        near = near_lights(light_distance, mask, cap.mask_path)
         r, c = near.centre
         notes.append(f"lights: points {near.distance:g} pixels from the object's centre (row {r:.0f}, column "
                      f"{c:.0f}): each image divided by its light's falloff; directions as " + (

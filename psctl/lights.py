@@ -934,7 +934,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         if normals_weights is None and not any(installed_path(m) for m in SDPS_SECOND):
             raise PsctlError(None, "--light-distance needs the light refinement, which needs a normals network "
                                    "(PS-FCN† / PS-FCN / PS-FCN+N): none is installed; name one with --normals-weights")
-        near = near_lights(light_distance, mask)
+        near = near_lights(light_distance, mask, cap.mask_path)
         picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
                       f"each image by its light's falloff (LCNet reads the images as captured)")
     est = capture_lights(cap, mask, weights, {"device": device, "decode": decode, "views": views}, progress)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -50,10 +51,11 @@ class NearLights:
         return ((lx - x) ** 2 + (ly - y) ** 2 + lz * lz).astype(np.float32)
 
 
-def near_lights(distance: float | None, mask: np.ndarray) -> NearLights | None:
+def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None = None) -> NearLights | None:
     """``NearLights`` at ``distance`` pixels from the centroid of ``mask`` [H, W] (None: distant
     lights). A distance that is not a positive number, or that does not clear the object (a
-    light inside it), is a user error."""
+    light inside it), is a user error; the latter names ``mask_path``, the file the mask came
+    from (None: no mask file, the whole frame)."""
     if distance is None:
         return None
     try:
@@ -66,7 +68,8 @@ def near_lights(distance: float | None, mask: np.ndarray) -> NearLights | None:
     centre = (float(rows.mean()), float(cols.mean()))
     reach = float(np.sqrt(((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2).max()))
     if d <= 2 * reach:  # the first-order picture (and any listed direction) would be meaningless
-        raise PsctlError(None, f"--light-distance {d:g} pixels does not clear the object: its mask reaches "
-                               f"{reach:.0f} pixels from its centre (the distance is in image pixels, from the "
-                               f"object to the lights; it must be over twice that)")
+        what = "the mask" if mask_path is not None else "the object (no mask: the whole frame)"
+        raise PsctlError(mask_path, f"--light-distance {d:g} pixels does not clear the object: {what} reaches "
+                                    f"{reach:.0f} pixels from its centre (the distance is in image pixels, from "
+                                    f"the object to the lights; it must be over twice that)")
     return NearLights(d, centre)

@@ -141,7 +141,7 @@ def test_psctl_lights_refines_on_corrected_images(tmp_path, fake_weights, monkey
 @pytest.mark.parametrize("argv, says", [
     (["--light-distance", "-5"], "positive"),
     (["--light-distance", "nan"], "positive"),
-    (["--light-distance", "20"], "does not clear the object"),
+    (["--light-distance", "20"], "mask.png: --light-distance 20 pixels does not clear the object: the mask reaches"),
     (["--light-distance", "100", "-m", "ups-fcn"], "ups-fcn"),
 ])
 def test_light_distance_misuse_is_one_line(tmp_path, argv, says):
@@ -166,6 +166,9 @@ def test_near_lights_validates():
     assert near.distance == 100 and near.centre == pytest.approx((19.5, 19.5))
     with pytest.raises(PsctlError, match="number"):
         near_lights("far", mask)
+    with pytest.raises(PsctlError, match="no mask: the whole frame") as e:
+        near_lights(20, mask)
+    assert e.value.path is None
 
 
 # --- the renderer's near lights (psctl synth --light-distance) ------------------------------------
