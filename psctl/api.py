@@ -227,7 +227,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
-                light_distance: float | None = None) -> dict:
+                light_distance: float | None = None, arrays: dict | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -253,7 +253,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, sdps): the lights are points that far from
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
-    the images as captured.
+    the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
+    [H, W, 3], "mask" [H, W] and "error" [H, W] degrees (None without ground truth).
     """
     from dataclasses import replace
 
@@ -424,6 +425,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lcnet_light_mae"] = lcnet_stats["light_mae"]  # before refinement
         report["lcnet_intensity_re"] = lcnet_stats["intensity_re"]
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
+
+    if arrays is not None:
+        arrays.update(normals=normals, mask=mask, error=error)
 
     # --- write ---------------------------------------------------------------------------------
     if write:

@@ -61,7 +61,9 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
-    "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/.
+    "seconds"}], "mean_mae", "paper"}. With ``out``, each object's outputs go to out/<object>/,
+    and out/eval.png (every object's normal and error maps, ``psctl.io.report.benchmark_sheet``)
+    and out/eval.json (this result) join them; the result then has "outputs".
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
     ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
     near point lights: ``psctl.api.run_normals``) to every object's capture.
@@ -72,6 +74,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import find_objects, object_name, open_capture
+    from psctl.io.images import write_image
+    from psctl.io.report import benchmark_sheet, object_panel, write_json
     from psctl.lights import refine_config
 
     refine_config(falloff, roll)  # a bad value stops before any object runs
@@ -101,15 +105,34 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
+    panels = []  # with --out: each object's small picture for eval.png
     # with --out every object's files appear together at the end, or none do
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
         for folder, name in zip(folders, names):
+            arrays = {} if out is not None else None
             r = run_normals(folder, method=method, out=None if out is None else Path(out) / name,
                             n_images=n_images, seed=seed, write=out is not None, progress=progress,
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
-                            light_distance=light_distance)
+                            light_distance=light_distance, arrays=arrays)
             _collect(objects, used, r)
+            if arrays is not None:
+                panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
+                                           arrays["mask"]))
+        result = _table(benchmark, root, objects, used, light_distance)
+        if batch is not None:
+            result["outputs"] = {"eval.png": str(Path(out) / "eval.png"), "eval.json": str(Path(out) / "eval.json")}
+            stage = batch.stage(out).path
+            title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
+                f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
+                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.name})"
+            write_image(stage / "eval.png", benchmark_sheet(panels, title), "uint8")
+            write_json(stage / "eval.json", result)
+    return result
+
+
+def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None) -> dict:
+    """The run's JSON object from its objects' rows."""
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper = PAPER_DILIGENT.get(used_method, {}) if benchmark == "diligent" else {}
     result = {

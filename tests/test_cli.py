@@ -328,8 +328,27 @@ def test_eval_out_uses_object_names(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "out",
           "--quiet", check=True)
-    assert sorted(os.listdir(tmp_path / "out")) == ["a"]
+    assert sorted(os.listdir(tmp_path / "out")) == ["a", "eval.json", "eval.png"]
     assert "normal.png" in os.listdir(tmp_path / "out" / "a")
+
+
+def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
+    for k, name in enumerate(("aPNG", "bPNG")):
+        write_capture(tmp_path / "root" / name, n=6, seed=k)
+    out = tmp_path / "out"
+    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out,
+                         "--json", "--quiet", check=True).stdout)
+    assert r["outputs"] == {"eval.png": str(out / "eval.png"), "eval.json": str(out / "eval.json")}
+    saved = json.loads((out / "eval.json").read_text())
+    assert [o["mae"] for o in saved["objects"]] == [o["mae"] for o in r["objects"]] and saved["mean_mae"] == r["mean_mae"]
+    sheet, info = read_image(out / "eval.png")
+    assert info.bits == 8 and sheet.shape[2] == 3 and sheet.shape[0] > 2 * 160  # two rows of 160 px maps
+    # the first object's normal map: its own normal.png, cropped to the mask and scaled into the sheet
+    own = read_normal_map(out / "a" / "normal.png")
+    assert np.isclose(sheet, (own[20, 20] + 1) / 2, atol=2 / 255).all(-1).any()
+    r2 = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, "--quiet",
+               check=True)
+    assert "eval.png" in r2.stdout and sorted(os.listdir(out)) == ["a", "b", "eval.json", "eval.png"]
 
 
 def test_outputs_never_overwrite_inputs(capture):

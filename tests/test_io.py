@@ -604,3 +604,25 @@ def test_negative_float_pixels_get_a_note(tmp_path, method):
     hits = [n for n in r["notes"] if "negative values" in n]
     assert hits == ["images: 1 of 8 have negative values over the object (003.exr): taken as stored "
                     "(noise about a subtracted black level?)"], r["notes"]
+
+
+def test_benchmark_sheet_draws_each_objects_maps():
+    from psctl.io.report import benchmark_sheet, jet, object_panel
+
+    mask = np.zeros((50, 80), bool)
+    mask[10:30, 20:60] = True  # 20 x 40: the panel is cropped to it (4 px margin) and scaled to 40 rows
+    normals = np.zeros((50, 80, 3), np.float32)
+    normals[..., 2] = 1.0
+    error = np.full((50, 80), 30.0, np.float32)
+    p = object_panel("cat", 1.234, normals, error, mask, vmax=45.0, height=40)
+    assert p["normals"].shape == (40, round(48 * 40 / 28), 3) and p["error"].shape == p["normals"].shape
+    assert np.allclose(p["normals"][20, 34], (0.5, 0.5, 1.0)) and np.allclose(p["normals"][0, 0], 0.0)  # margin: outside
+    assert np.allclose(p["error"][20, 34], jet(np.float32(30 / 45)))
+    q = object_panel("pot2", None, normals, None, mask, height=40)  # no ground truth: no error map
+    sheet = benchmark_sheet([p, q], "L2  MEAN 1.23°")
+    assert sheet.ndim == 3 and sheet.shape[2] == 3 and 0 <= sheet.min() and sheet.max() <= 1
+    blue = np.isclose(sheet, (0.5, 0.5, 1.0)).all(-1)
+    assert blue.sum() == 2 * (p["normals"][..., 2] == 1.0).sum()  # both normal maps, every object pixel
+    red = jet(np.float32(30 / 45))
+    bar = np.isclose(jet(np.linspace(1.0, 0.0, 40)), red).all(-1).sum() * 10  # the colour bar's rows of it, 10 px wide
+    assert np.isclose(sheet, red).all(-1).sum() == (p["error"][..., 0] > 0).sum() + bar  # one error map, and the bar

@@ -1,4 +1,5 @@
-"""Pictures for people: the angular-error heat map with a colour bar and its numbers.
+"""Pictures for people: the angular-error heat map with a colour bar and its numbers, and the
+sheet of a whole benchmark run (normal and error maps of every object).
 
 Drawn with NumPy and a built-in 5 x 7 pixel font, so no plotting library is needed.
 """
@@ -37,11 +38,40 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
     "I": [" ### ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", " ### "],
     "M": ["#   #", "## ##", "# # #", "# # #", "#   #", "#   #", "#   #"],
     "N": ["#   #", "##  #", "# # #", "#  ##", "#   #", "#   #", "#   #"],
+    "B": ["#### ", "#   #", "#   #", "#### ", "#   #", "#   #", "#### "],
+    "C": [" ### ", "#   #", "#    ", "#    ", "#    ", "#   #", " ### "],
+    "F": ["#####", "#    ", "#    ", "#### ", "#    ", "#    ", "#    "],
+    "G": [" ### ", "#   #", "#    ", "# ###", "#   #", "#   #", " ####"],
+    "H": ["#   #", "#   #", "#   #", "#####", "#   #", "#   #", "#   #"],
+    "J": ["  ###", "   # ", "   # ", "   # ", "   # ", "#  # ", " ##  "],
+    "K": ["#   #", "#  # ", "# #  ", "##   ", "# #  ", "#  # ", "#   #"],
+    "L": ["#    ", "#    ", "#    ", "#    ", "#    ", "#    ", "#####"],
+    "O": [" ### ", "#   #", "#   #", "#   #", "#   #", "#   #", " ### "],
+    "P": ["#### ", "#   #", "#   #", "#### ", "#    ", "#    ", "#    "],
+    "Q": [" ### ", "#   #", "#   #", "#   #", "# # #", "#  # ", " ## #"],
+    "R": ["#### ", "#   #", "#   #", "#### ", "# #  ", "#  # ", "#   #"],
+    "S": [" ####", "#    ", "#    ", " ### ", "    #", "    #", "#### "],
+    "T": ["#####", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  "],
+    "U": ["#   #", "#   #", "#   #", "#   #", "#   #", "#   #", " ### "],
+    "V": ["#   #", "#   #", "#   #", "#   #", "#   #", " # # ", "  #  "],
+    "W": ["#   #", "#   #", "#   #", "# # #", "# # #", "# # #", " # # "],
+    "X": ["#   #", "#   #", " # # ", "  #  ", " # # ", "#   #", "#   #"],
+    "Y": ["#   #", "#   #", " # # ", "  #  ", "  #  ", "  #  ", "  #  "],
+    "Z": ["#####", "    #", "   # ", "  #  ", " #   ", "#    ", "#####"],
+    "_": ["     ", "     ", "     ", "     ", "     ", "     ", "#####"],
+    "+": ["     ", "  #  ", "  #  ", "#####", "  #  ", "  #  ", "     "],
+    "/": ["    #", "    #", "   # ", "  #  ", " #   ", "#    ", "#    "],
+    "(": ["   # ", "  #  ", " #   ", " #   ", " #   ", "  #  ", "   # "],
+    ")": [" #   ", "  #  ", "   # ", "   # ", "   # ", "  #  ", " #   "],
+    ",": ["     ", "     ", "     ", "     ", " ##  ", "  #  ", " #   "],
+    "=": ["     ", "     ", "#####", "     ", "#####", "     ", "     "],
+    "?": [" ### ", "#   #", "    #", "   # ", "  #  ", "     ", "  #  "],
 }
 
 
 def text_bitmap(text: str, scale: int = 1) -> np.ndarray:
-    """Render ``text`` (digits, '.', ':', '°', '>', '-', and A D E I M N) as a bool bitmap."""
+    """Render ``text`` (letters, in capitals, digits and ``. : ° > - _ + / ( ) , = ?``; anything else
+    is a blank) as a bool bitmap [7 * scale, (6 * len - 1) * scale]."""
     glyphs = [np.array([[c == "#" for c in row] for row in _FONT.get(ch, _FONT[" "])]) for ch in text.upper()]
     gap = np.zeros((7, 1), bool)
     parts = []
@@ -97,6 +127,68 @@ def write_error_map(path: str | os.PathLike, error: np.ndarray, mask: np.ndarray
     if mae is not None:
         title = f"MAE {mae:.2f}°" + (f"  MEDIAN {median:.2f}°" if median is not None else "")
     write_image(path, error_heatmap(error, mask, vmax, title), "uint8")
+
+
+def _resize_nearest(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    rows = np.minimum(((np.arange(h) + 0.5) * img.shape[0] / h).astype(int), img.shape[0] - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * img.shape[1] / w).astype(int), img.shape[1] - 1)
+    return img[rows][:, cols]
+
+
+def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.ndarray | None, mask: np.ndarray,
+                 vmax: float = 45.0, height: int = 160) -> dict:
+    """One object's column of ``benchmark_sheet``, small enough to keep for many objects: its
+    normal map ((n + 1) / 2) and error map (jet over 0..vmax degrees; None: no ground truth),
+    black outside the mask, cropped to the mask's bounding box (4 px margin) and scaled (nearest
+    pixel) to ``height`` rows, at most 3 x ``height`` columns.
+
+    normals [H, W, 3], error [H, W] degrees, mask [H, W] bool -> {"name", "mae", "normals", "error"}."""
+    mask = np.asarray(mask, bool)
+    rows, cols = np.nonzero(mask) if mask.any() else (np.array([0, mask.shape[0] - 1]), np.array([0, mask.shape[1] - 1]))
+    r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, mask.shape[0])
+    c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, mask.shape[1])
+    m = mask[r0:r1, c0:c1, None]
+    h = height
+    w = max(1, min(3 * height, round((c1 - c0) * height / (r1 - r0))))
+    nmap = np.where(m, (np.clip(np.asarray(normals[r0:r1, c0:c1], np.float32), -1, 1) + 1) / 2, 0.0)
+    emap = None if error is None else np.where(m, jet(np.asarray(error[r0:r1, c0:c1], np.float32) / vmax), 0.0)
+    return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32),
+            "error": None if emap is None else _resize_nearest(emap, h, w).astype(np.float32)}
+
+
+def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0) -> np.ndarray:
+    """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
+    one column per object (``object_panel``): its name and MAE, its normal map above its error
+    map; one colour bar for the error maps on the right. -> [H', W', 3] float32 in [0, 1]."""
+    s, gap = 2, 12  # text scale, space between columns
+    line = 7 * s + 6  # one line of text
+    h = max(p["normals"].shape[0] for p in panels)
+    labels = [(p["name"], "" if p["mae"] is None else f"MAE {p['mae']:.2f}°") for p in panels]
+    widths = [max(p["normals"].shape[1], *(text_bitmap(t, s).shape[1] for t in lab))
+              for p, lab in zip(panels, labels)]
+    bar_w, bar_text = 10, text_bitmap(f">{vmax:.0f}°", s).shape[1] + 4
+    top = gap + line + gap  # the title, then the columns
+    W = max(gap + sum(w + gap for w in widths) + bar_w + bar_text + gap, text_bitmap(title, s).shape[1] + 2 * gap)
+    H = top + 2 * line + h + 4 + h + gap
+    canvas = np.full((H, W, 3), 0.12, np.float32)
+    _stamp(canvas, text_bitmap(title, s), gap, gap)
+    x = gap
+    y_maps = top + 2 * line
+    for p, (name, mae), w in zip(panels, labels, widths):
+        _stamp(canvas, text_bitmap(name, s), top, x)
+        _stamp(canvas, text_bitmap(mae, s), top + line, x)
+        ph, pw = p["normals"].shape[:2]
+        canvas[y_maps:y_maps + ph, x:x + pw] = p["normals"]
+        if p["error"] is not None:
+            canvas[y_maps + h + 4:y_maps + h + 4 + ph, x:x + pw] = p["error"]
+        x += w + gap
+    by = y_maps + h + 4  # the colour bar beside the error maps: high values on top
+    canvas[by:by + h, x:x + bar_w] = jet(np.linspace(1.0, 0.0, h)[:, None].repeat(bar_w, axis=1))
+    for frac in (0.0, 1 / 3, 2 / 3, 1.0):
+        y = by + int(round((1 - frac) * (h - 1)))
+        bm = text_bitmap(f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°", s)
+        _stamp(canvas, bm, min(max(y - bm.shape[0] // 2, by), by + h - bm.shape[0]), x + bar_w + 4)
+    return canvas
 
 
 def write_json(path: str | os.PathLike, obj: dict) -> None:

@@ -179,6 +179,9 @@ def render_benchmark(result: dict) -> None:
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
               f"{secs:.1f} s", highlight=False)
+    if result.get("outputs"):  # --out
+        con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps), eval.json "
+                         f"and one folder per object"), highlight=False)
     if result.get("light_distance"):  # not the paper's model: say so beside its rows
         con.print(f"near lights: each image divided by the falloff of point lights {result['light_distance']:g} "
                   f"pixels from the object (--light-distance); the paper assumed distant lights", highlight=False)
