@@ -73,7 +73,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
-    from psctl.io.capture import find_objects, object_name, open_capture
+    from psctl.io.capture import find_objects, holds_capture, object_name, open_capture
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, write_json
     from psctl.lights import refine_config
@@ -102,6 +102,9 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             raise PsctlError(None, "--out is empty; name a folder")
         if Path(out).resolve() == root.resolve():
             raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
+        if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
+            raise PsctlError(out, "holds a capture (images, an image list, a mask or ground truth): psctl eval "
+                                  "writes eval.png there; choose another --out")
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
@@ -125,7 +128,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             stage = batch.stage(out).path
             title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
-                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.name})"
+                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})"
             write_image(stage / "eval.png", benchmark_sheet(panels, title), "uint8")
             write_json(stage / "eval.json", result)
     return result

@@ -55,7 +55,7 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     """``NearLights`` at ``distance`` pixels from the centroid of ``mask`` [H, W] (None: distant
     lights). A distance that is not a positive number, or that does not clear the object (a
     light inside it), is a user error; the latter names ``mask_path``, the file the mask came
-    from (None: no mask file, the whole frame)."""
+    from (None: no file, e.g. a mask given as an array, or none at all)."""
     if distance is None:
         return None
     try:
@@ -68,7 +68,7 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     centre = (float(rows.mean()), float(cols.mean()))
     reach = float(np.sqrt(((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2).max()))
     if d <= 2 * reach:  # the first-order picture (and any listed direction) would be meaningless
-        what = "the mask" if mask_path is not None else "the object (no mask: the whole frame)"
+        what = "the object (no mask: the whole frame)" if mask_path is None and mask.all() else "the mask"
         raise PsctlError(mask_path, f"--light-distance {d:g} pixels does not clear the object: {what} reaches "
                                     f"{reach:.0f} pixels from its centre (the distance is in image pixels, from "
                                     f"the object to the lights; it must be over twice that)")

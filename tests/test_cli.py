@@ -333,8 +333,11 @@ def test_eval_out_uses_object_names(tmp_path):
 
 
 def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
-    for k, name in enumerate(("aPNG", "bPNG")):
-        write_capture(tmp_path / "root" / name, n=6, seed=k)
+    from psctl.io.capture import load_ground_truth, load_mask, open_capture
+    from psctl.io.report import object_panel
+
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
+    write_capture(tmp_path / "root" / "bPNG", n=6, seed=1, size=56)
     out = tmp_path / "out"
     r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out,
                          "--json", "--quiet", check=True).stdout)
@@ -342,13 +345,60 @@ def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
     saved = json.loads((out / "eval.json").read_text())
     assert [o["mae"] for o in saved["objects"]] == [o["mae"] for o in r["objects"]] and saved["mean_mae"] == r["mean_mae"]
     sheet, info = read_image(out / "eval.png")
-    assert info.bits == 8 and sheet.shape[2] == 3 and sheet.shape[0] > 2 * 160  # two rows of 160 px maps
-    # the first object's normal map: its own normal.png, cropped to the mask and scaled into the sheet
-    own = read_normal_map(out / "a" / "normal.png")
-    assert np.isclose(sheet, (own[20, 20] + 1) / 2, atol=2 / 255).all(-1).any()
+    assert info.bits == 8 and sheet.shape[2] == 3
+    # each object's maps, rebuilt from its own normal.png and ground truth, where the layout puts them
+    # (12 px gaps; a title line, then a name line and an MAE line of 20 px each above the 160 px maps)
+    x = 12
+    for name in ("a", "b"):
+        cap = open_capture(tmp_path / "root" / f"{name}PNG")
+        mask, normals = load_mask(cap), read_normal_map(out / name / "normal.png")
+        error = np.zeros(mask.shape, np.float32)
+        error[mask] = angular_error(normals, load_ground_truth(cap), mask)
+        p = object_panel(name, 0.0, normals, error, mask)
+        h, w = p["normals"].shape[:2]
+        np.testing.assert_allclose(sheet[84:84 + h, x:x + w], p["normals"], atol=1.5 / 255)
+        np.testing.assert_allclose(sheet[84 + h + 4:84 + 2 * h + 4, x:x + w], p["error"], atol=1.5 / 255)
+        assert w >= 11 * 12  # wider than its name and "MAE 12.34°": the column is the maps' width
+        x += w + 12
+    (out / "eval.png").write_bytes(b"an earlier run's")  # replaced, not kept
     r2 = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, "--quiet",
                check=True)
     assert "eval.png" in r2.stdout and sorted(os.listdir(out)) == ["a", "b", "eval.json", "eval.png"]
+    assert np.array_equal(read_image(out / "eval.png")[0], sheet)
+
+
+def test_eval_out_inside_the_root_runs_twice(tmp_path):
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
+    for _ in range(2):  # the second time, root/results (eval.png, a/) must not look like an object
+        r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out",
+                             tmp_path / "root" / "results", "--json", "--quiet", check=True).stdout)
+        assert [o["name"] for o in r["objects"]] == ["a"]
+    r = psctl("normals", tmp_path / "root" / "aPNG", "-m", "l2", "--out", tmp_path / "root" / "results", "--quiet")
+    assert r.returncode == 0, r.stderr  # an eval output folder is no capture
+
+
+def test_eval_out_refuses_a_capture_and_is_atomic_with_the_sheet(tmp_path, monkeypatch):
+    from psctl.errors import PsctlError
+    from psctl.eval import run_benchmark
+
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
+    write_capture(tmp_path / "cap", n=6, seed=1)
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "cap")
+    assert proc.returncode == 2 and "holds a capture" in proc.stderr and len(proc.stderr.splitlines()) == 1
+    assert not (tmp_path / "cap" / "eval.png").exists() and not (tmp_path / "cap" / "a").exists()
+
+    def broken(*args, **kwargs):
+        raise PsctlError(None, "no sheet")
+
+    monkeypatch.setattr("psctl.io.report.benchmark_sheet", broken)
+    with pytest.raises(PsctlError, match="no sheet"):
+        run_benchmark("folder", tmp_path / "root", "l2", out=tmp_path / "new")
+    assert not (tmp_path / "new").exists()  # nor the object's folder
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "eval.png").write_bytes(b"kept")
+    with pytest.raises(PsctlError, match="no sheet"):
+        run_benchmark("folder", tmp_path / "root", "l2", out=tmp_path / "old")
+    assert sorted(os.listdir(tmp_path / "old")) == ["eval.png"] and (tmp_path / "old" / "eval.png").read_bytes() == b"kept"
 
 
 def test_outputs_never_overwrite_inputs(capture):

@@ -166,9 +166,11 @@ def test_near_lights_validates():
     assert near.distance == 100 and near.centre == pytest.approx((19.5, 19.5))
     with pytest.raises(PsctlError, match="number"):
         near_lights("far", mask)
-    with pytest.raises(PsctlError, match="no mask: the whole frame") as e:
+    with pytest.raises(PsctlError, match="the mask reaches 13 pixels") as e:  # a mask given as an array
         near_lights(20, mask)
     assert e.value.path is None
+    with pytest.raises(PsctlError, match="no mask: the whole frame"):
+        near_lights(20, np.ones((40, 40), bool))
 
 
 # --- the renderer's near lights (psctl synth --light-distance) ------------------------------------

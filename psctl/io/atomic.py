@@ -199,7 +199,7 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> 
 
 
 class OutputBatch:
-    """Several runs' outputs (``psctl eval --out``: one folder per object) that appear together
+    """Several runs' outputs (``psctl eval --out``: one folder per object, and eval.png / eval.json in the root) that appear together
     or not at all: each run stages its files (``stage``), and they are committed only when the
     ``with`` block ends without an error, after every folder has been checked; a failure while
     committing one folder undoes the folders committed before it."""

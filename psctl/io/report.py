@@ -71,7 +71,7 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
 
 def text_bitmap(text: str, scale: int = 1) -> np.ndarray:
     """Render ``text`` (letters, in capitals, digits and ``. : ° > - _ + / ( ) , = ?``; anything else
-    is a blank) as a bool bitmap [7 * scale, (6 * len - 1) * scale]."""
+    is a blank) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for n >= 1 characters (upper-cased)."""
     glyphs = [np.array([[c == "#" for c in row] for row in _FONT.get(ch, _FONT[" "])]) for ch in text.upper()]
     gap = np.zeros((7, 1), bool)
     parts = []
@@ -140,7 +140,8 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     """One object's column of ``benchmark_sheet``, small enough to keep for many objects: its
     normal map ((n + 1) / 2) and error map (jet over 0..vmax degrees; None: no ground truth),
     black outside the mask, cropped to the mask's bounding box (4 px margin) and scaled (nearest
-    pixel) to ``height`` rows, at most 3 x ``height`` columns.
+    pixel) to ``height`` rows and as many columns as keep its aspect, at most 3 x ``height`` (an
+    object wider than 3:1 is squeezed to that).
 
     normals [H, W, 3], error [H, W] degrees, mask [H, W] bool -> {"name", "mae", "normals", "error"}."""
     mask = np.asarray(mask, bool)
@@ -156,38 +157,51 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
             "error": None if emap is None else _resize_nearest(emap, h, w).astype(np.float32)}
 
 
-def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0) -> np.ndarray:
+def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row: int = 5) -> np.ndarray:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
-    one column per object (``object_panel``): its name and MAE, its normal map above its error
-    map; one colour bar for the error maps on the right. -> [H', W', 3] float32 in [0, 1]."""
-    s, gap = 2, 12  # text scale, space between columns
+    the objects (``object_panel``) in rows of ``per_row``: each its name (cut to the width of
+    its maps, at least 12 characters) and MAE above its normal map, its error map below; one
+    colour bar for the error maps on the right of each row. -> [H', W', 3] float32 in [0, 1]."""
+    s, gap = 2, 12  # text scale, space between columns and rows
     line = 7 * s + 6  # one line of text
-    h = max(p["normals"].shape[0] for p in panels)
-    labels = [(p["name"], "" if p["mae"] is None else f"MAE {p['mae']:.2f}°") for p in panels]
-    widths = [max(p["normals"].shape[1], *(text_bitmap(t, s).shape[1] for t in lab))
-              for p, lab in zip(panels, labels)]
+    char = 6 * s  # one character's advance
+
+    def fit(text: str, width: int) -> str:
+        n = max(12, (width + s) // char)
+        return text if len(text) <= n else text[: n - 2] + ".."
+
+    labels = [(fit(p["name"], p["normals"].shape[1]), "" if p["mae"] is None else f"MAE {p['mae']:.2f}°")
+              for p in panels]
+    widths = [max(p["normals"].shape[1], *(text_bitmap(t, s).shape[1] for t in lab)) for p, lab in zip(panels, labels)]
     bar_w, bar_text = 10, text_bitmap(f">{vmax:.0f}°", s).shape[1] + 4
-    top = gap + line + gap  # the title, then the columns
-    W = max(gap + sum(w + gap for w in widths) + bar_w + bar_text + gap, text_bitmap(title, s).shape[1] + 2 * gap)
-    H = top + 2 * line + h + 4 + h + gap
+    rows = [list(range(i, min(i + per_row, len(panels)))) for i in range(0, len(panels), per_row)]
+    heights = [max(panels[i]["normals"].shape[0] for i in r) for r in rows]
+    row_w = [gap + sum(widths[i] + gap for i in r) + bar_w + bar_text + gap for r in rows]
+    W = max(*row_w, text_bitmap(title, s).shape[1] + 2 * gap)
+    H = gap + line + sum(gap + 2 * line + 2 * h + 4 for h in heights) + gap
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
-    x = gap
-    y_maps = top + 2 * line
-    for p, (name, mae), w in zip(panels, labels, widths):
-        _stamp(canvas, text_bitmap(name, s), top, x)
-        _stamp(canvas, text_bitmap(mae, s), top + line, x)
-        ph, pw = p["normals"].shape[:2]
-        canvas[y_maps:y_maps + ph, x:x + pw] = p["normals"]
-        if p["error"] is not None:
-            canvas[y_maps + h + 4:y_maps + h + 4 + ph, x:x + pw] = p["error"]
-        x += w + gap
-    by = y_maps + h + 4  # the colour bar beside the error maps: high values on top
-    canvas[by:by + h, x:x + bar_w] = jet(np.linspace(1.0, 0.0, h)[:, None].repeat(bar_w, axis=1))
-    for frac in (0.0, 1 / 3, 2 / 3, 1.0):
-        y = by + int(round((1 - frac) * (h - 1)))
-        bm = text_bitmap(f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°", s)
-        _stamp(canvas, bm, min(max(y - bm.shape[0] // 2, by), by + h - bm.shape[0]), x + bar_w + 4)
+    y = gap + line
+    for r, h in zip(rows, heights):
+        y += gap
+        x = gap
+        y_maps = y + 2 * line
+        for i in r:
+            p, (name, mae) = panels[i], labels[i]
+            _stamp(canvas, text_bitmap(name, s), y, x)
+            _stamp(canvas, text_bitmap(mae, s), y + line, x)
+            ph, pw = p["normals"].shape[:2]
+            canvas[y_maps:y_maps + ph, x:x + pw] = p["normals"]
+            if p["error"] is not None:
+                canvas[y_maps + h + 4:y_maps + h + 4 + ph, x:x + pw] = p["error"]
+            x += widths[i] + gap
+        by = y_maps + h + 4  # the colour bar beside the error maps: high values on top
+        canvas[by:by + h, x:x + bar_w] = jet(np.linspace(1.0, 0.0, h)[:, None].repeat(bar_w, axis=1))
+        for frac in (0.0, 1 / 3, 2 / 3, 1.0):
+            ty = by + int(round((1 - frac) * (h - 1)))
+            bm = text_bitmap(f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°", s)
+            _stamp(canvas, bm, min(max(ty - bm.shape[0] // 2, by), by + h - bm.shape[0]), x + bar_w + 4)
+        y = by + h
     return canvas
 
 
