@@ -43,7 +43,7 @@ psctl() { python3 -c "$PSCTL" "$@"; }
 # (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
 # session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt; session 26: ps_fcn_n_miscal.pt,
 # ps_fcn_stage12.pt)
-INITS=${INITS:-"ps_fcn_n_stage9.pt:weights/ps_fcn_n.pt ps_fcn_stage12.pt:weights/ps_fcn.pt"}
+INITS=${INITS:-"ps_fcn_n_scale.pt:weights/ps_fcn_n.pt ps_fcn_stage12.pt:weights/ps_fcn.pt"}
 for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
