@@ -821,7 +821,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     are filled dots coloured by intensity (jet over ``ints_range``, colour bar on the right);
     ground truth, when given, is a white ring joined to its estimate by a grey line.
     """
-    from psctl.io.report import _stamp, jet, text_bitmap
+    from psctl.io.report import _stamp, colour_bar, jet, text_bitmap
 
     s = 2  # text scale
     top, pad, bar_w, right = 12 * s, 12, 10 * s, 44 * s
@@ -849,13 +849,8 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     for k in range(len(d)):
         _disk(canvas, *at(d[k]), 3.5, colours[k])
     # colour bar: high intensities on top
-    bx, bh = side + 4 * s, side - 2 * pad
-    by = top + pad
-    canvas[by:by + bh, bx:bx + bar_w] = jet(np.linspace(1.0, 0.0, bh)[:, None].repeat(bar_w, 1))
-    for frac in (0.0, 0.5, 1.0):
-        y = by + int(round((1 - frac) * (bh - 1)))
-        bm = text_bitmap(f"{lo + frac * (hi - lo):.1f}", s)
-        _stamp(canvas, bm, min(max(y - bm.shape[0] // 2, by), by + bh - bm.shape[0]), bx + bar_w + 2 * s)
+    colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w,
+               {frac: f"{lo + frac * (hi - lo):.1f}" for frac in (0.0, 0.5, 1.0)}, s)
     if title:
         _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
     return canvas

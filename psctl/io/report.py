@@ -96,6 +96,20 @@ def _stamp(canvas: np.ndarray, bitmap: np.ndarray, y: int, x: int, colour=(1.0, 
     canvas[y:y2, x:x2][bitmap[: y2 - y, : x2 - x]] = colour
 
 
+def colour_bar(canvas: np.ndarray, y: int, x: int, h: int, width: int, labels: dict[float, str], s: int) -> None:
+    """Draw a jet colour bar [h, width] at (y, x) on ``canvas``, high values on top, and each label
+    (fraction of the range -> text, at text scale ``s``) beside it at its height, kept within the bar."""
+    canvas[y:y + h, x:x + width] = jet(np.linspace(1.0, 0.0, h)[:, None].repeat(width, axis=1))
+    for frac, text in labels.items():
+        ty = y + int(round((1 - frac) * (h - 1)))
+        bm = text_bitmap(text, s)
+        _stamp(canvas, bm, min(max(ty - bm.shape[0] // 2, y), y + h - bm.shape[0]), x + width + 2 * s)
+
+
+def _degree_labels(vmax: float) -> dict[float, str]:
+    return {frac: f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°" for frac in (0.0, 1 / 3, 2 / 3, 1.0)}
+
+
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
                   title: str | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
@@ -106,15 +120,7 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     canvas = np.full((h + top + 4 * s, max(w + right, 8 + 6 * s * len(title or ""), 1), 3), 0.12, np.float32)
     img = np.where(mask[..., None], jet(error / vmax), 0.0)
     canvas[top:top + h, :w] = img
-    # colour bar: high values on top
-    bx, bh = w + 4 * s, h
-    ramp = np.linspace(1.0, 0.0, bh)[:, None].repeat(bar_w, axis=1)
-    canvas[top:top + bh, bx:bx + bar_w] = jet(ramp)
-    for frac in (0.0, 1 / 3, 2 / 3, 1.0):
-        y = top + int(round((1 - frac) * (bh - 1)))
-        label = f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°"
-        bm = text_bitmap(label, s)
-        _stamp(canvas, bm, min(max(y - bm.shape[0] // 2, top), top + bh - bm.shape[0]), bx + bar_w + 2 * s)
+    colour_bar(canvas, top, w + 4 * s, h, bar_w, _degree_labels(vmax), s)
     if title:
         _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
     return canvas
@@ -144,15 +150,15 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     object wider than 3:1 is squeezed to that).
 
     normals [H, W, 3], error [H, W] degrees, mask [H, W] bool -> {"name", "mae", "normals", "error"}."""
+    from psctl.io.capture import bounding_box
+
     mask = np.asarray(mask, bool)
-    rows, cols = np.nonzero(mask) if mask.any() else (np.array([0, mask.shape[0] - 1]), np.array([0, mask.shape[1] - 1]))
-    r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, mask.shape[0])
-    c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, mask.shape[1])
-    m = mask[r0:r1, c0:c1, None]
+    box = bounding_box(mask, margin=4) if mask.any() else (slice(None), slice(None))
+    m = mask[box][..., None]
     h = height
-    w = max(1, min(3 * height, round((c1 - c0) * height / (r1 - r0))))
-    nmap = np.where(m, (np.clip(np.asarray(normals[r0:r1, c0:c1], np.float32), -1, 1) + 1) / 2, 0.0)
-    emap = None if error is None else np.where(m, jet(np.asarray(error[r0:r1, c0:c1], np.float32) / vmax), 0.0)
+    w = max(1, min(3 * height, round(m.shape[1] * height / m.shape[0])))
+    nmap = np.where(m, (np.clip(np.asarray(normals[box], np.float32), -1, 1) + 1) / 2, 0.0)
+    emap = None if error is None else np.where(m, jet(np.asarray(error[box], np.float32) / vmax), 0.0)
     return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32),
             "error": None if emap is None else _resize_nearest(emap, h, w).astype(np.float32)}
 
@@ -195,12 +201,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
             if p["error"] is not None:
                 canvas[y_maps + h + 4:y_maps + h + 4 + ph, x:x + pw] = p["error"]
             x += widths[i] + gap
-        by = y_maps + h + 4  # the colour bar beside the error maps: high values on top
-        canvas[by:by + h, x:x + bar_w] = jet(np.linspace(1.0, 0.0, h)[:, None].repeat(bar_w, axis=1))
-        for frac in (0.0, 1 / 3, 2 / 3, 1.0):
-            ty = by + int(round((1 - frac) * (h - 1)))
-            bm = text_bitmap(f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°", s)
-            _stamp(canvas, bm, min(max(ty - bm.shape[0] // 2, by), by + h - bm.shape[0]), x + bar_w + 4)
+        by = y_maps + h + 4  # the colour bar beside the error maps
+        colour_bar(canvas, by, x, h, bar_w, _degree_labels(vmax), s)
         y = by + h
     return canvas
 
