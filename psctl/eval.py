@@ -75,7 +75,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import find_objects, holds_capture, object_name, open_capture
     from psctl.io.images import write_image
-    from psctl.io.report import benchmark_sheet, object_panel, write_json
+    from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
     from psctl.lights import refine_config
 
     refine_config(falloff, roll)  # a bad value stops before any object runs
@@ -121,7 +121,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             _collect(objects, used, r)
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
-                                           arrays["mask"]))
+                                           arrays["mask"], height=sheet_layout(len(folders))[1]))
         result = _table(benchmark, root, objects, used, light_distance)
         if batch is not None:
             result["outputs"] = {"eval.png": str(Path(out) / "eval.png"), "eval.json": str(Path(out) / "eval.json")}

@@ -630,3 +630,22 @@ def test_benchmark_sheet_draws_each_objects_maps():
     assert np.isclose(rows, (0.5, 0.5, 1.0)).all(-1).sum() == 3 * (p["normals"][..., 2] == 1.0).sum()
     assert np.isclose(rows, red).all(-1).sum() == 2 * ((p["error"][..., 0] > 0).sum() + bar)
     assert rows.shape[0] > sheet.shape[0] + 2 * 40 and rows.shape[1] < sheet.shape[1] + 2 * 40
+
+
+def test_benchmark_sheet_of_many_objects_stays_roughly_square():
+    from psctl.io.report import benchmark_sheet, object_panel, sheet_layout
+
+    assert sheet_layout(10) == (5, 160) and sheet_layout(26) == (8, 160) and sheet_layout(200) == (20, 96)
+    mask = np.ones((12, 12), bool)
+    normals = np.zeros((12, 12, 3), np.float32)
+    normals[..., 2] = 1.0
+    n = 120
+    per_row, height = sheet_layout(n)
+    panels = [object_panel(f"obj{i:03d}", 1.0, normals, np.zeros((12, 12), np.float32), mask, height=height)
+              for i in range(n)]
+    sheet = benchmark_sheet(panels, "MANY")
+    assert 0.5 < sheet.shape[0] / sheet.shape[1] < 2.0, sheet.shape  # 8 rows of 16, not a strip of 24 rows of 5
+    blue = np.isclose(sheet, (0.5, 0.5, 1.0)).all(-1).sum()
+    assert blue == n * (panels[0]["normals"][..., 2] == 1.0).sum()  # every object's normal map is on it
+    five = benchmark_sheet(panels, "MANY", per_row=5)  # an explicit per_row still rules
+    assert five.shape[0] > 2.5 * sheet.shape[0]  # 24 rows instead of 8

@@ -7,6 +7,7 @@ Drawn with NumPy and a built-in 5 x 7 pixel font, so no plotting library is need
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -163,11 +164,22 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
             "error": None if emap is None else _resize_nearest(emap, h, w).astype(np.float32)}
 
 
-def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row: int = 5) -> np.ndarray:
+def sheet_layout(n: int) -> tuple[int, int]:
+    """(objects per row, panel height) for a sheet of ``n`` objects: DiLiGenT-sized runs get rows
+    of 5 at 160 px; larger ones about sqrt(2 n) to a row (each object is two maps stacked, so a
+    sheet of hundreds stays roughly square instead of a strip tens of thousands of pixels tall)
+    and, past 50 objects, 96 px panels."""
+    return max(5, math.ceil(math.sqrt(2 * n))), (160 if n <= 50 else 96)
+
+
+def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row: int | None = None) -> np.ndarray:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
-    the objects (``object_panel``) in rows of ``per_row``: each its name (cut to the width of
-    its maps, at least 12 characters) and MAE above its normal map, its error map below; one
-    colour bar for the error maps on the right of each row. -> [H', W', 3] float32 in [0, 1]."""
+    the objects (``object_panel``) in rows of ``per_row`` (None: ``sheet_layout``'s): each its
+    name (cut to the width of its maps, at least 12 characters) and MAE above its normal map, its
+    error map below; one colour bar for the error maps on the right of each row.
+    -> [H', W', 3] float32 in [0, 1]."""
+    if per_row is None:
+        per_row = sheet_layout(len(panels))[0]
     s, gap = 2, 12  # text scale, space between columns and rows
     line = 7 * s + 6  # one line of text
     char = 6 * s  # one character's advance
