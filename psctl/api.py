@@ -258,7 +258,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     """
     from dataclasses import replace
 
-    from psctl.classic import L2Accumulator
+    from psctl.classic import L2Accumulator, lights_problem
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
@@ -293,11 +293,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method == "l2":
         if not cap.calibrated:
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
-        from psctl.classic import lights_problem
-
         problem = lights_problem(cap.lights)  # before any image is read
         if problem:
             raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")
+    elif method in LISTED_LIGHTS and cap.calibrated and lights_problem(cap.lights):  # a network answers anyway
+        what = f"only {cap.n_images} image(s)" if cap.n_images < 3 else "the light directions are (nearly) coplanar"
+        notes.append(f"lights: {what}, which leaves the normals undetermined (l2 refuses them); {method} answers "
+                     "from what it learnt: expect large errors")
     out_dir = output_folder(out, cap.path)
     formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     # report.json always: without ground truth it still records the method, notes and timings

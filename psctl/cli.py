@@ -109,6 +109,9 @@ def _user_errors() -> Iterator[None]:
         yield
     except PsctlError as e:
         _fail(str(e))
+    except OSError as e:  # the system refused a path (too long, permission denied, ...): the user's to fix
+        what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
+        _fail(f"{e.filename}: {what}" if e.filename else what)
     except KeyboardInterrupt:
         _stderr().print("interrupted")
         raise typer.Exit(130) from None

@@ -252,6 +252,9 @@ def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np
         raise PsctlError(path, "intrinsics contain NaN or infinite values")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise PsctlError(path, "intrinsics need positive focal lengths fx = K[0,0] and fy = K[1,1]")
+    if max(K[0, 0], K[1, 1]) > 1e9 or max(abs(K[0, 2]), abs(K[1, 2])) > 1e9:  # squares overflow in the solver
+        raise PsctlError(path, "intrinsics above 1e9 pixels: a focal length that long is an orthographic "
+                               "camera (leave out the intrinsics), and a principal point that far is a typo")
     if abs(K[1, 0]) > 1e-9 or not np.allclose(K[2], [0, 0, 1]):
         raise PsctlError(path, "intrinsics must have the form [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     if abs(K[0, 1]) > 1e-6 * K[0, 0]:

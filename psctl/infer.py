@@ -400,7 +400,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         "train_images": train_images, "seconds": round(time.perf_counter() - t_start, 3),
     }
     if exposure is not None:
-        info["exposure_scale"] = round(exposure, 6)
+        info["exposure_scale"] = float(f"{exposure:.6g}")  # significant digits: a 1e30-scaled capture gets 1e-31, not 0
     if not (stream.peak[: stream.rh, : stream.rw][inside] > 0).any():  # PS-FCN+N would answer anyway
         raise PsctlError(None, "all images are black inside the mask")
     return InferResult(normals, dark, info)

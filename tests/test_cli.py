@@ -210,13 +210,29 @@ def _break(kind: str, folder: Path) -> str:
         (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
         (folder / "light_intensities.txt").unlink()
         return str(folder.name)
+    if kind == "underscore light":  # float() reads '1_0' as 10
+        rows = (folder / "light_directions.txt").read_text().splitlines()
+        rows[1] = "1_0 0 1"
+        (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+        return "light_directions.txt"
+    if kind in ("text gt", "cell gt"):
+        import scipy.io
+
+        value = "x" if kind == "text gt" else np.array([np.zeros(2), np.zeros(3)], dtype=object)
+        scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": value})
+        return "Normal_gt.mat"
+    if kind == "listed broken link":
+        (folder / "filenames.txt").write_text("\n".join(f"{k + 1:03d}.png" for k in range(12)) + "\n")
+        (folder / "003.png").unlink()
+        os.symlink(folder / "gone.png", folder / "003.png")
+        return "003.png: listed in filenames.txt but is a broken link"
     raise ValueError(kind)
 
 
 BAD = ["missing image", "count mismatch", "malformed light", "nan light", "zero-length light", "short light row",
        "bad intensity", "image size", "mask size", "gt size", "empty mask", "corrupt image", "truncated image",
        "nan image", "too few images", "tiny intensity", "huge intensity", "coplanar lights", "black images",
-       "listed folder", "mask folder"]
+       "listed folder", "mask folder", "underscore light", "text gt", "cell gt", "listed broken link"]
 
 
 @pytest.mark.parametrize("kind", BAD)
@@ -621,3 +637,16 @@ def test_root_group_exit_codes(capsys):
         assert e.value.code == code, name
     err = capsys.readouterr().err
     assert "Aborted" in err and "Traceback" not in err
+
+
+def test_paths_the_system_refuses_are_one_line_errors(capture, tmp_path):
+    """An OSError (here: a name over 255 bytes) is the user's path, not a crash: one line naming
+    it, exit code 2, nothing written."""
+    long = "a" * 300
+    for args in (["info", tmp_path / long], ["normals", capture, "-m", "l2", "-o", tmp_path / long / "out"],
+                 ["normals", tmp_path / long, "-m", "l2"]):
+        proc = psctl(*args)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert proc.returncode == 2 and len(lines) == 1, (args, proc.stderr)
+        assert "Traceback" not in proc.stderr and long in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [capture.name]

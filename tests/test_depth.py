@@ -246,6 +246,7 @@ def test_rejected_normals_are_counted_not_fatal():
     ("all_nan", "no usable normal"),
     ("method", "unknown depth method"),
     ("K", "intrinsics"),
+    ("K_huge", "above 1e9 pixels"),  # squares of 1e300 overflow in the solver
 ])
 def test_bad_arrays_raise_psctl_errors(case, needle):
     normals, mask, _ = surface("sphere", 16)
@@ -260,6 +261,8 @@ def test_bad_arrays_raise_psctl_errors(case, needle):
         kwargs["method"] = "magic"
     elif case == "K":
         kwargs["K"] = np.eye(3) * -1
+    elif case == "K_huge":
+        kwargs["K"] = np.array([[1e300, 0, 8], [0, 1e300, 8], [0, 0, 1]])
     with pytest.raises(PsctlError, match=needle):
         integrate_normals(normals, mask, **kwargs)
 

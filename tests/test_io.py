@@ -649,3 +649,59 @@ def test_benchmark_sheet_of_many_objects_stays_roughly_square():
     assert blue == n * (panels[0]["normals"][..., 2] == 1.0).sum()  # every object's normal map is on it
     five = benchmark_sheet(panels, "MANY", per_row=5)  # an explicit per_row still rules
     assert five.shape[0] > 2.5 * sheet.shape[0]  # 24 rows instead of 8
+
+
+def test_npy_normal_maps_hold_real_floats(tmp_path):
+    """An integer .npy (an encoded image's pixels) or a complex, text or record one is refused;
+    a component beyond float32 or infinite is no normal (NaN), like NaN itself, without warnings."""
+    import warnings
+
+    good = np.zeros((4, 5, 3))
+    good[..., 2] = 1.0
+    for name, arr, needle in [("u16", (good * 65535).astype(np.uint16), r"holds integers \(uint16\)"),
+                              ("c", good + 1j * good, "holds complex numbers"),
+                              ("s", np.full((4, 5, 3), "a"), "values"),
+                              ("r", np.zeros((4, 5, 3), dtype=[("a", "f4"), ("b", "f4")]), "values")]:
+        np.save(tmp_path / f"{name}.npy", arr)
+        with pytest.raises(PsctlError, match=needle):
+            read_normal_map(tmp_path / f"{name}.npy")
+    big = good.copy()
+    big[1, 2, 0], big[3, 4, 1] = 1e300, np.inf
+    np.save(tmp_path / "big.npy", big)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        n = read_normal_map(tmp_path / "big.npy")
+    assert n.dtype == np.float32 and np.isnan(n[1, 2]).all() and np.isnan(n[3, 4]).all()
+    assert np.isfinite(n).all(-1).sum() == 18 and (n[0, 0] == (0, 0, 1)).all()
+
+
+def test_empty_objects_list_says_objects(tmp_path):
+    from psctl.io.capture import find_objects
+
+    (tmp_path / "objects.txt").write_text("# nothing yet\n")
+    with pytest.raises(PsctlError, match="objects.txt: lists no objects"):
+        find_objects(tmp_path)
+
+
+def test_networks_on_degenerate_lights_or_extreme_exposure_say_so(tmp_path):
+    """PS-FCN answers on coplanar lights (l2 refuses them) with a note that its normals are a guess;
+    a capture 1e30 times brighter than training is scaled by 1e-31, not reported as 'scaled by 0'."""
+    from psctl.api import run_normals
+    from psctl.infer import array_normals
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    arrays = write_capture(tmp_path / "cap", n=8, size=24)
+    a = np.radians(np.linspace(-40, 40, 8))
+    flat = np.stack([np.sin(a), np.zeros(8), np.cos(a)], 1)  # all in the x-z plane
+    np.savetxt(tmp_path / "cap" / "light_directions.txt", flat)
+    save_weights(tmp_path / "w.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32, "input_mean": 0.1})
+    r = run_normals(tmp_path / "cap", method="ps-fcn", weights=tmp_path / "w.pt", write=False, device="cpu")
+    assert any("light directions are (nearly) coplanar" in n and "expect large errors" in n for n in r["notes"]), r["notes"]
+    with pytest.raises(PsctlError, match="coplanar"):
+        run_normals(tmp_path / "cap", method="l2", write=False)
+    bright = np.asarray(arrays["images"], np.float32) * np.float32(1e30)
+    res = array_normals(bright, arrays["lights"], arrays["mask"], "ps-fcn", weights=tmp_path / "w.pt")
+    scale = res.info["exposure_scale"]
+    assert 1e-33 < scale < 1e-29, scale
+    assert any(f"images scaled by {scale:.4g}" in n for n in res.notes) and not any("scaled by 0 " in n for n in res.notes)

@@ -192,7 +192,7 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
 
 
-def _read_list(path: Path) -> list[str]:
+def _read_list(path: Path, what: str = "images") -> list[str]:
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
     except UnicodeDecodeError:
@@ -201,8 +201,11 @@ def _read_list(path: Path) -> list[str]:
         raise PsctlError(path, f"cannot read file ({e})") from None
     names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     if not names:
-        raise PsctlError(path, "lists no images")
+        raise PsctlError(path, f"lists no {what}")
     return names
+
+
+_NUMBER = re.compile(r"[+-]?(?:(?:\d+(?:\.\d*)?|\.\d+)(?:e[+-]?\d+)?|nan|inf(?:inity)?)", re.ASCII | re.IGNORECASE)
 
 
 def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
@@ -222,10 +225,11 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
         if not line:
             continue
         parts = line.replace(",", " ").split()
-        try:
-            values = [float(v) for v in parts]
-        except ValueError:
-            raise PsctlError(path, f"line {lineno}: not a number in {line!r}") from None
+        # float() alone would take '1_0' as 10 and full-width digits: plain ASCII decimals only
+        # (nan and inf parse, to be refused below with their own message)
+        if not all(_NUMBER.fullmatch(v) for v in parts):
+            raise PsctlError(path, f"line {lineno}: not a number in {line!r}")
+        values = [float(v) for v in parts]
         if len(values) not in widths:
             want = " or ".join(str(w) for w in widths)
             raise PsctlError(path, f"line {lineno}: expected {want} values, found {len(values)}")
@@ -315,7 +319,7 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
         raise PsctlError(root, "not a folder")
     listed = root / "objects.txt"
     if listed.is_file():
-        names = _read_list(listed)
+        names = _read_list(listed, "objects")
         folders = [root / n for n in names]
         for f in folders:
             if not f.is_dir():
@@ -366,6 +370,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         for p in image_paths:
             if p.is_dir():
                 raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
+            if not p.is_file() and p.is_symlink():  # dangling (or a loop): the entry is there, its target not
+                raise PsctlError(p, f"listed in {list_file.name} but is a broken link (to {os.readlink(p)})")
             if not p.is_file():
                 other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
                 hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
@@ -487,7 +493,11 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
         if "Normal_gt" not in mat:
             raise PsctlError(p, "has no variable 'Normal_gt'")
-        gt = np.asarray(mat["Normal_gt"], dtype=np.float32)
+        raw = np.asarray(mat["Normal_gt"])
+        if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
+            raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
+        with np.errstate(over="ignore"):  # beyond float32: inf, refused below
+            gt = raw.astype(np.float32)
         gt = np.where(np.isnan(gt).any(axis=-1, keepdims=True), 0.0, gt) if gt.ndim == 3 else gt  # NaN: no normal
         if gt.ndim != 3 or gt.shape[2] != 3:
             raise PsctlError(p, f"Normal_gt has shape {gt.shape}, expected H x W x 3")

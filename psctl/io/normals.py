@@ -60,11 +60,20 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
             raise PsctlError(path, f"cannot read .npy ({' '.join(str(e).split())})") from None
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise PsctlError(path, f"shape {arr.shape}, expected H x W x 3")
-        return arr.astype(np.float32)
-    pixels, info = read_image(path, allow_nonfinite=True)  # NaN = no normal; callers count them
-    if pixels.shape[2] < 3:
-        raise PsctlError(path, "a normal map needs 3 channels")
-    return decode_normal_pixels(pixels, info)
+        if arr.dtype.kind != "f":  # integers would be an encoded image's pixels, read as normals
+            what = {"i": "integers", "u": "integers", "c": "complex numbers", "b": "booleans"}.get(
+                arr.dtype.kind, f"{arr.dtype} values")
+            raise PsctlError(path, f"holds {what} ({arr.dtype}); a .npy normal map holds float unit normals "
+                                   "(x right, y up, z towards the camera)")
+        with np.errstate(over="ignore"):  # float64 beyond float32's range: inf, then no normal below
+            nmap = arr.astype(np.float32)
+    else:
+        pixels, info = read_image(path, allow_nonfinite=True)
+        if pixels.shape[2] < 3:
+            raise PsctlError(path, "a normal map needs 3 channels")
+        nmap = decode_normal_pixels(pixels, info)
+    # NaN = no normal (callers count them); an inf component is no direction either
+    return np.where(np.isfinite(nmap).all(axis=-1, keepdims=True), nmap, np.float32(np.nan))
 
 
 def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndarray, fmt: str) -> None:
