@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, check_bool
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -135,6 +135,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     from psctl.sdps import array_source, second_stage
 
     fit = refine_config(falloff, roll)
+    refine = check_bool("refine", refine)
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
@@ -184,6 +185,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     from psctl.symmetry import check_views
 
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
+    refine = check_bool("refine", refine)
     check_device_name(device)  # typos are errors for l2 too, which uses neither
     views = check_views(views)
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)
@@ -191,6 +193,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
+    if lights is not None and method not in LISTED_LIGHTS:  # they would be dropped without a word
+        raise PsctlError(None, f"lights: {method} does not use given light directions ("
+                               + ("it estimates them" if method == "sdps" else "it works without them")
+                               + "); pass lights=None, or use l2, ps-fcn or ps-fcn-n")
     if light_distance is not None:
         if method not in LISTED_LIGHTS:
             raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
@@ -271,6 +277,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     t0 = time.perf_counter()
     progress = progress or (lambda desc, total: _noop)
     fit = refine_config(falloff, roll)
+    write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)

@@ -39,14 +39,16 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
                                "[N, H, W, 3] (grey images of width 3 or 4: [N, H, W, 1])")
     if arr.ndim == 3:
         arr = arr[..., None]
-    if arr.ndim != 4 or arr.shape[-1] not in (1, 2, 3, 4) or arr.shape[0] < 1:
-        raise PsctlError(None, f"images must be [N, H, W, 3] (or [N, H, W]) with N >= 1, got shape {arr.shape}")
+    if arr.ndim != 4 or arr.shape[-1] not in (1, 2, 3, 4) or min(arr.shape[:3]) < 1:
+        raise PsctlError(None, f"images must be [N, H, W, 3] (or [N, H, W]) with N, H, W >= 1, got shape {arr.shape}")
     scale = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "iu" else 1.0
-    out = arr.astype(np.float32, copy=False)  # a float32 input is not copied (and never written to)
+    with np.errstate(over="ignore"):  # float64 beyond float32's range: said below, not warned
+        out = arr.astype(np.float32, copy=False)  # a float32 input is not copied (and never written to)
     if scale != 1.0:
         out /= scale
     if not np.isfinite(out).all():
-        raise PsctlError(None, "images contain NaN or infinite values")
+        raise PsctlError(None, "images contain NaN or infinite values" if not np.isfinite(arr).all() else
+                               "images hold values beyond float32's range (about 3.4e38): rescale them")
     c = out.shape[-1]
     if c in (1, 2):
         out = np.repeat(out[..., :1], 3, axis=-1)
@@ -55,12 +57,12 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+def as_mask(mask: np.ndarray | None, shape: tuple[int, int], allow_empty: bool = False) -> np.ndarray | None:
     """[H, W] bool (None stays None: the whole image; [H, W, 1] is squeezed). Numbers: above 0.5
     is the object, as in mask files; uint8 and uint16 masks above 1 (0/255, 0/65535) are first
     divided by their type's largest value, as mask files are; other integer masks above 1 (a
     label image, numpy's default int64 * 255) are the object where nonzero. Wrong shape, NaN and
-    an empty mask are errors."""
+    an empty mask (unless ``allow_empty``) are errors."""
     if mask is None:
         return None
     m = np.asarray(plain(mask))
@@ -84,20 +86,24 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | Non
             else:
                 m = m != 0
         m = m > 0.5
-    if not m.any():
+    if not m.any() and not allow_empty:
         raise PsctlError(None, f"mask is empty (no foreground pixel){hint}")
     return m
 
 
 def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     """[n, 3] float32 unit directions (rows normalised, as light_directions.txt's are); NaN,
-    infinite or zero-length rows and a wrong shape are errors."""
+    infinite or zero-length rows, complex numbers, a wrong shape and every light behind the object
+    (z <= 0) are errors."""
     if lights is None:
         return None
     try:
-        arr = np.asarray(plain(lights), np.float64)
+        raw = np.asarray(plain(lights))
+        if raw.dtype.kind == "c":  # float() would drop the imaginary part with only a warning
+            raise TypeError
+        arr = raw.astype(np.float64)
     except (TypeError, ValueError):
-        raise PsctlError(None, f"lights must be a numeric [{n}, 3] array") from None
+        raise PsctlError(None, f"lights must be a real, numeric [{n}, 3] array") from None
     if arr.shape != (n, 3):
         raise PsctlError(None, f"lights must be [{n}, 3] (one direction per image), got {list(arr.shape)}")
     bad = np.flatnonzero(~np.isfinite(arr).all(1))
@@ -106,6 +112,9 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     unit, bad = unit_rows(arr)
     if bad.size:
         raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction")
+    if (unit[:, 2] <= 0).all():  # as light_directions.txt: every light behind the object
+        raise PsctlError(None, "lights: every light has z <= 0 (behind the object); psctl wants z toward the "
+                               "camera (x right, y up): negate the z column if yours points away")
     return unit
 
 

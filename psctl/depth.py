@@ -46,6 +46,7 @@ i.e. the geometric-mean distance is 1).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
@@ -55,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import PsctlError, like_default
+from psctl.errors import PsctlError, check_bool, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -78,6 +79,15 @@ DEFAULT_CONFIG = {
     "amg_strength": 0.05,     # couplings weaker than this (relative) are not aggregated over
 }
 
+# (low, high, low allowed): the values each setting can take and still mean what it says
+CONFIG_RANGES = {
+    "grazing_nz": (0.0, 1.0, False), "bilateral_k": (0.0, math.inf, False), "bilateral_iters": (1, math.inf, True),
+    "bilateral_tol": (0.0, math.inf, True), "bilateral_k_start": (0.0, math.inf, False),
+    "weight_floor": (0.0, 0.5, False), "cut_fraction": (0.0, 1.0, True), "cg_rtol": (0.0, 1.0, False),
+    "cg_maxiter": (1, math.inf, True), "amg_max_coarse": (1, math.inf, True), "amg_rebuild_iters": (1, math.inf, True),
+    "amg_sweeps": (1, math.inf, True), "amg_strength": (0.0, 1.0, True),
+}
+
 K_FILE = "K.txt"
 
 
@@ -92,7 +102,13 @@ def depth_config(config: dict | None) -> dict:
     if unknown:
         raise PsctlError(None, f"unknown depth config keys: {', '.join(map(str, unknown))} "
                                f"(known: {', '.join(DEFAULT_CONFIG)})")
-    return {**DEFAULT_CONFIG, **{k: like_default(f"depth config {k!r}", v, DEFAULT_CONFIG[k]) for k, v in config.items()}}
+    cfg = {**DEFAULT_CONFIG, **{k: like_default(f"depth config {k!r}", v, DEFAULT_CONFIG[k]) for k, v in config.items()}}
+    for key, (lo, hi, closed) in CONFIG_RANGES.items():  # in range too: cg_maxiter 0 gave a flat surface, no error
+        v = cfg[key]
+        if not (lo <= v if closed else lo < v) or v > hi:
+            raise PsctlError(None, f"depth config {key!r} must be {'at least' if closed else 'above'} {lo:g}"
+                                   + (f" and at most {hi:g}" if hi != math.inf else "") + f", not {v!r}")
+    return cfg
 
 
 # ----------------------------------------------------------------------------------------------
@@ -113,6 +129,7 @@ class DepthResult:
     cg_iterations: int  # conjugate-gradient iterations, all rounds together
     projection: str  # "orthographic" | "perspective"
     cut: np.ndarray | None = None  # [H, W, 2] bool, bilateral: edge to the right / to the pixel below cut by a jump
+    converged: bool = True  # the (last) linear solve met cg_rtol within cg_maxiter
 
     @property
     def n_rejected(self) -> int:
@@ -152,6 +169,10 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     normals = np.asarray(plain(normals))
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise PsctlError(None, f"normals must be [H, W, 3], got shape {normals.shape}")
+    if normals.dtype.kind != "f":  # integers are an encoded image's pixels ((n + 1) / 2), not vectors
+        raise PsctlError(None, f"normals must be float unit vectors, got dtype {normals.dtype}"
+                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
+                                  if normals.dtype.kind in "iub" else ""))
     h, w = normals.shape[:2]
     if mask is None:
         mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)
@@ -220,10 +241,10 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         sf, sb = s_all[fwd], s_all[bwd]
         c = 0.5 * (sf * sf + sb * sb)
         b = 0.5 * (sf * t_all[fwd] + sb * t_all[bwd])
-        z, its, _ = _solve(npix, ei, ej, c, b, pins, coords, None, cfg)
+        z, its, _, converged = _solve(npix, ei, ej, c, b, pins, coords, None, cfg)
         rounds, total_its = 1, its
     else:
-        z, rounds, total_its, kept = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
+        z, rounds, total_its, kept, converged = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
                                           progress(f"integrating (bilateral, <= {cfg['bilateral_iters']} rounds)",
                                                    cfg["bilateral_iters"]))
         # edges whose final weight is a small fraction of poisson's: the surface tears there
@@ -240,12 +261,18 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     depth = np.full((h, w), np.nan, np.float32)
     depth[valid] = z
     return DepthResult(depth, valid, n_mask, n_nan, n_facing, int(graph_n), rounds, total_its,
-                       "orthographic" if K is None else "perspective", cut)
+                       "orthographic" if K is None else "perspective", cut, bool(converged))
 
 
 def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np.ndarray:
     """Validate a 3 x 3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels)."""
-    K = np.asarray(K, np.float64)
+    try:
+        raw = np.asarray(plain(K))
+        if raw.dtype.kind not in "iuf":  # complex would lose its imaginary part with a warning
+            raise TypeError
+        K = raw.astype(np.float64)
+    except (TypeError, ValueError):
+        raise PsctlError(path, "intrinsics must be a real 3 x 3 matrix of numbers") from None
     if K.shape != (3, 3):
         raise PsctlError(path, f"intrinsics must be a 3 x 3 matrix, got shape {K.shape}")
     if not np.isfinite(K).all():
@@ -286,8 +313,9 @@ def _adjacency(npix: int, ei: np.ndarray, ej: np.ndarray):
 
 
 def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance):
-    """IRLS with BiNI's one-sided weights. Returns (z, rounds, cg iterations, kept), where
-    kept[e] is edge e's final weight as a fraction of its poisson weight (~0 across a jump).
+    """IRLS with BiNI's one-sided weights. Returns (z, rounds, cg iterations, kept, converged),
+    where kept[e] is edge e's final weight as a fraction of its poisson weight (~0 across a jump)
+    and converged says whether the last round's linear solve met cg_rtol.
 
     Rows of s_all / t_all are (pixel, axis) pairs; ``fwd[e]`` is the row of edge e's forward
     term (its start pixel), ``bwd[e]`` the row of its backward term (its end pixel).
@@ -316,7 +344,7 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
         w_bwd = 1.0 - wt[bwd]
         c = w_fwd * sf * sf + w_bwd * sb * sb
         b = w_fwd * sf * tf + w_bwd * sb * tb
-        z, its, amg = _solve(npix, ei, ej, c, b, pins, coords, z, cfg, amg)
+        z, its, amg, converged = _solve(npix, ei, ej, c, b, pins, coords, z, cfg, amg)
         total += its
         dz = z[ej] - z[ei]
         energy, old = float(np.sum(w_fwd * (sf * dz - tf) ** 2 + w_bwd * (sb * dz - tb) ** 2)), energy
@@ -329,7 +357,7 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
         if rounds > anneal + 1 and abs(energy - old) <= cfg["bilateral_tol"] * max(old, 1e-300):
             break
     kept = (wt[fwd] * sf * sf + (1.0 - wt[bwd]) * sb * sb) / (0.5 * (sf * sf + sb * sb))
-    return z, rounds, total, kept
+    return z, rounds, total, kept, converged
 
 
 def _solve(npix, ei, ej, c, b, pins, coords, x0, cfg, amg=None):
@@ -337,23 +365,23 @@ def _solve(npix, ei, ej, c, b, pins, coords, x0, cfg, amg=None):
 
     ``amg``: a preconditioner built for an earlier matrix of the same graph (any SPD
     preconditioner keeps CG correct; a stale one only costs iterations). Returns
-    (z, cg iterations, preconditioner used)."""
+    (z, cg iterations, preconditioner used, whether CG met cg_rtol)."""
     if len(ei) == 0:  # isolated pixels only
-        return np.zeros(npix), 0, None
+        return np.zeros(npix), 0, None, True
     L = _laplacian(npix, ei, ej, c, pins)
     rhs = np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
     if npix <= cfg["amg_max_coarse"]:
         import scipy.linalg
 
-        return scipy.linalg.solve(L.toarray(), rhs, assume_a="pos"), 0, None
+        return scipy.linalg.solve(L.toarray(), rhs, assume_a="pos"), 0, None, True
     its = 0
     if amg is not None:  # try the old preconditioner for a few iterations first
         x0, its, done = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["amg_rebuild_iters"])
         if done:
-            return x0, its, amg
+            return x0, its, amg, True
     amg = _SmoothedAggregation(L, coords, cfg)
-    z, more, _ = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
-    return z, its + more, amg
+    z, more, done = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
+    return z, its + more, amg, done
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -609,6 +637,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     method = str(method).lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
+    write, binary_ply = check_bool("write", write), check_bool("binary_ply", binary_ply)
+    cfg = depth_config(config)  # a bad setting stops before any image is read
     cap = open_capture(path, encoding)
     out_dir = output_folder(out, cap.path)
     if write:
@@ -678,6 +708,9 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
                      f"{res.n_rejected_facing} facing away from the camera): they get no depth")
     if res.n_components > 1:
         notes.append(f"{res.n_components} separate regions: each has its own unknown depth offset")
+    if not res.converged:
+        notes.append(f"the linear solve stopped at cg_maxiter ({cfg['cg_maxiter']}) before reaching "
+                     f"cg_rtol ({cfg['cg_rtol']:g}): the depth may be inaccurate")
     t_integrate = time.perf_counter() - t0
 
     # --- surface products ----------------------------------------------------------------------

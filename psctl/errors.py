@@ -80,3 +80,23 @@ def like_default(where: str, value: Any, default: Any, text_hint: str = "") -> A
     if isinstance(default, list):
         return [float(v) for v in value]
     return value
+
+
+def check_int(where: str, value: Any) -> int | None:
+    """None, or a whole number (an int, a numpy integer or a float such as 4.0; not a bool, not
+    text) returned as an int; otherwise a one-line error naming ``where``. The range is the
+    caller's to check."""
+    if value is None:
+        return None
+    if not (is_number(value) and float(value).is_integer()):
+        raise PsctlError(None, f"{where} must be a whole number, not {value!r}")
+    return int(value)
+
+
+def check_bool(where: str, value: Any) -> bool:
+    """True or False (numpy's too); anything else, such as the truthy text "no", is an error."""
+    import numpy as np
+
+    if not isinstance(value, (bool, np.bool_)):
+        raise PsctlError(None, f"{where} must be True or False, not {value!r}")
+    return bool(value)

@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, naming
+from psctl.errors import PsctlError, check_bool, naming
 
 if TYPE_CHECKING:
     import torch
@@ -900,6 +900,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     t0 = time.perf_counter()
     fit = refine_config(falloff, roll)
+    write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer

@@ -8,15 +8,33 @@ THRESHOLDS = (11.25, 22.5, 30.0)
 
 
 def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel angle in degrees between two normal maps [..., 3].
+    """Per-pixel angle in degrees between two normal maps [..., 3] of the same shape.
 
-    Returns a float array of the pixels selected by ``mask`` (all pixels when None). Inputs need
-    not be exactly unit length; both are normalised.
+    Returns a float array of the pixels selected by ``mask`` [H, W] (bool, or numbers as
+    ``psctl.arrays.as_mask`` reads them; all pixels when None). Inputs need not be exactly unit
+    length; both are normalised. Other shapes or dtypes are a ``PsctlError``.
     """
+    from psctl.arrays import as_mask, plain
+    from psctl.errors import PsctlError
+
+    arrays = []
+    for name, a in (("normals", normals), ("gt", gt)):
+        a = np.asarray(plain(a))
+        if a.dtype.kind not in "iuf":  # text, objects, complex: nothing to measure
+            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}")
+        arrays.append(a)
+    normals, gt = arrays
+    if normals.shape != gt.shape or normals.ndim < 1 or normals.shape[-1] != 3:
+        # no broadcasting: one normal against a map is a mistake more often than a wish
+        raise PsctlError(None, f"angular_error: normals {list(normals.shape)} and gt {list(gt.shape)} must be "
+                               "the same shape [..., 3]")
     if mask is not None:
-        normals, gt = normals[mask], gt[mask]
+        if normals.ndim != 3:
+            raise PsctlError(None, f"angular_error: a mask needs [H, W, 3] maps, got {list(normals.shape)}")
+        m = as_mask(mask, normals.shape[:2], allow_empty=True)  # numbers as in mask files, not indices
+        normals, gt = normals[m], gt[m]
     # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
-    normals, gt = np.asarray(normals, np.float64), np.asarray(gt, np.float64)
+    normals, gt = normals.astype(np.float64), gt.astype(np.float64)
     a = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
     b = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-12)
     cos = np.clip((a * b).sum(-1), -1.0, 1.0)

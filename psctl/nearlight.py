@@ -59,6 +59,8 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     if distance is None:
         return None
     try:
+        if isinstance(distance, (bool, np.bool_)):  # True is 1 to float(): not a distance anyone means
+            raise TypeError
         d = float(distance)
     except (TypeError, ValueError):
         raise PsctlError(None, f"--light-distance must be a number of pixels, not {distance!r}") from None

@@ -30,12 +30,20 @@ def data():
     (lambda i, L, m: (i, L, np.where(m, np.nan, 0.0)), "mask contains NaN"),
     (lambda i, L, m: (i, L, np.zeros_like(m)), "mask is empty"),
     (lambda i, L, m: (i.astype(str), L, m), "float, uint8 or uint16"),
+    (lambda i, L, m: (i, L * np.array([1, 1, -1]), m), "every light has z <= 0"),  # as light_directions.txt
+    (lambda i, L, m: (i, L.astype(complex), m), "real, numeric"),
+    (lambda i, L, m: (i[:, :0], L, m[:0]), "N, H, W >= 1"),  # not "all images are black"
+    (lambda i, L, m: (i.astype(np.float64) * 1e300, L, m), "beyond float32's range"),  # finite: not "NaN"
 ])
 def test_bad_arrays_are_one_error(data, change, needle):
+    import warnings
+
     images, lights, mask, _ = data
     i, L, m = change(images.copy(), lights.copy(), mask.copy())
-    with pytest.raises(PsctlError, match=needle.replace("[", r"\[").replace("]", r"\]")):
-        estimate_normals(i, L, m, method="l2")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's overflow / complex warnings are not the message
+        with pytest.raises(PsctlError, match=needle.replace("[", r"\[").replace("]", r"\]")):
+            estimate_normals(i, L, m, method="l2")
 
 
 def test_options_are_checked_for_l2_too(data):
@@ -44,6 +52,42 @@ def test_options_are_checked_for_l2_too(data):
         estimate_normals(images, lights, mask, method="l2", device="gpu")
     with pytest.raises(PsctlError, match="views"):
         estimate_normals(images, lights, mask, method="l2", views=3)
+    for device in (0, 1):  # 0 passed as "auto", 1 failed on .lower()
+        with pytest.raises(PsctlError, match="--device must be a name"):
+            estimate_normals(images, lights, mask, method="l2", device=device)
+    with pytest.raises(PsctlError, match="refine must be True or False, not 'no'"):
+        estimate_normals(images, lights, mask, method="l2", refine="no")
+    with pytest.raises(PsctlError, match="--light-distance must be a number"):
+        estimate_normals(images, lights, mask, method="l2", light_distance=True)
+
+
+def test_given_lights_are_not_dropped(data, tmp_path):
+    """Methods that do not read light directions refuse them instead of ignoring them."""
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    images, lights, mask, _ = data
+    save_weights(tmp_path / "u.pt", PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 32})
+    with pytest.raises(PsctlError, match="lights: ups-fcn does not use given light directions"):
+        estimate_normals(images, lights, mask, method="ups-fcn", weights=tmp_path / "u.pt")
+
+
+def test_angular_error_checks_its_inputs():
+    from psctl.metrics import angular_error
+
+    normals, mask = sphere(16)
+    other = normals[::-1].copy()
+    ref = angular_error(normals, other, mask)
+    for m in (mask.astype(int), mask.astype(np.uint8) * 255, mask.astype(float)):  # numbers, not indices
+        assert np.array_equal(angular_error(normals, other, m), ref)
+    assert angular_error(normals, other, np.zeros_like(mask)).size == 0  # an empty selection: no error values
+    for args, needle in (((normals, other[:8]), "same shape"), ((normals, other[:1]), "same shape"),
+                         ((normals[..., :2], other[..., :2]), r"\[..., 3\]"),
+                         ((np.full((4, 4, 3), "a"), np.zeros((4, 4, 3))), "real numbers"),
+                         ((normals, other, mask[:8]), "mask must be")):
+        with pytest.raises(PsctlError, match=needle):
+            angular_error(*args)
+    assert angular_error(normals.tolist(), other.tolist(), mask).shape == ref.shape  # lists are fine
 
 
 def test_conventions_of_the_files(data):
@@ -84,11 +128,30 @@ def test_depth_config_is_checked():
                            ({"grazing_nz": "a"}, "'grazing_nz' must be a finite number"),
                            ({"cg_maxiter": 2.5}, "'cg_maxiter' must be a finite integer"),
                            ({"cg_maxiter": 10 ** 400}, "'cg_maxiter' must be a finite integer"),
+                           ({"cg_maxiter": 0}, "'cg_maxiter' must be at least 1"),  # gave a flat surface
+                           ({"cg_rtol": 5.0}, "'cg_rtol' must be above 0 and at most 1"),
+                           ({"grazing_nz": 2.0}, "'grazing_nz' must be above 0"),
+                           ({"bilateral_iters": 0}, "'bilateral_iters' must be at least 1"),  # crashed
                            ([1], "config must be a dict")):
         with pytest.raises(PsctlError, match=needle):
             integrate_normals(normals, mask, config=config)
     z = integrate_normals(normals, mask, config={"cg_maxiter": 500.0})  # a whole float is fine
     assert np.isfinite(z[mask]).all()
+    for bad, needle in ((np.round((normals + 1) / 2 * 65535).astype(np.uint16), "decode a PNG's pixels"),
+                        (normals.astype(complex), "complex128")):
+        with pytest.raises(PsctlError, match=needle):
+            integrate_normals(bad, mask)
+    with pytest.raises(PsctlError, match="real 3 x 3 matrix"):
+        integrate_normals(normals, mask, K="abc")
+
+
+def test_depth_says_when_the_solve_stopped_short():
+    from psctl.depth import integrate
+
+    normals, mask = sphere(32)
+    small = {"amg_max_coarse": 10}  # CG instead of the dense solve on this small sphere
+    assert integrate(normals, mask, config=small).converged
+    assert not integrate(normals, mask, config={**small, "cg_maxiter": 1}).converged
 
 
 def test_grey_stacks_integer_masks_and_types(data):

@@ -705,3 +705,24 @@ def test_networks_on_degenerate_lights_or_extreme_exposure_say_so(tmp_path):
     scale = res.info["exposure_scale"]
     assert 1e-33 < scale < 1e-29, scale
     assert any(f"images scaled by {scale:.4g}" in n for n in res.notes) and not any("scaled by 0 " in n for n in res.notes)
+
+
+def test_run_options_of_the_wrong_kind_are_errors(tmp_path):
+    """A fractional image count is not rounded behind the user's back, text is not a seed, and a
+    truthy "no" does not mean write."""
+    from psctl.api import run_normals
+    from psctl.lights import run_lights
+
+    write_capture(tmp_path / "cap", n=8, size=16)
+    for kw, needle in (({"n_images": 4.5}, "--images must be a whole number, not 4.5"),
+                       ({"n_images": "4"}, "--images must be a whole number"),
+                       ({"n_images": True}, "--images must be a whole number"),
+                       ({"n_images": 4, "seed": "1"}, "--seed must be a whole number"),
+                       ({"write": "no"}, "write must be True or False")):
+        with pytest.raises(PsctlError, match=needle):
+            run_normals(tmp_path / "cap", method="l2", out=tmp_path / "out", **{"write": True, **kw})
+        with pytest.raises(PsctlError, match=needle):
+            run_lights(tmp_path / "cap", out=tmp_path / "out", **{"write": True, **kw})
+    assert not (tmp_path / "out").exists()
+    r = run_normals(tmp_path / "cap", method="l2", write=False, n_images=np.int64(4), seed=4.0)  # whole numbers
+    assert r["n_images"] == 4

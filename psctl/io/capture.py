@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import unit_rows
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, check_int
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.nearlight import NearLights
 
@@ -672,6 +672,7 @@ def select_images(n: int, k: int | None, seed: int | None, lights: np.ndarray | 
     are nearly coplanar (condition number 4e4-1e6) and its first 12 all on one side of the rig,
     and every eighth image or so follows its grid (cropped ball, 12 images, PS-FCN: the first
     15.88, evenly spaced 9.17, spread 3.34, random with seed 0 3.36 degrees)."""
+    k, seed = check_int("--images", k), check_int("--seed", seed)
     if k is not None and k < 1:
         raise PsctlError(None, f"--images must be at least 1 (got {k})")
     if seed is not None and seed < 0:
@@ -703,6 +704,7 @@ def spread_lights(lights: np.ndarray, k: int) -> np.ndarray:
 
 def selection_notes(n: int, k: int | None, seed: int | None, by_lights: bool = False) -> list[str]:
     """What ``select_images`` did that a user may not expect, for the report's notes."""
+    k, seed = check_int("--images", k), check_int("--seed", seed)  # before a note quotes 4.5 images
     if k is not None and k > n:
         return [f"images: --images {k} asks for more than the {n} there are; all {n} used"]
     if seed is not None and k is None:

@@ -32,6 +32,8 @@ WEIGHTS_METHODS: dict[str, dict] = {**NETWORK_METHODS, **LIGHT_METHODS}
 def check_device_name(name: str | None) -> str:
     """``--device`` spelled auto, cpu, cuda or cuda:K (lower case returned); one-line error
     otherwise, before any work (also for methods that do not use it)."""
+    if name is not None and not isinstance(name, str):  # 0 would pass as "auto", 1 fail on .lower()
+        raise PsctlError(None, f"--device must be a name (auto, cpu, cuda or cuda:K), not {name!r}")
     name = (name or "auto").lower()
     if name in ("auto", "cpu", "cuda") or (name.startswith("cuda:") and name[5:].isdigit()):
         return name
