@@ -109,9 +109,12 @@ def _user_errors() -> Iterator[None]:
         yield
     except PsctlError as e:
         _fail(str(e))
-    except OSError as e:  # the system refused a path (too long, permission denied, ...): the user's to fix
+    except OSError as e:
+        if e.filename is None:  # not about a path the user gave: keep the traceback for a bug report
+            raise
+        # the system refused a path (too long, permission denied, disk full, ...): the user's to fix
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
-        _fail(f"{e.filename}: {what}" if e.filename else what)
+        _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
     except KeyboardInterrupt:
         _stderr().print("interrupted")
         raise typer.Exit(130) from None

@@ -84,7 +84,7 @@ CONFIG_RANGES = {
     "grazing_nz": (0.0, 1.0, False), "bilateral_k": (0.0, math.inf, False), "bilateral_iters": (1, math.inf, True),
     "bilateral_tol": (0.0, math.inf, True), "bilateral_k_start": (0.0, math.inf, False),
     "weight_floor": (0.0, 0.5, False), "cut_fraction": (0.0, 1.0, True), "cg_rtol": (0.0, 1.0, False),
-    "cg_maxiter": (1, math.inf, True), "amg_max_coarse": (1, math.inf, True), "amg_rebuild_iters": (1, math.inf, True),
+    "cg_maxiter": (1, math.inf, True), "amg_max_coarse": (1, math.inf, True), "amg_rebuild_iters": (0, math.inf, True),
     "amg_sweeps": (1, math.inf, True), "amg_strength": (0.0, 1.0, True),
 }
 
@@ -169,10 +169,10 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     normals = np.asarray(plain(normals))
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise PsctlError(None, f"normals must be [H, W, 3], got shape {normals.shape}")
-    if normals.dtype.kind != "f":  # integers are an encoded image's pixels ((n + 1) / 2), not vectors
-        raise PsctlError(None, f"normals must be float unit vectors, got dtype {normals.dtype}"
+    if normals.dtype.kind not in "fi":  # unsigned: an encoded image's pixels ((n + 1) / 2), not vectors
+        raise PsctlError(None, f"normals must be unit vectors of real numbers, got dtype {normals.dtype}"
                                + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
-                                  if normals.dtype.kind in "iub" else ""))
+                                  if normals.dtype.kind in "ub" else ""))
     h, w = normals.shape[:2]
     if mask is None:
         mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)

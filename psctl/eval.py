@@ -129,7 +129,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
                 f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})"
-            write_image(stage / "eval.png", benchmark_sheet(panels, title), "uint8")
+            write_image(stage / "eval.png", benchmark_sheet(panels, title, per_row=sheet_layout(len(folders))[0]), "uint8")
             write_json(stage / "eval.json", result)
     return result
 

@@ -10,8 +10,9 @@ THRESHOLDS = (11.25, 22.5, 30.0)
 def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel angle in degrees between two normal maps [..., 3] of the same shape.
 
-    Returns a float array of the pixels selected by ``mask`` [H, W] (bool, or numbers as
-    ``psctl.arrays.as_mask`` reads them; all pixels when None). Inputs need not be exactly unit
+    Returns a float array of the pixels selected by ``mask`` (the maps' shape without the last
+    axis, [H, W] for normal maps; bool, or numbers as ``psctl.arrays.as_mask`` reads them; all
+    pixels when None). Inputs need not be exactly unit
     length; both are normalised. Other shapes or dtypes are a ``PsctlError``.
     """
     from psctl.arrays import as_mask, plain
@@ -28,10 +29,11 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
         # no broadcasting: one normal against a map is a mistake more often than a wish
         raise PsctlError(None, f"angular_error: normals {list(normals.shape)} and gt {list(gt.shape)} must be "
                                "the same shape [..., 3]")
-    if mask is not None:
-        if normals.ndim != 3:
-            raise PsctlError(None, f"angular_error: a mask needs [H, W, 3] maps, got {list(normals.shape)}")
-        m = as_mask(mask, normals.shape[:2], allow_empty=True)  # numbers as in mask files, not indices
+    if mask is not None:  # [...] of the maps' shape: numbers read as in mask files, not as indices
+        m = np.asarray(plain(mask))
+        if m.shape != normals.shape[:-1]:
+            raise PsctlError(None, f"angular_error: mask must be {list(normals.shape[:-1])}, got {list(m.shape)}")
+        m = as_mask(m.reshape(1, -1), (1, m.size), allow_empty=True).reshape(m.shape)
         normals, gt = normals[m], gt[m]
     # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
     normals, gt = normals.astype(np.float64), gt.astype(np.float64)

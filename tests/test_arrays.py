@@ -88,6 +88,10 @@ def test_angular_error_checks_its_inputs():
         with pytest.raises(PsctlError, match=needle):
             angular_error(*args)
     assert angular_error(normals.tolist(), other.tolist(), mask).shape == ref.shape  # lists are fine
+    # any stack of vectors with a mask of its shape: [N, 3] with [N], [B, H, W, 3] with [B, H, W]
+    assert np.array_equal(angular_error(normals[mask], other[mask], np.ones(int(mask.sum()), bool)), ref)
+    both = angular_error(np.stack([normals, normals]), np.stack([other, other]), np.stack([mask, mask]))
+    assert np.array_equal(both, np.concatenate([ref, ref]))
 
 
 def test_conventions_of_the_files(data):
@@ -143,6 +147,8 @@ def test_depth_config_is_checked():
             integrate_normals(bad, mask)
     with pytest.raises(PsctlError, match="real 3 x 3 matrix"):
         integrate_normals(normals, mask, K="abc")
+    flat = np.zeros((8, 8, 3), int) + [0, 0, 1]  # signed integers that are unit vectors are vectors
+    assert np.allclose(integrate_normals(flat, None), 0.0)
 
 
 def test_depth_says_when_the_solve_stopped_short():
