@@ -112,10 +112,16 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     unit, bad = unit_rows(arr)
     if bad.size:
         raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction")
-    if (unit[:, 2] <= 0).all():  # as light_directions.txt: every light behind the object
-        raise PsctlError(None, "lights: every light has z <= 0 (behind the object); psctl wants z toward the "
-                               "camera (x right, y up): negate the z column if yours points away")
+    check_lights_face_camera(unit, None)
     return unit
+
+
+def check_lights_face_camera(unit: np.ndarray, path) -> None:
+    """An error naming ``path`` (light_directions.txt; None: the array) when every light [N, 3]
+    has z <= 0: behind the object, most likely an axis convention with z pointing away."""
+    if (unit[:, 2] <= 0).all():
+        raise PsctlError(path, ("" if path else "lights: ") + "every light has z <= 0 (behind the object); psctl "
+                               "wants z toward the camera (x right, y up): negate the z column if yours points away")
 
 
 def unit_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

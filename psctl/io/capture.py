@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.arrays import unit_rows
+from psctl.arrays import check_lights_face_camera, unit_rows
 from psctl.errors import PsctlError, check_int
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.nearlight import NearLights
@@ -404,9 +404,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         lights = read_lights(lights_path)
         if len(lights) != n:
             raise PsctlError(lights_path, f"{len(lights)} light rows but {n} image{'s' * (n != 1)}{found}")
-        if (lights[:, 2] <= 0).all():  # every light behind the object: the z axis points away
-            raise PsctlError(lights_path, "every light has z <= 0 (behind the object); psctl wants z toward the "
-                                          "camera (x right, y up): negate the z column if the file's z points away")
+        check_lights_face_camera(lights, lights_path)
     intensities = np.ones((n, 3), np.float32)
     intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files")
     given = intensities_path is not None
