@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool
+from psctl.errors import PsctlError, check_bool, check_formats, check_path
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -47,6 +47,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     """
     if not isinstance(method, str):
         raise PsctlError(None, f"method must be one of {', '.join(METHODS)}, not {method!r}")
+    check_path("weights", weights, optional=True)
+    check_path("lcnet", lcnet, optional=True)
     method = method.lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -275,6 +277,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.metrics import angular_error, summarize
 
     t0 = time.perf_counter()
+    for name, value in (("path", path), ("out", out), ("weights", weights), ("lcnet", lcnet)):
+        check_path(name, value, optional=name != "path")  # before minutes of work, as every check here
+    formats = parse_formats(check_formats(formats))
     progress = progress or (lambda desc, total: _noop)
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
@@ -308,7 +313,6 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes.append(f"lights: {what}, which leaves the normals undetermined (l2 refuses them); {method} answers "
                      "from what it learnt: expect large errors")
     out_dir = output_folder(out, cap.path)
-    formats = parse_formats(formats if isinstance(formats, str) else ",".join(formats))
     # report.json always: without ground truth it still records the method, notes and timings
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + ["report.json"]
     all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write

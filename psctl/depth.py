@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import PsctlError, check_bool, like_default
+from psctl.errors import PsctlError, check_bool, check_path, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -633,6 +633,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     from psctl.io.capture import bounding_box, capture_notes, check_not_capture, iter_images, load_images, open_capture
 
     t0 = time.perf_counter()
+    for name, value in (("path", path), ("normals", normals), ("out", out)):
+        check_path(name, value, optional=name != "path")
     progress = progress or (lambda desc, total: (lambda k: None))
     method = str(method).lower()
     if method not in METHODS:

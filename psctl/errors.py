@@ -100,3 +100,22 @@ def check_bool(where: str, value: Any) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise PsctlError(None, f"{where} must be True or False, not {value!r}")
     return bool(value)
+
+
+def check_path(where: str, value: Any, optional: bool = False) -> Any:
+    """A path argument given as something else (None where one is needed, a number, a list) is a
+    one-line error naming ``where``, not Python's TypeError from deep inside; returns ``value``."""
+    if value is None and optional:
+        return None
+    if isinstance(value, (str, os.PathLike)) and not isinstance(value, bytes):
+        return value
+    raise PsctlError(None, f"{where} must be a path (str or os.PathLike), not {value!r}")
+
+
+def check_formats(value: Any) -> str:
+    """Output formats as text ("png16,exr") or a list / tuple of names -> the text form."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+        return ",".join(value)
+    raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {value!r}")

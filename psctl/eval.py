@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.api import ProgressFactory, run_normals
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, check_path
 
 DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
 
@@ -79,6 +79,10 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.lights import refine_config
 
     refine_config(falloff, roll)  # a bad value stops before any object runs
+    for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
+        check_path(name, value, optional=True)
+    if not isinstance(benchmark, str):
+        raise PsctlError(None, f"benchmark must be one of {', '.join(BENCHMARKS)}, not {benchmark!r}")
     benchmark = benchmark.lower()
     if benchmark not in BENCHMARKS:
         raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")

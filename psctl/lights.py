@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool, naming
+from psctl.errors import PsctlError, check_bool, check_path, naming
 
 if TYPE_CHECKING:
     import torch
@@ -108,6 +108,7 @@ def load_lcnet(weights: str | os.PathLike | None = None, flag: str = "--weights"
     passes a file, for the error message when nothing is installed."""
     from psctl.models.weights import installed_path, load_network, no_weights_error
 
+    check_path(flag.lstrip("-"), weights, optional=True)
     if weights is None and installed_path("lcnet") is None:
         raise no_weights_error("lcnet", flag)
     model, _, w = load_network("lcnet", weights, device="cpu")
@@ -899,6 +900,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                                   selection_notes)
 
     t0 = time.perf_counter()
+    for name, value in (("path", path), ("out", out), ("weights", weights), ("normals_weights", normals_weights)):
+        check_path(name, value, optional=name != "path")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     cap = open_capture(path, encoding)

@@ -61,6 +61,42 @@ def test_options_are_checked_for_l2_too(data):
         estimate_normals(images, lights, mask, method="l2", light_distance=True)
 
 
+@pytest.mark.parametrize("call,needle", [
+    ("run_normals(None)", "path must be a path"),
+    ("run_normals(b'folder')", "path must be a path"),
+    ("run_normals(FOLDER, method='l2', out=5)", "out must be a path"),
+    ("run_normals(FOLDER, weights=123)", "weights must be a path"),
+    ("run_normals(FOLDER, lcnet=[1])", "lcnet must be a path"),
+    ("run_normals(FOLDER, method='l2', formats=None)", "formats must be text"),
+    ("run_normals(FOLDER, method='l2', formats=[1, 2])", "formats must be text"),
+    ("run_lights(None)", "path must be a path"),
+    ("run_lights(FOLDER, weights=3.0)", "weights must be a path"),
+    ("run_benchmark('diligent', root=5)", "root must be a path"),
+    ("run_benchmark(5)", "benchmark must be one of"),
+    ("run_depth(FOLDER, normals=3)", "normals must be a path"),
+    ("open_capture(7)", "path must be a path"),
+    ("load_network('ps-fcn', 5)", "weights must be a path"),
+    ("estimate_lights(IMAGES, weights=1)", "weights must be a path"),
+    ("estimate_normals(IMAGES, LIGHTS, method='ps-fcn', weights=1)", "weights must be a path"),
+])
+def test_path_arguments_of_the_wrong_kind_are_one_error(data, tmp_path, call, needle):
+    """Python's own TypeError ('expected str, bytes or os.PathLike object') named no argument."""
+    from psctl.api import run_normals
+    from psctl.depth import run_depth
+    from psctl.eval import run_benchmark
+    from psctl.io.capture import open_capture
+    from psctl.lights import run_lights
+    from psctl.models.weights import load_network
+
+    images, lights, mask, _ = data
+    scope = {"run_normals": run_normals, "run_depth": run_depth, "run_benchmark": run_benchmark,
+             "open_capture": open_capture, "run_lights": run_lights, "load_network": load_network,
+             "estimate_lights": estimate_lights, "estimate_normals": estimate_normals,
+             "FOLDER": str(tmp_path), "IMAGES": images, "LIGHTS": lights}
+    with pytest.raises(PsctlError, match=needle):
+        eval(call, globals(), scope)
+
+
 def test_given_lights_are_not_dropped(data, tmp_path):
     """Methods that do not read light directions refuse them instead of ignoring them."""
     from psctl.models.ps_fcn import PSFCN

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows
-from psctl.errors import PsctlError, check_int
+from psctl.errors import PsctlError, check_int, check_path
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.nearlight import NearLights
 
@@ -314,7 +314,7 @@ def _is_capture(path: Path, entries: list[Path]) -> bool:
 
 def find_objects(root: str | os.PathLike) -> list[Path]:
     """Object folders of a benchmark root: those in objects.txt, else capture subfolders."""
-    root = Path(root)
+    root = Path(check_path("root", root))
     if not root.is_dir():
         raise PsctlError(root, "not a folder")
     listed = root / "objects.txt"
@@ -355,7 +355,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     if not isinstance(encoding, str) or encoding.lower() not in ENCODINGS:
         raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
     encoding = encoding.lower()  # as --method and --device
-    path = Path(path)
+    path = Path(check_path("path", path))
     if not path.exists():
         raise PsctlError(path, "folder does not exist")
     if not path.is_dir():

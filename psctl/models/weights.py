@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, check_path
 from psctl.models import NETWORK_METHODS, WEIGHTS_METHODS
 
 if TYPE_CHECKING:  # torch is imported inside the functions: finding files must stay cheap
@@ -154,7 +154,7 @@ def read_weights(path: str | os.PathLike) -> Weights:
     """Read psctl's format or the authors' ``{'state_dict': ...}`` format."""
     import torch
 
-    path = Path(path)
+    path = Path(check_path("weights", path))
     if not path.is_file():
         raise PsctlError(path, "weights file not found")
     obj = _torch_load(path)
@@ -340,7 +340,7 @@ def load_network(method: str, weights_file: str | os.PathLike | None = None,
         if path is None:
             raise no_weights_error(method)
     else:
-        path = Path(weights_file)
+        path = Path(check_path("weights", weights_file))
     weights = read_weights(path)
     model, run = build_network(weights, method, device)
     return model, run, weights
