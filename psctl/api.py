@@ -10,13 +10,14 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool, check_formats, check_path
+from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -218,14 +219,24 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         source = array_source(images, mask, second, weights, {"device": device, "views": views})
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS:
+        from psctl.classic import lights_problem
         from psctl.infer import array_normals
 
+        if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
+            warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=2)
         return array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")
     from psctl.classic import l2_normals
 
     return l2_normals(images, lights, mask).normals
+
+
+def undetermined_note(method: str, lights: np.ndarray) -> str:
+    """The note for a network given fewer than 3 images or (nearly) coplanar lights."""
+    what = f"only {len(lights)} image(s)" if len(lights) < 3 else "the light directions are (nearly) coplanar"
+    return (f"lights: {what}, which leaves the normals undetermined (l2 refuses them); {method} answers "
+            "from what it learnt: expect large errors")
 
 
 def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
@@ -309,9 +320,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if problem:
             raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")
     elif method in LISTED_LIGHTS and cap.calibrated and lights_problem(cap.lights):  # a network answers anyway
-        what = f"only {cap.n_images} image(s)" if cap.n_images < 3 else "the light directions are (nearly) coplanar"
-        notes.append(f"lights: {what}, which leaves the normals undetermined (l2 refuses them); {method} answers "
-                     "from what it learnt: expect large errors")
+        notes.append(undetermined_note(method, cap.lights))
     out_dir = output_folder(out, cap.path)
     # report.json always: without ground truth it still records the method, notes and timings
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + ["report.json"]

@@ -28,6 +28,12 @@ class PsctlError(ValueError):
         super().__init__(f"{self.path}: {message}" if self.path else message)
 
 
+class PsctlWarning(UserWarning):
+    """Something the array API answers anyway but a user should know (psctl normals puts the same
+    text in its report's notes): ``warnings.warn(..., PsctlWarning)``; silence or raise it with
+    Python's warning filters."""
+
+
 @contextlib.contextmanager
 def naming(path: str | os.PathLike) -> Iterator[None]:
     """Errors raised inside that name no file get ``path`` (the capture folder being read), so

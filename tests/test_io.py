@@ -700,6 +700,20 @@ def test_networks_on_degenerate_lights_or_extreme_exposure_say_so(tmp_path):
     assert any("light directions are (nearly) coplanar" in n and "expect large errors" in n for n in r["notes"]), r["notes"]
     with pytest.raises(PsctlError, match="coplanar"):
         run_normals(tmp_path / "cap", method="l2", write=False)
+    # the array API has no report: the same note comes as a PsctlWarning
+    from psctl.api import estimate_normals
+    from psctl.errors import PsctlWarning
+
+    imgs = np.asarray(arrays["images"], np.float32)
+    with pytest.warns(PsctlWarning, match="coplanar.*expect large errors"):
+        estimate_normals(imgs, flat, arrays["mask"], method="ps-fcn", weights=tmp_path / "w.pt", device="cpu")
+    with pytest.warns(PsctlWarning, match="only 2 image"):
+        estimate_normals(imgs[:2], arrays["lights"][:2], arrays["mask"], method="ps-fcn", weights=tmp_path / "w.pt")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PsctlWarning)  # good lights: no warning
+        estimate_normals(imgs, arrays["lights"], arrays["mask"], method="ps-fcn", weights=tmp_path / "w.pt")
     bright = np.asarray(arrays["images"], np.float32) * np.float32(1e30)
     res = array_normals(bright, arrays["lights"], arrays["mask"], "ps-fcn", weights=tmp_path / "w.pt")
     scale = res.info["exposure_scale"]
