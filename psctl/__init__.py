@@ -16,6 +16,8 @@ _LAZY = {
     "run_normals": "psctl.api",
     "integrate_normals": "psctl.depth",
     "run_lights": "psctl.lights",
+    "run_benchmark": "psctl.eval",
+    "run_depth": "psctl.depth",
     "open_capture": "psctl.io.capture",
     "load_images": "psctl.io.capture",
     "load_mask": "psctl.io.capture",

@@ -339,6 +339,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if stale:
             notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl normals run "
                          "(a folder holds one run's outputs)")
+        listed = read_outputs_list(out_dir)
+        foreign = [n for n in names if n not in listed and (out_dir / n).exists()]
+        if foreign:  # not psctl's (or from a psctl without the list): replaced, but never silently
+            notes.append(f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl normals run "
+                         "there had listed")
 
     mask = load_mask(cap)
     gt = load_ground_truth(cap)

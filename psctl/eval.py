@@ -34,19 +34,21 @@ BENCHMARKS = ("diligent", "folder")
 
 
 def default_diligent_root() -> Path:
-    """$PSCTL_DATA/DiLiGenT/pmsData, then ~/.cache/psctl/DiLiGenT/pmsData."""
+    """$PSCTL_DATA/DiLiGenT/pmsData (or .../diligent/pmsData, as in psctl's development data),
+    then ~/.cache/psctl/DiLiGenT/pmsData; the error lists every place looked in."""
     candidates = []
     if os.environ.get("PSCTL_DATA"):
-        candidates.append(Path(os.environ["PSCTL_DATA"]) / "DiLiGenT" / "pmsData")
+        data = Path(os.environ["PSCTL_DATA"])
+        candidates += [data / "DiLiGenT" / "pmsData", data / "diligent" / "pmsData"]
     candidates.append(Path.home() / ".cache" / "psctl" / "DiLiGenT" / "pmsData")
     for c in candidates:
         if c.is_dir():
             return c
     raise PsctlError(
-        candidates[0],
-        "DiLiGenT not found. Get it from the DiLiGenT benchmark page (Shi et al., "
-        "'A Benchmark Dataset and Evaluation for Non-Lambertian and Uncalibrated Photometric "
-        "Stereo'), unpack it so that this folder holds ballPNG/, catPNG/, ..., or pass "
+        None,
+        f"DiLiGenT not found in {', '.join(map(str, candidates))}. Get it from the DiLiGenT benchmark page "
+        "(Shi et al., 'A Benchmark Dataset and Evaluation for Non-Lambertian and Uncalibrated Photometric "
+        "Stereo'), unpack it so that one of these folders holds ballPNG/, catPNG/, ..., or pass "
         "--root DIR (a pmsData or pmsData_crop folder); psctl never downloads at run time",
     )
 

@@ -89,6 +89,18 @@ def test_eval_without_diligent_says_where_to_get_it(tmp_path):
     env = {**os.environ, "PSCTL_DATA": str(tmp_path), "HOME": str(tmp_path)}
     proc = subprocess.run([sys.executable, "-m", "psctl.cli", "eval"], capture_output=True, text=True, env=env)
     assert proc.returncode == 2 and "--root" in proc.stderr and "DiLiGenT" in proc.stderr
+    for where in (tmp_path / "DiLiGenT" / "pmsData", tmp_path / "diligent" / "pmsData",
+                  tmp_path / ".cache" / "psctl" / "DiLiGenT" / "pmsData"):
+        assert str(where) in proc.stderr, proc.stderr  # every place looked in
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_diligent_is_found_in_lower_case_too(tmp_path, monkeypatch):
+    from psctl.eval import default_diligent_root
+
+    (tmp_path / "diligent" / "pmsData").mkdir(parents=True)  # the development data's layout
+    monkeypatch.setenv("PSCTL_DATA", str(tmp_path))
+    assert default_diligent_root() == tmp_path / "diligent" / "pmsData"
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["normals", "--help"], ["eval", "--help"], ["train", "--help"]])
@@ -531,9 +543,15 @@ def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     # files psctl normals did not write there are never removed, even with its names
     (out / ".psctl-normals").unlink()
     write_image(out / "error.png", np.zeros((4, 4)), "uint8")
-    psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", check=True)
+    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
+                         check=True).stdout)
     assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt",
                                        "report.json"]
+    # a file of the same name that no listed run wrote is replaced with a note, never silently
+    assert any("replaced report.json" in n for n in r["notes"]), r["notes"]
+    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
+                         check=True).stdout)
+    assert not any("replaced" in n for n in r["notes"]), r["notes"]  # now listed: psctl's own
 
 
 def test_outputs_never_go_into_another_capture(capture, tmp_path):
