@@ -222,9 +222,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.classic import lights_problem
         from psctl.infer import array_normals
 
+        normals = array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=2)
-        return array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
+        return normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")
     from psctl.classic import l2_normals
@@ -339,8 +340,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if stale:
             notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl normals run "
                          "(a folder holds one run's outputs)")
+        for n in names:  # a folder in the way would fail the run only after its work
+            if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
+                raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
+                                              "or choose another --out")
         listed = read_outputs_list(out_dir)
-        foreign = [n for n in names if n not in listed and (out_dir / n).exists()]
+        foreign = [n for n in names if n not in listed and (out_dir / n).is_file()]
         if foreign:  # not psctl's (or from a psctl without the list): replaced, but never silently
             notes.append(f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl normals run "
                          "there had listed")

@@ -49,6 +49,7 @@ from __future__ import annotations
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import PsctlError, check_bool, check_path, like_default
+from psctl.errors import PsctlError, PsctlWarning, check_bool, check_path, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -688,7 +689,14 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         images = load_images(cap, box, progress(f"{cap.name}: reading images", cap.n_images))
         nmap = np.zeros((cap.height, cap.width, 3), np.float32)
         try:
-            nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
+            with warnings.catch_warnings(record=True) as caught:  # into the report's notes, not stderr
+                warnings.simplefilter("always", PsctlWarning)
+                nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
+            for w in caught:
+                if issubclass(w.category, PsctlWarning):
+                    notes.append(str(w.message))
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         except PsctlError as e:
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None

@@ -29,9 +29,9 @@ class PsctlError(ValueError):
 
 
 class PsctlWarning(UserWarning):
-    """Something the array API answers anyway but a user should know (psctl normals puts the same
-    text in its report's notes): ``warnings.warn(..., PsctlWarning)``; silence or raise it with
-    Python's warning filters."""
+    """A note of psctl normals that the array API, which has no report, gives as a warning
+    (``estimate_normals``: a network on fewer than 3 images or coplanar lights); silence or raise
+    it with Python's warning filters."""
 
 
 @contextlib.contextmanager
@@ -115,13 +115,25 @@ def check_path(where: str, value: Any, optional: bool = False) -> Any:
         return None
     if isinstance(value, (str, os.PathLike)) and not isinstance(value, bytes):
         return value
-    raise PsctlError(None, f"{where} must be a path (str or os.PathLike), not {value!r}")
+    hint = "; pass capture.path" if type(value).__name__ == "Capture" else ""
+    raise PsctlError(None, f"{where} must be a path (str or os.PathLike), not {_short(value)}{hint}")
+
+
+def _short(value: Any) -> str:
+    """A value for a one-line message: a scalar's repr, else its type (an array, a Capture)."""
+    import reprlib
+
+    if value is None or isinstance(value, (str, bytes, numbers.Number, list, tuple, set, frozenset, dict)):
+        return reprlib.repr(value)  # cut to a few dozen characters
+    return f"a value of type {type(value).__name__}"
 
 
 def check_formats(value: Any) -> str:
-    """Output formats as text ("png16,exr") or a list / tuple of names -> the text form."""
+    """Output formats as text ("png16,exr") or any collection of names -> the text form."""
     if isinstance(value, str):
         return value
-    if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
-        return ",".join(value)
-    raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {value!r}")
+    if not isinstance(value, (bytes, dict)) and hasattr(value, "__iter__"):
+        names = list(value)
+        if all(isinstance(v, str) for v in names):
+            return ",".join(names)
+    raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {_short(value)}")

@@ -48,8 +48,8 @@ def default_diligent_root() -> Path:
         None,
         f"DiLiGenT not found in {', '.join(map(str, candidates))}. Get it from the DiLiGenT benchmark page "
         "(Shi et al., 'A Benchmark Dataset and Evaluation for Non-Lambertian and Uncalibrated Photometric "
-        "Stereo'), unpack it so that one of these folders holds ballPNG/, catPNG/, ..., or pass "
-        "--root DIR (a pmsData or pmsData_crop folder); psctl never downloads at run time",
+        "Stereo'), unpack it so that a folder above holds ballPNG/, catPNG/, ... ($PSCTL_DATA sets where "
+        "psctl looks first), or pass --root DIR (a pmsData or pmsData_crop folder); psctl never downloads at run time",
     )
 
 

@@ -178,7 +178,7 @@ def cpu_has_bf16() -> bool:
             flags = Path("/proc/cpuinfo").read_text().split()
         except OSError:
             return False
-        return "avx512_bf16" in flags or "amx_bf16" in flags
+        return "avx512_bf16" in flags or "amx_bf16" in flags or "amx_tile" in flags
 
 
 def _autocast(device: "torch.device", kind: str | None):

@@ -100,7 +100,7 @@ def test_diligent_is_found_in_lower_case_too(tmp_path, monkeypatch):
 
     (tmp_path / "diligent" / "pmsData").mkdir(parents=True)  # the development data's layout
     monkeypatch.setenv("PSCTL_DATA", str(tmp_path))
-    assert default_diligent_root() == tmp_path / "diligent" / "pmsData"
+    assert default_diligent_root().samefile(tmp_path / "diligent" / "pmsData")  # case-blind file systems too
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["normals", "--help"], ["eval", "--help"], ["train", "--help"]])
@@ -543,6 +543,10 @@ def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     # files psctl normals did not write there are never removed, even with its names
     (out / ".psctl-normals").unlink()
     write_image(out / "error.png", np.zeros((4, 4)), "uint8")
+    (out / "normal.exr").mkdir()  # in the way: refused before any work, not after it
+    proc = psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr")
+    assert proc.returncode == 2 and "normal.exr: is in the way of an output file" in proc.stderr, proc.stderr
+    (out / "normal.exr").rmdir()
     r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
                          check=True).stdout)
     assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt",

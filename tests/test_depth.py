@@ -381,3 +381,25 @@ def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):
     proc = psctl("depth", capture, "--normals", tmp_path / "n.exr", "--out", tmp_path / "o", "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["n_rejected"] == 4
+
+
+def test_depth_puts_the_networks_warning_in_its_notes(tmp_path, monkeypatch):
+    """Without a normal map, psctl depth estimates one with --method auto; PS-FCN's warning on
+    coplanar lights belongs in the report's notes, not on stderr as a Python warning."""
+    import warnings
+
+    from psctl.depth import run_depth
+    from psctl.errors import PsctlWarning
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    write_capture(tmp_path / "cap", n=8, size=24)
+    a = np.radians(np.linspace(-40, 40, 8))
+    np.savetxt(tmp_path / "cap" / "light_directions.txt", np.stack([np.sin(a), np.zeros(8), np.cos(a)], 1))
+    (tmp_path / "cap" / "Normal_gt.mat").unlink()  # not a normal map to integrate
+    save_weights(tmp_path / "w" / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32, "input_mean": 0.1})
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PsctlWarning)
+        r = run_depth(tmp_path / "cap", write=False)
+    assert any("coplanar" in n and "expect large errors" in n for n in r["notes"]), r["notes"]
