@@ -182,6 +182,20 @@ def amp_settings(amp: str, device: torch.device) -> tuple[bool, torch.dtype]:
     return False, torch.float32
 
 
+def cpu_name() -> str:
+    """The CPU's model name (weights metadata: training rates differ threefold between VMs)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return "cpu: " + line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "cpu: " + (platform.processor() or "unknown model")
+
+
 def cosine_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """mean over object pixels of 1 - n.n_gt. pred, gt [B, 3, H, W], mask [B, 1, H, W]."""
     cos = (pred * gt).sum(1, keepdim=True)
@@ -664,7 +678,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 "train_images": t["images_per_sample"], "recipe": config,
                 "data": "psctl synthetic stream (psctl.synth), generated on the fly",
                 "samples_seen": st["samples"], "wall_seconds": round(st["seconds"], 1),
-                "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"cpu ({os.cpu_count()} cores)",
+                "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"{cpu_name()} ({os.cpu_count()} cores)",
+                "precision": f"{str(amp_dtype).removeprefix('torch.')} autocast" if use_amp else "float32",
                 "metrics": metrics}
 
     def checkpoint() -> None:

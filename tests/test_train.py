@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from psctl.errors import PsctlError
+from psctl.infer import cpu_has_bf16
 from psctl.models.weights import read_weights
 from psctl.train import load_config, merge, train
 
@@ -33,6 +34,9 @@ def test_tiny_recipe_trains_and_loss_goes_down(tmp_path):
     assert meta["method"] == "ps-fcn-n" and meta["train_images"] == 8 and meta["normalization"] == "per-channel"
     assert meta["samples_seen"] > 0 and "synthetic_val_mae" in meta["metrics"]
     assert "input_mean" not in meta  # +N removes the exposure
+    # what trained it: the CPU's model and whether bf16 really ran (emulated bf16 is not used)
+    assert meta["device"].startswith("cpu: ") and meta["device"].endswith("cores)")
+    assert meta["precision"] == ("bfloat16 autocast" if cpu_has_bf16() else "float32")
     assert all(p.stat().st_size < 16 * 2**20 for p in (tmp_path / "run").iterdir())
 
 
