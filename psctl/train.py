@@ -58,6 +58,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "betas": [0.9, 0.999],
         "weight_decay": 0.0,
         "lr_halve_every": 420_000,  # samples (the paper: every 5 epochs of ~84k samples)
+        "warmup": 0,  # samples: lr ramps up linearly over the run's first ones (0: none, the paper's)
         "samples": 2_500_000,  # the paper: 30 epochs of ~84k samples
         "seed": 0,
         "log_every": 20,  # steps
@@ -106,7 +107,7 @@ def merge(base: dict, override: dict | None) -> dict:
 # recipe values that must be 0 or more, or positive (sizes, counts); the others only need their
 # default's kind (check_recipe)
 _NON_NEGATIVE = {("train", "lr"), ("train", "weight_decay"), ("train", "seed"), ("val", "seed"),
-                 ("train", "checkpoint_minutes")}  # lr 0: frozen weights; checkpoint_minutes 0: every step
+                 ("train", "checkpoint_minutes"), ("train", "warmup")}  # lr 0: frozen weights; checkpoint_minutes 0: every step
 _POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "lr_halve_every", "samples",
                                     "log_every", "val_every")} | \
     {("val", k) for k in ("samples", "images", "size", "batch_size")} | {("lcnet", "dirs_cls"), ("lcnet", "ints_cls")}
@@ -353,8 +354,14 @@ def keep_freed_memory() -> bool:
 
 
 def lr_at(samples: int, cfg: dict) -> float:
+    """The learning rate for the step that starts at ``samples`` (of this run): ``lr`` halved every
+    ``lr_halve_every``; with ``warmup``, ramped up linearly over the first ``warmup`` samples (a
+    fine-tuning stage starts Adam afresh, whose first updates are about lr whatever the gradient)."""
     t = cfg["train"]
-    return t["lr"] * 0.5 ** (samples // max(1, t["lr_halve_every"]))
+    lr = t["lr"] * 0.5 ** (samples // max(1, t["lr_halve_every"]))
+    if t.get("warmup", 0) > 0:
+        lr *= min(1.0, (samples + t["batch_size"]) / t["warmup"])
+    return lr
 
 
 def synth_stream(data: dict, *, batch_size: int, images: int, crop: int, seed: int, device: torch.device):

@@ -299,3 +299,17 @@ def test_bad_run_folders_are_one_error(tmp_path):
     (run / "state.json").write_text("{not json")
     with pytest.raises(PsctlError, match="not a readable run state"):
         train("ps-fcn", None, run, resume=True, device="cpu")
+
+
+def test_warmup_ramps_the_learning_rate_then_the_halving_schedule_holds():
+    from psctl.train import DEFAULT_CONFIG, lr_at
+
+    cfg = merge(DEFAULT_CONFIG, {"train": {"lr": 1e-4, "lr_halve_every": 1000, "batch_size": 32, "warmup": 320}})
+    rates = [lr_at(s, cfg) for s in (0, 96, 288, 320, 999, 1000)]
+    assert rates[0] == pytest.approx(1e-5) and rates[1] == pytest.approx(4e-5)  # (samples + batch) / warmup
+    assert rates[2] == rates[3] == rates[4] == pytest.approx(1e-4) and rates[5] == pytest.approx(5e-5)
+    assert lr_at(0, merge(cfg, {"train": {"warmup": 0}})) == pytest.approx(1e-4)  # the default: none
+    with pytest.raises(PsctlError, match="warmup"):
+        from psctl.train import check_recipe
+
+        check_recipe(merge(cfg, {"train": {"warmup": -5}}))
