@@ -191,10 +191,10 @@ def cpu_name() -> str:
         with open("/proc/cpuinfo") as f:
             for line in f:
                 if line.startswith("model name"):
-                    return "cpu: " + line.split(":", 1)[1].strip()
+                    return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return "cpu: " + (platform.processor() or "unknown model")
+    return platform.processor() or platform.machine() or "unknown model"
 
 
 def cosine_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -685,7 +685,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 "train_images": t["images_per_sample"], "recipe": config,
                 "data": "psctl synthetic stream (psctl.synth), generated on the fly",
                 "samples_seen": st["samples"], "wall_seconds": round(st["seconds"], 1),
-                "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"{cpu_name()} ({os.cpu_count()} cores)",
+                "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"cpu: {cpu_name()} ({os.cpu_count()} cores)",
                 "precision": f"{str(amp_dtype).removeprefix('torch.')} autocast" if use_amp else "float32",
                 "metrics": metrics}
 
