@@ -906,3 +906,34 @@ def test_written_object_folders_follow_the_umask(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "set" / "blobby_01").stat().st_mode & 0o777 == 0o755
+
+
+def test_scale_law_log_draws_as_many_sides_per_octave_and_stays_in_range():
+    """``scale_law: log`` draws the rescaled side log-uniformly: about half the sides of
+    [32, 320] fall below its geometric mean (101), where the uniform law puts 24 %."""
+    from psctl.synth.stream import rescaled_sides
+    gen = torch.Generator().manual_seed(0)
+    log = rescaled_sides(32.0, 320.0, "log", 20000, gen)
+    uni = rescaled_sides(32.0, 320.0, "uniform", 20000, gen)
+    assert float(log.min()) >= 32.0 and float(log.max()) <= 320.0
+    assert abs(float((log < (32.0 * 320.0) ** 0.5).float().mean()) - 0.5) < 0.02
+    assert abs(float((log < 64.0).float().mean()) - math.log(2) / math.log(10)) < 0.02
+    assert abs(float((uni < (32.0 * 320.0) ** 0.5).float().mean()) - (101.19 - 32) / 288) < 0.02
+
+
+def test_scale_law_is_checked_and_reaches_the_crops():
+    from psctl.synth.stream import make_config
+    with pytest.raises(PsctlError, match="scale_law must be one of uniform, log"):
+        make_config({"scale_law": "exp"})
+    assert make_config({"scale": [32, 320], "scale_law": "log"})["scale_law"] == "log"
+
+
+def test_scale_law_log_shows_more_of_the_background_in_the_crops():
+    """Smaller rescaled views leave more background in a window: over [16, 160] the log law
+    (median side 51) gives crops with fewer object pixels than the uniform one (median 88)."""
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "batch_size": 64, "scale": [16, 160]}
+    cover = {law: float(SynthStream({**cfg, "scale_law": law}, seed=3).next_batch()["masks"].float().mean())
+             for law in ("uniform", "log")}
+    assert cover["log"] < cover["uniform"] - 0.03, cover

@@ -45,6 +45,9 @@ DEFAULT_CONFIG: dict = {
     "size": 128,  # resolution the geometry pool is rendered at
     "crop": 32,  # output side; None: the whole view (size x size)
     "scale": None,  # (lo, hi) rescaled side before cropping; None: (crop, size) as in the paper
+    # how the rescaled side is drawn in `scale`: "uniform" (the paper's) or "log" (log-uniform:
+    # as many samples per octave, so a wide range still sees its small end often)
+    "scale_law": "uniform",
     "rotate": True,  # random rotation about the view axis
     "flip": True,  # random mirror
     "windows": None,  # side w: also draw one w x w window per sample around a random object pixel
@@ -223,6 +226,19 @@ def check_near_lights(opts) -> None:
         raise PsctlError(None, f"synth stream option 'near_lights': need 2 <= radii lo <= hi, got [{lo}, {hi}]")
 
 
+SCALE_LAWS = ("uniform", "log")
+
+
+def rescaled_sides(lo: float, hi: float, law: str, b: int, gen: torch.Generator,
+                   device: torch.device | str = "cpu") -> Tensor:
+    """[b] sides in [lo, hi] each view is rescaled to before cropping, drawn uniformly or
+    log-uniformly (``law``: "uniform" or "log")."""
+    u = torch.rand(b, generator=gen, device=device)
+    if law == "log":
+        return lo * (hi / lo) ** u
+    return lo + (hi - lo) * u
+
+
 def make_config(config: dict | None = None, **overrides) -> dict:
     """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
     cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
@@ -237,6 +253,8 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     if not (0 < cfg["crop"] <= cfg["size"] and cfg["crop"] <= lo <= hi):
         raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
                                f"size {cfg['size']}, scale {cfg['scale']})")
+    if cfg["scale_law"] not in SCALE_LAWS:
+        raise PsctlError(None, f"scale_law must be one of {', '.join(SCALE_LAWS)}, got {cfg['scale_law']!r}")
     if cfg["windows"] is not None and not (0 < int(cfg["windows"]) <= cfg["crop"]):
         raise PsctlError(None, f"need 0 < windows <= crop (windows {cfg['windows']}, crop {cfg['crop']})")
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
@@ -431,8 +449,8 @@ def sample_crops(pool: GeometryPool, b: int, cfg: dict, gen: torch.Generator) ->
     cx = ((pix % s).float() + 0.5) / s * 2 - 1  # grid coordinates: x right, y down
     cy = ((pix // s).float() + 0.5) / s * 2 - 1
     lo, hi = cfg["scale"]
-    sw = lo + (hi - lo) * torch.rand(b, generator=gen, device=dev)  # rescaled sides (paper: randint)
-    sh = lo + (hi - lo) * torch.rand(b, generator=gen, device=dev)
+    sw = rescaled_sides(lo, hi, cfg["scale_law"], b, gen, dev)  # rescaled sides (paper: randint)
+    sh = rescaled_sides(lo, hi, cfg["scale_law"], b, gen, dev)
     ex, ey = c / sw, c / sh  # half-extent of the window in source grid units
     cx = cx + (torch.rand(b, generator=gen, device=dev) - 0.5) * ex
     cy = cy + (torch.rand(b, generator=gen, device=dev) - 0.5) * ey
