@@ -503,7 +503,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk."""
-    from psctl.io.capture import ImageCheck, iter_images
+    from psctl.io.capture import ImageCheck
 
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
@@ -517,14 +517,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
     check = ImageCheck(capture)  # black images, negative values: notes
-
-    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
-            check.see(k, img[mask[box]])
-            yield img
-
     with naming(capture.path):  # all images black, ...
-        res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
+        res = run_views(model, check.reader(capture, mask), capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)

@@ -325,21 +325,15 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
                    flag: str = "--weights") -> LightEstimate:
     """Lights of a capture folder, streaming its images from disk as captured (the folder's
     light_intensities.txt, if any, is not applied)."""
-    from psctl.io.capture import ImageCheck, iter_images
+    from psctl.io.capture import ImageCheck
 
     model, w = load_lcnet(weights, flag)
     if w.official:  # the guard's band describes psctl's training exposures, not the authors'
         config = {"exposure_band": None, **(config or {})}
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     check = ImageCheck(capture)  # black images, negative values: notes
-
-    def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        for k, img in enumerate(iter_images(raw.subset(range(start, raw.n_images)), box), start):
-            check.see(k, img[mask[box]])
-            yield img
-
     with naming(capture.path):  # all images black, ...
-        res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
+        res = run_lcnet(model, check.reader(raw, mask), raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
     res.notes += check.notes()
     return res

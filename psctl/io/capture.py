@@ -596,6 +596,18 @@ class ImageCheck:
             if pixels.min() < 0:
                 self.negative.add(k)
 
+    def reader(self, capture: Capture, mask: np.ndarray) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
+        """The network runners' reader: ``capture``'s images from ``start`` on, cut to ``box``,
+        each seen by this check over ``mask`` (``capture`` may be this check's with other
+        intensities: the image indices, and so the names in the notes, are the same)."""
+
+        def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+            for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
+                self.see(k, img[mask[box]])
+                yield img
+
+        return read
+
     def notes(self) -> list[str]:
         """The same words for the same images whatever the reader divided them by (sdps reads a
         capture twice and shows a note once)."""
