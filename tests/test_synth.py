@@ -921,7 +921,7 @@ def test_scale_law_log_draws_as_many_sides_per_octave_and_stays_in_range():
     assert abs(float((uni < (32.0 * 320.0) ** 0.5).float().mean()) - (101.19 - 32) / 288) < 0.02
 
 
-def test_scale_law_is_checked_and_reaches_the_crops():
+def test_scale_law_is_checked():
     from psctl.synth.stream import make_config
     with pytest.raises(PsctlError, match="scale_law must be one of uniform, log"):
         make_config({"scale_law": "exp"})
