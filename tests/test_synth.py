@@ -923,7 +923,7 @@ def test_scale_law_log_draws_as_many_sides_per_octave_and_stays_in_range():
 
 def test_scale_law_is_checked():
     from psctl.synth.stream import make_config
-    with pytest.raises(PsctlError, match="scale_law must be one of uniform, log"):
+    with pytest.raises(PsctlError, match="synth stream option 'scale_law': must be one of uniform, log"):
         make_config({"scale_law": "exp"})
     assert make_config({"scale": [32, 320], "scale_law": "log"})["scale_law"] == "log"
 

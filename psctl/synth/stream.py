@@ -254,7 +254,7 @@ def make_config(config: dict | None = None, **overrides) -> dict:
         raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
                                f"size {cfg['size']}, scale {cfg['scale']})")
     if cfg["scale_law"] not in SCALE_LAWS:
-        raise PsctlError(None, f"scale_law must be one of {', '.join(SCALE_LAWS)}, got {cfg['scale_law']!r}")
+        raise PsctlError(None, f"synth stream option 'scale_law': must be one of {', '.join(SCALE_LAWS)}, got {cfg['scale_law']!r}")
     if cfg["windows"] is not None and not (0 < int(cfg["windows"]) <= cfg["crop"]):
         raise PsctlError(None, f"need 0 < windows <= crop (windows {cfg['windows']}, crop {cfg['crop']})")
     L.zenith_band(cfg["lights"], cfg["max_zenith"])  # validates
