@@ -336,15 +336,30 @@ def train(
     install: Annotated[bool, _flag(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
+    average: Annotated[Optional[list[Path]], typer.Option("--average", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt.")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
     with _user_errors():
-        from psctl.models.weights import installed_path
-        from psctl.train import install_weights, load_config, train as run_training
+        from psctl.models.weights import installed_path, read_weights
+        from psctl.train import average_weights, install_weights, load_config, train as run_training
 
         from psctl.errors import PsctlError
 
+        if average:
+            if config is not None or resume is not None or out is None:
+                raise PsctlError("--average", "takes weight files and --out RUN, without --config or --resume")
+            for f in average:
+                if (has := read_weights(f).method) != method:
+                    raise PsctlError(f, f"holds {has} weights, not {method}")
+            if install and not force and installed_path(method) is not None:
+                raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force")
+            path = average_weights(average, out)
+            if not quiet:
+                _stderr().print(f"averaged {len(average)} files: weights {path}", highlight=False, markup=False)
+            if install:
+                _stderr().print(f"installed {install_weights(out, method, replace=force)}", highlight=False, markup=False)
+            return
         if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
             raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
         if force and not install:

@@ -769,6 +769,84 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 
 
+# metadata that must agree for an average to be one network with one input convention
+AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "input_mean")
+
+
+def average_weights(files: "list[str | os.PathLike]", out_dir: str | os.PathLike) -> Path:
+    """Write the uniform parameter average of trained weight files as ``out_dir/best.pt``.
+
+    Averaging fine-tuned descendants of one state (a "model soup"; SWA averages along one run)
+    can generalise better than any one of them. The files must hold the same method and
+    architecture with the same input convention (``AVERAGE_SAME``); tensors are averaged in
+    float32 (float16 release files included). The result's metadata lists each member (path,
+    sha256, samples seen, wall time, its validation), adds up their samples and wall time, and
+    measures nothing: the recipe's rule decides on it like on any run's ``best.pt``, and
+    ``install_weights(out_dir, method)`` installs it.
+    """
+    import hashlib
+
+    import torch
+
+    from psctl.models.weights import _training_clip, read_weights, save_weights
+
+    if len(files) < 2:
+        raise PsctlError(None, f"averaging needs at least two weight files, got {len(files)}")
+    members = [read_weights(f) for f in files]
+    first = members[0]
+    if first.official:
+        raise PsctlError(first.path, "only psctl's own weights can be averaged (their metadata says what they are)")
+    for w in members[1:]:
+        if w.official:
+            raise PsctlError(w.path, "only psctl's own weights can be averaged (their metadata says what they are)")
+        for key in AVERAGE_SAME:
+            if w.metadata.get(key) != first.metadata.get(key):
+                raise PsctlError(w.path, f"metadata {key!r} is {w.metadata.get(key)!r}, but {first.path} has "
+                                         f"{first.metadata.get(key)!r}: only the same network can be averaged")
+        if set(w.state_dict) != set(first.state_dict) or any(
+                w.state_dict[k].shape != v.shape for k, v in first.state_dict.items()):
+            raise PsctlError(w.path, f"its parameters do not match {first.path}'s (names or shapes)")
+        if _training_clip(w.metadata) != _training_clip(first.metadata):  # inference clips inputs there
+            raise PsctlError(w.path, f"was trained with inputs clipped at {_training_clip(w.metadata)}, "
+                                     f"{first.path} at {_training_clip(first.metadata)}: they cannot be averaged")
+    avg = {}
+    for k, v in first.state_dict.items():
+        if v.is_floating_point():
+            avg[k] = torch.stack([w.state_dict[k].float() for w in members]).mean(0)
+        else:  # integer buffers (none in psctl's networks today) cannot be averaged
+            if any(not torch.equal(w.state_dict[k], v) for w in members):
+                raise PsctlError(None, f"integer tensor {k!r} differs between the files; it cannot be averaged")
+            avg[k] = v.clone()
+
+    def member(w) -> dict:
+        m = w.metadata
+        return {"path": str(w.path), "sha256": hashlib.sha256(Path(w.path).read_bytes()).hexdigest(),
+                "samples_seen": m.get("samples_seen"), "wall_seconds": m.get("wall_seconds"),
+                "metrics": m.get("metrics", {}), "date": m.get("date"), "recipe": m.get("recipe")}
+
+    meta = {key: first.metadata[key] for key in AVERAGE_SAME if key in first.metadata}
+    meta.update({
+        "averaged_from": [member(w) for w in members],
+        "data": "the uniform parameter average of the files in averaged_from (psctl.train.average_weights)",
+        "samples_seen": sum(int(w.metadata.get("samples_seen") or 0) for w in members),
+        "wall_seconds": round(sum(float(w.metadata.get("wall_seconds") or 0.0) for w in members), 1),
+        "device": "; ".join(sorted({str(w.metadata.get("device")) for w in members})),
+        "precision": "float32",
+        "metrics": {},
+    })
+    # what inference reads from a recipe (the training clip, psctl.models.weights.for_method)
+    recipe = first.metadata.get("recipe")
+    data = recipe.get("data") if isinstance(recipe, dict) else None
+    meta["recipe"] = {"average_of": len(members), "data": {
+        "intensities": data.get("intensities", "unit") if isinstance(data, dict) else "unit",
+        "clip": _training_clip(first.metadata)}}
+    out = Path(out_dir) / "best.pt"
+    if out.exists():
+        raise PsctlError(out, "already exists; averaging writes a new run folder's best.pt")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return save_weights(out, avg, meta)
+
+
 def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:
     """Copy a run's best weights into the weights folder as the release file for ``method``.
 
