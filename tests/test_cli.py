@@ -624,6 +624,24 @@ def test_train_install_refuses_to_replace_a_release_file(tmp_path):
     assert (wdir / "ps_fcn.pt").read_bytes() == (tmp_path / "run" / "best.pt").read_bytes()
 
 
+def test_train_average(tmp_path):
+    """psctl train METHOD --average A --average B --out RUN writes RUN/best.pt; misuse is one line, exit 2."""
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+    assert psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "-q").returncode == 0
+    best = tmp_path / "run" / "best.pt"
+    proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "avg")
+    assert proc.returncode == 0 and "averaged 2 files" in proc.stderr, proc.stderr
+    assert (tmp_path / "avg" / "best.pt").is_file()
+    for args, says in ((("ps-fcn-n", "--average", best, "--average", best, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
+                       (("ps-fcn", "--average", best, "--average", best), "--out RUN"),
+                       (("ps-fcn", "--average", best, "--out", tmp_path / "a3"), "at least two"),
+                       (("ps-fcn", "--average", best, "--average", tmp_path / "nope.pt", "--out", tmp_path / "a4"), "nope.pt")):
+        proc = psctl("train", *args)
+        assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4"))
+
+
 def test_every_public_name_resolves():
     """psctl.__all__ lists only names that exist (psctl.load_capture did not: `from psctl import *` failed)."""
     import psctl

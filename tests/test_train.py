@@ -313,3 +313,41 @@ def test_warmup_ramps_the_learning_rate_then_the_halving_schedule_holds():
         from psctl.train import check_recipe
 
         check_recipe(merge(cfg, {"train": {"warmup": -5}}))
+
+
+def test_average_weights_is_the_mean_and_says_of_what(tmp_path):
+    """A uniform parameter average ("model soup") of two files of one network: the elementwise
+    mean, runnable like any run's best.pt, its members listed; other networks are refused."""
+    import hashlib
+
+    import psctl.train as T
+    from psctl.models.weights import for_method, load_network, save_weights
+
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(16), run, device="cpu")
+    a = read_weights(run / "best.pt")
+    g = torch.Generator().manual_seed(0)
+    b_state = {k: v + torch.randn(v.shape, generator=g) if v.is_floating_point() else v for k, v in a.state_dict.items()}
+    b = save_weights(tmp_path / "b.pt", b_state, a.metadata)
+    out = T.average_weights([run / "best.pt", b], tmp_path / "avg")
+    w = read_weights(out)
+    for k, v in a.state_dict.items():
+        assert torch.allclose(w.state_dict[k], (v + b_state[k]) / 2, atol=1e-6), k
+    m = w.metadata
+    assert m["method"] == "ps-fcn" and m["architecture"] == a.metadata["architecture"]
+    assert m["input_mean"] == a.metadata["input_mean"] and m["samples_seen"] == 2 * a.metadata["samples_seen"]
+    assert [x["sha256"] for x in m["averaged_from"]] == [hashlib.sha256(p.read_bytes()).hexdigest() for p in (run / "best.pt", b)]
+    assert m["metrics"] == {}  # nothing measured: the rule decides
+    assert for_method(w, "ps-fcn") == for_method(a, "ps-fcn")  # same input scale and clip at inference
+    load_network("ps-fcn", out)
+    with pytest.raises(PsctlError, match="already exists"):
+        T.average_weights([run / "best.pt", b], tmp_path / "avg")
+    with pytest.raises(PsctlError, match="at least two"):
+        T.average_weights([b], tmp_path / "one")
+    other = save_weights(tmp_path / "n.pt", a.state_dict, {**a.metadata, "method": "ps-fcn-n", "normalization": "per-channel"})
+    with pytest.raises(PsctlError, match="n.pt: metadata 'method'"):
+        T.average_weights([b, other], tmp_path / "mixed")
+    small = {k: v[:1] if v.ndim else v for k, v in a.state_dict.items()}
+    with pytest.raises(PsctlError, match="names or shapes"):
+        T.average_weights([b, save_weights(tmp_path / "s.pt", small, a.metadata)], tmp_path / "shapes")
+    assert not (tmp_path / "mixed").exists() and not (tmp_path / "shapes").exists()  # checked before anything is written
