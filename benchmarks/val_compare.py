@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -32,13 +31,11 @@ def main() -> None:
     from psctl.classic import l2_normals
     from psctl.metrics import angular_error
     from psctl.models.weights import read_weights
-    from psctl.train import evaluate, load_config, normals_task, synth_stream
+    from psctl.train import evaluate, load_config, normals_task, validation_batches
 
     cfg = load_config(args.config)
     v, dev = cfg["val"], torch.device("cpu")
-    stream = synth_stream(cfg["data"], batch_size=v["batch_size"], images=v["images"], crop=v["size"],
-                          seed=v["seed"], device=dev)
-    batches = [stream.next_batch() for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
+    batches = validation_batches(cfg, dev)  # the training loop's set, val.data included
 
     total, count = 0.0, 0
     for b in batches:

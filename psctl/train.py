@@ -533,13 +533,19 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
     return {**out, "adapted": adapted} if adapted else out
 
 
-def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
-    """A fixed synthetic validation set: training-distribution shapes and materials, a held-out seed."""
+def validation_batches(cfg: dict, device: torch.device, make_stream: Callable = synth_stream) -> list[dict]:
+    """The stream batches of a recipe's fixed validation set (``val``: its seed, size, images and
+    ``val.data`` over ``data``); benchmarks/val_compare.py measures other methods on the same."""
     v = cfg["val"]
     stream = make_stream({**cfg["data"], **(v.get("data") or {})}, batch_size=v["batch_size"], images=v["images"],
                          crop=v["size"], seed=v["seed"], device=device)
+    return [stream.next_batch() for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
+
+
+def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
+    """A fixed synthetic validation set: training-distribution shapes and materials, a held-out seed."""
     with torch.no_grad():
-        return [task.val_item(stream.next_batch()) for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
+        return [task.val_item(b) for b in validation_batches(cfg, device, make_stream)]
 
 
 @torch.no_grad()

@@ -351,3 +351,26 @@ def test_average_weights_is_the_mean_and_says_of_what(tmp_path):
     with pytest.raises(PsctlError, match="names or shapes"):
         T.average_weights([b, save_weights(tmp_path / "s.pt", small, a.metadata)], tmp_path / "shapes")
     assert not (tmp_path / "mixed").exists() and not (tmp_path / "shapes").exists()  # checked before anything is written
+
+
+def test_validation_batches_apply_val_data():
+    """benchmarks/val_compare.py rebuilds the training loop's set through validation_batches:
+    val.data overrides data there (it did not once, so a recipe pinning val.data.scale failed)."""
+    from psctl.train import validation_batches
+
+    seen = []
+
+    class Stub:
+        def next_batch(self):
+            return {}
+
+    def make_stream(data, **kw):
+        seen.append((data, kw))
+        return Stub()
+
+    cfg = merge(tiny(), {"data": {"scale": [32, 320], "scale_law": "log"},
+                         "val": {"samples": 5, "batch_size": 2, "data": {"scale": None, "scale_law": "uniform"}}})
+    assert len(validation_batches(cfg, torch.device("cpu"), make_stream)) == 3
+    data, kw = seen[0]
+    assert data["scale"] is None and data["scale_law"] == "uniform" and data["pool"] == cfg["data"]["pool"]
+    assert kw["seed"] == cfg["val"]["seed"] and kw["crop"] == cfg["val"]["size"]
