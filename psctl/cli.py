@@ -336,7 +336,7 @@ def train(
     install: Annotated[bool, _flag(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
-    average: Annotated[Optional[list[Path]], typer.Option("--average", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt.")] = None,
+    average: Annotated[Optional[list[Path]], typer.Option("--average", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
@@ -347,16 +347,19 @@ def train(
         from psctl.errors import PsctlError
 
         if average:
-            if config is not None or resume is not None or out is None:
-                raise PsctlError("--average", "takes weight files and --out RUN, without --config or --resume")
+            if resume is not None or out is None:
+                raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
+                                              "the recipe's validation set), not --resume")
             for f in average:
                 if (has := read_weights(f).method) != method:
                     raise PsctlError(f, f"holds {has} weights, not {method}")
             if install and not force and installed_path(method) is not None:
                 raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force")
-            path = average_weights(average, out)
+            path = average_weights(average, out, load_config(config) if config is not None else None, device)
             if not quiet:
-                _stderr().print(f"averaged {len(average)} files: weights {path}", highlight=False, markup=False)
+                val = read_weights(path).metadata["metrics"]
+                said = "".join(f"; synthetic validation {v:.4f}" for v in val.values())
+                _stderr().print(f"averaged {len(average)} files: weights {path}{said}", highlight=False, markup=False)
             if install:
                 _stderr().print(f"installed {install_weights(out, method, replace=force)}", highlight=False, markup=False)
             return

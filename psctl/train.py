@@ -779,15 +779,18 @@ RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "input_mean")
 
 
-def average_weights(files: "list[str | os.PathLike]", out_dir: str | os.PathLike) -> Path:
+def average_weights(files: "list[str | os.PathLike]", out_dir: str | os.PathLike, config: dict | None = None,
+                    device: str = "cpu") -> Path:
     """Write the uniform parameter average of trained weight files as ``out_dir/best.pt``.
 
     Averaging fine-tuned descendants of one state (a "model soup"; SWA averages along one run)
     can generalise better than any one of them. The files must hold the same method and
     architecture with the same input convention (``AVERAGE_SAME``); tensors are averaged in
     float32 (float16 release files included). The result's metadata lists each member (path,
-    sha256, samples seen, wall time, its validation), adds up their samples and wall time, and
-    measures nothing: the recipe's rule decides on it like on any run's ``best.pt``, and
+    sha256, samples seen, wall time, its validation) and adds up their samples and wall time.
+    With ``config`` (a recipe) it measures the average on that recipe's validation set, in
+    float32, as ``metrics`` (the training loop's metric) and records the set as ``validation``;
+    without, ``metrics`` is empty. A rule decides on it like on any run's ``best.pt``, and
     ``install_weights(out_dir, method)`` installs it.
     """
     import hashlib
@@ -849,6 +852,20 @@ def average_weights(files: "list[str | os.PathLike]", out_dir: str | os.PathLike
     out = Path(out_dir) / "best.pt"
     if out.exists():
         raise PsctlError(out, "already exists; averaging writes a new run folder's best.pt")
+    if config is not None:  # the training loop's validation, on the recipe's fixed set
+        from psctl.infer import pick_device
+
+        method, dev = first.metadata["method"], pick_device(device)
+        amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
+        task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp)
+        try:
+            task.model.load_state_dict(avg)
+        except RuntimeError as e:
+            raise PsctlError(None, f"the recipe builds another network than the averaged files "
+                                   f"({' '.join(str(e).split())[:160]})") from None
+        mae = evaluate(task, validation_set(config, task, dev, synth_stream))
+        meta["metrics"] = {f"synthetic_val_{task.metric}": round(mae, 4)}
+        meta["validation"] = {"val": config["val"], "data": config["data"]}
     out.parent.mkdir(parents=True, exist_ok=True)
     return save_weights(out, avg, meta)
 

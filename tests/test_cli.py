@@ -630,7 +630,9 @@ def test_train_average(tmp_path):
     assert psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "-q").returncode == 0
     best = tmp_path / "run" / "best.pt"
     proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "avg")
-    assert proc.returncode == 0 and "averaged 2 files" in proc.stderr, proc.stderr
+    assert proc.returncode == 0 and "averaged 2 files" in proc.stderr and "validation" not in proc.stderr, proc.stderr
+    proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--config", cfg, "--out", tmp_path / "avg_val")
+    assert proc.returncode == 0 and "synthetic validation" in proc.stderr, proc.stderr
     assert (tmp_path / "avg" / "best.pt").is_file()
     for args, says in ((("ps-fcn-n", "--average", best, "--average", best, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
                        (("ps-fcn", "--average", best, "--average", best), "--out RUN"),

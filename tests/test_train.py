@@ -340,6 +340,10 @@ def test_average_weights_is_the_mean_and_says_of_what(tmp_path):
     assert m["metrics"] == {}  # nothing measured: the rule decides
     assert for_method(w, "ps-fcn") == for_method(a, "ps-fcn")  # same input scale and clip at inference
     load_network("ps-fcn", out)
+    # measured on a recipe's set: the average of a file with itself scores what training logged for it
+    same = read_weights(T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "same", config=tiny(16)))
+    assert same.metadata["metrics"]["synthetic_val_mae"] == pytest.approx(a.metadata["metrics"]["synthetic_val_mae"], abs=1e-3)
+    assert same.metadata["validation"]["val"] == tiny(16)["val"]
     with pytest.raises(PsctlError, match="already exists"):
         T.average_weights([run / "best.pt", b], tmp_path / "avg")
     with pytest.raises(PsctlError, match="at least two"):
