@@ -775,11 +775,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 
 
-# metadata that must agree for an average to be one network with one input convention
-AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "input_mean")
+# metadata that must agree for an average to be one network with one input convention (and, for
+# PS-FCN†, one frozen LCNet, which sdps reads from it)
+AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "input_mean", "lcnet")
 
 
-def average_weights(files: "list[str | os.PathLike]", out_dir: str | os.PathLike, config: dict | None = None,
+def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, config: dict | None = None,
                     device: str = "cpu") -> Path:
     """Write the uniform parameter average of trained weight files as ``out_dir/best.pt``.
 
