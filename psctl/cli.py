@@ -346,30 +346,30 @@ def train(
 
         from psctl.errors import PsctlError
 
+        if force and not install:
+            raise PsctlError("--force", "only replaces an installed file together with --install")
+        if install and not force and installed_path(method) is not None:  # say so before hours of training
+            raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
+                                                     "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
         if average:
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
                                               "the recipe's validation set), not --resume")
-            for f in average:
-                if (has := read_weights(f).method) != method:
-                    raise PsctlError(f, f"holds {has} weights, not {method}")
-            if install and not force and installed_path(method) is not None:
-                raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force")
-            path = average_weights(average, out, load_config(config) if config is not None else None, device)
+            recipe = load_config(config) if config is not None else None
+            if quiet or recipe is None:
+                path = average_weights(average, out, recipe, device, method=method)
+            else:  # building the validation set takes minutes on a CPU
+                with _stderr().status("averaging, then measuring on the recipe's validation set"):
+                    path = average_weights(average, out, recipe, device, method=method)
             if not quiet:
-                val = read_weights(path).metadata["metrics"]
-                said = "".join(f"; synthetic validation {v:.4f}" for v in val.values())
+                metrics = read_weights(path).metadata["metrics"]
+                said = "".join(f"; synthetic validation {v:.4f}" for v in metrics.values())
                 _stderr().print(f"averaged {len(average)} files: weights {path}{said}", highlight=False, markup=False)
             if install:
                 _stderr().print(f"installed {install_weights(out, method, replace=force)}", highlight=False, markup=False)
             return
         if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
             raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
-        if force and not install:
-            raise PsctlError("--force", "only replaces an installed file together with --install")
-        if install and not force and installed_path(method) is not None:  # say so before hours of training
-            raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
-                                                     "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")

@@ -781,7 +781,7 @@ AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "inpu
 
 
 def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, config: dict | None = None,
-                    device: str = "cpu") -> Path:
+                    device: str = "cpu", method: str | None = None) -> Path:
     """Write the uniform parameter average of trained weight files as ``out_dir/best.pt``.
 
     Averaging fine-tuned descendants of one state (a "model soup"; SWA averages along one run)
@@ -791,8 +791,9 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     sha256, samples seen, wall time, its validation) and adds up their samples and wall time.
     With ``config`` (a recipe) it measures the average on that recipe's validation set, in
     float32, as ``metrics`` (the training loop's metric) and records the set as ``validation``;
-    without, ``metrics`` is empty. A rule decides on it like on any run's ``best.pt``, and
-    ``install_weights(out_dir, method)`` installs it.
+    without, ``metrics`` is empty. With ``method``, every file must hold that method's weights. A
+    rule decides on it like on any run's ``best.pt``, and ``install_weights(out_dir, method)``
+    installs it.
     """
     import hashlib
 
@@ -803,6 +804,9 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     if len(files) < 2:
         raise PsctlError(None, f"averaging needs at least two weight files, got {len(files)}")
     members = [read_weights(f) for f in files]
+    for w in members:
+        if method is not None and w.method != method:
+            raise PsctlError(w.path, f"holds {w.method} weights, not {method}")
     first = members[0]
     if first.official:
         raise PsctlError(first.path, "only psctl's own weights can be averaged (their metadata says what they are)")
