@@ -130,7 +130,8 @@ echo "training $left more minutes ($SECONDS s since the start)"
 launch $left; rc=$?
 for r in $RUNS; do tail -n 3 runs/${r##*:}.out; done
 files="model.pt state.json stream.pt log.jsonl"
-[ -n "$FINAL" ] && files="best.pt $files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"
+[ -n "$FINAL" ] && files="best.pt $files"  # the Adam state only with OPTIM=1: two runs with it pass the 64 MiB the device tool returns (session 33)
+[ -n "$FINAL" ] && [ "${OPTIM:-0}" = 1 ] && files="$files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"
 list=(); for r in $RUNS; do n=${r##*:}; for f in $files; do [ -f runs/$n/$f ] && list+=(runs/$n/$f); done; list+=(runs/$n.out); done
 tar -cf /tmp/runs.tar "${list[@]}" && split -b 15M /tmp/runs.tar "$OUT/runs.tar.part_" && rm /tmp/runs.tar
 ls -la "$OUT"
