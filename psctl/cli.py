@@ -355,6 +355,9 @@ def train(
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
                                               "the recipe's validation set), not --resume")
+            if install and config is None:  # install_weights would refuse the result afterwards
+                raise PsctlError("--install", "with --average needs --config RECIPE: a release file records "
+                                              "its validation on the recipe's set")
             recipe = load_config(config) if config is not None else None
             if quiet or recipe is None:
                 path = average_weights(average, out, recipe, device, method=method)

@@ -897,6 +897,11 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     w = read_weights(src)
     if w.method != method:
         raise PsctlError(src, f"holds {w.method} weights, not {method}")
+    metrics = w.metadata.get("metrics") or {}
+    if not any(k.startswith("synthetic_val_") and v is not None for k, v in metrics.items()):
+        # the model card quotes every release file's own validation; an average has one only if measured
+        raise PsctlError(src, "records no synthetic validation metric, which a release file needs "
+                              "(for an average: psctl train METHOD --average ... --config RECIPE)")
     dst = weights_dir() / file_name(method)
     if installed_path(method) is not None and not replace:
         raise PsctlError(dst, f"already installed; {src} was not copied (replace it on purpose with --install --force)")

@@ -637,11 +637,13 @@ def test_train_average(tmp_path):
     for args, says in ((("ps-fcn-n", "--average", best, "--average", best, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
                        (("ps-fcn", "--average", best, "--average", best), "--out RUN"),
                        (("ps-fcn", "--average", best, "--out", tmp_path / "a3"), "at least two"),
-                       (("ps-fcn", "--average", best, "--average", tmp_path / "nope.pt", "--out", tmp_path / "a4"), "nope.pt")):
+                       (("ps-fcn", "--average", best, "--average", tmp_path / "nope.pt", "--out", tmp_path / "a4"), "nope.pt"),
+                       (("ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "a5", "--install", "--force"),
+                        "--install")):
         proc = psctl("train", *args)
         assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-    assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4"))
+    assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4", "a5"))
 
 
 def test_every_public_name_resolves():

@@ -223,6 +223,22 @@ def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeyp
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["ps_fcn.pt"]
 
 
+def test_install_refuses_a_file_without_its_validation(tmp_path, monkeypatch):
+    """A release file records its own validation (the model card quotes it): an average made without
+    --config has none and is refused, named, before anything in the weights folder changes."""
+    import psctl.train as T
+
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(16), run, device="cpu")
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
+    bare = T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "avg")
+    with pytest.raises(PsctlError, match="no synthetic validation") as e:
+        T.install_weights(tmp_path / "avg", "ps-fcn")
+    assert str(bare) in str(e.value) and not (tmp_path / "w").exists()
+    T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "avg_val", config=tiny(16))
+    assert T.install_weights(tmp_path / "avg_val", "ps-fcn").is_file()
+
+
 _FAULTS_AFTER_FREE = """
 import resource, sys, torch
 from psctl.train import keep_freed_memory
