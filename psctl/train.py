@@ -882,7 +882,8 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     rules on synthetic sets (docs/training.md), and a smoke run must not overwrite them silently.
     A file over RELEASE_MAX_BYTES (LCNet's 4.4 M parameters take 17.6 MB in float32) is stored
     with float16 tensors instead, recorded as ``stored_dtype`` in its metadata; loading casts
-    them back to the network's float32 parameters.
+    them back to the network's float32 parameters. A file without its own synthetic validation
+    (an average made without a recipe) is refused: the model card quotes it for every file.
     """
     import shutil
 
