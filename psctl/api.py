@@ -85,8 +85,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         from psctl.models.weights import installed_path
 
         # PS-FCN first: the release ps_fcn.pt beats ps_fcn_n.pt on the synthetic test sets, by
-        # which psctl chooses (weights/README.md: syntest 4.98 vs 5.75, DiLiGenT-like lights 4.13
-        # vs 4.52, stage 12 vs the scale 4-7 average; spatially varying dragons 8.97 vs 9.58 degrees with the
+        # which psctl chooses (weights/README.md: syntest 4.94 vs 5.87, DiLiGenT-like lights 4.15
+        # vs 4.47, the files of session 33; spatially varying dragons 8.97 vs 9.58 degrees with the
         # stage-4 PS-FCN and stage-2 PS-FCN+N), unlike the paper's networks
         for m in ("ps-fcn", "ps-fcn-n"):
             if installed_path(m) is not None:
