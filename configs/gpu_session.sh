@@ -10,7 +10,8 @@
 # then, on the warm machine, RUNS="ps-fcn-n:configs/ps_fcn_n_gpu_stage10b.yaml:g_ps_fcn_n10b
 # ps-fcn-n:configs/ps_fcn_n_gpu_stage10c.yaml:g_ps_fcn_n10c" INITS=ps_fcn_n_scale.pt:weights/ps_fcn_n.pt
 # DEADLINE=250 FIRST=0.3 bash configs/gpu_session.sh 3 150 final (timeout_s 280; with FIRST=0.5
-# and PLAN 180 the plan refused: a fifth of the planned samples was already past). Session 26 ran configs/ps_fcn_n_gpu_stage9.yaml alone (this command, session 25's plan),
+# and PLAN 180 the plan refused: a fifth of the planned samples was already past). Session 26
+# ran configs/ps_fcn_n_gpu_stage9.yaml alone (this command, session 25's plan),
 # then configs/ps_fcn_gpu_stage13.yaml alone (RUNS=... INITS=... IR_BENCH=0 DEADLINE=370
 # FIRST=0.5 bash configs/gpu_session.sh 6 230 final, timeout_s 420). Session 14 ran configs/ps_fcn_gpu_stage8.yaml,
 # configs/ps_fcn_n_gpu_stage6.yaml and configs/lcnet_gpu_stage6.yaml side by side in three calls
