@@ -1,0 +1,93 @@
+"""Would averaging two calibrated networks' normals help? (run by hand)
+
+    python benchmarks/ensemble.py --sets syntest syntest_dl [--views 1] [--out e.json]
+    python benchmarks/ensemble.py --roots ../shared/data/diligent/pmsData_crop
+
+For every object of every set, runs PS-FCN and PS-FCN+N (the installed weights, or --weights-a /
+--weights-b) and scores each, and their per-pixel average renormalised to unit length (mean
+angular error in degrees, the pixels ``psctl eval`` scores). Prints one JSON object: per set the
+per-object MAE of a, b and the average, and the means rounded as the rule rounds them (0.01).
+Sets are folders under .cache (made by benchmarks/eval_weights.py) or any benchmark root.
+
+Decision rule, fixed on 2026-11-27 (session 34) before this script was first run: the average
+of the installed PS-FCN and PS-FCN+N becomes a method, and `--method auto`'s choice on
+calibrated folders, only if its sum of the seven synthetic folder sets' means (syntest,
+syntest_dl, truncated, syntest_dl_ir, syntest_dl_miscal, syntest_dl_dircal, syntest_dl_384; one
+view) is below PS-FCN's, auto's choice now, by this script. The recipes' own validation set is
+not a folder and is left out. The DiLiGenT dev split is reported only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+
+def score(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> float:
+    from psctl.metrics import angular_error
+
+    return float(angular_error(normals, gt, valid).mean())
+
+
+def main() -> None:
+    from psctl.infer import array_normals
+    from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, object_name, open_capture
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sets", nargs="*", default=[], help="folders under .cache; 'truncated' is syntest_dl "
+                    "at object mean 0.02 truncated to 8 bits, as benchmarks/eval_weights.py makes it")
+    ap.add_argument("--roots", nargs="*", default=[], help="other benchmark roots")
+    ap.add_argument("--method-a", default="ps-fcn")
+    ap.add_argument("--method-b", default="ps-fcn-n")
+    ap.add_argument("--weights-a")
+    ap.add_argument("--weights-b")
+    ap.add_argument("--views", type=int, default=1)
+    ap.add_argument("--out")
+    args = ap.parse_args()
+    from quantization import capture_8bit
+
+    roots = [(s, REPO / ".cache" / ("syntest_dl" if s == "truncated" else s)) for s in args.sets]
+    roots += [(Path(r).name, Path(r)) for r in args.roots]
+    result = {"method_a": args.method_a, "method_b": args.method_b, "weights_a": args.weights_a,
+              "weights_b": args.weights_b, "views": args.views, "sets": {}}
+    for set_name, root in roots:
+        rows = []
+        for folder in find_objects(root):
+            t0 = time.perf_counter()
+            cap = open_capture(folder)
+            mask, gt = load_mask(cap), load_ground_truth(cap)
+            valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
+            images = load_images(cap)
+            if set_name == "truncated":
+                images = capture_8bit(images, mask, 0.02, floor=True)
+            out = {}
+            for key, method, weights in (("a", args.method_a, args.weights_a), ("b", args.method_b, args.weights_b)):
+                out[key] = array_normals(images, cap.lights, mask, method, weights,
+                                         {"device": "cpu", "views": args.views}).normals.astype(np.float64)
+            avg = out["a"] + out["b"]
+            avg /= np.maximum(np.linalg.norm(avg, axis=-1, keepdims=True), 1e-12)
+            rows.append({"name": object_name(folder), "a": score(out["a"], gt, valid),
+                         "b": score(out["b"], gt, valid), "avg": score(avg, gt, valid),
+                         "seconds": round(time.perf_counter() - t0, 1)})
+            print(set_name, rows[-1], file=sys.stderr, flush=True)
+        means = {k: round(float(np.mean([r[k] for r in rows])), 2) for k in ("a", "b", "avg")}
+        result["sets"][set_name] = {"objects": rows, "mean": means}
+    if args.sets:
+        result["sum"] = {k: round(sum(result["sets"][s]["mean"][k] for s in args.sets), 2) for k in ("a", "b", "avg")}
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
