@@ -15,6 +15,14 @@ calibrated folders, only if its sum of the seven synthetic folder sets' means (s
 syntest_dl, truncated, syntest_dl_ir, syntest_dl_miscal, syntest_dl_dircal, syntest_dl_384; one
 view) is below PS-FCN's, auto's choice now, by this script. The recipes' own validation set is
 not a folder and is left out. The DiLiGenT dev split is reported only.
+
+A second rule, fixed on 2026-11-27 (session 34) after the first rule's sets other than
+syntest_dl_384 were seen and before any sdps run with it: when no PS-FCN† is installed, the
+average also becomes sdps' second stage (in place of PS-FCN) only if the sum of sdps' mean
+normal error over the three synthetic sdps folders sdps' refinement was chosen on, syntest,
+syntest_dl_dir and syntest_dl_mix31 (`psctl eval --benchmark folder --root .cache/SET -m sdps
+--json`, the defaults), is below that with PS-FCN (`--weights weights/ps_fcn.pt`), each mean
+rounded to 0.01. The dev split is reported only.
 """
 
 from __future__ import annotations
