@@ -2,6 +2,7 @@
 
     python benchmarks/ensemble.py --sets syntest syntest_dl [--views 1] [--out e.json]
     python benchmarks/ensemble.py --roots ../shared/data/diligent/pmsData_crop
+    python benchmarks/ensemble.py --sdps a|avg --sets syntest syntest_dl_dir syntest_dl_mix31
 
 For every object of every set, runs PS-FCN and PS-FCN+N (the installed weights, or --weights-a /
 --weights-b) and scores each, and their per-pixel average renormalised to unit length (mean
@@ -46,6 +47,24 @@ def score(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> float:
     return float(angular_error(normals, gt, valid).mean())
 
 
+def sdps_arm(sets: list[str], arm: str) -> dict:
+    """sdps (the defaults) on each set with PS-FCN as its second stage (arm "a": the installed
+    ps_fcn.pt passed as --weights) or the average (arm "avg": psctl.sdps.SDPS_ENSEMBLE on)."""
+    import psctl.sdps
+    from psctl.eval import run_benchmark
+    from psctl.models.weights import installed_path
+
+    psctl.sdps.SDPS_ENSEMBLE = arm == "avg"
+    weights = installed_path("ps-fcn") if arm == "a" else None
+    out = {}
+    for name in sets:
+        r = run_benchmark("folder", root=REPO / ".cache" / name, method="sdps", weights=weights, device="cpu")
+        out[name] = {"objects": {o["name"]: round(o["mae"], 3) for o in r["objects"]}, "mean": round(r["mean_mae"], 2),
+                     "light_mae": round(r["mean_light_mae"], 3), "second_stage": r["objects"][0]["notes"][0]}
+        print(arm, name, out[name]["mean"], out[name]["light_mae"], file=sys.stderr, flush=True)
+    return {"arm": arm, "sets": out, "sum": round(sum(v["mean"] for v in out.values()), 2)}
+
+
 def main() -> None:
     from psctl.infer import array_normals
     from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, object_name, open_capture
@@ -59,8 +78,16 @@ def main() -> None:
     ap.add_argument("--weights-a")
     ap.add_argument("--weights-b")
     ap.add_argument("--views", type=int, default=1)
+    ap.add_argument("--sdps", choices=("a", "avg"), help="the second rule: sdps on --sets with PS-FCN (a) or the "
+                    "average (avg) as its second stage, instead of the calibrated comparison")
     ap.add_argument("--out")
     args = ap.parse_args()
+    if args.sdps:
+        text = json.dumps(sdps_arm(args.sets, args.sdps), indent=1)
+        print(text)
+        if args.out:
+            Path(args.out).write_text(text + "\n")
+        return
     from quantization import capture_8bit
 
     roots = [(s, REPO / ".cache" / ("syntest_dl" if s == "truncated" else s)) for s in args.sets]

@@ -28,9 +28,9 @@ if TYPE_CHECKING:
 # depending on a UI. The CLI passes a Rich implementation; None means silent.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
-METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps")
+METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
-LISTED_LIGHTS = ("l2", "ps-fcn", "ps-fcn-n")  # the methods that read light_directions.txt
+LISTED_LIGHTS = ("l2", "ps-fcn", "ps-fcn-n", "ensemble")  # the methods that read light_directions.txt
 
 
 def _noop(_: int) -> None:
@@ -41,8 +41,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
                    lcnet: str | os.PathLike | None = None) -> tuple[str, str | None]:
     """Map a user-facing method name to a concrete one; return (method, note for the user).
 
-    auto: the method of ``weights`` when given, else ps-fcn, then ps-fcn-n when their weights
-    are installed (calibrated folders), else l2. Without light_directions.txt: sdps (LCNet +
+    auto: the method of ``weights`` when given, else (calibrated folders) ensemble when both
+    ps-fcn and ps-fcn-n are installed, else whichever of them is, else l2. Without light_directions.txt: sdps (LCNet +
     PS-FCN†), else ups-fcn when only its weights are installed, else an error naming the
     missing weights. ``lcnet`` (a file) is sdps's LCNet.
     """
@@ -81,21 +81,37 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         return "sdps", f"auto: no light_directions.txt; {note}"
     if method == "sdps":
         return "sdps", check_sdps_weights(weights, lcnet)
+    if method == "ensemble":
+        from psctl.infer import ENSEMBLE
+        from psctl.models.weights import installed_path, weights_dir
+
+        if weights is not None:
+            raise PsctlError(weights, "--weights names one network's file; ensemble uses the installed "
+                                      f"{' and '.join(ENSEMBLE)} (use --method ps-fcn or ps-fcn-n with --weights)")
+        missing = [m for m in ENSEMBLE if installed_path(m) is None]
+        if missing:
+            raise PsctlError(None, f"ensemble averages {' and '.join(ENSEMBLE)}, and no weights are installed for "
+                                   f"{' and '.join(missing)} (looked in {weights_dir()}); use --method "
+                                   f"{'l2' if len(missing) == len(ENSEMBLE) else next(m for m in ENSEMBLE if m not in missing)}")
     if method == "auto":
+        from psctl.infer import ENSEMBLE
         from psctl.models.weights import installed_path
 
-        # PS-FCN first: the release ps_fcn.pt beats ps_fcn_n.pt on the synthetic test sets, by
-        # which psctl chooses (weights/README.md: syntest 4.94 vs 5.87, DiLiGenT-like lights 4.15
-        # vs 4.47, the files of session 33; spatially varying dragons 8.97 vs 9.58 degrees with the
-        # stage-4 PS-FCN and stage-2 PS-FCN+N), unlike the paper's networks
-        for m in ("ps-fcn", "ps-fcn-n"):
-            if installed_path(m) is not None:
-                return m, None
+        # the average of the two installed networks beat either alone on the synthetic test sets,
+        # by which psctl chooses (benchmarks/ensemble.py's rule, session 34: the sum over seven
+        # sets 29.60 vs PS-FCN 30.13 and PS-FCN+N 32.87); of the two alone PS-FCN comes first:
+        # the release ps_fcn.pt beats ps_fcn_n.pt on them (syntest 4.94 vs 5.87, DiLiGenT-like
+        # lights 4.15 vs 4.47; weights/README.md)
+        have = [m for m in ENSEMBLE if installed_path(m) is not None]
+        if len(have) == len(ENSEMBLE):
+            return "ensemble", None
+        if have:
+            return have[0], None
         return "l2", "auto: no trained network weights are installed yet, using l2 (least squares)"
     if weights is not None and method not in NETWORKS:
         raise PsctlError(weights, f"--weights is for the network methods ({', '.join(NETWORKS)}) and sdps (its normals "
                                   f"network), not {method}")
-    if method in NETWORKS and NETWORK_METHODS[method]["lights"] and not calibrated:
+    if (method == "ensemble" or method in NETWORKS and NETWORK_METHODS[method]["lights"]) and not calibrated:
         raise PsctlError(None, f"{method} needs light directions (light_directions.txt); "
                                "ups-fcn works without them")
     return method, None
@@ -163,7 +179,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0.
-        method: "l2", "ps-fcn", "ps-fcn-n", "ups-fcn", "sdps" or "auto".
+        method: "l2", "ps-fcn", "ps-fcn-n", "ensemble" (the unit mean of PS-FCN's and PS-FCN+N's
+            normals), "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps
             the PS-FCN† file).
         device: auto | cpu | cuda, for the network methods.
@@ -199,11 +216,12 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     if lights is not None and method not in LISTED_LIGHTS:  # they would be dropped without a word
         raise PsctlError(None, f"lights: {method} does not use given light directions ("
                                + ("it estimates them" if method == "sdps" else "it works without them")
-                               + "); pass lights=None, or use l2, ps-fcn or ps-fcn-n")
+                               + "); pass lights=None, or use l2, ps-fcn, ps-fcn-n or ensemble")
     if light_distance is not None:
         if method not in LISTED_LIGHTS:
             raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
-                                   f"the falloff follows; use l2, ps-fcn or ps-fcn-n (or psctl.run_normals on a folder)")
+                                   f"the falloff follows; use l2, ps-fcn, ps-fcn-n or ensemble (or psctl.run_normals "
+                                   f"on a folder)")
         from psctl.nearlight import near_lights
 
         h, w = images.shape[1:3]
@@ -218,11 +236,13 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
         source = array_source(images, mask, second, weights, {"device": device, "views": views})
         return second_stage(source, est, refine, fit)[1].normals
-    if method in NETWORKS:
+    if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
-        from psctl.infer import array_normals
+        from psctl.infer import ENSEMBLE, array_normals, ensemble_normals
 
-        normals = array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
+        cfg = {"device": device, "views": views}
+        normals = (ensemble_normals([array_normals(images, lights, mask, m, None, cfg) for m in ENSEMBLE])
+                   if method == "ensemble" else array_normals(images, lights, mask, method, weights, cfg)).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=2)
         return normals
@@ -300,7 +320,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     method, note = resolve_method(method, cap.calibrated, weights, lcnet)
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
-                               f"use l2, ps-fcn, ps-fcn-n or sdps")
+                               f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")
     # an --images subset is spread over the light directions only where the method reads them
     by_lights = cap.calibrated and method in LISTED_LIGHTS
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
@@ -388,12 +408,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 "" if light_stats["intensity_re"] is None else
                 f", intensity relative error {light_stats['intensity_re']:.3f}") + (
                 f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
-    elif method in NETWORKS:
-        from psctl.infer import capture_normals
+    elif method in NETWORKS or method == "ensemble":
+        from psctl.infer import ENSEMBLE, capture_normals, ensemble_normals
 
-        net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
+        cfg = {"device": device, "views": views}
+        net = (ensemble_normals([capture_normals(cap, mask, m, None, cfg, progress) for m in ENSEMBLE])
+               if method == "ensemble" else capture_normals(cap, mask, method, weights, cfg, progress))
         normals, dark = net.normals, net.dark
-        notes += net.notes
+        notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
+                              if method == "ensemble" else [])
     else:
         acc = L2Accumulator(mask[box])
         advance = progress(f"{cap.name}: reading + l2", cap.n_images)
@@ -412,7 +435,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         dark[box] = res.dark
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
-    if method == "l2" or (method in NETWORKS and NETWORK_METHODS[method]["lights"]):  # the light file's methods
+    if method in LISTED_LIGHTS:  # the light file's methods
         notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
 
     # --- evaluate ------------------------------------------------------------------------------

@@ -75,7 +75,7 @@ Json = Annotated[bool, _flag("--json", help="Print one JSON object on stdout.")]
 Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (seed 0 where the method does not read lights: sdps, ups-fcn, lights).")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
-MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ups-fcn | sdps (auto: ps-fcn, else ps-fcn-n, when their weights are installed, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
@@ -83,7 +83,7 @@ FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light 
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
-LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
+LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
 
 

@@ -529,6 +529,29 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     return res
 
 
+# The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic
+# test sets the average of the release files beat either alone (benchmarks/ensemble.py, docs/usage.md).
+ENSEMBLE = ("ps-fcn", "ps-fcn-n")
+
+
+def ensemble_normals(results: list[InferResult]) -> InferResult:
+    """The unit mean of several networks' answers for one capture (the ``ensemble`` method).
+
+    Each result's normals are [H, W, 3] unit vectors (0 outside the mask); the mean of unit
+    vectors weighs each network's direction equally. ``dark`` is any member's; notes are kept
+    once each, in order; ``info`` holds each member's under "members".
+    """
+    if not results:
+        raise ValueError("ensemble_normals needs at least one result")
+    total = np.sum([r.normals.astype(np.float64) for r in results], axis=0)
+    norm = np.linalg.norm(total, axis=-1, keepdims=True)
+    # two unit vectors cancel only if opposite; outside the mask every member gives 0
+    normals = np.where(norm > 1e-12, total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    dark = np.logical_or.reduce([r.dark for r in results])
+    notes = list(dict.fromkeys(n for r in results for n in r.notes))
+    return InferResult(normals, dark, {"members": [r.info for r in results]}, notes)
+
+
 def all_at_once_normals(model: "PSFCN", images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,
                         normalization: str = "none", train_images: int | None = None) -> np.ndarray:
     """The straightforward implementation (as the authors' test code): the whole frame padded

@@ -32,15 +32,21 @@ SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light
 # before PS-FCN+N (on LCNet's lights it measured better on syntest and the dev split with every
 # LCNet so far; docs/weights-history.md).
 SDPS_SECOND = ("ps-fcn-dagger", "ps-fcn", "ps-fcn-n")
-SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet"}
+# True: with both calibrated networks installed (and no PS-FCN†), the average of their normals
+# (psctl.infer.ENSEMBLE) is the second stage instead of PS-FCN alone. Off until the second rule
+# of benchmarks/ensemble.py says otherwise
+SDPS_ENSEMBLE = False
+SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN", "lcnet": "LCNet",
+         "ensemble": "the PS-FCN/PS-FCN+N average"}
 
 
 def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--weights for sdps") -> tuple[str, str]:
     """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
 
     ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
-    None: the first installed of PS-FCN†, PS-FCN, PS-FCN+N. Raises when there is none, or when
-    the file holds another network (``flag`` names the option that passed it).
+    None: the installed PS-FCN†, else "ensemble" when PS-FCN and PS-FCN+N both are (the average
+    of their normals), else whichever of them is. Raises when there is none, or when the file
+    holds another network (``flag`` names the option that passed it).
     """
     from psctl.models.weights import installed_path, no_weights_error, read_weights
 
@@ -54,9 +60,10 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
                                       "PS-FCN† (or PS-FCN / PS-FCN+N) weights")
         method = kind
     else:
-        method = next((m for m in SDPS_SECOND if installed_path(m) is not None), None)
-        if method is None:
+        have = [m for m in SDPS_SECOND if installed_path(m) is not None]
+        if not have:
             raise no_weights_error("ps-fcn-dagger")
+        method = "ensemble" if SDPS_ENSEMBLE and have == ["ps-fcn", "ps-fcn-n"] else have[0]
     if method == "ps-fcn-dagger":
         return method, SDPS_NOTE
     return method, (f"sdps: lights estimated by LCNet, then normals by {SHOWN[method]} on those lights "
@@ -134,14 +141,17 @@ class Source:
 
 def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weights: str | os.PathLike | None = None,
                  config: dict | None = None) -> Source:
-    """In-memory images [N, H, W, 3] float32 as captured; ``method`` (one of SDPS_SECOND) and
-    ``weights`` (None: installed) the second stage, ``config`` its run options (device, views)."""
-    from psctl.infer import array_normals
+    """In-memory images [N, H, W, 3] float32 as captured; ``method`` (one of SDPS_SECOND, or
+    "ensemble": the installed PS-FCN and PS-FCN+N averaged) and ``weights`` (None: installed) the
+    second stage, ``config`` its run options (device, views)."""
+    from psctl.infer import ENSEMBLE, array_normals, ensemble_normals
     from psctl.lights import refine_arrays
 
     def normals(est: "LightEstimate") -> "InferResult":
-        return array_normals(images / est.intensities[:, None, None, None], est.directions, mask, method, weights,
-                             config)
+        lit = images / est.intensities[:, None, None, None]
+        if method == "ensemble":
+            return ensemble_normals([array_normals(lit, est.directions, mask, m, None, config) for m in ENSEMBLE])
+        return array_normals(lit, est.directions, mask, method, weights, config)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
         return refine_arrays(images, mask, est, n, SHOWN[method], fit)
@@ -153,11 +163,14 @@ def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: s
                    config: dict | None = None, progress: "ProgressFactory | None" = None) -> Source:
     """A capture folder, streamed from disk (its light files, if any, are not used); as
     ``array_source`` otherwise."""
-    from psctl.infer import capture_normals
+    from psctl.infer import ENSEMBLE, capture_normals, ensemble_normals
     from psctl.lights import lit_capture, refine_capture
 
     def normals(est: "LightEstimate") -> "InferResult":
-        return capture_normals(lit_capture(capture, est), mask, method, weights, config, progress)
+        lit = lit_capture(capture, est)
+        if method == "ensemble":
+            return ensemble_normals([capture_normals(lit, mask, m, None, config, progress) for m in ENSEMBLE])
+        return capture_normals(lit, mask, method, weights, config, progress)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
         return refine_capture(capture, mask, est, n, SHOWN[method], progress, fit)

@@ -597,6 +597,41 @@ def test_eval_refuses_two_objects_of_the_same_name(tmp_path):
     assert proc.returncode == 2 and "cat, catPNG" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_ensemble_command_and_auto(capture, tmp_path):
+    """--method ensemble (and auto with both networks installed) averages PS-FCN and PS-FCN+N;
+    --weights with it, or a missing network, is one line and exit 2 with nothing written."""
+    import torch
+
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    wdir = tmp_path / "w"
+    wdir.mkdir()
+    env = {"PSCTL_WEIGHTS": str(wdir)}
+    torch.manual_seed(0)
+    save_weights(wdir / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    proc = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "x", env=env)
+    assert proc.returncode == 2 and "ps-fcn-n" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+    assert json.loads(psctl("normals", capture, "--out", tmp_path / "a1", "--json", env=env, check=True).stdout)[
+        "method"] == "ps-fcn"
+    torch.manual_seed(1)
+    save_weights(wdir / "ps_fcn_n.pt", PSFCN(), {"method": "ps-fcn-n", "train_images": 32})
+    r = json.loads(psctl("normals", capture, "--out", tmp_path / "a2", "--json", env=env, check=True).stdout)
+    assert r["method"] == "ensemble" and any(n.startswith("ensemble: the unit mean") for n in r["notes"])
+    assert sum(n.startswith("ps-fcn") and "weights" in n for n in r["notes"]) == 2  # both files named
+    for m in ("ps-fcn", "ps-fcn-n"):
+        psctl("normals", capture, "-m", m, "--out", tmp_path / m, "-q", env=env, check=True)
+    mean = read_normal_map(tmp_path / "ps-fcn" / "normal.exr").astype(np.float64) + read_normal_map(
+        tmp_path / "ps-fcn-n" / "normal.exr")
+    m = np.linalg.norm(mean, axis=-1) > 0
+    mean[m] /= np.linalg.norm(mean[m], axis=-1, keepdims=True)
+    assert angular_error(read_normal_map(tmp_path / "a2" / "normal.exr"), mean, m).max() < 0.01
+    proc = psctl("normals", capture, "-m", "ensemble", "--weights", wdir / "ps_fcn.pt", "--out", tmp_path / "y", env=env)
+    assert proc.returncode == 2 and "ensemble uses the installed" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "y").exists()
+
+
 def test_train_command(tmp_path):
     """The CLI end to end, with and without the progress bar; bad method is a one-line error."""
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"

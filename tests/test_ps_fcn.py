@@ -226,12 +226,83 @@ def test_installed_weights_found_by_method(tmp_path, monkeypatch):
     assert resolve_method("auto", True)[0] == "l2"
     save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
     assert resolve_method("auto", True) == ("ps-fcn-n", None)
+    (tmp_path / "ps_fcn_n.pt").rename(tmp_path / "other.pt")
     save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
-    assert resolve_method("auto", True) == ("ps-fcn", None)  # the more accurate release network first
+    assert resolve_method("auto", True) == ("ps-fcn", None)
+    (tmp_path / "other.pt").rename(tmp_path / "ps_fcn_n.pt")
+    assert resolve_method("auto", True) == ("ensemble", None)  # both installed: their average
     n = estimate_normals(images, lights, mask, method="auto")
     assert n.shape == (20, 24, 3)
     np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
     assert not n[~mask].any()
+    a, b = (estimate_normals(images, lights, mask, method=m) for m in ("ps-fcn", "ps-fcn-n"))
+    mean = (a.astype(np.float64) + b)[mask]
+    np.testing.assert_allclose(n[mask], mean / np.linalg.norm(mean, axis=-1, keepdims=True), atol=1e-5)
+    assert np.abs(n - a).max() > 1e-3 and np.abs(n - b).max() > 1e-3  # two different networks
+
+
+def test_ensemble_needs_both_networks_and_listed_lights(tmp_path, monkeypatch):
+    from psctl.api import estimate_normals, resolve_method
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    images, lights, mask = scene(6, 20, 24)
+    with pytest.raises(PsctlError, match=r"no weights are installed for ps-fcn and ps-fcn-n .*use --method l2$"):
+        resolve_method("ensemble", True)
+    save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    with pytest.raises(PsctlError, match=r"installed for ps-fcn-n \(looked in .*use --method ps-fcn$"):
+        estimate_normals(images, lights, mask, method="ensemble")
+    save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    with pytest.raises(PsctlError, match="ensemble uses the installed ps-fcn and ps-fcn-n"):
+        resolve_method("ensemble", True, weights=tmp_path / "ps_fcn.pt")
+    with pytest.raises(PsctlError, match="ensemble needs light directions"):
+        resolve_method("ensemble", False)
+    assert resolve_method("ENSEMBLE", True) == ("ensemble", None)
+
+
+def test_sdps_second_stage_can_be_the_ensemble(tmp_path, monkeypatch):
+    """psctl.sdps.SDPS_ENSEMBLE: with PS-FCN and PS-FCN+N installed (no PS-FCN†) sdps' second
+    stage is their average; a file passed with --weights is always that network."""
+    import psctl.sdps
+    from psctl.api import estimate_normals
+    from psctl.models.lcnet import LCNet
+    from psctl.sdps import sdps_second_stage
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    save_weights(tmp_path / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
+    save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    monkeypatch.setattr(psctl.sdps, "SDPS_ENSEMBLE", True)
+    assert sdps_second_stage()[0] == "ps-fcn"  # one calibrated network: no average
+    save_weights(tmp_path / "ps_fcn_n.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    method, note = sdps_second_stage()
+    assert method == "ensemble" and "the PS-FCN/PS-FCN+N average" in note
+    assert sdps_second_stage(tmp_path / "ps_fcn.pt")[0] == "ps-fcn"
+    images, _, mask = scene(6, 20, 24)
+    n = estimate_normals(images, None, mask, method="sdps", device="cpu")
+    np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
+    monkeypatch.setattr(psctl.sdps, "SDPS_ENSEMBLE", False)
+    assert sdps_second_stage()[0] == "ps-fcn"
+
+
+def test_ensemble_normals_is_the_unit_mean():
+    from psctl.infer import InferResult, ensemble_normals
+
+    mask = np.zeros((2, 3), bool)
+    mask[0] = True
+    a = np.zeros((2, 3, 3), np.float32)
+    b = np.zeros((2, 3, 3), np.float32)
+    a[0] = [0, 0, 1]
+    b[0, 0], b[0, 1], b[0, 2] = [1, 0, 0], [0, 0, 1], [0, 0, -1]  # 90 degrees apart, equal, opposite
+    dark_a, dark_b = np.zeros((2, 3), bool), np.zeros((2, 3), bool)
+    dark_a[0, 0], dark_b[0, 1] = True, True
+    r = ensemble_normals([InferResult(a, dark_a, {"x": 1}, ["n1", "n2"]), InferResult(b, dark_b, {"x": 2}, ["n2", "n3"])])
+    np.testing.assert_allclose(r.normals[0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)], atol=1e-6)
+    np.testing.assert_allclose(r.normals[0, 1], [0, 0, 1])
+    assert not r.normals[0, 2].any() and not r.normals[1].any()  # cancelled, and outside the mask
+    assert np.isfinite(r.normals).all() and r.normals.dtype == np.float32
+    assert r.dark.tolist() == [[True, True, False], [False, False, False]]
+    assert r.notes == ["n1", "n2", "n3"] and r.info == {"members": [{"x": 1}, {"x": 2}]}
+    with pytest.raises(ValueError):
+        ensemble_normals([])
 
 
 
