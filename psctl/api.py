@@ -90,9 +90,9 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
                                       f"{' and '.join(ENSEMBLE)} (use --method ps-fcn or ps-fcn-n with --weights)")
         missing = [m for m in ENSEMBLE if installed_path(m) is None]
         if missing:
+            instead = next((m for m in ENSEMBLE if m not in missing), "l2")
             raise PsctlError(None, f"ensemble averages {' and '.join(ENSEMBLE)}, and no weights are installed for "
-                                   f"{' and '.join(missing)} (looked in {weights_dir()}); use --method "
-                                   f"{'l2' if len(missing) == len(ENSEMBLE) else next(m for m in ENSEMBLE if m not in missing)}")
+                                   f"{' and '.join(missing)} (looked in {weights_dir()}); use --method {instead}")
     if method == "auto":
         from psctl.infer import ENSEMBLE
         from psctl.models.weights import installed_path
@@ -193,7 +193,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             default, ``psctl.lights.DEFAULT_REFINE``).
         roll: sdps: turn the refined lights and the normals about the view axis by the normals'
             roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
-        light_distance: l2, ps-fcn, ps-fcn-n: the lights are points this many pixels from the
+        light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels from the
             mask's centroid along ``lights``; each image is divided by its light's falloff first
             (``psctl.nearlight``, docs/near-lights.md).
     Returns:

@@ -45,9 +45,10 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
     """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
 
     ``weights`` (a file): PS-FCN† (psctl's or the authors' NENet), or psctl's PS-FCN / PS-FCN+N.
-    None: the installed PS-FCN†, else "ensemble" when PS-FCN and PS-FCN+N both are (the average
-    of their normals), else whichever of them is. Raises when there is none, or when the file
-    holds another network (``flag`` names the option that passed it).
+    None: the installed PS-FCN†, else PS-FCN, else PS-FCN+N; "ensemble" (the average of their
+    normals) instead when both are installed and ``SDPS_ENSEMBLE`` is on (it ships off). Raises
+    when there is none, or when the file holds another network (``flag`` names the option that
+    passed it).
     """
     from psctl.models.weights import installed_path, no_weights_error, read_weights
 
