@@ -85,6 +85,24 @@ def test_eval_on_a_folder_of_objects(tmp_path):
     assert "avg" in table
 
 
+def test_eval_table_names_whose_published_numbers_it_shows(capsys):
+    """The paper has no ensemble: beside it the table shows the paper's PS-FCN+N, and says so."""
+    from psctl.eval import PAPER_DILIGENT, _table
+    from psctl.io.summary import render_benchmark
+
+    objs = [{"name": n, "mae": 3.0, "n_images": 96, "seconds": 1.0} for n in ("ball", "cat")]
+    r = _table("diligent", Path("root"), objs, ["ensemble", "ensemble"], None)
+    assert r["method"] == "ensemble" and r["paper_method"] == "ps-fcn-n"
+    assert r["paper"] == {n: PAPER_DILIGENT["ps-fcn-n"][n] for n in ("ball", "cat")}
+    render_benchmark(r)
+    out = capsys.readouterr().out
+    assert "ensemble (psctl)" in out and "ps-fcn-n (paper)" in out
+    r = _table("diligent", Path("root"), objs, ["l2", "l2"], None)
+    assert r["paper_method"] == "l2" and r["paper"]["cat"] == PAPER_DILIGENT["l2"]["cat"]
+    r = _table("folder", Path("root"), objs, ["ensemble", "ensemble"], None)
+    assert r["paper"] == {} and r["paper_method"] is None
+
+
 def test_eval_without_diligent_says_where_to_get_it(tmp_path):
     env = {**os.environ, "PSCTL_DATA": str(tmp_path), "HOME": str(tmp_path)}
     proc = subprocess.run([sys.executable, "-m", "psctl.cli", "eval"], capture_output=True, text=True, env=env)

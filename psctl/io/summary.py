@@ -159,7 +159,8 @@ def render_benchmark(result: dict) -> None:
     if paper:
         vals = [paper.get(o["name"]) for o in objs]
         avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
-        t.add_row(f"{result['method']} (paper)", *[_fmt(v) for v in vals], _fmt(avg), style="dim")
+        t.add_row(f"{result.get('paper_method') or result['method']} (paper)", *[_fmt(v) for v in vals], _fmt(avg),
+                  style="dim")
     if "mean_light_mae" in result:  # sdps: the lights LCNet estimated, and the paper's LCNet
         paper_l = result.get("paper_lights") or {}
         for key, label, fmt in (("light_mae", "light direction (°)", _fmt),
