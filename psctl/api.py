@@ -42,9 +42,10 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     """Map a user-facing method name to a concrete one; return (method, note for the user).
 
     auto: the method of ``weights`` when given, else (calibrated folders) ensemble when both
-    ps-fcn and ps-fcn-n are installed, else whichever of them is, else l2. Without light_directions.txt: sdps (LCNet +
-    PS-FCN†), else ups-fcn when only its weights are installed, else an error naming the
-    missing weights. ``lcnet`` (a file) is sdps's LCNet.
+    ps-fcn and ps-fcn-n are installed, else whichever of them is, else l2. Without
+    light_directions.txt: sdps (LCNet + PS-FCN†), else ups-fcn when only its weights are
+    installed, else an error naming the missing weights. ``lcnet`` (a file) is sdps's LCNet.
+    ensemble: both networks must be installed; ``weights`` is refused (it names one file).
     """
     if not isinstance(method, str):
         raise PsctlError(None, f"method must be one of {', '.join(METHODS)}, not {method!r}")
@@ -193,9 +194,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             default, ``psctl.lights.DEFAULT_REFINE``).
         roll: sdps: turn the refined lights and the normals about the view axis by the normals'
             roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
-        light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels from the
-            mask's centroid along ``lights``; each image is divided by its light's falloff first
-            (``psctl.nearlight``, docs/near-lights.md).
+        light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels
+            from the mask's centroid along ``lights``; each image is divided by its light's
+            falloff first (``psctl.nearlight``, docs/near-lights.md).
     Returns:
         [H, W, 3] float32 unit normals.
     """
