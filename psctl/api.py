@@ -239,11 +239,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
-        from psctl.infer import ENSEMBLE, array_normals, ensemble_normals
+        from psctl.infer import array_normals
 
-        cfg = {"device": device, "views": views}
-        normals = (ensemble_normals([array_normals(images, lights, mask, m, None, cfg) for m in ENSEMBLE])
-                   if method == "ensemble" else array_normals(images, lights, mask, method, weights, cfg)).normals
+        normals = array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=2)
         return normals
@@ -410,11 +408,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 f", intensity relative error {light_stats['intensity_re']:.3f}") + (
                 f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     elif method in NETWORKS or method == "ensemble":
-        from psctl.infer import ENSEMBLE, capture_normals, ensemble_normals
+        from psctl.infer import ENSEMBLE, capture_normals
 
-        cfg = {"device": device, "views": views}
-        net = (ensemble_normals([capture_normals(cap, mask, m, None, cfg, progress) for m in ENSEMBLE])
-               if method == "ensemble" else capture_normals(cap, mask, method, weights, cfg, progress))
+        net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
         normals, dark = net.normals, net.dark
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])

@@ -68,8 +68,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper", "paper_method"} ("paper": the published numbers of
-    "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``, each object's outputs go to out/<object>/,
-    and out/eval.png (every object's normal and error maps, ``psctl.io.report.benchmark_sheet``)
+    "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
+    each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error maps, ``psctl.io.report.benchmark_sheet``)
     and out/eval.json (this result) join them; the result then has "outputs".
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
     ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,

@@ -478,9 +478,13 @@ def _note_exposure(res: InferResult, method: str, input_mean: float | None) -> N
 def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None, method: str,
                   weights: str | Path | None = None, config: dict | None = None,
                   progress: "ProgressFactory | None" = None) -> InferResult:
-    """A network method on in-memory images [N, H, W, 3] (or [N, H, W]), lights [N, 3]."""
+    """A network method on in-memory images [N, H, W, 3] (or [N, H, W]), lights [N, 3].
+    ``method`` "ensemble": the installed ENSEMBLE networks, averaged (``ensemble_normals``)."""
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
 
+    if method == "ensemble":
+        return ensemble_normals([array_normals(images, lights, mask, m, _no_weights(weights), config, progress)
+                                 for m in ENSEMBLE])
     model, run, note = _prepare_network(method, weights, config)
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # as image files are
     n, H, W = images.shape[:3]
@@ -502,9 +506,13 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
-    """A network method on a capture folder, streaming its images from disk."""
+    """A network method on a capture folder, streaming its images from disk. ``method``
+    "ensemble": the installed ENSEMBLE networks, averaged (each reads the images itself)."""
     from psctl.io.capture import ImageCheck
 
+    if method == "ensemble":
+        return ensemble_normals([capture_normals(capture, mask, m, _no_weights(weights), config, progress)
+                                 for m in ENSEMBLE])
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
         raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
@@ -532,6 +540,11 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
 # The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic
 # test sets the average of the release files beat either alone (benchmarks/ensemble.py, docs/usage.md).
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
+
+
+def _no_weights(weights: str | Path | None) -> None:
+    if weights is not None:  # psctl.api.resolve_method refuses this with a message for the user
+        raise ValueError("the ensemble uses the installed weights; one file cannot be passed to it")
 
 
 def ensemble_normals(results: list[InferResult]) -> InferResult:

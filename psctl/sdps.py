@@ -146,14 +146,12 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
     """In-memory images [N, H, W, 3] float32 as captured; ``method`` (one of SDPS_SECOND, or
     "ensemble": the installed PS-FCN and PS-FCN+N averaged) and ``weights`` (None: installed) the
     second stage, ``config`` its run options (device, views)."""
-    from psctl.infer import ENSEMBLE, array_normals, ensemble_normals
+    from psctl.infer import array_normals
     from psctl.lights import refine_arrays
 
     def normals(est: "LightEstimate") -> "InferResult":
-        lit = images / est.intensities[:, None, None, None]
-        if method == "ensemble":
-            return ensemble_normals([array_normals(lit, est.directions, mask, m, None, config) for m in ENSEMBLE])
-        return array_normals(lit, est.directions, mask, method, weights, config)
+        return array_normals(images / est.intensities[:, None, None, None], est.directions, mask, method, weights,
+                             config)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
         return refine_arrays(images, mask, est, n, SHOWN[method], fit)
@@ -165,14 +163,11 @@ def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: s
                    config: dict | None = None, progress: "ProgressFactory | None" = None) -> Source:
     """A capture folder, streamed from disk (its light files, if any, are not used); as
     ``array_source`` otherwise."""
-    from psctl.infer import ENSEMBLE, capture_normals, ensemble_normals
+    from psctl.infer import capture_normals
     from psctl.lights import lit_capture, refine_capture
 
     def normals(est: "LightEstimate") -> "InferResult":
-        lit = lit_capture(capture, est)
-        if method == "ensemble":
-            return ensemble_normals([capture_normals(lit, mask, m, None, config, progress) for m in ENSEMBLE])
-        return capture_normals(lit, mask, method, weights, config, progress)
+        return capture_normals(lit_capture(capture, est), mask, method, weights, config, progress)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
         return refine_capture(capture, mask, est, n, SHOWN[method], progress, fit)
