@@ -273,7 +273,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     n_images, height, width, seconds, outputs, mae, median, within, plus n_dark and notes.
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
-    ``PATH/psctl``. Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
+    ``PATH/psctl``. With the ensemble also ``spread.png``, the angle between its members'
+    normals per pixel (``psctl.infer.member_spread``), and the report's "spread" (``spread_stats``).
+    Either all files appear or none. ``weights`` (a file) and ``device`` (auto |
     cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
     light_mae and intensity_re (None without ground-truth lights). ``views`` (1, 2, 4 or 8): the
     network methods average that many symmetric views of the capture (psctl.infer.run_views;
@@ -293,7 +295,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
-    [H, W, 3], "mask" [H, W] and "error" [H, W] degrees (None without ground truth).
+    [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth) and "spread"
+    [H, W] degrees (None but for the ensemble).
     """
     from dataclasses import replace
 
@@ -304,7 +307,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
                                   load_ground_truth, load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
-    from psctl.io.report import write_error_map, write_json
+    from psctl.io.report import write_error_map, write_json, write_spread_map
     from psctl.metrics import angular_error, summarize
 
     t0 = time.perf_counter()
@@ -343,8 +346,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes.append(undetermined_note(method, cap.lights))
     out_dir = output_folder(out, cap.path)
     # report.json always: without ground truth it still records the method, notes and timings
-    names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + ["report.json"]
-    all_names = (*FORMATS.values(), "error.png", "report.json")  # every file psctl normals may write
+    names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \
+        (["spread.png"] if method == "ensemble" else []) + ["report.json"]
+    all_names = (*FORMATS.values(), "error.png", "spread.png", "report.json")  # every file psctl normals may write
     stale: list[str] = []
     if write:
         check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
@@ -386,6 +390,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     # --- solve -------------------------------------------------------------------------------
     light_stats = None
+    spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
         from psctl.lights import capture_lights, light_errors, lights_changed
         from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
@@ -411,7 +416,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.infer import ENSEMBLE, capture_normals
 
         net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
-        normals, dark = net.normals, net.dark
+        normals, dark, spread = net.normals, net.dark, net.spread
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])
     else:
@@ -468,6 +473,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "light_distance": None if near is None else near.distance,
         "notes": notes,
     }
+    if spread is not None:
+        report["spread"] = spread_stats(spread, mask, error, valid if gt is not None else None)
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
         report["lcnet_decode"] = lc_cfg["decode"]
@@ -479,7 +486,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
 
     if arrays is not None:
-        arrays.update(normals=normals, mask=mask, error=error)
+        arrays.update(normals=normals, mask=mask, error=error, spread=spread)
 
     # --- write ---------------------------------------------------------------------------------
     if write:
@@ -492,12 +499,31 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
             if error is not None:
                 write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"])
+            if spread is not None:
+                write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"])
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
             write_json(stage / "report.json", report)
     return report
 
 
 OUTPUTS_LIST = ".psctl-normals"  # in an output folder: the files psctl normals wrote there last
+
+
+def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None = None,
+                 valid: np.ndarray | None = None) -> dict:
+    """The report's "spread": mean, median and 90th percentile of ``spread`` [H, W] (degrees)
+    over ``mask``; with ``error`` [H, W] (degrees) and ``valid`` [H, W] (the pixels scored
+    against ground truth), the mean error of the scored pixels whose spread is above that
+    percentile (``mae_top10``) and of the others (``mae_rest``), else None."""
+    s = spread[mask].astype(np.float64)
+    p90 = float(np.percentile(s, 90))
+    out = {"mean": float(s.mean()), "median": float(np.median(s)), "p90": p90, "mae_top10": None, "mae_rest": None}
+    if error is not None and valid is not None:
+        e, v = error[mask].astype(np.float64), np.asarray(valid, bool)[mask]
+        top = s > p90
+        for key, sel in (("mae_top10", top & v), ("mae_rest", ~top & v)):
+            out[key] = float(e[sel].mean()) if sel.any() else None
+    return out
 
 
 # A light file with one axis flipped (y down, as image rows, is the usual case) gives the mirror

@@ -78,6 +78,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
+    The ensemble gives each object's "spread" (its report's: ``psctl.api.spread_stats``).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import find_objects, holds_capture, object_name, open_capture
@@ -174,6 +175,8 @@ def _collect(objects: list[dict], used: list[str], r: dict) -> None:
     used.append(r["method"])
     objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                     "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"], "notes": r["notes"]})
+    if "spread" in r:  # the ensemble: where its networks disagree
+        objects[-1]["spread"] = r["spread"]
     if "light_mae" in r:  # sdps: the lights LCNet estimated
         objects[-1].update(light_mae=r["light_mae"], intensity_re=r["intensity_re"],
                            lcnet_light_mae=r["lcnet_light_mae"], lcnet_intensity_re=r["lcnet_intensity_re"],

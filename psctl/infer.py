@@ -78,6 +78,9 @@ class InferResult:
     dark: np.ndarray  # [H, W] bool: mask pixels dark in every image (the network still answers)
     info: dict = field(default_factory=dict)  # device, region, tiles, passes, seconds, ...
     notes: list[str] = field(default_factory=list)
+    # [H, W] float32 degrees, the ensemble only: the largest angle between its members' normals
+    # (0 outside the mask); None for one network
+    spread: np.ndarray | None = None
 
 
 # --- geometry ---------------------------------------------------------------------------------
@@ -551,8 +554,9 @@ def ensemble_normals(results: list[InferResult]) -> InferResult:
     """The unit mean of several networks' answers for one capture (the ``ensemble`` method).
 
     Each result's normals are [H, W, 3] unit vectors (0 outside the mask); the mean of unit
-    vectors weighs each network's direction equally. ``dark`` is any member's; notes are kept
-    once each, in order; ``info`` holds each member's under "members".
+    vectors weighs each network's direction equally. ``spread`` [H, W] is ``member_spread``:
+    where the members disagree (degrees). ``dark`` is any member's; notes are kept once each,
+    in order; ``info`` holds each member's under "members".
     """
     if not results:
         raise ValueError("ensemble_normals needs at least one result")
@@ -562,7 +566,27 @@ def ensemble_normals(results: list[InferResult]) -> InferResult:
     normals = np.where(norm > 1e-12, total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     dark = np.logical_or.reduce([r.dark for r in results])
     notes = list(dict.fromkeys(n for r in results for n in r.notes))
-    return InferResult(normals, dark, {"members": [r.info for r in results]}, notes)
+    return InferResult(normals, dark, {"members": [r.info for r in results]}, notes,
+                       member_spread([r.normals for r in results]))
+
+
+def member_spread(normals: list[np.ndarray]) -> np.ndarray:
+    """The largest angle between any two of several [H, W, 3] normal maps, per pixel: [H, W]
+    float32 degrees (two maps: the angle between them). 0 where a map is 0 (outside the mask).
+
+    Where two networks trained apart disagree, their mean is less likely to be right: on psctl's
+    synthetic test sets the ensemble's error grows with it (benchmarks/spread.py, docs/formats.md).
+    """
+    maps = [np.asarray(n, np.float64) for n in normals]
+    out = np.zeros(maps[0].shape[:2], np.float64)
+    for i in range(len(maps)):
+        for j in range(i + 1, len(maps)):
+            a, b = maps[i], maps[j]
+            # atan2(|a x b|, a . b): accurate at small angles, where arccos of the dot is not
+            ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+            both = (np.abs(a).sum(-1) > 0) & (np.abs(b).sum(-1) > 0)
+            np.maximum(out, np.where(both, ang, 0.0), out=out)
+    return out.astype(np.float32)
 
 
 def all_at_once_normals(model: "PSFCN", images: np.ndarray, lights: np.ndarray | None, mask: np.ndarray | None = None,

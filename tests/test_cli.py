@@ -648,6 +648,23 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     proc = psctl("normals", capture, "-m", "ensemble", "--weights", wdir / "ps_fcn.pt", "--out", tmp_path / "y", env=env)
     assert proc.returncode == 2 and "ensemble uses the installed" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "y").exists()
+    # spread: the angle between the two networks' normals, a picture and the report's numbers
+    n1, n2 = (read_normal_map(tmp_path / m / "normal.exr") for m in ("ps-fcn", "ps-fcn-n"))
+    angle = angular_error(n1, n2, m)
+    sp = r["spread"]
+    assert sp["mean"] == pytest.approx(angle.mean(), abs=0.05) and sp["p90"] == pytest.approx(
+        np.percentile(angle, 90), abs=0.05)
+    assert r["mae"] is not None and sp["mae_top10"] is not None and sp["mae_rest"] is not None  # ground truth
+    assert sorted(r["outputs"]) == ["error", "normal_exr", "normal_png", "report", "spread_png"]
+    assert read_image(tmp_path / "a2" / "spread.png")[0].shape[2] == 3
+    assert "spread" not in json.loads((tmp_path / "ps-fcn" / "report.json").read_text())
+    assert not (tmp_path / "ps-fcn" / "spread.png").exists()
+    # the same folder with one network: spread.png is the ensemble's, removed with a note
+    r1 = json.loads(psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "a2", "--json", env=env,
+                          check=True).stdout)
+    assert not (tmp_path / "a2" / "spread.png").exists() and any("removed spread.png" in n for n in r1["notes"])
+    out = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "a3", env=env, check=True).stdout
+    assert "spread (angle between the ensemble's networks)" in out
 
 
 def test_train_command(tmp_path):

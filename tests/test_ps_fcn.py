@@ -301,8 +301,44 @@ def test_ensemble_normals_is_the_unit_mean():
     assert np.isfinite(r.normals).all() and r.normals.dtype == np.float32
     assert r.dark.tolist() == [[True, True, False], [False, False, False]]
     assert r.notes == ["n1", "n2", "n3"] and r.info == {"members": [{"x": 1}, {"x": 2}]}
+    np.testing.assert_allclose(r.spread[0], [90, 0, 180], atol=1e-4)  # the members' angle
+    assert not r.spread[1].any() and r.spread.dtype == np.float32
     with pytest.raises(ValueError):
         ensemble_normals([])
+
+
+def test_member_spread_is_the_largest_pairwise_angle():
+    from psctl.infer import member_spread
+
+    def tilt(deg):  # (0, 0, 1) turned about x
+        t = np.radians(deg)
+        return np.array([0.0, np.sin(t), np.cos(t)])
+
+    a, b, c = (np.zeros((1, 3, 3)) for _ in range(3))
+    a[0, 0], b[0, 0], c[0, 0] = tilt(0), tilt(10), tilt(-5)
+    a[0, 1], b[0, 1], c[0, 1] = tilt(0), tilt(1e-4), tilt(0)  # small angles: atan2, not arccos of a dot near 1
+    a[0, 2] = tilt(30)  # b and c are 0 here (outside a mask)
+    np.testing.assert_allclose(member_spread([a, b])[0], [10, 1e-4, 0], rtol=1e-3, atol=1e-9)
+    np.testing.assert_allclose(member_spread([a, b, c])[0], [15, 1e-4, 0], rtol=1e-3, atol=1e-9)
+    assert member_spread([a]).tolist() == [[0, 0, 0]]  # one member: no spread
+
+
+def test_spread_stats():
+    from psctl.api import spread_stats
+
+    spread = np.arange(20, dtype=np.float32).reshape(4, 5)
+    mask = np.ones((4, 5), bool)
+    mask[0, 0] = False  # spread 0 left out: 1..19 remain
+    error = spread * 2
+    valid = mask.copy()
+    valid[3, 4] = False  # spread 19: not scored
+    r = spread_stats(spread, mask, error, valid)
+    assert r["mean"] == pytest.approx(10) and r["median"] == pytest.approx(10)
+    assert r["p90"] == pytest.approx(np.percentile(np.arange(1, 20), 90))  # 17.2
+    assert r["mae_top10"] == pytest.approx(36)  # spreads 18 (19 not scored), errors 36
+    assert r["mae_rest"] == pytest.approx(np.mean(np.arange(1, 18) * 2))
+    r = spread_stats(spread, mask)
+    assert r["mae_top10"] is None and r["mae_rest"] is None
 
 
 

@@ -136,6 +136,16 @@ def write_error_map(path: str | os.PathLike, error: np.ndarray, mask: np.ndarray
     write_image(path, error_heatmap(error, mask, vmax, title), "uint8")
 
 
+def write_spread_map(path: str | os.PathLike, spread: np.ndarray, mask: np.ndarray,
+                     mean: float | None = None, p90: float | None = None, vmax: float = 12.0) -> None:
+    """spread: [H, W] degrees, the ensemble's members' disagreement (``psctl.infer.member_spread``).
+    Writes an 8-bit RGB PNG drawn as the error map, over 0..vmax degrees."""
+    title = None
+    if mean is not None:
+        title = f"SPREAD MEAN {mean:.2f}°" + (f"  P90 {p90:.2f}°" if p90 is not None else "")
+    write_image(path, error_heatmap(spread, mask, vmax, title), "uint8")
+
+
 def _resize_nearest(img: np.ndarray, h: int, w: int) -> np.ndarray:
     rows = np.minimum(((np.arange(h) + 0.5) * img.shape[0] / h).astype(int), img.shape[0] - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * img.shape[1] / w).astype(int), img.shape[1] - 1)

@@ -135,6 +135,12 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         w = r["within"]
         line += (f"\n  mean angular error [bold]{r['mae']:.2f}°[/], median {r['median']:.2f}°, "
                  f"<11.25° {w['11.25']:.1%}, <22.5° {w['22.5']:.1%}, <30° {w['30']:.1%}")
+    sp = r.get("spread")
+    if sp:  # the ensemble: where its members disagree
+        line += (f"\n  spread (angle between the ensemble's networks) mean {sp['mean']:.2f}°, "
+                 f"90th percentile {sp['p90']:.2f}°")
+        if sp.get("mae_top10") is not None and sp.get("mae_rest") is not None:
+            line += f"; error where it is above that {sp['mae_top10']:.2f}°, elsewhere {sp['mae_rest']:.2f}°"
     if r.get("n_dark"):
         line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
     con.print(line, highlight=False, soft_wrap=True)
