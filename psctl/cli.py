@@ -212,7 +212,7 @@ def evaluate(
     method: MethodOpt = "auto",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps) and OUT/eval.json.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps; the ensemble's spread maps too) and OUT/eval.json.")] = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,

@@ -69,7 +69,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
     "seconds"}], "mean_mae", "paper", "paper_method"} ("paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
-    each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error maps, ``psctl.io.report.benchmark_sheet``)
+    each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error
+    maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
     and out/eval.json (this result) join them; the result then has "outputs".
     ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
     ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
@@ -133,14 +134,16 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             _collect(objects, used, r)
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
-                                           arrays["mask"], height=sheet_layout(len(folders))[1]))
+                                           arrays["mask"], height=sheet_layout(len(folders))[1],
+                                           spread=arrays.get("spread")))
         result = _table(benchmark, root, objects, used, light_distance)
         if batch is not None:
             result["outputs"] = {"eval.png": str(Path(out) / "eval.png"), "eval.json": str(Path(out) / "eval.json")}
             stage = batch.stage(out).path
             title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
-                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})"
+                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})" + (
+                "  ROWS: NORMALS, ERROR, SPREAD" if any(p["spread"] is not None for p in panels) else "")
             write_image(stage / "eval.png", benchmark_sheet(panels, title, per_row=sheet_layout(len(folders))[0]), "uint8")
             write_json(stage / "eval.json", result)
     return result

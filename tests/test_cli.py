@@ -665,6 +665,11 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     assert not (tmp_path / "a2" / "spread.png").exists() and any("removed spread.png" in n for n in r1["notes"])
     out = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "a3", env=env, check=True).stdout
     assert "spread (angle between the ensemble's networks)" in out
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)  # psctl eval --out: each object's spread too
+    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "ensemble", "--out",
+                         tmp_path / "ev", "--json", "--quiet", env=env, check=True).stdout)
+    assert r["objects"][0]["spread"]["mean"] > 0 and (tmp_path / "ev" / "a" / "spread.png").is_file()
+    assert read_image(tmp_path / "ev" / "eval.png")[0].shape[0] > 3 * 160  # three rows of maps
 
 
 def test_train_command(tmp_path):

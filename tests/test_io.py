@@ -607,7 +607,7 @@ def test_negative_float_pixels_get_a_note(tmp_path, method):
 
 
 def test_benchmark_sheet_draws_each_objects_maps():
-    from psctl.io.report import benchmark_sheet, jet, object_panel
+    from psctl.io.report import SPREAD_VMAX, benchmark_sheet, jet, object_panel
 
     mask = np.zeros((50, 80), bool)
     mask[10:30, 20:60] = True  # 20 x 40: the panel is cropped to it (4 px margin) and scaled to 40 rows
@@ -630,6 +630,15 @@ def test_benchmark_sheet_draws_each_objects_maps():
     assert np.isclose(rows, (0.5, 0.5, 1.0)).all(-1).sum() == 3 * (p["normals"][..., 2] == 1.0).sum()
     assert np.isclose(rows, red).all(-1).sum() == 2 * ((p["error"][..., 0] > 0).sum() + bar)
     assert rows.shape[0] > sheet.shape[0] + 2 * 40 and rows.shape[1] < sheet.shape[1] + 2 * 40
+    # the ensemble's spread: a third map under the error map, with its own colour bar (0..SPREAD_VMAX)
+    r = object_panel("cat", 1.234, normals, error, mask, height=40, spread=np.full((50, 80), 6.0, np.float32))
+    green = jet(np.float32(6 / SPREAD_VMAX))
+    assert np.allclose(r["spread"][20, 34], green) and np.allclose(r["spread"][0, 0], 0.0) and p["spread"] is None
+    three = benchmark_sheet([r, q], "L2  MEAN 1.23°")
+    assert three.shape[:2] == (sheet.shape[0] + 40 + 4, sheet.shape[1])
+    bar2 = np.isclose(jet(np.linspace(1.0, 0.0, 40)), green).all(-1).sum() * 10  # in each of the two bars
+    assert np.isclose(three, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
+    np.testing.assert_array_equal(three[: sheet.shape[0] - 12], sheet[: sheet.shape[0] - 12])  # the rest as before
 
 
 def test_benchmark_sheet_of_many_objects_stays_roughly_square():

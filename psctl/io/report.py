@@ -136,8 +136,11 @@ def write_error_map(path: str | os.PathLike, error: np.ndarray, mask: np.ndarray
     write_image(path, error_heatmap(error, mask, vmax, title), "uint8")
 
 
+SPREAD_VMAX = 12.0  # degrees at the top of the spread maps' colour scale (most pixels are under 4)
+
+
 def write_spread_map(path: str | os.PathLike, spread: np.ndarray, mask: np.ndarray,
-                     mean: float | None = None, p90: float | None = None, vmax: float = 12.0) -> None:
+                     mean: float | None = None, p90: float | None = None, vmax: float = SPREAD_VMAX) -> None:
     """spread: [H, W] degrees, the ensemble's members' disagreement (``psctl.infer.member_spread``).
     Writes an 8-bit RGB PNG drawn as the error map, over 0..vmax degrees."""
     title = None
@@ -153,14 +156,16 @@ def _resize_nearest(img: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.ndarray | None, mask: np.ndarray,
-                 vmax: float = 45.0, height: int = 160) -> dict:
+                 vmax: float = 45.0, height: int = 160, spread: np.ndarray | None = None) -> dict:
     """One object's column of ``benchmark_sheet``, small enough to keep for many objects: its
-    normal map ((n + 1) / 2) and error map (jet over 0..vmax degrees; None: no ground truth),
+    normal map ((n + 1) / 2), error map (jet over 0..vmax degrees; None: no ground truth) and
+    spread map (the ensemble's, jet over 0..SPREAD_VMAX degrees; None: not an ensemble),
     black outside the mask, cropped to the mask's bounding box (4 px margin) and scaled (nearest
     pixel) to ``height`` rows and as many columns as keep its aspect, at most 3 x ``height`` (an
     object wider than 3:1 is squeezed to that).
 
-    normals [H, W, 3], error [H, W] degrees, mask [H, W] bool -> {"name", "mae", "normals", "error"}."""
+    normals [H, W, 3], error and spread [H, W] degrees, mask [H, W] bool
+    -> {"name", "mae", "normals", "error", "spread"}."""
     from psctl.io.capture import bounding_box
 
     mask = np.asarray(mask, bool)
@@ -169,9 +174,10 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     h = height
     w = max(1, min(3 * height, round(m.shape[1] * height / m.shape[0])))
     nmap = np.where(m, (np.clip(np.asarray(normals[box], np.float32), -1, 1) + 1) / 2, 0.0)
-    emap = None if error is None else np.where(m, jet(np.asarray(error[box], np.float32) / vmax), 0.0)
-    return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32),
-            "error": None if emap is None else _resize_nearest(emap, h, w).astype(np.float32)}
+    maps = {key: None if a is None else
+            _resize_nearest(np.where(m, jet(np.asarray(a[box], np.float32) / top), 0.0), h, w).astype(np.float32)
+            for key, a, top in (("error", error, vmax), ("spread", spread, SPREAD_VMAX))}
+    return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32), **maps}
 
 
 def sheet_layout(n: int) -> tuple[int, int]:
@@ -186,7 +192,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
     the objects (``object_panel``) in rows of ``per_row`` (None: ``sheet_layout``'s): each its
     name (cut to the width of its maps, at least 12 characters) and MAE above its normal map, its
-    error map below; one colour bar for the error maps on the right of each row.
+    error map below, and its spread map below that where any panel has one; one colour bar for
+    each kind of map on the right of each row.
     -> [H', W', 3] float32 in [0, 1]."""
     if per_row is None:
         per_row = sheet_layout(len(panels))[0]
@@ -206,7 +213,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     heights = [max(panels[i]["normals"].shape[0] for i in r) for r in rows]
     row_w = [gap + sum(widths[i] + gap for i in r) + bar_w + bar_text + gap for r in rows]
     W = max(*row_w, text_bitmap(title, s).shape[1] + 2 * gap)
-    H = gap + line + sum(gap + 2 * line + 2 * h + 4 for h in heights) + gap
+    n_maps = 3 if any(p.get("spread") is not None for p in panels) else 2  # normals, error (, spread)
+    H = gap + line + sum(gap + 2 * line + n_maps * (h + 4) - 4 for h in heights) + gap
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
@@ -220,12 +228,16 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
             _stamp(canvas, text_bitmap(mae, s), y + line, x)
             ph, pw = p["normals"].shape[:2]
             canvas[y_maps:y_maps + ph, x:x + pw] = p["normals"]
-            if p["error"] is not None:
-                canvas[y_maps + h + 4:y_maps + h + 4 + ph, x:x + pw] = p["error"]
+            for k, key in enumerate(("error", "spread"), 1):
+                if p.get(key) is not None:
+                    y0 = y_maps + k * (h + 4)
+                    canvas[y0:y0 + ph, x:x + pw] = p[key]
             x += widths[i] + gap
-        by = y_maps + h + 4  # the colour bar beside the error maps
+        by = y_maps + h + 4  # the colour bars beside the error (and spread) maps
         colour_bar(canvas, by, x, h, bar_w, _degree_labels(vmax), s)
-        y = by + h
+        if n_maps == 3:
+            colour_bar(canvas, by + h + 4, x, h, bar_w, _degree_labels(SPREAD_VMAX), s)
+        y = y_maps + n_maps * (h + 4) - 4
     return canvas
 
 

@@ -187,7 +187,8 @@ def render_benchmark(result: dict) -> None:
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
               f"{secs:.1f} s", highlight=False)
     if result.get("outputs"):  # --out
-        con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps), eval.json "
+        spread = ", spread maps" if any("spread" in o for o in objs) else ""
+        con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
                          f"and one folder per object"), highlight=False)
     if result.get("light_distance"):  # not the paper's model: say so beside its rows
         con.print(f"near lights: each image divided by the falloff of point lights {result['light_distance']:g} "
