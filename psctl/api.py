@@ -38,7 +38,8 @@ def _noop(_: int) -> None:
 
 
 def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None,
-                   lcnet: str | os.PathLike | None = None) -> tuple[str, str | None]:
+                   lcnet: str | os.PathLike | None = None,
+                   lights_file: str | os.PathLike | None = None) -> tuple[str, str | None]:
     """Map a user-facing method name to a concrete one; return (method, note for the user).
 
     auto: the method of ``weights`` when given, else (calibrated folders) ensemble when both
@@ -46,6 +47,8 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     light_directions.txt: sdps (LCNet + PS-FCN†), else ups-fcn when only its weights are
     installed, else an error naming the missing weights. ``lcnet`` (a file) is sdps's LCNet.
     ensemble: both networks must be installed; ``weights`` is refused (it names one file).
+    ``lights_file``: the folder's light_directions.txt, named when a method needs it and it is
+    missing (None: arrays, whose lights are an argument).
     """
     if not isinstance(method, str):
         raise PsctlError(None, f"method must be one of {', '.join(METHODS)}, not {method!r}")
@@ -84,7 +87,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         return "sdps", check_sdps_weights(weights, lcnet)
     if method == "ensemble":
         from psctl.infer import ENSEMBLE
-        from psctl.models.weights import installed_path, weights_dir
+        from psctl.models.weights import installed_path, weights_where
 
         if weights is not None:
             raise PsctlError(weights, "--weights names one network's file; ensemble uses the installed "
@@ -93,10 +96,10 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         if missing:
             instead = next((m for m in ENSEMBLE if m not in missing), "l2")
             raise PsctlError(None, f"ensemble averages {' and '.join(ENSEMBLE)}, and no weights are installed for "
-                                   f"{' and '.join(missing)} (looked in {weights_dir()}); use --method {instead}")
+                                   f"{' and '.join(missing)} (looked in {weights_where()}); use --method {instead}")
     if method == "auto":
         from psctl.infer import ENSEMBLE
-        from psctl.models.weights import installed_path
+        from psctl.models.weights import installed_path, weights_where
 
         # the average of the two installed networks beat either alone on the synthetic test sets,
         # by which psctl chooses (benchmarks/ensemble.py's rule, session 34: the sum over seven
@@ -108,13 +111,16 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
             return "ensemble", None
         if have:
             return have[0], None
-        return "l2", "auto: no trained network weights are installed yet, using l2 (least squares)"
+        return "l2", f"auto: no trained network weights are installed in {weights_where()}, using l2 (least squares)"
     if weights is not None and method not in NETWORKS:
         raise PsctlError(weights, f"--weights is for the network methods ({', '.join(NETWORKS)}) and sdps (its normals "
                                   f"network), not {method}")
     if (method == "ensemble" or method in NETWORKS and NETWORK_METHODS[method]["lights"]) and not calibrated:
-        raise PsctlError(None, f"{method} needs light directions (light_directions.txt); "
-                               "ups-fcn works without them")
+        if lights_file is not None:
+            raise PsctlError(lights_file, f"missing: {method} needs calibrated light directions; without them "
+                                          "--method sdps estimates the lights (as auto does), or ups-fcn")
+        raise PsctlError(None, f"{method} needs light directions (lights=None); method='sdps' estimates them "
+                               "(or ups-fcn)")
     return method, None
 
 
@@ -291,7 +297,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     are removed, and a note says so; no other file is. ``out`` may not hold a capture.
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
     (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
-    ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, sdps): the lights are points that far from
+    ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, ensemble, sdps): the lights are points that far from
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
@@ -314,12 +320,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     for name, value in (("path", path), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=name != "path")  # before minutes of work, as every check here
     formats = parse_formats(check_formats(formats))
+    if arrays is not None and not isinstance(arrays, dict):
+        raise PsctlError(None, f"arrays must be a dict (it receives the arrays behind the outputs), not a "
+                               f"{type(arrays).__name__}")
     progress = progress or (lambda desc, total: _noop)
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     cap = open_capture(path, encoding)
-    method, note = resolve_method(method, cap.calibrated, weights, lcnet)
+    method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")
@@ -361,7 +370,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         stale = sorted(n for n in read_outputs_list(out_dir)
                        if n in all_names and n not in names and (out_dir / n).is_file())
         if stale:
-            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl normals run "
+            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")
         for n in names:  # a folder in the way would fail the run only after its work
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
@@ -514,7 +523,8 @@ def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None 
     """The report's "spread": mean, median and 90th percentile of ``spread`` [H, W] (degrees)
     over ``mask``; with ``error`` [H, W] (degrees) and ``valid`` [H, W] (the pixels scored
     against ground truth), the mean error of the scored pixels whose spread is above that
-    percentile (``mae_top10``) and of the others (``mae_rest``), else None."""
+    percentile (``mae_top10``) and of the others (``mae_rest``); None without them, or for a
+    group with no scored pixel (a mask of a few pixels)."""
     s = spread[mask].astype(np.float64)
     p90 = float(np.percentile(s, 90))
     out = {"mean": float(s.mean()), "median": float(np.median(s)), "p90": p90, "mae_top10": None, "mae_rest": None}

@@ -39,11 +39,28 @@ _Command, _Group = _no_flag_type(typer.core.TyperCommand), _no_flag_type(typer.c
 _click = getattr(typer.core, "_click", None) or __import__("click")
 
 
+def _refuse_empty(argv: list[str]) -> None:
+    """An empty argument is a mistake (an unset shell variable: ``-o "$OUT"``): no psctl option
+    takes one, and click would make an empty path "." (the current folder) without a word."""
+    for i, a in enumerate(argv):
+        flag = a[:-1] if a.startswith("-") and a.endswith("=") else None  # --out=
+        if a.strip() and flag is None:
+            continue
+        if flag is None:
+            flag = argv[i - 1] if i > 0 and argv[i - 1].startswith("-") else None
+        command = f"psctl {argv[0]}" if argv and not argv[0].startswith("-") and i > 0 else "psctl"
+        what = f"{flag} is given an empty value" if flag else f"argument {i + 1} is empty"
+        print(f"{command}: {what} (an unset shell variable?)", file=sys.stderr)
+        sys.exit(2)
+
+
 class _Root(_Group):
     """The root group: a command-line mistake is one line on stderr and exit code 2, as any other
     user error (Typer would print the usage and a boxed message: five lines or more)."""
 
     def main(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201 (click's signature)
+        argv = kwargs.get("args") or (args[0] if args else None)
+        _refuse_empty(list(sys.argv[1:] if argv is None else argv))
         kwargs["standalone_mode"] = False  # errors come back here instead of being printed
         try:
             code = super().main(*args, **kwargs)

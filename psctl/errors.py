@@ -109,10 +109,13 @@ def check_bool(where: str, value: Any) -> bool:
 
 
 def check_path(where: str, value: Any, optional: bool = False) -> Any:
-    """A path argument given as something else (None where one is needed, a number, a list) is a
-    one-line error naming ``where``, not Python's TypeError from deep inside; returns ``value``."""
+    """A path argument given as something else (None where one is needed, a number, a list) or as
+    an empty string is a one-line error naming ``where``, not Python's TypeError from deep inside
+    or the current folder; returns ``value``."""
     if value is None and optional:
         return None
+    if isinstance(value, str) and not value.strip():  # Path("") would be "." (the current folder)
+        raise PsctlError(None, f"{where} is an empty path")
     if isinstance(value, (str, os.PathLike)) and not isinstance(value, bytes):
         return value
     hint = "; pass capture.path" if type(value).__name__ == "Capture" else ""

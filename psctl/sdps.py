@@ -113,6 +113,8 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
         if second:
             raise no_weights_error("lcnet", "--lcnet")
         where = weights_dir()
+        if not where.is_dir():  # $PSCTL_WEIGHTS mistyped (weights/ itself ships): say that, not how to train
+            raise no_weights_error("lcnet", "--lcnet")
         raise PsctlError(None, f"sdps needs LCNet's weights and a normals network's (PS-FCN†, else PS-FCN or PS-FCN+N), "
                                f"and none is installed (looked for {where / file_name('lcnet')}, "
                                f"{where / file_name('ps-fcn-dagger')}, {where / file_name('ps-fcn')} and "

@@ -17,9 +17,9 @@ from psctl.metrics import angular_error
 from tests.conftest import write_capture
 
 
-def psctl(*args: str, check: bool = False, env: dict | None = None) -> subprocess.CompletedProcess:
+def psctl(*args: str, check: bool = False, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
     proc = subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True,
-                          env={**os.environ, "COLUMNS": "100", **(env or {})})
+                          env={**os.environ, "COLUMNS": "100", **(env or {})}, cwd=cwd)
     if check and proc.returncode != 0:
         raise AssertionError(proc.stderr)
     return proc
@@ -62,6 +62,37 @@ def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "no-weights"))  # whatever weights/ holds
     proc = psctl("normals", capture, "--out", tmp_path / "o", check=True)
     assert "l2" in proc.stdout and "auto" in proc.stdout
+    # a mistyped $PSCTL_WEIGHTS is named, not mistaken for weights never installed
+    assert "$PSCTL_WEIGHTS, which does not exist" in " ".join(proc.stdout.split())
+    proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o2")
+    assert proc.returncode == 2 and "which does not exist" in proc.stderr and len(proc.stderr.splitlines()) == 1
+
+
+def test_an_empty_argument_is_refused(capture, tmp_path):
+    """An unset shell variable (-o "$OUT") would make the output folder "." without a word."""
+    for args, says in ((("normals", capture, "-o", ""), "-o is given an empty value"),
+                       (("normals", capture, "--out=", "-m", "l2"), "--out is given an empty value"),
+                       (("normals", ""), "argument 2 is empty"),
+                       (("depth", capture, "--normals", "", "-o", tmp_path / "d"), "--normals is given an empty")):
+        proc = psctl(*args, cwd=tmp_path)
+        assert proc.returncode == 2 and says in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert os.listdir(tmp_path) == [capture.name]  # nothing written (the capture is the fixture's)
+    import psctl as api
+
+    with pytest.raises(api.PsctlError, match="out is an empty path"):
+        api.run_normals(capture, method="l2", out="")
+    with pytest.raises(api.PsctlError, match="arrays must be a dict"):
+        api.run_normals(capture, method="l2", out=tmp_path / "x", arrays=[])
+
+
+def test_network_methods_without_light_file_name_it(capture, tmp_path):
+    (tmp_path / "nol").mkdir()
+    for f in capture.iterdir():
+        if f.name != "light_directions.txt":
+            (tmp_path / "nol" / f.name).write_bytes(f.read_bytes())
+    proc = psctl("normals", tmp_path / "nol", "-m", "ps-fcn", "--out", tmp_path / "o")
+    assert proc.returncode == 2 and str(tmp_path / "nol" / "light_directions.txt") in proc.stderr
+    assert "--method sdps" in proc.stderr and len(proc.stderr.splitlines()) == 1
 
 
 def test_info(capture):

@@ -274,13 +274,19 @@ def test_light_rows_of_any_magnitude(tmp_path):
         lights = read_lights(p)
     np.testing.assert_allclose(lights[:2], [[0.70710677, 0, 0.70710677], [0, 1, 0]], atol=1e-6)
     p.write_text("1 0 0\n0 1e-7 0\n")
-    with pytest.raises(PsctlError, match="row 2: zero-length"):
+    with pytest.raises(PsctlError, match="line 2: zero-length"):
+        read_lights(p)
+    p.write_text("# x y z\n\n1 0 0\n0 1e-7 0  # row 2\n")  # the line in the file, and the row it is
+    with pytest.raises(PsctlError, match=r"line 4 \(row 2\): zero-length"):
         read_lights(p)
     q = tmp_path / "light_intensities.txt"
     for bad in ("1e-46", "1e39", "1e300"):
         q.write_text(f"1 1 1\n1 {bad} 1\n")
-        with pytest.raises(PsctlError, match="row 2: intensity"):
+        with pytest.raises(PsctlError, match="line 2: intensity"):
             read_intensities(q)
+    q.write_text("# r g b\n1 1 1\n1 -1 1\n")
+    with pytest.raises(PsctlError, match=r"line 3 \(row 2\): intensities must be positive"):
+        read_intensities(q)
 
 
 def test_load_images_as_captured_skips_the_intensities(tmp_path):
@@ -749,3 +755,13 @@ def test_run_options_of_the_wrong_kind_are_errors(tmp_path):
     assert not (tmp_path / "out").exists()
     r = run_normals(tmp_path / "cap", method="l2", write=False, n_images=np.int64(4), seed=4.0)  # whole numbers
     assert r["n_images"] == 4
+
+
+def test_image_errors_keep_one_copy_of_each_message():
+    """OpenImageIO repeats a reader's message inside its library's: the line says it once."""
+    from psctl.io.images import _clean
+
+    msg = ("Read error: hit end of file in png reader\nPNG read error: IDAT: Read error: hit end of file in png "
+           "reader\nPNG library error\nPNG library error\n")
+    assert _clean(msg) == "PNG read error: IDAT: Read error: hit end of file in png reader; PNG library error"
+    assert _clean(None) == "" and _clean("  one\n  line ") == "one; line"

@@ -178,6 +178,19 @@ def test_refuses_arbitrary_objects_and_garbage(tmp_path):
     junk.write_bytes(b"not a torch file at all")
     with pytest.raises(PsctlError, match="cannot read weights file"):
         read_weights(junk)
+    # files torch.load fails on in its own ways: one message each, no warning on the way
+    import pickle
+    import warnings
+
+    (tmp_path / "text.pt").write_text("hello\n")  # KeyError inside the unpickler
+    (tmp_path / "empty.pt").write_bytes(b"")
+    (tmp_path / "dict.pt").write_bytes(pickle.dumps({"a": 1}, protocol=4))  # torch warns about the protocol
+    for name, says in (("text.pt", "the unpickler failed"), ("empty.pt", "the file is empty"),
+                       ("dict.pt", "not a torch file")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(PsctlError, match=says):
+                read_weights(tmp_path / name)
     torch.save({"weights": 1}, tmp_path / "nodict.pt")
     with pytest.raises(PsctlError, match="'state_dict'"):
         read_weights(tmp_path / "nodict.pt")

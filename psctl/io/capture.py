@@ -208,10 +208,11 @@ def _read_list(path: Path, what: str = "images") -> list[str]:
 _NUMBER = re.compile(r"[+-]?(?:(?:\d+(?:\.\d*)?|\.\d+)(?:e[+-]?\d+)?|nan|inf(?:inity)?)", re.ASCII | re.IGNORECASE)
 
 
-def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
+def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int] | None = None) -> np.ndarray:
     """Parse a whitespace/comma separated numeric table; each row has one of ``widths`` values.
 
-    Errors name the file and line: malformed numbers, wrong column counts, NaN/inf.
+    Errors name the file and line: malformed numbers, wrong column counts, NaN/inf. ``lines``,
+    when given, receives each row's line number in the file (comments and blank lines skipped).
     """
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
@@ -236,6 +237,8 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
         if not np.all(np.isfinite(values)):
             raise PsctlError(path, f"line {lineno}: NaN or infinite value")
         rows.append(values)
+        if lines is not None:
+            lines.append(lineno)
     if not rows:
         raise PsctlError(path, f"{what} file is empty")
     if len({len(r) for r in rows}) > 1:
@@ -243,11 +246,18 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64)
 
 
+def _where(lines: list[int], row: int) -> str:
+    """Row ``row`` (0-based) of a table for a message: its line in the file, and its row (the
+    image it belongs to) where comments or blank lines make the two differ."""
+    return f"line {lines[row]}" + ("" if lines[row] == row + 1 else f" (row {row + 1})")
+
+
 def read_lights(path: Path) -> np.ndarray:
     """light_directions.txt -> [N, 3] float32 unit vectors (rows normalised)."""
-    unit, bad = unit_rows(read_matrix(path, (3,), "light directions"))
+    lines: list[int] = []
+    unit, bad = unit_rows(read_matrix(path, (3,), "light directions", lines))
     if bad.size:
-        raise PsctlError(path, f"row {bad[0] + 1}: zero-length light direction")
+        raise PsctlError(path, f"{_where(lines, bad[0])}: zero-length light direction")
     return unit
 
 
@@ -256,15 +266,16 @@ INTENSITY_RANGE = (1e-12, 1e12)
 
 def read_intensities(path: Path) -> np.ndarray:
     """light_intensities.txt -> [N, 3] float32 (an N x 1 file is repeated over RGB)."""
-    e = read_matrix(path, (1, 3), "light intensities")
+    lines: list[int] = []
+    e = read_matrix(path, (1, 3), "light intensities", lines)
     bad = np.flatnonzero((e <= 0).any(axis=1))
     if bad.size:
-        raise PsctlError(path, f"row {bad[0] + 1}: intensities must be positive")
+        raise PsctlError(path, f"{_where(lines, bad[0])}: intensities must be positive")
     lo, hi = INTENSITY_RANGE  # images are divided by these in float32: keep the results finite and nonzero
     bad = np.flatnonzero(((e < lo) | (e > hi)).any(axis=1))
     if bad.size:
         v = e[bad[0]][(e[bad[0]] < lo) | (e[bad[0]] > hi)][0]
-        raise PsctlError(path, f"row {bad[0] + 1}: intensity {v:g} is outside [{lo:g}, {hi:g}]")
+        raise PsctlError(path, f"{_where(lines, bad[0])}: intensity {v:g} is outside [{lo:g}, {hi:g}]")
     if e.shape[1] == 1:
         e = np.repeat(e, 3, axis=1)
     return e.astype(np.float32)

@@ -213,5 +213,9 @@ def _quiet_stderr() -> Iterator[None]:
 
 
 def _clean(msg: str | None) -> str:
-    """OpenImageIO errors can span lines; the CLI promises one line."""
-    return " ".join((msg or "").split())[:300]
+    """OpenImageIO errors can span lines, and repeat themselves (a reader's message, then its
+    library's with the same words inside); the CLI promises one line."""
+    lines = [" ".join(ln.split()) for ln in (msg or "").splitlines() if ln.strip()]
+    kept = [ln for i, ln in enumerate(lines)
+            if ln not in lines[:i] and not any(ln in other and ln != other for other in lines)]
+    return "; ".join(kept)[:300]

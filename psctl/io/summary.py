@@ -120,6 +120,9 @@ def render_info(report: dict) -> None:
     for note in r.get("notes", []):
         if not note.startswith(("ambient:", "encoding:")):  # those two are rows above
             con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    # info is quick because it reads headers: a damaged image shows only when it is decoded
+    con.print("[dim]headers read; the pixels are decoded (and checked) by normals, lights and depth[/]",
+              highlight=False, soft_wrap=True)
 
 
 def _fmt(x: float | None) -> str:

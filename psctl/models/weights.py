@@ -83,6 +83,15 @@ def weights_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "weights"
 
 
+def weights_where() -> str:
+    """The weights folder for a message: with $PSCTL_WEIGHTS, says so, and whether it is missing
+    (a mistyped variable would otherwise look like weights that were never installed)."""
+    d = weights_dir()
+    if not os.environ.get(ENV_VAR):
+        return str(d)
+    return f"{d} (${ENV_VAR}" + ("" if d.is_dir() else ", which does not exist") + ")"
+
+
 def file_name(method: str) -> str:
     return method.replace("-", "_") + SUFFIX
 
@@ -101,6 +110,9 @@ _TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
 
 def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
     where = weights_dir() / file_name(method)
+    if os.environ.get(ENV_VAR) and not weights_dir().is_dir():  # a mistyped variable, not missing weights
+        return PsctlError(None, f"no weights are installed for {method}: ${ENV_VAR} is {weights_dir()}, which "
+                                f"does not exist (unset it to use the repository's weights/)")
     if method in _TRAIN_HINTS:
         recipe, official = _TRAIN_HINTS[method]
         return PsctlError(
@@ -131,23 +143,36 @@ def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
 def _torch_load(path: Path) -> Any:
     import pickle
     import re
-    import zipfile
+    import warnings
 
     import torch
 
+    def detail(e: BaseException, limit: int) -> str:
+        if isinstance(e, LookupError):  # KeyError(101) from inside the unpickler says "101"
+            return f"the unpickler failed: {type(e).__name__}"
+        text = " ".join(str(e).split()).split(". This is an internal")[0] or type(e).__name__  # torch's advice to itself
+        return text if len(text) <= limit else text[:limit].rsplit(" ", 1)[0] + " ..."
+
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns about the pickle protocol of a file that is not its own, then fails on it
+            warnings.simplefilter("ignore")
+            return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
         text = " ".join(str(e).split())
         found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
         if found:  # weights_only refuses anything beyond tensors and plain containers
             raise PsctlError(path, f"refused: the file holds a Python object ({found.group(1)}) besides tensors "
                                    "and plain data, and psctl never unpickles arbitrary objects") from None
-        detail = re.search(r"WeightsUnpickler error: (.*?)(?: Check the documentation|$)", text)
+        inner = re.search(r"WeightsUnpickler error: (.*?)(?: Check the documentation|$)", text)
         raise PsctlError(path, "cannot read weights file: not a torch file, or damaged ("
-                               f"{(detail.group(1) if detail else text)[:120].strip()})") from None
-    except (OSError, RuntimeError, EOFError, ValueError, zipfile.BadZipFile) as e:
-        raise PsctlError(path, f"cannot read weights file ({' '.join(str(e).split())[:160]})") from None
+                               f"{detail(ValueError(inner.group(1)) if inner else e, 120)})") from None
+    except MemoryError:
+        raise
+    except Exception as e:  # a file that is not torch's fails in many ways (OSError, EOFError, KeyError, ...)
+        empty = path.stat().st_size == 0 if path.exists() else False
+        raise PsctlError(path, "cannot read weights file: " + ("the file is empty" if empty else
+                               f"not a torch file, or damaged ({detail(e, 120)})")) from None
 
 
 def read_weights(path: str | os.PathLike) -> Weights:
@@ -261,8 +286,13 @@ def for_method(weights: Weights, method: str) -> dict:
                 "architecture": dict(weights.metadata["architecture"])}
     if weights.method != method:
         use = {"ps-fcn-dagger": "--method sdps (with --weights)", "lcnet": "psctl lights, or --lcnet with --method sdps"}
-        raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use "
-                                       f"{use.get(weights.method, f'--method {weights.method}')} (or --method auto)")
+        instead = use.get(weights.method, f"--method {weights.method}")
+        if Path(weights.path).resolve() == (weights_dir() / file_name(method)).resolve():  # installed, not --weights
+            raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}: the file installed for "
+                                           f"{method} is another network's; replace it (docs/training.md), or use "
+                                           f"{instead} with --weights {weights.path}")
+        raise PsctlError(weights.path, f"holds {weights.method} weights, not {method}; use {instead} "
+                                       f"(or --method auto, which takes the method from the file)")
     input_mean = weights.metadata.get("input_mean")
     return {"normalization": weights.metadata["normalization"], "train_images": weights.metadata["train_images"],
             "architecture": dict(weights.metadata["architecture"]), "input_mean": input_mean,
