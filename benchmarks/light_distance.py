@@ -1,6 +1,6 @@
 """How far are a rig's lights? The 1/r^2 falloff measured from images and ground-truth normals.
 
-    python benchmarks/light_distance.py OBJ [OBJ ...] [--degree 2] [--json]
+    python benchmarks/light_distance.py OBJ [OBJ ...] [--degree 2] [--normals METHOD] [--json]
 
 For each image k and each pixel x lit at n.l > 0.5 away from the mirror direction (n.h below
 cos 35 degrees) and neither dark nor saturated, q_k(x) = log(I_k(x) / (n(x) . l_k) / A(x)), where
@@ -16,6 +16,11 @@ Without the normal polynomial (--degree 0) a shiny synthetic object under distan
 a "distance" too; with it, psctl's renders (distant lights) give |k| near 0: run the script on
 `psctl synth OUT --preset syntest --lights 96 --light-dist diligent` folders to see it. A sphere
 cannot tell position from normal (its normal is a function of position): its row says so.
+
+--normals METHOD (ps-fcn, ps-fcn-n, ensemble, l2) fits with that method's normals instead of
+the ground truth's (the pixels stay those with a ground-truth normal): could a capture tell its
+own lights' distance? Measured in docs/near-lights.md: no, the networks bend their normals
+toward the falloff and the fit then finds a fraction of it.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def light_distance(path: str, degree: int = 2) -> dict:
+def light_distance(path: str, degree: int = 2, normals: str | None = None) -> dict:
     from psctl.io.capture import load_ground_truth, load_images, load_mask, open_capture
 
     cap = open_capture(path)
@@ -41,6 +46,12 @@ def light_distance(path: str, degree: int = 2) -> dict:
     images = load_images(cap).mean(-1)  # [N, H, W], intensities divided
     mask, n, lights = load_mask(cap), load_ground_truth(cap).astype(np.float64), cap.lights.astype(np.float64)
     ok = mask & (np.linalg.norm(n, axis=-1) > 0.5)
+    if normals is not None:  # the method's own normals, distant lights assumed
+        from psctl.api import run_normals
+
+        arrays: dict = {}
+        run_normals(path, method=normals, write=False, arrays=arrays)
+        n = arrays["normals"].astype(np.float64)
     rows, cols = np.nonzero(ok)
     u, v = cols - cols.mean(), -(rows - rows.mean())
     nn = n[ok]  # [P, 3]
@@ -80,7 +91,7 @@ def light_distance(path: str, degree: int = 2) -> dict:
         fit = design[:, [0, *range(3, design.shape[1])]]
         res = uv - fit @ np.linalg.lstsq(fit, uv, rcond=None)[0]
         sphere = bool((res ** 2).sum() < 1e-3 * ((uv - uv.mean(0)) ** 2).sum())
-    return {"object": cap.name, "images": len(slopes), "k": k, "distance_px": 2 / k if k > 0 else None,
+    return {"object": cap.name, "normals": normals or "ground truth", "images": len(slopes), "k": k, "distance_px": 2 / k if k > 0 else None,
             "radius_px": radius, "r2": r2, "position_is_normal": sphere}
 
 
@@ -88,9 +99,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("objects", nargs="+")
     ap.add_argument("--degree", type=int, default=2, help="degree of the normal polynomial (0: none)")
+    ap.add_argument("--normals", metavar="METHOD", help="fit with this method's normals, not the ground truth's")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    rows = [light_distance(p, args.degree) for p in args.objects]
+    rows = [light_distance(p, args.degree, args.normals) for p in args.objects]
     if args.json:
         print(json.dumps(rows, indent=1))
         return
