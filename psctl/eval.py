@@ -67,7 +67,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
-    "seconds"}], "mean_mae", "paper", "paper_method"} ("paper": the published numbers of
+    "seconds"}], "mean_mae", "paper", "paper_method", "notes"} ("paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
     each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error
     maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
@@ -80,6 +80,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     means "mean_light_mae", "mean_intensity_re", "mean_lcnet_light_mae" and
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     The ensemble gives each object's "spread" (its report's: ``psctl.api.spread_stats``).
+    "notes": about the run (with ``out``: object folders of an earlier run left there).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import find_objects, holds_capture, object_name, open_capture
@@ -137,6 +138,17 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
         result = _table(benchmark, root, objects, used, light_distance)
+        if out is not None:
+            # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
+            # not in this run: left as they are, but never silently beside a table without them
+            from psctl.api import OUTPUTS_LIST
+
+            earlier = sorted(d.name for d in Path(out).iterdir() if d.is_dir() and d.name not in names
+                             and (d / OUTPUTS_LIST).is_file()) if Path(out).is_dir() else []
+            if earlier:
+                result["notes"].append(
+                    f"outputs: {out} also holds {', '.join(earlier[:5])}{' ...' if len(earlier) > 5 else ''} from an "
+                    f"earlier run, not in this run's eval.json and eval.png (left as they are)")
         if batch is not None:
             result["outputs"] = {"eval.png": str(Path(out) / "eval.png"), "eval.json": str(Path(out) / "eval.json")}
             stage = batch.stage(out).path
@@ -163,6 +175,7 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "light_distance": None if light_distance is None else float(light_distance),
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
         "paper_method": paper_method if paper else None,  # whose published numbers "paper" holds
+        "notes": [],  # about the run as a whole (each object's are in its row)
     }
     if any("light_mae" in o for o in objects):
         for key in ("light_mae", "intensity_re", "lcnet_light_mae", "lcnet_intensity_re"):

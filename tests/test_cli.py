@@ -444,6 +444,21 @@ def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
     assert np.array_equal(read_image(out / "eval.png")[0], sheet)
 
 
+def test_eval_out_names_an_earlier_runs_objects(tmp_path):
+    write_capture(tmp_path / "r2" / "aPNG", n=6, seed=0)
+    write_capture(tmp_path / "r2" / "bPNG", n=6, seed=1)
+    write_capture(tmp_path / "r1" / "aPNG", n=6, seed=0)
+    out = tmp_path / "out"
+    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "r2", "-m", "l2", "--out", out,
+                         "--json", "--quiet", check=True).stdout)
+    assert r["notes"] == []
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "r1", "-m", "l2", "--out", out, "--quiet",
+                 check=True)
+    assert "also holds b from an earlier run" in " ".join(proc.stdout.split())
+    assert json.loads((out / "eval.json").read_text())["notes"][0].startswith("outputs:")
+    assert sorted(os.listdir(out)) == ["a", "b", "eval.json", "eval.png"]  # left as they are
+
+
 def test_eval_out_inside_the_root_runs_twice(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
     for _ in range(2):  # the second time, root/results (eval.png, a/) must not look like an object

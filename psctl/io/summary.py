@@ -193,6 +193,8 @@ def render_benchmark(result: dict) -> None:
         spread = ", spread maps" if any("spread" in o for o in objs) else ""
         con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
                          f"and one folder per object"), highlight=False)
+    for note in result.get("notes", []):
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     if result.get("light_distance"):  # not the paper's model: say so beside its rows
         con.print(f"near lights: each image divided by the falloff of point lights {result['light_distance']:g} "
                   f"pixels from the object (--light-distance); the paper assumed distant lights", highlight=False)
