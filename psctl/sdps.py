@@ -100,7 +100,8 @@ def sdps_lcnet_config(method: str, weights: str | os.PathLike | None, device: st
 def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> str:
     """Fail early, in one line, when sdps lacks weights: which files are missing and how to get
     them. Returns the note naming the second stage (``sdps_second_stage``)."""
-    from psctl.models.weights import ENV_VAR, file_name, installed_path, no_weights_error, read_weights, weights_dir
+    from psctl.models.weights import (ENV_VAR, file_name, installed_path, missing_folder_note, no_weights_error,
+                                      read_weights, weights_dir)
 
     # a given file must hold what its flag is for, checked before minutes of LCNet work
     if lcnet is not None:
@@ -113,12 +114,10 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
         if second:
             raise no_weights_error("lcnet", "--lcnet")
         where = weights_dir()
-        if not where.is_dir():  # $PSCTL_WEIGHTS mistyped (weights/ itself ships): say that, not how to train
-            raise no_weights_error("lcnet", "--lcnet")
         raise PsctlError(None, f"sdps needs LCNet's weights and a normals network's (PS-FCN†, else PS-FCN or PS-FCN+N), "
                                f"and none is installed (looked for {where / file_name('lcnet')}, "
                                f"{where / file_name('ps-fcn-dagger')}, {where / file_name('ps-fcn')} and "
-                               f"{where / file_name('ps-fcn-n')}; set ${ENV_VAR} to use another folder; a clone of "
+                               f"{where / file_name('ps-fcn-n')}{missing_folder_note()}; set ${ENV_VAR} to use another folder; a clone of "
                                f"psctl ships lcnet.pt and ps_fcn.pt in weights/). Train them with `psctl train lcnet "
                                f"--config configs/lcnet.yaml --install` and `psctl train ps-fcn --config "
                                f"configs/ps_fcn.yaml --install` (docs/training.md), or pass --lcnet FILE and "

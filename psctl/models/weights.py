@@ -92,6 +92,14 @@ def weights_where() -> str:
     return f"{d} (${ENV_VAR}" + ("" if d.is_dir() else ", which does not exist") + ")"
 
 
+def missing_folder_note() -> str:
+    """For a weights-not-found message: when $PSCTL_WEIGHTS names a folder that does not exist
+    (a mistyped variable, not weights never installed), say so."""
+    if os.environ.get(ENV_VAR) and not weights_dir().is_dir():
+        return f", in ${ENV_VAR}'s folder, which does not exist"
+    return ""
+
+
 def file_name(method: str) -> str:
     return method.replace("-", "_") + SUFFIX
 
@@ -109,10 +117,7 @@ _TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
 
 
 def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
-    where = weights_dir() / file_name(method)
-    if os.environ.get(ENV_VAR) and not weights_dir().is_dir():  # a mistyped variable, not missing weights
-        return PsctlError(None, f"no weights are installed for {method}: ${ENV_VAR} is {weights_dir()}, which "
-                                f"does not exist (unset it to use the repository's weights/)")
+    where = f"{weights_dir() / file_name(method)}{missing_folder_note()}"
     if method in _TRAIN_HINTS:
         recipe, official = _TRAIN_HINTS[method]
         return PsctlError(
