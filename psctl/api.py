@@ -523,14 +523,20 @@ def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None 
     """The report's "spread": mean, median and 90th percentile of ``spread`` [H, W] (degrees)
     over ``mask``; with ``error`` [H, W] (degrees) and ``valid`` [H, W] (the pixels scored
     against ground truth), the mean error of the scored pixels whose spread is above that
-    percentile (``mae_top10``) and of the others (``mae_rest``); None without them, or for a
-    group with no scored pixel (a mask of a few pixels)."""
+    percentile (``mae_top10``; where ties leave none above it, those at it) and of the others
+    (``mae_rest``); None without them, or for a group with no scored pixel (a mask of a few
+    pixels). An empty mask gives None throughout."""
     s = spread[mask].astype(np.float64)
+    out = {"mean": None, "median": None, "p90": None, "mae_top10": None, "mae_rest": None}
+    if not s.size:
+        return out
     p90 = float(np.percentile(s, 90))
-    out = {"mean": float(s.mean()), "median": float(np.median(s)), "p90": p90, "mae_top10": None, "mae_rest": None}
+    out.update(mean=float(s.mean()), median=float(np.median(s)), p90=p90)
     if error is not None and valid is not None:
         e, v = error[mask].astype(np.float64), np.asarray(valid, bool)[mask]
         top = s > p90
+        if not top.any():  # ties at the top (a flat spread): the pixels at the percentile
+            top = s >= p90
         for key, sel in (("mae_top10", top & v), ("mae_rest", ~top & v)):
             out[key] = float(e[sel].mean()) if sel.any() else None
     return out

@@ -49,7 +49,7 @@ def _refuse_empty(argv: list[str]) -> None:
         if flag is None:
             flag = argv[i - 1] if i > 0 and argv[i - 1].startswith("-") else None
         command = f"psctl {argv[0]}" if argv and not argv[0].startswith("-") and i > 0 else "psctl"
-        what = f"{flag} is given an empty value" if flag else f"argument {i + 1} is empty"
+        what = f"an empty value after {flag}" if flag else f"argument {i + 1} is empty"
         print(f"{command}: {what} (an unset shell variable?)", file=sys.stderr)
         sys.exit(2)
 
@@ -59,7 +59,7 @@ class _Root(_Group):
     user error (Typer would print the usage and a boxed message: five lines or more)."""
 
     def main(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201 (click's signature)
-        argv = kwargs.get("args") or (args[0] if args else None)
+        argv = kwargs["args"] if "args" in kwargs else (args[0] if args else None)  # [] is a command line too
         _refuse_empty(list(sys.argv[1:] if argv is None else argv))
         kwargs["standalone_mode"] = False  # errors come back here instead of being printed
         try:

@@ -575,7 +575,7 @@ def member_spread(normals: list[np.ndarray]) -> np.ndarray:
     float32 degrees (two maps: the angle between them). 0 where a map is 0 (outside the mask).
 
     Where two networks trained apart disagree, their mean is less likely to be right: on psctl's
-    synthetic test sets the ensemble's error grows with it (benchmarks/spread.py, docs/formats.md).
+    synthetic test sets the ensemble's error grows with it (benchmarks/spread.py, docs/usage.md).
     """
     maps = [np.asarray(n, np.float64) for n in normals]
     out = np.zeros(maps[0].shape[:2], np.float64)

@@ -70,10 +70,10 @@ def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
 
 def test_an_empty_argument_is_refused(capture, tmp_path):
     """An unset shell variable (-o "$OUT") would make the output folder "." without a word."""
-    for args, says in ((("normals", capture, "-o", ""), "-o is given an empty value"),
-                       (("normals", capture, "--out=", "-m", "l2"), "--out is given an empty value"),
+    for args, says in ((("normals", capture, "-o", ""), "an empty value after -o"),
+                       (("normals", capture, "--out=", "-m", "l2"), "an empty value after --out"),
                        (("normals", ""), "argument 2 is empty"),
-                       (("depth", capture, "--normals", "", "-o", tmp_path / "d"), "--normals is given an empty")):
+                       (("depth", capture, "--normals", "", "-o", tmp_path / "d"), "an empty value after --normals")):
         proc = psctl(*args, cwd=tmp_path)
         assert proc.returncode == 2 and says in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
     assert os.listdir(tmp_path) == [capture.name]  # nothing written (the capture is the fixture's)
@@ -83,6 +83,19 @@ def test_an_empty_argument_is_refused(capture, tmp_path):
         api.run_normals(capture, method="l2", out="")
     with pytest.raises(api.PsctlError, match="arrays must be a dict"):
         api.run_normals(capture, method="l2", out=tmp_path / "x", arrays=[])
+
+
+
+def test_the_empty_check_reads_the_command_line_it_is_given(monkeypatch):
+    """app(args=[...]) (a test runner, a script) is checked, not the host program's sys.argv."""
+    from typer.testing import CliRunner
+
+    from psctl.cli import app
+
+    monkeypatch.setattr(sys, "argv", ["host", "--out="])
+    assert CliRunner().invoke(app, ["--version"]).exit_code == 0
+    r = CliRunner().invoke(app, ["info", ""])
+    assert r.exit_code == 2
 
 
 def test_network_methods_without_light_file_name_it(capture, tmp_path):

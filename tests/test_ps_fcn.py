@@ -352,6 +352,11 @@ def test_spread_stats():
     assert r["mae_rest"] == pytest.approx(np.mean(np.arange(1, 18) * 2))
     r = spread_stats(spread, mask)
     assert r["mae_top10"] is None and r["mae_rest"] is None
+    flat = np.ones((4, 5), np.float32)  # ties: no pixel above the percentile, so those at it
+    r = spread_stats(flat, mask, error, valid)
+    assert r["p90"] == 1 and r["mae_top10"] == pytest.approx(error[valid].mean()) and r["mae_rest"] is None
+    r = spread_stats(spread, np.zeros((4, 5), bool))
+    assert all(v is None for v in r.values())
 
 
 

@@ -161,7 +161,7 @@ def _torch_load(path: Path) -> Any:
     try:
         with warnings.catch_warnings():
             # torch warns about the pickle protocol of a file that is not its own, then fails on it
-            warnings.simplefilter("ignore")
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
         text = " ".join(str(e).split())
@@ -174,6 +174,8 @@ def _torch_load(path: Path) -> Any:
                                f"{detail(ValueError(inner.group(1)) if inner else e, 120)})") from None
     except MemoryError:
         raise
+    except OSError as e:  # the file system's say (permissions, a folder, I/O), not the file's content
+        raise PsctlError(path, f"cannot read weights file ({detail(e, 160)})") from None
     except Exception as e:  # a file that is not torch's fails in many ways (OSError, EOFError, KeyError, ...)
         empty = path.stat().st_size == 0 if path.exists() else False
         raise PsctlError(path, "cannot read weights file: " + ("the file is empty" if empty else
