@@ -70,7 +70,9 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
             note = check_sdps_weights(weights, lcnet)
             return "sdps", f"auto: sdps (PS-FCN† weights from {weights}); {note}"
         if NETWORK_METHODS[method]["lights"] and not calibrated:
-            raise PsctlError(None, f"{weights} holds {method} weights, which need light_directions.txt")
+            raise PsctlError(lights_file, ("missing: " if lights_file is not None else "") +
+                             f"{weights} holds {method} weights, which need light directions; without them "
+                             "--method sdps estimates the lights (with these weights as its second stage)")
         return method, note or f"auto: {method} (from {weights})"
     if method == "auto" and (not calibrated or lcnet is not None):
         from psctl.models.weights import installed_path

@@ -106,6 +106,13 @@ def test_network_methods_without_light_file_name_it(capture, tmp_path):
     proc = psctl("normals", tmp_path / "nol", "-m", "ps-fcn", "--out", tmp_path / "o")
     assert proc.returncode == 2 and str(tmp_path / "nol" / "light_directions.txt") in proc.stderr
     assert "--method sdps" in proc.stderr and len(proc.stderr.splitlines()) == 1
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    w = save_weights(tmp_path / "p.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    proc = psctl("normals", tmp_path / "nol", "-w", w, "--out", tmp_path / "o")  # auto, from the file
+    assert proc.returncode == 2 and str(tmp_path / "nol" / "light_directions.txt") in proc.stderr
+    assert "--method sdps" in proc.stderr and not (tmp_path / "o").exists()
 
 
 def test_info(capture):
