@@ -731,6 +731,9 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     assert not (tmp_path / "a2" / "spread.png").exists() and any("removed spread.png" in n for n in r1["notes"])
     out = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "a3", env=env, check=True).stdout
     assert "spread (angle between the ensemble's networks)" in out
+    from psctl.io.capture import holds_capture
+
+    assert not holds_capture(tmp_path / "a3")  # psctl's own outputs, spread.png included, are no capture
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)  # psctl eval --out: each object's spread too
     r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "ensemble", "--out",
                          tmp_path / "ev", "--json", "--quiet", env=env, check=True).stdout)
