@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.api import ProgressFactory, run_normals
+from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
 from psctl.errors import PsctlError, check_path
 
 DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
@@ -111,9 +111,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         same = [f.name for f, n in zip(folders, names) if n == name]
         if len(same) > 1:  # one column (and one out/<object>/ folder) each
             raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
-    if out is not None:
-        if not os.fspath(out).strip():
-            raise PsctlError(None, "--out is empty; name a folder")
+    if out is not None:  # an empty one was refused by check_path above
         if Path(out).resolve() == root.resolve():
             raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
         if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
@@ -141,8 +139,6 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
             # not in this run: left as they are, but never silently beside a table without them
-            from psctl.api import OUTPUTS_LIST
-
             earlier = sorted(d.name for d in Path(out).iterdir() if d.is_dir() and d.name not in names
                              and (d / OUTPUTS_LIST).is_file()) if Path(out).is_dir() else []
             if earlier:
