@@ -645,6 +645,11 @@ def test_benchmark_sheet_draws_each_objects_maps():
     bar2 = np.isclose(jet(np.linspace(1.0, 0.0, 40)), green).all(-1).sum() * 10  # in each of the two bars
     assert np.isclose(three, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
     np.testing.assert_array_equal(three[: sheet.shape[0] - 12], sheet[: sheet.shape[0] - 12])  # the rest as before
+    # a run that mixes methods: only the row with a spread map gets the third row of maps and its bar
+    mixed = benchmark_sheet([r, q, p, q], "X", per_row=2)
+    assert np.isclose(mixed, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
+    plain = benchmark_sheet([p, q, p, q], "X", per_row=2)
+    assert mixed.shape[0] == plain.shape[0] + 40 + 4
 
 
 def test_benchmark_sheet_of_many_objects_stays_roughly_square():

@@ -192,8 +192,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
     the objects (``object_panel``) in rows of ``per_row`` (None: ``sheet_layout``'s): each its
     name (cut to the width of its maps, at least 12 characters) and MAE above its normal map, its
-    error map below, and its spread map below that where any panel has one; one colour bar for
-    each kind of map on the right of each row.
+    error map below, and its spread map below that in rows where any panel has one; one colour
+    bar for each kind of map on the right of each row.
     -> [H', W', 3] float32 in [0, 1]."""
     if per_row is None:
         per_row = sheet_layout(len(panels))[0]
@@ -213,12 +213,14 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     heights = [max(panels[i]["normals"].shape[0] for i in r) for r in rows]
     row_w = [gap + sum(widths[i] + gap for i in r) + bar_w + bar_text + gap for r in rows]
     W = max(*row_w, text_bitmap(title, s).shape[1] + 2 * gap)
-    n_maps = 3 if any(p.get("spread") is not None for p in panels) else 2  # normals, error (, spread)
-    H = gap + line + sum(gap + 2 * line + n_maps * (h + 4) - 4 for h in heights) + gap
+    # normals, error (, spread): a row gets the third map, and its colour bar, where one of its
+    # objects has a spread map (a run that mixes methods has rows without)
+    n_maps = [3 if any(panels[i].get("spread") is not None for i in r) else 2 for r in rows]
+    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
-    for r, h in zip(rows, heights):
+    for r, h, k_maps in zip(rows, heights, n_maps):
         y += gap
         x = gap
         y_maps = y + 2 * line
@@ -235,9 +237,9 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
             x += widths[i] + gap
         by = y_maps + h + 4  # the colour bars beside the error (and spread) maps
         colour_bar(canvas, by, x, h, bar_w, _degree_labels(vmax), s)
-        if n_maps == 3:
+        if k_maps == 3:
             colour_bar(canvas, by + h + 4, x, h, bar_w, _degree_labels(SPREAD_VMAX), s)
-        y = y_maps + n_maps * (h + 4) - 4
+        y = y_maps + k_maps * (h + 4) - 4
     return canvas
 
 
