@@ -2,11 +2,15 @@
 
 The heavy modules (torch, OpenImageIO) are imported lazily so that ``import psctl`` and
 ``psctl --help`` stay instant.
+
+The functions here are those of their modules (``psctl.run_normals`` is
+``psctl.api.run_normals``), except that their errors and report notes name options as Python
+arguments ("weights=FILE") where the modules, which the command line shares, say "--weights FILE".
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
@@ -25,13 +29,57 @@ _LAZY = {
     "PsctlError": "psctl.errors",
 }
 
+if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ imports on first use
+    from psctl.api import estimate_lights, estimate_normals, run_normals
+    from psctl.depth import integrate_normals, run_depth
+    from psctl.errors import PsctlError
+    from psctl.eval import run_benchmark
+    from psctl.io.capture import load_images, load_mask, open_capture
+    from psctl.lights import run_lights
+    from psctl.metrics import angular_error
+
+
+def _python_notes(result: Any) -> Any:
+    """A report's notes (and its objects' notes) in the Python wording; other results as they are."""
+    from psctl.errors import python_wording
+
+    if isinstance(result, dict):
+        if isinstance(result.get("notes"), list):
+            result["notes"] = [python_wording(n) if isinstance(n, str) else n for n in result["notes"]]
+        for obj in result.get("objects") or []:
+            _python_notes(obj)
+    return result
+
+
+def _for_python(fn: Any) -> Any:
+    import functools
+
+    from psctl.errors import PsctlError, python_wording
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return _python_notes(fn(*args, **kwargs))
+        except PsctlError as e:
+            raise PsctlError(e.path, python_wording(e.message)) from None
+
+    return wrapper
+
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
         import importlib
 
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        if name != "PsctlError":
+            value = _for_python(value)
+        globals()[name] = value  # imported once
+        return value
     raise AttributeError(f"module 'psctl' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
 
 
 __all__ = ["__version__", *_LAZY]

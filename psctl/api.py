@@ -1,7 +1,7 @@
 """The Python API. The CLI is a thin layer over these functions.
 
     >>> import psctl
-    >>> result = psctl.run_normals("examples/sphere", method="l2", out="/tmp/sphere")
+    >>> result = psctl.run_normals("examples/bumpy_sphere", method="l2", out="/tmp/sphere")
     >>> normals = psctl.estimate_normals(images, lights, mask, method="l2")   # arrays in, array out
 """
 
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path
+from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path, check_progress
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -31,10 +31,6 @@ ProgressFactory = Callable[[str, int], Callable[[int], None]]
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
 LISTED_LIGHTS = ("l2", "ps-fcn", "ps-fcn-n", "ensemble")  # the methods that read light_directions.txt
-
-
-def _noop(_: int) -> None:
-    pass
 
 
 def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | None = None,
@@ -278,7 +274,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
-    n_images, height, width, seconds, outputs, mae, median, within, plus n_dark and notes.
+    n_images, height, width, views, light_distance, seconds, outputs, mae, median, within,
+    n_mask_pixels, n_evaluated_pixels, n_dark and notes (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
     ``PATH/psctl``. With the ensemble also ``spread.png``, the angle between its members'
@@ -325,7 +322,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if arrays is not None and not isinstance(arrays, dict):
         raise PsctlError(None, f"arrays must be a dict (it receives the arrays behind the outputs), not a "
                                f"{type(arrays).__name__}")
-    progress = progress or (lambda desc, total: _noop)
+    progress = check_progress(progress)
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     check_device_name(device)  # a typo is an error for l2 too, which does not use it

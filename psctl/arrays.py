@@ -9,9 +9,11 @@ refused for (NaN, zero-length lights, an empty mask, all-black images).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, _short
 
 
 def plain(x: object) -> object:
@@ -65,6 +67,9 @@ def as_mask(mask: np.ndarray | None, shape: tuple[int, int], allow_empty: bool =
     an empty mask (unless ``allow_empty``) are errors."""
     if mask is None:
         return None
+    if isinstance(mask, (str, bytes, os.PathLike)):  # np.asarray would make a 0-D array of text
+        raise PsctlError(None, f"mask must be an [H, W] array (or None), not the path {_short(mask)}; "
+                               "read a mask file with psctl.load_mask")
     m = np.asarray(plain(mask))
     if m.ndim == 3 and m.shape[2] == 1:
         m = m[..., 0]

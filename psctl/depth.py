@@ -49,7 +49,6 @@ from __future__ import annotations
 import math
 import os
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import PsctlError, PsctlWarning, check_bool, check_path, like_default
+from psctl.errors import PsctlError, check_bool, check_path, check_progress, like_default
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -180,7 +179,11 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         if not mask.any():
             raise PsctlError(None, "the mask is empty (no foreground pixel)")
     else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
+        if isinstance(mask, (str, bytes, os.PathLike)):
+            mask = as_mask(mask, (h, w))  # its message: an array, not a path
         m = np.asarray(plain(mask))
+        if m.ndim < 2:
+            raise PsctlError(None, f"mask must be [H, W] = [{h}, {w}] (the normal map's), got {list(m.shape)}")
         if m.shape[:2] != (h, w):
             raise PsctlError(None, f"normal map is {w}x{h} but the mask is {m.shape[1]}x{m.shape[0]}")
         mask = as_mask(m, (h, w))
@@ -236,7 +239,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         _adjacency(npix, ei, ej), directed=False) if len(ei) else (npix, np.arange(npix))
     pins = np.unique(labels, return_index=True)[1]
 
-    progress = progress or (lambda desc, total: (lambda k: None))
+    progress = check_progress(progress)
     cut = None
     if method == "poisson":
         sf, sb = s_all[fwd], s_all[bwd]
@@ -278,8 +281,8 @@ def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np
         raise PsctlError(path, f"intrinsics must be a 3 x 3 matrix, got shape {K.shape}")
     if not np.isfinite(K).all():
         raise PsctlError(path, "intrinsics contain NaN or infinite values")
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise PsctlError(path, "intrinsics need positive focal lengths fx = K[0,0] and fy = K[1,1]")
+    if not (K[0, 0] >= 1 and K[1, 1] >= 1):  # under a pixel: a field of view of nearly 180 degrees, or a typo
+        raise PsctlError(path, "intrinsics need focal lengths fx = K[0,0] and fy = K[1,1] of at least 1 pixel")
     if max(K[0, 0], K[1, 1]) > 1e9 or max(abs(K[0, 2]), abs(K[1, 2])) > 1e9:  # squares overflow in the solver
         raise PsctlError(path, "intrinsics above 1e9 pixels: a focal length that long is an orthographic "
                                "camera (leave out the intrinsics), and a principal point that far is a typo")
@@ -294,7 +297,7 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
     """K.txt: three rows of three numbers (whitespace or commas, '#' comments)."""
     from psctl.io.capture import read_matrix
 
-    path = Path(path)
+    path = Path(check_path("path", path))  # an array here is a K, not a file: check_intrinsics
     if not path.is_file():
         raise PsctlError(path, "intrinsics file is missing")
     K = read_matrix(path, (3,), "intrinsics")
@@ -573,8 +576,21 @@ def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarr
     """
     from psctl.io.mesh import Mesh
 
-    valid = np.isfinite(depth)
+    depth = np.asarray(plain(depth))
+    if depth.ndim != 2 or depth.dtype.kind != "f":
+        raise PsctlError(None, f"depth must be an [H, W] float map (NaN where there is none), "
+                               f"got shape {list(depth.shape)} and dtype {depth.dtype}")
     h, w = depth.shape
+    for name, a in (("normals", normals), ("colors", colors)):
+        if a is not None and np.shape(a) != (h, w, 3):
+            raise PsctlError(None, f"{name} must be [H, W, 3] = [{h}, {w}, 3], got {list(np.shape(a))}")
+    if cut is not None and np.shape(cut) != (h, w, 2):
+        raise PsctlError(None, f"cut must be [H, W, 2] = [{h}, {w}, 2], got {list(np.shape(cut))}")
+    K = None if K is None else check_intrinsics(K)
+    normals = None if normals is None else np.asarray(plain(normals))
+    colors = None if colors is None else np.asarray(plain(colors))
+    cut = None if cut is None else np.asarray(plain(cut), bool)
+    valid = np.isfinite(depth)
     index = np.full((h + 1, w + 1), -1, np.int64)  # padded so blocks at the border see "no pixel"
     index[:h, :w][valid] = np.arange(int(valid.sum()))
     a, b = index[:-1, :-1], index[:-1, 1:]  # top-left, top-right of each block
@@ -631,12 +647,12 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     ``psctl.io.capture.open_capture`` says for ``encoding``, ambient image subtracted.
     """
     from psctl.io.atomic import check_output_dir, output_folder
-    from psctl.io.capture import bounding_box, capture_notes, check_not_capture, iter_images, load_images, open_capture
+    from psctl.io.capture import bounding_box, capture_notes, check_not_capture, iter_images, open_capture
 
     t0 = time.perf_counter()
     for name, value in (("path", path), ("normals", normals), ("out", out)):
         check_path(name, value, optional=name != "path")
-    progress = progress or (lambda desc, total: (lambda k: None))
+    progress = check_progress(progress)
     method = str(method).lower()
     if method not in METHODS:
         raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
@@ -680,33 +696,24 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             if not mask.any():
                 raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
         normals_source = str(source)
-    else:
-        from psctl.api import estimate_normals
+    else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
+        from psctl.api import run_normals
 
-        if mask is None:
-            mask = np.ones((cap.height, cap.width), bool)
-        box = bounding_box(mask)
-        images = load_images(cap, box, progress(f"{cap.name}: reading images", cap.n_images))
-        nmap = np.zeros((cap.height, cap.width, 3), np.float32)
+        got: dict = {}
         try:
-            with warnings.catch_warnings(record=True) as caught:  # into the report's notes, not stderr
-                warnings.simplefilter("always", PsctlWarning)
-                nmap[box] = estimate_normals(images, cap.lights, mask[box], method="auto")
-            for w in caught:
-                if issubclass(w.category, PsctlWarning):
-                    notes.append(str(w.message))
-                else:
-                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            estimated = run_normals(cap.path, method="auto", write=False, progress=progress, encoding=encoding,
+                                    arrays=got)
         except PsctlError as e:
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None
-        mean_image = np.zeros_like(nmap)
-        mean_image[box] = images.mean(axis=0)
-        del images
+        nmap = got["normals"]
+        if mask is None:
+            mask = got["mask"]
+        notes += [n for n in estimated["notes"] if n not in notes]
         source = cap.path
-        normals_source = "estimated (psctl normals --method auto)"
-        notes.append("no normal map given or found in PATH/psctl: normals estimated from the images "
-                     "(run `psctl normals` first to choose the method and keep them)")
+        normals_source = f"estimated (psctl normals --method auto: {estimated['method']})"
+        notes.append(f"no normal map given or found in PATH/psctl: normals estimated from the images by "
+                     f"{estimated['method']} (run `psctl normals` first to choose the method and keep them)")
 
     # --- integrate -----------------------------------------------------------------------------
     try:
@@ -733,7 +740,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             mean_image[box] += img / cap.n_images
             advance(1)
     colors = display_colors(mean_image, valid)
-    unit = np.where(valid[..., None], nmap / np.maximum(np.linalg.norm(nmap, axis=-1, keepdims=True), 1e-12), 0.0)
+    n64 = nmap.astype(np.float64)  # float32's norm of normals scaled by 1e30 would overflow
+    with np.errstate(invalid="ignore"):
+        unit = np.where(valid[..., None], n64 / np.maximum(np.linalg.norm(n64, axis=-1, keepdims=True), 1e-12),
+                        0.0).astype(np.float32)
     mesh = depth_mesh(res.depth, K, unit, colors, res.cut)
     recomputed = normals_from_points(depth_to_points(res.depth, K))
     shading = np.nan_to_num(shade(recomputed), nan=0.0)

@@ -140,3 +140,56 @@ def check_formats(value: Any) -> str:
         if all(isinstance(v, str) for v in names):
             return ",".join(names)
     raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {_short(value)}")
+
+
+def check_progress(progress: Any) -> Any:
+    """A progress factory ``(label, total) -> advance(k)``, or a no-op one for None; anything
+    else (a number, True) is a one-line error, not "'int' object is not callable" mid-run."""
+    if progress is None:
+        return lambda label, total: (lambda k: None)
+    if not callable(progress):
+        raise PsctlError(None, f"progress must be None or a callable (label, total) -> advance(k), "
+                               f"not {_short(progress)}")
+    return progress
+
+
+# --- messages for Python callers ---------------------------------------------------------------
+# The library words its messages for the command line, which most users meet first ("--weights
+# FILE"). psctl's top-level functions (psctl.run_normals, ...) reword them for Python callers:
+# each option of those functions is named as its argument ("weights=FILE").
+PYTHON_ARGS = {
+    "--method": "method", "--weights": "weights", "--lcnet": "lcnet", "--device": "device",
+    "--views": "views", "--images": "n_images", "--seed": "seed", "--encoding": "encoding",
+    "--format": "formats", "--out": "out", "--light-distance": "light_distance", "--falloff": "falloff",
+    "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
+    "--benchmark": "benchmark", "--decode": "decode", "--K": "K",
+}
+_SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
+             "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",
+             "`psctl eval`": "psctl.run_benchmark"}
+# values an option may have in a message: quoted in the Python wording (method='sdps')
+_WORDS = ("auto|l2|ps-fcn-dagger|ps-fcn-n|ps-fcn|ensemble|ups-fcn|sdps|lcnet|cpu|cuda(?::\\d+)?|diligent|folder|"
+          "linear|srgb|shifted|lambertian|soft|argmax|poisson|bilateral")
+
+
+def python_wording(text: str) -> str:
+    """A message worded for the command line, with its options named as Python arguments:
+    "use --method l2" -> "use method='l2'", "--weights FILE" -> "weights=FILE",
+    "--light-distance must be ..." -> "light_distance must be ...", "--no-refine" -> "refine=False".
+    Other text (file names, `psctl train ...`, options of commands without a Python twin) stays."""
+    import re
+
+    for cli, py in sorted(_SWITCHES.items(), key=lambda kv: -len(kv[0])):  # --roll/--no-roll before --roll
+        text = re.sub(re.escape(cli) + r"(?![\w-])", py, text)
+    flags = "|".join(re.escape(f) for f in sorted(PYTHON_ARGS, key=len, reverse=True))
+
+    def one(m: re.Match) -> str:
+        name, value = PYTHON_ARGS[m.group(1)], m.group(2)
+        if value is None:
+            return name
+        if re.fullmatch(_WORDS, value):
+            return f"{name}={value!r}"
+        return f"{name}={value}"  # a number, or a placeholder such as FILE or DIR
+
+    value = rf"(?: ({_WORDS}|[A-Z]+|-?\d+(?:\.\d+)?)(?![\w-]))?"
+    return re.sub(rf"({flags})(?![\w-]){value}", one, text)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
-from psctl.errors import PsctlError, check_path
+from psctl.errors import PsctlError, check_path, check_progress
 
 DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
 
@@ -67,7 +67,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
-    "seconds"}], "mean_mae", "paper", "paper_method", "notes"} ("paper": the published numbers of
+    "n_dark", "seconds", "notes"}], "mean_mae", "paper", "paper_method", "light_distance", "notes"}
+    (docs/formats.md has each key; "paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
     each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error
     maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
@@ -89,6 +90,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.lights import refine_config
 
     refine_config(falloff, roll)  # a bad value stops before any object runs
+    check_progress(progress)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
     if not isinstance(benchmark, str):

@@ -463,6 +463,10 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
 def _prepare_network(method: str, weights: str | Path | None, config: dict | None):
     from psctl.models.weights import load_network
 
+    unknown = sorted(set(config or {}) - set(DEFAULT_INFER))
+    if unknown:  # a misspelt setting would otherwise be ignored without a word
+        raise PsctlError(None, f"unknown inference setting {', '.join(map(repr, unknown))}; "
+                               f"the settings are {', '.join(DEFAULT_INFER)}")
     cfg = {**DEFAULT_INFER, **(config or {})}
     device = pick_device(cfg["device"])
     model, run, w = load_network(method, weights, device="cpu")
@@ -484,11 +488,21 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     """A network method on in-memory images [N, H, W, 3] (or [N, H, W]), lights [N, 3].
     ``method`` "ensemble": the installed ENSEMBLE networks, averaged (``ensemble_normals``)."""
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
+    from psctl.errors import _short
 
+    known = ("ps-fcn", "ps-fcn-n", "ups-fcn", "ps-fcn-dagger", "ensemble")
+    if not isinstance(method, str) or method.lower() not in known:
+        raise PsctlError(None, f"array_normals runs {', '.join(known)}, not {_short(method)} "
+                               "(psctl.estimate_normals runs l2, sdps and auto as well)")
+    method = method.lower()
     if method == "ensemble":
         return ensemble_normals([array_normals(images, lights, mask, m, _no_weights(weights), config, progress)
                                  for m in ENSEMBLE])
     model, run, note = _prepare_network(method, weights, config)
+    if model.uses_lights and lights is None:
+        raise PsctlError(None, f"{method} needs light directions (lights=None)")
+    if not model.uses_lights and lights is not None:  # they would be dropped without a word
+        raise PsctlError(None, f"{method} estimates normals from the images alone: pass lights=None")
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # as image files are
     n, H, W = images.shape[:3]
     mask = as_mask(mask, (H, W))

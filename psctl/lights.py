@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool, check_path, naming
+from psctl.errors import PsctlError, check_bool, check_path, check_progress, naming
 
 if TYPE_CHECKING:
     import torch
@@ -884,7 +884,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     (``psctl.nearlight``; LCNet reads them as captured).
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
-    intensity_re (None without ground truth), outputs, plus path, weights, decode, views,
+    intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,
     lights_refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re
     (LCNet's own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
@@ -898,6 +898,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         check_path(name, value, optional=name != "path")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
+    progress = check_progress(progress)
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer

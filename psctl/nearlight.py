@@ -59,7 +59,8 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     if distance is None:
         return None
     try:
-        if isinstance(distance, (bool, np.bool_)):  # True is 1 to float(): not a distance anyone means
+        # True is 1 to float(), and "2400" 2400: not what a number-valued option takes (as views, seed)
+        if isinstance(distance, (bool, np.bool_, str, bytes)):
             raise TypeError
         d = float(distance)
     except (TypeError, ValueError):

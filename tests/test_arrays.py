@@ -259,3 +259,82 @@ def test_integrate_takes_tensors_that_require_grad():
     m = np.ones((8, 8), bool)
     z = integrate_normals(torch.tensor(n, requires_grad=True), torch.tensor(m))
     assert z.shape == (8, 8) and np.isfinite(z).all()
+
+
+def test_top_level_functions_name_python_arguments(data):
+    """psctl.X words its errors for Python callers; psctl.api.X (the CLI's) keeps the flags."""
+    import psctl
+
+    images, lights, mask, _ = data
+    assert {"estimate_normals", "run_normals", "integrate_normals", "PsctlError"} <= set(dir(psctl))
+    with pytest.raises(PsctlError, match=r"^unknown device 'gpu'; choose from"):
+        psctl.estimate_normals(images, lights, mask, method="l2", device="gpu")
+    with pytest.raises(PsctlError, match=r"^light_distance must be a number"):
+        psctl.estimate_normals(images, lights, mask, method="l2", light_distance=True)
+    with pytest.raises(PsctlError, match="unknown --device 'gpu'"):  # the module's own: the CLI's words
+        estimate_normals(images, lights, mask, method="l2", device="gpu")
+    assert psctl.estimate_normals.__wrapped__ is estimate_normals and psctl.PsctlError is PsctlError
+    assert psctl.estimate_normals is psctl.estimate_normals  # wrapped once
+
+
+@pytest.mark.parametrize("cli,python", [
+    ("use --method l2", "use method='l2'"),
+    ("--device cuda: no GPU; use --device cpu or auto", "device='cuda': no GPU; use device='cpu' or auto"),
+    ("pass a weights file with --weights FILE", "pass a weights file with weights=FILE"),
+    ("--light-distance 1 pixels does not clear", "light_distance=1 pixels does not clear"),
+    ("--light-distance needs --refine", "light_distance needs refine=True"),
+    ("--images must be at least 1", "n_images must be at least 1"),
+    ("--roll/--no-roll is unused; --no-refine", "roll is unused; refine=False"),
+    ("--benchmark folder needs --root DIR", "benchmark='folder' needs root=DIR"),
+    ("use `psctl lights`, or --normals-weights", "use psctl.estimate_lights, or normals_weights"),
+    ("`psctl train lcnet --config configs/lcnet.yaml --install`", "`psctl train lcnet --config configs/lcnet.yaml --install`"),
+    ("a --weightsfile", "a --weightsfile"),
+])
+def test_python_wording(cli, python):
+    from psctl.errors import python_wording
+
+    assert python_wording(cli) == python
+
+
+def test_more_wrong_inputs_are_one_error(data, tmp_path):
+    """Found by a review: each of these raised Python's own error from deep inside, or said
+    something misleading."""
+    from psctl.api import run_normals
+    from psctl.depth import depth_mesh, integrate, read_intrinsics
+    from psctl.infer import array_normals
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    images, lights, mask, normals = data
+    for m in (np.ones(5, bool), True):
+        with pytest.raises(PsctlError, match=r"mask must be \[H, W\] = \[32, 32\]"):
+            integrate(normals, m)
+    for m in ("mask.png", tmp_path / "mask.png"):
+        with pytest.raises(PsctlError, match="not the path .*psctl.load_mask"):
+            estimate_normals(images, lights, m, method="l2")
+        with pytest.raises(PsctlError, match="not the path"):
+            integrate(normals, m)
+    for method in ("l2", "sdps", "lcnet", None, 3):
+        with pytest.raises(PsctlError, match="array_normals runs ps-fcn"):
+            array_normals(images, lights, mask, method)
+    save_weights(tmp_path / "u.pt", PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 32})
+    save_weights(tmp_path / "p.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    with pytest.raises(PsctlError, match="from the images alone: pass lights=None"):
+        array_normals(images, lights, mask, "UPS-FCN", tmp_path / "u.pt")
+    with pytest.raises(PsctlError, match=r"needs light directions \(lights=None\)"):
+        array_normals(images, None, mask, "ps-fcn", tmp_path / "p.pt")
+    with pytest.raises(PsctlError, match="unknown inference setting 'chunks'"):
+        array_normals(images, lights, mask, "ps-fcn", tmp_path / "p.pt", {"chunks": 2})
+    with pytest.raises(PsctlError, match="light-distance must be a number of pixels, not '2400'"):
+        estimate_normals(images, lights, mask, method="l2", light_distance="2400")
+    depth = integrate(normals, mask).depth
+    for bad in (depth[0], np.zeros((4, 4), int), depth.tolist()[0]):
+        with pytest.raises(PsctlError, match=r"depth must be an \[H, W\] float map"):
+            depth_mesh(bad)
+    with pytest.raises(PsctlError, match=r"normals must be \[H, W, 3\] = \[32, 32, 3\]"):
+        depth_mesh(depth, normals=normals[:5])
+    assert len(depth_mesh(depth.tolist()).faces) == len(depth_mesh(depth).faces)  # a list is an array
+    with pytest.raises(PsctlError, match="path must be a path"):
+        read_intrinsics(np.eye(3))
+    with pytest.raises(PsctlError, match="progress must be None or a callable"):
+        run_normals(tmp_path, method="l2", progress=5)

@@ -247,6 +247,7 @@ def test_rejected_normals_are_counted_not_fatal():
     ("method", "unknown depth method"),
     ("K", "intrinsics"),
     ("K_huge", "above 1e9 pixels"),  # squares of 1e300 overflow in the solver
+    ("K_tiny", "at least 1 pixel"),  # 1e-300: a vertex at infinity in mesh.ply
 ])
 def test_bad_arrays_raise_psctl_errors(case, needle):
     normals, mask, _ = surface("sphere", 16)
@@ -263,6 +264,8 @@ def test_bad_arrays_raise_psctl_errors(case, needle):
         kwargs["K"] = np.eye(3) * -1
     elif case == "K_huge":
         kwargs["K"] = np.array([[1e300, 0, 8], [0, 1e300, 8], [0, 0, 1]])
+    elif case == "K_tiny":
+        kwargs["K"] = np.array([[1e-300, 0, 8], [0, 1.0, 8], [0, 0, 1]])
     with pytest.raises(PsctlError, match=needle):
         integrate_normals(normals, mask, **kwargs)
 
@@ -403,3 +406,32 @@ def test_depth_puts_the_networks_warning_in_its_notes(tmp_path, monkeypatch):
         warnings.simplefilter("error", PsctlWarning)
         r = run_depth(tmp_path / "cap", write=False)
     assert any("coplanar" in n and "expect large errors" in n for n in r["notes"]), r["notes"]
+
+
+def test_depth_estimates_the_normals_psctl_normals_gives(tmp_path, monkeypatch):
+    """Without a normal map, psctl depth integrates what psctl normals --method auto gives (its
+    crop and notes), and normals of any length give unit vertex normals in mesh.ply."""
+    import warnings
+
+    import psctl.depth as D
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "cap", n=8, size=24)
+    (tmp_path / "cap" / "Normal_gt.mat").unlink()
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "none"))  # auto: l2
+    seen = {}
+    real = D.integrate
+    monkeypatch.setattr(D, "integrate", lambda n, *a, **k: seen.setdefault("n", n) is None or real(n, *a, **k))
+    r = D.run_depth(tmp_path / "cap", write=False)
+    got = {}
+    ref = run_normals(tmp_path / "cap", method="auto", write=False, arrays=got)
+    np.testing.assert_array_equal(seen["n"], got["normals"])
+    assert r["normals"] == "estimated (psctl normals --method auto: l2)"
+    assert [n for n in ref["notes"] if n not in r["notes"]] == []  # its notes too (auto fell back to l2)
+    monkeypatch.setattr(D, "integrate", real)
+    np.save(tmp_path / "n.npy", got["normals"] * np.float32(1e30))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow on the way
+        r = D.run_depth(tmp_path / "cap", normals=tmp_path / "n.npy", out=tmp_path / "o")
+    mesh = read_ply(tmp_path / "o" / "mesh.ply")
+    np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=-1), 1.0, atol=1e-5)

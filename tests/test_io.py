@@ -60,6 +60,25 @@ def test_natural_order_without_filenames(tmp_path):
     assert np.all(cap.intensities == 1)
 
 
+def test_file_names_that_are_not_utf8_are_one_error(tmp_path):
+    """Linux allows any bytes in a name; OpenImageIO's binding takes UTF-8 text only (a TypeError)."""
+    import os
+
+    from psctl.api import run_normals
+
+    folder = tmp_path / "obj"
+    write_capture(folder, n=6, intensities=False, gt="none")
+    (folder / "filenames.txt").unlink()
+    os.rename(folder / "002.png", os.fsencode(folder) + b"/\xff02.png")
+    with pytest.raises(PsctlError, match="02.png: the path is not valid UTF-8 text"):
+        load_images(open_capture(folder))
+    bad_out = os.fsdecode(os.fsencode(tmp_path) + b"/\xffout")
+    (folder / "\udcff02.png").rename(folder / "002.png")
+    with pytest.raises(PsctlError, match="output folder's path is not valid UTF-8"):
+        run_normals(folder, method="l2", out=bad_out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obj"]
+
+
 def test_names_txt_and_single_column_intensities(tmp_path):
     folder = tmp_path / "obj"
     write_capture(folder, n=6)

@@ -608,6 +608,24 @@ def test_rasterised_mesh_matches_the_analytic_sphere(tmp_path):
         meshes.load_obj(tmp_path / "missing.obj")
 
 
+@pytest.mark.parametrize("text,needle", [
+    ("v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n", "line 2: bad vertex"),  # two coordinates
+    ("v 0 0 0\nv 1 0 0 1 2\nv 0 1\nf 1 2 3\n", "line 3: bad vertex"),  # 9 numbers in all: not 3 vertices
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999999\n", "line 4: bad face"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", "line 4: bad face"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\nf 1 2 3 1\n", "line 4: bad face"),  # 6 indices in all
+    ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "NaN or infinite"),
+    ("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n", "zero size"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no vertices or no faces"),
+])
+def test_bad_meshes_are_one_error(tmp_path, text, needle):
+    from psctl.synth import meshes
+
+    (tmp_path / "m.obj").write_text(text)
+    with pytest.raises(PsctlError, match=needle):
+        meshes.load_obj(tmp_path / "m.obj")
+
+
 def test_blobby_shapes_are_valid():
     g = blobby_gbuffers(3, 48, gen(11))
     assert g.names == ["blobby"] * 3
@@ -800,6 +818,34 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     assert again["removed"] == ["blobby_02", "preview.png"] and (tmp_path / "other" / "x" / "synth.json").is_file()
     with pytest.raises(PsctlError, match="unknown preset"):
         write_preset(out, "teapot")
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
+def test_an_interrupted_synth_run_leaves_the_earlier_set_as_it_was(tmp_path, monkeypatch, stop):
+    import psctl.synth.write as W
+    from psctl.io.capture import find_objects
+
+    out = tmp_path / "o"
+    W.write_preset(out, "blobby", seed=0, size=24, n_lights=6, k=2)
+    before = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    real, calls = W.write_object, []
+
+    def second_fails(folder, obj, images):
+        calls.append(obj.name)
+        if len(calls) == 2:
+            raise stop("stopped")
+        real(folder, obj, images)
+
+    monkeypatch.setattr(W, "write_object", second_fails)
+    with pytest.raises(stop):
+        W.write_preset(out, "blobby", seed=5, size=24, n_lights=6, k=3)
+    after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert calls == ["blobby_01", "blobby_02"] and after == before  # nothing new, nothing hidden left
+    assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "blobby_02", "objects.txt"]
+    # object folders of psctl synth without objects.txt: part of a set, not a benchmark
+    (out / "objects.txt").unlink()
+    with pytest.raises(PsctlError, match="holds psctl synth objects .* but no objects.txt"):
+        find_objects(out)
 
 
 def test_written_lambertian_sphere_gives_l2_its_normals_back(tmp_path):

@@ -85,6 +85,11 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     Nothing is created here; ``staged_outputs`` creates the folder when results are ready.
     """
     path = Path(path)
+    try:  # images are written through OpenImageIO, which takes UTF-8 text
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise PsctlError(path, "the output folder's path is not valid UTF-8 text, which OpenImageIO cannot "
+                               "write to; choose another") from None
     probe = path
     while not probe.exists():
         if probe.parent == probe:

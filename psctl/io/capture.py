@@ -341,6 +341,11 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
     if not folders:
         hint = "; it is one capture folder: psctl normals PATH runs it" if is_capture_folder(root) else ""
         raise PsctlError(root, f"no object folders found (expected subfolders with images, or objects.txt){hint}")
+    synth = [f.name for f in folders if (f / "synth.json").is_file()]
+    if synth:  # psctl synth writes objects.txt last: without it the set may be part of one
+        raise PsctlError(root, f"holds psctl synth objects ({synth[0]}, ...) but no objects.txt, which psctl synth "
+                               "writes when a set is complete; run psctl synth again, or list the objects in "
+                               "objects.txt")
     return folders
 
 

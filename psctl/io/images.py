@@ -65,14 +65,27 @@ def upright(pixels: np.ndarray, orientation: int) -> np.ndarray:
     return pixels if turn is None else np.ascontiguousarray(turn(pixels))
 
 
+def _oiio_name(path: Path) -> str:
+    """The path as OpenImageIO takes it: UTF-8 text. A name with bytes that are not UTF-8
+    (Python keeps them as lone surrogates) would be a TypeError inside its binding."""
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise PsctlError(path, "the path is not valid UTF-8 text, which OpenImageIO cannot open; "
+                               "rename it") from None
+    return name
+
+
 def image_info(path: str | os.PathLike) -> ImageInfo:
     """Read an image's header only (cheap)."""
     oiio = _oiio()
     path = Path(path)
     if not path.is_file():
         raise PsctlError(path, "image file is missing")
+    name = _oiio_name(path)
     with _quiet_stderr():  # libpng prints its own line for a garbage file; the error below says it
-        inp = oiio.ImageInput.open(str(path))
+        inp = oiio.ImageInput.open(name)
         err = oiio.geterror() if inp is None else ""
     if inp is None:
         raise PsctlError(path, f"cannot open image ({_clean(err)})")
@@ -108,7 +121,7 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     with _quiet_stderr():
-        inp = oiio.ImageInput.open(str(path), config)
+        inp = oiio.ImageInput.open(_oiio_name(path), config)
         if inp is None:
             raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
         try:
@@ -181,6 +194,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
+    _oiio_name(path)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:

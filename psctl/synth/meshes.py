@@ -79,36 +79,47 @@ def load_obj(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
     try:  # fast path: x y z vertices and plain triangles
         v = np.array(" ".join(vlines).split(), dtype=np.float32).reshape(-1, 3)
         f = np.array(" ".join(flines).split(), dtype=np.int64).reshape(-1, 3)
-        if not len(v) or not len(f):
+        if not len(v) or not len(f) or any(len(ln.split()) != 3 for ln in (*vlines, *flines)):  # 3 per line
             raise ValueError
         f = np.where(f > 0, f - 1, len(v) + f)
         if f.min() < 0 or f.max() >= len(v):
             raise PsctlError(path, "face indices out of range")
-        return torch.from_numpy(v), torch.from_numpy(f)
-    except ValueError:
+        return _checked(path, v, f)
+    except (ValueError, OverflowError):
         pass  # texture/normal indices, polygons, extra columns: the general parser below
     verts: list[list[float]] = []
     faces: list[list[int]] = []
     for lineno, line in enumerate(lines, 1):
         if line.startswith("v "):
+            parts = line.split()[1:]
             try:
-                verts.append([float(t) for t in line.split()[1:4]])
+                if len(parts) < 3:
+                    raise ValueError
+                verts.append([float(t) for t in parts[:3]])
             except ValueError:
-                raise PsctlError(path, f"line {lineno}: bad vertex {line.strip()!r}") from None
+                raise PsctlError(path, f"line {lineno}: bad vertex {line.strip()!r} (x y z expected)") from None
         elif line.startswith("f "):
             try:
                 idx = [int(t.split("/")[0]) for t in line.split()[1:]]
             except ValueError:
                 raise PsctlError(path, f"line {lineno}: bad face {line.strip()!r}") from None
             idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+            if len(idx) < 3 or min(idx) < 0 or max(idx) >= len(verts):
+                raise PsctlError(path, f"line {lineno}: bad face {line.strip()!r} (3 or more indices of "
+                                       "vertices listed before it)")
             faces += [[idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1)]
     if not verts or not faces:
         raise PsctlError(path, "mesh has no vertices or no faces")
-    v = torch.tensor(verts, dtype=torch.float32)
-    f = torch.tensor(faces, dtype=torch.int64)
-    if len(v[0]) != 3 or f.min() < 0 or f.max() >= len(v):
-        raise PsctlError(path, "face indices out of range")
-    return v, f
+    return _checked(path, np.array(verts, np.float32), np.array(faces, np.int64))
+
+
+def _checked(path: Path, v: np.ndarray, f: np.ndarray) -> tuple[Tensor, Tensor]:
+    """What every view of a mesh needs: finite vertices, spread over some space."""
+    if not np.isfinite(v).all():
+        raise PsctlError(path, "mesh has NaN or infinite vertex coordinates")
+    if not (v.max(0) - v.min(0)).max() > 0:
+        raise PsctlError(path, "mesh has zero size (every vertex at one point)")
+    return torch.from_numpy(v), torch.from_numpy(f)
 
 
 def normalize_mesh(verts: Tensor) -> Tensor:

@@ -13,9 +13,9 @@ Presets
     dragon-svbrdf  dragon x {ramp, checker, irregular} blends of two MERL materials, K pairs
     blobby         K procedural blobby shapes with training-distribution materials
 Images come from the same renderer as the training stream, with exact cast shadows (depth-map
-marching per light) and, with ``interreflections``, exact diffuse bounces. Each object folder
-is built in a hidden temporary folder and renamed into place, so a folder is either complete
-or absent. This is the only synth module that reads or
+marching per light) and, with ``interreflections``, exact diffuse bounces. The whole set is
+built in a hidden temporary folder and moved into place at the end (objects.txt last), so an
+interrupted run leaves the earlier set as it was. This is the only synth module that reads or
 writes image files (OpenImageIO is imported lazily, the training stream never needs it).
 """
 
@@ -331,9 +331,6 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             raise PsctlError(None, "--light-distance and --interreflections together are not supported")
     objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
     ensure_writable_dir(out)
-    # objects.txt marks a complete set: it goes now and comes back when every object is written,
-    # so an interrupted run is never read as a finished one together with an older objects.txt
-    (out / "objects.txt").unlink(missing_ok=True)
     advance = progress(f"synth {preset}", len(objs)) if progress else (lambda _: None)
     gen = torch.Generator().manual_seed(seed + 1)
     sheet_rows = []
@@ -343,45 +340,52 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     folder_mode = 0o777 & ~umask
     cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
     kernels: dict[int, torch.Tensor] = {}  # and so are the interreflection form factors
-    for i, obj in enumerate(objs):
-        key = id(obj.view)
-        if shadows and key not in cache:
-            h, w = obj.view.size
-            cache = {key: R.march_shadows(obj.view.depth, obj.lights[None]).reshape(1, -1, h * w)}
-        if interreflections and key not in kernels:
-            kernels = {key: R.interreflection_kernel(obj.view.depth, obj.view.normals)}
-        images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key),
-                               ir_albedo=ir_albedo, light_distance=light_distance)
-        scale = exposure_scale(images, obj.view.mask[0, 0], gen)
-        images = images * scale
-        if sensor_noise > 0:
-            images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
-        images = R.quantize(images, 16) * obj.view.mask[0]
-        obj.meta["exposure"] = scale
-        if light_distance is not None:
-            obj.meta["light_distance"] = light_distance
-        if interreflections:
-            obj.meta["interreflections"] = interreflections
-            if ir_albedo is not None:
-                obj.meta["ir_albedo"] = ir_albedo
-        tmp = Path(tempfile.mkdtemp(prefix=f".{obj.name}.tmp.", dir=out))
-        tmp.chmod(folder_mode)  # mkdtemp's 0700 would become the object folder's: others could not read it
-        try:
-            write_object(tmp, obj, images)
-            _replace_dir(tmp, out / obj.name)
-        finally:
-            if tmp.exists():
-                shutil.rmtree(tmp, ignore_errors=True)
-        if preview and i in on_sheet:
-            sheet_rows.append(_sheet_row(images, obj))
-        advance(1)
-    write_text_atomic(out / "objects.txt", "".join(f"{o.name}\n" for o in objs))
-    preview_path = None
-    if preview:
-        from psctl.io.images import write_image
+    # The whole set is written into one hidden folder and moved into place at the end: an
+    # interrupted run leaves the earlier set as it was (a hidden folder at worst: a kill -9),
+    # never some new objects beside old ones or a set that looks complete and is not.
+    stage = Path(tempfile.mkdtemp(prefix=".psctl-synth.", dir=out))
+    try:
+        for i, obj in enumerate(objs):
+            key = id(obj.view)
+            if shadows and key not in cache:
+                h, w = obj.view.size
+                cache = {key: R.march_shadows(obj.view.depth, obj.lights[None]).reshape(1, -1, h * w)}
+            if interreflections and key not in kernels:
+                kernels = {key: R.interreflection_kernel(obj.view.depth, obj.view.normals)}
+            images = render_object(obj, cache.get(key), shadows, bounces=interreflections, kernel=kernels.get(key),
+                                   ir_albedo=ir_albedo, light_distance=light_distance)
+            scale = exposure_scale(images, obj.view.mask[0, 0], gen)
+            images = images * scale
+            if sensor_noise > 0:
+                images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
+            images = R.quantize(images, 16) * obj.view.mask[0]
+            obj.meta["exposure"] = scale
+            if light_distance is not None:
+                obj.meta["light_distance"] = light_distance
+            if interreflections:
+                obj.meta["interreflections"] = interreflections
+                if ir_albedo is not None:
+                    obj.meta["ir_albedo"] = ir_albedo
+            (stage / obj.name).mkdir(mode=folder_mode)
+            write_object(stage / obj.name, obj, images)
+            if preview and i in on_sheet:
+                sheet_rows.append(_sheet_row(images, obj))
+            advance(1)
+        preview_path = None
+        if preview:
+            from psctl.io.images import write_image
 
-        preview_path = out / "preview.png"
-        write_image(preview_path, _sheet(sheet_rows), "uint8")
+            write_image(stage / "preview.png", _sheet(sheet_rows), "uint8")
+            preview_path = out / "preview.png"
+        # the swap: objects.txt (what marks a complete set) goes first and comes back last
+        (out / "objects.txt").unlink(missing_ok=True)
+        for obj in objs:
+            _replace_dir(stage / obj.name, out / obj.name)
+        if preview:
+            os.replace(stage / "preview.png", preview_path)
+        write_text_atomic(out / "objects.txt", "".join(f"{o.name}\n" for o in objs))
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
     # here is psctl synth's), so that the folder holds this set alone
     names = {o.name for o in objs}
