@@ -667,8 +667,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     # --- intrinsics ----------------------------------------------------------------------------
     k_source = None
-    if K is None and (cap.path / K_FILE).is_file():
-        K = cap.path / K_FILE
+    if K is None:  # K.txt in any case, as the other files of a capture (k.txt, K.TXT)
+        from psctl.io.capture import _first_existing
+
+        K = _first_existing(cap.path, list(cap.path.iterdir()), (K_FILE,), "intrinsics files")
     if isinstance(K, (str, os.PathLike)):
         k_source = str(K)
         K = read_intrinsics(K)

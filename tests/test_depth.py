@@ -372,6 +372,9 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
     write_normal_map(capture / "psctl" / "normal.npy", data["normals"], data["mask"], "npy")
     report = run_depth(capture, write=False)
     assert report["normals"].endswith("normal.npy") and not any("estimated" in n for n in report["notes"])
+    (capture / "k.txt").write_text("300 0 20\n0 300 20\n0 0 1\n")  # any case, as the capture's other files
+    report = run_depth(capture, write=False)
+    assert report["intrinsics"].endswith("k.txt") and report["projection"] == "perspective"
 
 
 def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):

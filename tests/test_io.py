@@ -79,6 +79,31 @@ def test_file_names_that_are_not_utf8_are_one_error(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["obj"]
 
 
+@pytest.mark.parametrize("case, needle", [
+    ("grey_png", "needs 3 channels"),
+    ("no_key", "has no variable 'Normal_gt'"),
+    ("size", "size 20x40 differs from the images"),
+    ("shape", r"Normal_gt has shape \(40, 40\)"),
+    ("junk", "cannot read .mat file"),
+])
+def test_ground_truth_headers_are_checked_when_the_folder_opens(tmp_path, case, needle):
+    """psctl info (headers only) says what psctl normals would refuse later."""
+    import scipy.io
+
+    folder = tmp_path / "obj"
+    write_capture(folder, n=4, gt="png" if case == "grey_png" else "mat")
+    if case == "grey_png":
+        write_image(folder / "Normal_gt.png", np.full((40, 40), 0.5, np.float32), "uint16")
+    elif case == "junk":
+        (folder / "Normal_gt.mat").write_bytes(b"not a mat file at all" * 10)
+    else:
+        value = {"no_key": {"N": np.zeros((40, 40, 3))}, "size": {"Normal_gt": np.zeros((40, 20, 3))},
+                 "shape": {"Normal_gt": np.zeros((40, 40))}}[case]
+        scipy.io.savemat(folder / "Normal_gt.mat", value)
+    with pytest.raises(PsctlError, match=needle):
+        open_capture(folder)
+
+
 def test_names_txt_and_single_column_intensities(tmp_path):
     folder = tmp_path / "obj"
     write_capture(folder, n=6)

@@ -820,6 +820,20 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
         write_preset(out, "teapot")
 
 
+@pytest.mark.parametrize("kwargs, msg", [
+    ({"seed": 2**64 - 1}, "--seed must be from 0 to 2"),
+    ({"seed": -1}, "--seed must be from 0 to 2"),
+    ({"size": 30000}, "needs about .* GiB of memory"),
+    ({"ir_albedo": 0.5}, "give --interreflections N too"),
+])
+def test_synth_refuses_before_writing_anything(tmp_path, kwargs, msg):
+    from psctl.synth.write import write_preset
+
+    with pytest.raises(PsctlError, match=msg):
+        write_preset(tmp_path / "o", "blobby", **{"size": 16, "n_lights": 4, "k": 1, **kwargs})
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
 def test_an_interrupted_synth_run_leaves_the_earlier_set_as_it_was(tmp_path, monkeypatch, stop):
     import psctl.synth.write as W

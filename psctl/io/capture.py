@@ -434,7 +434,12 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         _check_size(image_info(mask_path), first)
     gt_path = _first_existing(path, entries, GT_FILES)
     if gt_path is not None and gt_path.suffix.lower() != ".mat":
-        _check_size(image_info(gt_path), first)
+        gt_info = image_info(gt_path)
+        _check_size(gt_info, first)
+        if gt_info.channels < 3:
+            raise PsctlError(gt_path, f"ground truth needs 3 channels (nx, ny, nz), this image has {gt_info.channels}")
+    elif gt_path is not None:
+        _check_mat_header(gt_path, first)
     if ambient_path is not None:
         _check_size(image_info(ambient_path), first)
     if list_file is not None:  # a listed mask or ground truth would be read as an image
@@ -460,6 +465,24 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )
+
+
+def _check_mat_header(p: Path, ref: ImageInfo) -> None:
+    """Normal_gt.mat's variable list (names and shapes, no values): what load_ground_truth
+    would refuse later, said when the folder is opened (psctl info too)."""
+    import scipy.io
+
+    try:
+        shapes = {name: tuple(shape) for name, shape, _ in scipy.io.whosmat(str(p))}
+    except Exception as e:  # scipy raises several types for bad/unsupported files
+        raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
+    if "Normal_gt" not in shapes:
+        raise PsctlError(p, "has no variable 'Normal_gt'")
+    shape = shapes["Normal_gt"]
+    if len(shape) != 3 or shape[2] != 3:
+        raise PsctlError(p, f"Normal_gt has shape {shape}, expected H x W x 3")
+    if shape[:2] != (ref.height, ref.width):
+        raise PsctlError(p, f"size {shape[1]}x{shape[0]} differs from the images ({ref.width}x{ref.height})")
 
 
 def _check_size(info: ImageInfo, ref: ImageInfo) -> None:

@@ -82,6 +82,16 @@ def _merl_subset(table: M.MerlTable, k: int, gen: torch.Generator) -> list[int]:
     return sorted(torch.randperm(len(table.names), generator=gen)[:k].tolist())
 
 
+MAX_SEED = 2**62
+
+
+def render_bytes(size: int, n_lights: int) -> float:
+    """Peak memory of psctl synth for one object, roughly: measured 0.62 GB at 256 px and 1.48 GB
+    at 512 px with 100 lights (blobby, peak RSS, 2026-11-27), i.e. about 44 bytes per pixel and
+    light over 0.4 GB."""
+    return 0.4e9 + 44.0 * n_lights * size * size
+
+
 def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                    k: int | None = None, light_dist: str = "hemisphere", intensities: str = "unit") -> list[SynthObject]:
     """The objects of a preset (geometry, materials, lights), not yet rendered.
@@ -97,6 +107,13 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     L.check_intensities(intensities, "--intensities")
     if size < 8 or n_lights < 3:
         raise PsctlError(None, f"need --size >= 8 and --lights >= 3 (got {size}, {n_lights})")
+    if not 0 <= seed <= MAX_SEED:  # seed + 1 and seed + 2 seed generators too; torch takes 64 bits
+        raise PsctlError(None, f"--seed must be from 0 to 2^62 (got {seed})")
+    need = render_bytes(size, n_lights)
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > 0.8 * total:  # before minutes of work, and an out-of-memory kill or traceback
+        raise PsctlError(None, f"--size {size} with {n_lights} lights needs about {need / 2**30:.0f} GiB of memory "
+                               f"to render one object; this machine has {total / 2**30:.0f} GiB")
     k = DEFAULT_K[preset] if k is None else k
     if k < 1:
         raise PsctlError(None, f"--materials must be at least 1 (got {k})")
@@ -323,6 +340,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
     if ir_albedo is not None and not 0 <= ir_albedo < 1:
         raise PsctlError(None, f"--ir-albedo must be in [0, 1) (got {ir_albedo})")
+    if ir_albedo is not None and not interreflections:  # it would be ignored without a word
+        raise PsctlError(None, "--ir-albedo is the albedo of the interreflections: give --interreflections N too")
     if light_distance is not None:
         if not math.isfinite(light_distance) or light_distance <= 2 * size:
             raise PsctlError(None, f"--light-distance must be over twice the image size, {2 * size} pixels "
