@@ -54,14 +54,14 @@ def _python_notes(result: Any) -> Any:
 def _for_python(fn: Any) -> Any:
     import functools
 
-    from psctl.errors import PsctlError, python_wording
+    from psctl import errors
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return _python_notes(fn(*args, **kwargs))
-        except PsctlError as e:
-            raise PsctlError(e.path, python_wording(e.message)) from None
+        except errors.PsctlError as e:
+            raise errors.PsctlError(e.path, errors.python_wording(e.message)) from None
 
     return wrapper
 
@@ -82,4 +82,6 @@ def __dir__() -> list[str]:
     return sorted({*globals(), *_LAZY})
 
 
-__all__ = ["__version__", *_LAZY]
+__all__ = ["__version__", "estimate_normals", "estimate_lights", "run_normals", "integrate_normals", "run_lights",
+           "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError"]
+assert set(__all__) == {"__version__", *_LAZY}
