@@ -267,6 +267,7 @@ def test_top_level_functions_name_python_arguments(data):
 
     images, lights, mask, _ = data
     assert {"estimate_normals", "run_normals", "integrate_normals", "PsctlError"} <= set(dir(psctl))
+    assert set(psctl.__all__) == {"__version__", *psctl._LAZY}
     with pytest.raises(PsctlError, match=r"^unknown device 'gpu'; choose from"):
         psctl.estimate_normals(images, lights, mask, method="l2", device="gpu")
     with pytest.raises(PsctlError, match=r"^light_distance must be a number"):
