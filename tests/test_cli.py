@@ -25,6 +25,20 @@ def psctl(*args: str, check: bool = False, env: dict | None = None, cwd: Path | 
     return proc
 
 
+def cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    """psctl in this process (typer's runner): as ``psctl`` without a Python start and a torch
+    import per call; for the many one-line refusals. An exception that escapes the command
+    (a traceback in a shell) is re-raised here."""
+    from typer.testing import CliRunner
+
+    from psctl.cli import app
+
+    r = CliRunner().invoke(app, list(map(str, args)), env={"COLUMNS": "100", **(env or {})})
+    if r.exception is not None and not isinstance(r.exception, SystemExit):
+        raise r.exception
+    return subprocess.CompletedProcess(args, r.exit_code, r.stdout, r.stderr)
+
+
 def test_normals_writes_outputs_and_json(capture, tmp_path):
     out = tmp_path / "out"
     proc = psctl("normals", capture, "--method", "l2", "--out", out, "--json", check=True)
@@ -758,10 +772,10 @@ def test_train_install_refuses_to_replace_a_release_file(tmp_path):
     wdir.mkdir()
     (wdir / "ps_fcn.pt").write_bytes(b"release")
     env = {"PSCTL_WEIGHTS": str(wdir)}
-    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "-q", env=env)
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "-q", env=env)
     assert proc.returncode == 2 and "already installed" in proc.stderr and "--force" in proc.stderr
     assert not (tmp_path / "run").exists() and (wdir / "ps_fcn.pt").read_bytes() == b"release"
-    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--force", "-q", env=env)
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--force", "-q", env=env)
     assert proc.returncode == 2 and "--install" in proc.stderr
     proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "--force", "-q", env=env)
     assert proc.returncode == 0, proc.stderr
@@ -770,12 +784,15 @@ def test_train_install_refuses_to_replace_a_release_file(tmp_path):
 
 def test_train_average(tmp_path):
     """psctl train METHOD --average A --average B --out RUN writes RUN/best.pt; misuse is one line, exit 2."""
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
-    assert psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "-q").returncode == 0
-    best = tmp_path / "run" / "best.pt"
+    best = tmp_path / "best.pt"  # any weights file of the method (psctl train's own: test_train.py)
+    save_weights(best, PSFCN(), {"method": "ps-fcn", "train_images": 32})
     proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "avg")
     assert proc.returncode == 0 and "averaged 2 files" in proc.stderr and "validation" not in proc.stderr, proc.stderr
-    proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--config", cfg, "--out", tmp_path / "avg_val")
+    proc = cli("train", "ps-fcn", "--average", best, "--average", best, "--config", cfg, "--out", tmp_path / "avg_val")
     assert proc.returncode == 0 and "synthetic validation" in proc.stderr, proc.stderr
     assert (tmp_path / "avg" / "best.pt").is_file()
     for args, says in ((("ps-fcn-n", "--average", best, "--average", best, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
@@ -784,7 +801,7 @@ def test_train_average(tmp_path):
                        (("ps-fcn", "--average", best, "--average", tmp_path / "nope.pt", "--out", tmp_path / "a4"), "nope.pt"),
                        (("ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "a5", "--install", "--force"),
                         "--install")):
-        proc = psctl("train", *args)
+        proc = cli("train", *args)
         assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4", "a5"))
