@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import math
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -365,13 +366,24 @@ def train(
 
         if force and not install:
             raise PsctlError("--force", "only replaces an installed file together with --install")
+        if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
+            raise PsctlError("--max-minutes", f"must be a positive number of minutes, not {max_minutes}")
+        if install:  # where --install writes must be a folder (or become one): said before training
+            from psctl.models.weights import weights_dir
+
+            if weights_dir().exists() and not weights_dir().is_dir():
+                raise PsctlError(weights_dir(), "is not a folder: --install writes the weights there ($PSCTL_WEIGHTS)")
         if install and not force and installed_path(method) is not None:  # say so before hours of training
             raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
                                                      "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
+        from psctl.models import WEIGHTS_METHODS
+
+        if method not in WEIGHTS_METHODS:  # before anything else is said about the other options
+            raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
         if average:
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
-                                              "the recipe's validation set), not --resume")
+                                              "the recipe's validation set)" + (", not --resume" if resume else ""))
             if install and config is None:  # install_weights would refuse the result afterwards
                 raise PsctlError("--install", "with --average needs --config RECIPE: a release file records "
                                               "its validation on the recipe's set")
@@ -423,12 +435,18 @@ def train(
                                info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
 
                 st = run_training(method, cfg, run_dir, progress=report, **kwargs)
-        best = "-" if st["best_val"] is None else f"{st['best_val']:.2f}°"
-        state = "finished" if st["finished"] else "stopped (resume with --resume)"
-        con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; best synthetic validation MAE {best}; "
-                  f"weights {Path(run_dir) / 'best.pt'}", highlight=False, soft_wrap=True, markup=False)
+        state = "finished" if st["finished"] else f"stopped (continue with --resume {run_dir})"
+        said = (f"best synthetic validation MAE {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"
+                if st["best_val"] is not None else "no validation yet, so no best.pt")
+        con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; {said}",
+                  highlight=False, soft_wrap=True, markup=False)
         if install and st["finished"]:
             con.print(f"installed {install_weights(run_dir, method, replace=force)}", highlight=False, markup=False)
+        elif install:
+            con.print(f"not installed: the run stopped before its last sample (--resume {run_dir} --install "
+                      f"finishes it and installs)", highlight=False, soft_wrap=True, markup=False)
+        if st.get("signal"):  # Ctrl-C or SIGTERM: checkpointed, but not what a finished run returns
+            raise typer.Exit(128 + st["signal"])
 
 
 @app.callback(invoke_without_command=True)

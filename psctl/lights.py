@@ -899,6 +899,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     progress = check_progress(progress)
+    from psctl.symmetry import check_views
+
+    check_views(views)  # options first: their errors name the option, not the capture folder
+    if decode not in ("argmax", "soft"):
+        raise PsctlError(None, f"unknown --decode {decode!r}; choose argmax or soft")
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer

@@ -35,6 +35,7 @@ import copy
 import json
 import math
 import os
+import re
 import signal
 import time
 from collections.abc import Callable
@@ -83,6 +84,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
 }
 
 OPTIM_PART_BYTES = 12 * 2**20
+_OPTIM_PART = re.compile(r"optim\.\d+\.pt")
+MAX_SEED = 2**62
 
 
 def merge(base: dict, override: dict | None) -> dict:
@@ -92,6 +95,8 @@ def merge(base: dict, override: dict | None) -> dict:
     for k, v in (override or {}).items():
         if k == "data" and isinstance(out.get(k), dict) and isinstance(v, dict):
             out[k] = {**out[k], **copy.deepcopy(v)}  # stream options: merged, not replaced
+        elif k in out and isinstance(out[k], dict) and not isinstance(v, dict):
+            raise PsctlError(None, f"config section {k!r} must be a mapping of keys, not {v!r}")
         elif k in out and isinstance(out[k], dict) and isinstance(v, dict):
             unknown = set(v) - set(out[k])
             if unknown:
@@ -135,7 +140,38 @@ def check_recipe(config: dict) -> dict:
                 raise PsctlError(None, f"{where} must be 0 or more, not {value!r}")
             if (section, key) in _CHOICES and value not in _CHOICES[section, key]:
                 raise PsctlError(None, f"{where} must be one of {', '.join(_CHOICES[section, key])}, not {value!r}")
+            if key == "seed" and value > MAX_SEED:  # the stream seeds generators with seed + k; torch takes 64 bits
+                raise PsctlError(None, f"{where} must be at most 2^62, not {value!r}")
+    if not isinstance(config["val"].get("data") or {}, dict):
+        raise PsctlError(None, f"config 'val.data' must be a mapping of synth stream options, not "
+                               f"{config['val']['data']!r}")
+    betas = config["train"]["betas"]
+    if not all(0 <= b < 1 for b in betas):
+        raise PsctlError(None, f"config 'train.betas' must be two numbers in [0, 1) (Adam's decay rates), not {betas!r}")
+    from psctl.models.ps_fcn import NORMALIZATIONS
+
+    if config["normalization"] is not None and config["normalization"] not in NORMALIZATIONS:
+        raise PsctlError(None, f"config 'normalization' must be one of {', '.join(NORMALIZATIONS)} or null (the "
+                               f"method's own), not {config['normalization']!r}")
     return config
+
+
+def _unique_key_loader():
+    """yaml.SafeLoader, except that a key given twice in one mapping is an error (PyYAML keeps
+    the last without a word: `lr` twice in a recipe is a mistake, not a choice)."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+                seen.add(key)
+            return super().construct_mapping(node, deep)
+
+    return Loader
 
 
 def load_config(path: str | os.PathLike | None) -> dict:
@@ -150,7 +186,7 @@ def load_config(path: str | os.PathLike | None) -> dict:
     if not path.is_file():
         raise PsctlError(path, "config file is missing")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=_unique_key_loader())
     except yaml.YAMLError as e:
         raise PsctlError(path, f"not valid YAML ({' '.join(str(e).split())})") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -232,6 +268,7 @@ class _Stop:
 
     def __init__(self) -> None:
         self.requested = False
+        self.signal: int | None = None
         self._old: dict[int, Any] = {}
 
     def __enter__(self) -> "_Stop":
@@ -245,7 +282,7 @@ class _Stop:
     def _handle(self, signum, frame) -> None:
         if self.requested:  # a second Ctrl-C leaves at once
             raise KeyboardInterrupt
-        self.requested = True
+        self.requested, self.signal = True, int(signum)
 
     def __exit__(self, *exc) -> None:
         for sig, old in self._old.items():
@@ -260,8 +297,10 @@ def _rng_from_text(text: str) -> torch.Tensor:
     return torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone()
 
 
-def save_optimizer(run: Path, optim: torch.optim.Optimizer) -> list[str]:
-    """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file)."""
+def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] | tuple = ()) -> list[str]:
+    """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file);
+    ``previous`` (the parts the run's state listed) not written again are removed, and no
+    other file."""
     from psctl.io.atomic import atomic_path
 
     sd = optim.state_dict()
@@ -280,10 +319,19 @@ def save_optimizer(run: Path, optim: torch.optim.Optimizer) -> list[str]:
         with atomic_path(run / name) as tmp:
             torch.save({"state": part, "param_groups": sd["param_groups"] if i == 0 else []}, tmp)
         names.append(name)
-    for stale in run.glob("optim.*.pt"):
-        if stale.name not in names:
-            stale.unlink()
+    for stale in previous:
+        if stale not in names and _OPTIM_PART.fullmatch(stale):
+            (run / stale).unlink(missing_ok=True)
     return names
+
+
+def _load_part(path: Path) -> Any:
+    """One of a run's torch files, or a one-line error naming it (truncated, emptied, replaced)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise PsctlError(path, f"cannot be read ({' '.join(str(e).split())[:120] or type(e).__name__}): the run's "
+                               "checkpoint is damaged") from None
 
 
 def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], device: torch.device) -> None:
@@ -297,10 +345,16 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
         if not (run / name).is_file():
             raise PsctlError(run / name, "optimiser state listed in state.json is missing (to resume with fresh Adam "
                                          "moments, set \"optim_files\": [] there)")
-        part = torch.load(run / name, map_location="cpu", weights_only=True)
+        part = _load_part(run / name)
+        if not (isinstance(part, dict) and isinstance(part.get("state"), dict) and "param_groups" in part):
+            raise PsctlError(run / name, "is not a part of an optimiser state: the run's checkpoint is damaged")
         state.update(part["state"])
         groups = groups or part["param_groups"]
-    optim.load_state_dict({"state": state, "param_groups": groups})
+    try:
+        optim.load_state_dict({"state": state, "param_groups": groups})
+    except (ValueError, KeyError, TypeError, RuntimeError) as e:
+        raise PsctlError(run / names[0], f"does not fit this run's network ({' '.join(str(e).split())[:120]}): "
+                                         "the run's checkpoint is damaged") from None
 
 
 def _plain_json(obj: Any) -> Any:
@@ -591,12 +645,14 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         keep_freed_memory()  # about 20 % faster CPU steps (see keep_freed_memory)
     run = Path(run_dir)
     if run.exists() and not run.is_dir():
-        raise PsctlError(run, "is a file; --out takes a folder for the run")
+        raise PsctlError(run, f"is a file; {'--resume' if resume else '--out'} takes a run folder")
     state_file = run / "state.json"
     if resume and not state_file.is_file():
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
+    if not resume and run.is_dir() and any(run.iterdir()):  # a run writes log.jsonl, optim.*.pt, ... there
+        raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
     saved = None
     if resume:
         try:
@@ -679,9 +735,18 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 
     stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
                          crop=t["crop"], seed=st["stream_seed"], device=dev)
-    if resume and (run / "stream.pt").is_file():
-        stream.load_state_dict(torch.load(run / "stream.pt", map_location="cpu", weights_only=True))
+    if resume and hasattr(stream, "load_state_dict"):  # without it the run would go on, but not exactly
+        if not (run / "stream.pt").is_file():
+            raise PsctlError(run / "stream.pt", "is missing: the run cannot continue its data stream exactly")
+        try:
+            stream.load_state_dict(_load_part(run / "stream.pt"))
+        except PsctlError:
+            raise
+        except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
+            raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
     val = validation_set(config, task, dev, make_stream)
+    # where fine-tuning starts from, measured before the folder exists (Ctrl-C here leaves none)
+    init_mae = evaluate(task, val) if st.get("init") and st["samples"] == 0 and not st["val"] else None
     run.mkdir(parents=True, exist_ok=True)  # only now: a bad recipe (crop > size, ...) leaves no folder behind
     log = open(run / "log.jsonl", "a")
     metric = f"synthetic_val_{task.metric}"
@@ -698,7 +763,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     def checkpoint() -> None:
         from psctl.io.atomic import atomic_path
 
-        st["optim_files"] = save_optimizer(run, optim)
+        st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
                 torch.save(stream.state_dict(), tmp)
@@ -707,10 +772,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 
         write_text_atomic(state_file, json.dumps(st, indent=1))
 
-    if st.get("init") and st["samples"] == 0 and not st["val"]:  # where fine-tuning starts from
-        mae = evaluate(task, val)
-        st["val"].append([0, round(mae, 4)])
-        log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(mae, 4), "init": st["init"]["path"]}) + "\n")
+    if init_mae is not None:
+        st["val"].append([0, round(init_mae, 4)])
+        log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")
         log.flush()
 
     t_call = time.perf_counter()
@@ -726,8 +790,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             batch = stream.next_batch()
             loss = task.loss(batch)
             if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
+                kept = "the last checkpoint is kept" if state_file.is_file() else "no checkpoint had been written"
                 raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
-                                      f"({st['samples']:,} samples seen): stopped; the last checkpoint is kept")
+                                      f"({st['samples']:,} samples seen): stopped; {kept}")
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
@@ -769,6 +834,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             checkpoint()
     log.close()
     st["finished"] = st["samples"] >= t["samples"]
+    st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM's number)
     return st
 
 
@@ -803,6 +869,12 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
     if len(files) < 2:
         raise PsctlError(None, f"averaging needs at least two weight files, got {len(files)}")
+    seen: dict = {}
+    for f in files:  # one file twice would weigh it double and count its samples twice
+        key = Path(f).resolve()
+        if key in seen:
+            raise PsctlError(f, f"is given twice (as {seen[key]} and {f}); average distinct files")
+        seen[key] = f
     members = [read_weights(f) for f in files]
     for w in members:
         if method is not None and w.method != method:

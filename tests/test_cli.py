@@ -765,6 +765,35 @@ def test_train_command(tmp_path):
     assert proc.returncode == 2 and "magic" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_train_says_how_it_stopped(tmp_path, monkeypatch):
+    """Ctrl-C checkpoints and exits 130, not 0 as a finished run; a stop before the first
+    validation names no best.pt; --install says when it did not install; bad --max-minutes and
+    a $PSCTL_WEIGHTS that is a file are refused before training."""
+    import signal
+
+    import psctl.train as T
+
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+    for bad in ("-1", "nan", "0"):
+        proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "--max-minutes", bad)
+        assert proc.returncode == 2 and "--max-minutes: must be a positive number" in proc.stderr, proc.stderr
+    (tmp_path / "wfile").write_text("x")
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "--install",
+               env={"PSCTL_WEIGHTS": str(tmp_path / "wfile")})
+    assert proc.returncode == 2 and "is not a folder: --install writes" in proc.stderr, proc.stderr
+    assert not (tmp_path / "r").exists()
+    stop = T._Stop()
+    with stop:
+        stop._handle(signal.SIGINT, None)
+    assert stop.requested and stop.signal == signal.SIGINT
+    stopped = {"samples": 8, "seconds": 1.0, "best_val": None, "finished": False, "signal": int(signal.SIGINT)}
+    monkeypatch.setattr(T, "train", lambda *a, **k: stopped)
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q", "--install", "--force",
+               env={"PSCTL_WEIGHTS": str(tmp_path / "w")})
+    assert proc.returncode == 130, proc.stderr
+    assert "no validation yet, so no best.pt" in proc.stderr and "not installed: the run stopped" in proc.stderr
+
+
 def test_train_install_refuses_to_replace_a_release_file(tmp_path):
     """--install never overwrites an installed file silently: refused before training, unless --force."""
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
@@ -788,23 +817,26 @@ def test_train_average(tmp_path):
     from psctl.models.weights import save_weights
 
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
-    best = tmp_path / "best.pt"  # any weights file of the method (psctl train's own: test_train.py)
+    best, other = tmp_path / "best.pt", tmp_path / "other.pt"  # weights files of the method (psctl train's own: test_train.py)
     save_weights(best, PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    proc = psctl("train", "ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "avg")
+    save_weights(other, PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    proc = psctl("train", "ps-fcn", "--average", best, "--average", other, "--out", tmp_path / "avg")
     assert proc.returncode == 0 and "averaged 2 files" in proc.stderr and "validation" not in proc.stderr, proc.stderr
-    proc = cli("train", "ps-fcn", "--average", best, "--average", best, "--config", cfg, "--out", tmp_path / "avg_val")
+    proc = cli("train", "ps-fcn", "--average", best, "--average", other, "--config", cfg, "--out", tmp_path / "avg_val")
     assert proc.returncode == 0 and "synthetic validation" in proc.stderr, proc.stderr
     assert (tmp_path / "avg" / "best.pt").is_file()
-    for args, says in ((("ps-fcn-n", "--average", best, "--average", best, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
-                       (("ps-fcn", "--average", best, "--average", best), "--out RUN"),
+    for args, says in ((("ps-fcn-n", "--average", best, "--average", other, "--out", tmp_path / "a2"), "holds ps-fcn weights, not ps-fcn-n"),
+                       (("ps-fcn", "--average", best, "--average", other), "--out RUN"),
+                       (("ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "a6"), "is given twice"),
+                       (("bogus", "--average", best, "--average", other, "--out", tmp_path / "a7"), "cannot train 'bogus'"),
                        (("ps-fcn", "--average", best, "--out", tmp_path / "a3"), "at least two"),
                        (("ps-fcn", "--average", best, "--average", tmp_path / "nope.pt", "--out", tmp_path / "a4"), "nope.pt"),
-                       (("ps-fcn", "--average", best, "--average", best, "--out", tmp_path / "a5", "--install", "--force"),
+                       (("ps-fcn", "--average", best, "--average", other, "--out", tmp_path / "a5", "--install", "--force"),
                         "--install")):
         proc = cli("train", *args)
         assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-    assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4", "a5"))
+    assert not any((tmp_path / d).exists() for d in ("a2", "a3", "a4", "a5", "a6", "a7"))
 
 
 def test_every_public_name_resolves():
@@ -855,3 +887,14 @@ def test_paths_the_system_refuses_are_one_line_errors(capture, tmp_path):
         assert proc.returncode == 2 and len(lines) == 1, (args, proc.stderr)
         assert "Traceback" not in proc.stderr and long in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == [capture.name]
+
+
+def test_eval_says_once_what_every_object_shares(tmp_path):
+    """A note that changes what the table means (--images asked for more than there are) is one
+    line for all the objects it concerns, not one per object, and not only in --json."""
+    for name in ("a", "b"):
+        write_capture(tmp_path / "root" / name, n=6, size=24)
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--images", "9", "-q")
+    assert proc.returncode == 0, proc.stderr
+    text = " ".join((proc.stdout + proc.stderr).split())
+    assert text.count("every object: images: --images 9 asks for more than the 6 there are") == 1, text

@@ -231,11 +231,14 @@ def test_install_refuses_a_file_without_its_validation(tmp_path, monkeypatch):
     run = tmp_path / "run"
     train("ps-fcn", tiny(16), run, device="cpu")
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
-    bare = T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "avg")
+    import shutil
+
+    twin = shutil.copy(run / "best.pt", tmp_path / "twin.pt")  # one path twice is refused
+    bare = T.average_weights([run / "best.pt", twin], tmp_path / "avg")
     with pytest.raises(PsctlError, match="no synthetic validation") as e:
         T.install_weights(tmp_path / "avg", "ps-fcn")
     assert str(bare) in str(e.value) and not (tmp_path / "w").exists()
-    T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "avg_val", config=tiny(16))
+    T.average_weights([run / "best.pt", twin], tmp_path / "avg_val", config=tiny(16))
     assert T.install_weights(tmp_path / "avg_val", "ps-fcn").is_file()
 
 
@@ -292,6 +295,29 @@ def test_shipped_recipes_load_and_their_data_validate(recipe):
     ("train: {betas: [0.9]}", "'train.betas' must be a list of 2 numbers"),
     ("train: {channels_last: 1}", "'train.channels_last' must be true or false"),
     ("", "config file is empty"),
+    # found by a review: tracebacks, or accepted without a word
+    ("train: 5", "section 'train' must be a mapping"),
+    ("data: null", "section 'data' must be a mapping"),
+    ("val: {data: 5}", "'val.data' must be a mapping"),
+    ("data: {size: big}", "'size' must be a finite integer"),
+    ("data: {noise: x}", "'noise' must be a finite number"),
+    ("data: {noise: .nan}", "'noise' must be a finite number"),
+    ("data: {blend: x}", "'blend' must be a finite number"),
+    ("data: {texture: 1.5}", "'texture' is a chance"),
+    ("data: {rotate: 'no'}", "'rotate' must be true or false"),
+    ("data: {exposure: [0.5]}", "'exposure' must be \\[lo, hi\\]"),
+    ("data: {exposure: [0.5, 0.1]}", "'exposure' must be \\[lo, hi\\]"),
+    ("data: {clip: -1}", "'clip' must be a positive number"),
+    ("data: {ambient: -1}", "'ambient' must be 0 or more"),
+    ("data: {pool: 0}", "'pool' must be positive"),
+    ("data: {pool: abc}", "'pool' must be a finite integer"),
+    ("data: {capture: 5}", "'capture': expected a mapping"),
+    ("data: {materials: {plastic: 1.0}}", "'materials': unknown plastic"),
+    ("data: {shapes: {teapot: 1.0}}", "'shapes': unknown teapot"),
+    ("normalization: bogus", "'normalization' must be one of none, per-channel, per-pixel"),
+    ("train: {betas: [2.0, 0.999]}", "'train.betas' must be two numbers in \\[0, 1\\)"),
+    ("train: {seed: 99999999999999999999}", "'train.seed' must be"),
+    ("train: {lr: 1.0e-3, lr: 2.0e-3}", "duplicate key 'lr'"),
 ])
 def test_recipe_values_are_checked_with_the_file(tmp_path, text, needle):
     from psctl.train import load_config
@@ -315,6 +341,45 @@ def test_bad_run_folders_are_one_error(tmp_path):
     (run / "state.json").write_text("{not json")
     with pytest.raises(PsctlError, match="not a readable run state"):
         train("ps-fcn", None, run, resume=True, device="cpu")
+
+
+def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tmp_path):
+    """--out into someone's folder appended to their log.jsonl and deleted their optim.*.pt."""
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "optim.backup.pt").write_bytes(b"mine")
+    with pytest.raises(PsctlError, match="is not empty and holds no run"):
+        train("ps-fcn", tiny(8), theirs, device="cpu")
+    assert sorted(p.name for p in theirs.iterdir()) == ["optim.backup.pt"]
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    (run / "optim.7.pt").write_bytes(b"not the run's")  # not listed in state.json: left alone
+    train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    assert (run / "optim.7.pt").read_bytes() == b"not the run's"
+
+
+@pytest.mark.parametrize("damage, needle", [
+    ("truncate optim", "optim.0.pt: cannot be read"),
+    ("empty optim", "optim.0.pt: cannot be read"),
+    ("other optim", "optim.0.pt: is not a part of an optimiser state"),
+    ("truncate stream", "stream.pt: cannot be read"),
+    ("delete stream", "stream.pt: is missing"),
+])
+def test_a_damaged_run_is_one_error_on_resume(tmp_path, damage, needle):
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    what, name = damage.split()
+    f = run / ("optim.0.pt" if name == "optim" else "stream.pt")
+    if what == "truncate":
+        f.write_bytes(f.read_bytes()[:100])
+    elif what == "empty":
+        f.write_bytes(b"")
+    elif what == "other":
+        torch.save({"x": torch.zeros(3)}, f)
+    else:
+        f.unlink()
+    with pytest.raises(PsctlError, match=needle):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
 
 
 def test_warmup_ramps_the_learning_rate_then_the_halving_schedule_holds():
@@ -357,13 +422,18 @@ def test_average_weights_is_the_mean_and_says_of_what(tmp_path):
     assert for_method(w, "ps-fcn") == for_method(a, "ps-fcn")  # same input scale and clip at inference
     load_network("ps-fcn", out)
     # measured on a recipe's set: the average of a file with itself scores what training logged for it
-    same = read_weights(T.average_weights([run / "best.pt", run / "best.pt"], tmp_path / "same", config=tiny(16)))
+    import shutil
+
+    twin = shutil.copy(run / "best.pt", tmp_path / "twin.pt")
+    same = read_weights(T.average_weights([run / "best.pt", twin], tmp_path / "same", config=tiny(16)))
     assert same.metadata["metrics"]["synthetic_val_mae"] == pytest.approx(a.metadata["metrics"]["synthetic_val_mae"], abs=1e-3)
     assert same.metadata["validation"]["val"] == tiny(16)["val"]
     with pytest.raises(PsctlError, match="already exists"):
         T.average_weights([run / "best.pt", b], tmp_path / "avg")
     with pytest.raises(PsctlError, match="at least two"):
         T.average_weights([b], tmp_path / "one")
+    with pytest.raises(PsctlError, match="is given twice"):
+        T.average_weights([b, tmp_path / "." / "b.pt"], tmp_path / "twice")
     other = save_weights(tmp_path / "n.pt", a.state_dict, {**a.metadata, "method": "ps-fcn-n", "normalization": "per-channel"})
     with pytest.raises(PsctlError, match="n.pt: metadata 'method'"):
         T.average_weights([b, other], tmp_path / "mixed")

@@ -202,6 +202,13 @@ def render_benchmark(result: dict) -> None:
     # convention: both change what the table means (the other notes are in --json and --out's reports)
     from psctl.io.capture import READ_NOTES
 
-    read = [(o["name"], n) for o in objs for n in o.get("notes", []) if n.startswith((*READ_NOTES, "ground truth:"))]
-    for name, note in read:
-        con.print(escape(f"  {name}: {note}"), highlight=False)
+    # and the images used, where not what --images asked for
+    shown = (*READ_NOTES, "ground truth:", "images: --")
+    by_note: dict[str, list[str]] = {}
+    for o in objs:
+        for n in o.get("notes", []):
+            if n.startswith(shown):
+                by_note.setdefault(n, []).append(o["name"])
+    for note, names in by_note.items():  # one line per note, not one per object
+        who = "every object" if len(names) == len(objs) > 1 else ", ".join(names)
+        con.print(escape(f"  {who}: {note}"), highlight=False)

@@ -239,12 +239,75 @@ def rescaled_sides(lo: float, hi: float, law: str, b: int, gen: torch.Generator,
     return lo + (hi - lo) * u
 
 
+# ranges of the options with a plain number as default (their kind is the default's)
+_POSITIVE = ("batch_size", "n_images", "size", "pool", "reuse", "refresh_chunk", "horizon_dirs")
+_NON_NEGATIVE = ("ambient", "noise", "seed")
+_CHANCES = ("blend", "texture")
+CAPTURE_KEYS = ("p", "mean", "bits", "floor")
+INTERREFLECTION_KEYS = ("p", "albedo")
+
+
+def _check_options(cfg: dict) -> None:
+    """Each option of the kind and in the range the stream needs: a one-line error naming it,
+    not a torch error (or a silently odd stream) later."""
+    from psctl.errors import is_number, like_default
+
+    def where(k: str) -> str:
+        return f"synth stream option '{k}'"
+
+    for k, default in DEFAULT_CONFIG.items():
+        if isinstance(default, (bool, int, float)) and not (k in ("clip", "crop") and cfg[k] is None):  # null: none, whole view
+            cfg[k] = like_default(where(k), cfg[k], default)
+    for k in _POSITIVE:
+        if not cfg[k] > 0:
+            raise PsctlError(None, f"{where(k)} must be positive, not {cfg[k]!r}")
+    for k in _NON_NEGATIVE:
+        if not cfg[k] >= 0:
+            raise PsctlError(None, f"{where(k)} must be 0 or more, not {cfg[k]!r}")
+    for k in _CHANCES:
+        if not 0 <= cfg[k] <= 1:
+            raise PsctlError(None, f"{where(k)} is a chance: 0 to 1, not {cfg[k]!r}")
+    ex = cfg["exposure"]
+    if not (isinstance(ex, (list, tuple)) and len(ex) == 2 and all(map(is_number, ex)) and 0 < ex[0] <= ex[1]):
+        raise PsctlError(None, f"{where('exposure')} must be [lo, hi] with 0 < lo <= hi, not {ex!r}")
+    if cfg["clip"] is not None and not (is_number(cfg["clip"]) and cfg["clip"] > 0):
+        raise PsctlError(None, f"{where('clip')} must be a positive number or null (no clipping), not {cfg['clip']!r}")
+    if cfg["quantize"] is not None and cfg["quantize"] not in range(1, 33):
+        raise PsctlError(None, f"{where('quantize')} must be a number of bits (1 to 32) or null, not {cfg['quantize']!r}")
+    for k, known in (("shapes", ("blobby", "mesh")), ("materials", ("merl", "ggx", "lambert"))):
+        v = cfg[k]
+        if not (isinstance(v, dict) and v and all(is_number(x) and x >= 0 for x in v.values())
+                and sum(v.values()) > 0):
+            raise PsctlError(None, f"{where(k)} must map {', '.join(known)} to relative frequencies (0 or more, "
+                                   f"not all 0), not {v!r}")
+        bad = sorted(map(str, set(v) - set(known)))
+        if bad:
+            raise PsctlError(None, f"{where(k)}: unknown {', '.join(bad)}; choose from {', '.join(known)}")
+    for k, keys in (("capture", CAPTURE_KEYS), ("interreflection", INTERREFLECTION_KEYS)):
+        pair = _error_opts(k, cfg[k], keys)
+        if pair is None:
+            continue
+        lo, hi = pair("mean" if k == "capture" else "albedo", (0.01, 0.1) if k == "capture" else (0.0, 0.9))
+        if k == "capture" and not 0 < lo <= hi <= 1:
+            raise PsctlError(None, f"{where(k)}: need 0 < mean lo <= hi <= 1, got [{lo}, {hi}]")
+        if k == "interreflection" and not 0 <= lo <= hi < 1:
+            raise PsctlError(None, f"{where(k)}: need 0 <= albedo lo <= hi < 1, got [{lo}, {hi}]")
+        if k == "capture" and cfg[k].get("bits", 8) not in range(1, 17):
+            raise PsctlError(None, f"{where(k)}: bits must be 1 to 16, not {cfg[k].get('bits')!r}")
+        if k == "capture" and not isinstance(cfg[k].get("floor", False), bool):
+            raise PsctlError(None, f"{where(k)}: floor must be true or false, not {cfg[k].get('floor')!r}")
+
+
 def make_config(config: dict | None = None, **overrides) -> dict:
-    """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys are errors."""
+    """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys, and values of
+    the wrong kind or out of range, are errors."""
+    if config is not None and not isinstance(config, dict):
+        raise PsctlError(None, f"synth stream options must be a mapping, not {config!r}")
     cfg = {**DEFAULT_CONFIG, **(config or {}), **overrides}
     bad = set(cfg) - set(DEFAULT_CONFIG)
     if bad:
-        raise PsctlError(None, f"unknown synth stream option(s): {', '.join(sorted(bad))}")
+        raise PsctlError(None, f"unknown synth stream option(s): {', '.join(sorted(map(str, bad)))}")
+    _check_options(cfg)
     if cfg["crop"] is None:
         cfg["crop"] = cfg["size"]
     if cfg["scale"] is None:
