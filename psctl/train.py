@@ -726,6 +726,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         from psctl.models.weights import read_weights
 
         w = read_weights(run / "model.pt")
+        if w.method != method:  # same shapes (PS-FCN and PS-FCN+N) would load without a word
+            raise PsctlError(run / "model.pt", f"holds {w.method} weights, not this {method} run's")
         try:
             model.load_state_dict(w.state_dict)
         except RuntimeError as e:  # another network's file in this run's folder

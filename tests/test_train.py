@@ -364,16 +364,22 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     ("other optim", "optim.0.pt: is not a part of an optimiser state"),
     ("truncate stream", "stream.pt: cannot be read"),
     ("delete stream", "stream.pt: is missing"),
+    ("other model", "model.pt: holds ps-fcn-n weights, not this ps-fcn run's"),
 ])
 def test_a_damaged_run_is_one_error_on_resume(tmp_path, damage, needle):
     run = tmp_path / "run"
     train("ps-fcn", tiny(8), run, device="cpu")
     what, name = damage.split()
-    f = run / ("optim.0.pt" if name == "optim" else "stream.pt")
+    f = run / {"optim": "optim.0.pt", "stream": "stream.pt", "model": "model.pt"}[name]
     if what == "truncate":
         f.write_bytes(f.read_bytes()[:100])
     elif what == "empty":
         f.write_bytes(b"")
+    elif what == "other" and name == "model":  # PS-FCN+N's file: the same shapes
+        w = read_weights(f)
+        from psctl.models.weights import save_weights
+
+        save_weights(f, w.state_dict, {**w.metadata, "method": "ps-fcn-n", "normalization": "per-channel"})
     elif what == "other":
         torch.save({"x": torch.zeros(3)}, f)
     else:
