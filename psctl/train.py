@@ -31,6 +31,7 @@ This module must not import OpenImageIO: it runs on the GPU machine, which lacks
 from __future__ import annotations
 
 import base64
+import contextlib
 import copy
 import json
 import math
@@ -38,7 +39,7 @@ import os
 import re
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -269,6 +270,8 @@ class _Stop:
     def __init__(self) -> None:
         self.requested = False
         self.signal: int | None = None
+        self.saving = False  # a checkpoint is being written: a second signal waits for its end
+        self.again = False
         self._old: dict[int, Any] = {}
 
     def __enter__(self) -> "_Stop":
@@ -280,9 +283,24 @@ class _Stop:
         return self
 
     def _handle(self, signum, frame) -> None:
-        if self.requested:  # a second Ctrl-C leaves at once
+        if self.requested:  # a second Ctrl-C leaves at once, unless a checkpoint is half written
+            if self.saving:
+                self.again = True
+                return
             raise KeyboardInterrupt
         self.requested, self.signal = True, int(signum)
+
+    @contextlib.contextmanager
+    def whole(self) -> Iterator[None]:
+        """Write a checkpoint whole: a second signal during it (impatient Ctrl-C) leaves after it,
+        not between the optimiser files and state.json (a folder --resume cannot use)."""
+        self.saving = True
+        try:
+            yield
+        finally:
+            self.saving = False
+        if self.again:
+            raise KeyboardInterrupt
 
     def __exit__(self, *exc) -> None:
         for sig, old in self._old.items():
@@ -827,13 +845,15 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             if stop.requested or out_of_time or now - t_ckpt > 60 * t["checkpoint_minutes"]:
                 st["seconds"] += now - t_call
                 t_call = now
-                checkpoint()
+                with stop.whole():
+                    checkpoint()
                 t_ckpt = time.perf_counter()
                 if stop.requested or out_of_time:
                     break
         else:
             st["seconds"] += time.perf_counter() - t_call
-            checkpoint()
+            with stop.whole():
+                checkpoint()
     log.close()
     st["finished"] = st["samples"] >= t["samples"]
     st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM's number)

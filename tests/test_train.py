@@ -470,3 +470,22 @@ def test_validation_batches_apply_val_data():
     data, kw = seen[0]
     assert data["scale"] is None and data["scale_law"] == "uniform" and data["pool"] == cfg["data"]["pool"]
     assert kw["seed"] == cfg["val"]["seed"] and kw["crop"] == cfg["val"]["size"]
+
+
+def test_a_second_ctrl_c_waits_for_the_checkpoint_being_written():
+    """Two quick Ctrl-C: the first asks for a checkpoint, the second leaves at once, but not
+    halfway through writing it (optimiser files without state.json: a run --resume refuses)."""
+    import signal
+
+    from psctl.train import _Stop
+
+    stop = _Stop()
+    written = []
+    with pytest.raises(KeyboardInterrupt):
+        with stop.whole():
+            stop._handle(signal.SIGINT, None)
+            stop._handle(signal.SIGINT, None)  # deferred
+            written.append("state.json")
+    assert written == ["state.json"] and stop.signal == signal.SIGINT
+    with pytest.raises(KeyboardInterrupt):  # outside a checkpoint, as before
+        stop._handle(signal.SIGINT, None)
