@@ -90,15 +90,16 @@ app = typer.Typer(
 
 Quiet = Annotated[bool, _flag("--quiet", "-q", help="No progress bars.")]
 Json = Annotated[bool, _flag("--json", help="Print one JSON object on stdout.")]
-Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (seed 0 where the method does not read lights: sdps, ups-fcn, lights).")]
+Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (sdps and ups-fcn, which do not read lights: a random K, seed 0 unless --seed).")]
+LightsImages = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: a random K (seed 0 unless --seed; the folder's lights are what is estimated, so they choose nothing); light_images.txt names them.")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
 WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
-FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="The light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
-RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="After the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
+FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
+RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="sdps and psctl lights: after the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
@@ -225,8 +226,8 @@ def normals(
 
 @app.command("eval", cls=_Command)
 def evaluate(
-    benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder")] = "diligent",
-    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects).")] = None,
+    benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root).")] = "diligent",
+    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData, then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
     method: MethodOpt = "auto",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
@@ -262,7 +263,7 @@ def lights(
     weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
     decode: Annotated[str, typer.Option(help="soft (soft-argmax) | argmax (class centres, the paper).")] = "soft",
     views: Annotated[int, typer.Option(help="Symmetric views averaged: 8 (the images turned and mirrored about the view axis) | 4 | 2 | 1 (one pass, the paper).")] = 8,
-    images: Images = None,
+    images: LightsImages = None,
     seed: Seed = None,
     device: DeviceOpt = "auto",
     refine: Annotated[bool, _flag("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
@@ -346,15 +347,15 @@ def depth(
 @app.command(cls=_Command)
 def train(
     method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn | lcnet | ps-fcn-dagger")],
-    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/).")] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run (default: runs/METHOD).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/; without it: the paper's schedule, 2.5 M samples from scratch).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run, new or empty (default: runs/METHOD with _ for -, e.g. runs/ps_fcn_n).")] = None,
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
     install: Annotated[bool, _flag(help="When finished, copy the best weights to weights/ (release); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
-    average: Annotated[Optional[list[Path]], typer.Option("--average", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
+    average: Annotated[Optional[list[Path]], typer.Option("--average", metavar="FILE", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
