@@ -340,6 +340,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if value is not None and (method != "sdps" or not refine):
             notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
                                                           "(only sdps refines lights)"))
+    if not refine and method != "sdps":  # refine's default is True: False was asked for
+        notes.append("lights: --no-refine is unused (only sdps refines lights)")
     views = check_views(views)
     if views > 1 and method == "l2":
         notes.append("views: l2 gives the same normals in every view; one pass")

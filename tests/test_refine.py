@@ -266,6 +266,9 @@ def test_falloff_option_reaches_the_fit(tmp_path, fake_weights, stand_in_network
     assert r["lights_refined"] is None and any("--falloff is unused without --refine" in n for n in r["notes"])
     r = run_normals(tmp_path / "aPNG", method="l2", write=False, falloff="lambertian")
     assert any("--falloff is unused (only sdps" in n for n in r["notes"])
+    assert not any("--no-refine" in n for n in r["notes"])
+    r = run_normals(tmp_path / "aPNG", method="l2", write=False, refine=False)
+    assert any("--no-refine is unused (only sdps" in n for n in r["notes"])
     rl = run_lights(tmp_path / "aPNG", write=False, device="cpu", falloff="lambertian", refine=False)
     assert any("--falloff is unused without --refine" in n for n in rl["notes"])
     with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian"):
