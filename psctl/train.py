@@ -670,7 +670,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
     if not resume and run.is_dir() and any(run.iterdir()):  # a run writes log.jsonl, optim.*.pt, ... there
-        raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
+        hint = ("; it holds only log.jsonl, from a run that stopped before its first checkpoint: remove it"
+                if [p.name for p in run.iterdir()] == ["log.jsonl"] else "")
+        raise PsctlError(run, f"is not empty and holds no run (no state.json); a new run needs a new or empty "
+                              f"folder{hint}")
     saved = None
     if resume:
         try:
