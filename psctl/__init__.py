@@ -3,9 +3,10 @@
 The heavy modules (torch, OpenImageIO) are imported lazily so that ``import psctl`` and
 ``psctl --help`` stay instant.
 
-The functions here are those of their modules (``psctl.run_normals`` is
-``psctl.api.run_normals``), except that their errors and report notes name options as Python
-arguments ("weights=FILE") where the modules, which the command line shares, say "--weights FILE".
+The functions here wrap those of their modules (``psctl.run_normals`` calls
+``psctl.api.run_normals``, available as its ``__wrapped__``): the same arguments and results,
+except that their errors and report notes name options as Python arguments ("weights=FILE")
+where the modules, which the command line shares, say "--weights FILE".
 """
 
 from __future__ import annotations
@@ -63,6 +64,8 @@ def _for_python(fn: Any) -> Any:
         except errors.PsctlError as e:
             raise errors.PsctlError(e.path, errors.python_wording(e.message)) from None
 
+    # psctl.X is what pickle finds under this name (ProcessPoolExecutor.map(psctl.run_normals, ...))
+    wrapper.__module__, wrapper.__qualname__ = "psctl", fn.__name__
     return wrapper
 
 

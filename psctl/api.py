@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -247,7 +248,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         normals = array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
-            warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=2)
+            # called as psctl.estimate_normals, the package's wrapper is one frame between
+            level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+            warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
         return normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")

@@ -179,8 +179,10 @@ def python_wording(text: str) -> str:
     Other text (file names, `psctl train ...`, options of commands without a Python twin) stays."""
     import re
 
+    # an option stands alone: not inside a word or a path (/data/my--weights/, light--out.txt)
+    alone = r"(?<![\w/.\\-])"
     for cli, py in sorted(_SWITCHES.items(), key=lambda kv: -len(kv[0])):  # --roll/--no-roll before --roll
-        text = re.sub(re.escape(cli) + r"(?![\w-])", py, text)
+        text = re.sub(alone + re.escape(cli) + r"(?![\w-])", py, text)
     flags = "|".join(re.escape(f) for f in sorted(PYTHON_ARGS, key=len, reverse=True))
 
     def one(m: re.Match) -> str:
@@ -192,4 +194,4 @@ def python_wording(text: str) -> str:
         return f"{name}={value}"  # a number, or a placeholder such as FILE or DIR
 
     value = rf"(?: ({_WORDS}|[A-Z]+|-?\d+(?:\.\d+)?)(?![\w-]))?"
-    return re.sub(rf"({flags})(?![\w-]){value}", one, text)
+    return re.sub(rf"{alone}({flags})(?![\w-]){value}", one, text)

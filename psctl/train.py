@@ -166,10 +166,16 @@ def _unique_key_loader():
         def construct_mapping(self, node, deep=False):
             seen = set()
             for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # <<: *defaults, resolved by SafeLoader
+                    continue
                 key = self.construct_object(key_node, deep=deep)
-                if key in seen:
-                    raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
-                seen.add(key)
+                try:
+                    if key in seen:
+                        raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}",
+                                                                key_node.start_mark)
+                    seen.add(key)
+                except TypeError:  # an unhashable key: SafeLoader's own error says so
+                    pass
             return super().construct_mapping(node, deep)
 
     return Loader
@@ -345,8 +351,12 @@ def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] 
 
 def _load_part(path: Path) -> Any:
     """One of a run's torch files, or a one-line error naming it (truncated, emptied, replaced)."""
+    import pickle
+
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:  # torch's message advises weights_only=False: not for a damaged file
+        raise PsctlError(path, "is not a torch file psctl wrote: the run's checkpoint is damaged") from None
     except (OSError, RuntimeError, EOFError, ValueError, KeyError, TypeError, AttributeError) as e:
         raise PsctlError(path, f"cannot be read ({' '.join(str(e).split())[:120] or type(e).__name__}): the run's "
                                "checkpoint is damaged") from None
@@ -669,11 +679,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
-    if not resume and run.is_dir() and any(run.iterdir()):  # a run writes log.jsonl, optim.*.pt, ... there
-        hint = ("; it holds only log.jsonl, from a run that stopped before its first checkpoint: remove it"
-                if [p.name for p in run.iterdir()] == ["log.jsonl"] else "")
-        raise PsctlError(run, f"is not empty and holds no run (no state.json); a new run needs a new or empty "
-                              f"folder{hint}")
+    # a run writes log.jsonl, optim.*.pt, ... there; a folder with only a log.jsonl is a run of
+    # ours that stopped before its first checkpoint (configs/gpu_session.sh starts it again)
+    if not resume and run.is_dir() and [p.name for p in run.iterdir()] not in ([], ["log.jsonl"]):
+        raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
     saved = None
     if resume:
         try:

@@ -261,6 +261,18 @@ def test_integrate_takes_tensors_that_require_grad():
     assert z.shape == (8, 8) and np.isfinite(z).all()
 
 
+def _ps_fcn_file():
+    import tempfile
+    from pathlib import Path
+
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    path = Path(tempfile.mkdtemp()) / "p.pt"
+    save_weights(path, PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    return path
+
+
 def test_top_level_functions_name_python_arguments(data):
     """psctl.X words its errors for Python callers; psctl.api.X (the CLI's) keeps the flags."""
     import psctl
@@ -276,6 +288,14 @@ def test_top_level_functions_name_python_arguments(data):
         estimate_normals(images, lights, mask, method="l2", device="gpu")
     assert psctl.estimate_normals.__wrapped__ is estimate_normals and psctl.PsctlError is PsctlError
     assert psctl.estimate_normals is psctl.estimate_normals  # wrapped once
+    import pickle
+    import warnings
+
+    assert pickle.loads(pickle.dumps(psctl.run_normals)) is psctl.run_normals  # for process pools
+    with warnings.catch_warnings(record=True) as caught:  # the warning points at the caller's line
+        warnings.simplefilter("always")
+        psctl.estimate_normals(images[:2], lights[:2], mask, method="ps-fcn", weights=_ps_fcn_file())
+    assert [w.filename for w in caught if issubclass(w.category, psctl.errors.PsctlWarning)] == [__file__]
 
 
 @pytest.mark.parametrize("cli,python", [
@@ -290,6 +310,8 @@ def test_top_level_functions_name_python_arguments(data):
     ("use `psctl lights`, or --normals-weights", "use psctl.estimate_lights, or normals_weights"),
     ("`psctl train lcnet --config configs/lcnet.yaml --install`", "`psctl train lcnet --config configs/lcnet.yaml --install`"),
     ("a --weightsfile", "a --weightsfile"),
+    ("/data/my--weights/x.pt: --weights FILE", "/data/my--weights/x.pt: weights=FILE"),  # paths stay
+    ("/tmp/a--images/b.png and light--out.txt, --no-refine/", "/tmp/a--images/b.png and light--out.txt, refine=False/"),
 ])
 def test_python_wording(cli, python):
     from psctl.errors import python_wording

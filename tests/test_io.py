@@ -104,6 +104,16 @@ def test_ground_truth_headers_are_checked_when_the_folder_opens(tmp_path, case, 
         open_capture(folder)
 
 
+def test_a_matlab_v73_ground_truth_does_not_stop_what_does_not_read_it(tmp_path):
+    """scipy reads no v7.3 (HDF5) file: psctl info, lights and depth open the folder anyway."""
+    folder = tmp_path / "obj"
+    write_capture(folder, n=4)
+    (folder / "Normal_gt.mat").write_bytes(b"MATLAB 7.3 MAT-file".ljust(116) + bytes(8) + b"\x00\x02IM" + bytes(512))
+    assert open_capture(folder).gt_path.name == "Normal_gt.mat"
+    with pytest.raises(PsctlError, match="cannot read .mat file"):  # where it is read
+        load_ground_truth(open_capture(folder))
+
+
 def test_names_txt_and_single_column_intensities(tmp_path):
     folder = tmp_path / "obj"
     write_capture(folder, n=6)

@@ -856,6 +856,22 @@ def test_an_interrupted_synth_run_leaves_the_earlier_set_as_it_was(tmp_path, mon
     after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
     assert calls == ["blobby_01", "blobby_02"] and after == before  # nothing new, nothing hidden left
     assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "blobby_02", "objects.txt"]
+    # a failure while the new set moves in (disk full) puts the earlier one back
+    monkeypatch.setattr(W, "write_object", real)
+    real_replace, moves = W.os.replace, []
+
+    def full_disk(src, dst):  # the new blobby_02 cannot move in: blobby_01 and objects.txt had moved
+        if ".psctl-synth." in str(src) and ".earlier" not in str(src) and str(dst) == str(out / "blobby_02"):
+            moves.append(dst)
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(W.os, "replace", full_disk)
+    with pytest.raises(OSError):
+        W.write_preset(out, "blobby", seed=5, size=24, n_lights=6, k=3)
+    monkeypatch.setattr(W.os, "replace", real_replace)
+    after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert moves == [out / "blobby_02"] and after == before
     # object folders of psctl synth without objects.txt: part of a set, not a benchmark
     (out / "objects.txt").unlink()
     with pytest.raises(PsctlError, match="holds psctl synth objects .* but no objects.txt"):

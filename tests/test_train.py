@@ -318,6 +318,7 @@ def test_shipped_recipes_load_and_their_data_validate(recipe):
     ("train: {betas: [2.0, 0.999]}", "'train.betas' must be two numbers in \\[0, 1\\)"),
     ("train: {seed: 99999999999999999999}", "'train.seed' must be"),
     ("train: {lr: 1.0e-3, lr: 2.0e-3}", "duplicate key 'lr'"),
+    ("train: {? [1, 2] : 3}", "not valid YAML"),  # an unhashable key: one line, not a TypeError
 ])
 def test_recipe_values_are_checked_with_the_file(tmp_path, text, needle):
     from psctl.train import load_config
@@ -351,6 +352,10 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     with pytest.raises(PsctlError, match="is not empty and holds no run"):
         train("ps-fcn", tiny(8), theirs, device="cpu")
     assert sorted(p.name for p in theirs.iterdir()) == ["optim.backup.pt"]
+    stopped = tmp_path / "stopped"  # only the log of a run that never checkpointed: started again
+    stopped.mkdir()
+    (stopped / "log.jsonl").write_text('{"step": 1}\n')
+    assert train("ps-fcn", tiny(8), stopped, device="cpu")["samples"] == 8
     run = tmp_path / "run"
     train("ps-fcn", tiny(8), run, device="cpu")
     (run / "optim.7.pt").write_bytes(b"not the run's")  # not listed in state.json: left alone
@@ -365,6 +370,7 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     ("truncate stream", "stream.pt: cannot be read"),
     ("delete stream", "stream.pt: is missing"),
     ("other model", "model.pt: holds ps-fcn-n weights, not this ps-fcn run's"),
+    ("garble optim", "optim.0.pt: is not a torch file psctl wrote"),
 ])
 def test_a_damaged_run_is_one_error_on_resume(tmp_path, damage, needle):
     run = tmp_path / "run"
@@ -375,6 +381,8 @@ def test_a_damaged_run_is_one_error_on_resume(tmp_path, damage, needle):
         f.write_bytes(f.read_bytes()[:100])
     elif what == "empty":
         f.write_bytes(b"")
+    elif what == "garble":
+        f.write_bytes(bytes(range(256)) * 4)
     elif what == "other" and name == "model":  # PS-FCN+N's file: the same shapes
         w = read_weights(f)
         from psctl.models.weights import save_weights
@@ -470,6 +478,12 @@ def test_validation_batches_apply_val_data():
     data, kw = seen[0]
     assert data["scale"] is None and data["scale_law"] == "uniform" and data["pool"] == cfg["data"]["pool"]
     assert kw["seed"] == cfg["val"]["seed"] and kw["crop"] == cfg["val"]["size"]
+
+
+def test_recipes_may_use_yaml_merge_keys(tmp_path):
+    cfg = tmp_path / "r.yaml"
+    cfg.write_text("train: {batch_size: 4, samples: 8}\nval: {<<: {samples: 4}, images: 8}\n")
+    assert load_config(cfg)["val"]["samples"] == 4
 
 
 def test_a_second_ctrl_c_waits_for_the_checkpoint_being_written():

@@ -241,6 +241,7 @@ def rescaled_sides(lo: float, hi: float, law: str, b: int, gen: torch.Generator,
 
 # ranges of the options with a plain number as default (their kind is the default's)
 _POSITIVE = ("batch_size", "n_images", "size", "pool", "reuse", "refresh_chunk", "horizon_dirs")
+_NUMBERS = ("reuse",)  # an average: 0.5 (a G-buffer every other sample) is as good as 128
 _NON_NEGATIVE = ("ambient", "noise", "seed")
 _CHANCES = ("blend", "texture")
 CAPTURE_KEYS = ("p", "mean", "bits", "floor")
@@ -257,7 +258,7 @@ def _check_options(cfg: dict) -> None:
 
     for k, default in DEFAULT_CONFIG.items():
         if isinstance(default, (bool, int, float)) and not (k in ("clip", "crop") and cfg[k] is None):  # null: none, whole view
-            cfg[k] = like_default(where(k), cfg[k], default)
+            cfg[k] = like_default(where(k), cfg[k], float(default) if k in _NUMBERS else default)
     for k in _POSITIVE:
         if not cfg[k] > 0:
             raise PsctlError(None, f"{where(k)} must be positive, not {cfg[k]!r}")
@@ -272,7 +273,7 @@ def _check_options(cfg: dict) -> None:
         raise PsctlError(None, f"{where('exposure')} must be [lo, hi] with 0 < lo <= hi, not {ex!r}")
     if cfg["clip"] is not None and not (is_number(cfg["clip"]) and cfg["clip"] > 0):
         raise PsctlError(None, f"{where('clip')} must be a positive number or null (no clipping), not {cfg['clip']!r}")
-    if cfg["quantize"] is not None and cfg["quantize"] not in range(1, 33):
+    if cfg["quantize"] is not None and (isinstance(cfg["quantize"], bool) or cfg["quantize"] not in range(1, 33)):
         raise PsctlError(None, f"{where('quantize')} must be a number of bits (1 to 32) or null, not {cfg['quantize']!r}")
     for k, known in (("shapes", ("blobby", "mesh")), ("materials", ("merl", "ggx", "lambert"))):
         v = cfg[k]

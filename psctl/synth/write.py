@@ -110,7 +110,10 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     if not 0 <= seed <= MAX_SEED:  # seed + 1 and seed + 2 seed generators too; torch takes 64 bits
         raise PsctlError(None, f"--seed must be from 0 to 2^62 (got {seed})")
     need = render_bytes(size, n_lights)
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): no check
+        total = math.inf
     if need > 0.8 * total:  # before minutes of work, and an out-of-memory kill or traceback
         raise PsctlError(None, f"--size {size} with {n_lights} lights needs about {need / 2**30:.0f} GiB of memory "
                                f"to render one object; this machine has {total / 2**30:.0f} GiB")
@@ -294,17 +297,34 @@ def _check_synth_root(out: Path) -> None:
                               "choose a new or empty folder")
 
 
-def _replace_dir(tmp: Path, final: Path) -> None:
-    """Move a finished temporary folder into place, replacing an older one of the same name."""
-    old = None
-    if final.exists():
-        if not final.is_dir():
-            raise PsctlError(final, "exists and is not a folder")
-        old = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=final.parent))
-        os.replace(final, old / final.name)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
+    """Move the staged ``names`` into ``out``, objects.txt (``listing``) last. What they replace
+    goes to a backup inside ``stage`` first; should a move fail (disk full, Ctrl-C), everything
+    is put back as it was, so ``out`` holds the earlier set or the new one, never a mix."""
+    from psctl.io.atomic import write_text_atomic
+
+    for name in names:  # before anything moves
+        if (out / name).exists() and (out / name).is_dir() != (stage / name).is_dir():
+            raise PsctlError(out / name, "exists and is not a " + ("folder" if (stage / name).is_dir() else "file"))
+    backup = stage / ".earlier"
+    backup.mkdir()
+    old: list[str] = []
+    new: list[str] = []
+    try:
+        for name in ["objects.txt", *names]:
+            if (out / name).exists() or (out / name).is_symlink():
+                os.replace(out / name, backup / name)
+                old.append(name)
+            if name != "objects.txt":
+                os.replace(stage / name, out / name)
+                new.append(name)
+        write_text_atomic(out / "objects.txt", listing)
+    except BaseException:
+        for name in new:
+            os.replace(out / name, stage / name)
+        for name in old:
+            os.replace(backup / name, out / name)
+        raise
 
 
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
@@ -330,7 +350,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds",
         "removed"} (removed: what an earlier psctl synth run left in ``out`` and this one replaced).
     """
-    from psctl.io.atomic import check_output_dir, ensure_writable_dir, write_text_atomic
+    from psctl.io.atomic import check_output_dir, ensure_writable_dir
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -396,13 +416,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
             write_image(stage / "preview.png", _sheet(sheet_rows), "uint8")
             preview_path = out / "preview.png"
-        # the swap: objects.txt (what marks a complete set) goes first and comes back last
-        (out / "objects.txt").unlink(missing_ok=True)
-        for obj in objs:
-            _replace_dir(stage / obj.name, out / obj.name)
-        if preview:
-            os.replace(stage / "preview.png", preview_path)
-        write_text_atomic(out / "objects.txt", "".join(f"{o.name}\n" for o in objs))
+        _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
+                 "".join(f"{o.name}\n" for o in objs))
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
