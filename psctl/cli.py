@@ -361,7 +361,7 @@ def train(
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
     with _user_errors():
         from psctl.models.weights import installed_path, read_weights
-        from psctl.train import average_weights, install_weights, load_config, train as run_training
+        from psctl.train import average_weights, check_method, install_weights, load_config, train as run_training
 
         from psctl.errors import PsctlError
 
@@ -377,10 +377,7 @@ def train(
         if install and not force and installed_path(method) is not None:  # say so before hours of training
             raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
                                                      "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
-        from psctl.models import WEIGHTS_METHODS
-
-        if method not in WEIGHTS_METHODS:  # before anything else is said about the other options
-            raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
+        check_method(method)  # before anything else is said about the other options
         if average:
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "

@@ -180,7 +180,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
             raise PsctlError(None, "the mask is empty (no foreground pixel)")
     else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
         if isinstance(mask, (str, bytes, os.PathLike)):
-            mask = as_mask(mask, (h, w))  # its message: an array, not a path
+            as_mask(mask, (h, w))  # raises: a mask is an array here; as_mask says how to read a file
         m = np.asarray(plain(mask))
         if m.ndim < 2:
             raise PsctlError(None, f"mask must be [H, W] = [{h}, {w}] (the normal map's), got {list(m.shape)}")

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.errors import PsctlError, naming
-from psctl.models import check_device_name
+from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
 
 if TYPE_CHECKING:
@@ -490,7 +490,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
     from psctl.errors import _short
 
-    known = ("ps-fcn", "ps-fcn-n", "ups-fcn", "ps-fcn-dagger", "ensemble")
+    known = (*NETWORK_METHODS, "ensemble")
     if not isinstance(method, str) or method.lower() not in known:
         raise PsctlError(None, f"array_normals runs {', '.join(known)}, not {_short(method)} "
                                "(psctl.estimate_normals runs l2, sdps and auto as well)")

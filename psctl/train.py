@@ -47,6 +47,7 @@ from typing import Any
 import torch
 
 from psctl.errors import PsctlError, like_default
+from psctl.synth.stream import MAX_SEED
 
 DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"fuse": "max"},
@@ -86,7 +87,6 @@ DEFAULT_CONFIG: dict[str, Any] = {
 
 OPTIM_PART_BYTES = 12 * 2**20
 _OPTIM_PART = re.compile(r"optim\.\d+\.pt")
-MAX_SEED = 2**62
 
 
 def merge(base: dict, override: dict | None) -> dict:
@@ -119,6 +119,14 @@ _POSITIVE = {("train", k) for k in ("batch_size", "images_per_sample", "crop", "
     {("val", k) for k in ("samples", "images", "size", "batch_size")} | {("lcnet", "dirs_cls"), ("lcnet", "ints_cls")}
 _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max", "mean"),
             ("lcnet", "decode"): ("argmax", "soft")}
+
+
+def check_method(method: str) -> None:
+    """A method ``psctl train`` trains (psctl.models.WEIGHTS_METHODS), or a one-line error."""
+    from psctl.models import WEIGHTS_METHODS
+
+    if method not in WEIGHTS_METHODS:
+        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
 
 
 def check_recipe(config: dict) -> dict:
@@ -661,11 +669,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             ``lcnet.weights``, else weights/lcnet.pt; a resumed run keeps the file it started with).
     """
     from psctl.infer import pick_device
-    from psctl.models import WEIGHTS_METHODS
     from psctl.models.weights import save_weights
 
-    if method not in WEIGHTS_METHODS:
-        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
+    check_method(method)
     if lcnet is not None and method != "ps-fcn-dagger":
         raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
     dev = pick_device(device)
@@ -770,10 +776,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if resume and hasattr(stream, "load_state_dict"):  # without it the run would go on, but not exactly
         if not (run / "stream.pt").is_file():
             raise PsctlError(run / "stream.pt", "is missing: the run cannot continue its data stream exactly")
+        state = _load_part(run / "stream.pt")
         try:
-            stream.load_state_dict(_load_part(run / "stream.pt"))
-        except PsctlError:
-            raise
+            stream.load_state_dict(state)
         except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
             raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
     val = validation_set(config, task, dev, make_stream)

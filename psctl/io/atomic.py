@@ -16,6 +16,18 @@ from pathlib import Path
 from psctl.errors import PsctlError
 
 
+def utf8_path(path: Path, message: str) -> str:
+    """The path as OpenImageIO takes it: UTF-8 text. A name with bytes that are not UTF-8
+    (Python keeps them as lone surrogates) would be a TypeError inside its binding; here it is
+    one line naming the path and saying ``message``."""
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise PsctlError(path, message) from None
+    return name
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it to ``path`` if the block succeeds.
@@ -85,11 +97,8 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     Nothing is created here; ``staged_outputs`` creates the folder when results are ready.
     """
     path = Path(path)
-    try:  # images are written through OpenImageIO, which takes UTF-8 text
-        str(path).encode("utf-8")
-    except UnicodeEncodeError:
-        raise PsctlError(path, "the output folder's path is not valid UTF-8 text, which OpenImageIO cannot "
-                               "write to; choose another") from None
+    utf8_path(path, "the output folder's path is not valid UTF-8 text, which OpenImageIO cannot write to; "
+                    "choose another")  # images are written through OpenImageIO
     probe = path
     while not probe.exists():
         if probe.parent == probe:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.errors import PsctlError
-from psctl.io.atomic import atomic_path
+from psctl.io.atomic import atomic_path, utf8_path
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 
@@ -66,15 +66,7 @@ def upright(pixels: np.ndarray, orientation: int) -> np.ndarray:
 
 
 def _oiio_name(path: Path) -> str:
-    """The path as OpenImageIO takes it: UTF-8 text. A name with bytes that are not UTF-8
-    (Python keeps them as lone surrogates) would be a TypeError inside its binding."""
-    name = str(path)
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        raise PsctlError(path, "the path is not valid UTF-8 text, which OpenImageIO cannot open; "
-                               "rename it") from None
-    return name
+    return utf8_path(path, "the path is not valid UTF-8 text, which OpenImageIO cannot open; rename it")
 
 
 def image_info(path: str | os.PathLike) -> ImageInfo:

@@ -239,6 +239,8 @@ def rescaled_sides(lo: float, hi: float, law: str, b: int, gen: torch.Generator,
     return lo + (hi - lo) * u
 
 
+# the largest seed psctl takes: generators are seeded with seed + k, and torch takes 64 bits
+MAX_SEED = 2**62
 # ranges of the options with a plain number as default (their kind is the default's)
 _POSITIVE = ("batch_size", "n_images", "size", "pool", "reuse", "refresh_chunk", "horizon_dirs")
 _NUMBERS = ("reuse",)  # an average: 0.5 (a G-buffer every other sample) is as good as 128
@@ -284,19 +286,21 @@ def _check_options(cfg: dict) -> None:
         bad = sorted(map(str, set(v) - set(known)))
         if bad:
             raise PsctlError(None, f"{where(k)}: unknown {', '.join(bad)}; choose from {', '.join(known)}")
-    for k, keys in (("capture", CAPTURE_KEYS), ("interreflection", INTERREFLECTION_KEYS)):
-        pair = _error_opts(k, cfg[k], keys)
-        if pair is None:
-            continue
-        lo, hi = pair("mean" if k == "capture" else "albedo", (0.01, 0.1) if k == "capture" else (0.0, 0.9))
-        if k == "capture" and not 0 < lo <= hi <= 1:
-            raise PsctlError(None, f"{where(k)}: need 0 < mean lo <= hi <= 1, got [{lo}, {hi}]")
-        if k == "interreflection" and not 0 <= lo <= hi < 1:
-            raise PsctlError(None, f"{where(k)}: need 0 <= albedo lo <= hi < 1, got [{lo}, {hi}]")
-        if k == "capture" and cfg[k].get("bits", 8) not in range(1, 17):
-            raise PsctlError(None, f"{where(k)}: bits must be 1 to 16, not {cfg[k].get('bits')!r}")
-        if k == "capture" and not isinstance(cfg[k].get("floor", False), bool):
-            raise PsctlError(None, f"{where(k)}: floor must be true or false, not {cfg[k].get('floor')!r}")
+    pair = _error_opts("capture", cfg["capture"], CAPTURE_KEYS)
+    if pair is not None:
+        cap = cfg["capture"]
+        lo, hi = pair("mean", (0.01, 0.1))
+        if not 0 < lo <= hi <= 1:
+            raise PsctlError(None, f"{where('capture')}: need 0 < mean lo <= hi <= 1, got [{lo}, {hi}]")
+        if cap.get("bits", 8) not in range(1, 17):
+            raise PsctlError(None, f"{where('capture')}: bits must be 1 to 16, not {cap.get('bits')!r}")
+        if not isinstance(cap.get("floor", False), bool):
+            raise PsctlError(None, f"{where('capture')}: floor must be true or false, not {cap.get('floor')!r}")
+    pair = _error_opts("interreflection", cfg["interreflection"], INTERREFLECTION_KEYS)
+    if pair is not None:
+        lo, hi = pair("albedo", (0.0, 0.9))
+        if not 0 <= lo <= hi < 1:
+            raise PsctlError(None, f"{where('interreflection')}: need 0 <= albedo lo <= hi < 1, got [{lo}, {hi}]")
 
 
 def make_config(config: dict | None = None, **overrides) -> dict:

@@ -39,6 +39,7 @@ from psctl.synth import lights as L
 from psctl.synth import materials as M
 from psctl.synth import render as R
 from psctl.synth.shapes import GBuffer, blobby_gbuffers, sphere_gbuffer
+from psctl.synth.stream import MAX_SEED
 
 # Canonical test views: rotation about the vertical axis (degrees) of each test mesh.
 TEST_VIEWS = {"bunny": 0.0, "dragon": 45.0, "armadillo": 180.0}
@@ -80,9 +81,6 @@ def _merl_subset(table: M.MerlTable, k: int, gen: torch.Generator) -> list[int]:
     if not 1 <= k <= len(table.names):
         raise PsctlError(None, f"--materials must be in 1..{len(table.names)} (got {k})")
     return sorted(torch.randperm(len(table.names), generator=gen)[:k].tolist())
-
-
-MAX_SEED = 2**62
 
 
 def render_bytes(size: int, n_lights: int) -> float:
