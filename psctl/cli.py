@@ -175,18 +175,15 @@ def _print_json(obj: dict) -> None:
 
 @app.command(cls=_Command)
 def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")],
-         encoding: EncodingOpt = "auto", json_out: Json = False) -> None:
+         encoding: EncodingOpt = "auto",
+         check: Annotated[bool, _flag("--check", help="Also decode every file: damaged images, brightness, "
+                                                     "saturation, black images.")] = False,
+         json_out: Json = False, quiet: Quiet = False) -> None:
     """Show what psctl detects in a folder: images, size, bit depth, lights, mask, ground truth."""
     with _user_errors():
-        from psctl.io.summary import describe
+        from psctl.io.summary import describe, render_info
 
-        report = describe(path, encoding)
-        if json_out:
-            _print_json(report)
-        else:
-            from psctl.io.summary import render_info
-
-            render_info(report)
+        _run(lambda progress: describe(path, encoding, check=check, progress=progress), json_out, quiet, render_info)
 
 
 @app.command(cls=_Command)

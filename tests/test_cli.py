@@ -139,6 +139,36 @@ def test_info(capture):
     assert "note: files: not read: mask_obj.png" in psctl("info", capture, check=True).stdout
 
 
+def test_info_check_decodes_every_file(tmp_path):
+    folder = tmp_path / "o"
+    truth = write_capture(folder, n=6)
+    r = json.loads(cli("info", folder, "--json").stdout)
+    assert "check" not in r  # headers only unless asked
+    img = truth["images"][2].copy()
+    img[truth["mask"]] = 1.0  # every object pixel at 65535
+    write_image(folder / "003.png", img, "uint16")
+    write_image(folder / "005.png", np.zeros((40, 40, 3)), "uint16")  # a light that did not fire
+    c = json.loads(cli("info", folder, "--check", "--json").stdout)["check"]
+    assert [x["image"] for x in c["images"]] == [f"{k:03d}.png" for k in range(1, 7)]
+    assert c["saturated_images"] == ["003.png"] and c["images"][2]["saturated"] == 1.0
+    assert c["images"][0]["saturated"] == 0.0 and c["images"][4]["mean"] == 0.0
+    m = truth["mask"]
+    assert c["images"][0]["mean"] == pytest.approx(read_image(folder / "001.png")[0][m].mean(), rel=1e-5)
+    assert c["mean_range"][0] == 0.0 and c["mean_range"][2] == c["images"][2]["mean"]
+    assert len(c["notes"]) == 1 and c["notes"][0].startswith("images: 1 of 6 black over the object (005.png)")
+    out = cli("info", folder, "--check").stdout
+    assert "saturated: 1 of 6 images" in out and "003.png, 100.0%" in out and "005.png" in out
+    # damaged files: the first named, the others counted, exit 2, one line
+    for name in ("002.png", "004.png", "006.png"):
+        data = (folder / name).read_bytes()
+        (folder / name).write_bytes(data[: len(data) // 2])
+    assert cli("info", folder).returncode == 0  # headers still read
+    proc = cli("info", folder, "--check")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.startswith(f"error: {folder / '002.png'}: corrupt or truncated image")
+    assert "(and 2 more damaged: 004.png, 006.png)" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
 def test_eval_on_a_folder_of_objects(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     write_capture(tmp_path / "root" / "bPNG", n=6, seed=2)

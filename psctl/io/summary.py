@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,71 @@ import numpy as np
 from psctl.errors import PsctlError
 
 
-def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
-    """What a capture folder holds, as a JSON-ready dict."""
+SATURATED_SHARE = 0.01  # an image with more of the object than this at its top code value is listed
+
+
+def check_pixels(cap, mask: np.ndarray, progress: Callable[[int], None] | None = None) -> dict:
+    """Decode every file of a capture (images, ambient image, ground truth) and describe the
+    images over the object (``mask``), as captured: what ``psctl info --check`` adds.
+
+    Every damaged image is found before the first is reported (PsctlError naming it and
+    counting the rest), so one run lists what to re-copy. Per image: ``mean``, the mean linear
+    value over the object (sRGB decoded, not divided by the intensities), and ``saturated``,
+    the share of the object's pixels with a channel at the file's top code value (null for
+    float files, which have none). Black images and negative values are the notes psctl
+    normals would give."""
+    import time
+
+    from psctl.io.capture import ImageCheck, load_ground_truth
+    from psctl.io.images import read_image, srgb_to_linear, to_rgb
+
+    t0 = time.perf_counter()
+    check = ImageCheck(cap)
+    damaged: list[PsctlError] = []
+    per_image = []
+    for k, p in enumerate(cap.image_paths):
+        try:
+            pixels, info = read_image(p)
+        except PsctlError as e:
+            damaged.append(e)
+            per_image.append({"image": p.name, "mean": None, "saturated": None})
+            if progress is not None:
+                progress(1)
+            continue
+        rgb = to_rgb(pixels)[mask]  # [pixels over the object, 3]
+        top = info.dtype.startswith(("uint", "int"))  # integer samples end at a code value read as 1.0
+        saturated = float((rgb >= 1.0).any(axis=-1).mean()) if top and len(rgb) else None
+        if cap.is_srgb(k):
+            rgb = srgb_to_linear(rgb)
+        check.see(k, rgb)
+        per_image.append({"image": p.name, "mean": float(rgb.mean()) if len(rgb) else 0.0, "saturated": saturated})
+        if progress is not None:
+            progress(1)
+    if damaged:
+        e = damaged[0]
+        more = ""
+        if len(damaged) > 1:
+            names = ", ".join(Path(d.path).name for d in damaged[1:4] if d.path) + (" ..." if len(damaged) > 4 else "")
+            more = f" (and {len(damaged) - 1} more damaged: {names})"
+        raise PsctlError(e.path, f"{e.message}{more}")
+    if cap.ambient_path is not None:
+        read_image(cap.ambient_path)
+    load_ground_truth(cap)
+    means = [r["mean"] for r in per_image]
+    over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
+    return {
+        "seconds": time.perf_counter() - t0,
+        "images": per_image,
+        "mean_range": [float(min(means)), float(np.median(means)), float(max(means))],
+        "saturated_images": [r["image"] for r in over],  # above SATURATED_SHARE of the object
+        "notes": check.notes(),
+    }
+
+
+def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: bool = False,
+                     progress: Callable[[str, int], Callable[[int], None]] | None = None) -> dict:
+    """What a capture folder holds, as a JSON-ready dict. ``check``: also decode every file
+    (``check_pixels``) under the key ``check``; otherwise only headers and text files are read."""
     from psctl.io.capture import capture_notes, load_mask, open_capture
 
     cap = open_capture(path, encoding)
@@ -19,7 +83,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
     srgb = cap.srgb_images
     e = cap.intensities
     kinds = sorted(set(cap.kinds))  # from the headers open_capture read
-    return {
+    report = {
         "kind": "capture",
         "object": cap.name,
         "path": str(cap.path),
@@ -48,10 +112,17 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto") -> dict:
         "last_image": cap.image_paths[-1].name,
         "notes": capture_notes(cap),  # what normals, lights and depth will say about how they read it
     }
+    if check:
+        bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
+        report["check"] = check_pixels(cap, mask, bar)
+    return report
 
 
-def describe(path: str | os.PathLike, encoding: str = "auto") -> dict:
-    """A capture folder's description, or a benchmark root's with one entry per object."""
+def describe(path: str | os.PathLike, encoding: str = "auto", check: bool = False,
+             progress: Callable[[str, int], Callable[[int], None]] | None = None) -> dict:
+    """A capture folder's description, or a benchmark root's with one entry per object.
+    ``check``: decode every file too (``check_pixels``); ``progress``: a factory as
+    psctl.api.ProgressFactory, used only by the check."""
     from psctl.io.capture import find_objects, is_benchmark_root
 
     path = Path(path)
@@ -59,8 +130,8 @@ def describe(path: str | os.PathLike, encoding: str = "auto") -> dict:
         raise PsctlError(path, "folder does not exist")
     if is_benchmark_root(path):
         return {"kind": "benchmark", "path": str(path),
-                "objects": [describe_capture(f, encoding) for f in find_objects(path)]}
-    return describe_capture(path, encoding)
+                "objects": [describe_capture(f, encoding, check, progress) for f in find_objects(path)]}
+    return describe_capture(path, encoding, check, progress)
 
 
 def escape(text: object) -> str:
@@ -84,14 +155,24 @@ def render_info(report: dict) -> None:
         con.print(escape(f"benchmark root {report['path']}"), highlight=False, soft_wrap=True)
         t = Table()
         extra = any(o.get("encoding", "linear") != "linear" or o.get("ambient") for o in report["objects"])
+        checked = all("check" in o for o in report["objects"])
         for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth") + (
-                ("encoding", "ambient") if extra else ()):
+                ("encoding", "ambient") if extra else ()) + (("median", "saturated") if checked else ()):
             t.add_column(col)
         for o in report["objects"]:
+            c = o.get("check")
             t.add_row(escape(o["object"]), str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
                       "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", escape(o["ground_truth"] or "-"),
-                      *((o.get("encoding", "linear"), escape(o.get("ambient") or "-")) if extra else ()))
+                      *((o.get("encoding", "linear"), escape(o.get("ambient") or "-")) if extra else ()),
+                      *((f"{c['mean_range'][1]:.3g}", str(len(c["saturated_images"]))) if checked else ()))
         con.print(t)
+        if checked:
+            con.print(f"check: every file decoded, none damaged; median: the median over images of the mean "
+                      f"linear value over the object; saturated: images with over {SATURATED_SHARE:.0%} of the object "
+                      f"at the top code value", highlight=False, soft_wrap=True)
+            for o in report["objects"]:
+                for note in o["check"]["notes"]:
+                    con.print(f"[yellow]note:[/] {escape(o['object'])}: {escape(note)}", highlight=False, soft_wrap=True)
         return
     r = report
     con.print(escape(f"{r['object']}  ({r['path']})"), highlight=False, soft_wrap=True)
@@ -120,9 +201,31 @@ def render_info(report: dict) -> None:
     for note in r.get("notes", []):
         if not note.startswith(("ambient:", "encoding:")):  # those two are rows above
             con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    if "check" in r:
+        _render_check(con, r["check"])
+        return
     # info is quick because it reads headers: a damaged image shows only when it is decoded
-    con.print("[dim]headers read; the pixels are decoded (and checked) by normals, lights and depth[/]",
+    con.print("[dim]headers read; --check decodes every file (normals, lights and depth do as they read)[/]",
               highlight=False, soft_wrap=True)
+
+
+def _render_check(con, c: dict) -> None:
+    lo, med, hi = c["mean_range"]
+    con.print(f"check: every file decoded in {c['seconds']:.1f} s, none damaged; mean linear value over the object "
+              f"{lo:.3g} .. {hi:.3g} (median {med:.3g}) across images", highlight=False, soft_wrap=True)
+    sat = [r["saturated"] for r in c["images"] if r["saturated"] is not None]
+    if c["saturated_images"]:
+        worst = max(c["images"], key=lambda r: r["saturated"] or 0.0)
+        names = ", ".join(c["saturated_images"][:3]) + (" ..." if len(c["saturated_images"]) > 3 else "")
+        con.print(escape(f"saturated: {len(c['saturated_images'])} of {len(c['images'])} images have over "
+                         f"{SATURATED_SHARE:.0%} of the object at the top code value ({names}; most: {worst['image']}, "
+                         f"{worst['saturated']:.1%})"), highlight=False, soft_wrap=True)
+    elif sat and max(sat) > 0:
+        con.print(f"saturated: at most {max(sat):.2%} of the object in any image", highlight=False, soft_wrap=True)
+    elif sat:
+        con.print("saturated: no pixel of the object at the top code value", highlight=False, soft_wrap=True)
+    for note in c["notes"]:
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
 
 
 def _fmt(x: float | None) -> str:
