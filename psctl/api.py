@@ -303,7 +303,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
-    [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth) and "spread"
+    [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth; 0 outside the mask,
+    NaN on mask pixels whose ground truth is zero or NaN, which the metrics leave out) and "spread"
     [H, W] degrees (None but for the ensemble).
     """
     from dataclasses import replace
@@ -462,6 +463,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if not valid.any():
             raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
         error = np.zeros(mask.shape, np.float32)
+        error[mask & ~valid] = np.nan  # no ground truth there: the maps show it apart from 0 degrees
         error[valid] = angular_error(normals, gt, valid)
         stats = summarize(error[valid])
         n_eval = int(valid.sum())
@@ -470,7 +472,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     seconds = time.perf_counter() - t0
     report = {
         "object": cap.name,
-        "path": str(cap.path),
+        "path": os.path.abspath(cap.path),  # report.json is read from elsewhere
         "method": method,
         "calibrated": cap.calibrated,
         "n_images": cap.n_images,
@@ -503,7 +505,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     # --- write ---------------------------------------------------------------------------------
     if write:
-        report["outputs"] = {_output_key(n): str(out_dir / n) for n in names}
+        report["outputs"] = {_output_key(n): os.path.abspath(out_dir / n) for n in names}
         staging = staged_outputs(out_dir, stale) if batch is None else \
             contextlib.nullcontext(batch.stage(out_dir, stale).path)
         with staging as stage:
@@ -598,6 +600,7 @@ def read_outputs_list(out_dir: Path) -> list[str]:
 
 
 def _output_key(filename: str) -> str:
-    """normal.png -> normal_png, error.png -> error, report.json -> report."""
+    """normal.png -> normal_png, normal_8bit.png -> normal_8bit_png (the normal maps: one key per
+    format); error.png -> error, spread.png -> spread, report.json -> report (one file each)."""
     stem, ext = filename.rsplit(".", 1)
-    return stem if stem in ("error", "report") else f"{stem}_{ext}"
+    return stem if stem in ("error", "spread", "report") else f"{stem}_{ext}"

@@ -753,7 +753,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     z = res.depth[valid]
     report = {
         "object": cap.name,
-        "path": str(cap.path),
+        "path": os.path.abspath(cap.path),
         "method": method,
         "projection": res.projection,
         "intrinsics": k_source,
@@ -808,7 +808,7 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
     from psctl.io.mesh import write_ply
     from psctl.io.report import write_json
 
-    report["outputs"] = {name.replace(".", "_"): str(out_dir / name) for name in OUTPUTS}
+    report["outputs"] = {name.replace(".", "_"): os.path.abspath(out_dir / name) for name in OUTPUTS}
     with staged_outputs(out_dir) as stage:
         write_image(stage / "depth.exr", depth.astype(np.float32), "float", kind="data")
         write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")

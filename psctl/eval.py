@@ -148,7 +148,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                     f"outputs: {out} also holds {', '.join(earlier[:5])}{' ...' if len(earlier) > 5 else ''} from an "
                     f"earlier run, not in this run's eval.json and eval.png (left as they are)")
         if batch is not None:
-            result["outputs"] = {"eval.png": str(Path(out) / "eval.png"), "eval.json": str(Path(out) / "eval.json")}
+            result["outputs"] = {"eval.png": os.path.abspath(Path(out) / "eval.png"),
+                                 "eval.json": os.path.abspath(Path(out) / "eval.json")}
             stage = batch.stage(out).path
             title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
@@ -166,7 +167,7 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
     paper = PAPER_DILIGENT.get(paper_method, {}) if benchmark == "diligent" else {}
     result = {
         "benchmark": benchmark,
-        "root": str(root),
+        "root": os.path.abspath(root),
         "method": used_method,
         "objects": objects,
         "mean_mae": float(np.mean([o["mae"] for o in objects])),

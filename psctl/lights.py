@@ -949,7 +949,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,
-        "path": str(cap.path),
+        "path": os.path.abspath(cap.path),
         "n_images": cap.n_images,
         "light_mae": errors["light_mae"],
         "intensity_re": errors["intensity_re"],
@@ -965,9 +965,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "notes": picked + est.notes,
     }
     if write:
-        report["outputs"] = {k: str(out_dir / v) for k, v in OUTPUT_FILES.items()}
+        report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
         if subset:
-            report["outputs"]["light_images"] = str(out_dir / SUBSET_FILE)
+            report["outputs"]["light_images"] = os.path.abspath(out_dir / SUBSET_FILE)
         elif (out_dir / SUBSET_FILE).is_file():
             report["notes"].append(f"outputs: removed {SUBSET_FILE}, left by an earlier psctl lights --images run "
                                    "(these light files have a row for every image)")

@@ -765,7 +765,7 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     assert sp["mean"] == pytest.approx(angle.mean(), abs=0.05) and sp["p90"] == pytest.approx(
         np.percentile(angle, 90), abs=0.05)
     assert r["mae"] is not None and sp["mae_top10"] is not None and sp["mae_rest"] is not None  # ground truth
-    assert sorted(r["outputs"]) == ["error", "normal_exr", "normal_png", "report", "spread_png"]
+    assert sorted(r["outputs"]) == ["error", "normal_exr", "normal_png", "report", "spread"]
     assert read_image(tmp_path / "a2" / "spread.png")[0].shape[2] == 3
     assert "spread" not in json.loads((tmp_path / "ps-fcn" / "report.json").read_text())
     assert not (tmp_path / "ps-fcn" / "spread.png").exists()

@@ -759,10 +759,22 @@ def test_score_skips_pixels_without_gt(tmp_path):
     holes = np.argwhere(arrays["mask"])[::7]
     gt[holes[:, 0], holes[:, 1]] = 0
     scipy.io.savemat(tmp_path / "obj" / "Normal_gt.mat", {"Normal_gt": gt})
-    holed = run_normals(tmp_path / "obj", method="l2", write=False)
+    got: dict = {}
+    holed = run_normals(tmp_path / "obj", method="l2", out=tmp_path / "out", arrays=got)
     assert holed["n_mask_pixels"] == full["n_mask_pixels"] == int(arrays["mask"].sum())
     assert holed["n_evaluated_pixels"] == full["n_evaluated_pixels"] - len(holes)
     assert holed["mae"] < 1.0  # Lambertian sphere, L2: near exact on the scored pixels, no 90s
+    # the error array and error.png keep them apart from a perfect pixel: NaN, drawn grey
+    err = got["error"]
+    assert np.isnan(err[holes[:, 0], holes[:, 1]]).all() and np.isnan(err).sum() == len(holes)
+    assert (err[~arrays["mask"]] == 0).all()
+    from psctl.io.images import read_image
+    from psctl.io.report import UNSCORED
+
+    pic, _ = read_image(tmp_path / "out" / "error.png")
+    top = pic.shape[0] - 36 - 4  # error_heatmap: the title's band above the map, 4 px below (s = 1)
+    grey = np.abs(pic[top:top + 36, :36] - UNSCORED).max(-1) < 1 / 255
+    assert (grey == np.isnan(err)).all()
 
 
 def test_black_capture_is_an_error_for_ps_fcn_n(tmp_path):

@@ -111,15 +111,26 @@ def _degree_labels(vmax: float) -> dict[float, str]:
     return {frac: f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°" for frac in (0.0, 1 / 3, 2 / 3, 1.0)}
 
 
+UNSCORED = 0.5  # grey: a mask pixel without a value (no ground truth there), apart from jet's 0 (dark blue)
+
+
+def heat(values: np.ndarray, mask: np.ndarray, vmax: float) -> np.ndarray:
+    """[H, W] values -> [H, W, 3]: jet over 0..vmax inside ``mask``, black outside, grey where NaN."""
+    v = np.asarray(values, np.float32)
+    img = np.where(np.isnan(v)[..., None], np.float32(UNSCORED), jet(np.nan_to_num(v) / vmax))
+    return np.where(np.asarray(mask, bool)[..., None], img, 0.0).astype(np.float32)
+
+
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
                   title: str | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
-    dark background, a colour bar with tick labels on the right, ``title`` on top."""
+    dark background (grey: NaN, a mask pixel without ground truth), a colour bar with tick
+    labels on the right, ``title`` on top."""
     h, w = error.shape
     s = max(1, min(h, w) // 200)
     top, bar_w, right = 12 * s, 10 * s, 44 * s
     canvas = np.full((h + top + 4 * s, max(w + right, 8 + 6 * s * len(title or ""), 1), 3), 0.12, np.float32)
-    img = np.where(mask[..., None], jet(error / vmax), 0.0)
+    img = heat(error, mask, vmax)
     canvas[top:top + h, :w] = img
     colour_bar(canvas, top, w + 4 * s, h, bar_w, _degree_labels(vmax), s)
     if title:
@@ -129,7 +140,8 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
 
 def write_error_map(path: str | os.PathLike, error: np.ndarray, mask: np.ndarray,
                     mae: float | None = None, median: float | None = None, vmax: float = 45.0) -> None:
-    """error: [H, W] degrees (any value outside the mask). Writes an 8-bit RGB PNG."""
+    """error: [H, W] degrees (any value outside the mask; NaN inside: no ground truth there,
+    drawn grey). Writes an 8-bit RGB PNG."""
     title = None
     if mae is not None:
         title = f"MAE {mae:.2f}°" + (f"  MEDIAN {median:.2f}°" if median is not None else "")
@@ -175,7 +187,7 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     w = max(1, min(3 * height, round(m.shape[1] * height / m.shape[0])))
     nmap = np.where(m, (np.clip(np.asarray(normals[box], np.float32), -1, 1) + 1) / 2, 0.0)
     maps = {key: None if a is None else
-            _resize_nearest(np.where(m, jet(np.asarray(a[box], np.float32) / top), 0.0), h, w).astype(np.float32)
+            _resize_nearest(heat(a[box], m[..., 0], top), h, w)
             for key, a, top in (("error", error, vmax), ("spread", spread, SPREAD_VMAX))}
     return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32), **maps}
 
