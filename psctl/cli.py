@@ -120,12 +120,48 @@ def _fail(message: str) -> None:
     raise typer.Exit(2)
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a scheduler's timeout, a closed terminal), raised where the program is,
+    so that it unwinds as from Ctrl-C: staged outputs are discarded or put back, never half
+    moved. A KeyboardInterrupt, so that whatever cleans up after Ctrl-C cleans up after it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise _Terminated(signum)
+
+
+@contextlib.contextmanager
+def _on_termination() -> Iterator[None]:
+    """Python's default for SIGTERM and SIGHUP is to die at once, skipping every cleanup."""
+    import signal
+
+    old = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)  # no SIGHUP on Windows
+        if sig is None:
+            continue
+        try:
+            old[sig] = signal.signal(sig, _raise_terminated)
+        except ValueError:  # not the main thread (psctl's CLI run from a thread): leave them
+            pass
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 @contextlib.contextmanager
 def _user_errors() -> Iterator[None]:
     from psctl.errors import PsctlError
 
     try:
-        yield
+        with _on_termination():
+            yield
     except PsctlError as e:
         _fail(str(e))
     except OSError as e:
@@ -134,6 +170,9 @@ def _user_errors() -> Iterator[None]:
         # the system refused a path (too long, permission denied, disk full, ...): the user's to fix
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
         _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
+    except _Terminated as e:
+        _stderr().print("terminated")
+        raise typer.Exit(128 + e.signum) from None
     except KeyboardInterrupt:
         _stderr().print("interrupted")
         raise typer.Exit(130) from None

@@ -279,7 +279,7 @@ def network_inputs(batch: dict, lights: bool, normalization: str) -> tuple[torch
 
 
 class _Stop:
-    """SIGINT/SIGTERM set a flag; the loop checkpoints and leaves at the next step."""
+    """SIGINT/SIGTERM/SIGHUP set a flag; the loop checkpoints and leaves at the next step."""
 
     def __init__(self) -> None:
         self.requested = False
@@ -289,7 +289,9 @@ class _Stop:
         self._old: dict[int, Any] = {}
 
     def __enter__(self) -> "_Stop":
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):  # no SIGHUP on Windows
+            if sig is None:
+                continue
             try:
                 self._old[sig] = signal.signal(sig, self._handle)
             except ValueError:  # not in the main thread

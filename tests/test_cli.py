@@ -169,6 +169,28 @@ def test_info_check_decodes_every_file(tmp_path):
     assert "(and 2 more damaged: 004.png, 006.png)" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_termination_while_writing_leaves_nothing(capture, tmp_path, monkeypatch, signame):
+    """A scheduler's SIGTERM (or a closed terminal's SIGHUP) unwinds as Ctrl-C does: the staged
+    files are discarded, and the output folder and the parents the run created are removed."""
+    import signal
+
+    import psctl.io.report
+
+    sig = getattr(signal, signame)
+    write = psctl.io.report.write_error_map
+
+    def killed(*args, **kwargs):
+        write(*args, **kwargs)
+        os.kill(os.getpid(), sig)  # the handler raises here, mid-way through the outputs
+
+    monkeypatch.setattr(psctl.io.report, "write_error_map", killed)
+    before = signal.getsignal(sig)
+    proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "a" / "b" / "out")
+    assert proc.returncode == 128 + sig and proc.stderr.strip() == "terminated"
+    assert not (tmp_path / "a").exists() and signal.getsignal(sig) == before  # handler restored
+
+
 def test_eval_on_a_folder_of_objects(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     write_capture(tmp_path / "root" / "bPNG", n=6, seed=2)

@@ -111,6 +111,26 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def missing_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first: what creating
+    ``path`` creates, and what ``remove_empty`` takes away again after a failed run."""
+    missing = []
+    while not os.path.lexists(path) and path.parent != path:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def remove_empty(folders: Iterable[Path]) -> None:
+    """Remove each folder, deepest first, while it is empty (a folder holding anything, or a
+    failure, stops there: nothing but empty folders is ever removed)."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 class Staging:
     """Files written into a hidden folder inside ``out_dir``, then moved into ``out_dir`` together.
 
@@ -124,7 +144,7 @@ class Staging:
 
     def __init__(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> None:
         self.out_dir = Path(out_dir)
-        self.created = not self.out_dir.exists()
+        self.created = missing_folders(self.out_dir)  # removed again (when empty) if the run fails
         ensure_writable_dir(self.out_dir)
         self.path = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=self.out_dir))
         self.replaces = tuple(replaces)
@@ -186,14 +206,13 @@ class Staging:
                                                       "they are here; move them back by hand")
 
     def discard(self, remove_created: bool = True) -> None:
-        """Remove the staging folder (and what commit set aside), and ``out_dir`` too when this
-        staging created it and nothing else is in it; nothing when ``keep``."""
+        """Remove the staging folder (and what commit set aside), and ``out_dir`` and the parents
+        this staging created too when nothing else is in them; nothing when ``keep``."""
         if self.keep:
             return
         shutil.rmtree(self.path, ignore_errors=True)
-        if remove_created and self.created:
-            with contextlib.suppress(OSError):
-                self.out_dir.rmdir()
+        if remove_created:
+            remove_empty(self.created)
 
 
 @contextlib.contextmanager
@@ -220,7 +239,7 @@ class OutputBatch:
 
     def __init__(self, root: str | os.PathLike) -> None:
         self.root = Path(root)
-        self.created = not self.root.exists()
+        self.created = missing_folders(self.root)
         self.stagings: list[Staging] = []
 
     def stage(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Staging:
@@ -255,6 +274,5 @@ class OutputBatch:
         finally:
             for s in self.stagings:
                 s.discard(remove_created=not ok)
-            if not ok and self.created:
-                with contextlib.suppress(OSError):
-                    self.root.rmdir()
+            if not ok:
+                remove_empty(self.created)
