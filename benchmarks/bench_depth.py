@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -35,6 +33,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 BALL = REPO.parent / "shared" / "data" / "diligent" / "pmsData" / "ballPNG"
 
 
@@ -181,8 +180,9 @@ def main() -> None:
         child(*args.child)
         return
 
-    result = {"date": datetime.date.today().isoformat(), "machine": f"{platform.processor() or platform.machine()}, "
-              f"{os.cpu_count()} CPUs, {platform.python_version()}", "accuracy": accuracy(), "speed": []}
+    from machine import machine
+
+    result = {"date": datetime.date.today().isoformat(), "machine": machine(), "accuracy": accuracy(), "speed": []}
     print(f"{'case':32s} {'noise':>5s} {'method':9s} {'RMSE % range':>12s} {'rounds':>6s} {'CG':>5s}")
     for r in result["accuracy"]:
         print(f"{r['case']:32s} {r['noise_deg']:5.0f} {r['method']:9s} {r['rmse_pct_of_range']:12.4f} "

@@ -4,7 +4,8 @@ Not a test: run it by hand and copy the table into docs/performance.md with the 
 
     python benchmarks/bench_infer.py                       # CPU, all configurations
     python benchmarks/bench_infer.py --device cuda         # on a GPU machine
-    python benchmarks/bench_infer.py --counts 96 --naive ""   # just the 96-image end-to-end run
+    python benchmarks/bench_infer.py --counts 96 --naive "" --large 0   # the 96-image end-to-end
+                                                       # run and its model-only child
 
 What it runs, each configuration in a fresh process (peak RSS = that process's ru_maxrss, read by
 a small wrapper process through RUSAGE_CHILDREN; wall = the whole command):
@@ -28,16 +29,17 @@ method is ps-fcn-n (+N, two passes over the images) unless ``--method ps-fcn``.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import machine  # noqa: E402  (re-exported: the other benchmarks import it from here)
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "diligent" / "pmsData" / "ballPNG"
@@ -202,20 +204,6 @@ def large(side: int, n: int, tile: int) -> None:
     t0 = time.perf_counter()
     res = run_network(model, reader, n, lights, np.ones((side, side), bool), "per-channel", 32, {"tile": tile})
     print(json.dumps({"model_s": round(time.perf_counter() - t0, 2), "info": res.info}))
-
-
-def machine() -> dict:
-    import torch
-
-    from psctl.train import cpu_name
-
-    cpu = cpu_name()
-
-    info = {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "python": platform.python_version(), "date": datetime.date.today().isoformat()}
-    if torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(0)
-    return info
 
 
 def main() -> None:

@@ -5,6 +5,7 @@ Not a test: run it by hand; the memory table goes into docs/performance.md and t
 comparison into docs/uncalibrated.md, with the machine and date.
 
     python benchmarks/bench_lights.py                          # psctl lights on 96, 288, 960 images
+    python benchmarks/bench_lights.py --counts 96 --views 8 --refine   # psctl lights' defaults
     python benchmarks/bench_lights.py --counts "" --decode runs/lcnet/best.pt   # decoding only
 
 Memory: ``psctl lights`` end to end (reading the images, LCNet, writing the three files) on the
@@ -13,9 +14,13 @@ bench_infer.py), each in a fresh process (peak RSS through bench_infer's wrapper
 seeded random weights: time and memory do not depend on their values. The global feature is
 a running max and at most ``cache_mb`` (64 MB, ~1000 images) of per-image features are kept,
 so RSS should stay flat; 960 images also exercise the second read (more than the cache).
+By default LCNet alone, one view (``--views 1``, no refinement): the table of 2026-11-22 in
+docs/performance.md. ``psctl lights``' own defaults are 8 views and the refinement against the
+installed PS-FCN's normals (``--views 8 --refine``), several times the work; each row records
+its configuration.
 
 Decoding (``--decode WEIGHTS``): the same LCNet decoded by argmax (class centres, the paper)
-and by soft-argmax, on (a) a held-out synthetic set from the recipe's data distribution (seed
+and by soft-argmax, LCNet alone (one view, no refinement), on (a) a held-out synthetic set from the recipe's data distribution (seed
 2,000,003, never used for training or validation) and (b) the DiLiGenT dev split when
 ../shared/data is present (``--diligent``). Light direction MAE (degrees) and intensity RE
 (scale-invariant, per object) for both.
@@ -81,7 +86,7 @@ def diligent_decoding(weights: Path, root: Path, device: str) -> dict:
     out: dict = {"argmax": {}, "soft": {}}
     for folder in find_objects(root):
         for mode in out:
-            r = run_lights(folder, weights=weights, device=device, decode=mode, write=False)
+            r = run_lights(folder, weights=weights, device=device, decode=mode, views=1, refine=False, write=False)
             out[mode][r["object"]] = {"light_mae": r["light_mae"], "intensity_re": r["intensity_re"]}
     return out
 
@@ -95,7 +100,10 @@ def main() -> None:
     ap.add_argument("--config", type=Path, default=REPO / "configs" / "lcnet.yaml", help="recipe whose data section makes the synthetic set")
     ap.add_argument("--samples", type=int, default=256, help="synthetic samples for --decode")
     ap.add_argument("--images", type=int, default=32, help="images per synthetic sample for --decode")
-    ap.add_argument("--diligent", type=Path, default=DEFAULT_DILIGENT, help="DiLiGenT root for --decode ('' to skip)")
+    ap.add_argument("--diligent", default=str(DEFAULT_DILIGENT), help="DiLiGenT root for --decode ('' to skip)")
+    ap.add_argument("--views", type=int, default=1, choices=(1, 2, 4, 8), help="psctl lights --views for the memory runs")
+    ap.add_argument("--refine", action="store_true", help="memory runs: refine the lights against the installed "
+                    "PS-FCN (psctl lights' default; off: LCNet alone)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
 
@@ -107,6 +115,9 @@ def main() -> None:
     results: dict = {"machine": machine(), "runs": []}
     print(json.dumps(results["machine"]))
     counts = [int(c) for c in args.counts.split(",") if c]
+    diligent = Path(args.diligent) if args.diligent.strip() else None  # Path("") would be the current folder
+    if args.decode and diligent is not None and not diligent.is_dir():
+        raise SystemExit(f"{diligent}: not found (pass --diligent FOLDER, or '' to skip)")
     if counts:
         if not args.data.is_dir():
             raise SystemExit(f"{args.data}: not found (pass --data FOLDER)")
@@ -118,9 +129,12 @@ def main() -> None:
             for n in counts:
                 folder = repeat_folder(args.data, tmp / f"obj{n}", n)
                 out = run_measured(["psctl", "lights", str(folder), "-w", str(weights), "--device", args.device,
-                                    "-o", str(tmp / f"out{n}"), "-q", "--json"])
+                                    "-o", str(tmp / f"out{n}"), "-q", "--json", "--views", str(args.views),
+                                    "--refine" if args.refine else "--no-refine"])
                 rep = json.loads(out["stdout"])
-                row = {"name": "psctl lights (streaming)", "images": n, "wall_s": out["wall_s"],
+                name = f"psctl lights, {args.views} view{'s' if args.views > 1 else ''}" + (
+                    ", refined" if args.refine else ", LCNet alone")
+                row = {"name": name, "views": args.views, "refine": args.refine, "images": n, "wall_s": out["wall_s"],
                        "peak_rss_mb": out["peak_rss_mb"], "reported_s": rep["seconds"],
                        "load_avg_1m": round(os.getloadavg()[0], 2)}
                 results["runs"].append(row)
@@ -139,8 +153,8 @@ def main() -> None:
         for mode, r in syn.items():
             print(f"  {mode:6s} light MAE {r['light_mae']:.2f}°  intensity RE {r['intensity_re']:.4f}  "
                   f"({r['samples']} samples x {r['images_per_sample']} images)")
-        if str(args.diligent) and args.diligent.is_dir():
-            dil = diligent_decoding(args.decode, args.diligent, args.device)
+        if diligent is not None:
+            dil = diligent_decoding(args.decode, diligent, args.device)
             results["decode_diligent"] = dil
             objs = list(dil["argmax"])
             print(f"\n| decoding | {' | '.join(objs)} | mean |\n|---|{'---:|' * (len(objs) + 1)}")

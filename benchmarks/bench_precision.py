@@ -30,7 +30,12 @@ def main() -> None:
     ap.add_argument("--weights", default=None, help="weights file (default: the installed ones)")
     args = ap.parse_args()
 
-    from psctl.infer import capture_normals
+    from psctl.infer import capture_normals, cpu_has_bf16
+
+    if not cpu_has_bf16():  # checked first: the float32 pass alone takes half a minute
+        raise SystemExit("this CPU has no native bf16 (AVX512-BF16 or AMX): nothing to compare")
+    if not DILIGENT.is_dir():
+        raise SystemExit(f"{DILIGENT}: not found (needs ../shared/data)")
     from psctl.io.capture import load_ground_truth, load_mask, open_capture
     from psctl.metrics import angular_error
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -30,6 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def _sync(device: torch.device) -> None:
@@ -170,9 +170,10 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     skip = set(filter(None, args.skip.split(",")))
-    machine = {"device": torch.cuda.get_device_name(0) if device.type == "cuda" else platform.processor() or platform.machine(),
-               "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
-               "date": time.strftime("%Y-%m-%d %H:%M"), "loadavg_before": os.getloadavg()}
+    from machine import machine as describe_machine
+
+    machine = {**describe_machine(), "device": str(device), "date": time.strftime("%Y-%m-%d %H:%M"),
+               "loadavg_before": os.getloadavg()}
     results = []
     if "stream" not in skip:
         results.append(bench_stream(args, device))

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def step_rate(net: str, device: torch.device, dtype: str, channels_last: bool, args) -> float:
@@ -101,8 +101,9 @@ def main() -> None:
 
     device = torch.device(args.device)
     has_bf16 = amp_settings("bf16", device)[0]
-    out = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-           "threads": torch.get_num_threads(), "torch": torch.__version__, "device": str(device),
+    from machine import machine
+
+    out = {"machine": machine(), "threads": torch.get_num_threads(), "device": str(device),
            "net": args.net, "batch": args.batch, "images": args.images, "size": args.size, "keep_freed_memory": kept,
            "loadavg_before": os.getloadavg()[0], "samples_per_s": {}}
     if device.type == "cuda":

@@ -42,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_infer import machine  # noqa: E402
+from eval_weights import make_set  # noqa: E402
+from machine import machine  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DILIGENT = REPO.parent / "shared" / "data" / "diligent" / "pmsData_crop"
@@ -102,7 +103,8 @@ def folders(weights: Path, root: Path, device: str, decode: str, views: int) -> 
 
     rows = {}
     for folder in find_objects(root):
-        r = run_lights(folder, weights=weights, device=device, decode=decode, views=views, write=False)
+        # LCNet alone: refine=False, else its lights are refined against the installed PS-FCN normals
+        r = run_lights(folder, weights=weights, device=device, decode=decode, views=views, refine=False, write=False)
         rows[r["object"]] = {"light_mae": r["light_mae"], "intensity_re": r["intensity_re"]}
     rows["mean"] = {k: float(np.mean([v[k] for v in rows.values()])) for k in ("light_mae", "intensity_re")}
     return rows
@@ -128,12 +130,13 @@ def main() -> None:
                 lights = {"lights": STREAM_SETS[s][0], "max_zenith": None, "intensities": STREAM_SETS[s][1]}
                 for v, r in synthetic(w, lights, args.samples, args.device, args.decode, args.views).items():
                     res[v][s] = r
-            elif not FOLDERS[s].is_dir():
-                print(f"{s}: {FOLDERS[s]} not found, skipped", file=sys.stderr)
-                continue
-            else:
+            elif s != "dev" or FOLDERS[s].is_dir():
+                root = FOLDERS[s] if s == "dev" else make_set(s)  # a missing synthetic folder is made first
                 for v in args.views:
-                    res[v][s] = folders(w, FOLDERS[s], args.device, args.decode, v)
+                    res[v][s] = folders(w, root, args.device, args.decode, v)
+            else:
+                print(f"{s}: {FOLDERS[s]} not found (../shared/data), skipped", file=sys.stderr)
+                continue
             for v in args.views:
                 r = res[v][s] if "light_mae" in res[v][s] else res[v][s]["mean"]
                 print(json.dumps({"weights": str(w), "views": v, "set": s, "light_mae": round(r["light_mae"], 3),

@@ -60,6 +60,10 @@ SYNTH = {  # set -> (folder, how to make it: psctl synth arguments, or a miscali
     "syntest_dl_dircal": (CACHE / "syntest_dl_dircal", ["miscal", "--directions", "--seed", "52"]),
     "syntest_dl_near": (CACHE / "syntest_dl_near", ["synth", *DL, "--light-distance", "1000"]),
     "syntest_dl_384": (CACHE / "syntest_dl_384", ["synth", *DL, "--size", "384"]),
+    # the uncalibrated sets (eval_lcnet.py, refine_images.py; docs/uncalibrated.md)
+    "syntest_dl_dir": (CACHE / "syntest_dl_dir", ["synth", *DL, "--intensities", "directional"]),
+    "syntest_dl_mix31": (CACHE / "syntest_dl_mix31", ["synth", *DL, "--seed", "31", "--intensities", "mixed"]),
+    "syntest_dl_mix81": (CACHE / "syntest_dl_mix81", ["synth", *DL, "--seed", "81", "--intensities", "mixed"]),
 }
 RULE = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal")
 SETS = ("val", "syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",

@@ -29,7 +29,8 @@ def main() -> None:
 
     means = {v: [] for v in VARIANTS}
     if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help"):
-        sys.exit(__doc__)
+        print(__doc__)
+        sys.exit(0 if len(sys.argv) > 1 else 2)
     for root in sys.argv[1:]:
         errs = {v: [] for v in VARIANTS}
         for folder in find_objects(root):

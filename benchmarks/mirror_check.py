@@ -18,6 +18,9 @@ from psctl.lights import mirror_ratio
 
 
 def main() -> None:
+    if len(sys.argv) < 3 or sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        sys.exit(0 if sys.argv[1:2] in (["-h"], ["--help"]) else 2)
     methods = sys.argv[1].split(",")
     for path in sys.argv[2:]:
         cap = open_capture(path)

@@ -45,6 +45,8 @@ def main() -> None:
     ap.add_argument("--out")
     args = ap.parse_args()
     weights = args.weights or [None] * len(args.methods)
+    if len(weights) != len(args.methods):  # zip would drop the methods without a file
+        raise SystemExit(f"--weights: {len(weights)} files for {len(args.methods)} --methods; give one per method")
     variants = ([] if args.no_float else ["float"]) + [f"8bit@{m:g}" for m in args.means]
     rows: dict = {}
     for folder in find_objects(args.root):

@@ -46,7 +46,12 @@ def main() -> None:
     args.ks = sorted(set(args.ks))
     result: dict = {"ks": args.ks, "folders": {}, "dev": {}}
     t0 = time.perf_counter()
-    sets = [(f, "folder", REPO / ".cache" / f) for f in FOLDERS] + ([("dev", "diligent", DEV)] if args.dev else [])
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from eval_weights import make_set  # a missing folder is made first (psctl synth, about 2 min each)
+
+    if args.dev and not DEV.is_dir():
+        raise SystemExit(f"{DEV}: not found (--dev needs ../shared/data)")
+    sets = [(f, "folder", make_set(f)) for f in FOLDERS] + ([("dev", "diligent", DEV)] if args.dev else [])
     for name, kind, root in sets:
         table = result["dev"] if name == "dev" else result["folders"].setdefault(name, {})
         for k in args.ks:
