@@ -11,6 +11,21 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+@pytest.fixture(autouse=True)
+def _isolated(monkeypatch):
+    """Each test as on a fresh clone: the installed weights are the repository's (a developer's
+    $PSCTL_WEIGHTS would change what auto picks, and tests that set it put the user's value back
+    through monkeypatch), and torch's thread count as it was (some tests set it)."""
+    import sys
+
+    monkeypatch.delenv("PSCTL_WEIGHTS", raising=False)
+    torch = sys.modules.get("torch")
+    threads = torch.get_num_threads() if torch is not None else None
+    yield
+    if threads is not None:
+        torch.set_num_threads(threads)
+
+
 def shared_data(*parts: str) -> Path:
     """A path under ../shared/data, or skip the test when the data is not there."""
     p = SHARED_DATA.joinpath(*parts)

@@ -108,6 +108,20 @@ def test_given_lights_are_not_dropped(data, tmp_path):
         estimate_normals(images, lights, mask, method="ups-fcn", weights=tmp_path / "u.pt")
 
 
+def test_angular_error_and_summary_values():
+    """Known angles (sign matters: a flipped normal is 180 degrees, not 0; lengths do not), and
+    the report's median and within-threshold fractions by value."""
+    from psctl.metrics import angular_error, summarize
+
+    z = np.array([0.0, 0.0, 1.0])
+    est = np.array([[0, 0, 2.0], [1, 0, 0], [0, 0, -1], [1, 0, 1], [0, 3, 3 * np.sqrt(3)]])
+    np.testing.assert_allclose(angular_error(est, np.tile(z, (5, 1))), [0, 90, 180, 45, 30], atol=1e-9)
+    s = summarize(np.array([1.0, 2.0, 20.0, 25.0, 50.0]))
+    assert s["mae"] == pytest.approx(19.6) and s["median"] == 20.0
+    assert s["within"] == {"11.25": 0.4, "22.5": 0.6, "30": 0.8}
+    assert summarize(np.array([11.25]))["within"]["11.25"] == 0.0  # strictly below the threshold
+
+
 def test_angular_error_checks_its_inputs():
     from psctl.metrics import angular_error
 
@@ -261,19 +275,14 @@ def test_integrate_takes_tensors_that_require_grad():
     assert z.shape == (8, 8) and np.isfinite(z).all()
 
 
-def _ps_fcn_file():
-    import tempfile
-    from pathlib import Path
-
+def _ps_fcn_file(folder):
     from psctl.models.ps_fcn import PSFCN
     from psctl.models.weights import save_weights
 
-    path = Path(tempfile.mkdtemp()) / "p.pt"
-    save_weights(path, PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    return path
+    return save_weights(folder / "p.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
 
 
-def test_top_level_functions_name_python_arguments(data):
+def test_top_level_functions_name_python_arguments(data, tmp_path):
     """psctl.X words its errors for Python callers; psctl.api.X (the CLI's) keeps the flags."""
     import psctl
 
@@ -294,7 +303,7 @@ def test_top_level_functions_name_python_arguments(data):
     assert pickle.loads(pickle.dumps(psctl.run_normals)) is psctl.run_normals  # for process pools
     with warnings.catch_warnings(record=True) as caught:  # the warning points at the caller's line
         warnings.simplefilter("always")
-        psctl.estimate_normals(images[:2], lights[:2], mask, method="ps-fcn", weights=_ps_fcn_file())
+        psctl.estimate_normals(images[:2], lights[:2], mask, method="ps-fcn", weights=_ps_fcn_file(tmp_path))
     assert [w.filename for w in caught if issubclass(w.category, psctl.errors.PsctlWarning)] == [__file__]
 
 
@@ -317,6 +326,19 @@ def test_python_wording(cli, python):
     from psctl.errors import python_wording
 
     assert python_wording(cli) == python
+
+
+def test_package_functions_word_their_notes_for_python(tmp_path):
+    """psctl.run_normals' notes name Python arguments; psctl.api.run_normals' (the CLI's) flags."""
+    import psctl
+    import psctl.api
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "o", n=6)
+    assert psctl.api.run_normals(tmp_path / "o", method="l2", seed=3, write=False)["notes"] == [
+        "images: --seed is unused without --images (all images used)"]
+    assert psctl.run_normals(tmp_path / "o", method="l2", seed=3, write=False)["notes"] == [
+        "images: seed is unused without n_images (all images used)"]
 
 
 def test_more_wrong_inputs_are_one_error(data, tmp_path):

@@ -438,3 +438,18 @@ def test_depth_estimates_the_normals_psctl_normals_gives(tmp_path, monkeypatch):
         r = D.run_depth(tmp_path / "cap", normals=tmp_path / "n.npy", out=tmp_path / "o")
     mesh = read_ply(tmp_path / "o" / "mesh.ply")
     np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=-1), 1.0, atol=1e-5)
+
+
+def test_depth_to_points_perspective_projects_back_to_its_pixels():
+    """Each point of a perspective depth map, projected with K (fx != fy, off-centre principal
+    point), lands on its own pixel, at distance -z along the view axis (x right, y up)."""
+    K = np.array([[800.0, 0, 30.5], [0, 500.0, 12.0], [0, 0, 1]])
+    depth = -np.linspace(900, 1100, 20 * 40, dtype=np.float32).reshape(20, 40)
+    p = depth_to_points(depth, K)
+    d = -p[..., 2]
+    rows, cols = np.mgrid[0:20, 0:40]
+    np.testing.assert_allclose(K[0, 0] * p[..., 0] / d + K[0, 2], cols, atol=1e-3)
+    np.testing.assert_allclose(-K[1, 1] * p[..., 1] / d + K[1, 2], rows, atol=1e-3)
+    assert p[0, -1, 0] > 0 and p[0, -1, 1] > 0  # top right of the principal point: x right, y up
+    o = depth_to_points(depth)  # orthographic: (col, -row, z)
+    assert (o[..., 0] == cols).all() and (o[..., 1] == -rows).all() and (o[..., 2] == depth).all()

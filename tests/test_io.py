@@ -187,6 +187,7 @@ def test_normal_map_round_trip(tmp_path, fmt, name, tol):
     back = read_normal_map(tmp_path / name)
     assert angular_error(back, n, m).max() < tol
     assert np.all(back[~m] == 0)
+    np.testing.assert_allclose(np.linalg.norm(back[m], axis=-1), 1.0, atol=1e-5)  # unit, as written
 
 
 def _png_chunks(path) -> list[str]:
@@ -245,6 +246,48 @@ def test_grey_alpha_mask_uses_grey(tmp_path):
     m = truth["mask"].astype(np.float32)
     write_image(folder / "mask.png", np.stack([m, np.ones_like(m)], -1), "uint8")  # grey + opaque alpha
     assert (load_mask(open_capture(folder)) == truth["mask"]).all()
+
+
+def test_mask_threshold_and_colours(tmp_path):
+    """Foreground: any colour channel above half of full scale (an anti-aliased edge of 40 %
+    stays out, one of 60 % is in; a red-only or blue-only drawing counts)."""
+    folder = tmp_path / "o"
+    write_capture(folder, size=40)
+    m = np.zeros((40, 40, 3), np.float32)
+    m[5:10, 5:10] = 0.4  # grey below the threshold
+    m[5:10, 20:25] = 0.6  # grey above
+    m[20:25, 5:10, 0] = 1.0  # red only
+    m[20:25, 20:25, 2] = 0.8  # blue only
+    write_image(folder / "mask.png", m, "uint8")
+    got = load_mask(open_capture(folder))
+    want = np.zeros((40, 40), bool)
+    want[5:10, 20:25] = want[20:25, 5:10] = want[20:25, 20:25] = True
+    assert (got == want).all()
+
+
+def test_light_files_with_commas_and_comments(tmp_path):
+    from psctl.io.capture import read_lights
+
+    f = tmp_path / "light_directions.txt"
+    f.write_text("# x, y, z\n0,0,1\n0.6, 0 ,0.8  # a comment\n\n-0.6 0 0.8\n")
+    np.testing.assert_allclose(read_lights(f), [[0, 0, 1], [0.6, 0, 0.8], [-0.6, 0, 0.8]], atol=1e-6)
+
+
+def test_atomic_path_keeps_the_old_file_when_writing_fails(tmp_path):
+    from psctl.io.atomic import atomic_path
+
+    target = tmp_path / "w.pt"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            assert tmp != target and tmp.parent == target.parent and tmp.suffix == ".pt"
+            tmp.write_bytes(b"half")
+            raise RuntimeError("disk full")
+    assert target.read_bytes() == b"old" and sorted(tmp_path.iterdir()) == [target]  # no temporary left
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(b"new")
+        assert target.read_bytes() == b"old"  # replaced only when the block ends
+    assert target.read_bytes() == b"new" and sorted(tmp_path.iterdir()) == [target]
 
 
 def _write_rgba_png(path, rgb, alpha):
@@ -824,3 +867,23 @@ def test_image_errors_keep_one_copy_of_each_message():
            "reader\nPNG library error\nPNG library error\n")
     assert _clean(msg) == "PNG read error: IDAT: Read error: hit end of file in png reader; PNG library error"
     assert _clean(None) == "" and _clean("  one\n  line ") == "one; line"
+
+
+def test_error_map_draws_the_errors(tmp_path):
+    """error.png: jet over 0..45 degrees (above 45 as 45), black outside the mask, grey where NaN
+    (no ground truth), the map below the title band, and the colour bar to its right."""
+    from psctl.io.report import UNSCORED, jet, write_error_map
+
+    err = np.tile(np.linspace(0, 60, 50, dtype=np.float32), (40, 1))  # 0..60 degrees left to right
+    mask = np.ones((40, 50), bool)
+    mask[:, :5] = False
+    err[30:, 20:30] = np.nan
+    write_error_map(tmp_path / "e.png", err, mask, 12.5, 10.0)
+    pic, info = read_image(tmp_path / "e.png")
+    assert info.dtype == "uint8" and pic.shape[1] > 50  # room for the bar
+    top = pic.shape[0] - 40 - 4
+    body = pic[top:top + 40, :50]
+    scored = mask & ~np.isnan(err)
+    np.testing.assert_allclose(body[scored], jet(np.minimum(err[scored], 45) / 45), atol=1 / 255)
+    assert (body[~mask] == 0).all() and (np.abs(body[30:, 20:30] - UNSCORED) < 1 / 255).all()
+    assert np.abs(body[0, 49] - body[0, 5]).max() > 0.5  # red at 60 degrees, blue at 0

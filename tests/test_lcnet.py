@@ -151,6 +151,18 @@ def test_soft_argmax_decoding():
         decode(logits, mode="median")
 
 
+def test_argmax_decoding_keeps_the_heads_apart():
+    """dir_x is azimuth and dir_y elevation: a light up and to the right of the view axis."""
+    logits = {"dir_x": torch.full((1, 36), -30.0), "dir_y": torch.full((1, 36), -30.0), "ints": torch.full((1, 20), -30.0)}
+    logits["dir_x"][0, 27] = logits["dir_y"][0, 21] = logits["ints"][0, 7] = 30.0
+    for mode in ("argmax", "soft"):
+        d, e = decode(logits, mode=mode)
+        theta, phi = dirs_to_angles(d[0])
+        assert float(theta) == pytest.approx(27.5 * 5 - 90, abs=1e-3)  # the bin centre: 47.5 degrees
+        assert float(phi) == pytest.approx(21.5 * 5 - 90, abs=1e-3)  # 17.5 degrees
+        assert float(d[0, 0]) > float(d[0, 1]) > 0 and float(e[0]) == pytest.approx(0.2 + 7.5 * 0.09, abs=1e-4)
+
+
 def test_loss_is_cross_entropy_on_the_three_heads():
     dirs = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0], [-0.5, 0.4, 0.7]]), dim=-1)
     ints = torch.tensor([0.5, 1.7])

@@ -386,6 +386,21 @@ def test_normalize_observations_sqrt_t_over_q(variant):
         torch.testing.assert_close(norm, torch.full_like(norm, expect))
 
 
+def test_weights_file_gives_q(tmp_path):
+    """PS-FCN+N's q comes from the file's train_images (a tiny recipe trains on 8 images)."""
+    from psctl.infer import array_normals
+
+    images, lights, mask = scene(8)
+    net = model()
+    got = {}
+    for q in (8, 32):
+        w = save_weights(tmp_path / f"n{q}.pt", net, {"method": "ps-fcn-n", "train_images": q})
+        got[q] = array_normals(images, lights, mask, "ps-fcn-n", w, {"device": "cpu"}).normals
+        ref = stream(images, lights, mask, net, normalization="per-channel", q=q)
+        np.testing.assert_allclose(got[q], ref, atol=1e-5)
+    assert np.abs(got[8] - got[32]).max() > 1e-3
+
+
 def test_engine_applies_sqrt_t_over_q():
     """+N in the engine == normalising the stack by hand (same q), then the plain network."""
     images, lights, mask = scene(8)
@@ -775,6 +790,11 @@ def test_score_skips_pixels_without_gt(tmp_path):
     top = pic.shape[0] - 36 - 4  # error_heatmap: the title's band above the map, 4 px below (s = 1)
     grey = np.abs(pic[top:top + 36, :36] - UNSCORED).max(-1) < 1 / 255
     assert (grey == np.isnan(err)).all()
+    from psctl.io.report import jet
+
+    scored = arrays["mask"] & ~np.isnan(err)  # drawn in jet over 0..45 degrees, black outside
+    np.testing.assert_allclose(pic[top:top + 36, :36][scored], jet(err[scored] / 45), atol=1 / 255)
+    assert (pic[top:top + 36, :36][~arrays["mask"]] == 0).all()
 
 
 def test_black_capture_is_an_error_for_ps_fcn_n(tmp_path):

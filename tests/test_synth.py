@@ -470,7 +470,7 @@ def test_lights():
     e = L.sample_intensities((1000,), g, "random")
     assert e.min() >= 0.2 and e.max() <= 2.0 and e.std() > 0.4
     assert (L.sample_intensities((5,), g, "unit") == 1).all()
-    with pytest.raises(PsctlError):
+    with pytest.raises(PsctlError, match="unknown light distribution 'sideways'"):
         L.sample_lights((3,), g, "sideways")
 
 
@@ -505,7 +505,7 @@ def test_directional_intensities_follow_the_lights():
     assert 0.15 < frac < 0.6  # directional (minus clamped ones) about half the time
     with pytest.raises(ValueError):
         L.sample_intensities((3, 4), g, "directional")  # needs the lights
-    with pytest.raises(PsctlError):
+    with pytest.raises(PsctlError, match="unknown intensity mode 'sometimes'"):
         L.sample_intensities((3, 4), g, "sometimes", lights=lights[:3, :4])
 
 
@@ -530,14 +530,14 @@ def test_synth_folder_intensities(tmp_path):
         assert (a.intensities == 1).all() and not (b.intensities == 1).all()
         assert b.meta["intensities"] == "directional" and "intensities" not in a.meta
     assert not torch.equal(dirn[0].intensities, dirn[1].intensities)  # a rig per object
-    with pytest.raises(PsctlError):
+    with pytest.raises(PsctlError, match="unknown --intensities 'bright'"):
         preset_objects("blobby", size=16, n_lights=12, k=1, intensities="bright")
     r = write_preset(tmp_path / "set", "blobby", seed=3, size=16, n_lights=12, k=2, intensities="directional")
     assert r["intensities"] == "directional"
     for o in dirn:  # the files hold the drawn intensities, one RGB row per light
         e = np.loadtxt(tmp_path / "set" / o.name / "light_intensities.txt")
         assert np.allclose(e, o.intensities.numpy()[:, None].repeat(3, 1), atol=1e-5)
-    with pytest.raises(PsctlError):
+    with pytest.raises(PsctlError, match="unknown --intensities 'bright'"):
         write_preset(tmp_path / "bad", "blobby", size=16, n_lights=12, k=1, intensities="bright")
     assert not (tmp_path / "bad").exists()  # refused before any folder is made
 
@@ -551,11 +551,11 @@ def test_lights_cone_range_is_drawn_per_sample():
     assert abs(widest.median().item() - 65) < 6
     assert L.zenith_band("hemisphere", [40, 90]) == (0.0, 90.0)
     for bad in ([90, 40], [0, 90], [40], [40, 95]):
-        with pytest.raises(PsctlError):
+        with pytest.raises(PsctlError, match="max_zenith range must be|zenith band must lie in"):
             L.zenith_band("hemisphere", bad)
     from psctl.synth import stream
 
-    with pytest.raises(PsctlError):  # the stream validates the option too
+    with pytest.raises(PsctlError, match="zenith band must lie in"):  # the stream validates the option too
         stream.make_config(max_zenith=[95, 99])
 
 
@@ -604,7 +604,7 @@ def test_rasterised_mesh_matches_the_analytic_sphere(tmp_path):
     dz = (g.depth[inner] - ref.depth[inner]).abs()  # a polyhedron: facets sag inside the sphere
     assert dz.mean() < 0.01 and dz.max() < 0.08
     assert (g.depth[~g.mask] == BACKGROUND).all()
-    with pytest.raises(PsctlError):
+    with pytest.raises(PsctlError, match="missing.obj: cannot read mesh"):
         meshes.load_obj(tmp_path / "missing.obj")
 
 
