@@ -204,6 +204,21 @@ def test_eval_on_a_folder_of_objects(tmp_path):
     assert "avg" in table
 
 
+def test_eval_table_of_many_objects_turns_to_fit(tmp_path):
+    """Objects as columns (the paper's layout) when they fit, as rows when not: every object's
+    number and the average are printed at 80 columns."""
+    names = [f"object_with_a_long_name_{k}" for k in range(9)]
+    for k, name in enumerate(names):
+        write_capture(tmp_path / "root" / f"{name}PNG", n=6, size=24, seed=k)
+    r = json.loads(cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--json").stdout)
+    out = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2").stdout
+    lines = out.splitlines()
+    assert max(map(len, lines)) <= 100  # cli() renders at 100 columns
+    for o in r["objects"]:
+        assert any(o["name"] in line and f"{o['mae']:.2f}" in line for line in lines), o["name"]
+    assert any("avg" in line and f"{r['mean_mae']:.2f}" in line for line in lines)
+
+
 def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     """The paper has no ensemble: beside it the table shows the paper's PS-FCN+N, and says so."""
     from psctl.eval import PAPER_DILIGENT, _table

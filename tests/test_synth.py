@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -813,6 +814,11 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     (tmp_path / "other" / "x").mkdir(parents=True)
     (tmp_path / "other" / "x" / "synth.json").write_text("{}")
     (out / "linked").symlink_to(tmp_path / "other" / "x")  # a link to someone's folder: never removed
+    (out / "blobby_02" / "psctl").mkdir()  # a psctl normals run's outputs: the rerun would delete them
+    (out / "blobby_02" / "psctl" / "normal.png").write_bytes(b"x")
+    with pytest.raises(PsctlError, match=r"blobby_02: holds psctl/, which psctl synth did not write"):
+        write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
+    shutil.rmtree(out / "blobby_02" / "psctl")
     again = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
     assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "linked", "objects.txt"]
     assert again["removed"] == ["blobby_02", "preview.png"] and (tmp_path / "other" / "x" / "synth.json").is_file()

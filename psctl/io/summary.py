@@ -254,40 +254,62 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         con.print(f"  wrote {p}", highlight=False, markup=False)
 
 
-def render_benchmark(result: dict) -> None:
+def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[str], width: int):
+    """The paper's layout, objects as columns, when it fits ``width``; otherwise objects as rows
+    (a folder benchmark of 16 objects at 80 columns): Rich would squeeze columns to nothing."""
     from rich.table import Table
 
+    title = "mean angular error (degrees)"
+    label_w = max(len("method"), *(len(r[0]) for r in rows))
+    wide = 1 + (label_w + 3) + sum(max(len(n), 5) + 3 for n in names) + (5 + 3)
+    if wide <= width:
+        t = Table(title=title)
+        t.add_column("method", min_width=6, overflow="fold")
+        for name in names:
+            t.add_column(escape(name), justify="right", min_width=5, no_wrap=True)
+        t.add_column("avg", justify="right", style="bold", min_width=5, no_wrap=True)
+        for label, vals, avg, style in rows:
+            t.add_row(label, *vals, avg, style=style)
+        return t
+    t = Table(title=title)
+    t.add_column("object", overflow="fold")
+    for label, _, _, style in rows:
+        t.add_column(label, justify="right", style=style, no_wrap=True)
+    for i, name in enumerate(names):
+        t.add_row(escape(name), *[r[1][i] for r in rows])
+    t.add_section()
+    t.add_row("avg", *[r[2] for r in rows], style="bold")
+    return t
+
+
+def render_benchmark(result: dict) -> None:
     con = _console()
     objs = result["objects"]
     # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal
     con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
-    t = Table(title="mean angular error (degrees)")
-    t.add_column("method", min_width=6, overflow="fold")
-    for o in objs:  # numbers keep their width (5: "15.70"); a narrow terminal shrinks the names
-        t.add_column(escape(o["name"]), justify="right", min_width=5, no_wrap=True)
-    t.add_column("avg", justify="right", style="bold", min_width=5, no_wrap=True)
-    t.add_row(f"{result['method']} (psctl)", *[_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]))
+    # the rows as data: (label, one value per object, their average, style)
+    rows = [(f"{result['method']} (psctl)", [_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]), "")]
     paper = result.get("paper") or {}
     if paper:
         vals = [paper.get(o["name"]) for o in objs]
         avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
-        t.add_row(f"{result.get('paper_method') or result['method']} (paper)", *[_fmt(v) for v in vals], _fmt(avg),
-                  style="dim")
+        rows.append((f"{result.get('paper_method') or result['method']} (paper)", [_fmt(v) for v in vals], _fmt(avg),
+                     "dim"))
     if "mean_light_mae" in result:  # sdps: the lights LCNet estimated, and the paper's LCNet
         paper_l = result.get("paper_lights") or {}
         for key, label, fmt in (("light_mae", "light direction (°)", _fmt),
                                 ("intensity_re", "intensity RE", lambda x: "-" if x is None else f"{x:.3f}")):
             if all(o.get(key) is None for o in objs):  # no ground truth to score against
                 continue
-            t.add_row(f"{label} (psctl)", *[fmt(o.get(key)) for o in objs], fmt(result[f"mean_{key}"]))
+            rows.append((f"{label} (psctl)", [fmt(o.get(key)) for o in objs], fmt(result[f"mean_{key}"]), ""))
             if any((o.get("lights_refined") or {}).get("weight", 0) > 0 for o in objs):  # refined: LCNet's own too
-                t.add_row(f"{label} (LCNet)", *[fmt(o.get(f"lcnet_{key}")) for o in objs],
-                          fmt(result.get(f"mean_lcnet_{key}")), style="dim")
+                rows.append((f"{label} (LCNet)", [fmt(o.get(f"lcnet_{key}")) for o in objs],
+                             fmt(result.get(f"mean_lcnet_{key}")), "dim"))
             if paper_l:
                 vals = [paper_l.get(o["name"], {}).get(key) for o in objs]
                 avg = float(np.mean(vals)) if all(v is not None for v in vals) else None
-                t.add_row(f"{label} (paper)", *[fmt(v) for v in vals], fmt(avg), style="dim")
-    con.print(t)
+                rows.append((f"{label} (paper)", [fmt(v) for v in vals], fmt(avg), "dim"))
+    con.print(_benchmark_table(rows, [o["name"] for o in objs], con.width))
     n = {o["n_images"] for o in objs}
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "

@@ -290,9 +290,29 @@ def _check_synth_root(out: Path) -> None:
         if entry.name.startswith(".") or entry.name in ("objects.txt", "preview.png"):
             continue
         if entry.is_dir() and (entry / "synth.json").is_file():
+            _check_synth_object(entry)
             continue
         raise PsctlError(out, f"is not empty and not a psctl synth folder ({entry.name} is there); "
                               "choose a new or empty folder")
+
+
+OBJECT_FILES = ("filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png", "Normal_gt.mat",
+                "Normal_gt.png", "synth.json")  # write_object's, beside the images filenames.txt lists
+
+
+def _check_synth_object(folder: Path) -> None:
+    """A rerun replaces (or removes) an earlier object folder whole: refuse when it holds what
+    psctl synth did not write there (psctl normals' default output folder, psctl/, say)."""
+    try:
+        listed = set((folder / "filenames.txt").read_text(encoding="utf-8").split())
+    except (OSError, UnicodeDecodeError):
+        listed = set()
+    other = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir()
+                   if not e.name.startswith(".") and e.name not in OBJECT_FILES and e.name not in listed)
+    if other:
+        shown = ", ".join(other[:3]) + (" ..." if len(other) > 3 else "")
+        raise PsctlError(folder, f"holds {shown}, which psctl synth did not write; a new set here would delete "
+                                 "it with the earlier object: move it away, or choose a new or empty folder")
 
 
 def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
