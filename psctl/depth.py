@@ -672,7 +672,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
         K = _first_existing(cap.path, list(cap.path.iterdir()), (K_FILE,), "intrinsics files")
     if isinstance(K, (str, os.PathLike)):
-        k_source = str(K)
+        k_source = os.path.abspath(K)  # report paths are absolute (docs/formats.md)
         K = read_intrinsics(K)
     elif K is not None:
         K, k_source = check_intrinsics(K), "array"
@@ -697,7 +697,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             mask = ~(nmap == 0).all(axis=-1)
             if not mask.any():
                 raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
-        normals_source = str(source)
+        normals_source = os.path.abspath(source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import run_normals
 
@@ -780,8 +780,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "notes": notes,
     }
     if write:
-        _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply)
-        report["seconds"] = round(time.perf_counter() - t0, 3)
+        _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply, t0)
     return report
 
 
@@ -802,7 +801,7 @@ def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
-                   report: dict, binary_ply: bool) -> None:
+                   report: dict, binary_ply: bool, t0: float) -> None:
     from psctl.io.atomic import staged_outputs
     from psctl.io.images import write_image
     from psctl.io.mesh import write_ply
@@ -815,6 +814,7 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
         write_ply(stage / "mesh.ply", mesh, binary=binary_ply,
                   comment=f"psctl depth --method {report['method']} ({report['projection']}) of {report['object']}")
         write_image(stage / "shading.png", np.stack([shading, valid.astype(np.float32)], -1), "uint8")
+        report["seconds"] = round(time.perf_counter() - t0, 3)  # depth_report.json and the return agree
         write_json(stage / "depth_report.json", report)
 
 
