@@ -812,22 +812,27 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     """Estimated (and true) light directions on the unit disk: [H, W, 3] in [0, 1].
 
     Orthographic view of the hemisphere from the camera: a direction (x, y, z) is drawn at
-    (x, y), x right, y up; grey circles at 30, 60 and 90 degrees from the view axis. Estimates
-    are filled dots coloured by intensity (jet over ``ints_range``, colour bar on the right);
-    ground truth, when given, is a white ring joined to its estimate by a grey line.
+    (x, y), x right, y up (axes labelled +X, +Y); grey circles at 30, 60 and 90 degrees from the
+    view axis. Estimates are filled dots coloured by intensity (jet over ``ints_range``, colour
+    bar on the right, labelled); ground truth, when given, is a white ring joined to its
+    estimate by a grey line. A legend under the disk says which is which.
     """
     from psctl.io.report import _stamp, colour_bar, jet, text_bitmap
 
     s = 2  # text scale
-    top, pad, bar_w, right = 12 * s, 12, 10 * s, 44 * s
+    top, pad, bar_w, right, bottom = 12 * s, 12, 10 * s, 44 * s, 14 * s
     side = 2 * (radius + pad)
-    canvas = np.full((side + top + 4 * s, side + right, 3), 0.12, np.float32)
+    canvas = np.full((top + side + bottom, side + right, 3), 0.12, np.float32)
     cy, cx = top + side / 2, side / 2
     _disk(canvas, cy, cx, radius, 0.18)
     for zenith in (30.0, 60.0, 90.0):
         _disk(canvas, cy, cx, radius * np.sin(np.radians(zenith)), 0.35, ring=1.0)
     _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
     _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
+    grey = (0.6, 0.6, 0.6)
+    _stamp(canvas, text_bitmap("+Y", s), int(cy - radius) + 2 * s, int(cx) + 3 * s, grey)
+    label = text_bitmap("+X", s)
+    _stamp(canvas, label, int(cy) + 3 * s, int(cx + radius) - label.shape[1] - 2 * s, grey)
 
     def at(d: np.ndarray) -> tuple[float, float]:
         return cy - d[1] * radius, cx + d[0] * radius  # y up: row 0 is the top
@@ -843,20 +848,34 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
             _disk(canvas, *at(g[k]), 5.0, 1.0, ring=1.5)
     for k in range(len(d)):
         _disk(canvas, *at(d[k]), 3.5, colours[k])
-    # colour bar: high intensities on top
+    # colour bar: high intensities on top, its name above it
     colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w,
                {frac: f"{lo + frac * (hi - lo):.1f}" for frac in (0.0, 0.5, 1.0)}, s)
+    _stamp(canvas, text_bitmap("INT.", s), top + pad - 9 * s, side + 2 * s)
+    # legend: a dot, then a ring with its line (when there is ground truth)
+    y = top + side + 3 * s
+    mid = y + 3.5 * s
+    _disk(canvas, mid, 4 * s + 4, 3.5, (1.0, 0.6, 0.2))
+    x = 4 * s + 12
+    _stamp(canvas, text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s), y, x)
+    x += text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s).shape[1] + 6 * s
+    if gt_directions is not None:
+        _disk(canvas, mid, x + 6, 5.0, 1.0, ring=1.5)
+        _stamp(canvas, text_bitmap("TRUE", s), y, x + 16)
     if title:
         _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
     return canvas
 
 
 def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
-                      gt_directions: np.ndarray | None = None, light_mae: float | None = None) -> None:
-    """lights.png (8-bit RGB); the title gives the mean direction error when known."""
+                      gt_directions: np.ndarray | None = None, light_mae: float | None = None,
+                      name: str | None = None) -> None:
+    """lights.png (8-bit RGB): ``name`` (the object's) and, when known, the mean direction error
+    in the title."""
     from psctl.io.images import write_image
 
-    title = None if light_mae is None else f"MAE {light_mae:.2f}°"
+    title = "ESTIMATED LIGHTS" if light_mae is None else f"LIGHT DIRECTION MAE {light_mae:.2f}°"
+    title = title if name is None else f"{name}: {title}"
     write_image(path, lights_plot(directions, intensities, gt_directions, title), "uint8")
 
 
@@ -976,7 +995,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             if subset:
                 (stage / SUBSET_FILE).write_text("".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
-                              errors["light_mae"])
+                              errors["light_mae"], cap.name)
         report["seconds"] = round(time.perf_counter() - t0, 3)
     return report
 

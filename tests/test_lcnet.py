@@ -310,6 +310,9 @@ def test_light_files_and_plot(tmp_path):
     hot = np.argwhere(np.abs(canvas - lights_plot(d[:0], e[:0], radius=100)).sum(-1) > 0)
     centre_row = 24 + (2 * (100 + 12)) / 2
     assert hot[:, 0].mean() > centre_row + 50
+    # the legend under the disk names the rings only when there is ground truth
+    with_gt, without = lights_plot(d, e, d, radius=100), lights_plot(d, e, radius=100)
+    assert with_gt.shape == without.shape and (with_gt[-28:] != without[-28:]).any()
 
 
 # --- weights files ----------------------------------------------------------------------------

@@ -203,7 +203,7 @@ def sheet_layout(n: int) -> tuple[int, int]:
 def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row: int | None = None) -> np.ndarray:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
     the objects (``object_panel``) in rows of ``per_row`` (None: ``sheet_layout``'s): each its
-    name (cut to the width of its maps, at least 12 characters) and MAE above its normal map, its
+    name (cut in the middle to the width of its maps, at least 12 characters) and MAE above its normal map, its
     error map below, and its spread map below that in rows where any panel has one; one colour
     bar for each kind of map on the right of each row.
     -> [H', W', 3] float32 in [0, 1]."""
@@ -214,8 +214,12 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     char = 6 * s  # one character's advance
 
     def fit(text: str, width: int) -> str:
+        # cut in the middle: names of a set differ at the end too (armadillo_gold, armadillo_steel)
         n = max(12, (width + s) // char)
-        return text if len(text) <= n else text[: n - 2] + ".."
+        if len(text) <= n:
+            return text
+        head = (n - 2 + 1) // 2
+        return text[:head] + ".." + text[len(text) - (n - 2 - head):]
 
     labels = [(fit(p["name"], p["normals"].shape[1]), "" if p["mae"] is None else f"MAE {p['mae']:.2f}°")
               for p in panels]
