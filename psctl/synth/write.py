@@ -365,8 +365,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         light_distance: point lights this many pixels from each object's centre along its
             light directions (``render_object``; psctl normals --light-distance undoes the falloff).
     Returns:
-        {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "objects", "preview", "seconds",
-        "removed"} (removed: what an earlier psctl synth run left in ``out`` and this one replaced).
+        {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "interreflections",
+        "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
+        earlier psctl synth run left in ``out`` and this one replaced).
     """
     from psctl.io.atomic import check_output_dir, ensure_writable_dir
 
@@ -447,8 +448,10 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         removed.append("preview.png")
     for name in removed:
         (shutil.rmtree if (out / name).is_dir() else os.remove)(out / name)
-    return {"out": str(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
-            "intensities": intensities, "objects": [o.name for o in objs], "preview": None if preview_path is None else str(preview_path),
+    return {"out": os.path.abspath(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
+            "intensities": intensities, "interreflections": interreflections, "ir_albedo": ir_albedo,
+            "light_distance": light_distance, "objects": [o.name for o in objs],
+            "preview": None if preview_path is None else os.path.abspath(preview_path),
             "seconds": round(time.perf_counter() - t0, 3), "removed": removed}
 
 
