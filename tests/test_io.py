@@ -499,6 +499,12 @@ def test_capture_text_files_with_a_byte_order_mark_and_list_mistakes(tmp_path):
     (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + names[:1]) + "\n")
     with pytest.raises(PsctlError, match="001.png: listed twice in filenames.txt"):
         open_capture(cap_dir)
+    (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + ["./" + names[0]]) + "\n")  # the same name
+    with pytest.raises(PsctlError, match="listed twice in filenames.txt"):
+        open_capture(cap_dir)
+    (cap_dir / "again.png").symlink_to(cap_dir / names[0])  # two names for one file: a deliberate repeat
+    (cap_dir / "filenames.txt").write_text("\n".join(names[:5] + ["again.png"]) + "\n")
+    assert open_capture(cap_dir).n_images == 6
 
 
 def test_lights_behind_the_object(tmp_path):

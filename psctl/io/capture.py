@@ -443,10 +443,15 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     if ambient_path is not None:
         _check_size(image_info(ambient_path), first)
     if list_file is not None:  # a listed mask or ground truth would be read as an image
-        listed = [p.resolve() for p in image_paths]
-        twice = next((p for p, r in zip(image_paths, listed) if listed.count(r) > 1), None)
-        if twice is not None:
-            raise PsctlError(twice, f"listed twice in {list_file.name}")
+        # one name twice (a copy-paste slip); two names linked to one file are the user's choice
+        # (benchmarks/bench_infer.py repeats a capture so), and a set keeps 10,000 names quick
+        seen: set[str] = set()
+        for p in image_paths:
+            key = os.path.normcase(os.path.abspath(p))
+            if key in seen:
+                raise PsctlError(p, f"listed twice in {list_file.name}")
+            seen.add(key)
+        listed = {p.resolve() for p in image_paths}
         for kind, p in (("mask", mask_path), ("ground truth", gt_path)):
             if p is not None and p.resolve() in listed:
                 raise PsctlError(p, f"is the {kind} but is also listed in {list_file.name} as an input image")
