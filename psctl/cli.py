@@ -136,13 +136,14 @@ def _raise_terminated(signum, frame) -> None:
 
 @contextlib.contextmanager
 def _on_termination() -> Iterator[None]:
-    """Python's default for SIGTERM and SIGHUP is to die at once, skipping every cleanup."""
+    """Python's default for SIGTERM and SIGHUP is to die at once, skipping every cleanup. Only
+    the default is replaced: a signal the caller ignores (``nohup`` ignores SIGHUP) stays so."""
     import signal
 
     old = {}
     for name in ("SIGTERM", "SIGHUP"):
         sig = getattr(signal, name, None)  # no SIGHUP on Windows
-        if sig is None:
+        if sig is None or signal.getsignal(sig) is not signal.SIG_DFL:
             continue
         try:
             old[sig] = signal.signal(sig, _raise_terminated)
@@ -171,10 +172,12 @@ def _user_errors() -> Iterator[None]:
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
         _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
     except _Terminated as e:
-        _stderr().print("terminated")
+        with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+            _stderr().print("terminated")
         raise typer.Exit(128 + e.signum) from None
     except KeyboardInterrupt:
-        _stderr().print("interrupted")
+        with contextlib.suppress(OSError):
+            _stderr().print("interrupted")
         raise typer.Exit(130) from None
 
 
@@ -479,7 +482,7 @@ def train(
         elif install:
             con.print(f"not installed: the run stopped before its last sample (--resume {run_dir} --install "
                       f"finishes it and installs)", highlight=False, soft_wrap=True, markup=False)
-        if st.get("signal"):  # Ctrl-C or SIGTERM: checkpointed, but not what a finished run returns
+        if st.get("signal"):  # Ctrl-C, SIGTERM or SIGHUP: checkpointed, but not what a finished run returns
             raise typer.Exit(128 + st["signal"])
 
 

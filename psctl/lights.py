@@ -820,9 +820,14 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     from psctl.io.report import _stamp, colour_bar, jet, text_bitmap
 
     s = 2  # text scale
-    top, pad, bar_w, right, bottom = 12 * s, 12, 10 * s, 44 * s, 14 * s
+    top, pad, bar_w, right, bottom = 20 * s, 12, 10 * s, 44 * s, 14 * s  # top: the title, then the bar's name
     side = 2 * (radius + pad)
-    canvas = np.full((top + side + bottom, side + right, 3), 0.12, np.float32)
+    legend = text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s)
+    true = text_bitmap("TRUE", s)
+    legend_w = 4 * s + 12 + legend.shape[1] + 6 * s + 16 + true.shape[1]  # with or without its TRUE: one size
+    title_w = 4 * s + (text_bitmap(title, s).shape[1] if title else 0)
+    # as wide as the disk and its colour bar, the legend and the title, whichever is widest
+    canvas = np.full((top + side + bottom, max(side + right, legend_w + 4 * s, title_w), 3), 0.12, np.float32)
     cy, cx = top + side / 2, side / 2
     _disk(canvas, cy, cx, radius, 0.18)
     for zenith in (30.0, 60.0, 90.0):
@@ -857,11 +862,11 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     mid = y + 3.5 * s
     _disk(canvas, mid, 4 * s + 4, 3.5, (1.0, 0.6, 0.2))
     x = 4 * s + 12
-    _stamp(canvas, text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s), y, x)
-    x += text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s).shape[1] + 6 * s
+    _stamp(canvas, legend, y, x)
+    x += legend.shape[1] + 6 * s
     if gt_directions is not None:
         _disk(canvas, mid, x + 6, 5.0, 1.0, ring=1.5)
-        _stamp(canvas, text_bitmap("TRUE", s), y, x + 16)
+        _stamp(canvas, true, y, x + 16)
     if title:
         _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
     return canvas

@@ -22,7 +22,7 @@ A run folder holds
     state.json          step, samples seen, wall time, RNG state of the stream, best validation
     best.pt             weights with the best synthetic-validation MAE so far
     log.jsonl           one line per log interval and per validation
-A checkpoint is written every few minutes, at the end, and on SIGINT/SIGTERM; ``--resume``
+A checkpoint is written every few minutes, at the end, and on SIGINT/SIGTERM/SIGHUP; ``--resume``
 continues exactly (same data order, same optimiser state).
 
 This module must not import OpenImageIO: it runs on the GPU machine, which lacks it.
@@ -290,7 +290,7 @@ class _Stop:
 
     def __enter__(self) -> "_Stop":
         for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):  # no SIGHUP on Windows
-            if sig is None:
+            if sig is None or signal.getsignal(sig) is signal.SIG_IGN:  # nohup's SIGHUP: ignored, as asked
                 continue
             try:
                 self._old[sig] = signal.signal(sig, self._handle)
@@ -320,7 +320,8 @@ class _Stop:
 
     def __exit__(self, *exc) -> None:
         for sig, old in self._old.items():
-            signal.signal(sig, old)
+            if old is not None:  # None: a handler not set from Python, which cannot be put back
+                signal.signal(sig, old)
 
 
 def _rng_to_text(state: torch.Tensor) -> str:
@@ -875,7 +876,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 checkpoint()
     log.close()
     st["finished"] = st["samples"] >= t["samples"]
-    st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM's number)
+    st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM / SIGHUP's number)
     return st
 
 

@@ -16,14 +16,12 @@ def _isolated(monkeypatch):
     """Each test as on a fresh clone: the installed weights are the repository's (a developer's
     $PSCTL_WEIGHTS would change what auto picks, and tests that set it put the user's value back
     through monkeypatch), and torch's thread count as it was (some tests set it)."""
-    import sys
+    import torch
 
     monkeypatch.delenv("PSCTL_WEIGHTS", raising=False)
-    torch = sys.modules.get("torch")
-    threads = torch.get_num_threads() if torch is not None else None
+    threads = torch.get_num_threads()
     yield
-    if threads is not None:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
 
 
 def shared_data(*parts: str) -> Path:

@@ -170,6 +170,7 @@ def test_info_check_decodes_every_file(tmp_path):
 
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM", "SIGHUP"])
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGHUP"), reason="no SIGHUP on this platform")
 def test_termination_while_writing_leaves_nothing(capture, tmp_path, monkeypatch, signame):
     """Ctrl-C, a scheduler's SIGTERM or a closed terminal's SIGHUP: the staged files are
     discarded, the output folder and the parents the run created are removed, and the exit
@@ -183,7 +184,7 @@ def test_termination_while_writing_leaves_nothing(capture, tmp_path, monkeypatch
 
     def killed(*args, **kwargs):
         write(*args, **kwargs)
-        os.kill(os.getpid(), sig)  # the handler raises here, mid-way through the outputs
+        signal.raise_signal(sig)  # the handler raises here, mid-way through the outputs
 
     monkeypatch.setattr(psctl.io.report, "write_error_map", killed)
     before = signal.getsignal(sig)
@@ -191,6 +192,30 @@ def test_termination_while_writing_leaves_nothing(capture, tmp_path, monkeypatch
     assert proc.returncode == 128 + sig
     assert proc.stderr.strip() == ("interrupted" if signame == "SIGINT" else "terminated")
     assert not (tmp_path / "a").exists() and signal.getsignal(sig) == before  # handler restored
+    if signame == "SIGHUP":  # under nohup SIGHUP is ignored, and psctl leaves it so: the run completes
+        signal.signal(sig, signal.SIG_IGN)
+        try:
+            proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "a" / "b" / "out")
+        finally:
+            signal.signal(sig, before)
+        assert proc.returncode == 0 and (tmp_path / "a" / "b" / "out" / "error.png").is_file()
+
+
+def test_reports_hold_absolute_paths(capture, tmp_path, monkeypatch):
+    """A report.json read from another working directory still points at its files; and the
+    saved reports are what the calls returned (seconds included)."""
+    from psctl.api import run_normals
+    from psctl.depth import run_depth
+
+    monkeypatch.chdir(tmp_path)
+    r = run_normals("spherePNG", method="l2", out="o")
+    assert r["path"] == str(capture) and r["outputs"]["report"] == str(tmp_path / "o" / "report.json")
+    assert all(Path(p).is_absolute() and Path(p).is_file() for p in r["outputs"].values())
+    assert json.loads((tmp_path / "o" / "report.json").read_text()) == r
+    d = run_depth("spherePNG", normals="o/normal.exr", out="d")
+    assert d["normals"] == str(tmp_path / "o" / "normal.exr") and d["path"] == str(capture)
+    assert all(Path(p).is_absolute() for p in d["outputs"].values())
+    assert json.loads((tmp_path / "d" / "depth_report.json").read_text()) == d
 
 
 def test_eval_on_a_folder_of_objects(tmp_path):
@@ -217,6 +242,27 @@ def test_eval_table_of_many_objects_turns_to_fit(tmp_path):
     for o in r["objects"]:
         assert any(o["name"] in line and f"{o['mae']:.2f}" in line for line in lines), o["name"]
     assert any("avg" in line and f"{r['mean_mae']:.2f}" in line for line in lines)
+
+
+def test_eval_table_of_sdps_fits_80_columns(capsys, monkeypatch):
+    """sdps' eight rows of DiLiGenT's ten objects, as a pipe (80 columns) prints them: every
+    number is there and no line is wider than the terminal."""
+    from psctl.io.summary import render_benchmark
+
+    monkeypatch.setenv("COLUMNS", "80")
+    names = ["ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest"]
+    objs = [dict(name=n, mae=5.0 + i, n_images=96, seconds=1.0, light_mae=3.0 + i / 10, intensity_re=0.05,
+                 lcnet_light_mae=4.0, lcnet_intensity_re=0.07, lights_refined={"weight": 0.5})
+            for i, n in enumerate(names)]
+    render_benchmark(dict(benchmark="diligent", root="/x", method="sdps", objects=objs, mean_mae=9.5,
+                          paper={n: 8.0 for n in names}, paper_method="sdps", mean_light_mae=3.45,
+                          mean_intensity_re=0.05, mean_lcnet_light_mae=4.0, mean_lcnet_intensity_re=0.07,
+                          paper_lights={n: {"light_mae": 3.0, "intensity_re": 0.05} for n in names}, notes=[]))
+    lines = capsys.readouterr().out.splitlines()
+    assert max(map(len, lines)) <= 80
+    for i, n in enumerate(names):
+        assert any(n in line and f"{5.0 + i:.2f}" in line and f"{3.0 + i / 10:.2f}" in line for line in lines), n
+    assert any("avg" in line and "9.50" in line and "3.45" in line for line in lines)
 
 
 def test_eval_table_names_whose_published_numbers_it_shows(capsys):

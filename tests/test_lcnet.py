@@ -308,11 +308,15 @@ def test_light_files_and_plot(tmp_path):
     # x right, y up: the light pointing down-ish (y < 0) is drawn below the centre
     canvas = lights_plot(d[2:], e[2:], radius=100)
     hot = np.argwhere(np.abs(canvas - lights_plot(d[:0], e[:0], radius=100)).sum(-1) > 0)
-    centre_row = 24 + (2 * (100 + 12)) / 2
+    centre_row = 40 + (2 * (100 + 12)) / 2  # lights_plot: 40 rows of title and colour bar name above the disk
     assert hot[:, 0].mean() > centre_row + 50
     # the legend under the disk names the rings only when there is ground truth
     with_gt, without = lights_plot(d, e, d, radius=100), lights_plot(d, e, radius=100)
     assert with_gt.shape == without.shape and (with_gt[-28:] != without[-28:]).any()
+    from psctl.io.report import text_bitmap
+
+    long = "A_LONG_OBJECT_NAME_OF_A_SYNTHETIC_SET: LIGHT DIRECTION MAE 12.34°"
+    assert lights_plot(d, e, title=long, radius=100).shape[1] >= text_bitmap(long, 2).shape[1]  # the title fits
 
 
 # --- weights files ----------------------------------------------------------------------------

@@ -814,6 +814,7 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     (tmp_path / "other" / "x").mkdir(parents=True)
     (tmp_path / "other" / "x" / "synth.json").write_text("{}")
     (out / "linked").symlink_to(tmp_path / "other" / "x")  # a link to someone's folder: never removed
+    (tmp_path / "other" / "x" / "psctl").mkdir()  # in a linked folder: only the link goes, so no refusal
     (out / "blobby_02" / "psctl").mkdir()  # a psctl normals run's outputs: the rerun would delete them
     (out / "blobby_02" / "psctl" / "normal.png").write_bytes(b"x")
     with pytest.raises(PsctlError, match=r"blobby_02: holds psctl/, which psctl synth did not write"):
@@ -862,6 +863,10 @@ def test_an_interrupted_synth_run_leaves_the_earlier_set_as_it_was(tmp_path, mon
     after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
     assert calls == ["blobby_01", "blobby_02"] and after == before  # nothing new, nothing hidden left
     assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "blobby_02", "objects.txt"]
+    calls.clear()  # a new folder (and its new parents) stopped half way: none of them is left
+    with pytest.raises(stop):
+        W.write_preset(tmp_path / "new" / "a" / "set", "blobby", seed=5, size=24, n_lights=6, k=3)
+    assert not (tmp_path / "new").exists()
     # a failure while the new set moves in (disk full) puts the earlier one back
     monkeypatch.setattr(W, "write_object", real)
     real_replace, moves = W.os.replace, []

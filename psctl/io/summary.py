@@ -5,16 +5,19 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psctl.errors import PsctlError
 
+if TYPE_CHECKING:
+    from psctl.io.capture import Capture
 
 SATURATED_SHARE = 0.01  # an image with more of the object than this at its top code value is listed
 
 
-def check_pixels(cap, mask: np.ndarray, progress: Callable[[int], None] | None = None) -> dict:
+def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], None] | None = None) -> dict:
     """Decode every file of a capture (images, ambient image, ground truth) and describe the
     images over the object (``mask``), as captured: what ``psctl info --check`` adds.
 
@@ -64,7 +67,7 @@ def check_pixels(cap, mask: np.ndarray, progress: Callable[[int], None] | None =
     means = [r["mean"] for r in per_image]
     over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
     return {
-        "seconds": time.perf_counter() - t0,
+        "seconds": round(time.perf_counter() - t0, 3),
         "images": per_image,
         "mean_range": [float(min(means)), float(np.median(means)), float(max(means))],
         "saturated_images": [r["image"] for r in over],  # above SATURATED_SHARE of the object
@@ -254,6 +257,9 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         con.print(f"  wrote {p}", highlight=False, markup=False)
 
 
+SHORT = {"light direction (°)": "light", "intensity RE": "RE"}  # headers of the narrow layout
+
+
 def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[str], width: int):
     """The paper's layout, objects as columns, when it fits ``width``; otherwise objects as rows
     (a folder benchmark of 16 objects at 80 columns): Rich would squeeze columns to nothing."""
@@ -271,10 +277,14 @@ def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[st
         for label, vals, avg, style in rows:
             t.add_row(label, *vals, avg, style=style)
         return t
-    t = Table(title=title)
-    t.add_column("object", overflow="fold")
+    def short(label: str) -> str:  # "light direction (°) (LCNet)" -> "light" over "LCNet"
+        head, source = label[:label.rindex("(")].strip(), label[label.rindex("(") + 1:-1]
+        return f"{SHORT.get(head, head)}\n{source}"
+
+    t = Table(title=title + ("; light: light direction error (degrees); RE: intensity error" if len(rows) > 2 else ""))
+    t.add_column("object", overflow="fold", min_width=min(16, max(map(len, names))))
     for label, _, _, style in rows:
-        t.add_column(label, justify="right", style=style, no_wrap=True)
+        t.add_column(short(label), justify="right", style=style, min_width=5)
     for i, name in enumerate(names):
         t.add_row(escape(name), *[r[1][i] for r in rows])
     t.add_section()

@@ -290,7 +290,8 @@ def _check_synth_root(out: Path) -> None:
         if entry.name.startswith(".") or entry.name in ("objects.txt", "preview.png"):
             continue
         if entry.is_dir() and (entry / "synth.json").is_file():
-            _check_synth_object(entry)
+            if not entry.is_symlink():  # a link is only unlinked, never emptied: what it holds is safe
+                _check_synth_object(entry)
             continue
         raise PsctlError(out, f"is not empty and not a psctl synth folder ({entry.name} is there); "
                               "choose a new or empty folder")
@@ -369,7 +370,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
         earlier psctl synth run left in ``out`` and this one replaced).
     """
-    from psctl.io.atomic import check_output_dir, ensure_writable_dir
+    from psctl.io.atomic import check_output_dir, ensure_writable_dir, missing_folders, remove_empty
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -388,6 +389,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         if interreflections:
             raise PsctlError(None, "--light-distance and --interreflections together are not supported")
     objs = preset_objects(preset, seed, size, n_lights, k, light_dist, intensities)
+    created = missing_folders(out)  # removed again (when empty) if the run fails or is stopped
     ensure_writable_dir(out)
     advance = progress(f"synth {preset}", len(objs)) if progress else (lambda _: None)
     gen = torch.Generator().manual_seed(seed + 1)
@@ -437,8 +439,10 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             preview_path = out / "preview.png"
         _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
                  "".join(f"{o.name}\n" for o in objs))
+        created = []  # the set is in place: the folders are its
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        remove_empty(created)
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
     # here is psctl synth's), so that the folder holds this set alone
     names = {o.name for o in objs}
