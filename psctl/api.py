@@ -13,12 +13,12 @@ import time
 import sys
 import warnings
 from collections.abc import Callable
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path, check_progress
+from psctl.io.atomic import outputs_list, read_outputs_list, replaced_notes
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -372,7 +372,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         check_output_dir(out_dir)
         # psctl's own files from an earlier run there (its list says which), that this run does not write
-        stale = sorted(n for n in read_outputs_list(out_dir)
+        stale = sorted(n for n in read_outputs_list(out_dir, "normals")
                        if n in all_names and n not in names and (out_dir / n).is_file())
         if stale:
             notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
@@ -381,11 +381,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
                 raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
                                               "or choose another --out")
-        listed = read_outputs_list(out_dir)
-        foreign = [n for n in names if n not in listed and (out_dir / n).is_file()]
-        if foreign:  # not psctl's (or from a psctl without the list): replaced, but never silently
-            notes.append(f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl normals run "
-                         "there had listed")
+        notes += replaced_notes(out_dir, names, "normals")  # not psctl's (or from a psctl without the list)
 
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
@@ -521,7 +517,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     return report
 
 
-OUTPUTS_LIST = ".psctl-normals"  # in an output folder: the files psctl normals wrote there last
+OUTPUTS_LIST = outputs_list("normals")  # in an output folder: the files psctl normals wrote there last
 
 
 def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None = None,
@@ -589,14 +585,6 @@ def convention_notes(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray, mae
                              f"{mae:.1f} degrees): does the light file or the ground truth use {name} "
                              f"{'left' if axis == 0 else 'down'}? psctl wants x right, y up")
     return notes
-
-
-def read_outputs_list(out_dir: Path) -> list[str]:
-    """The files the last psctl normals run wrote into ``out_dir`` (none without its list)."""
-    try:
-        return (out_dir / OUTPUTS_LIST).read_text().split()
-    except (OSError, UnicodeDecodeError):
-        return []
 
 
 def _output_key(filename: str) -> str:

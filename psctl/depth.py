@@ -660,10 +660,13 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     cfg = depth_config(config)  # a bad setting stops before any image is read
     cap = open_capture(path, encoding)
     out_dir = output_folder(out, cap.path)
+    notes: list[str] = capture_notes(cap)  # the images are read for the vertex colours at least
     if write:
+        from psctl.io.atomic import replaced_notes
+
         check_not_capture(out_dir, cap)  # inputs are never touched
         check_output_dir(out_dir)
-    notes: list[str] = capture_notes(cap)  # the images are read for the vertex colours at least
+        notes += replaced_notes(out_dir, OUTPUTS, "depth")  # a same-named file of the user's
 
     # --- intrinsics ----------------------------------------------------------------------------
     k_source = None
@@ -802,13 +805,14 @@ def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
                    report: dict, binary_ply: bool, t0: float) -> None:
-    from psctl.io.atomic import staged_outputs
+    from psctl.io.atomic import outputs_list, staged_outputs
     from psctl.io.images import write_image
     from psctl.io.mesh import write_ply
     from psctl.io.report import write_json
 
     report["outputs"] = {name.replace(".", "_"): os.path.abspath(out_dir / name) for name in OUTPUTS}
     with staged_outputs(out_dir) as stage:
+        (stage / outputs_list("depth")).write_text("".join(f"{n}\n" for n in OUTPUTS))
         write_image(stage / "depth.exr", depth.astype(np.float32), "float", kind="data")
         write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")
         write_ply(stage / "mesh.ply", mesh, binary=binary_ply,

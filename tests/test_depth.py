@@ -297,7 +297,7 @@ def test_cli_depth_end_to_end(capture, tmp_path):
         assert key in report
     assert report["method"] == "poisson" and report["projection"] == "orthographic"
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.json"])
+        [".psctl-depth", "depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.json"])
     assert json.loads((out / "depth_report.json").read_text())["n_pixels"] == report["n_pixels"]
     depth = read_exr(out / "depth.exr")
     from psctl.io.images import read_image
@@ -453,3 +453,17 @@ def test_depth_to_points_perspective_projects_back_to_its_pixels():
     assert p[0, -1, 0] > 0 and p[0, -1, 1] > 0  # top right of the principal point: x right, y up
     o = depth_to_points(depth)  # orthographic: (col, -row, z)
     assert (o[..., 0] == cols).all() and (o[..., 1] == -rows).all() and (o[..., 2] == depth).all()
+
+
+def test_depth_notes_a_replaced_file_of_the_users(tmp_path):
+    from psctl.depth import run_depth
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "obj", n=6, size=24)
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "depth.png").write_bytes(b"my picture")
+    first = run_depth(tmp_path / "obj", method="poisson", out=out)["notes"]
+    assert f"outputs: replaced depth.png in {out}, which no earlier psctl depth run there had listed" in first
+    again = run_depth(tmp_path / "obj", method="poisson", out=out)["notes"]
+    assert not any(n.startswith("outputs: replaced") for n in again)  # its own files from the run before

@@ -361,7 +361,7 @@ def test_lights_command(tmp_path, fake_weights):
     assert {"object", "n_images", "light_mae", "intensity_re", "outputs"} <= set(r)
     assert r["object"] == "ball" and r["n_images"] == 8
     assert 0 <= r["light_mae"] <= 180 and r["intensity_re"] >= 0
-    assert sorted(os.listdir(out)) == ["light_directions.txt", "light_intensities.txt", "lights.png"]
+    assert sorted(os.listdir(out)) == [".psctl-lights", "light_directions.txt", "light_intensities.txt", "lights.png"]
     assert set(r["outputs"]) == {"light_directions", "light_intensities", "lights"}
     est = np.loadtxt(out / "light_directions.txt")
     from psctl.metrics import light_direction_error
@@ -377,6 +377,16 @@ def test_lights_command(tmp_path, fake_weights):
     proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "ballPNG")
     assert proc.returncode == 2 and "never overwritten" in proc.stderr
     assert (tmp_path / "ballPNG" / "light_directions.txt").read_text() == before
+    # a same-named file of the user's is replaced with a note; psctl lights' own, from a run before, silently
+    from psctl.lights import run_lights
+
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "lights.png").write_bytes(b"my plot")
+    kw = dict(weights=fake_weights / "lcnet.pt", out=tmp_path / "mine", device="cpu", views=1, refine=False)
+    notes = run_lights(tmp_path / "ballPNG", **kw)["notes"]
+    assert [n for n in notes if n.startswith("outputs:")] == [
+        f"outputs: replaced lights.png in {tmp_path / 'mine'}, which no earlier psctl lights run there had listed"]
+    assert not any(n.startswith("outputs:") for n in run_lights(tmp_path / "ballPNG", **kw)["notes"])
 
 
 def test_missing_weights_are_one_clear_line(tmp_path, capture):

@@ -111,6 +111,30 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def outputs_list(command: str) -> str:
+    """The hidden file in an output folder listing what ``psctl COMMAND`` wrote there last."""
+    return f".psctl-{command}"
+
+
+def read_outputs_list(out_dir: Path, command: str) -> list[str]:
+    """The files the last ``psctl COMMAND`` run wrote into ``out_dir`` (none without its list)."""
+    try:
+        return (Path(out_dir) / outputs_list(command)).read_text().split()
+    except (OSError, UnicodeDecodeError):
+        return []
+
+
+def replaced_notes(out_dir: Path, names: Iterable[str], command: str) -> list[str]:
+    """A note naming the files of ``names`` already in ``out_dir`` that no earlier ``psctl
+    COMMAND`` run there listed (a user's own ``depth.png``, say): replaced, never silently."""
+    listed = read_outputs_list(out_dir, command)
+    foreign = [n for n in names if n not in listed and (Path(out_dir) / n).is_file()]
+    if not foreign:
+        return []
+    return [f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl {command} run there "
+            "had listed"]
+
+
 def missing_folders(path: Path) -> list[Path]:
     """``path`` and those of its parents that do not exist yet, deepest first: what creating
     ``path`` creates, and what ``remove_empty`` takes away again after a failed run."""
