@@ -10,6 +10,7 @@ import torch
 
 from psctl.errors import PsctlError
 from psctl.infer import cpu_has_bf16
+from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import read_weights
 from psctl.train import load_config, merge, train
 
@@ -29,6 +30,11 @@ def test_tiny_recipe_trains_and_loss_goes_down(tmp_path):
     log = [json.loads(l) for l in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     losses = [r["loss"] for r in log if "loss" in r]
     assert losses[-1] < losses[0], losses
+    w = read_weights(tmp_path / "run" / "model.pt")
+    torch.manual_seed(0)  # the recipe's seed draws the initial weights, as psctl.train does
+    start = PSFCN({"fuse": "max", "lights": True}).state_dict()
+    moved = [k for k, v in w.state_dict.items() if not torch.equal(v.float(), start[k].float())]
+    assert len(moved) == len(start), "every parameter took optimiser steps"  # a step skipped leaves them all
     w = read_weights(tmp_path / "run" / "best.pt")
     meta = w.metadata
     assert meta["method"] == "ps-fcn-n" and meta["train_images"] == 8 and meta["normalization"] == "per-channel"
