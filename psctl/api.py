@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path, check_progress
-from psctl.io.atomic import outputs_list, read_outputs_list, replaced_notes
+from psctl.io.atomic import outputs_list, read_outputs_list, replaced_notes, write_outputs_list
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
 
@@ -505,7 +505,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         staging = staged_outputs(out_dir, stale) if batch is None else \
             contextlib.nullcontext(batch.stage(out_dir, stale).path)
         with staging as stage:
-            (stage / OUTPUTS_LIST).write_text("".join(f"{n}\n" for n in names))
+            write_outputs_list(stage, names, "normals")
             for f in formats:
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
             if error is not None:

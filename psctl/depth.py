@@ -805,14 +805,14 @@ def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
                    report: dict, binary_ply: bool, t0: float) -> None:
-    from psctl.io.atomic import outputs_list, staged_outputs
+    from psctl.io.atomic import staged_outputs, write_outputs_list
     from psctl.io.images import write_image
     from psctl.io.mesh import write_ply
     from psctl.io.report import write_json
 
     report["outputs"] = {name.replace(".", "_"): os.path.abspath(out_dir / name) for name in OUTPUTS}
     with staged_outputs(out_dir) as stage:
-        (stage / outputs_list("depth")).write_text("".join(f"{n}\n" for n in OUTPUTS))
+        write_outputs_list(stage, OUTPUTS, "depth")
         write_image(stage / "depth.exr", depth.astype(np.float32), "float", kind="data")
         write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")
         write_ply(stage / "mesh.ply", mesh, binary=binary_ply,

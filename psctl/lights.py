@@ -989,7 +989,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "notes": picked + est.notes,
     }
     if write:
-        from psctl.io.atomic import outputs_list, replaced_notes
+        from psctl.io.atomic import replaced_notes, write_outputs_list
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
         names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else [])]
@@ -1000,7 +1000,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             report["notes"].append(f"outputs: removed {SUBSET_FILE}, left by an earlier psctl lights --images run "
                                    "(these light files have a row for every image)")
         with staged_outputs(out_dir, replaces=[SUBSET_FILE]) as stage:  # an earlier subset's list goes
-            (stage / outputs_list("lights")).write_text("".join(f"{n}\n" for n in names))
+            write_outputs_list(stage, names, "lights")
             write_light_files(stage, est.directions, est.intensities)
             if subset:
                 (stage / SUBSET_FILE).write_text("".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))

@@ -124,6 +124,11 @@ def read_outputs_list(out_dir: Path, command: str) -> list[str]:
         return []
 
 
+def write_outputs_list(stage: Path, names: Iterable[str], command: str) -> None:
+    """Record in ``stage`` (staged with the outputs) the files this ``psctl COMMAND`` run writes."""
+    (Path(stage) / outputs_list(command)).write_text("".join(f"{n}\n" for n in names))
+
+
 def replaced_notes(out_dir: Path, names: Iterable[str], command: str) -> list[str]:
     """A note naming the files of ``names`` already in ``out_dir`` that no earlier ``psctl
     COMMAND`` run there listed (a user's own ``depth.png``, say): replaced, never silently."""
