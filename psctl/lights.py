@@ -346,6 +346,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
 # the surface is mostly diffuse. Chosen on synthetic folders (docs/uncalibrated.md, "Light
 # refinement"); the gate keeps LCNet's lights where a diffuse model explains the pixels badly
 # (metals, deep concavities).
+_REFINE_BLOCK = 2048  # pixels per block of refine_lights' [pixels, images] arrays
 FALLOFFS = ("shifted", "lambertian")  # refine_lights' shading models (DEFAULT_REFINE["falloff"])
 DEFAULT_REFINE = {
     "pixels": 20000,  # mask pixels sampled for the fit (seeded): enough to fix 3 numbers per light
@@ -414,7 +415,9 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
         Refinement (directions [N, 3], intensities [N], quality q, weight, status).
     """
     cfg = {**DEFAULT_REFINE, **(config or {})}
-    o = np.asarray(observations, np.float64)
+    # observations stay float32 (as sampled) and [P, N] arrays are only made a block of pixels at a
+    # time: whole, in float64, they were about 0.5 GB for 960 images (session 38)
+    o = np.asarray(observations, np.float32)
     n = np.asarray(normals, np.float64)
     d0 = np.asarray(directions, np.float64)
     e0 = np.asarray(intensities, np.float64).reshape(-1)
@@ -425,41 +428,53 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
         raise ValueError(f"falloff must be one of {FALLOFFS}, not {cfg['falloff']!r}")
     keep = Refinement(d0.astype(np.float32), e0.astype(np.float32), float("inf"), 0.0, "too few pixels")
     ok = np.isfinite(o).all(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
-    o, n = o[:, ok], n[ok]
+    if not ok.all():
+        o, n = o[:, ok], n[ok]
     if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
         return keep
     shifted = cfg["falloff"] == "shifted"
     lo_q, hi_q = cfg["trim"]
     s = d0 * e0[:, None]
     b = np.zeros(len(s))
+    blocks = [slice(a, a + _REFINE_BLOCK) for a in range(0, len(n), _REFINE_BLOCK)]
 
-    def albedo(s: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        sh = n @ s.T  # [P, N] shading
+    def shading(px: slice, s: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Shading n.s + b [p, N] of a block of pixels, and where each light lights them."""
+        sh = n[px] @ s.T
         lit = sh > cfg["margin"] * np.linalg.norm(s, axis=1)[None]
-        sh = sh + b[None]
+        sh += b[None]
         lit &= sh > 0
-        den = (sh ** 2 * lit).sum(1)
-        rho = np.where(den > 0, (o.T * sh * lit).sum(1) / np.maximum(den, 1e-300), 0.0)
-        return sh, lit, rho
+        return sh, lit
+
+    def albedo(s: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """lit [P, N] and the least-squares albedo rho [P] over each pixel's lit observations."""
+        lit, rho = np.empty((len(n), len(s)), bool), np.empty(len(n))
+        for px in blocks:
+            sh, lit[px] = shading(px, s, b)
+            shl = sh * lit[px]
+            den = (shl ** 2).sum(1)
+            rho[px] = np.where(den > 0, (o[:, px].T * shl).sum(1) / np.maximum(den, 1e-300), 0.0)
+        return lit, rho
 
     for _ in range(int(cfg["iters"])):
-        sh, lit, rho = albedo(s, b)
+        lit, rho = albedo(s, b)
         new, new_b = s.copy(), b.copy()
         for j in range(len(s)):
             use = np.flatnonzero(lit[:, j] & (rho > 0))
             if use.size < 10:
                 continue  # (nearly) no lit pixel for this light: keep it
-            ratio = o[j, use] / (rho[use] * sh[use, j])
+            ratio = o[j, use] / (rho[use] * (n[use] @ s[j] + b[j]))
             lo, hi = np.quantile(ratio, (lo_q, hi_q))
             use = use[(ratio >= lo) & (ratio <= hi)]
             if use.size < 10:
                 continue
             a = rho[use, None] * n[use]
-            sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), o[j, use], rcond=None)[0] if shifted else None
+            oj = o[j, use].astype(np.float64)
+            sol4 = np.linalg.lstsq(np.concatenate([a, rho[use, None]], 1), oj, rcond=None)[0] if shifted else None
             if sol4 is not None and sol4[3] < 0 and np.linalg.norm(sol4[:3]) + sol4[3] > 0:
                 sol, off = sol4[:3], sol4[3]
             else:  # b = 0: the Lambertian fit
-                sol, off = np.linalg.lstsq(a, o[j, use], rcond=None)[0], 0.0
+                sol, off = np.linalg.lstsq(a, oj, rcond=None)[0], 0.0
             if np.isfinite(sol).all() and np.isfinite(off) and np.linalg.norm(sol) > 0:
                 new[j], new_b[j] = sol, off
         k = np.linalg.norm(new, axis=1).mean()  # the fit fixes rho * e only up to one scale
@@ -470,11 +485,20 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     change = np.degrees(np.arccos(np.clip((fitted * d0).sum(1), -1, 1)))
     if (change > cfg["max_change"]).any():
         return replace(keep, status="astray")
-    sh, lit, rho = albedo(s, b)
+    lit, rho = albedo(s, b)
     if not lit.any():
         return keep
-    obs = o.T[lit]
-    q = float(np.median(np.abs(obs - (rho[:, None] * sh)[lit])) / max(float(np.median(obs)), 1e-12))
+    lit_obs = np.empty(int(lit.sum()))  # one buffer: the residuals' median, then the observations'
+    medians = []
+    for residual in (True, False):
+        at = 0
+        for px in blocks:
+            sh, li = shading(px, s, b)
+            v = o[:, px].T[li].astype(np.float64)
+            lit_obs[at:at + v.size] = np.abs(v - (rho[px, None] * sh)[li]) if residual else v
+            at += v.size
+        medians.append(float(np.median(lit_obs, overwrite_input=True)))
+    q = medians[0] / max(medians[1], 1e-12)
     lo_g, hi_g = cfg["gate"]
     w = float(np.clip((hi_g - q) / (hi_g - lo_g), 0.0, 1.0)) if np.isfinite(q) else 0.0
     e = np.linalg.norm(s, axis=1) + b  # the brightness of a pixel facing the light (b = 0: |s|)

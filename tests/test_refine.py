@@ -558,3 +558,22 @@ def test_second_stage_runs_the_network_only_when_needed(weight):
     seen.clear()
     est, net = second_stage(source, lcnet, False, {"roll": True})  # --no-refine: one pass, LCNet's lights
     assert len(seen) == 1 and est is lcnet and "refine" not in est.info
+
+
+def test_refine_blocks_of_pixels_give_the_one_block_answer(monkeypatch):
+    """refine_lights works on blocks of pixels (memory); block edges must not change the fit."""
+    import psctl.lights as lights_mod
+
+    obs, nrm, lights, ints = scene(size=64, specular=0.3, noise=0.05)  # ~3,200 pixels
+    obs[:, 5] = np.nan  # a dropped pixel moves the block edges against the pixel indices
+    start = rotate_randomly(lights, 5.0, seed=3)
+    monkeypatch.setattr(lights_mod, "_REFINE_BLOCK", 10 ** 9)
+    whole = refine_lights(obs, nrm, start, ints)
+    for block in (2048, 333, 7):
+        monkeypatch.setattr(lights_mod, "_REFINE_BLOCK", block)
+        part = refine_lights(obs, nrm, start, ints)
+        assert part.status == whole.status and part.weight == whole.weight
+        assert part.quality == pytest.approx(whole.quality, rel=1e-12)
+        np.testing.assert_allclose(part.directions, whole.directions, atol=1e-6)
+        np.testing.assert_allclose(part.intensities, whole.intensities, rtol=1e-6)
+    assert whole.weight > 0 and np.isfinite(whole.quality)  # a fit that counted, not one kept as passed in
