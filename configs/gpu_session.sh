@@ -24,8 +24,8 @@
 # (samples = samples/s x PLAN_SECONDS x 0.9, lr halved every fifth, validation every fifteenth;
 # the learning rate has not changed yet, so the run is as if started with those values) and trains
 # on for the rest of MINUTES. A later call resumes them for MINUTES. Each call copies model.pt,
-# state.json, stream.pt and the logs to $OUT (with 'final': best.pt and the Adam state as well, so
-# that a later session can continue the run exactly), in parts of 15 MB (the device tool returns
+# state.json, stream.pt and the logs to $OUT (with 'final': best.pt as well, and with OPTIM=1 also the
+# Adam state, so that a later session can continue the run exactly), in parts of 15 MB (the device tool returns
 # files of at most 16 MB): cat runs.tar.part_* | tar -x. A run folder missing on the machine (a
 # fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments.
 set -u
