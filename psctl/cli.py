@@ -49,8 +49,9 @@ def _refuse_empty(argv: list[str]) -> None:
             continue
         if flag is None:
             flag = argv[i - 1] if i > 0 and argv[i - 1].startswith("-") else None
-        command = f"psctl {argv[0]}" if argv and not argv[0].startswith("-") and i > 0 else "psctl"
-        what = f"an empty value after {flag}" if flag else f"argument {i + 1} is empty"
+        sub = bool(argv) and not argv[0].startswith("-") and i > 0  # counted from the command's own arguments
+        command = f"psctl {argv[0]}" if sub else "psctl"
+        what = f"an empty value after {flag}" if flag else f"argument {i if sub else i + 1} is empty"
         print(f"{command}: {what} (an unset shell variable?)", file=sys.stderr)
         sys.exit(2)
 

@@ -86,7 +86,8 @@ def test_an_empty_argument_is_refused(capture, tmp_path):
     """An unset shell variable (-o "$OUT") would make the output folder "." without a word."""
     for args, says in ((("normals", capture, "-o", ""), "an empty value after -o"),
                        (("normals", capture, "--out=", "-m", "l2"), "an empty value after --out"),
-                       (("normals", ""), "argument 2 is empty"),
+                       (("normals", ""), "psctl normals: argument 1 is empty"),
+                       (("", "normals"), "psctl: argument 1 is empty"),
                        (("depth", capture, "--normals", "", "-o", tmp_path / "d"), "an empty value after --normals")):
         proc = psctl(*args, cwd=tmp_path)
         assert proc.returncode == 2 and says in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
@@ -167,6 +168,80 @@ def test_info_check_decodes_every_file(tmp_path):
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.startswith(f"error: {folder / '002.png'}: corrupt or truncated image")
     assert "(and 2 more damaged: 004.png, 006.png)" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_info_check_stops_where_normals_would(tmp_path):
+    """--check judges the images as psctl normals reads them: every image black, or an ambient
+    image that blacks one out, is the same one-line error (exit 2), not a pass."""
+    dark = tmp_path / "dark"
+    write_capture(dark, n=4)
+    for k in range(1, 5):
+        write_image(dark / f"{k:03d}.png", np.zeros((40, 40, 3)), "uint16")
+    for args in (("info", dark, "--check"), ("normals", dark, "-m", "l2", "-o", tmp_path / "o1")):
+        proc = cli(*args)
+        assert proc.returncode == 2 and proc.stderr.strip() == f"error: {dark}: all images are black inside the mask"
+    amb = tmp_path / "amb"
+    write_capture(amb, n=4)
+    (amb / "ambient.png").write_bytes((amb / "004.png").read_bytes())  # as bright as an image: blacks it out
+    assert cli("info", amb).returncode == 0  # headers alone cannot tell
+    for args in (("info", amb, "--check"), ("normals", amb, "-m", "l2", "-o", tmp_path / "o2")):
+        proc = cli(*args)
+        assert proc.returncode == 2 and proc.stderr.startswith(f"error: {amb / 'ambient.png'}: subtracting it leaves 004.png black")
+    # an ambient image that blacks out the object only: the note normals gives, after the subtraction
+    mask = write_capture(tmp_path / "ref", n=4)["mask"]
+    img = read_image(amb / "004.png")[0]
+    img[~mask] = 0.05  # lit around the object
+    write_image(amb / "004.png", img, "uint16")
+    img[~mask] = 0.0
+    write_image(amb / "ambient.png", img, "uint16")  # the object as bright as in 004.png
+    c = json.loads(cli("info", amb, "--check", "--json").stdout)["check"]
+    assert c["notes"][0].startswith("images: 1 of 4 black over the object (004.png)")
+    assert c["images"][3]["mean"] > 0  # the means are of the images as captured
+
+
+def test_info_on_a_benchmark_root_shows_every_note_and_cuts_nothing(tmp_path):
+    root = tmp_path / "root"
+    for name in ("session_2026_11_27_object_left", "session_2026_11_27_object_right"):
+        write_capture(root / name, n=4)
+    lights = np.loadtxt(root / "session_2026_11_27_object_left" / "light_directions.txt")
+    lights[2] = [0.9, 0.0, -0.1]
+    np.savetxt(root / "session_2026_11_27_object_left" / "light_directions.txt", lights)
+    (root / "session_2026_11_27_object_right" / "light_intensity.txt").write_text("1\n")  # misnamed
+    wide = cli("info", root, "--check", env={"COLUMNS": "200"}).stdout
+    assert "┃ object" in wide and "…" not in wide
+    narrow = cli("info", root, "--check", env={"COLUMNS": "60"}).stdout
+    assert "…" not in narrow and "┃" not in narrow  # one line per object instead of a cut table
+    for out in (wide, narrow):
+        assert "note: session_2026_11_27_object_left: light file: 1 of 4 light directions have z <= 0" in out
+        assert "note: session_2026_11_27_object_right: files: not read: light_intensity.txt" in out
+    assert "session_2026_11_27_object_right: images 4, size 40x40, bits 16, calibrated yes" in narrow
+    one = tmp_path / "one"
+    write_capture(one / "a", n=4)
+    proc = cli("normals", one, "-m", "l2")
+    assert proc.returncode == 2 and f"benchmark root with one object folder, not a capture: pass {one / 'a'}" in proc.stderr
+    proc = cli("normals", root, "-m", "l2")
+    assert proc.returncode == 2 and "holds 2 object folders (a benchmark root: session_2026_11_27_object_left," in proc.stderr
+
+
+def test_info_names_mixed_channels_and_keeps_long_names_whole(tmp_path):
+    folder = tmp_path / "o"
+    write_capture(folder, n=4)
+    grey = read_image(folder / "001.png")[0].mean(-1)
+    write_image(folder / "001.png", grey, "uint16")
+    r = json.loads(cli("info", folder, "--json").stdout)
+    assert r["channels"] == 1 and r["channel_counts"] == [1, 3]
+    out = cli("info", folder, env={"COLUMNS": "80"}).stdout
+    assert "mixed: 1/3 channels" in out and "(all ones)" not in out
+    long = "capture_session_2026_11_27_light_position_{:03d}_exposure_1over60.png"
+    names = [long.format(k) for k in range(1, 5)]
+    for k, name in enumerate(names, 1):
+        (folder / f"{k:03d}.png").rename(folder / name)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    write_image(folder / names[0], np.repeat(grey[..., None], 3, -1), "uint16")
+    out = cli("info", folder, env={"COLUMNS": "80"}).stdout
+    flat = "".join(out.replace("│", " ").split())  # the table wraps the names; nothing is cut
+    assert "…" not in out and names[0] in flat and names[-1] in flat
+    assert "│ size         │ 40 x 40, 3 channels " in out
 
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM", "SIGHUP"])

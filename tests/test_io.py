@@ -893,3 +893,19 @@ def test_error_map_draws_the_errors(tmp_path):
     np.testing.assert_allclose(body[scored], jet(np.minimum(err[scored], 45) / 45), atol=1 / 255)
     assert (body[~mask] == 0).all() and (np.abs(body[30:, 20:30] - UNSCORED) < 1 / 255).all()
     assert np.abs(body[0, 49] - body[0, 5]).max() > 0.5  # red at 60 degrees, blue at 0
+
+
+def test_ground_truth_infinity_is_named_as_such(tmp_path):
+    """NaN marks a pixel without ground truth (allowed); infinity is refused, by that name."""
+    import scipy.io
+
+    truth = write_capture(tmp_path / "o", n=4)
+    gt = truth["normals"].astype(np.float64)
+    gt[3, 5] = np.nan
+    scipy.io.savemat(tmp_path / "o" / "Normal_gt.mat", {"Normal_gt": gt})
+    assert load_ground_truth(open_capture(tmp_path / "o"))[3, 5].tolist() == [0.0, 0.0, 0.0]
+    gt[16, 17] = [np.inf, 0.0, 1.0]
+    scipy.io.savemat(tmp_path / "o" / "Normal_gt.mat", {"Normal_gt": gt})
+    with pytest.raises(PsctlError, match=r"infinite values \(first at row 16, column 17\); NaN marks") as e:
+        load_ground_truth(open_capture(tmp_path / "o"))
+    assert "NaN or" not in str(e.value)

@@ -62,6 +62,7 @@ class Capture:
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
     orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
     kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
+    channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -104,6 +105,7 @@ class Capture:
             image_paths=tuple(self.image_paths[i] for i in idx),
             orientations=tuple(self.orientations[i] for i in idx) if self.orientations else (),
             kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
+            channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -186,7 +188,8 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
     common = collections.Counter(pattern).most_common(1)[0][0]
     odd = [p.name for p, k in zip(paths, pattern) if k != common]
     named = f"; not named like the others: {', '.join(odd[:3])}{' ...' if len(odd) > 3 else ''}" if odd else ""
-    skipped = sorted(p.name for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
+    skipped = sorted(p.name + (" (a broken link)" if p.is_symlink() and not p.exists() else "")
+                     for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
     if skipped:
         named += f"; not files, so not read: {', '.join(skipped[:3])}{' ...' if len(skipped) > 3 else ''}"
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
@@ -378,7 +381,16 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         raise PsctlError(path, "not a folder (expected a capture folder of images)")
     entries = list(path.iterdir())  # listed once (see _image_files)
     if _is_benchmark_root(path, entries):
-        raise PsctlError(path, "holds several objects (a benchmark root); pass one object folder, or use `psctl eval`")
+        try:
+            objects = find_objects(path)
+        except PsctlError:
+            objects = []
+        if len(objects) == 1:
+            raise PsctlError(path, f"is a benchmark root with one object folder, not a capture: pass {objects[0]}, or "
+                                   f"use `psctl eval`")
+        names = ", ".join(o.name for o in objects[:3]) + (", ..." if len(objects) > 3 else "")
+        raise PsctlError(path, f"holds {len(objects) or 'several'} object folders (a benchmark root"
+                               f"{': ' + names if names else ''}); pass one object folder, or use `psctl eval`")
 
     list_file = _first_existing(path, entries, LIST_FILES, "image lists")
     if list_file is not None:
@@ -466,6 +478,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
+        channel_counts=tuple(i.channels for i in infos),
         lights_path=lights_path, intensities_path=intensities_path,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
@@ -559,7 +572,9 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
         gt = decode_normal_pixels(pixels, info)
         gt = np.where(np.isfinite(gt).all(axis=-1, keepdims=True), gt, 0.0)
     if not np.isfinite(gt).all():
-        raise PsctlError(p, "ground truth contains NaN or infinite values")
+        bad = np.argwhere(~np.isfinite(gt))[0]  # NaN, a pixel without ground truth, was made 0 above
+        raise PsctlError(p, f"ground truth contains infinite values (first at row {bad[0]}, column {bad[1]}); "
+                            f"NaN marks a pixel without ground truth")
     norm = np.linalg.norm(gt, axis=-1, keepdims=True)
     return np.where(norm > 1e-6, gt / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 

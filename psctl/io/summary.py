@@ -26,7 +26,9 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     value over the object (sRGB decoded, not divided by the intensities), and ``saturated``,
     the share of the object's pixels with a channel at the file's top code value (null for
     float files, which have none). Black images and negative values are the notes psctl
-    normals would give."""
+    normals would give, judged as it reads the images (after the ambient image is subtracted);
+    what would stop it (every image black over the object, an ambient image that blacks an image
+    out) stops the check with the same message."""
     import time
 
     from psctl.io.capture import ImageCheck, load_ground_truth
@@ -35,7 +37,16 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     t0 = time.perf_counter()
     check = ImageCheck(cap)
     damaged: list[PsctlError] = []
+    blacked_out: PsctlError | None = None  # by the ambient image: reported after any damaged file
     per_image = []
+    ambient = None
+    if cap.ambient_path is not None:  # in linear values, as psctl.io.capture.iter_images subtracts it
+        try:
+            ambient = to_rgb(read_image(cap.ambient_path)[0])
+        except PsctlError as e:
+            damaged.append(e)
+        else:
+            ambient = srgb_to_linear(ambient) if cap.is_srgb(cap.ambient_path) else ambient
     for k, p in enumerate(cap.image_paths):
         try:
             pixels, info = read_image(p)
@@ -45,12 +56,21 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             if progress is not None:
                 progress(1)
             continue
-        rgb = to_rgb(pixels)[mask]  # [pixels over the object, 3]
+        full = to_rgb(pixels)
+        rgb = full[mask]  # [pixels over the object, 3]
         top = info.dtype.startswith(("uint", "int"))  # integer samples end at a code value read as 1.0
         saturated = float((rgb >= 1.0).any(axis=-1).mean()) if top and len(rgb) else None
         if cap.is_srgb(k):
             rgb = srgb_to_linear(rgb)
-        check.see(k, rgb)
+        if ambient is not None and ambient.shape == full.shape:  # (a size mismatch: open_capture's error)
+            full = srgb_to_linear(full) if cap.is_srgb(k) else full
+            lit = np.maximum(full - ambient, 0.0)
+            if full.any() and not lit.any() and blacked_out is None:
+                blacked_out = PsctlError(cap.ambient_path, f"subtracting it leaves {p.name} black: is it brighter "
+                                                           f"than the images (taken with a light on)?")
+            check.see(k, lit[mask])
+        else:
+            check.see(k, rgb)
         per_image.append({"image": p.name, "mean": float(rgb.mean()) if len(rgb) else 0.0, "saturated": saturated})
         if progress is not None:
             progress(1)
@@ -61,8 +81,10 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             names = ", ".join(Path(d.path).name for d in damaged[1:4] if d.path) + (" ..." if len(damaged) > 4 else "")
             more = f" (and {len(damaged) - 1} more damaged: {names})"
         raise PsctlError(e.path, f"{e.message}{more}")
-    if cap.ambient_path is not None:
-        read_image(cap.ambient_path)
+    if blacked_out is not None:
+        raise blacked_out
+    if not check.lit:  # as psctl normals: nothing to estimate from
+        raise PsctlError(cap.path, "all images are black inside the mask")
     load_ground_truth(cap)
     means = [r["mean"] for r in per_image]
     over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
@@ -93,10 +115,11 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "n_images": cap.n_images,
         "height": cap.height,
         "width": cap.width,
-        "channels": cap.channels,
+        "channels": cap.channels,  # the first image's
+        "channel_counts": sorted(set(cap.channel_counts or (cap.channels,))),  # the distinct counts over the images
         "bit_depth": cap.bits,  # the first image's
         "sample_type": cap.dtype,
-        "bit_depths": sorted({b for b, _ in kinds}),  # every image's: more than one when they are mixed
+        "bit_depths": sorted({b for b, _ in kinds}),  # the distinct depths over the images: more than one when mixed
         "sample_types": list(dict.fromkeys(t for _, t in kinds)),  # in the order of bit_depths
         # how the values are read: linear, srgb (decoded to linear), or mixed
         "encoding": "linear" if srgb == 0 else "srgb" if srgb == cap.n_images else "mixed",
@@ -156,34 +179,46 @@ def render_info(report: dict) -> None:
     con = _console()
     if report["kind"] == "benchmark":
         con.print(escape(f"benchmark root {report['path']}"), highlight=False, soft_wrap=True)
-        t = Table()
         extra = any(o.get("encoding", "linear") != "linear" or o.get("ambient") for o in report["objects"])
         checked = all("check" in o for o in report["objects"])
-        for col in ("object", "images", "size", "bits", "calibrated", "mask", "ground truth") + (
-                ("encoding", "ambient") if extra else ()) + (("median", "saturated") if checked else ()):
-            t.add_column(col)
+        cols = ("object", "images", "size", "bits", "calibrated", "mask", "ground truth") + (
+            ("encoding", "ambient") if extra else ()) + (("median", "saturated") if checked else ())
+        rows = []
         for o in report["objects"]:
             c = o.get("check")
-            t.add_row(escape(o["object"]), str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
-                      "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", escape(o["ground_truth"] or "-"),
-                      *((o.get("encoding", "linear"), escape(o.get("ambient") or "-")) if extra else ()),
-                      *((f"{c['mean_range'][1]:.3g}", str(len(c["saturated_images"]))) if checked else ()))
-        con.print(t)
+            rows.append((o["object"], str(o["n_images"]), f"{o['width']}x{o['height']}", str(o["bit_depth"]),
+                         "yes" if o["calibrated"] else "no", f"{o['mask_coverage']:.1%}", o["ground_truth"] or "-",
+                         *((o.get("encoding", "linear"), o.get("ambient") or "-") if extra else ()),
+                         *((f"{c['mean_range'][1]:.3g}", str(len(c["saturated_images"]))) if checked else ())))
+        t = Table()
+        for col in cols:
+            t.add_column(col, no_wrap=True)
+        for row in rows:
+            t.add_row(*map(escape, row))
+        if t.__rich_measure__(con, con.options).maximum <= con.width:
+            con.print(t)
+        else:  # too wide to show whole (a narrow terminal, a pipe): one line per object, nothing cut
+            for row in rows:
+                con.print(escape(f"{row[0]}: " + ", ".join(f"{k} {v}" for k, v in zip(cols[1:], row[1:]))),
+                          highlight=False, soft_wrap=True)
         if checked:
             con.print(f"check: every file decoded, none damaged; median: the median over images of the mean "
                       f"linear value over the object; saturated: images with over {SATURATED_SHARE:.0%} of the object "
                       f"at the top code value", highlight=False, soft_wrap=True)
-            for o in report["objects"]:
-                for note in o["check"]["notes"]:
-                    con.print(f"[yellow]note:[/] {escape(o['object'])}: {escape(note)}", highlight=False, soft_wrap=True)
+        for o in report["objects"]:  # what psctl eval would say of each (encoding and ambient are columns)
+            notes = [n for n in o.get("notes", []) if not n.startswith(("ambient:", "encoding:"))]
+            for note in notes + (o["check"]["notes"] if checked else []):
+                con.print(f"[yellow]note:[/] {escape(o['object'])}: {escape(note)}", highlight=False, soft_wrap=True)
         return
     r = report
     con.print(escape(f"{r['object']}  ({r['path']})"), highlight=False, soft_wrap=True)
     t = Table(show_header=False)
     t.add_column("", style="bold")
-    t.add_column("")
+    t.add_column("", overflow="fold")  # wrapped, not cut: a long image name keeps its extension
     t.add_row("images", escape(f"{r['n_images']} ({r['first_image']} .. {r['last_image']})"))
-    t.add_row("size", f"{r['width']} x {r['height']}, {r['channels']} channels")
+    counts = r.get("channel_counts") or [r["channels"]]
+    t.add_row("size", f"{r['width']} x {r['height']}, " + (f"{counts[0]} channel{'s' if counts[0] != 1 else ''}"
+              if len(counts) == 1 else f"mixed: {'/'.join(map(str, counts))} channels (grey is read as RGB)"))
     if len(r.get("bit_depths", [])) > 1 or len(r.get("sample_types", [])) > 1:  # each is read at its own depth
         t.add_row("bit depth", f"mixed: {'/'.join(map(str, r['bit_depths']))} ({'/'.join(r['sample_types'])})")
     else:
@@ -194,7 +229,8 @@ def render_info(report: dict) -> None:
     t.add_row("calibrated", escape(f"yes ({r.get('lights') or 'light_directions.txt'})") if r["calibrated"]
               else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
-    t.add_row("intensities", f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
+    t.add_row("intensities", r["intensities"] if r["intensities"].startswith("none") else
+              f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
     t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
     if r.get("ambient"):
