@@ -467,3 +467,31 @@ def test_depth_notes_a_replaced_file_of_the_users(tmp_path):
     assert f"outputs: replaced depth.png in {out}, which no earlier psctl depth run there had listed" in first
     again = run_depth(tmp_path / "obj", method="poisson", out=out)["notes"]
     assert not any(n.startswith("outputs: replaced") for n in again)  # its own files from the run before
+
+
+def test_mesh_draws_no_wall_across_a_cut_edge():
+    """A torn vertical edge (cut[..., 1]: between (r, c) and (r + 1, c)) removes the triangles
+    of both blocks beside it, and only those; likewise a torn horizontal edge."""
+    depth = np.zeros((4, 4), np.float32)
+    full = len(depth_mesh(depth).faces)
+    assert full == 2 * 3 * 3
+    for axis, (r0, c0), (r1, c1) in ((1, (1, 2), (2, 2)), (0, (2, 1), (2, 2))):
+        cut = np.zeros((4, 4, 2), bool)
+        cut[r0, c0, axis] = True
+        faces = depth_mesh(depth, cut=cut).faces
+        a, b = r0 * 4 + c0, r1 * 4 + c1  # all pixels have depth: vertex = row * 4 + column
+        assert not any(a in f and b in f for f in faces.tolist())
+        assert len(faces) == full - 4  # the two blocks that share the edge, two triangles each
+
+
+def test_display_colours_and_the_depth_preview_follow_their_conventions():
+    from psctl.depth import depth_preview, display_colors
+
+    grey = np.ones((400, 1, 3), np.float32)  # the 99.5th percentile, white, is 1
+    grey[1], grey[2] = 0.5, 0.0
+    c = display_colors(grey, np.ones((400, 1), bool))
+    assert c[:3, 0, 0].tolist() == [255, round(255 * 0.5 ** (1 / 2.2)), 0]  # gamma 2.2 for display
+    z = np.array([[0.0, 1.0, np.nan]], np.float32)  # depth z: larger is nearer the camera (docs/depth.md)
+    valid = np.isfinite(z)
+    prev = depth_preview(z, valid)
+    assert prev[0, :, 0].tolist() == [0.0, 1.0, 0.0] and prev[0, :, 1].tolist() == [1.0, 1.0, 0.0]

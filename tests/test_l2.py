@@ -166,3 +166,29 @@ def test_the_mirror_note_is_for_methods_that_read_the_light_file(capture, monkey
     assert any("mirror image" in n for n in run_normals(capture, method="l2", write=False)["notes"])
     ups = run_normals(capture, method="ups-fcn", write=False, device="cpu")
     assert not any("mirror image" in n for n in ups["notes"])
+
+
+def test_nearly_coplanar_lights_are_refused():
+    from psctl.classic import lights_problem
+
+    def rig(tilt: float) -> np.ndarray:  # three lights in the x-z plane, one lifted out by ``tilt``
+        d = np.array([[0.5, 0.0, 1.0], [-0.5, 0.0, 1.0], [0.0, tilt, 1.0]])
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    assert "coplanar" in lights_problem(rig(1e-4))
+    assert lights_problem(rig(0.05)) is None
+    with pytest.raises(PsctlError, match="coplanar"):
+        l2_normals(np.ones((3, 4, 4, 3), np.float32), rig(1e-4))
+
+
+def test_trimmed_l2_drops_the_darkest_and_keeps_three():
+    from psctl.classic import trimmed_l2_solve
+
+    lights = hemisphere_lights(4, 30.0, seed=2)
+    normals, mask = sphere(24)
+    b_true = normals[mask & (normals[..., 2] > 0.8)] * 0.7  # within 37 degrees of the view: lit by every light
+    grey = (b_true @ lights.T).T  # [4, P], all positive
+    assert grey.min() > 0
+    b, dark, fallback = trimmed_l2_solve(grey, lights, low=0.25, high=0.0)  # drop 1 of 4, keep 3
+    assert not fallback.any() and not dark.any()
+    np.testing.assert_allclose(b, b_true, atol=1e-5)

@@ -301,3 +301,14 @@ def test_stream_near_lights_option():
     assert (near["images"] - off["images"]).abs().max() > 0.01
     with pytest.raises(Err, match="radii"):
         make_config(near_lights={"radii": [1.0, 5.0]})
+
+
+def test_the_centre_is_the_masks_centroid_in_rows_and_columns():
+    mask = np.zeros((100, 120), bool)
+    mask[10:21, 40:81] = True  # off the frame's diagonal: rows 10-20, columns 40-80
+    near = near_lights(5000.0, mask)
+    assert near.centre == pytest.approx((15.0, 60.0))
+    light = np.array([0.6, 0.0, 0.8])
+    assert near.correction(light, np.array([15]), np.array([60]))[0, 0] == pytest.approx(1.0)
+    c = near.correction(light, np.array([15]), np.array([40, 80]))[0]
+    assert c[1] < 1 < c[0]  # the light is to the right (+x): the right end is nearer it

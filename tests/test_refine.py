@@ -107,6 +107,7 @@ def test_blend_between_the_gate_values():
     q = refine_lights(obs, nrm, start, ints).quality
     half = refine_lights(obs, nrm, start, ints, {"gate": (q - 0.01, q + 0.01)})
     assert half.weight == pytest.approx(0.5, abs=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(half.directions, axis=1), 1.0, atol=1e-5)  # blended, still unit
     err = light_direction_error(half.directions, lights).mean()
     assert 2.0 < err < 6.0  # halfway between LCNet's 8 degrees and the fit's ~0
 
@@ -577,3 +578,18 @@ def test_refine_blocks_of_pixels_give_the_one_block_answer(monkeypatch):
         np.testing.assert_allclose(part.directions, whole.directions, atol=1e-6)
         np.testing.assert_allclose(part.intensities, whole.intensities, rtol=1e-6)
     assert whole.weight > 0 and np.isfinite(whole.quality)  # a fit that counted, not one kept as passed in
+
+
+def test_trimming_keeps_outliers_out_of_the_fit():
+    """A few pixels of one image far too bright (a highlight, a hot pixel): the default trim
+    drops them from that light's fit; without trimming they pull every light off."""
+    obs, nrm, lights, ints = scene()
+    bad = obs.copy()
+    bad[0, np.random.default_rng(4).random(obs.shape[1]) < 0.03] *= 20.0
+    start = rotate_randomly(lights, 4.0, seed=5)
+    gate = {"gate": (10.0, 20.0)}  # use the fit whatever its residual: compare the fits themselves
+    trimmed = refine_lights(bad, nrm, start, ints, gate)
+    untrimmed = refine_lights(bad, nrm, start, ints, {**gate, "trim": (0.0, 1.0)})
+    assert trimmed.status == untrimmed.status == "fitted"
+    kept, pulled = (light_direction_error(r.directions, lights).mean() for r in (trimmed, untrimmed))
+    assert kept < 2.0 and pulled > 3.0 and pulled > 2.5 * kept

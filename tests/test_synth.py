@@ -1024,3 +1024,100 @@ def test_scale_law_log_shows_more_of_the_background_in_the_crops():
     cover = {law: float(SynthStream({**cfg, "scale_law": law}, seed=3).next_batch()["masks"].float().mean())
              for law in ("uniform", "log")}
     assert cover["log"] < cover["uniform"] - 0.03, cover
+
+
+def ggx_by_hand(kd, spec, alpha, i, o, ior=None, metal=False):
+    """Walter et al.'s GGX with separable Smith G, term by term (normal = +z): dielectric with
+    exact Fresnel of ``ior`` times ``spec``, or metallic with Schlick's F0 = ``spec``."""
+    h = [a + b for a, b in zip(i, o)]
+    hn = math.sqrt(sum(x * x for x in h))
+    h = [x / hn for x in h]
+    nh, lh, nl, nv = h[2], sum(a * b for a, b in zip(i, h)), i[2], o[2]
+    a2 = alpha * alpha
+    d = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
+
+    def g1(c):
+        return 2 * c / (c + math.sqrt(a2 + (1 - a2) * c * c))
+
+    if metal:
+        fres = [f0 + (1 - f0) * (1 - lh) ** 5 for f0 in spec]
+    else:
+        g = math.sqrt(ior * ior - 1 + lh * lh)
+        f = 0.5 * ((g - lh) / (g + lh)) ** 2 * (1 + ((lh * (g + lh) - 1) / (lh * (g - lh) + 1)) ** 2)
+        fres = [f * s for s in spec]
+    return [kd[ch] / math.pi + fres[ch] * d * g1(nl) * g1(nv) / (4 * nl * nv) for ch in range(3)]
+
+
+@pytest.mark.parametrize("metal", [False, True])
+def test_ggx_matches_hand_computation(metal):
+    kd, spec, alpha = [0.2, 0.3, 0.4], [0.9, 0.6, 0.3], 0.25
+    mat = M.ggx(torch.tensor([kd]), torch.tensor([spec]), torch.tensor([alpha]),
+                ior=None if metal else torch.tensor([1.6]), metal=torch.tensor([metal]))
+    for theta_i, phi_i, theta_o in ((30.0, 0.0, 20.0), (10.0, 40.0, 10.0), (60.0, 150.0, 45.0), (75.0, 180.0, 70.0)):
+        i = (math.sin(math.radians(theta_i)) * math.cos(math.radians(phi_i)),
+             math.sin(math.radians(theta_i)) * math.sin(math.radians(phi_i)), math.cos(math.radians(theta_i)))
+        o = (-math.sin(math.radians(theta_o)), 0.0, math.cos(math.radians(theta_o)))
+        expect = ggx_by_hand(kd, spec, alpha, i, o, ior=1.6, metal=metal)
+        got = M.brdf(mat, torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([i]), torch.tensor([o]))[0]
+        assert got.tolist() == pytest.approx(expect, rel=1e-4)
+
+
+def test_shade_is_the_reference_brdf_times_the_cosine():
+    """The renderer's fast path (R.shade) against M.brdf for each model, a blend of two, and
+    intensities: radiance = e * f(n, l, v) * max(n.l, 0), v = +z."""
+    b, p, n_lights = 5, 300, 4
+    g = gen(7)
+    normals = random_dirs(b * p, g).reshape(b, p, 3)
+    normals[..., 2] = normals[..., 2].abs() + 0.05  # facing the camera
+    normals = torch.nn.functional.normalize(normals, dim=-1)
+    lights = L.sample_lights((b, n_lights), g, "hemisphere", 70.0)
+    e = 0.5 + torch.rand(b, n_lights, generator=g)
+    view = torch.tensor([0.0, 0.0, 1.0]).expand(b, n_lights, p, 3)
+    nn_ = normals[:, None].expand(b, n_lights, p, 3)
+    ll = lights[:, :, None].expand(b, n_lights, p, 3)
+
+    def reference(mat):
+        f = M.brdf(mat, nn_, ll, view)  # [B, N, P, 3]
+        cos = (nn_ * ll).sum(-1).clamp_min(0)
+        return (f * (cos * e[..., None])[..., None]).permute(0, 1, 3, 2)  # [B, N, 3, P]
+
+    models = all_models(b)
+    for mat in models:
+        got = R.shade(normals.permute(0, 2, 1), lights, mat, intensities=e)
+        assert torch.allclose(got, reference(mat), rtol=5e-4, atol=1e-6)  # float32 over sharp lobes
+    w = torch.rand(b, 1, p, generator=g)
+    blend = R.shade(normals.permute(0, 2, 1), lights, models[0], intensities=e, mat_b=models[2], weights=w)
+    want = w[:, None] * reference(models[0]) + (1 - w[:, None]) * reference(models[2])
+    assert torch.allclose(blend, want, rtol=5e-4, atol=1e-6)
+
+
+def test_sampled_lights_cover_the_whole_hemisphere_evenly():
+    d = L.sample_lights((20000,), gen(3), "hemisphere")
+    assert torch.allclose(d.norm(dim=-1), torch.ones(20000), atol=1e-5) and (d[:, 2] >= 0).all()
+    assert abs(float(d[:, 0].mean())) < 0.02 and abs(float(d[:, 1].mean())) < 0.02
+    for axis in (0, 1):
+        assert 0.48 < float((d[:, axis] < 0).float().mean()) < 0.52
+    assert abs(float(d[:, 2].mean()) - 0.5) < 0.02  # uniform by area: z uniform in [0, 1]
+
+
+def test_quantize_rounds_to_the_nearest_code():
+    x = torch.tensor([0.6, 0.4, 1.4, -2.0, 65534.6, 7e4]) / 65535
+    assert (R.quantize(x) * 65535).round().tolist() == [1.0, 0.0, 1.0, 0.0, 65535.0, 65535.0]
+    assert (R.quantize(torch.tensor([0.5 / 255 + 1e-4, 254.4 / 255]), bits=8) * 255).round().tolist() == [1.0, 254.0]
+
+
+def test_render_object_scales_each_image_by_its_intensity_blends_included():
+    """psctl synth's images follow light_intensities.txt for both materials of a blend."""
+    from psctl.synth.write import SynthObject, render_object
+
+    view = sphere_gbuffer(24)
+    g = gen(5)
+    lights = L.sample_lights((6,), g, "diligent")
+    models = all_models(1)
+    w = torch.rand(1, 1, 24, 24, generator=g)
+    e = torch.tensor([0.3, 1.0, 1.7, 0.6, 2.0, 1.2])
+    obj = SynthObject("blend", view, models[0], lights, e, mat_b=models[2], weights=w)
+    unit = SynthObject("blend", view, models[0], lights, torch.ones(6), mat_b=models[2], weights=w)
+    got, ref = render_object(obj, shadows=False), render_object(unit, shadows=False)
+    assert ref.abs().sum() > 0
+    assert torch.allclose(got, ref * e[:, None, None, None], rtol=1e-5, atol=1e-7)

@@ -508,3 +508,19 @@ def test_a_second_ctrl_c_waits_for_the_checkpoint_being_written():
     assert written == ["state.json"] and stop.signal == signal.SIGINT
     with pytest.raises(KeyboardInterrupt):  # outside a checkpoint, as before
         stop._handle(signal.SIGINT, None)
+
+
+def test_network_inputs_divide_by_intensities_only_for_calibrated_methods():
+    """PS-FCN sees images divided by their (known) intensities, as the capture reader gives
+    them; UPS-FCN, which has no lights, sees the images as captured."""
+    from psctl.train import network_inputs
+
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 3, 3, 4, 4, generator=g)
+    e = torch.tensor([[0.5, 1.0, 2.0], [1.5, 0.25, 1.0]])
+    lights = torch.nn.functional.normalize(torch.rand(2, 3, 3, generator=g), dim=-1)
+    batch = {"images": images, "intensities": e, "lights": lights}
+    x, l = network_inputs(batch, lights=True, normalization="none")
+    assert torch.allclose(x, images / e[:, :, None, None, None]) and l is lights
+    x, l = network_inputs(batch, lights=False, normalization="none")
+    assert torch.equal(x, images) and l is None
