@@ -84,7 +84,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "notes": about the run (with ``out``: object folders of an earlier run left there).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
-    from psctl.io.capture import find_objects, holds_capture, object_name, open_capture
+    from psctl.io.capture import find_objects, holds_capture, object_name, open_capture, root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
     from psctl.lights import refine_config
@@ -138,6 +138,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
         result = _table(benchmark, root, objects, used, light_distance)
+        result["notes"] += root_notes(root)
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
             # not in this run: left as they are, but never silently beside a table without them

@@ -1088,3 +1088,25 @@ def test_eval_says_once_what_every_object_shares(tmp_path):
     assert proc.returncode == 0, proc.stderr
     text = " ".join((proc.stdout + proc.stderr).split())
     assert text.count("every object: images: --images 9 asks for more than the 6 there are") == 1, text
+
+
+def test_a_benchmark_root_says_what_it_leaves_out(tmp_path):
+    """Subfolders that look meant as objects but hold no image, and a root's own images when
+    objects.txt makes it a root, are named (info and eval), not silently skipped."""
+    root = tmp_path / "root"
+    write_capture(root / "a", n=4)
+    (root / "b").mkdir()
+    (root / "b" / "light_directions.txt").write_text((root / "a" / "light_directions.txt").read_text())
+    (root / "notes").mkdir()  # nothing of a capture: no word
+    (root / "notes" / "readme.txt").write_text("x")
+    r = json.loads(cli("info", root, "--json").stdout)
+    assert [o["object"] for o in r["objects"]] == ["a"]
+    assert r["notes"] == ["objects: skipped b: holds capture files (lights, mask or ground truth) but no image"]
+    assert "note: objects: skipped b" in cli("info", root).stdout
+    e = json.loads(cli("eval", "--benchmark", "folder", "--root", root, "-m", "l2", "--json").stdout)
+    assert e["notes"] == r["notes"]
+    (root / "objects.txt").write_text("a\n")
+    write_image(root / "001.png", np.zeros((8, 8, 3)), "uint8")
+    r = json.loads(cli("info", root, "--json").stdout)
+    assert r["notes"] == ["objects: 1 image in the root itself (001.png) not read: objects.txt makes it a "
+                          "benchmark root of the folders it lists"]

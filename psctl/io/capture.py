@@ -352,6 +352,34 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
     return folders
 
 
+_CAPTURE_FILES = {n.lower() for n in (LIGHTS_FILE, INTENSITIES_FILE, *MASK_FILES, *GT_FILES, *LIST_FILES)}
+
+
+def root_notes(root: str | os.PathLike) -> list[str]:
+    """What a benchmark root holds that ``find_objects`` leaves out, in words: the root's own
+    images (objects.txt makes it a root) and, without objects.txt, subfolders that hold a light
+    file, mask or ground truth but no image (an object whose images did not copy?)."""
+    root = Path(root)
+    entries = list(root.iterdir())
+    notes = []
+    listed = (root / "objects.txt").is_file()
+    own = _image_files(entries)
+    if listed and own:
+        notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
+                     f"{', ...' if len(own) > 1 else ''}) not read: objects.txt makes it a benchmark root of the "
+                     f"folders it lists")
+    if not listed:
+        empty = sorted((p.name for p in entries if p.is_dir() and not p.name.startswith(".") and p.name != "psctl"
+                        and not is_capture_folder(p)
+                        and any(q.name.lower() in _CAPTURE_FILES for q in p.iterdir() if q.is_file())),
+                       key=natural_key)
+        if empty:
+            notes.append(f"objects: skipped {', '.join(empty[:3])}{' ...' if len(empty) > 3 else ''}: "
+                         f"{'holds' if len(empty) == 1 else 'each holds'} capture files (lights, mask or ground "
+                         f"truth) but no image")
+    return notes
+
+
 def is_benchmark_root(path: str | os.PathLike) -> bool:
     path = Path(path)
     return path.is_dir() and _is_benchmark_root(path, list(path.iterdir()))

@@ -149,14 +149,15 @@ def describe(path: str | os.PathLike, encoding: str = "auto", check: bool = Fals
     """A capture folder's description, or a benchmark root's with one entry per object.
     ``check``: decode every file too (``check_pixels``); ``progress``: a factory as
     psctl.api.ProgressFactory, used only by the check."""
-    from psctl.io.capture import find_objects, is_benchmark_root
+    from psctl.io.capture import find_objects, is_benchmark_root, root_notes
 
     path = Path(path)
     if not path.exists():
         raise PsctlError(path, "folder does not exist")
     if is_benchmark_root(path):
         return {"kind": "benchmark", "path": str(path),
-                "objects": [describe_capture(f, encoding, check, progress) for f in find_objects(path)]}
+                "objects": [describe_capture(f, encoding, check, progress) for f in find_objects(path)],
+                "notes": root_notes(path)}
     return describe_capture(path, encoding, check, progress)
 
 
@@ -205,6 +206,8 @@ def render_info(report: dict) -> None:
             con.print(f"check: every file decoded, none damaged; median: the median over images of the mean "
                       f"linear value over the object; saturated: images with over {SATURATED_SHARE:.0%} of the object "
                       f"at the top code value", highlight=False, soft_wrap=True)
+        for note in report.get("notes", []):
+            con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
         for o in report["objects"]:  # what psctl eval would say of each (encoding and ambient are columns)
             notes = [n for n in o.get("notes", []) if not n.startswith(("ambient:", "encoding:"))]
             for note in notes + (o["check"]["notes"] if checked else []):
