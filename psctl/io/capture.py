@@ -368,11 +368,16 @@ def root_notes(root: str | os.PathLike) -> list[str]:
         notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
                      f"{', ...' if len(own) > 1 else ''}) not read: objects.txt makes it a benchmark root of the "
                      f"folders it lists")
+    def looks_meant(folder: Path) -> bool:  # a capture file, no image
+        try:
+            inside = list(folder.iterdir())
+        except OSError:  # unreadable: find_objects did not take it either; nothing to add here
+            return False
+        return not _is_capture(folder, inside) and any(q.name.lower() in _CAPTURE_FILES and q.is_file() for q in inside)
+
     if not listed:
         empty = sorted((p.name for p in entries if p.is_dir() and not p.name.startswith(".") and p.name != "psctl"
-                        and not is_capture_folder(p)
-                        and any(q.name.lower() in _CAPTURE_FILES for q in p.iterdir() if q.is_file())),
-                       key=natural_key)
+                        and looks_meant(p)), key=natural_key)
         if empty:
             notes.append(f"objects: skipped {', '.join(empty[:3])}{' ...' if len(empty) > 3 else ''}: "
                          f"{'holds' if len(empty) == 1 else 'each holds'} capture files (lights, mask or ground "
