@@ -62,15 +62,18 @@ class _Root(_Group):
 
     def main(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201 (click's signature)
         argv = kwargs["args"] if "args" in kwargs else (args[0] if args else None)  # [] is a command line too
-        _refuse_empty(list(sys.argv[1:] if argv is None else argv))
+        argv = list(sys.argv[1:] if argv is None else argv)
+        _refuse_empty(argv)
         kwargs["standalone_mode"] = False  # errors come back here instead of being printed
         try:
             code = super().main(*args, **kwargs)
         except _click.exceptions.ClickException as e:
             if type(e).__name__ != "NoArgsIsHelpError":  # that one has printed the help already
                 ctx = getattr(e, "ctx", None)
-                where = f"{ctx.command_path}: " if ctx is not None else ""
-                hint = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
+                # some parser errors ("Option '--x' requires an argument") come without a context
+                path = ctx.command_path if ctx is not None else (
+                    f"psctl {argv[0]}" if argv and argv[0] in self.commands else "psctl")
+                where, hint = f"{path}: ", f"; see '{path} --help'"
                 print(f"{where}{e.format_message().rstrip('.')}{hint}", file=sys.stderr)
             sys.exit(e.exit_code)
         except typer.Abort:  # (typer's own name: its copy of click keeps Abort elsewhere)

@@ -394,6 +394,7 @@ def test_help_imports_nothing_heavy(argv):
     (["normals"], "'path'"),                               # a missing argument
     (["normals", "x", "--views", "abc"], "--views"),      # a value of the wrong type
     (["nosuch"], "nosuch"),                                # an unknown command
+    (["info", "x", "--encoding"], "psctl info: option '--encoding' requires"),  # an option without its value
 ])
 def test_command_line_mistake_is_one_line(argv, says):
     """Typer's own parse errors follow the user-error rule too: one line, exit code 2, no box."""
