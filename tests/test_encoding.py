@@ -74,6 +74,26 @@ def test_jpegs_are_decoded_from_srgb_by_default(tmp_path):
     assert r_auto["mae"] < 2.0 and r_lin["mae"] > r_auto["mae"] + 3.0
 
 
+def test_jpeg_data_under_another_name_is_decoded_by_its_content(tmp_path):
+    """A JPEG saved as .png (a renamed file, an export with the wrong extension) is still sRGB."""
+    import shutil
+
+    folder = tmp_path / "jpegPNG"
+    _write_jpegs(folder)
+    shutil.copytree(folder, tmp_path / "named")  # the same files under their JPEG names
+    names = (folder / "filenames.txt").read_text().split()
+    for name in names[:3]:  # three of them renamed
+        (folder / name).rename(folder / name.replace(".jpg", ".png"))
+    names[:3] = [n.replace(".jpg", ".png") for n in names[:3]]
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    cap = open_capture(folder)
+    assert cap.srgb_images == 12 and cap.is_srgb(0)
+    assert np.array_equal(load_images(cap), load_images(open_capture(tmp_path / "named")))
+    note = next(n for n in run_normals(folder, method="l2", write=False)["notes"] if n.startswith("encoding"))
+    assert "001.png, 002.png, 003.png: JPEG data, by their content" in note
+    assert open_capture(folder, "linear").srgb_images == 0
+
+
 def test_srgb_on_request_for_other_files(tmp_path):
     """A 16-bit PNG capture stored sRGB-encoded: right with --encoding srgb, wrong as read."""
     folder = tmp_path / "srgbPNG"

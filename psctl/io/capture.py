@@ -63,6 +63,7 @@ class Capture:
     orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
     kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
     channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
+    jpeg: tuple[bool, ...] = ()  # each image is JPEG data, by its content (whatever its name)
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -78,9 +79,13 @@ class Capture:
 
     def is_srgb(self, k: int | Path) -> bool:
         """Whether image ``k`` (an index, or a file such as the ambient image) is decoded from
-        sRGB to linear (``encoding``: srgb, or auto and a JPEG)."""
-        path = self.image_paths[int(k)] if isinstance(k, (int, np.integer)) else k
-        return self.encoding == "srgb" or (self.encoding == "auto" and path.suffix.lower() in JPEG)
+        sRGB to linear (``encoding``: srgb, or auto and a JPEG, by name or by content)."""
+        if self.encoding != "auto":
+            return self.encoding == "srgb"
+        if isinstance(k, (int, np.integer)):
+            path = self.image_paths[int(k)]
+            return path.suffix.lower() in JPEG or (bool(self.jpeg) and self.jpeg[int(k)])
+        return k.suffix.lower() in JPEG or image_info(k).format == "jpeg"
 
     @property
     def turned(self) -> int:
@@ -106,6 +111,7 @@ class Capture:
             orientations=tuple(self.orientations[i] for i in idx) if self.orientations else (),
             kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
             channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
+            jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -511,7 +517,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
-        channel_counts=tuple(i.channels for i in infos),
+        channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         lights_path=lights_path, intensities_path=intensities_path,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
@@ -763,6 +769,9 @@ def capture_notes(capture: Capture) -> list[str]:
     which = "all images" if n == capture.n_images else f"{n} of {capture.n_images} images"
     if capture.encoding == "srgb":
         return notes + [f"encoding: {which} decoded from sRGB to linear (--encoding srgb)"]
+    named = [p.name for k, p in enumerate(capture.image_paths) if capture.is_srgb(k) and p.suffix.lower() not in JPEG]
+    if named:  # JPEG data under another name (a renamed file, an export that kept the wrong extension)
+        which += f" ({', '.join(named[:3])}{' ...' if len(named) > 3 else ''}: JPEG data, by their content)"
     return notes + [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
                     f"(--encoding linear reads them as stored)"]
 

@@ -43,6 +43,7 @@ class ImageInfo:
     bits: int  # bits per sample (8, 16, 32)
     orientation: int = 1  # the EXIF Orientation tag (1-8); width and height are the upright image's
     pages: int = 1  # subimages in the file (a multi-page TIFF); psctl reads the first
+    format: str = ""  # what the file holds, by its content (OpenImageIO's name: png, jpeg, tiff, openexr)
 
 
 # EXIF orientation -> how to turn the stored pixels [H, W, C] upright, as a photo viewer shows
@@ -91,7 +92,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         pages = 1
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
-        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation, pages)
+        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation, pages, inp.format_name())
     finally:
         inp.close()
 
