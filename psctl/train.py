@@ -976,7 +976,10 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
         method, dev = first.metadata["method"], pick_device(device)
         amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
-        task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp)
+        # PS-FCN† is measured on the lights of the LCNet its members were trained with (AVERAGE_SAME
+        # makes them agree), not the recipe's or the installed one
+        frozen = (first.metadata.get("lcnet") or {}).get("path") if method == "ps-fcn-dagger" else None
+        task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp, frozen)
         try:
             task.model.load_state_dict(avg)
         except RuntimeError as e:

@@ -909,3 +909,16 @@ def test_ground_truth_infinity_is_named_as_such(tmp_path):
     with pytest.raises(PsctlError, match=r"infinite values \(first at row 16, column 17\); NaN marks") as e:
         load_ground_truth(open_capture(tmp_path / "o"))
     assert "NaN or" not in str(e.value)
+
+
+@pytest.mark.parametrize("fmt,name", [("png16", "n.png"), ("png8", "n8.png"), ("exr", "n.exr"), ("npy", "n.npy")])
+def test_written_normal_maps_are_zero_outside_the_mask(tmp_path, fmt, name):
+    from psctl.io.normals import read_normal_map, write_normal_map
+
+    n = np.zeros((6, 8, 3), np.float32)
+    n[..., 2] = 1.0
+    m = np.zeros((6, 8), bool)
+    m[:, :4] = True
+    write_normal_map(tmp_path / name, n, m, fmt)
+    back = read_normal_map(tmp_path / name)
+    assert (back[~m] == 0).all() and np.allclose(back[m], [0, 0, 1], atol=0.01)

@@ -750,3 +750,39 @@ def test_lights_subset_lists_its_images(tmp_path, fake_weights):
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", refine=False, views=1)
     assert not (out / "light_images.txt").exists() and "light_images" not in r["outputs"]
     assert any("removed light_images.txt" in n for n in r["notes"])
+
+
+def test_lcnet_classifier_sees_own_features_then_the_global_max():
+    from psctl.models.lcnet import LCNet
+
+    torch.manual_seed(0)
+    net = LCNet({"size": 32}).double().eval()
+    x = torch.rand(1, 4, 3, 32, 32, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    m = torch.ones(1, 1, 32, 32, dtype=torch.float64)
+    with torch.no_grad():
+        out = net(x, m)
+        f = net.extract(net.network_input(x[0], m.expand(4, 1, 32, 32)))
+        ref = net.classifier(torch.cat([f, f.amax(0, keepdim=True).expand_as(f)], 1))
+    for k in ref:
+        torch.testing.assert_close(out[k][0], ref[k])
+
+
+def test_lcnet_intensity_targets_use_the_configured_range():
+    from psctl.models.lcnet import classification_loss, dirs_to_classes, ints_to_classes
+
+    cfg = {"dirs_cls": 36, "ints_cls": 10, "ints_range": [0.5, 4.0]}
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0], [-0.5, 0.4, 0.7]]), dim=-1)
+    ints = torch.tensor([0.6, 3.5])
+    cx, cy = dirs_to_classes(dirs, 36)
+    logits = {"dir_x": torch.zeros(2, 36), "dir_y": torch.zeros(2, 36), "ints": torch.zeros(2, 10)}
+    logits["dir_x"][torch.arange(2), cx] = logits["dir_y"][torch.arange(2), cy] = 50.0
+    cls = ints_to_classes(ints, 10, 0.5, 4.0)
+    assert cls.tolist() == [0, 8]
+    logits["ints"][torch.arange(2), cls] = 50.0
+    assert float(classification_loss(logits, dirs, ints, cfg)[0]) < 1e-6
+
+
+def test_intensity_relative_error_fits_the_scale_by_least_squares():
+    from psctl.metrics import intensity_relative_error
+
+    assert intensity_relative_error(np.array([1.0, 2.0, 2.0]), np.array([1.0, 2.0, 4.0])) == pytest.approx(7 / 18)

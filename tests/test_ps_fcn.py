@@ -812,3 +812,14 @@ def test_black_capture_is_an_error_for_ps_fcn_n(tmp_path):
     with pytest.raises(PsctlError, match="all images are black") as e:
         run_normals(folder, method="ps-fcn-n", weights=weights, write=False, device="cpu")
     assert e.value.path == str(folder)
+
+
+def test_weights_with_inf_are_refused(tmp_path):
+    from psctl.errors import PsctlError
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    state = {k: v.clone() for k, v in PSFCN().state_dict().items()}
+    state["regressor.est_normal.0.weight"][0, 0, 0, 0] = float("inf")
+    with pytest.raises(PsctlError, match="NaN or infinite"):
+        save_weights(tmp_path / "inf.pt", state, {"method": "ps-fcn", "train_images": 32})

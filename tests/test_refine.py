@@ -593,3 +593,14 @@ def test_trimming_keeps_outliers_out_of_the_fit():
     assert trimmed.status == untrimmed.status == "fitted"
     kept, pulled = (light_direction_error(r.directions, lights).mean() for r in (trimmed, untrimmed))
     assert kept < 2.0 and pulled > 3.0 and pulled > 2.5 * kept
+
+
+def test_eval_rows_keep_lcnets_own_light_error(tmp_path, fake_weights, stand_in_networks, monkeypatch):  # noqa: F811
+    from psctl.eval import run_benchmark
+
+    write_capture(tmp_path / "root" / "aPNG", n=24, size=48, seed=1)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    res = run_benchmark("folder", root=tmp_path / "root", method="sdps", device="cpu")
+    o = res["objects"][0]
+    assert o["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3) and o["light_mae"] < 2.0
+    assert res["mean_lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3)

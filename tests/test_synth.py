@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import types
 from pathlib import Path
 
 import numpy as np
@@ -1121,3 +1122,148 @@ def test_render_object_scales_each_image_by_its_intensity_blends_included():
     got, ref = render_object(obj, shadows=False), render_object(unit, shadows=False)
     assert ref.abs().sum() > 0
     assert torch.allclose(got, ref * e[:, None, None, None], rtol=1e-5, atol=1e-7)
+
+
+def test_object_windows_hold_a_lone_object_pixel():
+    from psctl.synth.stream import object_windows
+
+    side, w = 32, 8
+    mask = torch.zeros(3, side * side)
+    for k, (r, c) in enumerate([(3, 25), (28, 2), (16, 16)]):
+        mask[k, r * side + c] = 1
+    win = object_windows(mask, side, w, gen())
+    for k, (r, c) in enumerate([(3, 25), (28, 2), (16, 16)]):
+        top, left = win[k].tolist()
+        assert top <= r < top + w and left <= c < left + w
+
+
+def test_random_rotations_are_rotations():
+    from psctl.synth.shapes import random_rotations
+
+    R = random_rotations((200,), gen(1))
+    eye = torch.eye(3).expand(200, 3, 3)
+    assert torch.allclose(R @ R.transpose(-1, -2), eye, atol=1e-5)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(200), atol=1e-5)
+
+
+def test_blobby_normals_follow_the_depth():
+    from psctl.synth.shapes import blobby_gbuffers
+
+    gb = blobby_gbuffers(2, 48, gen(11))
+    px = 2 / 48
+    d = gb.depth[:, 0].double()
+    m = gb.mask[:, 0]
+    inner = m[:, 1:-1, 1:-1] & m[:, 2:, 1:-1] & m[:, :-2, 1:-1] & m[:, 1:-1, 2:] & m[:, 1:-1, :-2]
+    dzdx = (d[:, 1:-1, 2:] - d[:, 1:-1, :-2]) / (2 * px)
+    dzdy = (d[:, :-2, 1:-1] - d[:, 2:, 1:-1]) / (2 * px)  # y up: row 0 is the top
+    n_fd = torch.nn.functional.normalize(torch.stack([-dzdx, -dzdy, torch.ones_like(dzdx)], 1), dim=1)
+    n = gb.normals[:, :, 1:-1, 1:-1].double()
+    ang = torch.rad2deg(torch.acos((n * n_fd).sum(1).clamp(-1, 1)))[inner]
+    assert ang.median() < 10, float(ang.median())
+
+
+def test_exposure_scale_maps_the_objects_quantile_to_the_level():
+    from psctl.synth.write import EXPOSURE_LEVEL, EXPOSURE_QUANTILE, exposure_scale
+
+    img = torch.full((2, 3, 10, 10), 5.0)  # bright background: must not count
+    mask = torch.zeros(10, 10, dtype=torch.bool)
+    mask[:, :5] = True
+    vals = torch.linspace(0.0, 0.5, 2 * 3 * 50).reshape(2, 3, 10, 5)
+    img[:, :, :, :5] = vals
+    q = float(torch.quantile(vals.reshape(-1), EXPOSURE_QUANTILE))
+    assert exposure_scale(img, mask) == pytest.approx(EXPOSURE_LEVEL / q, rel=1e-6)
+    assert EXPOSURE_LEVEL == 0.9
+
+
+def _disk_pool(size=64, radius=None, centre=None):
+    yy, xx = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    if radius is None:
+        mask = torch.zeros(size, size, dtype=torch.bool)
+        mask[centre] = True
+    else:
+        mask = ((yy - size / 2 + 0.5) ** 2 + (xx - size / 2 + 0.5) ** 2) < radius ** 2
+    normals = torch.zeros(3, size, size)
+    normals[2] = mask.float()
+    data = torch.cat([normals, mask[None].float()], 0).flatten(1).T[None]
+    return types.SimpleNamespace(data=data, horizon=torch.zeros(1, size * size, 4, dtype=torch.float16),
+                           cum=mask.flatten()[None].float().cumsum(1), size=size, names=["x"],
+                           device=torch.device("cpu"))
+
+
+def test_crop_jitter_is_centred_on_the_drawn_pixel():
+    from psctl.synth.stream import make_config, sample_crops
+
+    pool = _disk_pool(64, radius=1.2)  # a 4-pixel object at the centre
+    cfg = make_config(size=64, crop=16, scale=(64, 64), rotate=False, flip=False)
+    crops = sample_crops(pool, 4000, cfg, gen(2))
+    m = crops["mask"].reshape(4000, 16, 16)
+    cols = torch.arange(16).float()
+    seen = m.sum((1, 2)) > 0
+    mean_col = ((m.sum(1) * cols).sum(1) / m.sum((1, 2)).clamp_min(1))[seen].mean()
+    mean_row = ((m.sum(2) * cols).sum(1) / m.sum((1, 2)).clamp_min(1))[seen].mean()
+    assert abs(float(mean_col) - 7.5) < 0.5 and abs(float(mean_row) - 7.5) < 0.5
+
+
+def test_rescale_draws_width_and_height_apart():
+    from psctl.synth.stream import make_config, sample_crops
+
+    pool = _disk_pool(64, radius=12)
+    cfg = make_config(size=64, crop=32, scale=(32, 64), rotate=False, flip=False)
+    crops = sample_crops(pool, 400, cfg, gen(3))
+    m = crops["mask"].reshape(400, 32, 32)
+    inside = (m[:, 0].sum(1) + m[:, -1].sum(1) + m[:, :, 0].sum(1) + m[:, :, -1].sum(1)) == 0  # not cut by the crop
+    w = (m.sum(1) > 0).sum(1).float()[inside]
+    h = (m.sum(2) > 0).sum(1).float()[inside]
+    ratio = w / h
+    assert len(ratio) > 50 and (ratio > 1.3).any() and (ratio < 1 / 1.3).any()
+
+
+def test_random_intensities_are_drawn_per_sample():
+    from psctl.synth.stream import SynthStream
+
+    e = SynthStream(SMALL, seed=1, intensities="random").next_batch()["intensities"]
+    assert not torch.allclose(e[0], e[1])
+
+
+def test_ambient_strength_is_drawn_per_sample(monkeypatch):
+    from psctl.synth import render as R
+    from psctl.synth.stream import SynthStream
+
+    seen = []
+    real = R.shade
+
+    def spy(*a, **k):
+        seen.append(k.get("ambient"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(R, "shade", spy)
+    SynthStream({**SMALL, "batch_size": 16, "blend": 0.0}, seed=1, ambient=0.4).next_batch()
+    a = seen[0]
+    assert a.shape == (16,) and (a >= 0).all() and (a <= 0.4).all() and a.std() > 0.05
+
+
+def test_stream_resumes_exactly_mid_refresh(tmp_path):
+    from psctl.synth.stream import SynthStream
+
+    cfg = {**SMALL, "pool": 5, "reuse": 8, "refresh_chunk": 2}  # 0.5 entries per batch: 1.0 pending at the save
+    a = SynthStream(cfg, seed=3)
+    for _ in range(2):
+        a.next_batch()
+    state = a.state_dict()
+    assert 0 < state["pool"]["pending"] < 2
+    expect = [a.next_batch() for _ in range(4)]
+    b = SynthStream(cfg, seed=99)
+    b.load_state_dict(state)
+    for x in expect:
+        assert torch.equal(x["images"], b.next_batch()["images"])
+
+
+def test_mesh_fit_spans_the_longer_side(tmp_path):
+    from psctl.synth import meshes
+
+    v = torch.tensor([[x, y, z] for x in (-2.0, 2.0) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    f = torch.tensor([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    gb = meshes.mesh_views(v, f, torch.eye(3)[None], 64, fill=0.9)
+    cols = gb.mask[0, 0].any(0).nonzero()[:, 0]
+    assert abs(int(cols.max() - cols.min() + 1) - 0.9 * 64) <= 2

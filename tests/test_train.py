@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -524,3 +526,118 @@ def test_network_inputs_divide_by_intensities_only_for_calibrated_methods():
     assert torch.allclose(x, images / e[:, :, None, None, None]) and l is lights
     x, l = network_inputs(batch, lights=False, normalization="none")
     assert torch.equal(x, images) and l is None
+
+
+def test_crop_windows_takes_rows_then_columns():
+    from psctl.train import crop_windows
+
+    x = torch.arange(2 * 3 * 8 * 8, dtype=torch.float32).reshape(2, 3, 8, 8)
+    w = torch.tensor([[1, 4], [5, 0]])
+    out = crop_windows(x, w, 3)
+    assert torch.equal(out[0], x[0, :, 1:4, 4:7]) and torch.equal(out[1], x[1, :, 5:8, 0:3])
+
+
+@pytest.mark.parametrize("decode", ["argmax", "soft"])
+def test_ps_fcn_dagger_sees_lcnets_lights_and_intensities(tmp_path, decode):
+    from psctl.models.lcnet import LCNet
+    from psctl.models.weights import load_network, save_weights
+    from psctl.synth.stream import SynthStream
+    from psctl.train import load_config, merge, normals_task
+
+    torch.manual_seed(0)
+    save_weights(tmp_path / "lc.pt", LCNet({"size": 32}), {"method": "lcnet", "train_images": 8})
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    cfg = merge(cfg, {"data": {**cfg["data"], "size": 32, "windows": 16}, "lcnet": {"decode": decode}})
+    task = normals_task("ps-fcn-dagger", cfg, torch.device("cpu"), contextlib.nullcontext, tmp_path / "lc.pt")
+    b = SynthStream({"batch_size": 2, "n_images": 8, "size": 32, "crop": 32, "pool": 2, "shapes": {"blobby": 1.0},
+                     "intensities": "random", "windows": 16}, seed=4).next_batch()
+    x, l, n, m = task.val_item(b)
+    lc = load_network("lcnet", tmp_path / "lc.pt")[0]
+    dirs, ints = lc.estimate(b["images"], b["masks"], decode)
+    assert x.shape[-1] == 32  # validated on the whole view
+    torch.testing.assert_close(l, dirs.float())
+    assert not torch.allclose(l, b["lights"], atol=1e-3)
+    torch.testing.assert_close(x, b["images"] / ints.float()[:, :, None, None, None])
+
+
+def test_best_pt_is_the_best_validation(tmp_path, monkeypatch):
+    import psctl.train as T
+    from psctl.models.weights import read_weights
+
+    scores = iter([5.0, 3.0, 4.0])
+    monkeypatch.setattr(T, "evaluate", lambda task, val: next(scores))
+    cfg = T.load_config(REPO / "configs" / "tiny.yaml")
+    cfg = T.merge(cfg, {"train": {"samples": 24, "val_every": 8}})
+    st = T.train("ps-fcn", cfg, tmp_path / "run", device="cpu")
+    assert st["best_val"] == 3.0 and st["best_samples"] == 16
+    meta = read_weights(tmp_path / "run" / "best.pt").metadata
+    assert meta["metrics"]["synthetic_val_mae"] == 3.0 and meta["samples_seen"] == 16
+
+
+def test_wall_seconds_count_the_whole_run(tmp_path, monkeypatch):
+    import psctl.train as T
+    from psctl.models.weights import read_weights
+
+    scores = iter([1.0, 2.0])  # the last validation is no improvement: nothing saves the time then
+    monkeypatch.setattr(T, "evaluate", lambda task, val: next(scores))
+
+    def slow_stream(*a, **k):
+        s = T.synth_stream(*a, **k)
+        real = s.next_batch
+
+        def next_batch():
+            time.sleep(0.5)
+            return real()
+
+        s.next_batch = next_batch
+        return s
+
+    st = T.train("ps-fcn", merge(tiny(24), {"train": {"val_every": 12}}), tmp_path / "run", device="cpu", make_stream=slow_stream)
+    assert st["seconds"] >= 3.0  # six steps of at least 0.5 s
+    assert read_weights(tmp_path / "run" / "model.pt").metadata["wall_seconds"] >= 3.0
+
+
+def test_a_resumed_run_validates_on_the_same_schedule(tmp_path):
+    from psctl.train import train
+
+    a = train("ps-fcn", merge(tiny(16), {"train": {"val_every": 8}}), tmp_path / "a", device="cpu")
+    train("ps-fcn", merge(tiny(8), {"train": {"val_every": 8}}), tmp_path / "b", device="cpu")
+    b = train("ps-fcn", merge(tiny(16), {"train": {"val_every": 8}}), tmp_path / "b", resume=True, device="cpu")
+    assert [s for s, _ in a["val"]] == [s for s, _ in b["val"]] == [8, 16]
+
+
+def test_average_adds_wall_times_and_refuses_other_lcnets(tmp_path):
+    import psctl.train as T
+    from psctl.errors import PsctlError
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import read_weights, save_weights
+
+    meta = {"method": "ps-fcn-dagger", "train_images": 8, "lcnet": {"path": "lc1.pt"}}
+    a = save_weights(tmp_path / "a.pt", PSFCN(), {**meta, "wall_seconds": 10.0, "samples_seen": 5})
+    b = save_weights(tmp_path / "b.pt", PSFCN(), {**meta, "wall_seconds": 20.5, "samples_seen": 7})
+    m = read_weights(T.average_weights([a, b], tmp_path / "avg")).metadata
+    assert m["wall_seconds"] == 30.5 and m["samples_seen"] == 12 and m["lcnet"] == {"path": "lc1.pt"}
+    c = save_weights(tmp_path / "c.pt", PSFCN(), {**meta, "lcnet": {"path": "lc2.pt"}})
+    with pytest.raises(PsctlError, match="metadata 'lcnet'"):
+        T.average_weights([a, c], tmp_path / "mixed")
+
+
+def test_average_of_ps_fcn_dagger_is_measured_with_its_own_lcnet(tmp_path, monkeypatch):
+    """--average --config measures PS-FCN† members on the lights of the LCNet they were trained
+    with (their metadata's), not the recipe's or the installed one (none here)."""
+    from psctl.models.lcnet import LCNet
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import read_weights, save_weights
+    from psctl.train import average_weights
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "nothing installed"))
+    torch.manual_seed(0)
+    save_weights(tmp_path / "lc.pt", LCNet({"size": 32}), {"method": "lcnet", "train_images": 8})
+    meta = {"method": "ps-fcn-dagger", "train_images": 8, "normalization": "none",
+            "lcnet": {"path": str(tmp_path / "lc.pt"), "decode": "argmax"}}
+    a = save_weights(tmp_path / "a.pt", PSFCN(), meta)
+    b = save_weights(tmp_path / "b.pt", PSFCN(), meta)
+    cfg = load_config(REPO / "configs" / "tiny.yaml")
+    cfg = merge(cfg, {"data": {**cfg["data"], "size": 32}})
+    m = read_weights(average_weights([a, b], tmp_path / "avg", config=cfg)).metadata
+    assert m["lcnet"]["path"] == str(tmp_path / "lc.pt") and "synthetic_val_mae" in m["metrics"]
