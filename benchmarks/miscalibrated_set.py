@@ -60,7 +60,14 @@ def main() -> None:
         wrong[start:start + args.block] /= f
         np.savetxt(out / "light_intensities.txt", wrong, fmt="%.6f")
         made[obj.name] = {"start": start, "block": args.block, "brighter_than_listed": f}
+    finish(args, made)
+
+
+def finish(args: argparse.Namespace, made: dict) -> None:
+    """miscalibration.json, and objects.txt: the links carry psctl synth's synth.json, and a folder
+    of synth objects without objects.txt is refused as maybe incomplete (psctl.io.capture.find_objects)."""
     (args.dst / "miscalibration.json").write_text(json.dumps({"src": str(args.src), "seed": args.seed, "objects": made}, indent=1))
+    (args.dst / "objects.txt").write_text("".join(f"{name}\n" for name in made))
     print(f"{len(made)} objects in {args.dst}")
 
 
@@ -89,8 +96,7 @@ def wrong_directions(args: argparse.Namespace) -> None:
         np.savetxt(out / "light_directions.txt", d, fmt="%.6f")
         ang = np.degrees(np.arccos(np.clip((d * true).sum(1), -1, 1)))
         made[obj.name] = {"zenith_factor": f, "jitter_deg": args.jitter, "mean_change_deg": float(ang.mean())}
-    (args.dst / "miscalibration.json").write_text(json.dumps({"src": str(args.src), "seed": args.seed, "objects": made}, indent=1))
-    print(f"{len(made)} objects in {args.dst}")
+    finish(args, made)
 
 
 if __name__ == "__main__":
