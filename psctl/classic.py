@@ -26,7 +26,17 @@ from psctl.errors import PsctlError
 
 # Grey = ITU-R BT.601 luma, as MATLAB's rgb2gray (the DiLiGenT baseline code's convention).
 GREY = np.array([0.2989, 0.5870, 0.1140], np.float32)
-DARK = 1e-6  # a pixel whose brightest observation is below this carries no information
+# a pixel whose brightest observation is at most this share of the brightest pixel's carries no
+# information: relative, so that a capture's units (its intensity file, a float image's range) do
+# not decide which pixels count (an absolute 1e-6 did, session 38)
+DARK = 1e-6
+
+
+def dark_pixels(peak: np.ndarray) -> np.ndarray:
+    """Pixels whose brightest observation ``peak`` [P] is at most DARK of the brightest one's (all,
+    when every pixel is 0)."""
+    peak = np.asarray(peak, np.float64)
+    return peak <= DARK * (float(peak.max()) if peak.size else 0.0)
 DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)  # what a dark pixel gets: facing the camera
 
 
@@ -91,7 +101,8 @@ class L2Accumulator:
         if problem:
             raise PsctlError(None, f"L2: {problem}")
         b = np.linalg.solve(self.lhs, self.rhs).T  # [P, 3]
-        dark = (self.peak < DARK) | (np.linalg.norm(b, axis=1) < 1e-12)
+        norm = np.linalg.norm(b, axis=1)
+        dark = dark_pixels(self.peak) | (norm <= 1e-12 * (norm.max() if norm.size else 0.0))
         return l2_result(b, dark, self.mask)
 
 
@@ -171,7 +182,8 @@ def trimmed_l2_solve(grey: np.ndarray, lights: np.ndarray, low: float = DEFAULT_
         x = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         x[bad] = (full @ g[:, bad]).T
         b[a:a + _CHUNK], fallback[a:a + _CHUNK] = x, bad
-    dark = (grey.max(0) < DARK) | (np.linalg.norm(b, axis=1) < 1e-12)
+    norm = np.linalg.norm(b, axis=1)
+    dark = dark_pixels(grey.max(0)) | (norm <= 1e-12 * (norm.max() if norm.size else 0.0))
     b[dark] = 0
     return b, dark, fallback
 

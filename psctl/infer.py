@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from psctl.classic import DARK
 from psctl.errors import PsctlError, naming
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
@@ -66,7 +67,6 @@ DEFAULT_INFER = {
 
 FEATURES = 128  # extractor output channels
 _BYTES_PER_PIXEL = 400  # extractor activations per input pixel and image (fp32, channels_last: 384 measured)
-DARK = 1e-6  # a pixel whose brightest observation is below this carries no information
 
 # reader(start, box) yields images start, start + 1, ... as float32 [h, w, 3] cropped to box.
 Reader = Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]
@@ -324,13 +324,22 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     scale = None
     if normalization != "none":
         # float64: the sum (so the result) does not depend on the order of the images
+        # (squared in float64 too: float32 squares of values below 1e-19 or above 1e19 leave its range)
         sumsq = np.zeros((h, w, 3 if normalization == "per-channel" else 1), np.float64)
         for img in stream:
-            sq = img * img
+            sq = np.square(img, dtype=np.float64)
             sumsq += sq if normalization == "per-channel" else sq.sum(-1, keepdims=True)
         scale = np.sqrt(sumsq, out=sumsq)  # in place: for a large region these maps are big
-        scale += NORM_EPS
+        lit = scale > 0
+        # the authors' epsilon, relative to the capture's level so that its units do not matter (an
+        # absolute 1e-10 swamped the norms of a capture scaled by 1e-10 or less, session 38)
+        top = float(scale.max())
+        scale += NORM_EPS * (top if top > 0 else 1.0)
         np.divide(math.sqrt(n / train_images), scale, out=scale)
+        scale[~lit] = 0.0  # observations all 0 there: any factor gives 0
+        if float(scale.max()) > float(np.finfo(np.float32).max):
+            raise PsctlError(None, f"the images are too dark to normalise in float32 (largest per-pixel norm "
+                                   f"{top:.3g}): rescale them")
         del sumsq
     # exposure, pass 1: one factor for the whole capture (keeps albedo and shading ratios)
     exposure = None
@@ -341,6 +350,10 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
             raise PsctlError(None, "all images are black inside the mask" if total == 0 else
                              f"the images' mean inside the mask is {mean:.3g}: linear images are not negative")
         exposure = input_mean / mean
+        f32 = np.finfo(np.float32)
+        if not float(f32.tiny) < exposure < float(f32.max):  # outside float32's range (a capture of denormal values)
+            raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale in "
+                                   f"float32; rescale them")
         scale = np.full((1, 1, 1), exposure, np.float32)
 
     out = np.zeros((h, w, 3), np.float32)
@@ -404,7 +417,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     inside = mask[region]
     normals[region] = np.where(inside[..., None], out[: stream.rh, : stream.rw], 0.0)
     dark = np.zeros((H, W), bool)
-    dark[region] = inside & (stream.peak[: stream.rh, : stream.rw] < DARK)
+    peak = stream.peak[: stream.rh, : stream.rw]
+    dark[region] = inside & (peak <= DARK * float(peak[inside].max(initial=0.0)))  # relative, as L2's
     info = {
         "device": str(device), "region": [int(v) for v in box], "tiles": len(tiles), "passes": passes,
         "chunk": int(chunk_used), "cached_images": len(stream.cache), "normalization": normalization,

@@ -230,6 +230,9 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         mean = level[0] / max(level[1], 1.0)
         if mean > 0 and not band[0] <= mean <= band[1]:
             factor = float(cfg["exposure_target"]) / mean
+            if not float(np.finfo(np.float32).tiny) < factor < float(np.finfo(np.float32).max):  # denormal values
+                raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale "
+                                       f"in float32; rescale them")
 
     def scaled(xs: Iterator[torch.Tensor]) -> Iterator[torch.Tensor]:
         for x in xs:

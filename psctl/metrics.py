@@ -37,10 +37,18 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
         normals, gt = normals[m], gt[m]
     # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
     normals, gt = normals.astype(np.float64), gt.astype(np.float64)
-    a = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
-    b = gt / np.maximum(np.linalg.norm(gt, axis=-1, keepdims=True), 1e-12)
+    def unit(v: np.ndarray) -> np.ndarray:  # any non-zero length, however small; a zero vector stays 0 (90 degrees)
+        top = np.abs(v).max(axis=-1, keepdims=True)  # divided first: squares of 1e-200 or 1e200 leave float64
+        v = np.divide(v, top, out=np.zeros_like(v), where=top > 0)
+        n = np.linalg.norm(v, axis=-1, keepdims=True)
+        return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+
+    with np.errstate(invalid="ignore"):
+        a, b = unit(normals), unit(gt)
     cos = np.clip((a * b).sum(-1), -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
+    deg = np.degrees(np.arccos(cos))
+    deg[~(np.isfinite(normals).all(-1) & np.isfinite(gt).all(-1))] = np.nan  # NaN in, NaN out
+    return deg
 
 
 def summarize(errors: np.ndarray) -> dict:

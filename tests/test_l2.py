@@ -192,3 +192,13 @@ def test_trimmed_l2_drops_the_darkest_and_keeps_three():
     b, dark, fallback = trimmed_l2_solve(grey, lights, low=0.25, high=0.0)  # drop 1 of 4, keep 3
     assert not fallback.any() and not dark.any()
     np.testing.assert_allclose(b, b_true, atol=1e-5)
+
+
+def test_angular_error_normalises_vectors_of_any_length():
+    z = np.array([[0.0, 0.0, 1.0]])
+    tilted = np.array([[0.0, 1.0, 1.0]])
+    for s in (1e-300, 1e-15, 1.0, 1e200):
+        assert angular_error(z * s, z)[0] == pytest.approx(0.0, abs=1e-9)
+        assert angular_error(tilted * s, z)[0] == pytest.approx(45.0)
+    assert angular_error(z * 0, z)[0] == 90.0  # a zero vector has no direction: as far as can be
+    assert np.isnan(angular_error(np.array([[np.nan, 0, 1.0]]), z)[0])

@@ -823,3 +823,38 @@ def test_weights_with_inf_are_refused(tmp_path):
     state["regressor.est_normal.0.weight"][0, 0, 0, 0] = float("inf")
     with pytest.raises(PsctlError, match="NaN or infinite"):
         save_weights(tmp_path / "inf.pt", state, {"method": "ps-fcn", "train_images": 32})
+
+
+@pytest.mark.parametrize("method", ["l2", "ps-fcn", "ps-fcn-n"])
+def test_normals_do_not_depend_on_the_captures_units(tmp_path, method):
+    """A capture scaled by one factor (float images in other units, an intensity file in other
+    units) gives the same normals and the same dark pixels: no absolute threshold decides."""
+    from psctl.api import estimate_normals
+    from psctl.metrics import angular_error
+
+    images, lights, mask = scene(8, 24, 24)
+    meta = {"method": method, "train_images": 32}
+    if method == "ps-fcn":
+        meta["input_mean"] = 0.2
+    w = None if method == "l2" else save_weights(tmp_path / "w.pt", model(), meta)
+    ref = estimate_normals(images, lights, mask, method=method, weights=w, device="cpu")
+    for s in (1e-15, 1e-6, 1e6, 1e30):
+        got = estimate_normals(images * np.float32(s), lights, mask, method=method, weights=w, device="cpu")
+        assert np.isfinite(got).all()
+        assert angular_error(got, ref, mask).max() < 0.01, s
+    if method != "l2":  # denormal values: one clear error, not a crash or silent nonsense
+        with pytest.raises(PsctlError, match="rescale them"):
+            estimate_normals(images * np.float32(1e-39), lights, mask, method=method, weights=w, device="cpu")
+
+
+def test_l2_dark_pixels_are_relative_to_the_capture():
+    from psctl.classic import l2_normals
+
+    images, lights, mask = scene(8, 24, 24)
+    images[:, :, :12] *= 1e-3  # a dim half: dim, not dark
+    for s in (1e-9, 1.0, 1e9):
+        r = l2_normals(images * s, lights, mask)
+        assert not r.dark[mask].any(), s
+    dark = images.copy()
+    dark[:, :, :12] = 0.0
+    assert l2_normals(dark * 1e-9, lights, mask).dark[mask].sum() == (mask[:, :12]).sum()
