@@ -394,7 +394,7 @@ class Refinement:
     intensities: np.ndarray  # [N], on the scale of the intensities passed in (their geometric mean)
     quality: float  # q, the fit's relative residual (inf when nothing was fitted)
     weight: float  # in [0, 1]: 1 = the fitted lights, 0 = the ones passed in
-    status: str = "fitted"  # fitted | too few pixels | astray (see DEFAULT_REFINE["max_change"])
+    status: str = "fitted"  # fitted | too few pixels | astray (see DEFAULT_REFINE["max_change"]) | undetermined
 
 
 def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
@@ -435,6 +435,10 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
         o, n = o[:, ok], n[ok]
     if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
         return keep
+    from psctl.classic import lights_problem
+
+    if lights_problem(d0) is not None:  # fewer than 3 lights, or coplanar: any light fits (residual 0)
+        return replace(keep, status="undetermined")
     shifted = cfg["falloff"] == "shifted"
     lo_q, hi_q = cfg["trim"]
     s = d0 * e0[:, None]
@@ -563,16 +567,21 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
     if ref.status == "astray":
         note = (f"lights: LCNet's lights kept (refitting them against {method}'s normals moved a light by more than "
                 f"{cfg['max_change']:g} degrees)")
+    elif ref.status == "undetermined":
+        note = (f"lights: LCNet's lights kept ({len(est.directions)} image(s) with (nearly) coplanar estimated "
+                f"lights: a fit against {method}'s normals would be undetermined)" if len(est.directions) >= 3 else
+                f"lights: LCNet's lights kept (only {len(est.directions)} image(s): a fit against {method}'s normals "
+                f"would be undetermined)")
     elif not np.isfinite(ref.quality):
         note = "lights: too few usable pixels to refine LCNet's lights against the normals; LCNet's kept"
     elif ref.weight >= 1:
-        note = f"lights: LCNet's lights refined against {method}'s normals (fit residual {ref.quality:.3f})"
+        note = f"lights: LCNet's lights refined against {method}'s normals (fit residual {ref.quality:.3g})"
     elif ref.weight <= 0:
         note = (f"lights: LCNet's lights kept (a diffuse fit against {method}'s normals explains this object "
-                f"poorly: residual {ref.quality:.3f} >= {cfg['gate'][1]})")
+                f"poorly: residual {ref.quality:.3g} >= {cfg['gate'][1]})")
     else:
         note = (f"lights: LCNet's lights {info['refine']['weight']:.0%} refined against {method}'s normals (fit "
-                f"residual {ref.quality:.3f})")
+                f"residual {ref.quality:.3g})")
     return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
 
 

@@ -604,3 +604,16 @@ def test_eval_rows_keep_lcnets_own_light_error(tmp_path, fake_weights, stand_in_
     o = res["objects"][0]
     assert o["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3) and o["light_mae"] < 2.0
     assert res["mean_lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3)
+
+
+def test_refine_leaves_undetermined_rigs_alone():
+    """Fewer than three lights, or coplanar ones: any light 'fits' (residual 0), so none is fitted."""
+    obs, nrm, lights, ints = scene()
+    two = refine_lights(obs[:2], nrm, lights[:2], ints[:2])
+    assert two.status == "undetermined" and two.weight == 0.0
+    np.testing.assert_array_equal(two.directions, lights[:2])
+    flat = lights.copy()
+    flat[:, 1] = 0.0  # all in the x-z plane
+    flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+    assert refine_lights(obs, nrm, flat, ints).status == "undetermined"
+    assert refine_lights(obs, nrm, lights, ints).status == "fitted"
