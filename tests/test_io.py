@@ -922,3 +922,15 @@ def test_written_normal_maps_are_zero_outside_the_mask(tmp_path, fmt, name):
     write_normal_map(tmp_path / name, n, m, fmt)
     back = read_normal_map(tmp_path / name)
     assert (back[~m] == 0).all() and np.allclose(back[m], [0, 0, 1], atol=0.01)
+
+
+def test_exr_files_hold_no_write_time(tmp_path):
+    """The same pixels give the same bytes: OpenImageIO's EXR writer stamps DateTime unless told not to."""
+    import OpenImageIO as oiio
+
+    write_image(tmp_path / "a.exr", np.random.default_rng(0).random((8, 8, 3)).astype(np.float32))
+    inp = oiio.ImageInput.open(str(tmp_path / "a.exr"))
+    try:
+        assert "DateTime" not in [p.name for p in inp.spec().extra_attribs]
+    finally:
+        inp.close()

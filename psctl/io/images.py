@@ -187,6 +187,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
+        spec.attribute("DateTime", "")  # no write time in the header: the same run gives the same bytes
     _oiio_name(path)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
