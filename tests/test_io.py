@@ -934,3 +934,19 @@ def test_exr_files_hold_no_write_time(tmp_path):
         assert "DateTime" not in [p.name for p in inp.spec().extra_attribs]
     finally:
         inp.close()
+
+
+def test_no_axis_note_from_a_handful_of_pixels():
+    from psctl.api import convention_notes
+
+    rng = np.random.default_rng(1)
+    gt = rng.normal(size=(10, 10, 3))
+    gt[..., 2] = np.abs(gt[..., 2]) + 0.5
+    gt /= np.linalg.norm(gt, axis=-1, keepdims=True)
+    est = gt * [1, -1, 1]  # y flipped everywhere
+    few = np.zeros((10, 10), bool)
+    few[:2, :3] = True
+    many = np.ones((10, 10), bool)
+    mae = lambda v: float(angular_error(est, gt, v).mean())  # noqa: E731
+    assert any("y flipped far better" in n for n in convention_notes(est, gt, many, mae(many), "gt"))
+    assert not any("flipped" in n for n in convention_notes(est, gt, few, mae(few), "gt"))
