@@ -950,3 +950,16 @@ def test_no_axis_note_from_a_handful_of_pixels():
     mae = lambda v: float(angular_error(est, gt, v).mean())  # noqa: E731
     assert any("y flipped far better" in n for n in convention_notes(est, gt, many, mae(many), "gt"))
     assert not any("flipped" in n for n in convention_notes(est, gt, few, mae(few), "gt"))
+
+
+def test_an_image_at_or_below_zero_over_the_object_counts_as_black(tmp_path):
+    from psctl.api import run_normals
+
+    arrays = write_capture(tmp_path / "cap", n=8, size=24)
+    write_image(tmp_path / "cap" / "003.exr", np.where(arrays["mask"][..., None], -0.1, 0.0), "float")
+    (tmp_path / "cap" / "003.png").unlink()
+    names = (tmp_path / "cap" / "filenames.txt").read_text().replace("003.png", "003.exr")
+    (tmp_path / "cap" / "filenames.txt").write_text(names)
+    notes = run_normals(tmp_path / "cap", method="l2", write=False)["notes"]
+    assert any(n.startswith("images: 1 of 8 black over the object (003.exr)") for n in notes), notes
+    assert any("negative values over the object (003.exr)" in n for n in notes)

@@ -691,10 +691,10 @@ class ImageCheck:
     def see(self, k: int, pixels: np.ndarray) -> None:
         """``pixels``: image ``k``'s values over the object (any shape)."""
         self.seen.add(k)
-        if pixels.any():
+        if pixels.size and pixels.max() > 0:  # an image at or below 0 everywhere is as black (noise about 0)
             self.lit.add(k)
-            if pixels.min() < 0:
-                self.negative.add(k)
+        if pixels.size and pixels.min() < 0:
+            self.negative.add(k)
 
     def reader(self, capture: Capture, mask: np.ndarray) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
         """The network runners' reader: ``capture``'s images from ``start`` on, cut to ``box``,
