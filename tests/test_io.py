@@ -886,9 +886,12 @@ def test_error_map_draws_the_errors(tmp_path):
     err[30:, 20:30] = np.nan
     write_error_map(tmp_path / "e.png", err, mask, 12.5, 10.0)
     pic, info = read_image(tmp_path / "e.png")
-    assert info.dtype == "uint8" and pic.shape[1] > 50  # room for the bar
-    top = pic.shape[0] - 40 - 4
-    body = pic[top:top + 40, :50]
+    k = 2  # a map under MIN_BAR (64) pixels tall is drawn in whole k x k blocks: 80 x 100 here
+    assert info.dtype == "uint8" and pic.shape[1] > 50 * k  # room for the bar
+    top = pic.shape[0] - 40 * k - 4
+    big = pic[top:top + 40 * k, :50 * k]
+    body = big[::k, ::k]
+    assert (big[1::k, 1::k] == body).all()  # whole blocks
     scored = mask & ~np.isnan(err)
     np.testing.assert_allclose(body[scored], jet(np.minimum(err[scored], 45) / 45), atol=1 / 255)
     assert (body[~mask] == 0).all() and (np.abs(body[30:, 20:30] - UNSCORED) < 1 / 255).all()
@@ -963,3 +966,13 @@ def test_an_image_at_or_below_zero_over_the_object_counts_as_black(tmp_path):
     notes = run_normals(tmp_path / "cap", method="l2", write=False)["notes"]
     assert any(n.startswith("images: 1 of 8 black over the object (003.exr)") for n in notes), notes
     assert any("negative values over the object (003.exr)" in n for n in notes)
+
+
+def test_small_error_maps_are_drawn_large_enough_to_read(tmp_path):
+    from psctl.io.report import MIN_BAR, error_heatmap
+
+    for h, w in ((1, 1), (24, 24), (8, 512)):
+        pic = error_heatmap(np.full((h, w), 10.0, np.float32), np.ones((h, w), bool), title="MAE 10.00")
+        assert pic.shape[0] >= MIN_BAR + 12  # the bar (and its four labels) at least MIN_BAR tall, under the title
+        assert pic.shape[1] <= 2048 + 44
+

@@ -111,6 +111,7 @@ def _degree_labels(vmax: float) -> dict[float, str]:
     return {frac: f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°" for frac in (0.0, 1 / 3, 2 / 3, 1.0)}
 
 
+MIN_BAR = 64  # pixels: the shortest colour bar of an error or spread map
 UNSCORED = 0.5  # grey: a mask pixel without a value (no ground truth there), apart from jet's 0 (dark blue)
 
 
@@ -126,13 +127,18 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
     dark background (grey: NaN, a mask pixel without ground truth), a colour bar with tick
     labels on the right, ``title`` on top."""
-    h, w = error.shape
+    img = heat(error, mask, vmax)
+    # a small map is shown k times larger (whole pixels) and the colour bar is at least MIN_BAR tall,
+    # so that its four labels do not run into each other (a 24 x 24 capture)
+    k = max(1, min(-(-MIN_BAR // max(img.shape[0], 1)), 2048 // max(img.shape[1], 1)))
+    img = img.repeat(k, axis=0).repeat(k, axis=1)
+    h, w = img.shape[:2]
     s = max(1, min(h, w) // 200)
     top, bar_w, right = 12 * s, 10 * s, 44 * s
-    canvas = np.full((h + top + 4 * s, max(w + right, 8 + 6 * s * len(title or ""), 1), 3), 0.12, np.float32)
-    img = heat(error, mask, vmax)
+    bar = max(h, MIN_BAR)
+    canvas = np.full((bar + top + 4 * s, max(w + right, 8 + 6 * s * len(title or ""), 1), 3), 0.12, np.float32)
     canvas[top:top + h, :w] = img
-    colour_bar(canvas, top, w + 4 * s, h, bar_w, _degree_labels(vmax), s)
+    colour_bar(canvas, top, w + 4 * s, bar, bar_w, _degree_labels(vmax), s)
     if title:
         _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
     return canvas
