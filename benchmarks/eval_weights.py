@@ -30,9 +30,9 @@ synthetic sets, DiLiGenT is only reported):
   dev         the DiLiGenT dev split, cropped 8-bit, all 96 images (../shared/data)
   dev_near    the same with --light-distance 2400 (DiLiGenT's lights, measured on these objects)
   ballpng     the full-size 16-bit ballPNG
-Missing synthetic folders are made first with `psctl synth` (about 2 minutes each on 2 cores; syntest_dl_384
-about 2 minutes on one) or
-miscalibrated_set.py. Prints one JSON object (and writes it with --out): per file and set,
+Missing synthetic folders are made first with `psctl synth` (24-37 s each for the 128 px sets,
+syntest_dl_384 7 minutes, on the 2-core VM beside other jobs, 2026-11-28) or
+miscalibrated_set.py (seconds). Prints one JSON object (and writes it with --out): per file and set,
 per-object MAE and the mean, and with all seven rule sets the rule's sum.
 """
 
