@@ -787,8 +787,9 @@ def test_score_skips_pixels_without_gt(tmp_path):
     from psctl.io.report import UNSCORED
 
     pic, _ = read_image(tmp_path / "out" / "error.png")
-    top = pic.shape[0] - 36 - 4  # error_heatmap: the title's band above the map, 4 px below (s = 1)
-    grey = np.abs(pic[top:top + 36, :36] - UNSCORED).max(-1) < 1 / 255
+    k = 2  # error_heatmap: a map under 64 px tall in whole 2 x 2 blocks, the title's band above, 4 px below
+    top = pic.shape[0] - 36 * k - 4
+    grey = np.abs(pic[top:top + 36 * k:k, :36 * k:k] - UNSCORED).max(-1) < 1 / 255
     assert (grey == np.isnan(err)).all()
     from psctl.io.report import jet
 
