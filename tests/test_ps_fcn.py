@@ -789,13 +789,14 @@ def test_score_skips_pixels_without_gt(tmp_path):
     pic, _ = read_image(tmp_path / "out" / "error.png")
     k = 2  # error_heatmap: a map under 64 px tall in whole 2 x 2 blocks, the title's band above, 4 px below
     top = pic.shape[0] - 36 * k - 4
-    grey = np.abs(pic[top:top + 36 * k:k, :36 * k:k] - UNSCORED).max(-1) < 1 / 255
+    body = pic[top:top + 36 * k:k, :36 * k:k]
+    grey = np.abs(body - UNSCORED).max(-1) < 1 / 255
     assert (grey == np.isnan(err)).all()
     from psctl.io.report import jet
 
     scored = arrays["mask"] & ~np.isnan(err)  # drawn in jet over 0..45 degrees, black outside
-    np.testing.assert_allclose(pic[top:top + 36, :36][scored], jet(err[scored] / 45), atol=1 / 255)
-    assert (pic[top:top + 36, :36][~arrays["mask"]] == 0).all()
+    np.testing.assert_allclose(body[scored], jet(err[scored] / 45), atol=1 / 255)
+    assert (body[~arrays["mask"]] == 0).all()
 
 
 def test_black_capture_is_an_error_for_ps_fcn_n(tmp_path):
