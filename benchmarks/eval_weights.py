@@ -126,6 +126,15 @@ def main() -> None:
 
     result: dict = {"method": args.method, "weights": {w: {} for w in args.weights}}
     t0 = time.perf_counter()
+
+    def done(name: str) -> None:
+        """One line on stderr per set, and --out rewritten with what is measured so far ("partial":
+        true until the end), so that a run stopped half-way keeps its numbers."""
+        for w in args.weights:
+            v = result["weights"][w].get(name)
+            print(f"{name}: {w}: {v['mean'] if isinstance(v, dict) else v}", file=sys.stderr, flush=True)
+        if args.out:
+            Path(args.out).write_text(json.dumps({**result, "partial": True}, indent=1) + "\n")
     if "val" in args.sets:
         if not args.config:
             ap.error("'val' needs --config")
@@ -133,6 +142,7 @@ def main() -> None:
         result["val_l2"] = mae.pop("l2")
         for w in args.weights:
             result["weights"][w]["val"] = mae[w]
+        done("val")
     for name in ("syntest", "syntest_dl", "truncated", "syntest_dl_ir", "syntest_dl_miscal", "syntest_dl_dircal",
                  "syntest_dl_near", "syntest_dl_384"):
         if name not in args.sets:
@@ -140,6 +150,7 @@ def main() -> None:
         for w in args.weights:
             result["weights"][w][name] = (truncated(args.method, w) if name == "truncated"
                                           else benchmark("folder", make_set(name), args.method, w))
+        done(name)
     if {"dev", "dev_near", "ballpng"} & set(args.sets):
         if not DATA.is_dir():
             print(f"{DATA}: not found, DiLiGenT sets skipped", file=sys.stderr)
