@@ -30,14 +30,18 @@ GREY = np.array([0.2989, 0.5870, 0.1140], np.float32)
 # information: relative, so that a capture's units (its intensity file, a float image's range) do
 # not decide which pixels count (an absolute 1e-6 did, session 38)
 DARK = 1e-6
-
-
-def dark_pixels(peak: np.ndarray) -> np.ndarray:
-    """Pixels whose brightest observation ``peak`` [P] is at most DARK of the brightest one's (all,
-    when every pixel is 0)."""
-    peak = np.asarray(peak, np.float64)
-    return peak <= DARK * (float(peak.max()) if peak.size else 0.0)
 DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)  # what a dark pixel gets: facing the camera
+
+
+def dark_pixels(peak: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+    """Pixels whose brightest observation ``peak`` [P] is at most DARK of the brightest one's (all,
+    when every pixel is 0), and with ``b`` [P, 3] (least squares' normal times albedo) those whose
+    solution is (relatively) zero."""
+    def tiny(v: np.ndarray, share: float) -> np.ndarray:
+        return v <= share * (float(v.max()) if v.size else 0.0)
+
+    dark = tiny(np.asarray(peak, np.float64), DARK)
+    return dark if b is None else dark | tiny(np.linalg.norm(b, axis=1), 1e-12)
 
 
 @dataclass
@@ -101,9 +105,7 @@ class L2Accumulator:
         if problem:
             raise PsctlError(None, f"L2: {problem}")
         b = np.linalg.solve(self.lhs, self.rhs).T  # [P, 3]
-        norm = np.linalg.norm(b, axis=1)
-        dark = dark_pixels(self.peak) | (norm <= 1e-12 * (norm.max() if norm.size else 0.0))
-        return l2_result(b, dark, self.mask)
+        return l2_result(b, dark_pixels(self.peak, b), self.mask)
 
 
 def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
@@ -182,8 +184,7 @@ def trimmed_l2_solve(grey: np.ndarray, lights: np.ndarray, low: float = DEFAULT_
         x = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         x[bad] = (full @ g[:, bad]).T
         b[a:a + _CHUNK], fallback[a:a + _CHUNK] = x, bad
-    norm = np.linalg.norm(b, axis=1)
-    dark = dark_pixels(grey.max(0)) | (norm <= 1e-12 * (norm.max() if norm.size else 0.0))
+    dark = dark_pixels(grey.max(0), b)
     b[dark] = 0
     return b, dark, fallback
 

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.classic import DARK
+from psctl.classic import dark_pixels
 from psctl.errors import PsctlError, naming
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
@@ -260,6 +260,16 @@ class _RegionImages:
 
 # --- the engine -------------------------------------------------------------------------------
 
+def check_float32_scale(factor: float, mean: float) -> float:
+    """``factor``, the exposure scale of a capture whose mean inside the mask is ``mean``, if float32
+    can hold it; a capture of denormal values (mean ~1e-40) is a user error instead of inf."""
+    f32 = np.finfo(np.float32)
+    if not float(f32.tiny) < factor < float(f32.max):
+        raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale in "
+                               f"float32; rescale them")
+    return factor
+
+
 def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
                 normalization: str = "none", train_images: int | None = None, config: dict | None = None,
                 progress: "ProgressFactory | None" = None, label: str = "network",
@@ -349,11 +359,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         if not mean > 0:
             raise PsctlError(None, "all images are black inside the mask" if total == 0 else
                              f"the images' mean inside the mask is {mean:.3g}: linear images are not negative")
-        exposure = input_mean / mean
-        f32 = np.finfo(np.float32)
-        if not float(f32.tiny) < exposure < float(f32.max):  # outside float32's range (a capture of denormal values)
-            raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale in "
-                                   f"float32; rescale them")
+        exposure = check_float32_scale(input_mean / mean, mean)
         scale = np.full((1, 1, 1), exposure, np.float32)
 
     out = np.zeros((h, w, 3), np.float32)
@@ -417,8 +423,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     inside = mask[region]
     normals[region] = np.where(inside[..., None], out[: stream.rh, : stream.rw], 0.0)
     dark = np.zeros((H, W), bool)
-    peak = stream.peak[: stream.rh, : stream.rw]
-    dark[region] = inside & (peak <= DARK * float(peak[inside].max(initial=0.0)))  # relative, as L2's
+    dark[region][inside] = dark_pixels(stream.peak[: stream.rh, : stream.rw][inside])  # the rule L2 uses
     info = {
         "device": str(device), "region": [int(v) for v in box], "tiles": len(tiles), "passes": passes,
         "chunk": int(chunk_used), "cached_images": len(stream.cache), "normalization": normalization,

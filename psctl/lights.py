@@ -149,7 +149,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     """
     import torch
 
-    from psctl.infer import pick_device
+    from psctl.infer import check_float32_scale, pick_device
     from psctl.models.lcnet import FEATURES, decode, resize_inputs
     from psctl.symmetry import SYMMETRIES, check_views, transform_images, untransform_dirs
 
@@ -229,10 +229,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         buffered = buffered if keep_inputs else None
         mean = level[0] / max(level[1], 1.0)
         if mean > 0 and not band[0] <= mean <= band[1]:
-            factor = float(cfg["exposure_target"]) / mean
-            if not float(np.finfo(np.float32).tiny) < factor < float(np.finfo(np.float32).max):  # denormal values
-                raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale "
-                                       f"in float32; rescale them")
+            factor = check_float32_scale(float(cfg["exposure_target"]) / mean, mean)
 
     def scaled(xs: Iterator[torch.Tensor]) -> Iterator[torch.Tensor]:
         for x in xs:

@@ -37,6 +37,7 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
         normals, gt = normals[m], gt[m]
     # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
     normals, gt = normals.astype(np.float64), gt.astype(np.float64)
+
     def unit(v: np.ndarray) -> np.ndarray:  # any non-zero length, however small; a zero vector stays 0 (90 degrees)
         top = np.abs(v).max(axis=-1, keepdims=True)  # divided first: squares of 1e-200 or 1e200 leave float64
         v = np.divide(v, top, out=np.zeros_like(v), where=top > 0)

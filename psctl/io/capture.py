@@ -64,6 +64,7 @@ class Capture:
     kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
     channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
     jpeg: tuple[bool, ...] = ()  # each image is JPEG data, by its content (whatever its name)
+    ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -85,7 +86,7 @@ class Capture:
         if isinstance(k, (int, np.integer)):
             path = self.image_paths[int(k)]
             return path.suffix.lower() in JPEG or (bool(self.jpeg) and self.jpeg[int(k)])
-        return k.suffix.lower() in JPEG or image_info(k).format == "jpeg"
+        return k.suffix.lower() in JPEG or (k == self.ambient_path and self.ambient_jpeg)
 
     @property
     def turned(self) -> int:
@@ -370,10 +371,12 @@ def root_notes(root: str | os.PathLike) -> list[str]:
     notes = []
     listed = (root / "objects.txt").is_file()
     own = _image_files(entries)
+
     if listed and own:
         notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
                      f"{', ...' if len(own) > 1 else ''}) not read: objects.txt makes it a benchmark root of the "
                      f"folders it lists")
+
     def looks_meant(folder: Path) -> bool:  # a capture file, no image
         try:
             inside = list(folder.iterdir())
@@ -491,8 +494,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             raise PsctlError(gt_path, f"ground truth needs 3 channels (nx, ny, nz), this image has {gt_info.channels}")
     elif gt_path is not None:
         _check_mat_header(gt_path, first)
-    if ambient_path is not None:
-        _check_size(image_info(ambient_path), first)
+    ambient_info = None if ambient_path is None else image_info(ambient_path)
+    if ambient_info is not None:
+        _check_size(ambient_info, first)
     if list_file is not None:  # a listed mask or ground truth would be read as an image
         # one name twice (a copy-paste slip); two names linked to one file are the user's choice
         # (benchmarks/bench_infer.py repeats a capture so), and a set keeps 10,000 names quick
@@ -516,6 +520,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
+        ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         lights_path=lights_path, intensities_path=intensities_path,
@@ -635,6 +640,16 @@ def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[
     return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
 
 
+def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str) -> np.ndarray:
+    """Image ``name`` (linear) less the ambient image, clipped at 0; one that this turns black
+    from lit is a user error naming the ambient file (shared by the reader and info --check)."""
+    out = np.maximum(rgb - ambient, 0.0)
+    if rgb.any() and not out.any():
+        raise PsctlError(capture.ambient_path, f"subtracting it leaves {name} black: is it brighter than the "
+                                               f"images (taken with a light on)?")
+    return out
+
+
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
@@ -664,11 +679,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None:
-            lit = rgb.any()
-            rgb = np.maximum(rgb - ambient, 0.0)
-            if lit and not rgb.any():
-                raise PsctlError(capture.ambient_path, f"subtracting it leaves {p.name} black: is it brighter than "
-                                                       f"the images (taken with a light on)?")
+            rgb = minus_ambient(rgb, ambient, capture, p.name)
         rgb = rgb / capture.intensities[k]
         if capture.near is not None:
             rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]

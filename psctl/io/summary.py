@@ -31,7 +31,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     out) stops the check with the same message."""
     import time
 
-    from psctl.io.capture import ImageCheck, load_ground_truth
+    from psctl.io.capture import ImageCheck, load_ground_truth, minus_ambient
     from psctl.io.images import read_image, srgb_to_linear, to_rgb
 
     t0 = time.perf_counter()
@@ -64,10 +64,10 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             rgb = srgb_to_linear(rgb)
         if ambient is not None and ambient.shape == full.shape:  # (a size mismatch: open_capture's error)
             full = srgb_to_linear(full) if cap.is_srgb(k) else full
-            lit = np.maximum(full - ambient, 0.0)
-            if full.any() and not lit.any() and blacked_out is None:
-                blacked_out = PsctlError(cap.ambient_path, f"subtracting it leaves {p.name} black: is it brighter "
-                                                           f"than the images (taken with a light on)?")
+            try:
+                lit = minus_ambient(full, ambient, cap, p.name)
+            except PsctlError as e:
+                blacked_out, lit = blacked_out or e, np.zeros_like(full)
             check.see(k, lit[mask])
         else:
             check.see(k, rgb)
