@@ -1111,3 +1111,15 @@ def test_a_benchmark_root_says_what_it_leaves_out(tmp_path):
     r = json.loads(cli("info", root, "--json").stdout)
     assert r["notes"] == ["objects: 1 image in the root itself (001.png) not read: objects.txt makes it a "
                           "benchmark root of the folders it lists"]
+
+
+def test_python_m_psctl_is_the_command(tmp_path: Path):
+    """``python -m psctl``: the command where its script is not on PATH, named "psctl" in messages."""
+    run = lambda *a: subprocess.run([sys.executable, "-m", "psctl", *a], capture_output=True, text=True,  # noqa: E731
+                                    env={**os.environ, "COLUMNS": "100"})
+    from psctl import __version__
+    assert run("--version").stdout.strip() == f"psctl {__version__}"
+    proc = run("normals", str(tmp_path / "missing"))
+    assert proc.returncode == 2 and "missing" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run("info")
+    assert proc.returncode == 2 and proc.stderr.startswith("psctl info: Missing argument")
