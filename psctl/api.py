@@ -81,7 +81,9 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
         if lcnet is None and installed_path("ups-fcn") is not None and not sdps_ready:
             return "ups-fcn", "auto: no light_directions.txt and the sdps weights are not installed: ups-fcn"
         note = check_sdps_weights(None, lcnet)
-        return "sdps", f"auto: no light_directions.txt; {note}"
+        # calibrated here only because --lcnet was given: the listed lights are not what chose sdps
+        why = "--lcnet given, so sdps" if calibrated else "no light_directions.txt"
+        return "sdps", f"auto: {why}; {note}"
     if method == "sdps":
         return "sdps", check_sdps_weights(weights, lcnet)
     if method == "ensemble":

@@ -68,9 +68,10 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
         method = "ensemble" if SDPS_ENSEMBLE and have == ["ps-fcn", "ps-fcn-n"] else have[0]
     if method == "ps-fcn-dagger":
         return method, SDPS_NOTE
+    # a file given on the command line was chosen by the user, whether or not PS-FCN† is installed
+    why = f"from {weights}" if weights is not None else "PS-FCN†, trained on LCNet's lights, is not installed"
     return method, (f"sdps: lights estimated by LCNet, then normals by {SHOWN[method]} on those lights "
-                    "(PS-FCN†, trained on LCNet's lights, is not installed; a light_directions.txt only "
-                    "scores the lights)")
+                    f"({why}; a light_directions.txt only scores the lights)")
 
 
 def sdps_decode(method: str, weights: str | os.PathLike | None = None) -> str:

@@ -375,6 +375,49 @@ def test_auto_on_an_uncalibrated_folder_prefers_sdps_over_ups_fcn(tmp_path, monk
     method, note = resolve_method("auto", False)
     assert method == "sdps" and "PS-FCN" in note
 
+
+def test_auto_and_sdps_choices_with_files_given(tmp_path, monkeypatch):
+    """--lcnet and --weights steer auto (mutation review, session 39): each branch and its note."""
+    from psctl.api import resolve_method
+    from psctl.models.lcnet import LCNet
+    from psctl.sdps import SDPS_NOTE
+
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "installed"))
+    (tmp_path / "installed").mkdir()
+    files = tmp_path / "files"
+    files.mkdir()
+    lc, dag = files / "lc.pt", files / "dag.pt"
+    save_weights(lc, LCNet(), {"method": "lcnet", "train_images": 32})
+    save_weights(dag, model(), {"method": "ps-fcn-dagger", "train_images": 32, "lcnet": {"decode": "argmax"}})
+    # nothing installed: --weights PS-FCN† without LCNet names the missing LCNet and --lcnet
+    with pytest.raises(PsctlError, match=r"installed for lcnet.*--lcnet FILE"):
+        resolve_method("sdps", False, weights=dag)
+    # both given: nothing installed is needed, and the note names the file used
+    assert resolve_method("sdps", False, dag, lc) == ("sdps", SDPS_NOTE)
+    method, note = resolve_method("auto", False, weights=dag, lcnet=lc)
+    assert method == "sdps" and note.startswith(f"auto: sdps (PS-FCN† weights from {dag}); ")
+    inst = tmp_path / "installed"
+    save_weights(inst / "ups_fcn.pt", model(lights=False), {"method": "ups-fcn", "train_images": 32})
+    save_weights(inst / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    # UPS-FCN and PS-FCN installed, no LCNet: sdps cannot run, so ups-fcn, saying why
+    method, note = resolve_method("auto", False)
+    assert method == "ups-fcn" and "sdps weights are not installed" in note
+    # ... but an LCNet given on the command line is used, not ignored
+    assert resolve_method("auto", False, lcnet=lc)[0] == "sdps"
+    # a calibrated folder with --lcnet: sdps, and the note does not claim the lights are missing
+    method, note = resolve_method("auto", True, lcnet=lc)
+    assert method == "sdps" and "no light_directions.txt" not in note and "--lcnet" in note
+    # --weights PS-FCN with PS-FCN† installed: the note names the file, not the installed network
+    save_weights(inst / "ps_fcn_dagger.pt", model(), {"method": "ps-fcn-dagger", "train_images": 32,
+                                                       "lcnet": {"decode": "argmax"}})
+    note = resolve_method("sdps", False, inst / "ps_fcn.pt", lc)[1]
+    assert f"normals by PS-FCN on those lights (from {inst / 'ps_fcn.pt'};" in note and "not installed" not in note
+    (inst / "ps_fcn_dagger.pt").unlink()
+    # --weights PS-FCN† with LCNet installed: sdps, though no second stage is installed
+    (inst / "ps_fcn.pt").unlink()
+    save_weights(inst / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
+    assert resolve_method("auto", False, weights=dag)[0] == "sdps"
+
 # --- normalisation ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("variant", ["per-channel", "per-pixel"])
