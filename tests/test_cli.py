@@ -300,8 +300,28 @@ def test_eval_on_a_folder_of_objects(tmp_path):
                          check=True).stdout)
     assert [o["name"] for o in r["objects"]] == ["a", "b"]
     assert r["mean_mae"] == pytest.approx(np.mean([o["mae"] for o in r["objects"]]))
+    from psctl.api import run_normals
+
+    for o, name in zip(r["objects"], ("aPNG", "bPNG")):  # each row is its object's run, median too
+        one = run_normals(tmp_path / "root" / name, "l2", write=False)
+        assert (o["mae"], o["median"]) == pytest.approx((one["mae"], one["median"]))
+        assert o["median"] != pytest.approx(o["mae"])
     table = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
     assert "avg" in table
+
+
+def test_eval_light_means_and_paper_lights():
+    """sdps rows: a mean light error only when every object has one (an average over some objects
+    would sit beside the paper's over all); the paper's light numbers only on DiLiGenT."""
+    from psctl.eval import PAPER_DILIGENT_LIGHTS, _table
+
+    row = {"name": "ball", "mae": 3.0, "median": 2.0, "light_mae": 2.0, "intensity_re": 0.05,
+           "lcnet_light_mae": 3.0, "lcnet_intensity_re": 0.06}
+    r = _table("folder", Path("."), [dict(row), {**row, "name": "cat", "light_mae": None}], ["sdps"], None)
+    assert r["mean_light_mae"] is None and r["mean_intensity_re"] == pytest.approx(0.05)
+    assert r["paper_lights"] == {}  # an object named "ball" in a folder benchmark is not DiLiGenT's
+    r = _table("diligent", Path("."), [dict(row)], ["sdps"], None)
+    assert r["mean_light_mae"] == 2.0 and r["paper_lights"] == {"ball": PAPER_DILIGENT_LIGHTS["ball"]}
 
 
 def test_eval_table_of_many_objects_turns_to_fit(tmp_path):
