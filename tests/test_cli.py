@@ -156,6 +156,13 @@ def test_info_check_decodes_every_file(tmp_path):
     m = truth["mask"]
     assert c["images"][0]["mean"] == pytest.approx(read_image(folder / "001.png")[0][m].mean(), rel=1e-5)
     assert c["mean_range"][0] == 0.0 and c["mean_range"][2] == c["images"][2]["mean"]
+    assert c["mean_range"][1] == pytest.approx(np.median([x["mean"] for x in c["images"]]))  # the median, not the mean
+    red = truth["images"][3].copy()
+    red[truth["mask"], 0] = 1.0  # only the red channel clipped: saturated all the same
+    write_image(folder / "004.png", red, "uint16")
+    c = json.loads(cli("info", folder, "--check", "--json").stdout)["check"]
+    assert c["images"][3]["saturated"] == 1.0 and c["saturated_images"] == ["003.png", "004.png"]
+    write_image(folder / "004.png", truth["images"][3], "uint16")
     assert len(c["notes"]) == 1 and c["notes"][0].startswith("images: 1 of 6 black over the object (005.png)")
     out = cli("info", folder, "--check").stdout
     assert "saturated: 1 of 6 images" in out and "003.png, 100.0%" in out and "005.png" in out
