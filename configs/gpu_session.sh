@@ -6,7 +6,8 @@
 # minutes of device time, one call on a fresh machine:
 #   bash configs/gpu_session.sh 7 330 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
 # which trains configs/ps_fcn_n_gpu_stage11.yaml and configs/ps_fcn_gpu_stage15_ir.yaml side by
-# side. Session 33 ran that command with stages 10 and 14 (session 26's plan) on an H200 in 320 s,
+# side (session 39 ran exactly this on an H200: 380 s, rates 699 and 578 samples/s; the next plan
+# waits for those two runs' rules, docs/weights-history.md). Session 33 ran that command with stages 10 and 14 (session 26's plan) on an H200 in 320 s,
 # then, on the warm machine, RUNS="ps-fcn-n:configs/ps_fcn_n_gpu_stage10b.yaml:g_ps_fcn_n10b
 # ps-fcn-n:configs/ps_fcn_n_gpu_stage10c.yaml:g_ps_fcn_n10c" INITS=ps_fcn_n_scale.pt:weights/ps_fcn_n.pt
 # DEADLINE=250 FIRST=0.3 bash configs/gpu_session.sh 3 150 final (timeout_s 280; with FIRST=0.5
