@@ -392,7 +392,8 @@ def test_lights_command(tmp_path, fake_weights):
 def test_missing_weights_are_one_clear_line(tmp_path, capture):
     env = {"PSCTL_WEIGHTS": str(tmp_path / "none")}
     for args, needles in ((["lights", capture], ["lcnet", "psctl train lcnet", "docs/training.md"]),
-                          (["normals", capture, "--method", "sdps"], ["lcnet.pt", "ps_fcn_dagger.pt", "docs/training.md"])):
+                          (["normals", capture, "--method", "sdps"], ["lcnet.pt", "ps_fcn_dagger.pt", f"{tmp_path / 'none' / 'ps_fcn.pt'} and",
+                                                                  "ps_fcn_n.pt", "docs/training.md"])):
         proc = psctl(*args, env=env)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1

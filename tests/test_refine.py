@@ -336,6 +336,16 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     # and images divided by the refined intensities: the same up to one scale in every image
     ratio = seen[1][1][:, mask].mean(-1).mean(-1) / (images[:, mask].mean(-1).mean(-1) / ints)
     assert np.ptp(ratio) < 0.2 * ratio.mean()  # (about 1.0 with LCNet's intensities of 1)
+    # the caller's shading model reaches the fit (mutation review, session 39: dropping it went unseen)
+    fits = []
+    real = psctl.lights.refine_arrays
+    monkeypatch.setattr(psctl.lights, "refine_arrays", lambda *a: fits.append(a[-1]) or real(*a))
+    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
+    try:
+        estimate_normals(images, None, mask, method="sdps", device="cpu", falloff="lambertian")
+    finally:
+        del os.environ["PSCTL_WEIGHTS"]
+    assert fits and all(f is not None and f["falloff"] == "lambertian" for f in fits)
 
 
 def bumps(size: int = 64) -> tuple[np.ndarray, np.ndarray]:
