@@ -124,6 +124,11 @@ def test_official_checkpoint_round_trip(tmp_path):
     # the same file as the +N model: the method decides, with the authors' q = 32
     assert build_network(w, "ps-fcn-n")[1] == {"normalization": "per-channel", "train_images": 32,
                                                 "architecture": {"lights": True, "fuse": "max"}}
+    # auto with it: PS-FCN, and the user is told why (the file cannot say whether it is +N)
+    from psctl.api import resolve_method
+
+    method, note = resolve_method("auto", True, weights=path)
+    assert method == "ps-fcn" and "do not record +N" in note and "--method ps-fcn-n" in note
     # saved from nn.DataParallel: "module." prefixes are dropped
     torch.save({"state_dict": {f"module.{k}": v for k, v in net.state_dict().items()}}, tmp_path / "dp.pth.tar")
     build_network(read_weights(tmp_path / "dp.pth.tar"), "ps-fcn")
