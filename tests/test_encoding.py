@@ -92,6 +92,18 @@ def test_jpeg_data_under_another_name_is_decoded_by_its_content(tmp_path):
     note = next(n for n in run_normals(folder, method="l2", write=False)["notes"] if n.startswith("encoding"))
     assert "001.png, 002.png, 003.png: JPEG data, by their content" in note
     assert open_capture(folder, "linear").srgb_images == 0
+    # psctl info: all twelve sRGB; one linear PNG among them makes the capture "mixed"
+    from psctl.io.summary import describe_capture
+
+    assert describe_capture(folder)["encoding"] == "srgb"
+    from psctl.io.images import write_image
+
+    (folder / names[3]).unlink()
+    names[3] = "004.png"
+    write_image(folder / "004.png", np.full((48, 48, 3), 0.3, np.float32), "uint16")
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    r = describe_capture(folder)
+    assert r["encoding"] == "mixed" and r["srgb_images"] == 11
 
 
 def test_srgb_on_request_for_other_files(tmp_path):
