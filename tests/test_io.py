@@ -976,3 +976,39 @@ def test_small_error_maps_are_drawn_large_enough_to_read(tmp_path):
         assert pic.shape[0] >= MIN_BAR + 12  # the bar (and its four labels) at least MIN_BAR tall, under the title
         assert pic.shape[1] <= 2048 + 44
 
+
+
+def _text_at(img: np.ndarray, text: str, s: int = 1) -> list[tuple[int, int]]:
+    """Where ``text`` is drawn in ``img`` (white ink, exactly its bitmap): [(row, column), ...]."""
+    from psctl.io.report import text_bitmap
+
+    ink = (img >= 1.0).all(-1)
+    bm = text_bitmap(text, s)
+    h, w = bm.shape
+    by, bx = (int(v[0]) for v in np.nonzero(bm))  # the bitmap's first ink pixel: candidates line up on it
+    found = []
+    for y, x in zip(*np.nonzero(ink)):
+        y0, x0 = int(y) - by, int(x) - bx
+        if 0 <= y0 <= ink.shape[0] - h and 0 <= x0 <= ink.shape[1] - w and np.array_equal(ink[y0:y0 + h, x0:x0 + w], bm):
+            found.append((y0, x0))
+    return found
+
+
+def test_error_map_labels_and_title_are_the_numbers_drawn(tmp_path):
+    """The pictures' text (mutation review, session 39: no test read it): the colour bar's labels
+    follow vmax, the top one says ">" and sits above "0°", and the titles carry the right numbers."""
+    from psctl.io.report import SPREAD_VMAX, error_heatmap, write_error_map, write_spread_map
+
+    err, mask = np.full((60, 60), 5.0, np.float32), np.ones((60, 60), bool)
+    img = error_heatmap(err, mask, vmax=12.0)
+    top, zero = _text_at(img, ">12°"), _text_at(img, "0°")
+    assert len(top) == 1 and not _text_at(img, ">45°")
+    assert zero and top[0][0] < min(y for y, _ in zero)  # high values on top
+    assert _text_at(img, "4°") and _text_at(img, "8°")  # the thirds of 12
+    write_error_map(tmp_path / "e.png", err, mask, mae=12.5, median=10.0)
+    e = read_image(tmp_path / "e.png")[0]
+    assert _text_at(e, "MAE 12.50°  MEDIAN 10.00°") == [(2, 2)] and _text_at(e, ">45°")
+    write_spread_map(tmp_path / "s.png", err, mask, mean=1.25, p90=3.5)
+    sp = read_image(tmp_path / "s.png")[0]
+    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°") == [(2, 2)]
+    assert _text_at(sp, f">{SPREAD_VMAX:.0f}°") and not _text_at(sp, ">45°")
