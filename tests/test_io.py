@@ -748,6 +748,10 @@ def test_benchmark_sheet_draws_each_objects_maps():
     bar2 = np.isclose(jet(np.linspace(1.0, 0.0, 40)), green).all(-1).sum() * 10  # in each of the two bars
     assert np.isclose(three, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
     np.testing.assert_array_equal(three[: sheet.shape[0] - 12], sheet[: sheet.shape[0] - 12])  # the rest as before
+    # each bar labelled by its own scale (at eval.png's panel heights, 96 or 160 px; text scale 2)
+    tall = benchmark_sheet([object_panel("cat", 1.234, normals, error, mask, height=160,
+                                         spread=np.full((50, 80), 6.0, np.float32))], "X")
+    assert _text_at(tall, ">45°", 2) and _text_at(tall, f">{SPREAD_VMAX:.0f}°", 2) and _text_at(tall, "MAE 1.23°", 2)
     # a run that mixes methods: only the row with a spread map gets the third row of maps and its bar
     mixed = benchmark_sheet([r, q, p, q], "X", per_row=2)
     assert np.isclose(mixed, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
