@@ -389,9 +389,9 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
                 lt = None if light_t is None else light_t[k0 : k + 1]
                 for i, t in enumerate(group):
                     oy0, oy1, ox0, ox1 = t.outer
-                    # each tile to the device first, then scaled and given its light channels there:
-                    # on a GPU these were most of the host's time; tile by tile, the device holds one
-                    # tile's chunk, not the group's (a laptop GPU)
+                    # each tile to the device first, then scaled and given its light channels there
+                    # (on a GPU, less host work per chunk); tile by tile, the device holds one tile's
+                    # chunk, not the group's (a laptop GPU)
                     sub = xt[:, oy0 - gy0 : oy1 - gy0, ox0 - gx0 : ox1 - gx0].to(device=device, dtype=dtype)
                     if scale_t is not None:  # out of place: on the CPU, sub may be a view of xt (halos overlap)
                         sub = sub * (scale_t if exposure is not None else scale_t[oy0:oy1, ox0:ox1])
