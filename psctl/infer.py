@@ -38,6 +38,7 @@ import numpy as np
 
 from psctl.classic import dark_pixels
 from psctl.errors import PsctlError, naming
+from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
 
@@ -226,6 +227,9 @@ class _RegionImages:
         self.cache_bytes = cache_bytes
         self.peak = np.zeros(self.shape, np.float32)
         self.passes = 0
+        self.inside = np.zeros(self.shape, bool)  # the mask over the padded region
+        self.inside[: self.rh, : self.rw] = self.mask[..., 0] > 0
+        self.hot: dict[int, int] = {}  # image index -> values clamp_hot_pixels set (first pass)
 
     def _prepare(self, img: np.ndarray, k: int) -> np.ndarray:
         if img.ndim == 2:  # grey: the network takes RGB
@@ -245,9 +249,12 @@ class _RegionImages:
         k = len(self.cache)
         for img in self.reader(k, self.read_box):
             x = self._prepare(img, k)
+            if first and not np.isfinite(x).all():
+                raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
+            x, hot = clamp_hot_pixels(x, self.inside)  # the same in every pass: it sees one image
             if first:
-                if not np.isfinite(x).all():
-                    raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
+                if hot:
+                    self.hot[k] = hot
                 for c in range(3):  # channel by channel: x.max(-1) over a length-3 axis is ~15x slower
                     np.maximum(self.peak, x[..., c], out=self.peak)
                 if len(self.cache) == k and (k + 1) * x.nbytes <= self.cache_bytes:
@@ -433,6 +440,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         "chunk": int(chunk_used), "cached_images": len(stream.cache), "normalization": normalization,
         "train_images": train_images, "seconds": round(time.perf_counter() - t_start, 3),
     }
+    if stream.hot:
+        info["hot_pixels"] = dict(sorted(stream.hot.items()))
     if exposure is not None:
         info["exposure_scale"] = float(f"{exposure:.6g}")  # significant digits: a 1e30-scaled capture gets 1e-31, not 0
     if not (stream.peak[: stream.rh, : stream.rw][inside] > 0).any():  # PS-FCN+N would answer anyway
@@ -540,6 +549,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     res = run_views(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
                     run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
+    res.notes += hot_pixel_notes(res.info, [f"image {k + 1}" for k in range(n)])
     _note_exposure(res, method, run.get("input_mean"))
     return res
 
@@ -570,7 +580,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
-    res.notes += check.notes()
+    res.notes += check.notes() + hot_pixel_notes(res.info, [p.name for p in capture.image_paths])
     if unused:
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))

@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.errors import PsctlError, check_bool, check_path, check_progress, naming
+from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 
 if TYPE_CHECKING:
     import torch
@@ -183,6 +184,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     mask_t = torch.from_numpy(crop_mask)[None, None].to(device, dtype)
 
     peak = [0.0]  # the brightest pixel inside the mask read so far
+    hot: dict[int, int] = {}  # image index -> values clamp_hot_pixels set
     level = [0.0, 0.0]  # sum and count of the values inside the mask (the exposure guard's mean)
 
     def chunks(start: int) -> Iterator[torch.Tensor]:
@@ -199,7 +201,10 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
                 img = np.repeat(img, 3, -1)
             if not np.isfinite(img).all():
                 raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
-            pending.append(img * crop_mask[..., None])
+            img, count = clamp_hot_pixels(img * crop_mask[..., None], crop_mask)  # one pixel would move every light
+            if count:
+                hot[k] = count
+            pending.append(img)
             peak[0] = max(peak[0], float(pending[-1].max()))
             level[0] += float(pending[-1].sum(dtype=np.float64))  # inside the mask (zero outside)
             level[1] += 3.0 * float(crop_mask.sum())
@@ -283,6 +288,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     info = {"device": str(device), "box": [box[0].start, box[0].stop, box[1].start, box[1].stop],
             "size": size, "chunk": chunk, "passes": passes, "cached_features": kept, "decode": cfg["decode"], "views": views,
             "exposure": round(factor, 6), "seconds": round(time.perf_counter() - t0, 3)}
+    if hot:
+        info["hot_pixels"] = dict(sorted(hot.items()))
     notes = []
     if factor != 1.0:
         notes.append(f"lcnet: the images' mean inside the mask, {mean:.3g}, is outside the exposures LCNet was "
@@ -317,6 +324,7 @@ def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: st
     res = run_lcnet(model, reader, n, mask, config, progress)
     if note:
         res.notes.append(note)
+    res.notes += hot_pixel_notes(res.info, [f"image {k + 1}" for k in range(n)])
     return res
 
 
@@ -335,7 +343,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     with naming(capture.path):  # all images black, ...
         res = run_lcnet(model, check.reader(raw, mask), raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
-    res.notes += check.notes()
+    res.notes += check.notes() + hot_pixel_notes(res.info, [p.name for p in capture.image_paths])
     return res
 
 
