@@ -178,3 +178,10 @@ def test_cli_notes_the_hot_pixel_by_file_name(tmp_path):
     assert proc.returncode == 0, proc.stderr
     notes = json.loads(proc.stdout)["notes"]
     assert any("hot pixel" in s and "(006.exr)" in s for s in notes), notes
+    # psctl info --check finds it too, before any estimate
+    proc = subprocess.run([sys.executable, "-m", "psctl", "info", str(folder), "--check", "--json"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    notes = json.loads(proc.stdout)["check"]["notes"]
+    hot = [s for s in notes if "hot pixel" in s]
+    assert len(hot) == 1 and hot[0].startswith("images: 1 isolated hot pixel value(s) in 1 image(s) (006.exr)")

@@ -25,12 +25,13 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     counting the rest), so one run lists what to re-copy. Per image: ``mean``, the mean linear
     value over the object (sRGB decoded, not divided by the intensities), and ``saturated``,
     the share of the object's pixels with a channel at the file's top code value (null for
-    float files, which have none). Black images and negative values are the notes psctl
-    normals would give, judged as it reads the images (after the ambient image is subtracted);
+    float files, which have none). Black images, negative values and isolated hot pixels (as
+    captured, before any intensity is divided out) are the notes psctl normals would give, judged as it reads the images (after the ambient image is subtracted);
     what would stop it (every image black over the object, an ambient image that blacks an image
     out) stops the check with the same message."""
     import time
 
+    from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
     from psctl.io.capture import ImageCheck, load_ground_truth, minus_ambient
     from psctl.io.images import read_image, srgb_to_linear, to_rgb
 
@@ -39,6 +40,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     damaged: list[PsctlError] = []
     blacked_out: PsctlError | None = None  # by the ambient image: reported after any damaged file
     per_image = []
+    hot: dict[int, int] = {}  # image index -> isolated hot values (psctl.hotpixels)
     ambient = None
     if cap.ambient_path is not None:  # in linear values, as psctl.io.capture.iter_images subtracts it
         try:
@@ -71,6 +73,10 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             check.see(k, lit[mask])
         else:
             check.see(k, rgb)
+            lit = srgb_to_linear(full) if cap.is_srgb(k) else full
+        _, count = clamp_hot_pixels(lit * mask[..., None], mask)  # as the networks would find them
+        if count:
+            hot[k] = count
         per_image.append({"image": p.name, "mean": float(rgb.mean()) if len(rgb) else 0.0, "saturated": saturated})
         if progress is not None:
             progress(1)
@@ -93,7 +99,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         "images": per_image,
         "mean_range": [float(min(means)), float(np.median(means)), float(max(means))],
         "saturated_images": [r["image"] for r in over],  # above SATURATED_SHARE of the object
-        "notes": check.notes(),
+        "notes": check.notes() + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths]),
     }
 
 
