@@ -2,12 +2,15 @@
 # Fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
-# (RUNS below, method:recipe:run folder) default to session 33's plan for a session with 15
+# (RUNS below, method:recipe:run folder) default to session 40's plan for a session with 15
 # minutes of device time, one call on a fresh machine:
 #   bash configs/gpu_session.sh 7 330 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
-# which trains configs/ps_fcn_n_gpu_stage11.yaml and configs/ps_fcn_gpu_stage15_ir.yaml side by
-# side (session 39 ran exactly this on an H200: 380 s, rates 699 and 578 samples/s; the next plan
-# waits for those two runs' rules, docs/weights-history.md). Session 33 ran that command with stages 10 and 14 (session 26's plan) on an H200 in 320 s,
+# which trains configs/ps_fcn_n_gpu_stage12.yaml and configs/ps_fcn_n_gpu_stage12b.yaml side by
+# side (both from the installed PS-FCN+N, copied to .cache/gpu/ps_fcn_n_gpu11.pt when missing).
+# Session 39 ran this command with session 33's plan, configs/ps_fcn_n_gpu_stage11.yaml and
+# configs/ps_fcn_gpu_stage15_ir.yaml, on an H200 (380 s, rates 699 and 578 samples/s; start files
+# .cache/gpu/ps_fcn_n_gpu10.pt and ps_fcn_avg14.pt = commit 4c60081's weights/ps_fcn_n.pt and
+# weights/ps_fcn.pt). Session 33 ran that command with stages 10 and 14 (session 26's plan) on an H200 in 320 s,
 # then, on the warm machine, RUNS="ps-fcn-n:configs/ps_fcn_n_gpu_stage10b.yaml:g_ps_fcn_n10b
 # ps-fcn-n:configs/ps_fcn_n_gpu_stage10c.yaml:g_ps_fcn_n10c" INITS=ps_fcn_n_scale.pt:weights/ps_fcn_n.pt
 # DEADLINE=250 FIRST=0.3 bash configs/gpu_session.sh 3 150 final (timeout_s 280; with FIRST=0.5
@@ -41,7 +44,7 @@ MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 FIRST=${FIRST:-0.6}; DEADLINE=${DEADLINE:-530}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
-RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage11.yaml:g_ps_fcn_n11 ps-fcn:configs/ps_fcn_gpu_stage15_ir.yaml:g_ps_fcn15"}
+RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage12.yaml:g_ps_fcn_n12 ps-fcn-n:configs/ps_fcn_n_gpu_stage12b.yaml:g_ps_fcn_n12b"}
 PSCTL='import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()'
 psctl() { python3 -c "$PSCTL" "$@"; }
 
@@ -49,7 +52,7 @@ psctl() { python3 -c "$PSCTL" "$@"; }
 # (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
 # session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt; session 26: ps_fcn_n_miscal.pt,
 # ps_fcn_stage12.pt)
-INITS=${INITS:-"ps_fcn_n_gpu10.pt:weights/ps_fcn_n.pt ps_fcn_avg14.pt:weights/ps_fcn.pt"}
+INITS=${INITS:-"ps_fcn_n_gpu11.pt:weights/ps_fcn_n.pt"}
 for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
