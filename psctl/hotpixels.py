@@ -29,7 +29,7 @@ def clamp_hot_pixels(img: np.ndarray, mask: np.ndarray | None = None, level: flo
         img: [h, w, 3] (or [h, w]) float image, linear.
         mask: [h, w] bool or 0/1 float, the pixels the mean is taken over (None: all).
         level, ratio: a value v is hot when v > level * mean and v > ratio * max(neighbours);
-            neighbours outside the image do not count.
+            neighbours outside the image do not count; the mean counts negative values as 0.
     Returns:
         (image, number of values changed); the input array itself when none is (never modified).
     """
@@ -39,8 +39,15 @@ def clamp_hot_pixels(img: np.ndarray, mask: np.ndarray | None = None, level: flo
     count = float(inside.sum()) * c
     if count == 0 or h * w < 2:
         return img, 0
-    mean = float((inside @ x.reshape(h * w, c).astype(np.float32, copy=False)).sum()) / count  # BLAS: no masked copy
-    if not mean > 0:
+    flat = x.reshape(h * w, c).astype(np.float32, copy=False)
+    if float(flat.min()) < 0:  # noise about a subtracted black level: only the signal sets the level,
+        flat = np.maximum(flat, 0.0)  # else noise in a dark frame (mean ~ 0) passes the level test
+    with np.errstate(over="ignore"):
+        total = inside @ flat  # BLAS: no masked copy
+    if not np.isfinite(total).all():  # float32 overflow (values ~1e33 and up)
+        total = inside.astype(np.float64) @ flat.astype(np.float64)
+    mean = float(total.sum()) / count
+    if not mean > 0:  # nothing lit
         return img, 0
     if not float(x.max()) > level * mean:  # almost always: a max is ~40x cheaper than a nonzero
         return img, 0

@@ -86,6 +86,21 @@ def test_isolated_pixel_in_shadow_is_hot():
     assert n == 1 and out[4, 27, 2] == 0
 
 
+def test_noise_about_zero_is_not_hot_and_a_dark_frame_still_is():
+    """Float files with a subtracted black level: the level is the mean of the positive part, so
+    noise about 0 does not pass it, and a hot pixel in a frame of negative mean is still found."""
+    rng = np.random.default_rng(0)
+    noise = rng.normal(1e-5, 0.01, (120, 130, 3)).astype(np.float32)
+    assert clamp_hot_pixels(noise)[1] == 0
+    dark = rng.normal(-0.005, 0.01, (120, 130, 3)).astype(np.float32)
+    dark[60, 61, 2] = 1000.0
+    out, n = clamp_hot_pixels(dark)
+    assert n == 1 and out[60, 61, 2] == max(float(dark[59:62, 60:63, 2].ravel()[[0, 1, 2, 3, 5, 6, 7, 8]].max()), 0.0)
+    huge = np.full((40, 40, 3), 1e36, np.float32)  # a float32 sum overflows here: summed again in float64
+    huge[7, 7, 1] = 3.3e38  # over 300 times the mean, under float32's largest value
+    assert clamp_hot_pixels(huge)[1] == 1
+
+
 def test_note_lists_three_images_then_dots():
     names = [f"{k:03d}.png" for k in range(1, 7)]
     assert hot_pixel_notes({}, names) == [] and hot_pixel_notes({"hot_pixels": {}}, names) == []
@@ -133,6 +148,10 @@ def test_lcnet_and_networks_answer_as_without_the_hot_pixel():
     assert not any("hot pixel" in s for s in ref.notes)
     off = array_lights(hot, mask, model=net, config={"views": 1, "exposure_band": None})
     assert off.info["hot_pixels"] == {3: 1}  # without the exposure guard's pass too
+    # LCNet's level is the mean over the mask too, not over its crop box (zero around the object)
+    mid = base.copy()
+    mid[3, 24, 20, 1] = 0.9 * HOT_LEVEL * float(base[3][mask].mean())
+    assert "hot_pixels" not in array_lights(mid, mask, model=net, config={"views": 1}).info
 
     import tempfile
 
@@ -185,3 +204,32 @@ def test_cli_notes_the_hot_pixel_by_file_name(tmp_path):
     notes = json.loads(proc.stdout)["check"]["notes"]
     hot = [s for s in notes if "hot pixel" in s]
     assert len(hot) == 1 and hot[0].startswith("images: 1 isolated hot pixel value(s) in 1 image(s) (006.exr)")
+
+
+def test_info_check_counts_inside_the_object_only(tmp_path):
+    """``check_pixels`` (psctl info --check): a hot value just outside the mask is not counted,
+    one inside is (as the networks see them: zero around the object)."""
+    from psctl.io.capture import as_capture, load_mask
+    from psctl.io.images import write_image
+    from psctl.io.summary import check_pixels
+
+    folder = tmp_path / "c"
+    arrays = write_capture(folder, n=4, size=32, intensities=False)
+    m = arrays["mask"]
+    ys, xs = np.nonzero(m)
+    out_y, out_x = 16, int(xs[ys == 16].max()) + 1  # the first pixel right of the object on row 16
+    names = []
+    for k, img in enumerate(arrays["images"]):
+        img = np.where(m[..., None], img, 0.05).astype(np.float32)  # a lit background
+        if k == 1:
+            img[16, 14, 1] = 1e4  # inside
+        if k == 2:
+            img[out_y, out_x, 0] = 1e4  # outside
+        names.append(f"{k + 1:03d}.exr")
+        write_image(folder / names[-1], img, "float")
+        (folder / f"{k + 1:03d}.png").unlink()
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    cap = as_capture(folder)
+    notes = check_pixels(cap, load_mask(cap))["notes"]
+    hot = [s for s in notes if "hot pixel" in s]
+    assert len(hot) == 1 and "1 isolated hot pixel value(s) in 1 image(s) (002.exr)" in hot[0], notes

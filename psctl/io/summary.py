@@ -32,7 +32,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     import time
 
     from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
-    from psctl.io.capture import ImageCheck, load_ground_truth, minus_ambient
+    from psctl.io.capture import ImageCheck, bounding_box, load_ground_truth, minus_ambient
     from psctl.io.images import read_image, srgb_to_linear, to_rgb
 
     t0 = time.perf_counter()
@@ -41,6 +41,8 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     blacked_out: PsctlError | None = None  # by the ambient image: reported after any damaged file
     per_image = []
     hot: dict[int, int] = {}  # image index -> isolated hot values (psctl.hotpixels)
+    box = bounding_box(mask, 1) if mask.any() else (slice(0, 0), slice(0, 0))  # the object and its neighbours
+    box_mask = mask[box]
     ambient = None
     if cap.ambient_path is not None:  # in linear values, as psctl.io.capture.iter_images subtracts it
         try:
@@ -71,10 +73,12 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             except PsctlError as e:
                 blacked_out, lit = blacked_out or e, np.zeros_like(full)
             check.see(k, lit[mask])
+            region = lit[box]
         else:
             check.see(k, rgb)
-            lit = srgb_to_linear(full) if cap.is_srgb(k) else full
-        _, count = clamp_hot_pixels(lit * mask[..., None], mask)  # as the networks would find them
+            region = srgb_to_linear(full[box]) if cap.is_srgb(k) else full[box]
+        # as the networks find them: around the object, zero outside it
+        _, count = clamp_hot_pixels(np.where(box_mask[..., None], region, np.float32(0.0)), box_mask)
         if count:
             hot[k] = count
         per_image.append({"image": p.name, "mean": float(rgb.mean()) if len(rgb) else 0.0, "saturated": saturated})
