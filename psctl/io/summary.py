@@ -25,9 +25,9 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     counting the rest), so one run lists what to re-copy. Per image: ``mean``, the mean linear
     value over the object (sRGB decoded, not divided by the intensities), and ``saturated``,
     the share of the object's pixels with a channel at the file's top code value (null for
-    float files, which have none). Black images, negative values and isolated hot pixels (as
-    captured, before any intensity is divided out) are the notes psctl normals would give, judged as it reads the images (after the ambient image is subtracted);
-    what would stop it (every image black over the object, an ambient image that blacks an image
+    float files, which have none). Black images, negative values and isolated hot pixels are the
+    notes psctl normals would give, judged as it reads the images (after the ambient image is
+    subtracted; hot pixels before any intensity is divided out); what would stop it (every image black over the object, an ambient image that blacks an image
     out) stops the check with the same message."""
     import time
 
