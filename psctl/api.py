@@ -176,7 +176,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                      refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                     light_distance: float | None = None) -> np.ndarray:
+                     light_distance: float | None = None, downsample: int = 1) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -204,18 +204,24 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels
             from the mask's centroid along ``lights``; each image is divided by its light's
             falloff first (``psctl.nearlight``, docs/near-lights.md).
+        downsample: network methods: run the network on the capture shrunk by this whole
+            factor (each k x k block's mean over the mask), its normals interpolated back to
+            full size (``psctl.infer.run_downsampled``; docs/usage.md, "Large objects"); 1: full size.
     Returns:
         [H, W, 3] float32 unit normals.
     """
     from psctl.lights import refine_config
 
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
+    from psctl.infer import check_downsample
     from psctl.symmetry import check_views
 
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
     refine = check_bool("refine", refine)
     check_device_name(device)  # typos are errors for l2 too, which uses neither
     views = check_views(views)
+    downsample = check_downsample(downsample)
+    net_cfg = {"device": device, "views": views, "downsample": downsample}
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)
     mask = as_mask(mask, images.shape[1:3])
     lights = as_lights(lights, images.shape[0])
@@ -242,13 +248,13 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
-        source = array_source(images, mask, second, weights, {"device": device, "views": views})
+        source = array_source(images, mask, second, weights, net_cfg)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
         from psctl.infer import array_normals
 
-        normals = array_normals(images, lights, mask, method, weights, {"device": device, "views": views}).normals
+        normals = array_normals(images, lights, mask, method, weights, net_cfg).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             # called as psctl.estimate_normals, the package's wrapper is one frame between
             level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
@@ -275,11 +281,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
-                light_distance: float | None = None, arrays: dict | None = None) -> dict:
+                light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
-    n_images, height, width, views, light_distance, seconds, outputs, mae, median, within,
+    n_images, height, width, views, downsample, light_distance, seconds, outputs, mae, median, within,
     n_mask_pixels, n_evaluated_pixels, n_dark and notes (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
@@ -289,7 +295,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     cpu | cuda) are for the network methods; ``lcnet`` (a file) for sdps, whose report also has
     light_mae and intensity_re (None without ground-truth lights). ``views`` (1, 2, 4 or 8): the
     network methods average that many symmetric views of the capture (psctl.infer.run_views;
-    ``views`` times the work). ``refine`` (sdps): LCNet's lights are refined against the first
+    ``views`` times the work). ``downsample`` (a whole number, 1: off): the network methods run on
+    the capture shrunk by that factor, their normals interpolated back to full size
+    (``psctl.infer.run_downsampled``). ``refine`` (sdps): LCNet's lights are refined against the first
     normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
     ("shifted" or "lambertian", None: the default) is the refinement's shading model; ``roll``
@@ -312,6 +320,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from dataclasses import replace
 
     from psctl.classic import L2Accumulator, lights_problem
+    from psctl.infer import check_downsample
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
@@ -352,6 +361,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if views > 1 and method == "l2":
         notes.append("views: l2 gives the same normals in every view; one pass")
         views = 1
+    downsample = check_downsample(downsample)
+    if downsample > 1 and method == "l2":
+        notes.append("downsample: l2 solves each pixel alone, at full size; unused")
+        downsample = 1
+    net_cfg = {"device": device, "views": views, "downsample": downsample}
     if method == "l2":
         if not cap.calibrated:
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
@@ -412,7 +426,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-        source = capture_source(replace(cap, near=near), mask, second, weights, {"device": device, "views": views},
+        source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg,
                                 progress)
         est, net = second_stage(source, est, refine, fit)
         normals, dark = net.normals, net.dark
@@ -427,7 +441,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
-        net = capture_normals(cap, mask, method, weights, {"device": device, "views": views}, progress)
+        net = capture_normals(cap, mask, method, weights, net_cfg, progress)
         normals, dark, spread = net.normals, net.dark, net.spread
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])
@@ -483,6 +497,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_evaluated_pixels": n_eval,
         "n_dark": int(dark.sum()),
         "views": views,
+        "downsample": downsample,
         "light_distance": None if near is None else near.distance,
         "notes": notes,
     }

@@ -105,6 +105,7 @@ RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCN
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="sdps and psctl lights: after the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
+DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the capture shrunk by this whole factor (each K x K block's mean), normals interpolated back to full size: for objects far wider than the networks' training views (docs/usage.md, 'Large objects'). 1: full size.")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
@@ -244,6 +245,7 @@ def normals(
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
+    downsample: DownsampleOpt = 1,
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
@@ -263,7 +265,7 @@ def normals(
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
                                           views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
-                                          light_distance=light_distance),
+                                          light_distance=light_distance, downsample=downsample),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -279,6 +281,7 @@ def evaluate(
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
     views: ViewsOpt = 1,
+    downsample: DownsampleOpt = 1,
     refine: RefineOpt = True,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
@@ -295,7 +298,7 @@ def evaluate(
         _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
                                             views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
-                                            light_distance=light_distance),
+                                            light_distance=light_distance, downsample=downsample),
              json_out, quiet, render_benchmark)
 
 

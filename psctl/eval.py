@@ -63,7 +63,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                  encoding: str = "auto", light_distance: float | None = None) -> dict:
+                  encoding: str = "auto", light_distance: float | None = None, downsample: int = 1) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
@@ -73,7 +73,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error
     maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
     and out/eval.json (this result) join them; the result then has "outputs".
-    ``weights`` (a file), ``device`` and ``views`` are passed on to the network methods, ``lcnet``,
+    ``weights`` (a file), ``device``, ``views`` and ``downsample`` are passed on to the network methods, ``lcnet``,
     ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
     near point lights: ``psctl.api.run_normals``) to every object's capture.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
@@ -131,13 +131,13 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             n_images=n_images, seed=seed, write=out is not None, progress=progress,
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
-                            light_distance=light_distance, arrays=arrays)
+                            light_distance=light_distance, arrays=arrays, downsample=downsample)
             _collect(objects, used, r)
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
-        result = _table(benchmark, root, objects, used, light_distance)
+        result = _table(benchmark, root, objects, used, light_distance, views, downsample)
         result["notes"] += root_notes(root)
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
@@ -161,7 +161,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     return result
 
 
-def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None) -> dict:
+def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None,
+           views: int = 1, downsample: int = 1) -> dict:
     """The run's JSON object from its objects' rows."""
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper_method = PAPER_STAND_IN.get(used_method, used_method)
@@ -173,6 +174,8 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "objects": objects,
         "mean_mae": float(np.mean([o["mae"] for o in objects])),
         "light_distance": None if light_distance is None else float(light_distance),
+        "views": views,
+        "downsample": downsample,
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
         "paper_method": paper_method if paper else None,  # whose published numbers "paper" holds
         "notes": [],  # about the run as a whole (each object's are in its row)

@@ -64,6 +64,10 @@ DEFAULT_INFER = {
     # symmetric views averaged (psctl.symmetry): 1 = one pass (the paper); 8 = the capture turned
     # and mirrored about the view axis, each view's normals turned back, their unit mean. 8x the work.
     "views": 1,
+    # the network runs on the capture shrunk by this integer factor (each k x k block's mean over
+    # the object, images and mask), its normals interpolated back to full size: objects far wider
+    # than the training views (128 px) get the context they were trained with. 1 = full size.
+    "downsample": 1,
 }
 
 FEATURES = 128  # extractor output channels
@@ -462,6 +466,10 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     views = check_views(cfg["views"])
+    k = check_downsample(cfg["downsample"])
+    if k > 1:
+        return run_downsampled(model, reader, n, lights, mask, k, normalization, train_images, cfg, progress, label,
+                               input_mean, input_clip)
     args = (normalization, train_images, cfg)
     if views == 1:
         return run_network(model, reader, n, lights, mask, *args, progress, label, input_mean, input_clip)
@@ -488,6 +496,73 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
     normals = np.where(mask[..., None] & (norm > 0), total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     info = {**first.info, "views": views, "seconds": round(time.perf_counter() - t0, 3)}
     return InferResult(normals, first.dark, info, first.notes)
+
+
+def check_downsample(k: object) -> int:
+    """``k`` if it is an integer >= 1, else PsctlError (a ValueError)."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or int(k) < 1:
+        raise PsctlError(None, f"downsample must be a whole number >= 1, got {k!r}")
+    return int(k)
+
+
+def block_mean(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
+    """Shrink by ``k``: [h, w, C] (or [h, w]) -> [ceil(h / k), ceil(w / k), C], each k x k block's mean
+    over its ``mask`` [h, w] pixels, 0 where it has none. Over the mask only, so that an edge
+    block is the object's colour, not a blend with the background the network never sees."""
+    h, w = mask.shape
+    hk, wk = -(-h // k), -(-w // k)
+    x = np.zeros((hk * k, wk * k) + img.shape[2:], np.float32)
+    x[:h, :w] = np.where(mask.reshape(mask.shape + (1,) * (img.ndim - 2)), img, 0)
+    c = np.zeros((hk * k, wk * k), np.float32)
+    c[:h, :w] = mask
+    sums = x.reshape(hk, k, wk, k, *img.shape[2:]).sum((1, 3))
+    counts = c.reshape(hk, k, wk, k).sum((1, 3)).reshape((hk, wk) + (1,) * (img.ndim - 2))
+    return np.divide(sums, np.maximum(counts, 1), dtype=np.float32)
+
+
+def upsample_normals(normals: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:
+    """[h, w, 3] normals of a capture shrunk by ``k`` (0 outside its mask) -> [H, W, 3] unit normals
+    on the full-size ``mask`` [H, W], bilinear between block centres. The zeros outside the small
+    mask drop out when each vector is normalised, so edge pixels take only the object's normals;
+    every mask pixel's own block is in the small mask, so none is left without one."""
+    import torch
+
+    H, W = mask.shape
+    h, w = normals.shape[:2]
+    t = torch.from_numpy(np.ascontiguousarray(normals, np.float32)).permute(2, 0, 1)[None]
+    up = torch.nn.functional.interpolate(t, size=(h * k, w * k), mode="bilinear", align_corners=False)
+    up = up[0].permute(1, 2, 0).numpy()[:H, :W].astype(np.float64)
+    norm = np.linalg.norm(up, axis=-1, keepdims=True)
+    return np.where(mask[..., None] & (norm > 0), up / np.maximum(norm, 1e-300), 0.0).astype(np.float32)
+
+
+def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray, k: int,
+                    normalization: str = "none", train_images: int | None = None, config: dict | None = None,
+                    progress: "ProgressFactory | None" = None, label: str = "network",
+                    input_mean: float | None = None, input_clip: float | None = None) -> InferResult:
+    """``run_views`` on the capture shrunk by ``k`` (``block_mean`` of every image over the mask;
+    the small mask: blocks with any mask pixel), normals brought back to full size by
+    ``upsample_normals``. The lights are unchanged (shrinking does not turn the surface).
+    Same arguments and result as ``run_views``; info["downsample"] = k."""
+    t0 = time.perf_counter()
+    mask = np.asarray(mask, bool)
+    H, W = mask.shape
+    small = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
+
+    def small_reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        ys, xs = box
+        # the block rows / columns of box, in full-size pixels (the last block may be cut by the frame)
+        full = (slice(ys.start * k, min(ys.stop * k, H)), slice(xs.start * k, min(xs.stop * k, W)))
+        sub = mask[full]
+        for img in reader(start, full):
+            yield block_mean(img, sub, k)
+
+    res = run_views(model, small_reader, n, lights, small, normalization, train_images,
+                    {**(config or {}), "downsample": 1}, progress, f"{label} (1/{k} size)", input_mean, input_clip)
+    normals = upsample_normals(res.normals, mask, k)
+    dark = np.repeat(np.repeat(res.dark, k, 0), k, 1)[:H, :W] & mask
+    info = {**res.info, "downsample": k, "seconds": round(time.perf_counter() - t0, 3)}
+    return InferResult(normals, dark, info, res.notes)
 
 
 # --- entry points -----------------------------------------------------------------------------

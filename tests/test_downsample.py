@@ -1,0 +1,126 @@
+"""--downsample: the networks on a shrunk capture, normals interpolated back to full size."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from psctl.api import run_normals
+from psctl.errors import PsctlError
+from psctl.infer import block_mean, check_downsample, run_network, run_views, upsample_normals
+from psctl.models.ps_fcn import HALO
+from psctl.models.weights import save_weights
+from tests.conftest import write_capture
+from tests.test_ps_fcn import model, scene
+
+
+def reader_of(images):
+    def reader(start, box):
+        for k in range(start, len(images)):
+            yield images[k][box]
+    return reader
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_block_mean_is_the_mean_over_the_mask(grey):
+    rng = np.random.default_rng(1)
+    h, w, k = 7, 10, 3
+    img = rng.uniform(0, 1, (h, w) if grey else (h, w, 3)).astype(np.float32)
+    mask = rng.uniform(size=(h, w)) < 0.6
+    got = block_mean(img, mask, k)
+    assert got.shape == ((3, 4) if grey else (3, 4, 3)) and got.dtype == np.float32
+    for i in range(3):
+        for j in range(4):
+            m = mask[i * k:(i + 1) * k, j * k:(j + 1) * k]
+            block = img[i * k:(i + 1) * k, j * k:(j + 1) * k]
+            want = block[m].mean(0) if m.any() else np.zeros(block.shape[2:])
+            np.testing.assert_allclose(got[i, j], want, rtol=1e-6, atol=1e-7)
+
+
+def test_upsample_reaches_every_mask_pixel_and_only_those():
+    rng = np.random.default_rng(2)
+    H, W, k = 23, 31, 3
+    mask = rng.uniform(size=(H, W)) < 0.3  # scattered: many blocks hold one mask pixel
+    small = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
+    n0 = np.array([0.2, -0.3, 0.9]) / np.linalg.norm([0.2, -0.3, 0.9])
+    normals = np.where(small[..., None], n0, 0.0).astype(np.float32)
+    up = upsample_normals(normals, mask, k)
+    assert up.shape == (H, W, 3)
+    np.testing.assert_allclose(up[mask], np.broadcast_to(n0, (mask.sum(), 3)), atol=1e-6)
+    assert not up[~mask].any()
+
+
+def test_upsample_is_bilinear_between_block_centres():
+    """A field linear in the block centres' coordinates comes back linear in the pixels': the
+    full-size pixel i sits at (i + 0.5) / k - 0.5 in block units."""
+    k, h, w = 4, 6, 5
+    yc, xc = np.mgrid[:h, :w].astype(np.float64)
+    field = np.stack([0.1 * yc, -0.07 * xc, np.ones_like(yc)], -1).astype(np.float32)
+    H, W = h * k, w * k
+    up = upsample_normals(field, np.ones((H, W), bool), k)
+    Y, X = np.mgrid[:H, :W].astype(np.float64)
+    want = np.stack([0.1 * ((Y + 0.5) / k - 0.5), -0.07 * ((X + 0.5) / k - 0.5), np.ones_like(Y)], -1)
+    want /= np.linalg.norm(want, axis=-1, keepdims=True)
+    inner = (slice(k, H - k), slice(k, W - k))  # the frame's edge clamps
+    np.testing.assert_allclose(up[inner], want[inner], atol=1e-6)
+
+
+@pytest.mark.parametrize("normalization,views_", [("none", 1), ("per-channel", 2)])
+def test_downsampled_run_is_the_network_on_the_small_capture(normalization, views_):
+    """A capture made of k x k blocks (the last row and column of blocks cut by the frame) shrinks
+    to the small capture exactly: the result is the network's normals on it, brought back up.
+    Tiles small enough to cut the small capture check the reader's block mapping."""
+    k = 3
+    small, lights, _ = scene(4, 21, 26, seed=3)
+    mask_s = np.zeros((21, 26), bool)
+    mask_s[2:21, 9:26] = True  # reaches the cut blocks
+    H, W = 21 * k - 1, 26 * k - 2
+    full = np.repeat(np.repeat(small, k, 1), k, 2)[:, :H, :W]
+    mask = np.repeat(np.repeat(mask_s, k, 0), k, 1)[:H, :W]
+    net = model(double=True)
+    cfg = {"views": views_, "tile": 16, "halo": HALO}
+    ref = run_views(net, reader_of(small), 4, lights, mask_s, normalization, 3, cfg)
+    got = run_views(net, reader_of(full), 4, lights, mask, normalization, 3, {**cfg, "downsample": k})
+    np.testing.assert_allclose(got.normals, upsample_normals(ref.normals, mask, k), atol=1e-5)  # float32 block means
+    assert got.normals.shape == (H, W, 3) and got.info["downsample"] == k
+    assert not got.normals[~mask].any() and (np.linalg.norm(got.normals[mask], axis=-1) > 0.999).all()
+
+
+def test_downsample_one_is_full_size():
+    images, lights, mask = scene(3, 30, 34)
+    net = model(double=True)
+    a = run_views(net, reader_of(images), 3, lights, mask, "none", None, {"downsample": 1}).normals
+    b = run_network(net, reader_of(images), 3, lights, mask).normals
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, True, "2", None])
+def test_downsample_must_be_a_whole_number(bad):
+    with pytest.raises(PsctlError, match="downsample must be a whole number >= 1"):
+        check_downsample(bad)
+
+
+def test_folder_runs_report_the_factor(tmp_path):
+    folder = tmp_path / "spherePNG"
+    write_capture(folder, n=6, size=40)
+    weights = save_weights(tmp_path / "w.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    r = run_normals(folder, method="ps-fcn-n", weights=weights, device="cpu", downsample=2, write=False)
+    assert r["downsample"] == 2 and r["mae"] is not None
+    r = run_normals(folder, method="l2", downsample=2, write=False)
+    assert r["downsample"] == 1 and any("downsample: l2" in n for n in r["notes"])
+    env = {**os.environ, "COLUMNS": "200"}
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(folder), "--weights", str(weights),
+                           "--downsample", "0", "--out", str(tmp_path / "o")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and "downsample must be a whole number" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "eval", "--benchmark", "folder", "--root", str(tmp_path),
+                           "-m", "ps-fcn-n", "--weights", str(weights), "--device", "cpu", "--downsample", "2",
+                           "--json", "-q"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["downsample"] == 2 and out["views"] == 1
