@@ -206,7 +206,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             falloff first (``psctl.nearlight``, docs/near-lights.md).
         downsample: network methods: run the network on the capture shrunk by this whole
             factor (each k x k block's mean over the mask), its normals interpolated back to
-            full size (``psctl.infer.run_downsampled``; docs/usage.md, "Large objects"); 1: full size.
+            full size (``psctl.infer.run_downsampled``): about 1/k^2 of the network's work, at a
+            cost in accuracy wherever the surface has detail (docs/models.md, "Downsampling");
+            1: full size.
     Returns:
         [H, W, 3] float32 unit normals.
     """

@@ -65,8 +65,8 @@ DEFAULT_INFER = {
     # and mirrored about the view axis, each view's normals turned back, their unit mean. 8x the work.
     "views": 1,
     # the network runs on the capture shrunk by this integer factor (each k x k block's mean over
-    # the object, images and mask), its normals interpolated back to full size: objects far wider
-    # than the training views (128 px) get the context they were trained with. 1 = full size.
+    # the object, images and mask), its normals interpolated back to full size: about 1/k^2 of the
+    # work, for a quick look; detail is lost (docs/models.md, "Downsampling"). 1 = full size.
     "downsample": 1,
 }
 
@@ -524,16 +524,30 @@ def upsample_normals(normals: np.ndarray, mask: np.ndarray, k: int) -> np.ndarra
     """[h, w, 3] normals of a capture shrunk by ``k`` (0 outside its mask) -> [H, W, 3] unit normals
     on the full-size ``mask`` [H, W], bilinear between block centres. The zeros outside the small
     mask drop out when each vector is normalised, so edge pixels take only the object's normals;
-    every mask pixel's own block is in the small mask, so none is left without one."""
+    every mask pixel's own block is in the small mask, so none is left without one. Only the
+    object's box (and one block around it, zeros, as the frame beyond is) is interpolated."""
     import torch
 
     H, W = mask.shape
     h, w = normals.shape[:2]
-    t = torch.from_numpy(np.ascontiguousarray(normals, np.float32)).permute(2, 0, 1)[None]
-    up = torch.nn.functional.interpolate(t, size=(h * k, w * k), mode="bilinear", align_corners=False)
-    up = up[0].permute(1, 2, 0).numpy()[:H, :W].astype(np.float64)
+    out = np.zeros((H, W, 3), np.float32)
+    ys, xs = np.nonzero(np.abs(normals).sum(-1) > 0)
+    if ys.size == 0:
+        return out
+    y0, y1 = max(int(ys.min()) - 1, 0), min(int(ys.max()) + 2, h)
+    x0, x1 = max(int(xs.min()) - 1, 0), min(int(xs.max()) + 2, w)
+    t = torch.from_numpy(np.ascontiguousarray(normals[y0:y1, x0:x1], np.float32)).permute(2, 0, 1)[None]
+    up = torch.nn.functional.interpolate(t, size=((y1 - y0) * k, (x1 - x0) * k), mode="bilinear",
+                                         align_corners=False)
+    Y1, X1 = min(y1 * k, H), min(x1 * k, W)
+    up = up[0].permute(1, 2, 0).numpy()[: Y1 - y0 * k, : X1 - x0 * k].astype(np.float64)
     norm = np.linalg.norm(up, axis=-1, keepdims=True)
-    return np.where(mask[..., None] & (norm > 0), up / np.maximum(norm, 1e-300), 0.0).astype(np.float32)
+    inside = mask[y0 * k:Y1, x0 * k:X1, None] & (norm > 0)
+    out[y0 * k:Y1, x0 * k:X1] = np.where(inside, up / np.maximum(norm, 1e-300), 0.0)
+    return out
+
+
+MIN_SIDE = 8  # px: the shrunk object's longest side, at least (the networks' stride is 4)
 
 
 def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray, k: int,
@@ -542,26 +556,46 @@ def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray |
                     input_mean: float | None = None, input_clip: float | None = None) -> InferResult:
     """``run_views`` on the capture shrunk by ``k`` (``block_mean`` of every image over the mask;
     the small mask: blocks with any mask pixel), normals brought back to full size by
-    ``upsample_normals``. The lights are unchanged (shrinking does not turn the surface).
+    ``upsample_normals``. The lights are unchanged (shrinking does not turn the surface). Hot
+    pixels are clamped and the dark map found at full size, as without shrinking (a block mean
+    would dilute a hot pixel below the clamp's level, and a dark pixel into its block).
     Same arguments and result as ``run_views``; info["downsample"] = k."""
     t0 = time.perf_counter()
     mask = np.asarray(mask, bool)
     H, W = mask.shape
+    if mask.any():
+        ys, xs = np.nonzero(mask)
+        side = int(max(ys.max() - ys.min(), xs.max() - xs.min())) + 1
+        if -(-side // k) < MIN_SIDE:
+            raise PsctlError(None, f"downsample {k} would leave the object {-(-side // k)} px across (the mask is "
+                                   f"{side} px); use at most {max(side // MIN_SIDE, 1)}")
     small = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
+    peak = np.zeros((H, W), np.float32)  # each pixel's brightest observation, as run_network keeps it
+    hot: dict[int, int] = {}
 
     def small_reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         ys, xs = box
         # the block rows / columns of box, in full-size pixels (the last block may be cut by the frame)
         full = (slice(ys.start * k, min(ys.stop * k, H)), slice(xs.start * k, min(xs.stop * k, W)))
         sub = mask[full]
-        for img in reader(start, full):
+        for i, img in enumerate(reader(start, full), start):
+            if not np.isfinite(img).all():  # outside the mask too, as run_network checks
+                raise PsctlError(None, f"image {i + 1} contains NaN or infinite values")
+            img, count = clamp_hot_pixels(img, sub)
+            if count:
+                hot.setdefault(i, count)  # every pass sees the same image
+            grey = img if img.ndim == 2 else img[..., :3].max(-1)
+            np.maximum(peak[full], np.where(sub, grey, 0), out=peak[full])
             yield block_mean(img, sub, k)
 
     res = run_views(model, small_reader, n, lights, small, normalization, train_images,
                     {**(config or {}), "downsample": 1}, progress, f"{label} (1/{k} size)", input_mean, input_clip)
     normals = upsample_normals(res.normals, mask, k)
-    dark = np.repeat(np.repeat(res.dark, k, 0), k, 1)[:H, :W] & mask
+    dark = np.zeros((H, W), bool)
+    dark[mask] = dark_pixels(peak[mask])  # the rule run_network and L2 use
     info = {**res.info, "downsample": k, "seconds": round(time.perf_counter() - t0, 3)}
+    if hot:
+        info["hot_pixels"] = dict(sorted(hot.items()))
     return InferResult(normals, dark, info, res.notes)
 
 

@@ -12,6 +12,8 @@ import pytest
 
 from psctl.api import run_normals
 from psctl.errors import PsctlError
+from psctl.eval import run_benchmark
+from psctl.hotpixels import clamp_hot_pixels
 from psctl.infer import block_mean, check_downsample, run_network, run_views, upsample_normals
 from psctl.models.ps_fcn import HALO
 from psctl.models.weights import save_weights
@@ -57,16 +59,16 @@ def test_upsample_reaches_every_mask_pixel_and_only_those():
 
 def test_upsample_is_bilinear_between_block_centres():
     """A field linear in the block centres' coordinates comes back linear in the pixels': the
-    full-size pixel i sits at (i + 0.5) / k - 0.5 in block units."""
+    full-size pixel i sits at (i + 0.5) / k - 0.5 in block units (the frame's last blocks cut)."""
     k, h, w = 4, 6, 5
     yc, xc = np.mgrid[:h, :w].astype(np.float64)
     field = np.stack([0.1 * yc, -0.07 * xc, np.ones_like(yc)], -1).astype(np.float32)
-    H, W = h * k, w * k
+    H, W = h * k - 1, w * k - 3
     up = upsample_normals(field, np.ones((H, W), bool), k)
     Y, X = np.mgrid[:H, :W].astype(np.float64)
     want = np.stack([0.1 * ((Y + 0.5) / k - 0.5), -0.07 * ((X + 0.5) / k - 0.5), np.ones_like(Y)], -1)
     want /= np.linalg.norm(want, axis=-1, keepdims=True)
-    inner = (slice(k, H - k), slice(k, W - k))  # the frame's edge clamps
+    inner = (slice(k, H - 2 * k), slice(k, W - 2 * k))  # the frame's edge clamps
     np.testing.assert_allclose(up[inner], want[inner], atol=1e-6)
 
 
@@ -74,7 +76,7 @@ def test_upsample_is_bilinear_between_block_centres():
 def test_downsampled_run_is_the_network_on_the_small_capture(normalization, views_):
     """A capture made of k x k blocks (the last row and column of blocks cut by the frame) shrinks
     to the small capture exactly: the result is the network's normals on it, brought back up.
-    Tiles small enough to cut the small capture check the reader's block mapping."""
+    Tiles small enough to cut the small capture, with --views and +N's two passes."""
     k = 3
     small, lights, _ = scene(4, 21, 26, seed=3)
     mask_s = np.zeros((21, 26), bool)
@@ -89,6 +91,84 @@ def test_downsampled_run_is_the_network_on_the_small_capture(normalization, view
     np.testing.assert_allclose(got.normals, upsample_normals(ref.normals, mask, k), atol=1e-5)  # float32 block means
     assert got.normals.shape == (H, W, 3) and got.info["downsample"] == k
     assert not got.normals[~mask].any() and (np.linalg.norm(got.normals[mask], axis=-1) > 0.999).all()
+
+
+def test_upsample_of_an_off_centre_object_is_the_whole_frames():
+    """Only the object's box is interpolated: the same as interpolating the whole frame."""
+    import torch
+
+    rng = np.random.default_rng(4)
+    k, h, w = 3, 30, 40
+    small = np.zeros((h, w), bool)
+    small[17:26, 22:35] = rng.uniform(size=(9, 13)) < 0.8
+    normals = rng.normal(size=(h, w, 3)) + [0, 0, 2]  # facing the camera, as normals do: no near-cancelling mean
+    normals = np.where(small[..., None], normals / np.linalg.norm(normals, axis=-1, keepdims=True), 0).astype(np.float32)
+    H, W = h * k - 2, w * k - 1
+    mask = np.repeat(np.repeat(small, k, 0), k, 1)[:H, :W]
+    t = torch.from_numpy(normals).permute(2, 0, 1)[None]
+    whole = torch.nn.functional.interpolate(t, size=(h * k, w * k), mode="bilinear", align_corners=False)
+    whole = whole[0].permute(1, 2, 0).numpy()[:H, :W].astype(np.float64)
+    whole = np.where(mask[..., None], whole / np.linalg.norm(whole, axis=-1, keepdims=True).clip(1e-300), 0)
+    np.testing.assert_allclose(upsample_normals(normals, mask, k), whole, atol=1e-5)  # float32 weights
+
+
+def test_reader_asks_for_the_right_full_size_region():
+    """Random images, an object far from the frame's origin (so the crop starts inside it), tiles:
+    the same as the network on the whole frame's block means."""
+    rng = np.random.default_rng(5)
+    k, H, W = 3, 181, 211
+    images = rng.uniform(0.1, 1, (3, H, W, 3)).astype(np.float32)
+    lights = scene(3)[1]
+    yy, xx = np.mgrid[:H, :W]
+    mask = ((yy - 140) / 30) ** 2 + ((xx - 160) / 38) ** 2 < 1  # its crop (24 small px around it) starts at (12, 12)
+    small_mask = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
+    small = np.stack([block_mean(img, mask, k) for img in images])
+    net = model(double=True)
+    for cfg in ({}, {"tile": 16, "halo": HALO}):
+        ref = run_views(net, reader_of(small), 3, lights, small_mask, "none", None, cfg)
+        got = run_views(net, reader_of(images), 3, lights, mask, "none", None, {**cfg, "downsample": k})
+        np.testing.assert_allclose(got.normals, upsample_normals(ref.normals, mask, k), atol=1e-6)
+
+
+def test_dark_pixels_and_hot_pixels_are_found_at_full_size():
+    """A block mean would hide a dark pixel in its block and dilute a hot one below the clamp's
+    level: both are looked for before shrinking, as without it."""
+    images, lights, mask = scene(4, 48, 52, seed=6)
+    dark_at = np.argwhere(mask)[::37]  # scattered single pixels, black in every image
+    images[:, dark_at[:, 0], dark_at[:, 1]] = 0
+    net = model(double=True)
+    full = run_views(net, reader_of(images), 4, lights, mask, "none", None, {})
+    for k in (2, 3):
+        res = run_views(net, reader_of(images), 4, lights, mask, "none", None, {"downsample": k})
+        np.testing.assert_array_equal(res.dark, full.dark)
+        assert res.dark.sum() == len(dark_at) and "hot_pixels" not in res.info
+    hot = images.copy()
+    y, x = np.argwhere(mask)[len(dark_at) * 20]
+    hot[1, y, x] = 1000 * images[1][mask].mean()
+    res = run_views(net, reader_of(hot), 4, lights, mask, "none", None, {"downsample": 2})
+    assert res.info["hot_pixels"] == {1: 3}  # its three channels
+    clamped = hot.copy()
+    clamped[1] = clamp_hot_pixels(hot[1], mask)[0]  # the pixel at its neighbours' level
+    want = run_views(net, reader_of(clamped), 4, lights, mask, "none", None, {"downsample": 2})
+    np.testing.assert_allclose(res.normals, want.normals, atol=1e-6)
+    at_full = run_views(net, reader_of(hot), 4, lights, mask, "none", None, {"downsample": 1})
+    assert at_full.info["hot_pixels"] == {1: 3}  # full size finds it too
+
+
+def test_a_factor_that_leaves_too_little_of_the_object_is_refused():
+    images, lights, mask = scene(3, 40, 40)  # the mask is about 28 px across
+    with pytest.raises(PsctlError, match=r"downsample 8 would leave the object 4 px across .* use at most 3"):
+        run_views(model(), reader_of(images), 3, lights, mask, "none", None, {"downsample": 8})
+
+
+def test_nan_is_refused_as_at_full_size():
+    """Outside the mask too (a block mean over the mask would drop it without a word)."""
+    images, lights, mask = scene(3, 40, 44)
+    images[2, 0, 0] = np.nan
+    assert not mask[0, 0]
+    for k in (1, 2):
+        with pytest.raises(PsctlError, match="image 3 contains NaN"):
+            run_views(model(), reader_of(images), 3, lights, mask, "none", None, {"downsample": k})
 
 
 def test_downsample_one_is_full_size():
@@ -124,3 +204,13 @@ def test_folder_runs_report_the_factor(tmp_path):
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["downsample"] == 2 and out["views"] == 1
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(folder), "--weights", str(weights),
+                           "--downsample", "100", "--out", str(tmp_path / "o100")], capture_output=True, text=True,
+                          env=env)
+    assert proc.returncode == 2 and "downsample 100 would leave the object 1 px across" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o100").exists()
+    # numpy integers are accepted, and eval.json is still written (JSON has no int64)
+    res = run_benchmark("folder", root=tmp_path, method="ps-fcn-n", weights=weights, device="cpu",
+                        views=np.int64(2), downsample=np.int64(2), out=tmp_path / "ev")
+    saved = json.loads((tmp_path / "ev" / "eval.json").read_text())
+    assert saved["views"] == res["views"] == 2 and saved["downsample"] == 2
