@@ -540,10 +540,10 @@ def upsample_normals(normals: np.ndarray, mask: np.ndarray, k: int) -> np.ndarra
     up = torch.nn.functional.interpolate(t, size=((y1 - y0) * k, (x1 - x0) * k), mode="bilinear",
                                          align_corners=False)
     Y1, X1 = min(y1 * k, H), min(x1 * k, W)
-    up = up[0].permute(1, 2, 0).numpy()[: Y1 - y0 * k, : X1 - x0 * k].astype(np.float64)
-    norm = np.linalg.norm(up, axis=-1, keepdims=True)
+    up = up[0].permute(1, 2, 0).numpy()[: Y1 - y0 * k, : X1 - x0 * k]
+    norm = np.sqrt(np.einsum("...c,...c->...", up, up))[..., None]  # float32 throughout: a 12 MP map is 144 MB
     inside = mask[y0 * k:Y1, x0 * k:X1, None] & (norm > 0)
-    out[y0 * k:Y1, x0 * k:X1] = np.where(inside, up / np.maximum(norm, 1e-300), 0.0)
+    np.divide(up, np.maximum(norm, 1e-30), out=out[y0 * k:Y1, x0 * k:X1], where=inside)
     return out
 
 
