@@ -38,7 +38,7 @@ sys.path.insert(0, str(REPO))
 
 
 def main() -> None:
-    from psctl.infer import array_normals
+    from psctl.infer import array_normals, ensemble_normals
     from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, object_name, open_capture
     from psctl.metrics import angular_error
 
@@ -63,12 +63,10 @@ def main() -> None:
             images = load_images(cap)
             for k in args.factors:
                 t0 = time.perf_counter()
-                out = {key: array_normals(images, cap.lights, mask, method, weights,
-                                          {"device": "cpu", "downsample": k}).normals.astype(np.float64)
+                res = {key: array_normals(images, cap.lights, mask, method, weights, {"device": "cpu", "downsample": k})
                        for key, method, weights in (("a", "ps-fcn", args.weights_a), ("b", "ps-fcn-n", args.weights_b))}
-                avg = out["a"] + out["b"]
-                avg /= np.maximum(np.linalg.norm(avg, axis=-1, keepdims=True), 1e-12)
-                out["avg"] = avg
+                res["avg"] = ensemble_normals([res["a"], res["b"]])  # what --method ensemble gives
+                out = {key: r.normals.astype(np.float64) for key, r in res.items()}
                 row = {"name": object_name(folder), "side": side,
                        **{key: float(angular_error(v, gt, valid).mean()) for key, v in out.items()},
                        "seconds": round(time.perf_counter() - t0, 1)}

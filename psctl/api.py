@@ -215,7 +215,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     from psctl.lights import refine_config
 
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
-    from psctl.infer import check_downsample
+    from psctl.models import check_downsample
     from psctl.symmetry import check_views
 
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
@@ -322,7 +322,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from dataclasses import replace
 
     from psctl.classic import L2Accumulator, lights_problem
-    from psctl.infer import check_downsample
+    from psctl.models import check_downsample
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs

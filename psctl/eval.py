@@ -87,7 +87,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.io.capture import find_objects, holds_capture, object_name, open_capture, root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
-    from psctl.infer import check_downsample
+    from psctl.models import check_downsample
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
 

@@ -39,7 +39,7 @@ import numpy as np
 from psctl.classic import dark_pixels
 from psctl.errors import PsctlError, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
-from psctl.models import NETWORK_METHODS, check_device_name
+from psctl.models import NETWORK_METHODS, check_device_name, check_downsample
 from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
 
 if TYPE_CHECKING:
@@ -496,13 +496,6 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
     normals = np.where(mask[..., None] & (norm > 0), total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     info = {**first.info, "views": views, "seconds": round(time.perf_counter() - t0, 3)}
     return InferResult(normals, first.dark, info, first.notes)
-
-
-def check_downsample(k: object) -> int:
-    """``k`` if it is an integer >= 1, else PsctlError (a ValueError)."""
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or int(k) < 1:
-        raise PsctlError(None, f"downsample must be a whole number >= 1, got {k!r}")
-    return int(k)
 
 
 def block_mean(img: np.ndarray, mask: np.ndarray, k: int) -> np.ndarray:

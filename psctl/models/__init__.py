@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from psctl.errors import PsctlError
 
 # method name -> what the network needs. "normalization" is the default +N variant for the
@@ -27,6 +29,14 @@ LIGHT_METHODS: dict[str, dict] = {
 
 # Every method that has a weights file.
 WEIGHTS_METHODS: dict[str, dict] = {**NETWORK_METHODS, **LIGHT_METHODS}
+
+
+def check_downsample(k: object) -> int:
+    """``--downsample`` (``psctl.infer.run_downsampled``): ``k`` if it is an integer >= 1, else a
+    one-line error. Here, not in psctl.infer, so that l2 runs check it without importing torch."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or int(k) < 1:
+        raise PsctlError(None, f"downsample must be a whole number >= 1, got {k!r}")
+    return int(k)
 
 
 def check_device_name(name: str | None) -> str:
