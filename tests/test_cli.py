@@ -25,7 +25,7 @@ def psctl(*args: str, check: bool = False, env: dict | None = None, cwd: Path | 
     return proc
 
 
-def cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+def cli(*args: str, env: dict | None = None, check: bool = False) -> subprocess.CompletedProcess:
     """psctl in this process (typer's runner): as ``psctl`` without a Python start and a torch
     import per call; for the many one-line refusals. An exception that escapes the command
     (a traceback in a shell) is re-raised here."""
@@ -36,6 +36,8 @@ def cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     r = CliRunner().invoke(app, list(map(str, args)), env={"COLUMNS": "100", **(env or {})})
     if r.exception is not None and not isinstance(r.exception, SystemExit):
         raise r.exception
+    if check and r.exit_code != 0:
+        raise AssertionError(r.stderr)
     return subprocess.CompletedProcess(args, r.exit_code, r.stdout, r.stderr)
 
 
@@ -926,24 +928,24 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     env = {"PSCTL_WEIGHTS": str(wdir)}
     torch.manual_seed(0)
     save_weights(wdir / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    proc = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "x", env=env)
+    proc = cli("normals", capture, "-m", "ensemble", "--out", tmp_path / "x", env=env)
     assert proc.returncode == 2 and "ps-fcn-n" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()
-    assert json.loads(psctl("normals", capture, "--out", tmp_path / "a1", "--json", env=env, check=True).stdout)[
+    assert json.loads(cli("normals", capture, "--out", tmp_path / "a1", "--json", env=env, check=True).stdout)[
         "method"] == "ps-fcn"
     torch.manual_seed(1)
     save_weights(wdir / "ps_fcn_n.pt", PSFCN(), {"method": "ps-fcn-n", "train_images": 32})
-    r = json.loads(psctl("normals", capture, "--out", tmp_path / "a2", "--json", env=env, check=True).stdout)
+    r = json.loads(cli("normals", capture, "--out", tmp_path / "a2", "--json", env=env, check=True).stdout)
     assert r["method"] == "ensemble" and any(n.startswith("ensemble: the unit mean") for n in r["notes"])
     assert sum(n.startswith("ps-fcn") and "weights" in n for n in r["notes"]) == 2  # both files named
     for m in ("ps-fcn", "ps-fcn-n"):
-        psctl("normals", capture, "-m", m, "--out", tmp_path / m, "-q", env=env, check=True)
+        cli("normals", capture, "-m", m, "--out", tmp_path / m, "-q", env=env, check=True)
     mean = read_normal_map(tmp_path / "ps-fcn" / "normal.exr").astype(np.float64) + read_normal_map(
         tmp_path / "ps-fcn-n" / "normal.exr")
     m = np.linalg.norm(mean, axis=-1) > 0
     mean[m] /= np.linalg.norm(mean[m], axis=-1, keepdims=True)
     assert angular_error(read_normal_map(tmp_path / "a2" / "normal.exr"), mean, m).max() < 0.01
-    proc = psctl("normals", capture, "-m", "ensemble", "--weights", wdir / "ps_fcn.pt", "--out", tmp_path / "y", env=env)
+    proc = cli("normals", capture, "-m", "ensemble", "--weights", wdir / "ps_fcn.pt", "--out", tmp_path / "y", env=env)
     assert proc.returncode == 2 and "ensemble uses the installed" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "y").exists()
     # spread: the angle between the two networks' normals, a picture and the report's numbers
@@ -958,16 +960,16 @@ def test_ensemble_command_and_auto(capture, tmp_path):
     assert "spread" not in json.loads((tmp_path / "ps-fcn" / "report.json").read_text())
     assert not (tmp_path / "ps-fcn" / "spread.png").exists()
     # the same folder with one network: spread.png is the ensemble's, removed with a note
-    r1 = json.loads(psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "a2", "--json", env=env,
+    r1 = json.loads(cli("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "a2", "--json", env=env,
                           check=True).stdout)
     assert not (tmp_path / "a2" / "spread.png").exists() and any("removed spread.png" in n for n in r1["notes"])
-    out = psctl("normals", capture, "-m", "ensemble", "--out", tmp_path / "a3", env=env, check=True).stdout
+    out = cli("normals", capture, "-m", "ensemble", "--out", tmp_path / "a3", env=env, check=True).stdout
     assert "spread (angle between the ensemble's networks)" in out
     from psctl.io.capture import holds_capture
 
     assert not holds_capture(tmp_path / "a3")  # psctl's own outputs, spread.png included, are no capture
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)  # psctl eval --out: each object's spread too
-    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "ensemble", "--out",
+    r = json.loads(cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "ensemble", "--out",
                          tmp_path / "ev", "--json", "--quiet", env=env, check=True).stdout)
     assert r["objects"][0]["spread"]["mean"] > 0 and (tmp_path / "ev" / "a" / "spread.png").is_file()
     assert read_image(tmp_path / "ev" / "eval.png")[0].shape[0] > 3 * 160  # three rows of maps
