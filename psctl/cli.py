@@ -7,6 +7,7 @@ Heavy imports happen inside the commands so that ``psctl --help`` is instant.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import json
 import math
@@ -117,6 +118,11 @@ def _stderr():
     return Console(stderr=True)
 
 
+# errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
+# even where no file name comes with them (a write to stdout redirected to a full disk)
+_NO_ROOM = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
 def _fail(message: str) -> None:
     from rich.markup import escape
 
@@ -171,6 +177,10 @@ def _user_errors() -> Iterator[None]:
     except PsctlError as e:
         _fail(str(e))
     except OSError as e:
+        if e.filename is None and e.errno in _NO_ROOM:  # printing to a full disk (`> out.json`), ...
+            with contextlib.suppress(OSError):
+                _fail(f"cannot write the output ({e.strerror.lower() if e.strerror else e})")
+            raise typer.Exit(2) from None
         if e.filename is None:  # not about a path the user gave: keep the traceback for a bug report
             raise
         # the system refused a path (too long, permission denied, disk full, ...): the user's to fix

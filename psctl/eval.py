@@ -84,7 +84,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "notes": about the run (with ``out``: object folders of an earlier run left there).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
-    from psctl.io.capture import find_objects, holds_capture, object_name, open_capture, root_notes
+    from psctl.io.capture import GT_FILES, find_objects, holds_capture, object_name, open_capture, root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
     from psctl.models import check_downsample
@@ -110,7 +110,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     # every object must be scorable before any is run (and before any output is written)
     for folder in folders:
         if open_capture(folder, encoding).gt_path is None:
-            raise PsctlError(folder, "has no ground truth normals (Normal_gt.mat / Normal_gt.png / normal.png)")
+            raise PsctlError(folder, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
     names = [object_name(f) for f in folders]
     for name in dict.fromkeys(names):
         same = [f.name for f, n in zip(folders, names) if n == name]

@@ -93,5 +93,5 @@ def box_in_capture(box: tuple[slice, slice], sym: Sym, shape: tuple[int, int]) -
 def check_views(views: object) -> int:
     """``views`` if it is one of VIEW_COUNTS (the subgroups), else PsctlError (a ValueError)."""
     if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or int(views) not in VIEW_COUNTS:
-        raise PsctlError(None, f"views must be 1, 2, 4 or 8, got {views!r}")
+        raise PsctlError(None, f"--views must be 1, 2, 4 or 8, got {views!r}")
     return int(views)

@@ -1152,3 +1152,37 @@ def test_python_m_psctl_is_the_command(tmp_path: Path):
     assert proc.returncode == 2 and "missing" in proc.stderr and "Traceback" not in proc.stderr
     proc = run("info")
     assert proc.returncode == 2 and proc.stderr.startswith("psctl info: Missing argument")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a file size limit (RLIMIT_FSIZE) stands in for a full disk")
+def test_a_full_disk_is_one_line_and_nothing_written(capture, tmp_path):
+    """Writes that fail for want of room (here a file size limit, as a full disk or a quota): one
+    line naming the output by its final name, exit 2, no output folder; a full stdout too."""
+    import resource
+    import signal
+
+    def run(limit: int, *args: str, stdout=subprocess.PIPE) -> subprocess.CompletedProcess:
+        def limited() -> None:
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG from write() instead of a kill
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+        return subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], stdout=stdout,
+                              stderr=subprocess.PIPE, text=True, preexec_fn=limited,
+                              env={**os.environ, "COLUMNS": "200"})
+
+    before = sorted(os.listdir(capture))
+    for cmd, out, names in ((["normals", capture, "-m", "l2"], "n", ("normal", "error")),
+                            (["depth", capture, "--normals", capture / "ok" / "normal.exr"], "d",
+                             ("depth", "mesh", "shading"))):
+        if cmd[0] == "depth":
+            psctl("normals", capture, "-m", "l2", "--out", capture / "ok", "-q", check=True)
+            before = sorted(os.listdir(capture))
+        proc = run(2048, *cmd, "--out", tmp_path / out)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        line = proc.stderr.strip()
+        assert len(line.splitlines()) == 1 and f"{tmp_path / out}/" in line and ".psctl-staging" not in line, line
+        assert any(f"/{n}." in line for n in names) and ("cannot write" in line or "written incompletely" in line)
+        assert not (tmp_path / out).exists() and sorted(os.listdir(capture)) == before
+    with open(tmp_path / "info.txt", "w") as f:  # stdout on a full disk
+        proc = run(0, "info", capture, stdout=f)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "cannot write the output" in proc.stderr

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -1016,3 +1018,71 @@ def test_error_map_labels_and_title_are_the_numbers_drawn(tmp_path):
     sp = read_image(tmp_path / "s.png")[0]
     assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°") == [(2, 2)]
     assert _text_at(sp, f">{SPREAD_VMAX:.0f}°") and not _text_at(sp, ">45°")
+
+
+def test_a_0_1_mask_file_says_so(tmp_path):
+    """numpy's astype(uint8) of a bool mask stores 0 and 1 (out of 255): empty by the 0.5 rule,
+    and the message says why instead of only 'no foreground pixel'."""
+    data = write_capture(tmp_path / "cap", n=4, size=16)
+    write_image(tmp_path / "cap" / "mask.png", data["mask"].astype(np.float32) / 255, "uint8")
+    with pytest.raises(PsctlError, match=r"mask.png: mask is empty.* 0/1 mask\? save it as 0/255"):
+        load_mask(open_capture(tmp_path / "cap"))
+    write_image(tmp_path / "cap" / "mask.png", np.zeros((16, 16)), "uint8")
+    with pytest.raises(PsctlError, match=r"mask is empty \(no foreground pixel\)"):
+        load_mask(open_capture(tmp_path / "cap"))
+
+
+def test_images_in_a_subfolder_of_a_capture(tmp_path):
+    """The light file, mask and ground truth at the top and the images in images/: not a benchmark
+    root of one object (whose advice would drop the calibration) but a refusal saying how to list
+    them; listed as images/NAME they are read with the top's files. info notes the unread files."""
+    from psctl.io.summary import describe
+
+    cap = tmp_path / "cap"
+    write_capture(cap, n=4, size=16)
+    names = (cap / "filenames.txt").read_text().split()
+    (cap / "filenames.txt").unlink()
+    (cap / "images").mkdir()
+    for n in names:
+        (cap / n).rename(cap / "images" / n)
+    with pytest.raises(PsctlError, match=r"holds light_directions.txt, light_intensities.txt, mask.png, "
+                                         r"Normal_gt.mat but no image; its images seem to be in images/.*filenames.txt "
+                                         r"as images/NAME"):
+        open_capture(cap)
+    notes = describe(cap)["notes"]
+    assert any("light_directions.txt" in n and "not read" in n for n in notes), notes
+    (cap / "filenames.txt").write_text("\n".join(f"images/{n}" for n in names) + "\n")
+    c = open_capture(cap)
+    assert c.n_images == 4 and c.calibrated and c.mask_path is not None and c.gt_path is not None
+
+
+def test_a_truncated_write_is_caught_before_the_rename(tmp_path):
+    """OpenImageIO's EXR writer can report success for a file cut short by a full disk: the
+    read-back check refuses it, naming the output."""
+    from psctl.io.images import _check_written
+
+    write_image(tmp_path / "a.exr", np.random.default_rng(0).random((32, 32, 3)), "float")
+    _check_written(tmp_path / "a.exr", tmp_path / "out.exr", (32, 32, 3))  # whole: silent
+    data = (tmp_path / "a.exr").read_bytes()
+    (tmp_path / "a.exr").write_bytes(data[: len(data) // 2])
+    with pytest.raises(PsctlError, match=r"out.exr: written incompletely \(\d+ bytes; a full disk or a quota\?\)"):
+        _check_written(tmp_path / "a.exr", tmp_path / "out.exr", (32, 32, 3))
+
+
+def test_atomic_path_names_the_output_when_a_write_fails(tmp_path):
+    """An OSError from writing the temporary file (no name, or the temporary name) becomes one
+    PsctlError naming the final file, and nothing is left; one about another path passes as is."""
+    import errno
+
+    from psctl.io.atomic import atomic_path
+
+    for name in (None, "tmp"):
+        with pytest.raises(PsctlError, match=r"mesh.ply: cannot write \(no space left on device\)"):
+            with atomic_path(tmp_path / "mesh.ply") as tmp:
+                tmp.write_bytes(b"ply")
+                raise OSError(errno.ENOSPC, "No space left on device", None if name is None else str(tmp))
+        assert os.listdir(tmp_path) == []
+    with pytest.raises(FileNotFoundError):
+        with atomic_path(tmp_path / "mesh.ply"):
+            raise FileNotFoundError(errno.ENOENT, "No such file or directory", str(tmp_path / "input.png"))
+    assert os.listdir(tmp_path) == []

@@ -40,7 +40,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     tmp = Path(tmp)
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as e:
+            if e.filename is not None and os.fspath(e.filename) != str(tmp):
+                raise  # about another path (an input read inside the block): its own name
+            # a full disk, a quota: name the output, not its temporary name (or none, from write())
+            raise PsctlError(path, f"cannot write ({e.strerror.lower() if e.strerror else e})") from None
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual file mode
         os.replace(tmp, path)
     finally:
@@ -99,6 +105,8 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     path = Path(path)
     utf8_path(path, "the output folder's path is not valid UTF-8 text, which OpenImageIO cannot write to; "
                     "choose another")  # images are written through OpenImageIO
+    if path.is_symlink() and not path.exists():  # mkdir would say "File exists"
+        raise PsctlError(path, f"is a broken link (to {os.readlink(path)}), not a folder: remove it or choose another")
     probe = path
     while not probe.exists():
         if probe.parent == probe:
@@ -253,11 +261,25 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> 
     stage = Staging(out_dir, replaces)
     ok = False
     try:
-        yield stage.path
+        try:
+            yield stage.path
+        except PsctlError as e:
+            raise _by_final_name(e, [stage]) from None
         stage.commit()
         ok = True
     finally:
         stage.discard(remove_created=not ok)
+
+
+def _by_final_name(error: PsctlError, stagings: "list[Staging]") -> PsctlError:
+    """``error`` naming the output (out/normal.png) instead of its staged copy
+    (out/.psctl-staging.x/normal.png), which is gone when the user reads the message."""
+    if error.path is not None:
+        for s in stagings:
+            with contextlib.suppress(ValueError):
+                return PsctlError(s.out_dir / Path(error.path).relative_to(s.path),
+                                  error.message.replace(str(s.path), str(s.out_dir)))
+    return error
 
 
 class OutputBatch:
@@ -281,6 +303,10 @@ class OutputBatch:
     def __exit__(self, kind, value, tb) -> None:
         ok = False
         try:
+            if isinstance(value, PsctlError):
+                renamed = _by_final_name(value, self.stagings)
+                if renamed is not value:
+                    raise renamed from None
             if kind is None:
                 for s in self.stagings:
                     s.check()

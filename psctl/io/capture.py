@@ -343,8 +343,12 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
         names = _read_list(listed, "objects")
         folders = [root / n for n in names]
         for f in folders:
+            if f.is_dir() and f.resolve() == root.resolve():
+                raise PsctlError(listed, f"lists {f.relative_to(root) if f != root else '.'}, the root itself; "
+                                         f"list its object folders")
             if not f.is_dir():
-                raise PsctlError(f, "listed in objects.txt but missing")
+                raise PsctlError(f, "listed in objects.txt but " + ("is a file, not an object folder" if f.exists()
+                                                                    else "missing"))
         return folders
     folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")
                       and p.name != "psctl" and is_capture_folder(p)), key=lambda p: natural_key(p.name))
@@ -360,6 +364,11 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
 
 
 _CAPTURE_FILES = {n.lower() for n in (LIGHTS_FILE, INTENSITIES_FILE, *MASK_FILES, *GT_FILES, *LIST_FILES)}
+
+
+def _own_capture_files(root: Path, entries: list[Path]) -> list[str]:
+    """The light file, intensities, mask and ground truth in a folder itself, by name."""
+    return sorted((p.name for p in entries if p.name.lower() in _CAPTURE_FILES and p.is_file()), key=natural_key)
 
 
 def root_notes(root: str | os.PathLike) -> list[str]:
@@ -384,6 +393,10 @@ def root_notes(root: str | os.PathLike) -> list[str]:
             return False
         return not _is_capture(folder, inside) and any(q.name.lower() in _CAPTURE_FILES and q.is_file() for q in inside)
 
+    mine = [] if listed else _own_capture_files(root, entries)
+    if mine:  # a capture's files beside subfolders of images: the objects do not read them
+        notes.append(f"objects: {', '.join(mine)} in the root itself not read (each object folder uses its own); "
+                     f"if a subfolder holds this capture's images, list them in filenames.txt as SUBFOLDER/NAME")
     if not listed:
         empty = sorted((p.name for p in entries if p.is_dir() and not p.name.startswith(".") and p.name != "psctl"
                         and looks_meant(p)), key=natural_key)
@@ -427,6 +440,12 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
             objects = find_objects(path)
         except PsctlError:
             objects = []
+        own = _own_capture_files(path, entries)
+        if len(objects) == 1 and own:  # a capture whose images were put in a subfolder
+            sub = objects[0].name
+            raise PsctlError(path, f"holds {', '.join(own)} but no image; its images seem to be in {sub}/, which "
+                                   f"psctl would read as a capture of its own without them: list the images in "
+                                   f"{path / LIST_FILES[0]} as {sub}/NAME, one per line, or move them up")
         if len(objects) == 1:
             raise PsctlError(path, f"is a benchmark root with one object folder, not a capture: pass {objects[0]}, or "
                                    f"use `psctl eval`")
@@ -576,6 +595,10 @@ def load_mask(capture: Capture | str | os.PathLike) -> np.ndarray:
         if alpha.any() and not alpha.all():  # a cut-out (white, the object opaque): transparent is background
             mask &= alpha
     if not mask.any():
+        top = float(to_rgb(pixels).max())
+        if top > 0:  # numpy's astype(uint8) of a bool mask: 0 and 1 out of 255, all below the 0.5 cut
+            raise PsctlError(capture.mask_path, f"mask is empty: no pixel is above half of full scale (the "
+                                                f"brightest is {top:.3g} of it; a 0/1 mask? save it as 0/255)")
         raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel)")
     return mask
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -195,9 +194,31 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
             raise PsctlError(path, f"cannot write image ({_clean(oiio.geterror())})")
         ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
         err = out.geterror()
-        out.close()
+        ok = out.close() and ok
+        # the first of the writer's messages (a PNG's repeats per block), named by the output
+        err = _clean((err or out.geterror()).replace(str(tmp), str(path))).split("; ")[0]
         if not ok:
-            raise PsctlError(path, f"cannot write image ({_clean(err)})")
+            raise PsctlError(path, f"cannot write image ({err or 'the writer gave no reason'})")
+        # with ok, a message may be a failed write() (PNG) or harmless (TIFF's Exif block): the
+        # read-back decides
+        _check_written(tmp, path, arr.shape, err)
+
+
+def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: str = "") -> None:
+    """Read a just-written image back whole. On a full disk or over a quota OpenImageIO's
+    writers can report success and leave a truncated file; a normal map that cannot be read back
+    must fail here, before it is renamed into place, not in the next command that reads it."""
+    oiio = _oiio()
+    with _quiet_stderr():
+        inp = oiio.ImageInput.open(str(tmp))
+        back = None if inp is None else inp.read_image()
+        err = oiio.geterror() if inp is None else inp.geterror()
+        if inp is not None:
+            inp.close()
+    if back is None or err or np.asarray(back).size != int(np.prod(shape)):
+        size = tmp.stat().st_size if tmp.exists() else 0
+        raise PsctlError(path, f"written incompletely ({size} bytes; a full disk or a quota?)"
+                               + (f": {writer_error or _clean(err)}" if writer_error or err else ""))
 
 
 @contextlib.contextmanager
@@ -211,13 +232,14 @@ def _quiet_stderr() -> Iterator[None]:
         return
     sys.stderr.flush()
     saved = os.dup(fd)
-    with tempfile.TemporaryFile() as sink:
-        os.dup2(sink.fileno(), fd)
-        try:
-            yield
-        finally:
-            os.dup2(saved, fd)
-            os.close(saved)
+    sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
+    os.dup2(sink, fd)
+    os.close(sink)
+    try:
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
 
 
 def _clean(msg: str | None) -> str:

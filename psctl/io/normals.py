@@ -57,7 +57,9 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
         try:
             arr = np.load(path, allow_pickle=False)
         except Exception as e:
-            raise PsctlError(path, f"cannot read .npy ({' '.join(str(e).split())})") from None
+            why = ("not a plain NumPy array file" if "allow_pickle" in str(e)  # numpy's advice is not ours
+                   else ' '.join(str(e).split()))
+            raise PsctlError(path, f"cannot read .npy ({why})") from None
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise PsctlError(path, f"shape {arr.shape}, expected H x W x 3")
         if arr.dtype.kind != "f":  # integers would be an encoded image's pixels, read as normals
