@@ -1186,3 +1186,26 @@ def test_a_full_disk_is_one_line_and_nothing_written(capture, tmp_path):
     with open(tmp_path / "info.txt", "w") as f:  # stdout on a full disk
         proc = run(0, "info", capture, stdout=f)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "cannot write the output" in proc.stderr
+
+
+def test_objects_txt_and_out_mistakes_say_what_they_are(tmp_path):
+    """objects.txt listing the root itself or a file, a broken link as --out: one line each
+    saying so (they read 'pass one object folder, or use psctl eval', 'missing' and 'File
+    exists' before)."""
+    root = tmp_path / "root"
+    write_capture(root / "a", n=6, seed=0)
+    for listed, words in ((".\na\n", "objects.txt: lists ., the root itself"),
+                          ("a/..\n", "objects.txt: lists a/.., the root itself")):
+        (root / "objects.txt").write_text(listed)
+        proc = cli("eval", "--benchmark", "folder", "--root", root, "-m", "l2")
+        assert proc.returncode == 2 and words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    (root / "notes").write_text("x")
+    (root / "objects.txt").write_text("notes\n")
+    proc = cli("eval", "--benchmark", "folder", "--root", root, "-m", "l2")
+    assert proc.returncode == 2 and "listed in objects.txt but is a file, not an object folder" in proc.stderr
+    (root / "objects.txt").unlink()
+    (tmp_path / "dl").symlink_to(tmp_path / "nowhere" / "x")
+    for cmd in (["normals", root / "a", "-m", "l2"], ["eval", "--benchmark", "folder", "--root", root, "-m", "l2"]):
+        proc = cli(*cmd, "--out", tmp_path / "dl")
+        assert proc.returncode == 2 and "dl: is a broken link (to " in proc.stderr, proc.stderr
+    assert (tmp_path / "dl").is_symlink() and not (tmp_path / "nowhere").exists()

@@ -1086,3 +1086,12 @@ def test_atomic_path_names_the_output_when_a_write_fails(tmp_path):
         with atomic_path(tmp_path / "mesh.ply"):
             raise FileNotFoundError(errno.ENOENT, "No such file or directory", str(tmp_path / "input.png"))
     assert os.listdir(tmp_path) == []
+
+
+def test_a_pickled_npy_normal_map_is_refused_without_numpys_advice(tmp_path):
+    """np.load's own message suggests allow_pickle=True (running code from the file): ours names
+    the file and what it is instead."""
+    np.save(tmp_path / "n.npy", np.array([{"normals": 1}], dtype=object))
+    with pytest.raises(PsctlError, match=r"n.npy: cannot read .npy \(not a plain NumPy array file\)") as e:
+        read_normal_map(tmp_path / "n.npy")
+    assert "allow_pickle" not in str(e.value)
