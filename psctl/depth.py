@@ -632,6 +632,23 @@ NORMAL_FILES = ("normal.exr", "normal.npy", "normal.png", "normal_8bit.png")
 OUTPUTS = ("depth.exr", "depth.png", "mesh.ply", "shading.png", "depth_report.json")
 
 
+def encoding_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str]:
+    """A float map (.exr, .npy) holds the vectors themselves; one that holds a PNG's (n + 1) / 2
+    instead has no negative component and lengths off 1 (0.5 to 1.5 for unit normals): it would
+    integrate to a wrong surface without a word, hence a note."""
+    if source.suffix.lower() not in (".exr", ".npy"):
+        return []
+    n = nmap[mask & np.isfinite(nmap).all(axis=-1)]
+    n = n[(n != 0).any(axis=-1)]
+    if len(n) < 16 or (n < 0).any():
+        return []
+    length = float(np.median(np.linalg.norm(n, axis=-1)))
+    if abs(length - 1) < 0.05:
+        return []
+    return [f"normals: no component in {source.name} is negative and their median length is {length:.2f}, not 1: "
+            f"(n + 1) / 2 as in a PNG? A float map holds the vectors themselves (docs/formats.md)"]
+
+
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",
               out: str | os.PathLike | None = None, K: str | os.PathLike | np.ndarray | None = None,
               write: bool = True, binary_ply: bool = True, config: dict | None = None,
@@ -701,6 +718,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             if not mask.any():
                 raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
         normals_source = os.path.abspath(source)
+        notes += encoding_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import run_normals
 

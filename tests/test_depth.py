@@ -495,3 +495,23 @@ def test_display_colours_and_the_depth_preview_follow_their_conventions():
     valid = np.isfinite(z)
     prev = depth_preview(z, valid)
     assert prev[0, :, 0].tolist() == [0.0, 1.0, 0.0] and prev[0, :, 1].tolist() == [1.0, 1.0, 0.0]
+
+
+def test_a_float_map_holding_png_encoding_gets_a_note(tmp_path):
+    """(n + 1) / 2 stored in an EXR or .npy integrates to a wrong surface: a note says so; the
+    vectors themselves (psctl's own maps) get none, nor does a PNG."""
+    from psctl.depth import run_depth
+    from psctl.io.images import write_image
+    from psctl.io.normals import write_normal_map
+
+    data = write_capture(tmp_path / "cap", n=6, size=24)
+    n, m = data["normals"].astype(np.float32), data["mask"]
+    write_image(tmp_path / "enc.exr", np.where(m[..., None], (n + 1) / 2, 0), "float")
+    np.save(tmp_path / "enc.npy", np.where(m[..., None], (n + 1) / 2, 0).astype(np.float32))
+    for f in ("enc.exr", "enc.npy"):
+        notes = run_depth(tmp_path / "cap", normals=tmp_path / f, write=False)["notes"]
+        assert any(f"no component in {f} is negative" in x for x in notes), notes
+    for f, fmt in (("ok.exr", "exr"), ("ok.npy", "npy"), ("ok.png", "png16")):
+        write_normal_map(tmp_path / f, n, m, fmt)
+        notes = run_depth(tmp_path / "cap", normals=tmp_path / f, write=False)["notes"]
+        assert not any("is negative" in x for x in notes), notes
