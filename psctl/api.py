@@ -451,7 +451,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         acc = L2Accumulator(mask[box])
         advance = progress(f"{cap.name}: reading + l2", cap.n_images)
         check = ImageCheck(cap)  # black images, negative values: notes
-        for k, img in enumerate(iter_images(cap, box)):
+        for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box))):
             acc.add(img, cap.lights[k])
             check.see(k, img[mask[box]])
             advance(1)

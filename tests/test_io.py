@@ -1095,3 +1095,30 @@ def test_a_pickled_npy_normal_map_is_refused_without_numpys_advice(tmp_path):
     with pytest.raises(PsctlError, match=r"n.npy: cannot read .npy \(not a plain NumPy array file\)") as e:
         read_normal_map(tmp_path / "n.npy")
     assert "allow_pickle" not in str(e.value)
+
+
+def test_a_run_notes_heavily_saturated_images(tmp_path):
+    """Images with over 10 % of the object at the top code value get a run note (l2 and the
+    network engine's reader, through any number of passes); an unsaturated capture none."""
+    from psctl.api import run_normals
+    from psctl.io.capture import CLIPPED_NOTE, ImageCheck
+
+    cap = tmp_path / "cap"
+    write_capture(cap, n=8, size=24)
+    assert not any("saturated" in n for n in run_normals(cap, method="l2", write=False)["notes"])
+    names = sorted(p.name for p in cap.glob("0*.png"))
+    for name in names[:3]:  # three images 4x over: most of the lit object clips
+        write_image(cap / name, np.clip(read_image(cap / name)[0] * 4, 0, 1), "uint16")
+    notes = [n for n in run_normals(cap, method="l2", write=False)["notes"] if "saturated" in n]
+    assert len(notes) == 1 and notes[0].startswith("images: 3 of 8 have over 10% of the object saturated"), notes
+    c = open_capture(cap)
+    mask = load_mask(c)
+    check = ImageCheck(c)
+    read = check.reader(c, mask)
+    box = (slice(0, 24), slice(0, 12))  # two tiles, the second pass from image 2 on
+    for part in (box, (slice(0, 24), slice(12, 24))):
+        list(read(0, part))
+    list(read(2, box))
+    share = {k: a / b for k, (a, b) in check.clipped.items()}
+    assert sorted(k for k, v in share.items() if v > CLIPPED_NOTE) == [0, 1, 2] and share[3] == 0
+    assert [n for n in check.notes() if "saturated" in n] == notes

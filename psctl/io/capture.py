@@ -674,10 +674,13 @@ def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: 
 
 
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
-                progress: Progress | None = None) -> Iterator[np.ndarray]:
+                progress: Progress | None = None,
+                clipped: Callable[[int, np.ndarray], None] | None = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
-    capture has ``near`` lights. ``capture``: a Capture or a folder."""
+    capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
+    given, gets each integer image's [h, w] bool map of pixels at the top code value (saturated),
+    before anything is subtracted or divided."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -699,6 +702,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         rgb = to_rgb(pixels)
         if box is not None:
             rgb = rgb[box]
+        if clipped is not None and info.dtype.startswith(("uint", "int")):  # integer codes end at 1.0
+            clipped(k, (rgb >= 1.0).any(axis=-1))
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None:
@@ -711,16 +716,36 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             progress(1)
 
 
+# A run's note names the images with more of the object saturated than this: highlights of a
+# glossy object stay below it (DiLiGenT's objects: at most 0.1 %); psctl info --check lists every
+# image above 1 % (psctl.io.summary.SATURATED_SHARE).
+CLIPPED_NOTE = 0.10
+
+
 class ImageCheck:
     """What the readers saw of each image over the object, for notes after a run: images black
     there in every tile and pass (black only if no tile or view saw it lit: a dark tile of a large
-    capture may be lit elsewhere), and negative values (float files; taken as stored)."""
+    capture may be lit elsewhere), negative values (float files; taken as stored) and images
+    with over CLIPPED_NOTE of the object saturated (integer files)."""
 
     def __init__(self, capture: Capture):
         self.capture = capture
         self.seen: set[int] = set()
         self.lit: set[int] = set()
         self.negative: set[int] = set()
+        self.clipped: dict[int, list[int]] = {}  # image -> [object pixels at the top code value, object pixels]
+
+    def see_clipped(self, k: int, top: np.ndarray) -> None:
+        """``top``: image ``k``'s saturated-pixel flags over the object (any shape; see iter_images)."""
+        c = self.clipped.setdefault(k, [0, 0])
+        c[0] += int(np.count_nonzero(top))
+        c[1] += top.size
+
+    def clipped_reader(self, mask: np.ndarray, box: tuple[slice, slice] | None, start: int = 0
+                       ) -> Callable[[int, np.ndarray], None]:
+        """iter_images' ``clipped`` callback for images read from ``start`` on, cut to ``box``."""
+        m = mask if box is None else mask[box]
+        return lambda k, top: self.see_clipped(start + k, top[m])
 
     def see(self, k: int, pixels: np.ndarray) -> None:
         """``pixels``: image ``k``'s values over the object (any shape)."""
@@ -736,7 +761,8 @@ class ImageCheck:
         intensities: the image indices, and so the names in the notes, are the same)."""
 
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-            for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box), start):
+            for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
+                                                clipped=self.clipped_reader(mask, box, start)), start):
                 self.see(k, img[mask[box]])
                 yield img
 
@@ -756,6 +782,14 @@ class ImageCheck:
             names = ", ".join(self.capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
             notes.append(f"images: {len(idx)} of {self.capture.n_images} have negative values over the object "
                          f"({names}): taken as stored (noise about a subtracted black level?)")
+        share = {k: c[0] / c[1] for k, c in self.clipped.items() if c[1]}
+        over = sorted(k for k, v in share.items() if v > CLIPPED_NOTE)
+        if over:
+            worst = max(over, key=lambda k: share[k])
+            notes.append(f"images: {len(over)} of {self.capture.n_images} have over {CLIPPED_NOTE:.0%} of the object "
+                         f"saturated (at the top code value; most: {self.capture.image_paths[worst].name}, "
+                         f"{share[worst]:.0%}): brightness is lost there, and the normals with it; a shorter "
+                         f"exposure would keep it (psctl info --check lists every image)")
         return notes
 
 
