@@ -376,6 +376,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")
     elif method in LISTED_LIGHTS and cap.calibrated and lights_problem(cap.lights):  # a network answers anyway
         notes.append(undetermined_note(method, cap.lights))
+    elif method in ("sdps", "ups-fcn") and cap.n_images < 3:  # no listed lights, the same shortage
+        notes.append(f"images: only {cap.n_images}, which leaves the normals undetermined; {method} answers from "
+                     f"what it learnt: expect large errors")
     out_dir = output_folder(out, cap.path)
     # report.json always: without ground truth it still records the method, notes and timings
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \

@@ -1122,3 +1122,18 @@ def test_a_run_notes_heavily_saturated_images(tmp_path):
     share = {k: a / b for k, (a, b) in check.clipped.items()}
     assert sorted(k for k, v in share.items() if v > CLIPPED_NOTE) == [0, 1, 2] and share[3] == 0
     assert [n for n in check.notes() if "saturated" in n] == notes
+
+
+def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
+    """ups-fcn (and sdps) on fewer than 3 images: the same 'undetermined' note as a network given
+    2 listed lights; 3 images none."""
+    from psctl.api import run_normals
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    save_weights(tmp_path / "u.pt", PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 32})
+    for n, noted in ((2, True), (3, False)):
+        write_capture(tmp_path / f"c{n}", n=n, size=16)
+        r = run_normals(tmp_path / f"c{n}", method="ups-fcn", weights=tmp_path / "u.pt", write=False, device="cpu")
+        assert any(x.startswith(f"images: only {n}, which leaves the normals undetermined; ups-fcn")
+                   for x in r["notes"]) == noted, r["notes"]
