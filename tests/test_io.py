@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -1137,3 +1138,26 @@ def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
         r = run_normals(tmp_path / f"c{n}", method="ups-fcn", weights=tmp_path / "u.pt", write=False, device="cpu")
         assert any(x.startswith(f"images: only {n}, which leaves the normals undetermined; ups-fcn")
                    for x in r["notes"]) == noted, r["notes"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a file size limit (RLIMIT_FSIZE) stands in for a full disk")
+@pytest.mark.parametrize("name", ["n.png", "n.exr", "n.tif"])
+def test_write_image_on_a_full_disk_leaves_nothing(tmp_path, name):
+    """A write cut short by a full disk (here a file size limit) raises, naming the file, and
+    leaves no file: OpenImageIO's PNG writer returns success for it (only the read-back sees it)."""
+    import subprocess
+
+    code = f"""
+import resource, signal, sys
+import numpy as np
+from psctl.io.images import write_image
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (8192, 8192))
+try:
+    write_image({str(tmp_path / name)!r}, np.random.default_rng(0).random((300, 300, 3)), {"float" if name.endswith("exr") else "uint16"!r})
+except Exception as e:
+    print(type(e).__name__, e)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout
+    assert out.startswith(f"PsctlError {tmp_path / name}: ") and ("written incompletely" in out or "cannot write" in out), out
+    assert os.listdir(tmp_path) == []
