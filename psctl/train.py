@@ -47,6 +47,7 @@ from typing import Any
 import torch
 
 from psctl.errors import PsctlError, like_default
+from psctl.models.weights import save_torch
 from psctl.synth.stream import MAX_SEED
 
 DEFAULT_CONFIG: dict[str, Any] = {
@@ -352,7 +353,7 @@ def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] 
     for i, part in enumerate(parts):
         name = f"optim.{i}.pt"
         with atomic_path(run / name) as tmp:
-            torch.save({"state": part, "param_groups": sd["param_groups"] if i == 0 else []}, tmp)
+            save_torch({"state": part, "param_groups": sd["param_groups"] if i == 0 else []}, tmp)
         names.append(name)
     for stale in previous:
         if stale not in names and _OPTIM_PART.fullmatch(stale):
@@ -806,7 +807,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
-                torch.save(stream.state_dict(), tmp)
+                save_torch(stream.state_dict(), tmp)
         save_weights(run / "model.pt", model, metadata({metric: st["best_val"]}))
         from psctl.io.atomic import write_text_atomic
 

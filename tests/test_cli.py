@@ -1209,3 +1209,14 @@ def test_objects_txt_and_out_mistakes_say_what_they_are(tmp_path):
         proc = cli(*cmd, "--out", tmp_path / "dl")
         assert proc.returncode == 2 and "dl: is a broken link (to " in proc.stderr, proc.stderr
     assert (tmp_path / "dl").is_symlink() and not (tmp_path / "nowhere").exists()
+
+
+def test_objects_txt_naming_the_root_by_its_absolute_path(tmp_path, monkeypatch):
+    """objects.txt listing the root by an absolute path while --root is relative: the same one
+    line (it was a ValueError traceback)."""
+    root = tmp_path / "root"
+    write_capture(root / "a", n=6, seed=0)
+    (root / "objects.txt").write_text(f"{root}\n")
+    monkeypatch.chdir(tmp_path)
+    proc = cli("eval", "--benchmark", "folder", "--root", "root", "-m", "l2")
+    assert proc.returncode == 2 and f"objects.txt: lists {root}, the root itself" in proc.stderr, proc.stderr

@@ -1031,6 +1031,12 @@ def test_a_0_1_mask_file_says_so(tmp_path):
     write_image(tmp_path / "cap" / "mask.png", np.zeros((16, 16)), "uint8")
     with pytest.raises(PsctlError, match=r"mask is empty \(no foreground pixel\)"):
         load_mask(open_capture(tmp_path / "cap"))
+    rgba = np.ones((16, 16, 4))
+    rgba[..., 3] = 0
+    rgba[0, 0] = (0, 0, 0, 1)  # white and transparent but one opaque black pixel: a cut-out with nothing cut
+    write_image(tmp_path / "cap" / "mask.png", rgba, "uint8")
+    with pytest.raises(PsctlError, match=r"mask is empty \(no foreground pixel: no white pixel is opaque"):
+        load_mask(open_capture(tmp_path / "cap"))
 
 
 def test_images_in_a_subfolder_of_a_capture(tmp_path):
@@ -1051,7 +1057,20 @@ def test_images_in_a_subfolder_of_a_capture(tmp_path):
                                          r"as images/NAME"):
         open_capture(cap)
     notes = describe(cap)["notes"]
-    assert any("light_directions.txt" in n and "not read" in n for n in notes), notes
+    assert any("light_directions.txt" in n and "not read" in n and "as images/NAME" in n for n in notes), notes
+    # an object folder with files of its own beside the root's: an ordinary one-object root
+    import shutil
+
+    shutil.copytree(cap, tmp_path / "root" / "catPNG", ignore=shutil.ignore_patterns("images"))
+    for n in names:
+        shutil.copy(cap / "images" / n, tmp_path / "root" / "catPNG" / n)
+    shutil.copy(cap / "light_directions.txt", tmp_path / "root")
+    with pytest.raises(PsctlError, match=r"is a benchmark root with one object folder, not a capture: pass .*catPNG"):
+        open_capture(tmp_path / "root")
+    shutil.copytree(tmp_path / "root" / "catPNG", tmp_path / "root" / "dogPNG")
+    notes = describe(tmp_path / "root")["notes"]
+    assert any("light_directions.txt in the root itself not read" in n and "copy a shared file into each" in n
+               for n in notes), notes
     (cap / "filenames.txt").write_text("\n".join(f"images/{n}" for n in names) + "\n")
     c = open_capture(cap)
     assert c.n_images == 4 and c.calibrated and c.mask_path is not None and c.gt_path is not None
@@ -1160,4 +1179,26 @@ except Exception as e:
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout
     assert out.startswith(f"PsctlError {tmp_path / name}: ") and ("written incompletely" in out or "cannot write" in out), out
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a file size limit (RLIMIT_FSIZE) stands in for a full disk")
+def test_save_weights_on_a_full_disk_is_one_error_naming_the_file(tmp_path):
+    """torch.save's own writer fails on a full disk with a RuntimeError naming nothing; psctl
+    writes through memory, so the OSError names the weights file (and nothing is left)."""
+    import subprocess
+
+    code = f"""
+import resource, signal
+from psctl.models.ps_fcn import PSFCN
+from psctl.models.weights import save_weights
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (100000, 100000))
+try:
+    save_weights({str(tmp_path / "w.pt")!r}, PSFCN(), {{"method": "ps-fcn", "train_images": 32}})
+except Exception as e:
+    print(type(e).__name__, e)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout
+    assert out.startswith(f"PsctlError {tmp_path / 'w.pt'}: cannot write (file too large"), out
     assert os.listdir(tmp_path) == []

@@ -46,7 +46,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             if e.filename is not None and os.fspath(e.filename) != str(tmp):
                 raise  # about another path (an input read inside the block): its own name
             # a full disk, a quota: name the output, not its temporary name (or none, from write())
-            raise PsctlError(path, f"cannot write ({e.strerror.lower() if e.strerror else e})") from None
+            why = e.strerror.lower() if e.strerror else f"{e}; a full disk or a quota?"  # numpy: "N requested and M written"
+            raise PsctlError(path, f"cannot write ({why})") from None
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual file mode
         os.replace(tmp, path)
     finally:

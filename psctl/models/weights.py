@@ -442,5 +442,18 @@ def save_weights(path: str | os.PathLike, model: "torch.nn.Module | dict", metad
     tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in state.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
-        torch.save({"format": FORMAT, "version": VERSION, "state_dict": tensors, "metadata": meta}, tmp)
+        save_torch({"format": FORMAT, "version": VERSION, "state_dict": tensors, "metadata": meta}, tmp)
     return path
+
+
+def save_torch(obj: Any, tmp: str | os.PathLike) -> None:
+    """``torch.save`` by way of memory: on a full disk torch's own file writer fails with a
+    RuntimeError naming nothing ("unexpected pos"); a plain write raises the OSError that
+    psctl.io.atomic.atomic_path turns into one line naming the file."""
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    Path(tmp).write_bytes(buf.getbuffer())
