@@ -66,7 +66,7 @@ def sdps_arm(sets: list[str], arm: str) -> dict:
 
 
 def main() -> None:
-    from psctl.infer import array_normals
+    from psctl.infer import array_normals, ensemble_normals
     from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, object_name, open_capture
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -104,12 +104,13 @@ def main() -> None:
             images = load_images(cap)
             if set_name == "truncated":
                 images = capture_8bit(images, mask, 0.02, floor=True)
-            out = {}
+            res = {}
             for key, method, weights in (("a", args.method_a, args.weights_a), ("b", args.method_b, args.weights_b)):
-                out[key] = array_normals(images, cap.lights, mask, method, weights,
-                                         {"device": "cpu", "views": args.views}).normals.astype(np.float64)
-            avg = out["a"] + out["b"]
-            avg /= np.maximum(np.linalg.norm(avg, axis=-1, keepdims=True), 1e-12)
+                res[key] = array_normals(images, cap.lights, mask, method, weights,
+                                         {"device": "cpu", "views": args.views})
+            out = {k: r.normals.astype(np.float64) for k, r in res.items()}
+            avg = ensemble_normals([res["a"], res["b"]]).normals  # what --method ensemble gives
+            # (since session 42; before, an inline float64 copy of the same unit mean)
             rows.append({"name": object_name(folder), "a": score(out["a"], gt, valid),
                          "b": score(out["b"], gt, valid), "avg": score(avg, gt, valid),
                          "seconds": round(time.perf_counter() - t0, 1)})
