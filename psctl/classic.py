@@ -67,7 +67,8 @@ def l2_result(b: np.ndarray, dark: np.ndarray, mask: np.ndarray) -> "L2Result":
     """Normal, albedo and dark maps [H, W, ...] from per-pixel solutions b [P, 3] (normal times
     albedo) and dark [P] over the pixels of ``mask``; dark pixels get DEFAULT_NORMAL."""
     albedo = np.linalg.norm(b, axis=1)
-    n = b / np.maximum(albedo, 1e-12)[:, None]
+    # no absolute floor: float images 1e-12 times as bright are as valid (darkness is relative, DARK)
+    n = b / np.where(albedo > 0, albedo, 1.0)[:, None]
     n[dark] = DEFAULT_NORMAL
     h, w = mask.shape
     normals = np.zeros((h, w, 3), np.float32)

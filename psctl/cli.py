@@ -438,6 +438,12 @@ def train(
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
                                               "the recipe's validation set)" + (", not --resume" if resume else ""))
+            if max_minutes is not None or lcnet is not None:  # averaging trains nothing: they would do nothing
+                raise PsctlError("--max-minutes" if max_minutes is not None else "--lcnet",
+                                 "is for training; --average only averages (the members keep their own LCNet)")
+            from psctl.infer import pick_device
+
+            pick_device(device)  # --device tpu, or cuda without CUDA: refused even when nothing is measured
             if install and config is None:  # install_weights would refuse the result afterwards
                 raise PsctlError("--install", "with --average needs --config RECIPE: a release file records "
                                               "its validation on the recipe's set")

@@ -166,6 +166,23 @@ def check_recipe(config: dict) -> dict:
     return config
 
 
+def check_sizes(method: str, config: dict) -> None:
+    """The recipe against the method: its own ``method`` key, if any, must agree, and PS-FCN's
+    training crops and validation windows must be multiples of 4 (two stride-2 layers: another
+    size comes back from the network a few pixels off, a torch error minutes into the run)."""
+    if config.get("method") not in (None, method):
+        raise PsctlError(None, f"config 'method' is {config['method']!r}, but the command trains {method}: remove "
+                               f"the key or train {config['method']}")
+    if method == "lcnet":  # LCNet resizes every view to its input size
+        return
+    from psctl.models.ps_fcn import STRIDE
+
+    for where, size in (("train.crop", config["train"]["crop"]), ("val.size", config["val"]["size"])):
+        if size % STRIDE:
+            raise PsctlError(None, f"config '{where}' must be a multiple of {STRIDE} for {method} (two stride-2 "
+                                   f"layers), not {size}")
+
+
 def _unique_key_loader():
     """yaml.SafeLoader, except that a key given twice in one mapping is an error (PyYAML keeps
     the last without a word: `lr` twice in a recipe is a mistake, not a choice)."""
@@ -722,6 +739,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if config is None:
         config = load_config(None)
     config = check_recipe(config)  # a recipe given as a dict, not through load_config
+    check_sizes(method, config)
     if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
         raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
                                f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
@@ -976,6 +994,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         from psctl.infer import pick_device
 
         method, dev = first.metadata["method"], pick_device(device)
+        check_sizes(method, check_recipe(config))
         amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
         # PS-FCN† is measured on the lights of the LCNet its members were trained with (AVERAGE_SAME
         # makes them agree), not the recipe's or the installed one

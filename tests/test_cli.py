@@ -1220,3 +1220,25 @@ def test_objects_txt_naming_the_root_by_its_absolute_path(tmp_path, monkeypatch)
     monkeypatch.chdir(tmp_path)
     proc = cli("eval", "--benchmark", "folder", "--root", "root", "-m", "l2")
     assert proc.returncode == 2 and f"objects.txt: lists {root}, the root itself" in proc.stderr, proc.stderr
+
+
+def test_average_refuses_training_options_and_bad_devices(tmp_path):
+    """--average trains nothing: --max-minutes and --lcnet with it, or a --device that does not
+    exist, are one line (they were accepted without a word); a folder as --weights says so."""
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    for name in ("a.pt", "b.pt"):
+        save_weights(tmp_path / name, PSFCN(), {"method": "ps-fcn", "train_images": 8})
+    base = ("train", "ps-fcn", "--average", tmp_path / "a.pt", "--average", tmp_path / "b.pt", "--out", tmp_path / "o")
+    for extra, words in ((["--max-minutes", "1"], "--max-minutes: is for training"),
+                         (["--lcnet", tmp_path / "a.pt"], "--lcnet: is for training"),
+                         (["--device", "tpu"], "tpu")):
+        proc = cli(*base, *extra)
+        assert proc.returncode == 2 and words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert not (tmp_path / "o").exists()
+    proc = cli("normals", tmp_path, "-m", "ps-fcn", "--weights", tmp_path)
+    assert proc.returncode == 2
+    write_capture(tmp_path / "cap", n=6)
+    proc = cli("normals", tmp_path / "cap", "-m", "ps-fcn", "--weights", tmp_path)
+    assert proc.returncode == 2 and "is a folder, not a weights file" in proc.stderr, proc.stderr

@@ -1202,3 +1202,10 @@ except Exception as e:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout
     assert out.startswith(f"PsctlError {tmp_path / 'w.pt'}: cannot write (file too large"), out
     assert os.listdir(tmp_path) == []
+
+
+def test_a_folder_given_as_a_normal_map_says_so(tmp_path):
+    with pytest.raises(PsctlError, match="is a folder, not a normal map file"):
+        read_normal_map(tmp_path)
+    with pytest.raises(PsctlError, match="normal map file is missing"):
+        read_normal_map(tmp_path / "n.exr")

@@ -202,3 +202,20 @@ def test_angular_error_normalises_vectors_of_any_length():
         assert angular_error(tilted * s, z)[0] == pytest.approx(45.0)
     assert angular_error(z * 0, z)[0] == 90.0  # a zero vector has no direction: as far as can be
     assert np.isnan(angular_error(np.array([[np.nan, 0, 1.0]]), z)[0])
+
+
+def test_l2_normals_are_unit_at_any_float_scale():
+    """Darkness is relative (DARK): float images 1e-12 or 1e-30 times as bright give the same unit
+    normals (an absolute floor on the albedo shortened them: 65 degrees at 1e-12)."""
+    from psctl.api import estimate_normals
+    from psctl.metrics import angular_error
+    from tests.conftest import hemisphere_lights, render_lambertian, sphere
+
+    n, m = sphere(24)
+    lights = hemisphere_lights(12, seed=0)
+    images = render_lambertian(n, m, lights, 0.7).astype(np.float32)
+    ref = estimate_normals(images, lights, m, method="l2")
+    for scale in (1e-12, 1e-30):
+        got = estimate_normals(images * np.float32(scale), lights, m, method="l2")
+        assert np.allclose(np.linalg.norm(got[m], axis=-1), 1, atol=1e-5)
+        assert angular_error(got, ref, m).max() < 0.01

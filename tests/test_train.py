@@ -641,3 +641,33 @@ def test_average_of_ps_fcn_dagger_is_measured_with_its_own_lcnet(tmp_path, monke
     cfg = merge(cfg, {"data": {**cfg["data"], "size": 32}})
     m = read_weights(average_weights([a, b], tmp_path / "avg", config=cfg)).metadata
     assert m["lcnet"]["path"] == str(tmp_path / "lc.pt") and "synthetic_val_mae" in m["metrics"]
+
+
+def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
+    """PS-FCN's crops and validation windows not a multiple of 4, or a recipe naming another
+    method: one line before the run folder exists (a torch shape error minutes in before)."""
+    from psctl.train import average_weights, train
+
+    for section, key, value, words in (("train", "crop", 14, "config 'train.crop' must be a multiple of 4 for ps-fcn"),
+                                       ("val", "size", 30, "config 'val.size' must be a multiple of 4 for ps-fcn")):
+        cfg = tiny()
+        cfg[section][key] = value
+        with pytest.raises(PsctlError, match=words):
+            train("ps-fcn", cfg, tmp_path / "r")
+        assert not (tmp_path / "r").exists()
+    cfg = tiny()
+    cfg["method"] = "lcnet"
+    with pytest.raises(PsctlError, match="config 'method' is 'lcnet', but the command trains ps-fcn"):
+        train("ps-fcn", cfg, tmp_path / "r")
+    cfg["method"] = "ps-fcn"  # the same method: allowed
+    from psctl.train import check_sizes
+
+    check_sizes("ps-fcn", cfg)
+    from psctl.models.weights import save_weights
+
+    for name in ("a.pt", "b.pt"):
+        save_weights(tmp_path / name, PSFCN(), {"method": "ps-fcn", "train_images": 8})
+    cfg = tiny()
+    cfg["val"]["size"] = 30
+    with pytest.raises(PsctlError, match="val.size' must be a multiple of 4"):  # --average --config measures on val
+        average_weights([tmp_path / "a.pt", tmp_path / "b.pt"], tmp_path / "avg", cfg)

@@ -52,7 +52,7 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
     """Read a normal map written by psctl (png16/png8/exr/npy) -> float32 [H, W, 3]."""
     path = Path(path)
     if not path.is_file():
-        raise PsctlError(path, "normal map file is missing")
+        raise PsctlError(path, "is a folder, not a normal map file" if path.is_dir() else "normal map file is missing")
     if path.suffix.lower() == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)

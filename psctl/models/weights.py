@@ -188,7 +188,7 @@ def read_weights(path: str | os.PathLike) -> Weights:
 
     path = Path(check_path("weights", path))
     if not path.is_file():
-        raise PsctlError(path, "weights file not found")
+        raise PsctlError(path, "is a folder, not a weights file" if path.is_dir() else "weights file not found")
     obj = _torch_load(path)
     if not isinstance(obj, dict) or "state_dict" not in obj:
         raise PsctlError(path, "not a weights file: expected a dict with a 'state_dict' entry "
