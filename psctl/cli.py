@@ -363,6 +363,7 @@ def synth(
     with _user_errors():
         from psctl.synth import check_preset
 
+        preset, light_dist = preset.lower(), light_dist.lower()  # as --method: BLOBBY is blobby
         check_preset(preset)  # before the heavy imports: a typo fails at once
         from psctl.synth.write import write_preset  # (preset_objects checks --light-dist before writing)
 
@@ -415,6 +416,7 @@ def train(
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
+    method = method.lower()  # as --method of normals: PS-FCN is ps-fcn
     with _user_errors():
         from psctl.models.weights import installed_path, read_weights
         from psctl.train import average_weights, check_method, install_weights, load_config, train as run_training

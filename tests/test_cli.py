@@ -1242,3 +1242,13 @@ def test_average_refuses_training_options_and_bad_devices(tmp_path):
     write_capture(tmp_path / "cap", n=6)
     proc = cli("normals", tmp_path / "cap", "-m", "ps-fcn", "--weights", tmp_path)
     assert proc.returncode == 2 and "is a folder, not a weights file" in proc.stderr, proc.stderr
+
+
+def test_train_and_synth_names_in_any_case(tmp_path):
+    """As normals' --method: PS-FCN, BLOBBY and DILIGENT are ps-fcn, blobby and diligent."""
+    proc = cli("synth", tmp_path / "s", "--preset", "BLOBBY", "--light-dist", "DILIGENT", "--size", "32", "--lights",
+               "8", "--materials", "1", "-q")
+    assert proc.returncode == 0 and (tmp_path / "s" / "objects.txt").is_file(), proc.stderr
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
+    proc = cli("train", "PS-FCN", "--config", cfg, "--out", tmp_path / "r", "-q")
+    assert proc.returncode == 0 and json.loads((tmp_path / "r" / "state.json").read_text())["method"] == "ps-fcn"
