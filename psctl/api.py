@@ -340,6 +340,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         raise PsctlError(None, f"arrays must be a dict (it receives the arrays behind the outputs), not a "
                                f"{type(arrays).__name__}")
     progress = check_progress(progress)
+    if batch is not None and not hasattr(batch, "stage"):  # psctl eval's own argument, public all the same
+        raise PsctlError(None, f"batch must be a psctl.io.atomic.OutputBatch or None, not {type(batch).__name__}")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     check_device_name(device)  # a typo is an error for l2 too, which does not use it

@@ -1209,3 +1209,12 @@ def test_a_folder_given_as_a_normal_map_says_so(tmp_path):
         read_normal_map(tmp_path)
     with pytest.raises(PsctlError, match="normal map file is missing"):
         read_normal_map(tmp_path / "n.exr")
+
+
+def test_run_normals_refuses_a_batch_that_is_not_one(tmp_path):
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "cap", n=4, size=16)
+    with pytest.raises(PsctlError, match="batch must be a psctl.io.atomic.OutputBatch or None, not int"):
+        run_normals(tmp_path / "cap", method="l2", batch=5)
+    assert not (tmp_path / "cap" / "psctl").exists()
