@@ -390,12 +390,11 @@ def root_notes(root: str | os.PathLike) -> list[str]:
             inside = list(folder.iterdir())
         except OSError:  # unreadable: find_objects did not take it either; nothing to add here
             return False
-        return not _is_capture(folder, inside) and any(q.name.lower() in _CAPTURE_FILES and q.is_file() for q in inside)
+        return not _is_capture(folder, inside) and bool(_own_capture_files(folder, inside))
 
     mine = [] if listed else _own_capture_files(root, entries)
     if mine:  # a capture's files beside subfolders of images: the objects do not read them
-        subs = [p for p in entries if p.is_dir() and not p.name.startswith(".") and p.name != "psctl"
-                and is_capture_folder(p)]
+        subs = find_objects(root)  # a root without objects.txt has some (else it is no root)
         notes.append(f"objects: {', '.join(mine)} in the root itself not read: an object folder reads only its own "
                      + (f"files (if {subs[0].name} holds this capture's images, list them in filenames.txt as "
                         f"{subs[0].name}/NAME)" if len(subs) == 1 else "files (copy a shared file into each)"))
@@ -677,6 +676,19 @@ def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: 
     return out
 
 
+def has_top_code(info: ImageInfo) -> bool:
+    """Integer samples end at a code value, read as 1.0: there a pixel may be saturated."""
+    return info.dtype.startswith(("uint", "int"))
+
+
+def saturated_map(rgb: np.ndarray) -> np.ndarray:
+    """[..., C] values read from an integer file -> [...] bool: any channel at the top code value."""
+    top = rgb[..., 0] >= 1.0  # channel by channel: ~7x faster than (rgb >= 1).any(-1)
+    for c in range(1, rgb.shape[-1]):
+        top |= rgb[..., c] >= 1.0
+    return top
+
+
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None) -> Iterator[np.ndarray]:
@@ -706,11 +718,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         rgb = to_rgb(pixels)
         if box is not None:
             rgb = rgb[box]
-        if clipped is not None and info.dtype.startswith(("uint", "int")):  # integer codes end at 1.0
-            top = rgb[..., 0] >= 1.0  # channel by channel: ~7x faster than (rgb >= 1).any(-1)
-            for c in range(1, rgb.shape[-1]):
-                top |= rgb[..., c] >= 1.0
-            clipped(k, top)
+        if clipped is not None and has_top_code(info):
+            clipped(k, saturated_map(rgb))
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None:

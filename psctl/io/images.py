@@ -205,7 +205,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
 
 
 def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: str = "") -> None:
-    """Read a just-written image back whole. On a full disk or over a quota OpenImageIO's
+    """Read every pixel of a just-written image back (in strips). On a full disk or over a quota OpenImageIO's
     writers can report success and leave a truncated file; a normal map that cannot be read back
     must fail here, before it is renamed into place, not in the next command that reads it."""
     oiio = _oiio()

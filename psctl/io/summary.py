@@ -32,7 +32,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     import time
 
     from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
-    from psctl.io.capture import ImageCheck, bounding_box, load_ground_truth, minus_ambient
+    from psctl.io.capture import ImageCheck, bounding_box, has_top_code, load_ground_truth, minus_ambient, saturated_map
     from psctl.io.images import read_image, srgb_to_linear, to_rgb
 
     t0 = time.perf_counter()
@@ -62,8 +62,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             continue
         full = to_rgb(pixels)
         rgb = full[mask]  # [pixels over the object, 3]
-        top = info.dtype.startswith(("uint", "int"))  # integer samples end at a code value read as 1.0
-        saturated = float((rgb >= 1.0).any(axis=-1).mean()) if top and len(rgb) else None
+        saturated = float(saturated_map(rgb).mean()) if has_top_code(info) and len(rgb) else None
         if cap.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None and ambient.shape == full.shape:  # (a size mismatch: open_capture's error)
