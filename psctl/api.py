@@ -244,6 +244,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         near = near_lights(light_distance, np.ones((h, w), bool) if mask is None else mask)
         rows, cols = np.arange(h), np.arange(w)
         images = np.stack([img * near.correction(lt, rows, cols)[..., None] for img, lt in zip(images, lights)])
+    # called as psctl.estimate_normals, the package's wrapper is one frame between
+    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+    if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
+        warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
     if method == "sdps":
         from psctl.lights import array_lights
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
@@ -258,8 +262,6 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         normals = array_normals(images, lights, mask, method, weights, net_cfg).normals
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
-            # called as psctl.estimate_normals, the package's wrapper is one frame between
-            level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
         return normals
     if lights is None:
@@ -274,6 +276,12 @@ def undetermined_note(method: str, lights: np.ndarray) -> str:
     what = f"only {len(lights)} image(s)" if len(lights) < 3 else "the light directions are (nearly) coplanar"
     return (f"lights: {what}, which leaves the normals undetermined (l2 refuses them); {method} answers "
             "from what it learnt: expect large errors")
+
+
+def few_images_note(method: str, n_images: int) -> str:
+    """The note for a method without listed lights (sdps, ups-fcn) given fewer than 3 images."""
+    return (f"images: only {n_images}, which leaves the normals undetermined; {method} answers from what it "
+            "learnt: expect large errors")
 
 
 def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
@@ -379,8 +387,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in LISTED_LIGHTS and cap.calibrated and lights_problem(cap.lights):  # a network answers anyway
         notes.append(undetermined_note(method, cap.lights))
     elif method in ("sdps", "ups-fcn") and cap.n_images < 3:  # no listed lights, the same shortage
-        notes.append(f"images: only {cap.n_images}, which leaves the normals undetermined; {method} answers from "
-                     f"what it learnt: expect large errors")
+        notes.append(few_images_note(method, cap.n_images))
     out_dir = output_folder(out, cap.path)
     # report.json always: without ground truth it still records the method, notes and timings
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \

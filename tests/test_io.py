@@ -1157,6 +1157,19 @@ def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
         r = run_normals(tmp_path / f"c{n}", method="ups-fcn", weights=tmp_path / "u.pt", write=False, device="cpu")
         assert any(x.startswith(f"images: only {n}, which leaves the normals undetermined; ups-fcn")
                    for x in r["notes"]) == noted, r["notes"]
+    # the array API has no report: the same note comes as a PsctlWarning, from the caller's line
+    import warnings
+
+    from psctl import estimate_normals
+    from psctl.errors import PsctlWarning
+
+    imgs = np.random.default_rng(0).uniform(0.1, 0.9, (3, 16, 16, 3)).astype(np.float32)
+    with pytest.warns(PsctlWarning, match="^images: only 2, which leaves the normals undetermined; ups-fcn") as got:
+        estimate_normals(imgs[:2], None, method="ups-fcn", weights=tmp_path / "u.pt", device="cpu")
+    assert got[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PsctlWarning)
+        estimate_normals(imgs, None, method="ups-fcn", weights=tmp_path / "u.pt", device="cpu")
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a file size limit (RLIMIT_FSIZE) stands in for a full disk")
