@@ -3,8 +3,9 @@
 A sphere with smooth bumps and dents, a two-tone albedo, Lambertian + Blinn-Phong specular
 reflectance with attached shadows (no cast shadows), 24 lights spread like DiLiGenT's (within
 about 50 degrees of the view direction), coloured per-light intensities, 16-bit PNG images,
-mask.png and Normal_gt.mat / Normal_gt.png. Deterministic: running it again rewrites the same
-files.
+mask.png and Normal_gt.mat / Normal_gt.png. Deterministic on one machine: running it again rewrites
+the same files (on another CPU the ground truth's float64 values may differ in their last bits,
+about 1e-15, which changes Normal_gt.mat's compressed bytes; the PNGs came out the same).
 
     python examples/make_example.py [--out examples/bumpy_sphere] [--size 128]
 """

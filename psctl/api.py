@@ -92,7 +92,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
         if weights is not None:
             raise PsctlError(weights, "--weights names one network's file; ensemble uses the installed "
-                                      f"{' and '.join(ENSEMBLE)} (use --method ps-fcn or ps-fcn-n with --weights)")
+                                      f"{' and '.join(ENSEMBLE)} (use --method ps-fcn or --method ps-fcn-n with --weights)")
         missing = [m for m in ENSEMBLE if installed_path(m) is None]
         if missing:
             instead = next((m for m in ENSEMBLE if m not in missing), "l2")

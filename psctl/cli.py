@@ -99,9 +99,9 @@ Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K ima
 LightsImages = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: a random K (seed 0 unless --seed; the folder's lights are what is estimated, so they choose nothing); light_images.txt names them.")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
-MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not).")]
-WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md).")]
-DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda, for the network methods.")]
+MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt, or with --lcnet: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not; ups-fcn where only its weights are installed).")]
+WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md). With sdps: its second stage (PS-FCN†, or a PS-FCN or PS-FCN+N file).")]
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda | cuda:N: where the networks run (l2 uses none).")]
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="sdps and psctl lights: after the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
@@ -109,7 +109,7 @@ ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or
 DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the capture shrunk by this whole factor (each K x K block's mean), normals interpolated back to full size: about 1/K^2 of the network's work, for a quick look; detail is lost (docs/models.md, 'Downsampling'). 1: full size.")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
-LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")]
+LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights). Given with --method auto, it selects sdps also on folders with light_directions.txt (which then only score the estimated lights).")]
 
 
 def _stderr():
@@ -282,7 +282,7 @@ def normals(
 @app.command("eval", cls=_Command)
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root).")] = "diligent",
-    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData, then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
+    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
     method: MethodOpt = "auto",
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
@@ -363,7 +363,7 @@ def synth(
     with _user_errors():
         from psctl.synth import check_preset
 
-        preset, light_dist = preset.lower(), light_dist.lower()  # as --method: BLOBBY is blobby
+        preset, light_dist, intensities = preset.lower(), light_dist.lower(), intensities.lower()  # as --method: BLOBBY is blobby
         check_preset(preset)  # before the heavy imports: a typo fails at once
         from psctl.synth.write import write_preset  # (preset_objects checks --light-dist before writing)
 
@@ -383,8 +383,8 @@ def synth(
 
 @app.command(cls=_Command)
 def depth(
-    path: Annotated[Path, typer.Argument(help="Capture folder (normals from PATH/psctl/normal.exr|png, or estimated).")],
-    normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl 16-bit PNG, EXR or .npy.")] = None,
+    path: Annotated[Path, typer.Argument(help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png, else estimated (--method auto); after psctl normals -o DIR, pass --normals DIR/normal.exr.")],
+    normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl's 16- or 8-bit PNG, EXR or .npy.")] = None,
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
     out: OutDir = None,
     K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,

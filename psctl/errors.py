@@ -162,7 +162,7 @@ PYTHON_ARGS = {
     "--views": "views", "--images": "n_images", "--seed": "seed", "--encoding": "encoding",
     "--format": "formats", "--out": "out", "--light-distance": "light_distance", "--falloff": "falloff",
     "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
-    "--benchmark": "benchmark", "--decode": "decode", "--K": "K",
+    "--benchmark": "benchmark", "--decode": "decode", "--K": "K", "--downsample": "downsample",
 }
 _SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
              "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",

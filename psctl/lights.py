@@ -731,6 +731,8 @@ def roll_estimate(est: LightEstimate, normals: np.ndarray, mask: np.ndarray | No
 def refine_config(falloff: str | None, roll: bool | None = None) -> dict | None:
     """The refinement's config for a user's ``--falloff`` and ``--roll/--no-roll`` (None:
     DEFAULT_REFINE's); one-line error for a falloff other than "shifted" or "lambertian"."""
+    if isinstance(falloff, str):
+        falloff = falloff.lower()  # as --method: Lambertian is lambertian
     if falloff is not None and falloff not in FALLOFFS:
         raise PsctlError(None, f"--falloff must be {' or '.join(FALLOFFS)}, not {falloff!r}")
     if roll is not None and not isinstance(roll, (bool, np.bool_)):

@@ -1245,10 +1245,17 @@ def test_average_refuses_training_options_and_bad_devices(tmp_path):
 
 
 def test_train_and_synth_names_in_any_case(tmp_path):
-    """As normals' --method: PS-FCN, BLOBBY and DILIGENT are ps-fcn, blobby and diligent."""
-    proc = cli("synth", tmp_path / "s", "--preset", "BLOBBY", "--light-dist", "DILIGENT", "--size", "32", "--lights",
-               "8", "--materials", "1", "-q")
+    """As normals' --method: PS-FCN, BLOBBY, DILIGENT, Mixed and Lambertian are ps-fcn, blobby,
+    diligent, mixed and lambertian."""
+    proc = cli("synth", tmp_path / "s", "--preset", "BLOBBY", "--light-dist", "DILIGENT", "--intensities", "Mixed",
+               "--size", "32", "--lights", "8", "--materials", "1", "-q")
     assert proc.returncode == 0 and (tmp_path / "s" / "objects.txt").is_file(), proc.stderr
+    from psctl.errors import PsctlError
+    from psctl.lights import refine_config
+
+    assert refine_config("Lambertian") == {"falloff": "lambertian"}
+    with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian, not 'lambert'"):
+        refine_config("lambert")
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
     proc = cli("train", "PS-FCN", "--config", cfg, "--out", tmp_path / "r", "-q")
     assert proc.returncode == 0 and json.loads((tmp_path / "r" / "state.json").read_text())["method"] == "ps-fcn"

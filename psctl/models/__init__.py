@@ -35,7 +35,7 @@ def check_downsample(k: object) -> int:
     """``--downsample`` (``psctl.infer.run_downsampled``): ``k`` if it is an integer >= 1, else a
     one-line error. Here, not in psctl.infer, so that l2 runs check it without importing torch."""
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or int(k) < 1:
-        raise PsctlError(None, f"downsample must be a whole number >= 1, got {k!r}")
+        raise PsctlError(None, f"--downsample must be a whole number >= 1, got {k!r}")
     return int(k)
 
 
