@@ -539,10 +539,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             write_outputs_list(stage, names, "normals")
             for f in formats:
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
+            label = f"{report['object']}  {report['method']}"  # which run: pictures get compared side by side
             if error is not None:
-                write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"])
+                write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"], label=label)
             if spread is not None:
-                write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"])
+                write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"],
+                                 label=label)
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
             write_json(stage / "report.json", report)
     return report

@@ -875,6 +875,9 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     _disk(canvas, cy, cx, radius, 0.18)
     for zenith in (30.0, 60.0, 90.0):
         _disk(canvas, cy, cx, radius * np.sin(np.radians(zenith)), 0.35, ring=1.0)
+    for zenith in (30.0, 60.0):  # each ring's angle from the view axis, where it crosses the lower-left diagonal
+        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
+        _stamp(canvas, text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s, (0.6, 0.6, 0.6))
     _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
     _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
     grey = (0.6, 0.6, 0.6)
@@ -887,7 +890,8 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
 
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     lo, hi = ints_range
-    colours = jet((np.asarray(intensities, np.float64).reshape(-1) - lo) / (hi - lo))
+    e = np.asarray(intensities, np.float64).reshape(-1)
+    colours = jet((e - lo) / (hi - lo))  # clipped to the bar's ends, which then say so (> / <)
     if gt_directions is not None:
         g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
         for k in range(len(d)):
@@ -897,8 +901,11 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     for k in range(len(d)):
         _disk(canvas, *at(d[k]), 3.5, colours[k])
     # colour bar: high intensities on top, its name above it
-    colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w,
-               {frac: f"{lo + frac * (hi - lo):.1f}" for frac in (0.0, 0.5, 1.0)}, s)
+    ticks = [lo, *(v for v in (0.5, 1.0, 1.5) if lo < v < hi), hi]  # 1.0, the nominal intensity, among them
+    labels = {(v - lo) / (hi - lo): f"{v:.1f}" for v in ticks}
+    labels[1.0] = (">" if (e > hi).any() else "") + labels[1.0]
+    labels[0.0] = ("<" if (e < lo).any() else "") + labels[0.0]
+    colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w, labels, s)
     _stamp(canvas, text_bitmap("INT.", s), top + pad - 9 * s, side + 2 * s)
     # legend: a dot, then a ring with its line (when there is ground truth)
     y = top + side + 3 * s

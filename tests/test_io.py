@@ -719,7 +719,7 @@ def test_negative_float_pixels_get_a_note(tmp_path, method):
 
 
 def test_benchmark_sheet_draws_each_objects_maps():
-    from psctl.io.report import SPREAD_VMAX, benchmark_sheet, jet, object_panel
+    from psctl.io.report import SPREAD_VMAX, benchmark_sheet, jet, object_panel, text_bitmap
 
     mask = np.zeros((50, 80), bool)
     mask[10:30, 20:60] = True  # 20 x 40: the panel is cropped to it (4 px margin) and scaled to 40 rows
@@ -755,6 +755,35 @@ def test_benchmark_sheet_draws_each_objects_maps():
     tall = benchmark_sheet([object_panel("cat", 1.234, normals, error, mask, height=160,
                                          spread=np.full((50, 80), 6.0, np.float32))], "X")
     assert _text_at(tall, ">45°", 2) and _text_at(tall, f">{SPREAD_VMAX:.0f}°", 2) and _text_at(tall, "MAE 1.23°", 2)
+    (ey, ex), = _text_at(tall, "ERROR", 2)  # each bar named above it, so that the two read as two
+    (sy, sx), = _text_at(tall, "SPREAD", 2)
+    assert ex == sx and sy - ey == 160 + 4 and sx + text_bitmap("SPREAD", 2).shape[1] <= tall.shape[1]
+    # an object wider than 3:1 keeps its aspect: 3 x height columns and fewer rows, centred in the row
+    strip = np.zeros((40, 400), bool)
+    strip[:, :] = True
+    wide = object_panel("strip", 1.0, np.zeros((40, 400, 3), np.float32), np.full((40, 400), 30.0, np.float32), strip,
+                        height=40)
+    assert wide["normals"].shape == (round(120 * 40 / 400), 120, 3) == wide["error"].shape  # the box: the image
+    both = benchmark_sheet([wide, p], "X")
+    col = np.nonzero(np.isclose(both[:, 12 + 60], red).all(-1))[0]  # the strip's error map, down its middle column
+    assert len(col) == wide["error"].shape[0] and col[0] - (12 + 20 + 12 + 40 + 40 + 4) == (40 - len(col)) // 2
+    # grey (a mask pixel without ground truth) is keyed at the bottom, only when some panel has it
+    from psctl.io.report import UNSCORED_KEY
+
+    holed = error.copy()
+    holed[12:16, 30:40] = np.nan
+    g = object_panel("cat", 1.0, normals, holed, mask, height=40)
+    assert g["unscored"] and not p["unscored"] and not q["unscored"]
+    keyed = benchmark_sheet([g, q], "X")
+    (ky, _), = _text_at(keyed, UNSCORED_KEY, 2)
+    assert keyed.shape[0] == sheet.shape[0] + 20 and ky > sheet.shape[0] - 12
+    assert not _text_at(sheet, UNSCORED_KEY, 2)
+    # names drawn as spelt: all of ASCII, accents dropped, "?" for what the font cannot spell
+    from psctl.io.report import drawable
+
+    assert drawable("chat_été pot#2 [a]{b}~ß 猫") == "CHAT_ETE POT#2 [A]{B}~SS ?"
+    named = benchmark_sheet([object_panel("chat_été #2", 1.0, normals, error, mask, height=40)], "données 猫")
+    assert _text_at(named, "CHAT_ETE #2", 2) and _text_at(named, "DONNEES ?", 2)
     # a run that mixes methods: only the row with a spread map gets the third row of maps and its bar
     mixed = benchmark_sheet([r, q, p, q], "X", per_row=2)
     assert np.isclose(mixed, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
@@ -895,7 +924,7 @@ def test_error_map_draws_the_errors(tmp_path):
     pic, info = read_image(tmp_path / "e.png")
     k = 2  # a map under MIN_BAR (64) pixels tall is drawn in whole k x k blocks: 80 x 100 here
     assert info.dtype == "uint8" and pic.shape[1] > 50 * k  # room for the bar
-    top = pic.shape[0] - 40 * k - 4
+    top = 24  # one title line of 9 * s px and 3 * s px more, at text scale s = 2
     big = pic[top:top + 40 * k, :50 * k]
     body = big[::k, ::k]
     assert (big[1::k, 1::k] == body).all()  # whole blocks
@@ -903,6 +932,13 @@ def test_error_map_draws_the_errors(tmp_path):
     np.testing.assert_allclose(body[scored], jet(np.minimum(err[scored], 45) / 45), atol=1 / 255)
     assert (body[~mask] == 0).all() and (np.abs(body[30:, 20:30] - UNSCORED) < 1 / 255).all()
     assert np.abs(body[0, 49] - body[0, 5]).max() > 0.5  # red at 60 degrees, blue at 0
+    # the grey is keyed under the map (a swatch, then its words), and only where there is grey
+    from psctl.io.report import UNSCORED_KEY
+
+    (y, x), = _text_at(pic, UNSCORED_KEY, 2)
+    assert y > top + 40 * k and (np.abs(pic[y:y + 14, 4:18] - UNSCORED) < 1 / 255).all()
+    write_error_map(tmp_path / "f.png", np.nan_to_num(err), mask, 12.5, 10.0)
+    assert not _text_at(read_image(tmp_path / "f.png")[0], UNSCORED_KEY, 2)
 
 
 def test_ground_truth_infinity_is_named_as_such(tmp_path):
@@ -981,7 +1017,7 @@ def test_small_error_maps_are_drawn_large_enough_to_read(tmp_path):
     for h, w in ((1, 1), (24, 24), (8, 512)):
         pic = error_heatmap(np.full((h, w), 10.0, np.float32), np.ones((h, w), bool), title="MAE 10.00")
         assert pic.shape[0] >= MIN_BAR + 12  # the bar (and its four labels) at least MIN_BAR tall, under the title
-        assert pic.shape[1] <= 2048 + 44
+        assert pic.shape[1] <= 2048 + 88  # the bar and its labels at text scale 2
 
 
 
@@ -1008,17 +1044,26 @@ def test_error_map_labels_and_title_are_the_numbers_drawn(tmp_path):
 
     err, mask = np.full((60, 60), 5.0, np.float32), np.ones((60, 60), bool)
     img = error_heatmap(err, mask, vmax=12.0)
-    top, zero = _text_at(img, ">12°"), _text_at(img, "0°")
-    assert len(top) == 1 and not _text_at(img, ">45°")
+    top, zero = _text_at(img, ">12°", 2), _text_at(img, "0°", 2)  # text scale 2 at least (legible)
+    assert len(top) == 1 and not _text_at(img, ">45°", 2)
     assert zero and top[0][0] < min(y for y, _ in zero)  # high values on top
-    assert _text_at(img, "4°") and _text_at(img, "8°")  # the thirds of 12
+    assert _text_at(img, "4°", 2) and _text_at(img, "8°", 2)  # the thirds of 12
     write_error_map(tmp_path / "e.png", err, mask, mae=12.5, median=10.0)
     e = read_image(tmp_path / "e.png")[0]
-    assert _text_at(e, "MAE 12.50°  MEDIAN 10.00°") == [(2, 2)] and _text_at(e, ">45°")
-    write_spread_map(tmp_path / "s.png", err, mask, mean=1.25, p90=3.5)
+    assert _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(4, 4)] and _text_at(e, ">45°", 2)
+    # with a label (run_normals': the object and the method) on a line of its own above the numbers
+    write_error_map(tmp_path / "e.png", err, mask, mae=12.5, median=10.0, label="cat  ps-fcn-n")
+    e = read_image(tmp_path / "e.png")[0]
+    assert _text_at(e, "CAT  PS-FCN-N", 2) == [(4, 4)] and _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(22, 4)]
+    write_spread_map(tmp_path / "s.png", err, mask, mean=1.25, p90=3.5, label="cat  ensemble")
     sp = read_image(tmp_path / "s.png")[0]
-    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°") == [(2, 2)]
-    assert _text_at(sp, f">{SPREAD_VMAX:.0f}°") and not _text_at(sp, ">45°")
+    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°", 2) == [(22, 4)] and _text_at(sp, "CAT  ENSEMBLE", 2)
+    assert _text_at(sp, f">{SPREAD_VMAX:.0f}°", 2) and not _text_at(sp, ">45°", 2)
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "ballPNG", n=6, size=24)
+    r = run_normals(tmp_path / "ballPNG", method="l2", out=tmp_path / "o")
+    assert _text_at(read_image(r["outputs"]["error"])[0], "BALL  L2", 2) == [(4, 4)]  # DiLiGenT's PNG suffix dropped, as in the report
 
 
 def test_a_0_1_mask_file_says_so(tmp_path):

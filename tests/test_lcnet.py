@@ -317,6 +317,18 @@ def test_light_files_and_plot(tmp_path):
 
     long = "A_LONG_OBJECT_NAME_OF_A_SYNTHETIC_SET: LIGHT DIRECTION MAE 12.34°"
     assert lights_plot(d, e, title=long, radius=100).shape[1] >= text_bitmap(long, 2).shape[1]  # the title fits
+    # the intensity bar marks 1.0 (nominal) and says where intensities were clipped to its ends
+    from tests.test_io import _text_at
+
+    assert _text_at(without, "1.0", 2) and _text_at(without, "2.0", 2) and not _text_at(without, ">2.0", 2)
+    clipped = lights_plot(d, np.array([0.1, 1.0, 2.5]), radius=100)
+    assert _text_at(clipped, ">2.0", 2) and _text_at(clipped, "<0.2", 2)
+    # the rings are labelled with their angle from the view axis (grey ink)
+    grey = (np.abs(without - 0.6) < 1e-6).all(-1)
+    for label in ("30°", "60°"):
+        bm = text_bitmap(label, 2)
+        assert any(np.array_equal(grey[y:y + bm.shape[0], x:x + bm.shape[1]] & bm, bm)
+                   for y in range(grey.shape[0] - bm.shape[0]) for x in range(grey.shape[1] - bm.shape[1])), label
 
 
 # --- weights files ----------------------------------------------------------------------------

@@ -67,13 +67,50 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
     ",": ["     ", "     ", "     ", "     ", " ##  ", "  #  ", " #   "],
     "=": ["     ", "     ", "#####", "     ", "#####", "     ", "     "],
     "?": [" ### ", "#   #", "    #", "   # ", "  #  ", "     ", "  #  "],
+    # the rest of printable ASCII, so that an object's or a folder's name is drawn as it is spelt
+    "!": ["  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "     ", "  #  "],
+    '"': [" # # ", " # # ", "     ", "     ", "     ", "     ", "     "],
+    "#": [" # # ", " # # ", "#####", " # # ", "#####", " # # ", " # # "],
+    "$": ["  #  ", " ####", "# #  ", " ### ", "  # #", "#### ", "  #  "],
+    "%": ["##   ", "##  #", "   # ", "  #  ", " #   ", "#  ##", "   ##"],
+    "&": [" ##  ", "#  # ", "# #  ", " #   ", "# # #", "#  # ", " ## #"],
+    "'": ["  #  ", "  #  ", "     ", "     ", "     ", "     ", "     "],
+    "*": ["     ", "  #  ", "# # #", " ### ", "# # #", "  #  ", "     "],
+    ";": ["     ", " ##  ", " ##  ", "     ", " ##  ", "  #  ", " #   "],
+    "<": ["    #", "   # ", "  #  ", " #   ", "  #  ", "   # ", "    #"],
+    "@": [" ### ", "#   #", "# ###", "# # #", "# ###", "#    ", " ####"],
+    "[": [" ### ", " #   ", " #   ", " #   ", " #   ", " #   ", " ### "],
+    "\\": ["#    ", "#    ", " #   ", "  #  ", "   # ", "    #", "    #"],
+    "]": [" ### ", "   # ", "   # ", "   # ", "   # ", "   # ", " ### "],
+    "^": ["  #  ", " # # ", "#   #", "     ", "     ", "     ", "     "],
+    "`": [" #   ", "  #  ", "     ", "     ", "     ", "     ", "     "],
+    "{": ["   ##", "  #  ", "  #  ", " #   ", "  #  ", "  #  ", "   ##"],
+    "|": ["  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  "],
+    "}": ["##   ", "  #  ", "  #  ", "   # ", "  #  ", "  #  ", "##   "],
+    "~": ["     ", "     ", " #   ", "# # #", "   # ", "     ", "     "],
 }
 
 
+def drawable(text: str) -> str:
+    """``text`` in the letters ``text_bitmap`` draws: capitals, accents dropped (été -> ETE,
+    ß -> SS), and "?" for a character it cannot spell (猫), rather than a blank that would turn
+    a name into another one."""
+    import unicodedata
+
+    out = []
+    for ch in text.upper():
+        if ch in _FONT:
+            out.append(ch)
+            continue
+        parts = [c for c in unicodedata.normalize("NFKD", ch).upper() if not unicodedata.combining(c)]
+        out.append("".join(parts) if parts and all(c in _FONT for c in parts) else "?")
+    return "".join(out)
+
+
 def text_bitmap(text: str, scale: int = 1) -> np.ndarray:
-    """Render ``text`` (letters, in capitals, digits and ``. : ° > - _ + / ( ) , = ?``; anything else
-    is a blank) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for n >= 1 characters (upper-cased)."""
-    glyphs = [np.array([[c == "#" for c in row] for row in _FONT.get(ch, _FONT[" "])]) for ch in text.upper()]
+    """Render ``text`` (printable ASCII, in capitals, and ``°``; other letters as ``drawable``
+    spells them) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for its n >= 1 characters."""
+    glyphs = [np.array([[c == "#" for c in row] for row in _FONT[ch]]) for ch in drawable(text)]
     gap = np.zeros((7, 1), bool)
     parts = []
     for g in glyphs:
@@ -122,35 +159,54 @@ def heat(values: np.ndarray, mask: np.ndarray, vmax: float) -> np.ndarray:
     return np.where(np.asarray(mask, bool)[..., None], img, 0.0).astype(np.float32)
 
 
+UNSCORED_KEY = "NO GROUND TRUTH"  # beside a grey swatch
+
+
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
                   title: str | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
-    dark background (grey: NaN, a mask pixel without ground truth), a colour bar with tick
-    labels on the right, ``title`` on top."""
+    dark background (grey: NaN, a mask pixel without ground truth, keyed under the map when
+    there is any), a colour bar with tick labels on the right, ``title`` on top (one line per
+    "\\n")."""
     img = heat(error, mask, vmax)
+    unscored = bool((np.isnan(np.asarray(error, np.float32)) & np.asarray(mask, bool)).any())
     # a small map is shown k times larger (whole pixels) and the colour bar is at least MIN_BAR tall,
     # so that its four labels do not run into each other (a 24 x 24 capture)
     k = max(1, min(-(-MIN_BAR // max(img.shape[0], 1)), 2048 // max(img.shape[1], 1)))
     img = img.repeat(k, axis=0).repeat(k, axis=1)
     h, w = img.shape[:2]
-    s = max(1, min(h, w) // 200)
-    top, bar_w, right = 12 * s, 10 * s, 44 * s
+    s = max(2, min(h, w) // 200)  # text 14 px tall at least: legible at 100 % on DiLiGenT-sized maps
+    lines = title.split("\n") if title else []
+    line = 9 * s
+    top, bar_w, right = len(lines) * line + 3 * s, 10 * s, 44 * s
     bar = max(h, MIN_BAR)
-    canvas = np.full((bar + top + 4 * s, max(w + right, 8 + 6 * s * len(title or ""), 1), 3), 0.12, np.float32)
+    key = text_bitmap(UNSCORED_KEY, s) if unscored else None
+    widths = [w + right, 1, *(4 * s + text_bitmap(t, s).shape[1] for t in lines if t)]
+    if key is not None:
+        widths.append(11 * s + key.shape[1])
+    canvas = np.full((top + bar + 4 * s + (line if key is not None else 0), max(widths), 3), 0.12, np.float32)
     canvas[top:top + h, :w] = img
     colour_bar(canvas, top, w + 4 * s, bar, bar_w, _degree_labels(vmax), s)
-    if title:
-        _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
+    for i, t in enumerate(lines):
+        if t:
+            _stamp(canvas, text_bitmap(t, s), 2 * s + i * line, 2 * s)
+    if key is not None:
+        y = top + bar + 3 * s
+        canvas[y:y + 7 * s, 2 * s:9 * s] = UNSCORED
+        _stamp(canvas, key, y, 11 * s)
     return canvas
 
 
 def write_error_map(path: str | os.PathLike, error: np.ndarray, mask: np.ndarray,
-                    mae: float | None = None, median: float | None = None, vmax: float = 45.0) -> None:
+                    mae: float | None = None, median: float | None = None, vmax: float = 45.0,
+                    label: str | None = None) -> None:
     """error: [H, W] degrees (any value outside the mask; NaN inside: no ground truth there,
-    drawn grey). Writes an 8-bit RGB PNG."""
+    drawn grey). ``label`` (the object and method, say) is the title's first line, so that
+    pictures of several runs side by side say which is which. Writes an 8-bit RGB PNG."""
     title = None
     if mae is not None:
         title = f"MAE {mae:.2f}°" + (f"  MEDIAN {median:.2f}°" if median is not None else "")
+    title = "\n".join(t for t in (label, title) if t) or None
     write_image(path, error_heatmap(error, mask, vmax, title), "uint8")
 
 
@@ -158,12 +214,14 @@ SPREAD_VMAX = 12.0  # degrees at the top of the spread maps' colour scale (most 
 
 
 def write_spread_map(path: str | os.PathLike, spread: np.ndarray, mask: np.ndarray,
-                     mean: float | None = None, p90: float | None = None, vmax: float = SPREAD_VMAX) -> None:
+                     mean: float | None = None, p90: float | None = None, vmax: float = SPREAD_VMAX,
+                     label: str | None = None) -> None:
     """spread: [H, W] degrees, the ensemble's members' disagreement (``psctl.infer.member_spread``).
-    Writes an 8-bit RGB PNG drawn as the error map, over 0..vmax degrees."""
+    Writes an 8-bit RGB PNG drawn as the error map, over 0..vmax degrees, ``label`` as there."""
     title = None
     if mean is not None:
         title = f"SPREAD MEAN {mean:.2f}°" + (f"  P90 {p90:.2f}°" if p90 is not None else "")
+    title = "\n".join(t for t in (label, title) if t) or None
     write_image(path, error_heatmap(spread, mask, vmax, title), "uint8")
 
 
@@ -179,23 +237,26 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     normal map ((n + 1) / 2), error map (jet over 0..vmax degrees; None: no ground truth) and
     spread map (the ensemble's, jet over 0..SPREAD_VMAX degrees; None: not an ensemble),
     black outside the mask, cropped to the mask's bounding box (4 px margin) and scaled (nearest
-    pixel) to ``height`` rows and as many columns as keep its aspect, at most 3 x ``height`` (an
-    object wider than 3:1 is squeezed to that).
+    pixel) to ``height`` rows and as many columns as keep its aspect; an object wider than 3:1 gets
+    3 x ``height`` columns and fewer rows instead (its aspect kept: ``benchmark_sheet`` centres it).
 
     normals [H, W, 3], error and spread [H, W] degrees, mask [H, W] bool
-    -> {"name", "mae", "normals", "error", "spread"}."""
+    -> {"name", "mae", "normals", "error", "spread", "unscored"} (unscored: grey in its error map)."""
     from psctl.io.capture import bounding_box
 
     mask = np.asarray(mask, bool)
     box = bounding_box(mask, margin=4) if mask.any() else (slice(None), slice(None))
     m = mask[box][..., None]
-    h = height
-    w = max(1, min(3 * height, round(m.shape[1] * height / m.shape[0])))
+    h, w = height, max(1, round(m.shape[1] * height / m.shape[0]))
+    if w > 3 * height:  # a wide strip: narrower than its aspect would make it, and as much lower
+        w, h = 3 * height, max(1, round(3 * height * m.shape[0] / m.shape[1]))
     nmap = np.where(m, (np.clip(np.asarray(normals[box], np.float32), -1, 1) + 1) / 2, 0.0)
     maps = {key: None if a is None else
             _resize_nearest(heat(a[box], m[..., 0], top), h, w)
             for key, a, top in (("error", error, vmax), ("spread", spread, SPREAD_VMAX))}
-    return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32), **maps}
+    unscored = error is not None and bool((np.isnan(np.asarray(error[box], np.float32)) & m[..., 0]).any())
+    return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32), **maps,
+            "unscored": unscored}
 
 
 def sheet_layout(n: int) -> tuple[int, int]:
@@ -230,7 +291,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     labels = [(fit(p["name"], p["normals"].shape[1]), "" if p["mae"] is None else f"MAE {p['mae']:.2f}°")
               for p in panels]
     widths = [max(p["normals"].shape[1], *(text_bitmap(t, s).shape[1] for t in lab)) for p, lab in zip(panels, labels)]
-    bar_w, bar_text = 10, text_bitmap(f">{vmax:.0f}°", s).shape[1] + 4
+    bar_w = 10  # and beside it its labels, or above it its name (SPREAD), whichever is wider
+    bar_text = max(text_bitmap(f">{vmax:.0f}°", s).shape[1], text_bitmap("SPREAD", s).shape[1] - bar_w) + 4
     rows = [list(range(i, min(i + per_row, len(panels)))) for i in range(0, len(panels), per_row)]
     heights = [max(panels[i]["normals"].shape[0] for i in r) for r in rows]
     row_w = [gap + sum(widths[i] + gap for i in r) + bar_w + bar_text + gap for r in rows]
@@ -238,7 +300,9 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     # normals, error (, spread): a row gets the third map, and its colour bar, where one of its
     # objects has a spread map (a run that mixes methods has rows without)
     n_maps = [3 if any(panels[i].get("spread") is not None for i in r) else 2 for r in rows]
-    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap
+    key = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
+    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if key else 0)
+    W = max(W, 2 * gap + 9 * s + text_bitmap(UNSCORED_KEY, s).shape[1]) if key else W
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
@@ -251,17 +315,24 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
             _stamp(canvas, text_bitmap(name, s), y, x)
             _stamp(canvas, text_bitmap(mae, s), y + line, x)
             ph, pw = p["normals"].shape[:2]
-            canvas[y_maps:y_maps + ph, x:x + pw] = p["normals"]
+            dy = (h - ph) // 2  # a panel lower than the row (a wide strip): centred in its slot
+            canvas[y_maps + dy:y_maps + dy + ph, x:x + pw] = p["normals"]
             for k, key in enumerate(("error", "spread"), 1):
                 if p.get(key) is not None:
-                    y0 = y_maps + k * (h + 4)
+                    y0 = y_maps + k * (h + 4) + dy
                     canvas[y0:y0 + ph, x:x + pw] = p[key]
             x += widths[i] + gap
         by = y_maps + h + 4  # the colour bars beside the error (and spread) maps
-        colour_bar(canvas, by, x, h, bar_w, _degree_labels(vmax), s)
-        if k_maps == 3:
-            colour_bar(canvas, by + h + 4, x, h, bar_w, _degree_labels(SPREAD_VMAX), s)
+        for k, (name, top) in enumerate((("ERROR", vmax), ("SPREAD", SPREAD_VMAX))[:k_maps - 1]):
+            y0, bh = by + k * (h + 4), h
+            if h >= MIN_BAR:  # each bar named above it: two bars one above the other read as two
+                _stamp(canvas, text_bitmap(name, s), y0, x)
+                y0, bh = y0 + line, h - line
+            colour_bar(canvas, y0, x, bh, bar_w, _degree_labels(top), s)
         y = y_maps + k_maps * (h + 4) - 4
+    if key:
+        canvas[y + gap:y + gap + 7 * s, gap:gap + 7 * s] = UNSCORED
+        _stamp(canvas, text_bitmap(UNSCORED_KEY, s), y + gap, gap + 9 * s)
     return canvas
 
 
