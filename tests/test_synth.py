@@ -793,6 +793,13 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     out = tmp_path / "set"
     rep = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=2, preview=True)
     assert rep["objects"] == ["blobby_01", "blobby_02"] and Path(rep["preview"]).is_file()
+    # the contact sheet says what its columns are and which object each row is
+    from psctl.io.images import read_image
+    from tests.test_io import _text_at
+
+    sheet = read_image(rep["preview"])[0]
+    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT", 1) == [(2, 2)]
+    assert [y for y, _ in _text_at(sheet, "BLOBBY_01", 1)] == [14] and [y for y, _ in _text_at(sheet, "BLOBBY_02", 1)] == [14 + 42 + 2]
     assert [p.name for p in find_objects(out)] == rep["objects"]
     objs = preset_objects("blobby", seed=2, size=32, n_lights=8, k=2)
     for folder, obj in zip(find_objects(out), objs):
@@ -1267,3 +1274,14 @@ def test_mesh_fit_spans_the_longer_side(tmp_path):
     gb = meshes.mesh_views(v, f, torch.eye(3)[None], 64, fill=0.9)
     cols = gb.mask[0, 0].any(0).nonzero()[:, 0]
     assert abs(int(cols.max() - cols.min() + 1) - 0.9 * 64) <= 2
+
+
+def test_contact_sheet_tiles_stay_small_for_large_renders():
+    """--preview at --size 512 would be 3.6k px wide and 12k tall for 24 rows: each tile is shown
+    at most SHEET_TILE px (every k-th pixel), under the object's name."""
+    from psctl.synth.write import SHEET_IMAGES, SHEET_TILE, _sheet_row, preset_objects
+
+    obj = preset_objects("blobby", seed=0, size=260, n_lights=8, k=1)[0]
+    row = _sheet_row(torch.rand(8, 3, 260, 260), obj)
+    tile = -(-260 // 3)  # every 3rd pixel: 87 <= SHEET_TILE
+    assert tile <= SHEET_TILE and row.shape == (10 + tile, (SHEET_IMAGES + 1) * tile + 2 * SHEET_IMAGES, 3)

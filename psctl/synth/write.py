@@ -467,25 +467,40 @@ SHEET_IMAGES = 6  # images per object on the contact sheet
 SHEET_ROWS = 24  # objects on the contact sheet at most (evenly spread over the set)
 
 
+SHEET_TILE = 128  # pixels: tiles of larger renders are shown every k-th pixel, so the sheet stays viewable
+
+
 def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
-    """One row: SHEET_IMAGES images (lights spread from left to right), then the normal map."""
+    """One row: the object's name, then SHEET_IMAGES images (lights spread from left to right)
+    and its normal map, each at most SHEET_TILE px."""
+    from psctl.io.report import _stamp, text_bitmap
+
     lx = obj.lights[:, 0]
     picks = torch.argsort(lx)[torch.linspace(0, len(lx) - 1, SHEET_IMAGES).round().long()]
+    k = -(-max(images.shape[-2:]) // SHEET_TILE)  # a preview: every k-th pixel is enough
     tiles = []
     for i in picks.tolist():
-        tiles.append(images[i].permute(1, 2, 0).clamp(0, 1).numpy() ** (1 / 2.2))  # display gamma
+        tiles.append(images[i, :, ::k, ::k].permute(1, 2, 0).clamp(0, 1).numpy() ** (1 / 2.2))  # display gamma
     g = obj.view
-    tiles.append(((g.normals[0].permute(1, 2, 0).numpy() + 1) / 2) * g.mask[0, 0].numpy()[..., None])
-    gap = np.full((images.shape[-2], 2, 3), 0.25, np.float32)
+    tiles.append(((g.normals[0, :, ::k, ::k].permute(1, 2, 0).numpy() + 1) / 2) * g.mask[0, 0, ::k, ::k].numpy()[..., None])
+    gap = np.full((tiles[0].shape[0], 2, 3), 0.25, np.float32)
     row = []
     for t in tiles:
         row += [t.astype(np.float32), gap]
-    return np.concatenate(row[:-1], 1)
+    row = np.concatenate(row[:-1], 1)
+    label = np.full((10, row.shape[1], 3), 0.12, np.float32)  # its name: rows are a sample of a large set
+    _stamp(label, text_bitmap(obj.name), 2, 2)
+    return np.concatenate([label, row], 0)
 
 
 def _sheet(rows: list[np.ndarray]) -> np.ndarray:
+    """The rows under a header saying what the columns are."""
+    from psctl.io.report import _stamp, text_bitmap
+
+    header = np.full((12, rows[0].shape[1], 3), 0.12, np.float32)
+    _stamp(header, text_bitmap(f"{SHEET_IMAGES} IMAGES, LIGHT LEFT TO RIGHT | NORMALS"), 2, 2)
     gap = np.full((2, rows[0].shape[1], 3), 0.25, np.float32)
-    out = []
+    out = [header]
     for r in rows:
         out += [r, gap]
     return np.concatenate(out[:-1], 0)
