@@ -21,8 +21,10 @@ and takes the max at the end: memory grows with the number of images (about 14 G
    the halo). Tiles are grouped so that at most ``group_mb`` of fused features are held at once;
    each group is one pass over the images.
 
-channels_last and torch.inference_mode throughout; ``device`` auto | cpu | cuda. Autocast
-(bf16/fp16) is available on CUDA only and off by default: it has not been checked for accuracy.
+channels_last and torch.inference_mode throughout; ``device`` auto | cpu | cuda | cuda:K. Autocast
+(``config["autocast"]``: bf16 on CUDA and on CPUs with native bf16, fp16 on CUDA) is off by default:
+on the CPU it moved the normals by 0.07-0.09 degrees on average, at most 0.6 (docs/performance.md,
+"bf16 autocast on the CPU, trained weights"), and results should not depend on the machine.
 """
 
 from __future__ import annotations

@@ -835,8 +835,8 @@ def test_score_skips_pixels_without_gt(tmp_path):
     from psctl.io.report import UNSCORED
 
     pic, _ = read_image(tmp_path / "out" / "error.png")
-    k = 2  # error_heatmap: a map under 64 px tall in whole 2 x 2 blocks, the title's band above, 4 px below
-    top = pic.shape[0] - 36 * k - 4
+    k = 2  # error_heatmap: a map under 64 px tall in whole 2 x 2 blocks, under the title's band
+    top = 2 * 18 + 6  # two title lines (object and method; MAE and median) of 9 * s px, 3 * s more, s = 2
     body = pic[top:top + 36 * k:k, :36 * k:k]
     grey = np.abs(body - UNSCORED).max(-1) < 1 / 255
     assert (grey == np.isnan(err)).all()
