@@ -891,7 +891,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     lo, hi = ints_range
     e = np.asarray(intensities, np.float64).reshape(-1)
-    colours = jet((e - lo) / (hi - lo))  # clipped to the bar's ends, which then say so (> / <)
+    colours = jet((e - lo) / max(hi - lo, 1e-12))  # clipped to the bar's ends, which then say so (> / <)
     if gt_directions is not None:
         g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
         for k in range(len(d)):
@@ -902,9 +902,10 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
         _disk(canvas, *at(d[k]), 3.5, colours[k])
     # colour bar: high intensities on top, its name above it
     ticks = [lo, *(v for v in (0.5, 1.0, 1.5) if lo < v < hi), hi]  # 1.0, the nominal intensity, among them
-    labels = {(v - lo) / (hi - lo): f"{v:.1f}" for v in ticks}
-    labels[1.0] = (">" if (e > hi).any() else "") + labels[1.0]
-    labels[0.0] = ("<" if (e < lo).any() else "") + labels[0.0]
+    labels = {(v - lo) / max(hi - lo, 1e-12): f"{v:.1f}" for v in ticks}  # (a range of one value: one label)
+    upper, lower = max(labels), min(labels)  # the bar's ends (one label for a range of one value)
+    labels[upper] = (">" if (e > hi).any() else "") + labels[upper]
+    labels[lower] = ("<" if (e < lo).any() else "") + labels[lower]
     colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w, labels, s)
     _stamp(canvas, text_bitmap("INT.", s), top + pad - 9 * s, side + 2 * s)
     # legend: a dot, then a ring with its line (when there is ground truth)

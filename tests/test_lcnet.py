@@ -799,3 +799,14 @@ def test_intensity_relative_error_fits_the_scale_by_least_squares():
     from psctl.metrics import intensity_relative_error
 
     assert intensity_relative_error(np.array([1.0, 2.0, 2.0]), np.array([1.0, 2.0, 4.0])) == pytest.approx(7 / 18)
+
+
+def test_lights_plot_small_or_degenerate_inputs_still_draw():
+    """A small disk put the ring labels left of the canvas (an IndexError), and a range of one
+    intensity divided by zero: both draw now."""
+    from psctl.lights import lights_plot
+
+    d = np.array([[0.0, 0.0, 1.0]])
+    for radius in (10, 30, 70):
+        assert lights_plot(d, np.ones(1), radius=radius).ndim == 3
+    assert lights_plot(d, np.ones(1), ints_range=(1.0, 1.0)).ndim == 3

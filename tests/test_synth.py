@@ -1285,3 +1285,16 @@ def test_contact_sheet_tiles_stay_small_for_large_renders():
     row = _sheet_row(torch.rand(8, 3, 260, 260), obj)
     tile = -(-260 // 3)  # every 3rd pixel: 87 <= SHEET_TILE
     assert tile <= SHEET_TILE and row.shape == (10 + tile, (SHEET_IMAGES + 1) * tile + 2 * SHEET_IMAGES, 3)
+
+
+def test_contact_sheet_of_small_renders_keeps_its_text_whole(tmp_path):
+    """At --size 16 a row of tiles is 124 px, narrower than the header and than long object
+    names: the sheet grows to them instead of cutting them."""
+    from psctl.io.images import read_image
+    from psctl.synth.write import write_preset
+    from tests.test_io import _text_at
+
+    rep = write_preset(tmp_path / "s", "blobby", seed=2, size=16, n_lights=8, k=2, preview=True)
+    sheet = read_image(rep["preview"])[0]
+    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT | NORMALS", 1) == [(2, 2)]
+    assert _text_at(sheet, "BLOBBY_02", 1)

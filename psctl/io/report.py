@@ -127,6 +127,10 @@ def jet(x: np.ndarray) -> np.ndarray:
 
 
 def _stamp(canvas: np.ndarray, bitmap: np.ndarray, y: int, x: int, colour=(1.0, 1.0, 1.0)) -> None:
+    """Ink ``bitmap``'s True pixels at (y, x); what falls outside the canvas (either side) is cut."""
+    y, x = int(y), int(x)  # (callers pass pixel positions computed in floats too)
+    if y < 0 or x < 0:
+        bitmap, y, x = bitmap[max(0, -y):, max(0, -x):], max(0, y), max(0, x)
     h, w = bitmap.shape
     y2, x2 = min(y + h, canvas.shape[0]), min(x + w, canvas.shape[1])
     if y2 <= y or x2 <= x:
@@ -241,7 +245,8 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     3 x ``height`` columns and fewer rows instead (its aspect kept: ``benchmark_sheet`` centres it).
 
     normals [H, W, 3], error and spread [H, W] degrees, mask [H, W] bool
-    -> {"name", "mae", "normals", "error", "spread", "unscored"} (unscored: grey in its error map)."""
+    -> {"name", "mae", "normals", "error", "spread", "unscored", "height"} (unscored: grey in its
+    error map; height: the nominal one, its row's)."""
     from psctl.io.capture import bounding_box
 
     mask = np.asarray(mask, bool)
@@ -256,7 +261,7 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
             for key, a, top in (("error", error, vmax), ("spread", spread, SPREAD_VMAX))}
     unscored = error is not None and bool((np.isnan(np.asarray(error[box], np.float32)) & m[..., 0]).any())
     return {"name": name, "mae": mae, "normals": _resize_nearest(nmap, h, w).astype(np.float32), **maps,
-            "unscored": unscored}
+            "unscored": unscored, "height": height}
 
 
 def sheet_layout(n: int) -> tuple[int, int]:
@@ -294,15 +299,17 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     bar_w = 10  # and beside it its labels, or above it its name (SPREAD), whichever is wider
     bar_text = max(text_bitmap(f">{vmax:.0f}°", s).shape[1], text_bitmap("SPREAD", s).shape[1] - bar_w) + 4
     rows = [list(range(i, min(i + per_row, len(panels)))) for i in range(0, len(panels), per_row)]
-    heights = [max(panels[i]["normals"].shape[0] for i in r) for r in rows]
+    # a row is as tall as its panels' nominal height: a row of wide strips (lower than that) keeps
+    # room for its colour bars' labels
+    heights = [max(max(panels[i].get("height", 0), panels[i]["normals"].shape[0]) for i in r) for r in rows]
     row_w = [gap + sum(widths[i] + gap for i in r) + bar_w + bar_text + gap for r in rows]
     W = max(*row_w, text_bitmap(title, s).shape[1] + 2 * gap)
     # normals, error (, spread): a row gets the third map, and its colour bar, where one of its
     # objects has a spread map (a run that mixes methods has rows without)
     n_maps = [3 if any(panels[i].get("spread") is not None for i in r) else 2 for r in rows]
-    key = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
-    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if key else 0)
-    W = max(W, 2 * gap + 9 * s + text_bitmap(UNSCORED_KEY, s).shape[1]) if key else W
+    keyed = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
+    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if keyed else 0)
+    W = max(W, 2 * gap + 9 * s + text_bitmap(UNSCORED_KEY, s).shape[1]) if keyed else W
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
@@ -325,12 +332,13 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
         by = y_maps + h + 4  # the colour bars beside the error (and spread) maps
         for k, (name, top) in enumerate((("ERROR", vmax), ("SPREAD", SPREAD_VMAX))[:k_maps - 1]):
             y0, bh = by + k * (h + 4), h
-            if h >= MIN_BAR:  # each bar named above it: two bars one above the other read as two
+            if h - line >= MIN_BAR:  # each bar named above it (two bars one above the other read as two),
+                # where the rest still holds its four labels apart
                 _stamp(canvas, text_bitmap(name, s), y0, x)
                 y0, bh = y0 + line, h - line
             colour_bar(canvas, y0, x, bh, bar_w, _degree_labels(top), s)
         y = y_maps + k_maps * (h + 4) - 4
-    if key:
+    if keyed:
         canvas[y + gap:y + gap + 7 * s, gap:gap + 7 * s] = UNSCORED
         _stamp(canvas, text_bitmap(UNSCORED_KEY, s), y + gap, gap + 9 * s)
     return canvas

@@ -488,8 +488,11 @@ def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
     for t in tiles:
         row += [t.astype(np.float32), gap]
     row = np.concatenate(row[:-1], 1)
-    label = np.full((10, row.shape[1], 3), 0.12, np.float32)  # its name: rows are a sample of a large set
-    _stamp(label, text_bitmap(obj.name), 2, 2)
+    name = text_bitmap(obj.name)  # its name: rows are a sample of a large set
+    if name.shape[1] + 4 > row.shape[1]:  # small tiles: the row grows to its name
+        row = np.pad(row, ((0, 0), (0, name.shape[1] + 4 - row.shape[1]), (0, 0)), constant_values=0.12)
+    label = np.full((10, row.shape[1], 3), 0.12, np.float32)
+    _stamp(label, name, 2, 2)
     return np.concatenate([label, row], 0)
 
 
@@ -497,9 +500,12 @@ def _sheet(rows: list[np.ndarray]) -> np.ndarray:
     """The rows under a header saying what the columns are."""
     from psctl.io.report import _stamp, text_bitmap
 
-    header = np.full((12, rows[0].shape[1], 3), 0.12, np.float32)
-    _stamp(header, text_bitmap(f"{SHEET_IMAGES} IMAGES, LIGHT LEFT TO RIGHT | NORMALS"), 2, 2)
-    gap = np.full((2, rows[0].shape[1], 3), 0.25, np.float32)
+    text = text_bitmap(f"{SHEET_IMAGES} IMAGES, LIGHT LEFT TO RIGHT | NORMALS")
+    width = max(text.shape[1] + 4, *(r.shape[1] for r in rows))  # rows grown to their names, or to the header
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=0.12) for r in rows]
+    header = np.full((12, width, 3), 0.12, np.float32)
+    _stamp(header, text, 2, 2)
+    gap = np.full((2, width, 3), 0.25, np.float32)
     out = [header]
     for r in rows:
         out += [r, gap]
