@@ -875,12 +875,12 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     _disk(canvas, cy, cx, radius, 0.18)
     for zenith in (30.0, 60.0, 90.0):
         _disk(canvas, cy, cx, radius * np.sin(np.radians(zenith)), 0.35, ring=1.0)
-    for zenith in (30.0, 60.0):  # each ring's angle from the view axis, where it crosses the lower-left diagonal
-        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
-        _stamp(canvas, text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s, (0.6, 0.6, 0.6))
     _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
     _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
     grey = (0.6, 0.6, 0.6)
+    for zenith in (30.0, 60.0):  # each ring's angle from the view axis, where it crosses the lower-left diagonal
+        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
+        _stamp(canvas, text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s, grey)
     _stamp(canvas, text_bitmap("+Y", s), int(cy - radius) + 2 * s, int(cx) + 3 * s, grey)
     label = text_bitmap("+X", s)
     _stamp(canvas, label, int(cy) + 3 * s, int(cx + radius) - label.shape[1] - 2 * s, grey)
@@ -890,8 +890,9 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
 
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     lo, hi = ints_range
+    span = max(hi - lo, 1e-12)  # (a range of one value: one label, every dot in its colour)
     e = np.asarray(intensities, np.float64).reshape(-1)
-    colours = jet((e - lo) / max(hi - lo, 1e-12))  # clipped to the bar's ends, which then say so (> / <)
+    colours = jet((e - lo) / span)  # clipped to the bar's ends, which then say so (> / <)
     if gt_directions is not None:
         g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
         for k in range(len(d)):
@@ -902,8 +903,8 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
         _disk(canvas, *at(d[k]), 3.5, colours[k])
     # colour bar: high intensities on top, its name above it
     ticks = [lo, *(v for v in (0.5, 1.0, 1.5) if lo < v < hi), hi]  # 1.0, the nominal intensity, among them
-    labels = {(v - lo) / max(hi - lo, 1e-12): f"{v:.1f}" for v in ticks}  # (a range of one value: one label)
-    upper, lower = max(labels), min(labels)  # the bar's ends (one label for a range of one value)
+    labels = {(v - lo) / span: f"{v:.1f}" for v in ticks}
+    upper, lower = max(labels), min(labels)  # the bar's ends
     labels[upper] = (">" if (e > hi).any() else "") + labels[upper]
     labels[lower] = ("<" if (e < lo).any() else "") + labels[lower]
     colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w, labels, s)

@@ -166,6 +166,15 @@ def heat(values: np.ndarray, mask: np.ndarray, vmax: float) -> np.ndarray:
 UNSCORED_KEY = "NO GROUND TRUTH"  # beside a grey swatch
 
 
+def _key_unscored(canvas: np.ndarray | None, y: int, x: int, s: int) -> int:
+    """Draw the grey swatch and UNSCORED_KEY at (y, x) (None: draw nothing); return their width."""
+    text = text_bitmap(UNSCORED_KEY, s)
+    if canvas is not None:
+        canvas[y:y + 7 * s, x:x + 7 * s] = UNSCORED
+        _stamp(canvas, text, y, x + 9 * s)
+    return 9 * s + text.shape[1]
+
+
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
                   title: str | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
@@ -180,24 +189,21 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     img = img.repeat(k, axis=0).repeat(k, axis=1)
     h, w = img.shape[:2]
     s = max(2, min(h, w) // 200)  # text 14 px tall at least: legible at 100 % on DiLiGenT-sized maps
-    lines = title.split("\n") if title else []
+    lines = [text_bitmap(t, s) if t else None for t in title.split("\n")] if title else []
     line = 9 * s
     top, bar_w, right = len(lines) * line + 3 * s, 10 * s, 44 * s
     bar = max(h, MIN_BAR)
-    key = text_bitmap(UNSCORED_KEY, s) if unscored else None
-    widths = [w + right, 1, *(4 * s + text_bitmap(t, s).shape[1] for t in lines if t)]
-    if key is not None:
-        widths.append(11 * s + key.shape[1])
-    canvas = np.full((top + bar + 4 * s + (line if key is not None else 0), max(widths), 3), 0.12, np.float32)
+    widths = [w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
+    if unscored:
+        widths.append(2 * s + _key_unscored(None, 0, 0, s))
+    canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), 0.12, np.float32)
     canvas[top:top + h, :w] = img
     colour_bar(canvas, top, w + 4 * s, bar, bar_w, _degree_labels(vmax), s)
-    for i, t in enumerate(lines):
-        if t:
-            _stamp(canvas, text_bitmap(t, s), 2 * s + i * line, 2 * s)
-    if key is not None:
-        y = top + bar + 3 * s
-        canvas[y:y + 7 * s, 2 * s:9 * s] = UNSCORED
-        _stamp(canvas, key, y, 11 * s)
+    for i, bm in enumerate(lines):
+        if bm is not None:
+            _stamp(canvas, bm, 2 * s + i * line, 2 * s)
+    if unscored:
+        _key_unscored(canvas, top + bar + 3 * s, 2 * s, s)
     return canvas
 
 
@@ -309,7 +315,7 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     n_maps = [3 if any(panels[i].get("spread") is not None for i in r) else 2 for r in rows]
     keyed = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
     H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if keyed else 0)
-    W = max(W, 2 * gap + 9 * s + text_bitmap(UNSCORED_KEY, s).shape[1]) if keyed else W
+    W = max(W, 2 * gap + _key_unscored(None, 0, 0, s)) if keyed else W
     canvas = np.full((H, W, 3), 0.12, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
@@ -339,8 +345,7 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
             colour_bar(canvas, y0, x, bh, bar_w, _degree_labels(top), s)
         y = y_maps + k_maps * (h + 4) - 4
     if keyed:
-        canvas[y + gap:y + gap + 7 * s, gap:gap + 7 * s] = UNSCORED
-        _stamp(canvas, text_bitmap(UNSCORED_KEY, s), y + gap, gap + 9 * s)
+        _key_unscored(canvas, y + gap, gap, s)
     return canvas
 
 

@@ -465,8 +465,6 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
 SHEET_IMAGES = 6  # images per object on the contact sheet
 SHEET_ROWS = 24  # objects on the contact sheet at most (evenly spread over the set)
-
-
 SHEET_TILE = 128  # pixels: tiles of larger renders are shown every k-th pixel, so the sheet stays viewable
 
 
