@@ -661,12 +661,25 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk. ``method``
-    "ensemble": the installed ENSEMBLE networks, averaged (each reads the images itself)."""
+    "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
+    for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again."""
+    if method == "ensemble":
+        from psctl.io.capture import ImageCheck
+
+        # one check and one read of the images for all members: the second network takes the
+        # images the first read from memory (up to cache_mb), not from disk again
+        check = ImageCheck(capture)
+        reads = ReadMemo(check.reader(capture, mask), {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
+        return ensemble_normals([_capture_member(capture, mask, m, _no_weights(weights), config, progress, check, reads)
+                                 for m in ENSEMBLE])
+    return _capture_member(capture, mask, method, weights, config, progress)
+
+
+def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
+                    config: dict | None, progress: "ProgressFactory | None", check=None,
+                    reads: "ReadMemo | None" = None) -> InferResult:
     from psctl.io.capture import ImageCheck
 
-    if method == "ensemble":
-        return ensemble_normals([capture_normals(capture, mask, m, _no_weights(weights), config, progress)
-                                 for m in ENSEMBLE])
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
         raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
@@ -678,9 +691,12 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
                                     ("light_intensities.txt", capture.intensities_given)) if used]
         capture = replace(capture, intensities=np.ones_like(capture.intensities), intensities_given=False)
 
-    check = ImageCheck(capture)  # black images, negative values: notes
+    if check is None:
+        check = ImageCheck(capture)  # black images, negative values: notes
+    # UPS-FCN reads the images undivided (capture replaced above): never through the shared reads
+    reader = reads if reads is not None and model.uses_lights else check.reader(capture, mask)
     with naming(capture.path):  # all images black, ...
-        res = run_views(model, check.reader(capture, mask), capture.n_images, capture.lights, mask, run["normalization"],
+        res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",
                         run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
@@ -689,6 +705,31 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
         res.notes.append(f"{method}: {' and '.join(unused)} not used (it estimates normals from the images alone)")
     _note_exposure(res, method, run.get("input_mean"))
     return res
+
+
+class ReadMemo:
+    """A ``Reader`` that keeps what it reads: per box, the images from the first on, until they take
+    ``budget`` bytes; a later call for the same box yields those from memory and reads the rest.
+    The readers never change the arrays they are given (run_network copies before it scales)."""
+
+    def __init__(self, reader: Reader, budget: int):
+        self.reader = reader
+        self.budget = budget
+        self.used = 0
+        self.kept: dict[tuple, list[np.ndarray]] = {}
+
+    def __call__(self, start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        kept = self.kept.setdefault(tuple((s.start, s.stop, s.step) for s in box), [])
+        k = start
+        while k < len(kept):
+            yield kept[k]
+            k += 1
+        for img in self.reader(k, box):
+            if k == len(kept) and self.used + img.nbytes <= self.budget:
+                kept.append(img)
+                self.used += img.nbytes
+            yield img
+            k += 1
 
 
 # The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic

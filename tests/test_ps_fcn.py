@@ -908,3 +908,58 @@ def test_l2_dark_pixels_are_relative_to_the_capture():
     dark = images.copy()
     dark[:, :, :12] = 0.0
     assert l2_normals(dark * 1e-9, lights, mask).dark[mask].sum() == (mask[:, :12]).sum()
+
+
+def test_read_memo_yields_what_the_reader_does_and_reads_once_within_budget():
+    """ReadMemo (the ensemble's shared reads): any (start, box) call yields exactly the reader's
+    images; images kept within the budget are not read again, the rest are."""
+    from psctl.infer import ReadMemo
+
+    imgs = [np.full((4, 5, 3), k, np.float32) for k in range(6)]
+    calls = []
+
+    def reader(start, box):
+        for k in range(start, 6):
+            calls.append(k)
+            yield imgs[k][box]
+
+    box, other = (slice(0, 4), slice(0, 5)), (slice(1, 3), slice(0, 5))
+    memo = ReadMemo(reader, 3 * imgs[0].nbytes)  # room for three
+    for start in (0, 0, 2, 4, 0):
+        got = list(memo(start, box))
+        assert [float(g[0, 0, 0]) for g in got] == list(range(start, 6))
+    assert calls[:6] == list(range(6)) and calls[6:9] == [3, 4, 5]  # the second pass read only 3..5
+    assert sum(k < 3 for k in calls) == 3  # images 0..2 were read once in five passes
+    calls.clear()
+    got = list(memo(0, other))  # another box: its own images, out of the budget already spent
+    assert calls == list(range(6)) and all(g.shape == (2, 5, 3) for g in got)
+    assert memo.used == 3 * imgs[0].nbytes
+
+
+def test_ensemble_reads_each_image_once(tmp_path, monkeypatch):
+    """--method ensemble on a folder reads each image file once for both networks, and gives
+    the unit mean of the two networks run apart (each reading the files itself)."""
+    import psctl.io.capture
+    from psctl.infer import capture_normals
+    from psctl.io.capture import load_mask, open_capture
+
+    write_capture(tmp_path / "cap", n=6, seed=3)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    torch.manual_seed(0)
+    save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32})
+    save_weights(tmp_path / "ps_fcn_n.pt", model(seed=1), {"method": "ps-fcn-n", "train_images": 32})
+    cap = open_capture(tmp_path / "cap")
+    mask = load_mask(cap)
+    reads = []
+    real = psctl.io.capture.read_image
+    monkeypatch.setattr(psctl.io.capture, "read_image", lambda p, *a, **k: (reads.append(p), real(p, *a, **k))[1])
+    ens = capture_normals(cap, mask, "ensemble", config={"device": "cpu"})
+    images = [p for p in reads if p in cap.image_paths]
+    assert sorted(images) == sorted(cap.image_paths)  # each once
+    reads.clear()
+    members = [capture_normals(cap, mask, m, config={"device": "cpu"}) for m in ("ps-fcn", "ps-fcn-n")]
+    assert sum(p in cap.image_paths for p in reads) >= 2 * len(cap.image_paths)  # apart: each reads them
+    mean = members[0].normals[mask].astype(np.float64) + members[1].normals[mask]
+    np.testing.assert_allclose(ens.normals[mask], mean / np.linalg.norm(mean, axis=-1, keepdims=True), atol=1e-6)
+    assert np.abs(members[0].normals - members[1].normals).max() > 1e-3  # two different networks
+    assert ens.notes == list(dict.fromkeys(members[0].notes + members[1].notes))
