@@ -176,7 +176,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
                      method: str = "l2", weights: str | os.PathLike | None = None,
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                      refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                     light_distance: float | None = None, downsample: int = 1) -> np.ndarray:
+                     light_distance: float | None = None, downsample: int = 1,
+                     precision: str = "float32") -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -209,18 +210,22 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             full size (``psctl.infer.run_downsampled``): about 1/k^2 of the network's work, at a
             cost in accuracy wherever the surface has detail (docs/models.md, "Downsampling");
             1: full size.
+        precision: network methods: "float32" (the default: the same normals on every machine),
+            "bf16" (CUDA, or a CPU with native bf16: about twice as fast there, normals within about
+            0.1 degrees on average; docs/models.md, "Precision") or "fp16" (CUDA).
     Returns:
         [H, W, 3] float32 unit normals.
     """
     from psctl.lights import refine_config
 
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black
-    from psctl.models import check_downsample
+    from psctl.models import check_downsample, check_precision
     from psctl.symmetry import check_views
 
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
     refine = check_bool("refine", refine)
     check_device_name(device)  # typos are errors for l2 too, which uses neither
+    precision = check_precision(precision)
     views = check_views(views)
     downsample = check_downsample(downsample)
     net_cfg = {"device": device, "views": views, "downsample": downsample}
@@ -229,6 +234,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
+    if method != "l2" and precision != "float32":
+        from psctl.infer import precision_autocast
+
+        net_cfg["autocast"] = precision_autocast(precision, device)  # bf16 this CPU would emulate: before any work
     if lights is not None and method not in LISTED_LIGHTS:  # they would be dropped without a word
         raise PsctlError(None, f"lights: {method} does not use given light directions ("
                                + ("it estimates them" if method == "sdps" else "it works without them")
@@ -291,11 +300,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
-                light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1) -> dict:
+                light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1,
+                precision: str = "float32") -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
-    n_images, height, width, views, downsample, light_distance, seconds, outputs, mae, median, within,
+    n_images, height, width, views, downsample, precision, light_distance, seconds, outputs, mae, median, within,
     n_mask_pixels, n_evaluated_pixels, n_dark and notes (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
@@ -307,7 +317,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     network methods average that many symmetric views of the capture (psctl.infer.run_views;
     ``views`` times the work). ``downsample`` (a whole number, 1: off): the network methods run on
     the capture shrunk by that factor, their normals interpolated back to full size
-    (``psctl.infer.run_downsampled``). ``refine`` (sdps): LCNet's lights are refined against the first
+    (``psctl.infer.run_downsampled``). ``precision`` (the network methods; sdps: its second stage):
+    "float32" (the same normals on every machine), "bf16" (CUDA or a CPU with native bf16) or "fp16"
+    (CUDA), as ``psctl.estimate_normals``. ``refine`` (sdps): LCNet's lights are refined against the first
     normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
     ("shifted" or "lambertian", None: the default) is the refinement's shading model; ``roll``
@@ -330,7 +342,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from dataclasses import replace
 
     from psctl.classic import L2Accumulator, lights_problem
-    from psctl.models import check_downsample
+    from psctl.models import check_downsample, check_precision
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
@@ -353,6 +365,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
+    precision = check_precision(precision)
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
@@ -377,7 +390,14 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if downsample > 1 and method == "l2":
         notes.append("downsample: l2 solves each pixel alone, at full size; unused")
         downsample = 1
+    if precision != "float32" and method == "l2":
+        notes.append(f"precision: l2 solves in float64; --precision {precision} unused")
+        precision = "float32"
     net_cfg = {"device": device, "views": views, "downsample": downsample}
+    if precision != "float32":
+        from psctl.infer import precision_autocast
+
+        net_cfg["autocast"] = precision_autocast(precision, device)  # bf16 this CPU would emulate: before any work
     if method == "l2":
         if not cap.calibrated:
             raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
@@ -512,6 +532,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "n_dark": int(dark.sum()),
         "views": views,
         "downsample": downsample,
+        "precision": precision,
         "light_distance": None if near is None else near.distance,
         "notes": notes,
     }

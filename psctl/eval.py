@@ -63,17 +63,19 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   progress: ProgressFactory | None = None, weights: str | os.PathLike | None = None,
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
-                  encoding: str = "auto", light_distance: float | None = None, downsample: int = 1) -> dict:
+                  encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
+                  precision: str = "float32") -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
-    "n_dark", "seconds", "notes"}], "mean_mae", "paper", "paper_method", "light_distance", "notes"}
+    "n_dark", "seconds", "notes"}], "mean_mae", "paper", "paper_method", "light_distance", "views",
+    "downsample", "precision", "notes"}
     (docs/formats.md has each key; "paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
     each object's outputs go to out/<object>/, and out/eval.png (every object's normal and error
     maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
     and out/eval.json (this result) join them; the result then has "outputs".
-    ``weights`` (a file), ``device``, ``views`` and ``downsample`` are passed on to the network methods, ``lcnet``,
+    ``weights`` (a file), ``device``, ``views``, ``downsample`` and ``precision`` are passed on to the network methods, ``lcnet``,
     ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
     near point lights: ``psctl.api.run_normals``) to every object's capture.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
@@ -87,12 +89,13 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.io.capture import GT_FILES, find_objects, holds_capture, object_name, open_capture, root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
-    from psctl.models import check_downsample
+    from psctl.models import check_downsample, check_precision
     from psctl.lights import refine_config
     from psctl.symmetry import check_views
 
     refine_config(falloff, roll)  # a bad value stops before any object runs
     views, downsample = check_views(views), check_downsample(downsample)  # ints: eval.json must serialise them
+    precision = check_precision(precision)
     check_progress(progress)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
@@ -134,13 +137,16 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             n_images=n_images, seed=seed, write=out is not None, progress=progress,
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
-                            light_distance=light_distance, arrays=arrays, downsample=downsample)
+                            light_distance=light_distance, arrays=arrays, downsample=downsample,
+                            precision=precision)
             _collect(objects, used, r)
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
-        result = _table(benchmark, root, objects, used, light_distance, views, downsample)
+        # l2 runs in float64 whatever was asked (each object's report notes it)
+        result = _table(benchmark, root, objects, used, light_distance, views, downsample,
+                        "float32" if set(used) == {"l2"} else precision)
         result["notes"] += root_notes(root)
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
@@ -157,7 +163,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             stage = batch.stage(out).path
             title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
-                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})" + (
+                f"  D {light_distance:g}" if light_distance is not None else "") + (
+                f"  {result['precision'].upper()}" if result["precision"] != "float32" else "") + f"  ({root.resolve().name})" + (
                 "  ROWS: NORMALS, ERROR, SPREAD" if any(p["spread"] is not None for p in panels) else "")
             write_image(stage / "eval.png", benchmark_sheet(panels, title, per_row=sheet_layout(len(folders))[0]), "uint8")
             write_json(stage / "eval.json", result)
@@ -165,7 +172,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
 
 
 def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None,
-           views: int = 1, downsample: int = 1) -> dict:
+           views: int = 1, downsample: int = 1, precision: str = "float32") -> dict:
     """The run's JSON object from its objects' rows."""
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper_method = PAPER_STAND_IN.get(used_method, used_method)
@@ -179,6 +186,7 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "light_distance": None if light_distance is None else float(light_distance),
         "views": views,
         "downsample": downsample,
+        "precision": precision,
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
         "paper_method": paper_method if paper else None,  # whose published numbers "paper" holds
         "notes": [],  # about the run as a whole (each object's are in its row)

@@ -53,7 +53,7 @@ if TYPE_CHECKING:
 
 DEFAULT_INFER = {
     "device": "auto",  # auto | cpu | cuda (| cuda:N)
-    "chunk": None,  # images per extractor batch: None = 4 on CPU, 32 on CUDA (fewer for large tiles, see work_mb)
+    "chunk": None,  # images per extractor batch: None = 2 on CPU, 32 on CUDA (fewer for large tiles, see work_mb)
     "crop": True,  # process only the mask's bounding box (+ margin)
     "margin": HALO,  # context kept around the mask's bounding box, pixels
     "tile": 512,  # tile side (kept output), pixels; larger regions are tiled
@@ -203,11 +203,25 @@ def _autocast(device: "torch.device", kind: str | None):
         raise PsctlError(None, f"unknown autocast {kind!r}; choose from bf16, fp16")
     if device.type == "cpu" and kind == "bf16":
         if not cpu_has_bf16():  # emulated bf16 is slower than float32
-            raise PsctlError(None, "autocast bf16 needs a CPU with native bf16 (AVX512-BF16 or AMX)")
+            raise PsctlError(None, "bf16 needs a CUDA GPU or a CPU with native bf16 (AVX512-BF16 or AMX); this CPU "
+                                   "would emulate it, slower than float32: use --precision float32")
         return torch.autocast("cpu", dtype=torch.bfloat16)
     if device.type != "cuda":
-        raise PsctlError(None, f"autocast {kind} is for CUDA devices (bf16 also on CPUs with native bf16), not {device}")
+        raise PsctlError(None, f"{kind} is for CUDA devices (bf16 also on CPUs with native bf16), not {device}: "
+                               f"use --precision float32" + (" or bf16" if cpu_has_bf16() else ""))
     return torch.autocast("cuda", dtype=dtypes[kind])
+
+
+def precision_autocast(precision: str, device: str = "auto") -> str | None:
+    """``DEFAULT_INFER["autocast"]`` for ``--precision`` (float32 -> None, bf16, fp16), checked
+    against ``device`` before any work: bf16 on a CPU that would emulate it, or fp16 off CUDA, is a
+    one-line error."""
+    from psctl.models import check_precision
+
+    kind = None if check_precision(precision) == "float32" else check_precision(precision)
+    if kind is not None:
+        _autocast(pick_device(device), kind)
+    return kind
 
 
 # --- the image stream -------------------------------------------------------------------------
@@ -382,7 +396,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     del scale
     light_t = None if lights is None or not model.uses_lights else torch.from_numpy(lights).to(device=device, dtype=dtype)
     cuda = device.type == "cuda"
-    chunk_cfg = cfg["chunk"] or (32 if cuda else 4)
+    chunk_cfg = cfg["chunk"] or (32 if cuda else 2)
     work_bytes = (cfg["work_mb"] or (4096 if cuda else 256)) << 20
     chunk_used = chunk_cfg
     with torch.inference_mode(), _autocast(device, cfg["autocast"]):

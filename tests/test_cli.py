@@ -1259,3 +1259,16 @@ def test_train_and_synth_names_in_any_case(tmp_path):
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
     proc = cli("train", "PS-FCN", "--config", cfg, "--out", tmp_path / "r", "-q")
     assert proc.returncode == 0 and json.loads((tmp_path / "r" / "state.json").read_text())["method"] == "ps-fcn"
+
+
+def test_precision_flag_errors_are_one_line(capture, tmp_path):
+    """--precision with a bad name, or fp16 on the CPU, is one line naming the problem, exit 2,
+    nothing written; l2 (float64) notes it unused."""
+    for value, msg in (("half", "unknown --precision 'half'"), ("fp16", "fp16 is for CUDA")):
+        proc = cli("normals", capture, "-m", "ps-fcn-n", "--device", "cpu", "--precision", value,
+                   "--out", tmp_path / "x")
+        assert proc.returncode == 2 and msg in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+    r = json.loads(cli("normals", capture, "-m", "l2", "--precision", "bf16", "--out", tmp_path / "l2", "--json",
+                       check=True).stdout)
+    assert r["precision"] == "float32" and any("unused" in n for n in r["notes"])

@@ -643,7 +643,7 @@ def test_bad_inputs():
     if not torch.cuda.is_available():
         with pytest.raises(PsctlError, match="no CUDA GPU"):
             stream(images, lights, mask, device="cuda")
-    with pytest.raises(PsctlError, match="autocast fp16 is for CUDA"):
+    with pytest.raises(PsctlError, match="fp16 is for CUDA"):
         stream(images, lights, mask, device="cpu", autocast="fp16")
     with pytest.raises(PsctlError, match="unknown autocast"):
         stream(images, lights, mask, device="cpu", autocast="int8")
@@ -963,3 +963,54 @@ def test_ensemble_reads_each_image_once(tmp_path, monkeypatch):
     np.testing.assert_allclose(ens.normals[mask], mean / np.linalg.norm(mean, axis=-1, keepdims=True), atol=1e-6)
     assert np.abs(members[0].normals - members[1].normals).max() > 1e-3  # two different networks
     assert ens.notes == list(dict.fromkeys(members[0].notes + members[1].notes))
+
+
+def test_precision_option(tmp_path, monkeypatch):
+    """--precision: float32 by default; bf16 runs under autocast where the CPU has native bf16
+    (normals close to float32's, report and eval.json say so) and is one line, exit 2 and nothing
+    written where it would be emulated; fp16 on a CPU the same; l2 notes it unused; bad names refused."""
+    import psctl.infer
+    from psctl.api import estimate_normals, run_normals
+    from psctl.eval import run_benchmark
+    from psctl.models import check_precision
+
+    assert check_precision("BF16") == "bf16" and check_precision("float32") == "float32"
+    for bad in ("fp32", "half", None, 16):
+        with pytest.raises(PsctlError, match="unknown --precision .*choose from float32, bf16, fp16$"):
+            check_precision(bad)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path))
+    save_weights(tmp_path / "ps_fcn_n.pt", model(seed=2), {"method": "ps-fcn-n", "train_images": 32})
+    write_capture(tmp_path / "root" / "ballPNG", n=6, seed=4)
+    cap = tmp_path / "root" / "ballPNG"
+    seen = []
+    real = psctl.infer._autocast
+    monkeypatch.setattr(psctl.infer, "_autocast", lambda d, k: (seen.append(k), real(d, k))[1])
+    monkeypatch.setattr(psctl.infer, "cpu_has_bf16", lambda: False)  # a CPU that would emulate bf16
+    for p, msg in (("bf16", "would emulate it"), ("fp16", "fp16 is for CUDA")):
+        with pytest.raises(PsctlError, match=msg):
+            run_normals(cap, "ps-fcn-n", out=tmp_path / "no", precision=p, device="cpu")
+        with pytest.raises(PsctlError, match=msg):
+            estimate_normals(*scene(4, 16, 16), method="ps-fcn-n", precision=p, device="cpu")
+    assert not (tmp_path / "no").exists() and None not in seen  # refused before any network ran
+    seen.clear()
+    monkeypatch.setattr(psctl.infer, "cpu_has_bf16", lambda: True)
+    a = run_normals(cap, "ps-fcn-n", out=tmp_path / "a", device="cpu")
+    assert a["precision"] == "float32" and set(seen) == {None}
+    seen.clear()
+    arrays = {}
+    b = run_normals(cap, "ps-fcn-n", out=tmp_path / "b", device="cpu", precision="BF16", arrays=arrays)
+    assert b["precision"] == "bf16" and set(seen) == {"bf16"}
+    assert json.loads((tmp_path / "b" / "report.json").read_text())["precision"] == "bf16"
+    assert 0 < abs(b["mae"] - a["mae"]) < 2  # random weights: loose; trained ones in docs/models.md
+    np.testing.assert_allclose(np.linalg.norm(arrays["normals"][arrays["mask"]], axis=-1), 1, atol=1e-4)
+    seen.clear()
+    images, lights, mask = scene(4, 16, 16)
+    n32 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu")
+    n16 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu", precision="bf16")
+    assert seen[-1] == "bf16" and 0 < np.abs(n16 - n32).max() < 0.2
+    l2 = run_normals(cap, "l2", write=False, precision="bf16")
+    assert l2["precision"] == "float32" and any("--precision bf16 unused" in n for n in l2["notes"])
+    r = run_benchmark("folder", root=tmp_path / "root", method="ps-fcn-n", device="cpu", precision="bf16",
+                      out=tmp_path / "ev")
+    assert r["precision"] == "bf16" and json.loads((tmp_path / "ev" / "eval.json").read_text())["precision"] == "bf16"
+    assert run_benchmark("folder", root=tmp_path / "root", method="l2", precision="bf16")["precision"] == "float32"

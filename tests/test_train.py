@@ -487,6 +487,28 @@ def test_validation_batches_apply_val_data():
     assert kw["seed"] == cfg["val"]["seed"] and kw["crop"] == cfg["val"]["size"]
 
 
+def test_validation_set_is_rendered_on_the_cpu_whatever_the_device():
+    """The set is drawn on the CPU and moved to the training device: CUDA's generator gives
+    other numbers for the same seed, so a set drawn there was another set (session 44)."""
+    from psctl.train import Task, validation_set
+
+    devices = []
+
+    class Stub:
+        def next_batch(self):
+            return {"images": torch.ones(2, 3), "shapes": ["a", "b"]}
+
+    def make_stream(data, **kw):
+        devices.append(kw["device"])
+        return Stub()
+
+    task = Task(None, None, lambda b: (b["images"], b["shapes"]), None, "mae", {})
+    cfg = merge(tiny(), {"val": {"samples": 4, "batch_size": 2}})
+    items = validation_set(cfg, task, torch.device("meta"), make_stream)  # any device but the CPU
+    assert devices == [torch.device("cpu")] and len(items) == 2
+    assert all(x.device.type == "meta" and names == ["a", "b"] for x, names in items)
+
+
 def test_recipes_may_use_yaml_merge_keys(tmp_path):
     cfg = tmp_path / "r.yaml"
     cfg.write_text("train: {batch_size: 4, samples: 8}\nval: {<<: {samples: 4}, images: 8}\n")

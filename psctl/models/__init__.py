@@ -39,6 +39,19 @@ def check_downsample(k: object) -> int:
     return int(k)
 
 
+# ``--precision``: the network methods' arithmetic. float32 (the default) gives the same normals
+# on every machine; bf16 / fp16 run the convolutions under autocast (psctl.infer._autocast).
+PRECISIONS = ("float32", "bf16", "fp16")
+
+
+def check_precision(precision: object) -> str:
+    """``--precision`` spelled float32, bf16 or fp16 (any case; returned in lower case), else a
+    one-line error before any work. Here, not in psctl.infer, so that l2 runs check it without torch."""
+    if isinstance(precision, str) and precision.lower() in PRECISIONS:
+        return precision.lower()
+    raise PsctlError(None, f"unknown --precision {precision!r}; choose from {', '.join(PRECISIONS)}")
+
+
 def check_device_name(name: str | None) -> str:
     """``--device`` spelled auto, cpu, cuda or cuda:K (lower case returned); one-line error
     otherwise, before any work (also for methods that do not use it)."""
@@ -50,4 +63,4 @@ def check_device_name(name: str | None) -> str:
     raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
 
 
-__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "WEIGHTS_METHODS", "check_device_name"]
+__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", "check_device_name", "check_precision"]
