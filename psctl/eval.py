@@ -128,6 +128,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
+    precisions = []  # what each object's run used
     panels = []  # with --out: each object's small picture for eval.png
     # with --out every object's files appear together at the end, or none do
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
@@ -140,13 +141,13 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             light_distance=light_distance, arrays=arrays, downsample=downsample,
                             precision=precision)
             _collect(objects, used, r)
+            precisions.append(r["precision"])  # float32 for l2 (float64), whatever was asked
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
-        # l2 runs in float64 whatever was asked (each object's report notes it)
         result = _table(benchmark, root, objects, used, light_distance, views, downsample,
-                        "float32" if set(used) == {"l2"} else precision)
+                        " + ".join(dict.fromkeys(precisions)))
         result["notes"] += root_notes(root)
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),

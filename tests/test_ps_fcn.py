@@ -1008,6 +1008,12 @@ def test_precision_option(tmp_path, monkeypatch):
     n32 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu")
     n16 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu", precision="bf16")
     assert seen[-1] == "bf16" and 0 < np.abs(n16 - n32).max() < 0.2
+    from psctl.models.lcnet import LCNet
+
+    save_weights(tmp_path / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
+    seen.clear()
+    sd = run_normals(cap, "sdps", write=False, device="cpu", precision="bf16")  # its second stage
+    assert sd["precision"] == "bf16" and seen.count("bf16") >= 2 and None not in seen  # refined: two passes
     l2 = run_normals(cap, "l2", write=False, precision="bf16")
     assert l2["precision"] == "float32" and any("--precision bf16 unused" in n for n in l2["notes"])
     r = run_benchmark("folder", root=tmp_path / "root", method="ps-fcn-n", device="cpu", precision="bf16",
