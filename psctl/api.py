@@ -343,7 +343,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     from psctl.classic import L2Accumulator, lights_problem
     from psctl.models import check_downsample, check_precision
-    from psctl.lights import refine_config
+    from psctl.lights import SDPS_FILES, refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
@@ -374,6 +374,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     # an --images subset is spread over the light directions only where the method reads them
     by_lights = cap.calibrated and method in LISTED_LIGHTS
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
+    n_all = cap.n_images
     cap = cap.subset(select_images(cap.n_images, n_images, seed, cap.lights if by_lights else None))
     notes = ([note] if note else []) + picked + capture_notes(cap)
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
@@ -410,9 +411,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes.append(few_images_note(method, cap.n_images))
     out_dir = output_folder(out, cap.path)
     # report.json always: without ground truth it still records the method, notes and timings
+    # sdps: the lights its normals came from (with an --images subset, the images they belong to)
+    light_files = [] if method != "sdps" else [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] \
+        + ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \
-        (["spread.png"] if method == "ensemble" else []) + ["report.json"]
-    all_names = (*FORMATS.values(), "error.png", "spread.png", "report.json")  # every file psctl normals may write
+        (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
+    # every file psctl normals may write
+    all_names = (*FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
     stale: list[str] = []
     if write:
         check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
@@ -566,6 +571,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if spread is not None:
                 write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"],
                                  label=label)
+            if light_files:
+                from psctl.lights import write_light_files, write_lights_plot
+
+                write_light_files(stage, est.directions, est.intensities, SDPS_FILES)
+                write_lights_plot(stage / SDPS_FILES["lights"], est.directions, est.intensities, cap.lights,
+                                  light_stats["light_mae"], cap.name)
+                if SDPS_FILES["light_images"] in light_files:  # one row per image used, in this order
+                    (stage / SDPS_FILES["light_images"]).write_text(
+                        "".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
             write_json(stage / "report.json", report)
     return report
@@ -644,6 +658,7 @@ def convention_notes(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray, mae
 
 def _output_key(filename: str) -> str:
     """normal.png -> normal_png, normal_8bit.png -> normal_8bit_png (the normal maps: one key per
-    format); error.png -> error, spread.png -> spread, report.json -> report (one file each)."""
+    format); error.png -> error, spread.png -> spread, report.json -> report, sdps' light files
+    light_directions_estimated.txt -> light_directions_estimated, ... (one file each)."""
     stem, ext = filename.rsplit(".", 1)
-    return stem if stem in ("error", "spread", "report") else f"{stem}_{ext}"
+    return stem if stem in ("error", "spread", "report") or stem.endswith("_estimated") else f"{stem}_{ext}"

@@ -90,6 +90,9 @@ DEFAULT_LIGHTS = {
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png"}
 SUBSET_FILE = "light_images.txt"  # with --images: the image each light file row belongs to
+# psctl normals --method sdps: the lights its normals were estimated from, under names of their own
+# so that they never replace psctl lights' files in the same folder (both default to PATH/psctl)
+SDPS_FILES = {k: v.replace(".", "_estimated.", 1) for k, v in {**OUTPUT_FILES, "light_images": SUBSET_FILE}.items()}
 
 
 @dataclass
@@ -810,17 +813,20 @@ def light_errors(directions: np.ndarray, intensities: np.ndarray, gt_directions:
 
 # --- files and pictures -----------------------------------------------------------------------
 
-def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray) -> dict[str, Path]:
-    """light_directions.txt (N x 3) and light_intensities.txt (N x 3, grey) in DiLiGenT's format."""
+def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
+                      names: dict[str, str] | None = None) -> dict[str, Path]:
+    """light_directions.txt (N x 3) and light_intensities.txt (N x 3, grey) in DiLiGenT's format
+    (``names``: other file names for the keys "light_directions" and "light_intensities")."""
     from psctl.io.atomic import write_text_atomic
 
+    names = names or OUTPUT_FILES
     folder = Path(folder)
     d = np.asarray(directions, np.float64)
     e = np.asarray(intensities, np.float64).reshape(len(d), -1)
     if e.shape[1] == 1:
         e = np.repeat(e, 3, 1)
-    paths = {"light_directions": folder / OUTPUT_FILES["light_directions"],
-             "light_intensities": folder / OUTPUT_FILES["light_intensities"]}
+    paths = {"light_directions": folder / names["light_directions"],
+             "light_intensities": folder / names["light_intensities"]}
     write_text_atomic(paths["light_directions"], "".join(f"{x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in d))
     write_text_atomic(paths["light_intensities"], "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in e))
     return paths

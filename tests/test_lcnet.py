@@ -438,6 +438,49 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
         del os.environ["PSCTL_WEIGHTS"]
 
 
+def test_sdps_normals_write_the_lights_they_came_from(tmp_path, fake_weights, monkeypatch):
+    """psctl normals -m sdps writes the lights its normals were estimated from (DiLiGenT's format,
+    names of their own, never psctl lights' files in the same folder) and their picture; with an
+    --images subset the images they belong to; a later run without them removes them with a note."""
+    from psctl.api import run_normals
+    from psctl.io.capture import holds_capture, open_capture, read_intensities, read_lights
+    from psctl.io.images import read_image
+    from psctl.lights import SDPS_FILES, run_lights
+
+    write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    out = tmp_path / "aPNG" / "psctl"
+    run_lights(tmp_path / "aPNG", device="cpu", views=1)  # psctl lights' files, in the same folder
+    before = {n: (out / n).read_bytes() for n in ("light_directions.txt", "light_intensities.txt", "lights.png")}
+    r = run_normals(tmp_path / "aPNG", method="sdps", device="cpu")
+    assert {n: (out / n).read_bytes() for n in before} == before  # untouched
+    keys = {"light_directions_estimated", "light_intensities_estimated", "lights_estimated"}
+    assert keys <= set(r["outputs"]) and "light_images_estimated" not in r["outputs"]
+    assert all(Path(r["outputs"][k]).name == SDPS_FILES[k.removesuffix("_estimated")] for k in keys)
+    d = read_lights(out / SDPS_FILES["light_directions"])
+    e = read_intensities(out / SDPS_FILES["light_intensities"])
+    assert d.shape == (6, 3) and e.shape == (6, 3) and (e > 0).all()
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1, atol=1e-6)
+    # the lights the report scores: its light_mae is theirs against the folder's own
+    cap = open_capture(tmp_path / "aPNG")
+    ang = np.degrees(np.arccos(np.clip((d * cap.lights).sum(-1) / np.linalg.norm(cap.lights, axis=-1), -1, 1)))
+    assert ang.mean() == pytest.approx(r["light_mae"], abs=1e-4)
+    assert read_image(out / SDPS_FILES["lights"])[0].shape[2] == 3
+    assert not holds_capture(out)  # the picture is no image of a capture
+    # an --images subset: the rows belong to the images listed
+    r = run_normals(tmp_path / "aPNG", method="sdps", device="cpu", n_images=4, out=tmp_path / "sub")
+    listed = (tmp_path / "sub" / SDPS_FILES["light_images"]).read_text().split()
+    assert len(listed) == 4 and len(read_lights(tmp_path / "sub" / SDPS_FILES["light_directions"])) == 4
+    assert r["outputs"]["light_images_estimated"].endswith(SDPS_FILES["light_images"])
+    sub = open_capture(tmp_path / "aPNG").subset([cap.image_paths.index(tmp_path / "aPNG" / n) for n in listed])
+    assert [p.name for p in sub.image_paths] == listed
+    # a calibrated run in the same folder: sdps' files go, with a note; psctl lights' stay
+    r = run_normals(tmp_path / "aPNG", method="l2")
+    assert not any((out / n).exists() for n in SDPS_FILES.values())
+    assert any("removed" in n and SDPS_FILES["lights"] in n for n in r["notes"])
+    assert {n: (out / n).read_bytes() for n in before} == before
+
+
 def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_weights):
     from psctl.api import run_normals
     from psctl.sdps import sdps_decode
