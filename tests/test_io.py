@@ -738,6 +738,8 @@ def test_benchmark_sheet_draws_each_objects_maps():
     red = jet(np.float32(30 / 45))
     bar = np.isclose(jet(np.linspace(1.0, 0.0, 40)), red).all(-1).sum() * 10  # the colour bar's rows of it, 10 px wide
     assert np.isclose(sheet, red).all(-1).sum() == (p["error"][..., 0] > 0).sum() + bar  # one error map, and the bar
+    with pytest.raises(ValueError, match="at least one panel"):  # not a TypeError from deep inside
+        benchmark_sheet([], "X")
     rows = benchmark_sheet([p, q, p], "X", per_row=2)  # two rows, each with its colour bar
     assert np.isclose(rows, (0.5, 0.5, 1.0)).all(-1).sum() == 3 * (p["normals"][..., 2] == 1.0).sum()
     assert np.isclose(rows, red).all(-1).sum() == 2 * ((p["error"][..., 0] > 0).sum() + bar)

@@ -285,6 +285,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     error map below, and its spread map below that in rows where any panel has one; one colour
     bar for each kind of map on the right of each row.
     -> [H', W', 3] float32 in [0, 1]."""
+    if not panels:  # psctl eval always has an object; a caller of the function may not
+        raise ValueError("benchmark_sheet needs at least one panel")
     if per_row is None:
         per_row = sheet_layout(len(panels))[0]
     s, gap = 2, 12  # text scale, space between columns and rows
