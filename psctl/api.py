@@ -210,8 +210,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             full size (``psctl.infer.run_downsampled``): about 1/k^2 of the network's work, at a
             cost in accuracy wherever the surface has detail (docs/models.md, "Downsampling");
             1: full size.
-        precision: network methods: "float32" (the default: the same normals on every machine),
-            "bf16" (CUDA, or a CPU with native bf16: about twice as fast there, normals within about
+        precision: network methods: "float32" (the default; on a GPU PyTorch runs its convolutions
+            as TF32 where the GPU has it), "bf16" (an Ampere or newer GPU, or a CPU with native bf16: about twice as fast there, normals within about
             0.1 degrees on average; docs/models.md, "Precision") or "fp16" (CUDA).
     Returns:
         [H, W, 3] float32 unit normals.
@@ -318,7 +318,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     ``views`` times the work). ``downsample`` (a whole number, 1: off): the network methods run on
     the capture shrunk by that factor, their normals interpolated back to full size
     (``psctl.infer.run_downsampled``). ``precision`` (the network methods; sdps: its second stage):
-    "float32" (the same normals on every machine), "bf16" (CUDA or a CPU with native bf16) or "fp16"
+    "float32" (the default), "bf16" (an Ampere or newer GPU, or a CPU with native bf16) or "fp16"
     (CUDA), as ``psctl.estimate_normals``. ``refine`` (sdps): LCNet's lights are refined against the first
     normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
@@ -414,6 +414,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     # sdps: the lights its normals came from (with an --images subset, the images they belong to)
     light_files = [] if method != "sdps" else [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] \
         + ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
+    if write and SDPS_FILES["light_images"] in light_files:
+        notes.append(f"images: the estimated light files have {cap.n_images} rows, one per image listed in "
+                     f"{SDPS_FILES['light_images']}")
     names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \
         (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
     # every file psctl normals may write

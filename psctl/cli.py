@@ -109,7 +109,7 @@ ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or
 DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the capture shrunk by this whole factor (each K x K block's mean), normals interpolated back to full size: about 1/K^2 of the network's work, for a quick look; detail is lost (docs/models.md, 'Downsampling'). 1: full size.")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (JPEGs are decoded from sRGB, other files read as linear) | linear | srgb.")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
-PrecisionOpt = Annotated[str, typer.Option("--precision", help="Network methods: float32 (the same normals on every machine) | bf16 (a CUDA GPU, or a CPU with native bf16: AVX512-BF16 or AMX; about twice as fast there, normals within about 0.1 degrees on average) | fp16 (CUDA). docs/models.md, 'Precision'.")]
+PrecisionOpt = Annotated[str, typer.Option("--precision", help="Network methods: float32 (the default) | bf16 (an Ampere or newer GPU, or a CPU with native bf16: AVX512-BF16 or AMX; on a 2-core AVX512-BF16 CPU 1.6x faster end to end, normals about 0.1 degrees from float32's on average) | fp16 (CUDA). docs/models.md, 'Precision'.")]
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights). Given with --method auto, it selects sdps also on folders with light_directions.txt (which then only score the estimated lights).")]
 
 
@@ -313,7 +313,7 @@ def evaluate(
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
                                             views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
                                             light_distance=light_distance, downsample=downsample,
-                                          precision=precision),
+                                            precision=precision),
              json_out, quiet, render_benchmark)
 
 

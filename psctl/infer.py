@@ -59,7 +59,9 @@ DEFAULT_INFER = {
     "tile": 512,  # tile side (kept output), pixels; larger regions are tiled
     "halo": HALO,  # context kept around each tile, pixels (>= receptive field radius)
     "group_mb": 256,  # fused features held per pass over the images
-    "cache_mb": 64,  # cropped images kept from the first pass for the next ones (RSS stays flat)
+    # cropped images kept from the first pass for the next ones (RSS stays flat); the ensemble keeps
+    # up to this much more, its first network's reads for the second (ReadMemo)
+    "cache_mb": 64,
     "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
     "autocast": None,  # None | "bf16" (CUDA, CPUs with native bf16) | "fp16" (CUDA); off by default
@@ -209,6 +211,10 @@ def _autocast(device: "torch.device", kind: str | None):
     if device.type != "cuda":
         raise PsctlError(None, f"{kind} is for CUDA devices (bf16 also on CPUs with native bf16), not {device}: "
                                f"use --precision float32" + (" or bf16" if cpu_has_bf16() else ""))
+    if kind == "bf16" and torch.cuda.get_device_capability(device)[0] < 8:
+        # torch.cuda.is_bf16_supported() says yes on older GPUs too, which emulate it, slowly
+        raise PsctlError(None, f"bf16 needs an Ampere or newer GPU ({torch.cuda.get_device_name(device)} would emulate it, "
+                               "slower than float32): use --precision fp16 or float32")
     return torch.autocast("cuda", dtype=dtypes[kind])
 
 

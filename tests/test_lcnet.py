@@ -472,6 +472,7 @@ def test_sdps_normals_write_the_lights_they_came_from(tmp_path, fake_weights, mo
     listed = (tmp_path / "sub" / SDPS_FILES["light_images"]).read_text().split()
     assert len(listed) == 4 and len(read_lights(tmp_path / "sub" / SDPS_FILES["light_directions"])) == 4
     assert r["outputs"]["light_images_estimated"].endswith(SDPS_FILES["light_images"])
+    assert any(f"4 rows, one per image listed in {SDPS_FILES['light_images']}" in n for n in r["notes"])
     sub = open_capture(tmp_path / "aPNG").subset([cap.image_paths.index(tmp_path / "aPNG" / n) for n in listed])
     assert [p.name for p in sub.image_paths] == listed
     # a calibrated run in the same folder: sdps' files go, with a note; psctl lights' stay

@@ -649,6 +649,17 @@ def test_bad_inputs():
         stream(images, lights, mask, device="cpu", autocast="int8")
 
 
+def test_bf16_is_refused_on_gpus_that_would_emulate_it(monkeypatch):
+    """torch.cuda.is_bf16_supported() says yes on pre-Ampere GPUs, which emulate bf16 slowly: psctl
+    refuses it there in one line, as on CPUs without native bf16 (no GPU needed: the query is faked)."""
+    from psctl.infer import _autocast
+
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda d=None: (7, 5))
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda d=None: "Tesla T4")
+    with pytest.raises(PsctlError, match=r"Ampere or newer GPU \(Tesla T4 would emulate it"):
+        _autocast(torch.device("cuda"), "bf16")
+
+
 def test_cpu_bf16_autocast_close_to_float32():
     from psctl.infer import cpu_has_bf16
 
@@ -965,7 +976,7 @@ def test_ensemble_reads_each_image_once(tmp_path, monkeypatch):
     assert ens.notes == list(dict.fromkeys(members[0].notes + members[1].notes))
 
 
-def test_precision_option(tmp_path, monkeypatch):
+def test_precision_option(tmp_path, monkeypatch, capsys):
     """--precision: float32 by default; bf16 runs under autocast where the CPU has native bf16
     (normals close to float32's, report and eval.json say so) and is one line, exit 2 and nothing
     written where it would be emulated; fp16 on a CPU the same; l2 notes it unused; bad names refused."""
@@ -992,6 +1003,18 @@ def test_precision_option(tmp_path, monkeypatch):
         with pytest.raises(PsctlError, match=msg):
             estimate_normals(*scene(4, 16, 16), method="ps-fcn-n", precision=p, device="cpu")
     assert not (tmp_path / "no").exists() and None not in seen  # refused before any network ran
+    import psctl.lights
+    from psctl.models.lcnet import LCNet
+
+    save_weights(tmp_path / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
+
+    def no_lcnet(*a, **k):
+        raise AssertionError("LCNet ran before the precision was refused")
+
+    with monkeypatch.context() as m:
+        m.setattr(psctl.lights, "capture_lights", no_lcnet)
+        with pytest.raises(PsctlError, match="would emulate it"):  # sdps: before LCNet's minutes of work
+            run_normals(cap, "sdps", out=tmp_path / "no", precision="bf16", device="cpu")
     seen.clear()
     monkeypatch.setattr(psctl.infer, "cpu_has_bf16", lambda: True)
     a = run_normals(cap, "ps-fcn-n", out=tmp_path / "a", device="cpu")
@@ -1000,6 +1023,12 @@ def test_precision_option(tmp_path, monkeypatch):
     arrays = {}
     b = run_normals(cap, "ps-fcn-n", out=tmp_path / "b", device="cpu", precision="BF16", arrays=arrays)
     assert b["precision"] == "bf16" and set(seen) == {"bf16"}
+    from psctl.io.summary import render_normals
+
+    render_normals(b)
+    assert "ps-fcn-n (bf16), 6 images" in capsys.readouterr().out  # the terminal says so too
+    render_normals(a)
+    assert "ps-fcn-n, 6 images" in capsys.readouterr().out
     assert json.loads((tmp_path / "b" / "report.json").read_text())["precision"] == "bf16"
     assert 0 < abs(b["mae"] - a["mae"]) < 2  # random weights: loose; trained ones in docs/models.md
     np.testing.assert_allclose(np.linalg.norm(arrays["normals"][arrays["mask"]], axis=-1), 1, atol=1e-4)
@@ -1008,9 +1037,6 @@ def test_precision_option(tmp_path, monkeypatch):
     n32 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu")
     n16 = estimate_normals(images, lights, mask, method="ps-fcn-n", device="cpu", precision="bf16")
     assert seen[-1] == "bf16" and 0 < np.abs(n16 - n32).max() < 0.2
-    from psctl.models.lcnet import LCNet
-
-    save_weights(tmp_path / "lcnet.pt", LCNet(), {"method": "lcnet", "train_images": 32})
     seen.clear()
     sd = run_normals(cap, "sdps", write=False, device="cpu", precision="bf16")  # its second stage
     assert sd["precision"] == "bf16" and seen.count("bf16") >= 2 and None not in seen  # refined: two passes
