@@ -162,14 +162,26 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             result["outputs"] = {"eval.png": os.path.abspath(Path(out) / "eval.png"),
                                  "eval.json": os.path.abspath(Path(out) / "eval.json")}
             stage = batch.stage(out).path
-            title = f"{result['method']}  MEAN {result['mean_mae']:.2f}°" + (
+            title = f"{method_label(result)}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
-                f"  D {light_distance:g}" if light_distance is not None else "") + (
-                f"  {result['precision'].upper()}" if result["precision"] != "float32" else "") + f"  ({root.resolve().name})" + (
+                f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})" + (
                 "  ROWS: NORMALS, ERROR, SPREAD" if any(p["spread"] is not None for p in panels) else "")
             write_image(stage / "eval.png", benchmark_sheet(panels, title, per_row=sheet_layout(len(folders))[0]), "uint8")
             write_json(stage / "eval.json", result)
     return result
+
+
+def method_label(result: dict) -> str:
+    """The method of a ``run_benchmark`` result with the settings that change its numbers, for the
+    table and eval.png: "ensemble, 8 views, 1/2 size, bf16" (the defaults are left out)."""
+    parts = [result["method"]]
+    if result.get("views", 1) > 1:
+        parts.append(f"{result['views']} views")
+    if result.get("downsample", 1) > 1:
+        parts.append(f"1/{result['downsample']} size")
+    if result.get("precision", "float32") != "float32":
+        parts.append(result["precision"])
+    return ", ".join(parts)
 
 
 def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None,

@@ -385,6 +385,11 @@ def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     assert r["paper_method"] == "l2" and r["paper"]["cat"] == PAPER_DILIGENT["l2"]["cat"]
     r = _table("folder", Path("root"), objs, ["ensemble", "ensemble"], None)
     assert r["paper"] == {} and r["paper_method"] is None
+    # the settings that change the numbers are named beside the method; the defaults are not
+    render_benchmark(_table("folder", Path("root"), objs, ["ensemble"] * 2, None, 8, 2, "bf16"))
+    assert "ensemble, 8 views, 1/2 size, bf16 (psctl)" in capsys.readouterr().out
+    render_benchmark(_table("folder", Path("root"), objs, ["ensemble"] * 2, None, 1, 1, "float32"))
+    assert "│ ensemble (psctl)" in capsys.readouterr().out
 
 
 def test_eval_without_diligent_says_where_to_get_it(tmp_path):

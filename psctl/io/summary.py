@@ -348,7 +348,10 @@ def render_benchmark(result: dict) -> None:
     # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal
     con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
     # the rows as data: (label, one value per object, their average, style)
-    rows = [(f"{result['method']} (psctl)", [_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]), "")]
+    from psctl.eval import method_label
+
+    # what ran, with the settings that change the numbers (views, downsampling, precision)
+    rows = [(f"{method_label(result)} (psctl)", [_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]), "")]
     paper = result.get("paper") or {}
     if paper:
         vals = [paper.get(o["name"]) for o in objs]
