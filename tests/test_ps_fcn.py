@@ -1026,7 +1026,9 @@ def test_precision_option(tmp_path, monkeypatch, capsys):
     from psctl.io.summary import render_normals
 
     render_normals(b)
-    assert "ps-fcn-n (bf16), 6 images" in capsys.readouterr().out  # the terminal says so too
+    assert "ps-fcn-n, bf16, 6 images" in capsys.readouterr().out  # the terminal says so too
+    render_normals({**b, "views": 8, "downsample": 2})
+    assert "ps-fcn-n, 8 views, 1/2 size, bf16, 6 images" in capsys.readouterr().out
     render_normals(a)
     assert "ps-fcn-n, 6 images" in capsys.readouterr().out
     assert json.loads((tmp_path / "b" / "report.json").read_text())["precision"] == "bf16"

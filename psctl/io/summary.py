@@ -287,9 +287,11 @@ def render_normals(r: dict, quiet: bool = False) -> None:
     con = _console()
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
-    line = f"[bold]{escape(r['object'])}[/]: {r['method']}" + (
-        f" ({r['precision']})" if r.get("precision", "float32") != "float32" else "") + \
-        f", {r['n_images']} images, {r['width']}x{r['height']}, {r['seconds']:.2f} s"
+    from psctl.eval import method_label
+
+    # the method with the settings that change the normals (views, downsampling, precision)
+    line = f"[bold]{escape(r['object'])}[/]: {method_label(r)}, {r['n_images']} images, " \
+        f"{r['width']}x{r['height']}, {r['seconds']:.2f} s"
     if r["mae"] is not None:
         w = r["within"]
         line += (f"\n  mean angular error [bold]{r['mae']:.2f}°[/], median {r['median']:.2f}°, "
