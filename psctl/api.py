@@ -345,7 +345,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.models import check_downsample, check_precision
     from psctl.lights import SDPS_FILES, refine_config
     from psctl.symmetry import check_views
-    from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
+    from psctl.io.atomic import check_inputs_kept, check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
                                   load_ground_truth, load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import FORMATS, parse_formats, write_normal_map
@@ -428,6 +428,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         clash = [n for n in names if (out_dir / n).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
+        check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         # psctl's own files from an earlier run there (its list says which), that this run does not write
         stale = sorted(n for n in read_outputs_list(out_dir, "normals")

@@ -187,6 +187,8 @@ def _user_errors() -> Iterator[None]:
         # the system refused a path (too long, permission denied, disk full, ...): the user's to fix
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
         _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
+    except MemoryError:  # numpy's _ArrayMemoryError too: a capture too large for this machine's memory
+        _fail("out of memory: try --downsample K or fewer --images, or a machine with more memory")
     except _Terminated as e:
         with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
             _stderr().print("terminated")
@@ -221,10 +223,19 @@ def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], N
     report as one JSON object (``--json``) or for a person."""
     with _progress(quiet) as progress:
         report = work(progress)
-    if json_out:
-        _print_json(report)
-    else:
-        render(report)
+    try:
+        if json_out:
+            _print_json(report)
+        else:
+            render(report)
+    except OSError as e:  # stdout to a full disk (`> /dev/full`): the outputs are written; say what failed
+        if e.filename is not None or e.errno not in _NO_ROOM:
+            raise
+        outs = report.get("outputs") if isinstance(report, dict) else None
+        with contextlib.suppress(OSError):
+            _fail(f"cannot write the report to standard output ({e.strerror.lower() if e.strerror else e})"
+                  + ("; the output files were written" if outs else ""))
+        raise typer.Exit(2) from None
 
 
 def _print_json(obj: dict) -> None:

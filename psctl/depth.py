@@ -644,7 +644,7 @@ def encoding_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str
     n = n[(n != 0).any(axis=-1)]
     if len(n) < 16 or (n < 0).any():
         return []
-    length = float(np.median(np.linalg.norm(n, axis=-1)))
+    length = float(np.median(np.linalg.norm(n.astype(np.float64), axis=-1)))  # float32 squares overflow past 1e19
     if abs(length - 1) < 0.05:
         return []
     return [f"normals: no component in {source.name} is negative and their median length is {length:.2f}, not 1: "
@@ -684,6 +684,9 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         from psctl.io.atomic import replaced_notes
 
         check_not_capture(out_dir, cap)  # inputs are never touched
+        from psctl.io.atomic import check_inputs_kept
+
+        check_inputs_kept(out_dir, OUTPUTS, (("--normals", normals), ("--K", K)))
         check_output_dir(out_dir)
         notes += replaced_notes(out_dir, OUTPUTS, "depth")  # a same-named file of the user's
 

@@ -125,6 +125,9 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
             raise PsctlError(out, "holds a capture (images, an image list, a mask or ground truth): psctl eval "
                                   "writes eval.png there; choose another --out")
+        from psctl.io.atomic import check_inputs_kept
+
+        check_inputs_kept(out, ("eval.png", "eval.json"), (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)

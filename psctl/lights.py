@@ -1001,6 +1001,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
+        from psctl.io.atomic import check_inputs_kept
+
+        check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE],
+                          (("--weights", weights), ("--normals-weights", normals_weights)))
         check_output_dir(out_dir)
     mask = load_mask(cap)
     near = None

@@ -1277,3 +1277,102 @@ def test_precision_flag_errors_are_one_line(capture, tmp_path):
     r = json.loads(cli("normals", capture, "-m", "l2", "--precision", "bf16", "--out", tmp_path / "l2", "--json",
                        check=True).stdout)
     assert r["precision"] == "float32" and any("unused" in n for n in r["notes"])
+
+
+def test_inputs_in_the_output_folder_under_an_output_name_are_refused(capture, tmp_path):
+    """A file the run reads (--weights, --normals, --K, --lcnet) that sits in the output folder
+    under one of the run's output names is refused before any work, never replaced (a review's
+    fuzzing found each of these overwritten with a note)."""
+    import hashlib
+    import shutil
+
+    from psctl.api import run_normals
+    from psctl.depth import run_depth
+    from psctl.errors import PsctlError
+    from psctl.eval import run_benchmark
+    from psctl.lights import run_lights
+
+    out = tmp_path / "o"
+    out.mkdir()
+    weights = Path(__file__).resolve().parents[1] / "weights"
+    run_normals(capture, "l2", out=tmp_path / "n")
+    cases = [
+        ("depth.png", tmp_path / "n" / "normal.png", lambda f: run_depth(capture, normals=f, out=out)),
+        ("mesh.ply", None, lambda f: run_depth(capture, K=f, out=out)),
+        ("report.json", weights / "ps_fcn.pt", lambda f: run_normals(capture, "ps-fcn", weights=f, out=out)),
+        ("light_directions_estimated.txt", weights / "lcnet.pt",
+         lambda f: run_normals(capture, "sdps", lcnet=f, out=out)),
+        ("lights.png", weights / "lcnet.pt", lambda f: run_lights(capture, weights=f, out=out)),
+        ("eval.json", weights / "ps_fcn.pt", lambda f: run_benchmark("folder", root=capture.parent, method="ps-fcn",
+                                                                      weights=f, out=out)),
+    ]
+    for name, source, run in cases:
+        f = out / name
+        if source is None:
+            f.write_text("1 0 16\n0 1 16\n0 0 1\n")
+        else:
+            shutil.copy(source, f)
+        digest = hashlib.sha256(f.read_bytes()).hexdigest()
+        with pytest.raises(PsctlError, match=f"{name}: is the --\\w+(-\\w+)? file this run reads"):
+            run(f)
+        assert hashlib.sha256(f.read_bytes()).hexdigest() == digest and sorted(os.listdir(out)) == [name]
+        f.unlink()
+
+
+def test_fuzzed_failures_are_one_line(capture, tmp_path, capsys, monkeypatch):
+    """Cases a review's fuzzing found: images that overflow float32 once divided by a tiny
+    intensity; ground truth of huge vectors (still directions); running out of memory; a report
+    that cannot be printed (stdout on a full disk); a full disk under synth's Normal_gt.mat."""
+    import warnings
+
+    import typer
+
+    from psctl.api import run_normals
+    from psctl.cli import _user_errors
+    from psctl.errors import PsctlError
+    from psctl.io.images import write_image
+
+    data = write_capture(tmp_path / "huge", n=6)
+    for k, img in enumerate(data["images"]):  # float images of huge values: allowed as they are
+        (tmp_path / "huge" / f"{k + 1:03d}.png").unlink()
+        write_image(tmp_path / "huge" / f"{k + 1:03d}.exr", img * 1e30, "float")
+    (tmp_path / "huge" / "filenames.txt").write_text("".join(f"{k + 1:03d}.exr\n" for k in range(6)))
+    (tmp_path / "huge" / "light_intensities.txt").write_text("1e-12 1e-12 1e-12\n" * 6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no raw numpy warning may reach the user
+        with pytest.raises(PsctlError, match=r"001\.exr: divided by its light intensity \(1e-12\) its values pass"):
+            run_normals(tmp_path / "huge", "l2", write=False)
+        # ground truth of huge vectors: directions all the same
+        gt = data["normals"] * 1e30
+        gt[data["mask"] & (np.arange(gt.shape[1]) == 20)[None, :]] = [0, 0, 1e20]
+        write_image(capture / "Normal_gt.exr", gt.astype(np.float32), "float")
+        (capture / "Normal_gt.mat").unlink(missing_ok=True)
+        r = run_normals(capture, "l2", write=False)
+        assert r["n_evaluated_pixels"] == r["n_mask_pixels"] and r["mae"] < 5
+        from psctl.depth import run_depth
+
+        write_image(tmp_path / "n.exr", (np.abs(data["normals"]) * 1e30).astype(np.float32), "float")  # no component < 0
+        assert run_depth(capture, normals=tmp_path / "n.exr", write=False)["outputs"] == {}
+    for exc, needle in ((MemoryError(), "out of memory"),):
+        with pytest.raises(typer.Exit) as e, _user_errors():
+            raise exc
+        err = capsys.readouterr().err
+        assert e.value.exit_code == 2 and needle in err and len(err.strip().splitlines()) == 1
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(capture), "-m", "l2", "--json",
+                               "-o", str(tmp_path / "o")], stdout=full, stderr=subprocess.PIPE, text=True)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "cannot write the report to standard output" in proc.stderr and "files were written" in proc.stderr
+    import scipy.io
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(scipy.io, "savemat", full_disk)
+    from psctl.cli import app
+
+    with pytest.raises(SystemExit) as e:
+        app(["synth", str(tmp_path / "s"), "--preset", "blobby", "--size", "32", "--lights", "4", "-k", "1", "-q"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Normal_gt.mat" in err and "no space left" in err.lower(), err
+    assert not (tmp_path / "s").exists()

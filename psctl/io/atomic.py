@@ -149,6 +149,18 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str) -> list[st
             "had listed"]
 
 
+def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: Iterable[tuple[str, object]]) -> None:
+    """Refuse, before any work, a run that would write one of ``names`` over a file it reads:
+    ``inputs`` are (option, path or None) pairs the user gave (--weights FILE, --normals FILE, ...).
+    Inputs are never modified, also when they sit in the output folder under an output's name."""
+    given = {Path(p).resolve(): flag for flag, p in inputs if isinstance(p, (str, os.PathLike))}
+    for n in names:
+        flag = given.get((Path(out_dir) / n).resolve())
+        if flag:
+            raise PsctlError(Path(out_dir) / n, f"is the {flag} file this run reads and would be replaced by its "
+                                                f"output {n}; choose another --out or move the file")
+
+
 def missing_folders(path: Path) -> list[Path]:
     """``path`` and those of its parents that do not exist yet, deepest first: what creating
     ``path`` creates, and what ``remove_empty`` takes away again after a failed run."""

@@ -645,6 +645,7 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
         bad = np.argwhere(~np.isfinite(gt))[0]  # NaN, a pixel without ground truth, was made 0 above
         raise PsctlError(p, f"ground truth contains infinite values (first at row {bad[0]}, column {bad[1]}); "
                             f"NaN marks a pixel without ground truth")
+    gt = gt.astype(np.float64)  # float32 squares overflow past ~1e19: a map of huge vectors is still directions
     norm = np.linalg.norm(gt, axis=-1, keepdims=True)
     return np.where(norm > 1e-6, gt / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
@@ -724,7 +725,12 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rgb = srgb_to_linear(rgb)
         if ambient is not None:
             rgb = minus_ambient(rgb, ambient, capture, p.name)
-        rgb = rgb / capture.intensities[k]
+        with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
+            lit = rgb / capture.intensities[k]
+        if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
+            raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
+                                "pass float32's range; rescale the images or light_intensities.txt")
+        rgb = lit
         if capture.near is not None:
             rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
         yield np.ascontiguousarray(rgb, dtype=np.float32)

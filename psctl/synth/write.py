@@ -276,7 +276,12 @@ def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
     write_text_atomic(folder / "light_intensities.txt",
                       "".join(f"{e:.6f} {e:.6f} {e:.6f}\n" for e in obj.intensities.tolist()))
     write_image(folder / "mask.png", mask.astype(np.float32), "uint8", kind="data")
-    scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
+    try:
+        scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
+    except OSError as e:  # scipy's carries no file name: a full disk would be reported without one
+        if e.filename is not None:
+            raise
+        raise OSError(e.errno, e.strerror or str(e), str(folder / "Normal_gt.mat")) from None
     write_normal_map(folder / "Normal_gt.png", normals, mask, "png16")
     write_text_atomic(folder / "synth.json", json.dumps(obj.meta, indent=2) + "\n")
 
