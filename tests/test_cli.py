@@ -82,6 +82,21 @@ def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
     assert "$PSCTL_WEIGHTS, which does not exist" in " ".join(proc.stdout.split())
     proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o2")
     assert proc.returncode == 2 and "which does not exist" in proc.stderr and len(proc.stderr.splitlines()) == 1
+    (tmp_path / "a-file").write_text("")  # $PSCTL_WEIGHTS naming a file: said so, not "does not exist"
+    proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o3", env={"PSCTL_WEIGHTS": str(tmp_path / "a-file")})
+    assert proc.returncode == 2 and "which is a file, not a folder" in proc.stderr, proc.stderr
+
+
+def test_a_listed_image_that_is_not_a_file(capture, tmp_path):
+    """A FIFO (or socket, device) under a listed name: said so, not "missing" (it is there)."""
+    from psctl.errors import PsctlError
+    from psctl.io.capture import open_capture
+
+    name = (capture / "filenames.txt").read_text().split()[2]
+    (capture / name).unlink()
+    os.mkfifo(capture / name)
+    with pytest.raises(PsctlError, match=f"{name}: listed in filenames.txt but is not a regular file$"):
+        open_capture(capture)
 
 
 def test_an_empty_argument_is_refused(capture, tmp_path):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from psctl.errors import PsctlError
-from psctl.io.capture import (bounding_box, find_objects, load_ground_truth, load_images, load_mask, object_name,
+from psctl.io.capture import (bounding_box, find_objects, load_ground_truth, load_images, load_mask, object_name, read_matrix,
                               open_capture, select_images)
 from psctl.io.images import read_image, write_image
 from psctl.io.normals import read_normal_map, write_normal_map
@@ -630,8 +630,17 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     with pytest.raises(PsctlError, match=r"listed in filenames.txt but missing \(001.png is there"):
         open_capture(cap)
     (cap / "filenames.txt").write_text("\n".join(names) + "\n", encoding="utf-16")
-    with pytest.raises(PsctlError, match="filenames.txt: is not UTF-8 text"):
+    with pytest.raises(PsctlError, match=r"filenames.txt: is UTF-16 text \(Excel's 'Unicode text'\), not UTF-8"):
         open_capture(cap)
+    (cap / "filenames.txt").write_text("\n".join(names) + "\n", encoding="utf-16-le")  # no byte-order mark
+    with pytest.raises(PsctlError, match="filenames.txt: is UTF-16 text"):
+        open_capture(cap)
+    (cap / "filenames.txt").write_bytes(("\n".join(names) + "\ncaf\xe9.png\n").encode("latin-1"))
+    with pytest.raises(PsctlError, match=r"filenames.txt: is not UTF-8 text \(Latin-1 or another"):
+        open_capture(cap)
+    (cap / "light_directions.txt").write_bytes(b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\xff\xfe")
+    with pytest.raises(PsctlError, match="light_directions.txt: is not text"):
+        read_matrix(cap / "light_directions.txt", (3,), "light directions")
     (cap / "filenames.txt").write_text("\n".join([*names, "Normal_gt.png"]) + "\n")
     write_image(cap / "Normal_gt.png", np.zeros((16, 16, 3)), "uint16")
     np.savetxt(cap / "light_directions.txt", np.vstack([data["lights"], [[0, 0, 1]]]))

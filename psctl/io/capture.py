@@ -202,11 +202,26 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
 
 
+def _not_utf8(path: Path) -> str:
+    """Why a text file did not decode: the UTF-16 hint only where the file looks like UTF-16 (a
+    byte-order mark, or a zero byte in every other place), not for Latin-1 text or binary data."""
+    head = path.read_bytes()[:4096]
+    utf16 = head[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(head) >= 4 and (head[1::2].count(0) > len(head) // 4
+                                                                           or head[0::2].count(0) > len(head) // 4))
+    if utf16:
+        return "is UTF-16 text (Excel's 'Unicode text'), not UTF-8: save it as UTF-8"
+    if b"\0" in head:
+        return "is not text (binary data)"
+    return "is not UTF-8 text (Latin-1 or another 8-bit encoding?): save it as UTF-8"
+
+
 def _read_list(path: Path, what: str = "images") -> list[str]:
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
+        if "\0" in text:  # UTF-16 without a byte-order mark decodes as UTF-8 with a zero after each letter
+            raise UnicodeDecodeError("utf-8", b"", 0, 1, "a zero byte")
     except UnicodeDecodeError:
-        raise PsctlError(path, "is not UTF-8 text (Excel's 'Unicode text' is UTF-16): save it as UTF-8") from None
+        raise PsctlError(path, _not_utf8(path)) from None
     except OSError as e:
         raise PsctlError(path, f"cannot read file ({e})") from None
     names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
@@ -226,8 +241,10 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
     """
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
+        if "\0" in text:  # UTF-16 without a byte-order mark decodes as UTF-8 with a zero after each letter
+            raise UnicodeDecodeError("utf-8", b"", 0, 1, "a zero byte")
     except UnicodeDecodeError:
-        raise PsctlError(path, "is not UTF-8 text (Excel's 'Unicode text' is UTF-16): save it as UTF-8") from None
+        raise PsctlError(path, _not_utf8(path)) from None
     except OSError as e:
         raise PsctlError(path, f"cannot read {what} ({e})") from None
     rows: list[list[float]] = []
@@ -463,6 +480,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                 raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
             if not p.is_file() and p.is_symlink():  # dangling (or a loop): the entry is there, its target not
                 raise PsctlError(p, f"listed in {list_file.name} but is a broken link (to {os.readlink(p)})")
+            if os.path.lexists(p) and not p.is_file():  # a FIFO, a socket, a device: there, but no file
+                raise PsctlError(p, f"listed in {list_file.name} but is not a regular file")
             if not p.is_file():
                 other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
                 hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""

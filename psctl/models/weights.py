@@ -89,15 +89,19 @@ def weights_where() -> str:
     d = weights_dir()
     if not os.environ.get(ENV_VAR):
         return str(d)
-    return f"{d} (${ENV_VAR}" + ("" if d.is_dir() else ", which does not exist") + ")"
+    return f"{d} (${ENV_VAR}" + ("" if d.is_dir() else _not_a_folder(d)) + ")"
 
 
 def missing_folder_note() -> str:
     """For a weights-not-found message: when $PSCTL_WEIGHTS names a folder that does not exist
     (a mistyped variable, not weights never installed), say so."""
     if os.environ.get(ENV_VAR) and not weights_dir().is_dir():
-        return f", in ${ENV_VAR}'s folder, which does not exist"
+        return f", in ${ENV_VAR}'s folder{_not_a_folder(weights_dir())}"
     return ""
+
+
+def _not_a_folder(d: Path) -> str:
+    return ", which is a file, not a folder" if d.exists() else ", which does not exist"
 
 
 def file_name(method: str) -> str:
