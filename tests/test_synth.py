@@ -618,6 +618,7 @@ def test_rasterised_mesh_matches_the_analytic_sphere(tmp_path):
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\nf 1 2 3 1\n", "line 4: bad face"),  # 6 indices in all
     ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "NaN or infinite"),
     ("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n", "zero size"),
+    ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "no surface"),  # a review's fuzzing: empty views, exit 0
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no vertices or no faces"),
 ])
 def test_bad_meshes_are_one_error(tmp_path, text, needle):
