@@ -431,8 +431,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         # psctl's own files from an earlier run there (its list says which), that this run does not write
+        given = {os.path.realpath(p) for p in (weights, lcnet) if p is not None}  # never removed: they are read
         stale = sorted(n for n in read_outputs_list(out_dir, "normals")
-                       if n in all_names and n not in names and (out_dir / n).is_file())
+                       if n in all_names and n not in names and (out_dir / n).is_file()
+                       and os.path.realpath(out_dir / n) not in given)
         if stale:
             notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")

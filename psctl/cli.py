@@ -168,6 +168,21 @@ def _on_termination() -> Iterator[None]:
             signal.signal(sig, handler)
 
 
+def _is_torch_oom(e: RuntimeError) -> bool:
+    """torch's allocators raise RuntimeError (CPU: "DefaultCPUAllocator: can't allocate memory";
+    CUDA: torch.OutOfMemoryError, "CUDA out of memory")."""
+    import torch
+
+    return isinstance(e, torch.OutOfMemoryError) or "can't allocate memory" in str(e) or "out of memory" in str(e)
+
+
+def _out_of_memory(detail: str) -> str:
+    # the allocator's own words say how much was asked for; a bug asking for terabytes shows there
+    detail = " ".join(detail.split())[:160]
+    return (f"out of memory{f' ({detail})' if detail else ''}: a smaller capture, --downsample K or fewer --images "
+            "(psctl normals, eval), --device cpu for a GPU, or a machine with more memory")
+
+
 @contextlib.contextmanager
 def _user_errors() -> Iterator[None]:
     from psctl.errors import PsctlError
@@ -187,8 +202,12 @@ def _user_errors() -> Iterator[None]:
         # the system refused a path (too long, permission denied, disk full, ...): the user's to fix
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
         _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
-    except MemoryError:  # numpy's _ArrayMemoryError too: a capture too large for this machine's memory
-        _fail("out of memory: try --downsample K or fewer --images, or a machine with more memory")
+    except MemoryError as e:  # numpy's _ArrayMemoryError too: a capture too large for this machine's memory
+        _fail(_out_of_memory(str(e)))
+    except RuntimeError as e:
+        if not _is_torch_oom(e):  # anything else is a bug: keep its traceback
+            raise
+        _fail(_out_of_memory(str(e).splitlines()[0] if str(e) else ""))
     except _Terminated as e:
         with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
             _stderr().print("terminated")
@@ -231,7 +250,7 @@ def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], N
     except OSError as e:  # stdout to a full disk (`> /dev/full`): the outputs are written; say what failed
         if e.filename is not None or e.errno not in _NO_ROOM:
             raise
-        outs = report.get("outputs") if isinstance(report, dict) else None
+        outs = (report.get("outputs") or report.get("out")) if isinstance(report, dict) else None  # synth: "out"
         with contextlib.suppress(OSError):
             _fail(f"cannot write the report to standard output ({e.strerror.lower() if e.strerror else e})"
                   + ("; the output files were written" if outs else ""))

@@ -131,7 +131,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         check_output_dir(out)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
-    precisions = []  # what each object's run used
+    precisions, used_views, used_k = [], set(), set()  # what each object's run used
     panels = []  # with --out: each object's small picture for eval.png
     # with --out every object's files appear together at the end, or none do
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
@@ -145,12 +145,16 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             precision=precision)
             _collect(objects, used, r)
             precisions.append(r["precision"])  # float32 for l2 (float64), whatever was asked
+            used_views.add(r["views"])  # 1 for l2, whatever was asked
+            used_k.add(r["downsample"])
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
                                            arrays["mask"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
-        result = _table(benchmark, root, objects, used, light_distance, views, downsample,
-                        " + ".join(dict.fromkeys(precisions)))
+        # what ran: the objects' own values where they agree (l2 runs one view at full size)
+        result = _table(benchmark, root, objects, used, light_distance,
+                        used_views.pop() if len(used_views) == 1 else views,
+                        used_k.pop() if len(used_k) == 1 else downsample, " + ".join(dict.fromkeys(precisions)))
         result["notes"] += root_notes(root)
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),

@@ -1393,3 +1393,40 @@ def test_fuzzed_failures_are_one_line(capture, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert e.value.code == 2 and "Normal_gt.mat" in err and "no space left" in err.lower(), err
     assert not (tmp_path / "s").exists()
+
+
+def test_second_review_of_the_fuzzing_fixes(capture, tmp_path, monkeypatch, capsys):
+    """A symbolic-link loop given as an input is its own one-line error again (not a RuntimeError
+    from the inputs check); an input is never removed as a stale output; eval's label and
+    eval.json say what ran (l2: one view, full size); torch's CPU allocator failing is one line;
+    zero-filled binary is not called UTF-16."""
+    import shutil
+
+    import typer
+
+    from psctl.api import run_normals
+    from psctl.cli import _user_errors
+    from psctl.errors import PsctlError
+    from psctl.eval import method_label, run_benchmark
+    from psctl.io.capture import _not_utf8
+
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    with pytest.raises(PsctlError, match="loop"):
+        run_normals(capture, "ps-fcn", weights=tmp_path / "loop", out=tmp_path / "o1")
+    weights = Path(__file__).resolve().parents[1] / "weights" / "ps_fcn.pt"
+    run_normals(capture, "l2", out=tmp_path / "s", formats=("png16", "exr"))
+    shutil.copy(weights, tmp_path / "s" / "normal.exr")  # an earlier output's name, now the weights
+    r = run_normals(capture, "ps-fcn", out=tmp_path / "s", formats=("png16",), weights=tmp_path / "s" / "normal.exr")
+    assert (tmp_path / "s" / "normal.exr").read_bytes() == weights.read_bytes()
+    assert not any("removed" in n and "normal.exr" in n for n in r["notes"])
+    res = run_benchmark("folder", root=capture.parent, method="l2", views=8, downsample=2)
+    assert (res["views"], res["downsample"], res["precision"]) == (1, 1, "float32") and method_label(res) == "l2"
+    with pytest.raises(typer.Exit) as e, _user_errors():
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:121] data. DefaultCPUAllocator: can't allocate memory: "
+                           "you tried to allocate 1099511627776 bytes. Error code 12 (Cannot allocate memory)")
+    err = capsys.readouterr().err
+    assert e.value.exit_code == 2 and "out of memory (" in err and "1099511627776 bytes" in " ".join(err.split())
+    with pytest.raises(RuntimeError, match="a bug"), _user_errors():  # other RuntimeErrors keep their traceback
+        raise RuntimeError("a bug")
+    (tmp_path / "zeros.txt").write_bytes(bytes(64))
+    assert "UTF-16" not in _not_utf8(tmp_path / "zeros.txt")

@@ -153,9 +153,11 @@ def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: 
     """Refuse, before any work, a run that would write one of ``names`` over a file it reads:
     ``inputs`` are (option, path or None) pairs the user gave (--weights FILE, --normals FILE, ...).
     Inputs are never modified, also when they sit in the output folder under an output's name."""
-    given = {Path(p).resolve(): flag for flag, p in inputs if isinstance(p, (str, os.PathLike))}
+    # realpath, not Path.resolve: a symbolic-link loop is then a path like any other (its own
+    # message comes later), not a RuntimeError
+    given = {os.path.realpath(p): flag for flag, p in inputs if isinstance(p, (str, os.PathLike))}
     for n in names:
-        flag = given.get((Path(out_dir) / n).resolve())
+        flag = given.get(os.path.realpath(Path(out_dir) / n))
         if flag:
             raise PsctlError(Path(out_dir) / n, f"is the {flag} file this run reads and would be replaced by its "
                                                 f"output {n}; choose another --out or move the file")

@@ -206,12 +206,13 @@ def _not_utf8(path: Path) -> str:
     """Why a text file did not decode: the UTF-16 hint only where the file looks like UTF-16 (a
     byte-order mark, or a zero byte in every other place), not for Latin-1 text or binary data."""
     head = path.read_bytes()[:4096]
-    utf16 = head[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(head) >= 4 and (head[1::2].count(0) > len(head) // 4
-                                                                           or head[0::2].count(0) > len(head) // 4))
+    odd, even = head[1::2].count(0), head[0::2].count(0)  # ASCII in UTF-16: zeros at one parity only
+    utf16 = head[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(head) >= 4 and (
+        (odd > len(head) // 4 and even < len(head) // 16) or (even > len(head) // 4 and odd < len(head) // 16)))
     if utf16:
         return "is UTF-16 text (Excel's 'Unicode text'), not UTF-8: save it as UTF-8"
     if b"\0" in head:
-        return "is not text (binary data)"
+        return "is not UTF-8 text (binary data, or UTF-32?)"
     return "is not UTF-8 text (Latin-1 or another 8-bit encoding?): save it as UTF-8"
 
 

@@ -121,7 +121,8 @@ def _checked(path: Path, v: np.ndarray, f: np.ndarray) -> tuple[Tensor, Tensor]:
         raise PsctlError(path, "mesh has zero size (every vertex at one point)")
     tri = v[f].astype(np.float64)  # [F, 3, 3]; relative to the mesh's size, so its units do not matter
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=-1).sum()
-    if not area > 1e-12 * float((v.max(0) - v.min(0)).max()) ** 2:  # every view would be empty
+    corners = tri.reshape(-1, 3)  # the faces' own extent: a stray unused vertex far away does not count
+    if not area > 1e-12 * float((corners.max(0) - corners.min(0)).max()) ** 2:  # every view would be empty
         raise PsctlError(path, "mesh has no surface: every face has zero area (its vertices on one line)")
     return torch.from_numpy(v), torch.from_numpy(f)
 
