@@ -639,7 +639,7 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     with pytest.raises(PsctlError, match=r"filenames.txt: is not UTF-8 text \(Latin-1 or another"):
         open_capture(cap)
     (cap / "light_directions.txt").write_bytes(b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\xff\xfe")
-    with pytest.raises(PsctlError, match="light_directions.txt: is not text"):
+    with pytest.raises(PsctlError, match=r"light_directions.txt: is not UTF-8 text \(binary data"):
         read_matrix(cap / "light_directions.txt", (3,), "light directions")
     (cap / "filenames.txt").write_text("\n".join([*names, "Normal_gt.png"]) + "\n")
     write_image(cap / "Normal_gt.png", np.zeros((16, 16, 3)), "uint16")
