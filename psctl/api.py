@@ -128,7 +128,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
                     refine: bool = True, falloff: str | None = None,
-                    roll: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    roll: bool | None = None, precision: str = "float32") -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -152,6 +152,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         roll: turn the refined lights about the view axis by the roll that makes the normals they
             give most integrable (``psctl.lights.roll_estimate``; None: the default,
             ``DEFAULT_REFINE["roll"]``; docs/uncalibrated.md, "Roll from integrability").
+        precision: the refinement's normals network: "float32" (the default), "bf16" or "fp16"
+            (as ``estimate_normals``); LCNet runs in float32.
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
@@ -161,13 +163,20 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
+    from psctl.models import check_precision
+
     fit = refine_config(falloff, roll)
     refine = check_bool("refine", refine)
+    net_cfg = {"device": device}
+    if check_precision(precision) != "float32" and refine:
+        from psctl.infer import precision_autocast
+
+        net_cfg["autocast"] = precision_autocast(precision, device)  # before any work
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
-        source = array_source(images, mask, sdps_second_stage(None)[0], None, {"device": device})
+        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg)
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
 

@@ -363,6 +363,7 @@ def lights(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
+    precision: Annotated[str, typer.Option("--precision", help="With --refine: the normals network's arithmetic, as psctl normals --precision (float32 | bf16 | fp16; LCNet runs in float32).")] = "float32",
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -373,7 +374,8 @@ def lights(
         _run(lambda progress: run_lights(path, out=out, weights=weights, device=device, decode=decode,
                                          views=views, n_images=images, seed=seed, progress=progress,
                                          refine=refine, normals_weights=normals_weights, falloff=falloff,
-                                         roll=roll, encoding=encoding, light_distance=light_distance),
+                                         roll=roll, encoding=encoding, light_distance=light_distance,
+                                         precision=precision),
              json_out, quiet, render_lights)
 
 

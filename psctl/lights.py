@@ -950,7 +950,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
                falloff: str | None = None, roll: bool | None = None, encoding: str = "auto",
-               light_distance: float | None = None) -> dict:
+               light_distance: float | None = None, precision: str = "float32") -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
@@ -963,7 +963,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     normals they give, ``roll_estimate``) override DEFAULT_REFINE's. ``light_distance`` (pixels,
     with ``refine``): the lights are points that far from the mask's centroid along the estimated
     directions, and the refinement reads the images with their falloff divided out
-    (``psctl.nearlight``; LCNet reads them as captured).
+    (``psctl.nearlight``; LCNet reads them as captured). ``precision`` (float32, bf16, fp16): the
+    refinement's normals network's arithmetic (LCNet runs in float32), as ``psctl.run_normals``'.
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,
@@ -986,6 +987,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     check_views(views)  # options first: their errors name the option, not the capture folder
     if decode not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown --decode {decode!r}; choose argmax or soft")
+    from psctl.models import check_precision
+
+    precision = check_precision(precision)
+    net_cfg = {"device": device}
+    if precision != "float32" and refine:  # the network of the refinement; checked before any work
+        from psctl.infer import precision_autocast
+
+        net_cfg["autocast"] = precision_autocast(precision, device)
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer
@@ -1026,12 +1035,15 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refine:
-        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, device, progress, fit)
+        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
-    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
+    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll),
+                        ("--precision", None if precision == "float32" else precision)):
         if not refine and value is not None:
             est = replace(est, notes=[*est.notes, f"lights: {flag} is unused without --refine"])
+    if not refine:
+        precision = "float32"  # LCNet's, the only network that ran
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     report = {
         "object": cap.name,
@@ -1046,6 +1058,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "lcnet_light_mae": lcnet_errors["light_mae"],
         "lcnet_intensity_re": lcnet_errors["intensity_re"],
         "device": est.info["device"],
+        "precision": precision,
         "light_distance": None if near is None else near.distance,
         "seconds": round(time.perf_counter() - t0, 3),
         "notes": picked + est.notes,
@@ -1073,7 +1086,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
-                    device: str, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
+                    net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
     turned by the roll of the normals from the refined lights when the config says so)."""
     from psctl.models.weights import installed_path
@@ -1083,7 +1096,7 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
     second = sdps_second_stage(weights, flag="--normals-weights")[0]
-    source = capture_source(cap, mask, second, weights, {"device": device}, progress)
+    source = capture_source(cap, mask, second, weights, net_cfg, progress)
     return second_stage(source, est, True, config, normals=False)[0]
 
 

@@ -854,3 +854,41 @@ def test_lights_plot_small_or_degenerate_inputs_still_draw():
     for radius in (10, 30, 70):
         assert lights_plot(d, np.ones(1), radius=radius).ndim == 3
     assert lights_plot(d, np.ones(1), ints_range=(1.0, 1.0)).ndim == 3
+
+
+def test_lights_precision_is_the_refinements_network(tmp_path, fake_weights, monkeypatch):
+    """psctl lights --precision: the refinement's normals network runs under autocast (LCNet in
+    float32); refused before any work where the CPU would emulate bf16; unused without --refine."""
+    import psctl.infer
+    import psctl.lights
+    from psctl.api import estimate_lights
+    from psctl.lights import run_lights
+
+    write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    seen = []
+    real = psctl.infer._autocast
+    monkeypatch.setattr(psctl.infer, "_autocast", lambda d, k: (seen.append(k), real(d, k))[1])
+    monkeypatch.setattr(psctl.infer, "cpu_has_bf16", lambda: False)
+
+    def no_lcnet(*a, **k):
+        raise AssertionError("LCNet ran before the precision was refused")
+
+    with monkeypatch.context() as m:
+        m.setattr(psctl.lights, "capture_lights", no_lcnet)
+        with pytest.raises(PsctlError, match="would emulate it"):
+            run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="bf16", out=tmp_path / "no")
+    assert not (tmp_path / "no").exists()
+    monkeypatch.setattr(psctl.infer, "cpu_has_bf16", lambda: True)
+    seen.clear()
+    r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="bf16", write=False)
+    assert r["precision"] == "bf16" and seen and set(seen) == {"bf16"}
+    r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="bf16", refine=False, write=False)
+    assert r["precision"] == "float32" and any("--precision is unused without --refine" in n for n in r["notes"])
+    seen.clear()
+    from tests.conftest import render_lambertian, sphere, hemisphere_lights
+
+    normals, mask = sphere(32)
+    images = render_lambertian(normals, mask, hemisphere_lights(6, seed=2), 0.7)
+    d, e = estimate_lights(images, mask, device="cpu", views=1, precision="bf16")
+    assert d.shape == (6, 3) and set(seen) == {"bf16"}
