@@ -179,8 +179,9 @@ def _is_torch_oom(e: RuntimeError) -> bool:
 def _out_of_memory(detail: str) -> str:
     # the allocator's own words say how much was asked for; a bug asking for terabytes shows there
     detail = " ".join(detail.split())[:160]
-    return (f"out of memory{f' ({detail})' if detail else ''}: a smaller capture, --downsample K or fewer --images "
-            "(psctl normals, eval), --device cpu for a GPU, or a machine with more memory")
+    return (f"out of memory{f' ({detail})' if detail else ''}: ask for less (normals, eval: --downsample K or "
+            "fewer --images; train: a smaller train.batch_size, crop or images_per_sample), or use a machine "
+            "with more memory")
 
 
 @contextlib.contextmanager

@@ -405,13 +405,39 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
         part = _load_part(run / name)
         if not (isinstance(part, dict) and isinstance(part.get("state"), dict) and "param_groups" in part):
             raise PsctlError(run / name, "is not a part of an optimiser state: the run's checkpoint is damaged")
+        if set(part["state"]) & set(state):  # a part copied over another (optim.1.pt = optim.0.pt)
+            raise PsctlError(run / name, "repeats another part's optimiser state: the run's checkpoint is damaged")
         state.update(part["state"])
         groups = groups or part["param_groups"]
+    params = [p for g in groups or [] for p in (g.get("params", []) if isinstance(g, dict) else [])]
+    if state and set(state) != set(params):  # Adam keeps state for every parameter after a step
+        raise PsctlError(run / names[-1], f"the optimiser parts hold the state of {len(state)} of {len(params)} "
+                                          "parameters: the run's checkpoint is damaged")
     try:
         optim.load_state_dict({"state": state, "param_groups": groups})
     except (ValueError, KeyError, TypeError, RuntimeError) as e:
         raise PsctlError(run / names[0], f"does not fit this run's network ({' '.join(str(e).split())[:120]}): "
                                          "the run's checkpoint is damaged") from None
+
+
+def _check_state(path: Path, saved: dict) -> None:
+    """The kinds of a run state's bookkeeping values (an edited or damaged state.json is one line,
+    not a TypeError deep in the loop)."""
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+    kinds = {"step": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+             "samples": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+             "seconds": lambda v: number(v) and v >= 0,
+             "stream_seed": lambda v: isinstance(v, int) and not isinstance(v, bool),
+             "best_val": lambda v: v is None or number(v),
+             "best_samples": lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool)),
+             "val": lambda v: isinstance(v, list),
+             "optim_files": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
+             "config": lambda v: isinstance(v, dict)}
+    for key, ok in kinds.items():
+        if key in saved and not ok(saved[key]):
+            raise PsctlError(path, f"holds a bad {key!r} ({json.dumps(saved[key])[:40]}): the run state is damaged")
 
 
 def _plain_json(obj: Any) -> Any:
@@ -724,6 +750,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         except (OSError, UnicodeDecodeError, ValueError) as e:
             raise PsctlError(state_file, f"is not a readable run state ({e}); the run cannot be resumed") from None
     if saved is not None:
+        _check_state(state_file, saved)
         if saved["method"] != method:
             raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
         if "config" not in saved:
@@ -995,6 +1022,8 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     out = Path(out_dir) / "best.pt"
     if out.exists():
         raise PsctlError(out, "already exists; averaging writes a new run folder's best.pt")
+    if Path(out_dir).is_dir() and any(Path(out_dir).iterdir()):  # as a new training run: never beside others' files
+        raise PsctlError(out_dir, "is not empty; averaging writes best.pt into a new or empty folder")
     if config is not None:  # the training loop's validation, on the recipe's fixed set
         from psctl.infer import pick_device
 

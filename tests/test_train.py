@@ -693,3 +693,33 @@ def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
     cfg["val"]["size"] = 30
     with pytest.raises(PsctlError, match="val.size' must be a multiple of 4"):  # --average --config measures on val
         average_weights([tmp_path / "a.pt", tmp_path / "b.pt"], tmp_path / "avg", cfg)
+
+
+def test_a_tampered_run_is_one_error_on_resume(tmp_path):
+    """A review's fuzzing: an optimiser part copied over another (half of Adam's state lost, the
+    run went on without a word), a state.json value of the wrong kind (a TypeError), and
+    --average into a folder holding other files (written beside them)."""
+    import json as _json
+
+    import psctl.train as T
+
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    parts = _json.loads((run / "state.json").read_text())["optim_files"]
+    assert len(parts) >= 2  # PS-FCN's Adam state is split: the case below needs two parts
+    (run / parts[1]).write_bytes((run / parts[0]).read_bytes())
+    with pytest.raises(PsctlError, match=f"{parts[1]}: repeats another part's optimiser state"):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    (run / parts[1]).unlink()  # one part alone: the state of only some parameters
+    st = _json.loads((run / "state.json").read_text())
+    (run / "state.json").write_text(_json.dumps({**st, "optim_files": parts[:1]}))
+    with pytest.raises(PsctlError, match=r"optimiser parts hold the state of \d+ of \d+ parameters"):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    (run / "state.json").write_text(_json.dumps({**st, "samples": "lots"}))
+    with pytest.raises(PsctlError, match=r"state.json: holds a bad 'samples' \(\"lots\"\)"):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "a.txt").write_text("x")
+    with pytest.raises(PsctlError, match="busy: is not empty"):
+        T.average_weights([run / "best.pt", run / "model.pt"], tmp_path / "busy")
+    assert sorted(p.name for p in (tmp_path / "busy").iterdir()) == ["a.txt"]
