@@ -155,6 +155,14 @@ def check_recipe(config: dict) -> dict:
     if not isinstance(config["val"].get("data") or {}, dict):
         raise PsctlError(None, f"config 'val.data' must be a mapping of synth stream options, not "
                                f"{config['val']['data']!r}")
+    lc = config["lcnet"]
+    lo_hi = lc["ints_range"]
+    if not (len(lo_hi) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in lo_hi)
+            and 0 < lo_hi[0] < lo_hi[1] and math.isfinite(lo_hi[1])):  # reversed, the classes would run backwards
+        raise PsctlError(None, f"config 'lcnet.ints_range' must be two intensities 0 < low < high, not {lo_hi!r}")
+    for key in ("dirs_cls", "ints_cls"):  # one class cannot tell anything apart (and bin centres need two)
+        if lc[key] < 2:
+            raise PsctlError(None, f"config 'lcnet.{key}' must be at least 2 classes, not {lc[key]!r}")
     betas = config["train"]["betas"]
     if not all(0 <= b < 1 for b in betas):
         raise PsctlError(None, f"config 'train.betas' must be two numbers in [0, 1) (Adam's decay rates), not {betas!r}")

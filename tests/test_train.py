@@ -723,3 +723,17 @@ def test_a_tampered_run_is_one_error_on_resume(tmp_path):
     with pytest.raises(PsctlError, match="busy: is not empty"):
         T.average_weights([run / "best.pt", run / "model.pt"], tmp_path / "busy")
     assert sorted(p.name for p in (tmp_path / "busy").iterdir()) == ["a.txt"]
+
+
+@pytest.mark.parametrize("lcnet, needle", [
+    ({"ints_range": [2.0, 0.2]}, "lcnet.ints_range' must be two intensities 0 < low < high"),
+    ({"ints_range": [0.0, 2.0]}, "lcnet.ints_range' must be two intensities 0 < low < high"),
+    ({"dirs_cls": 1}, "lcnet.dirs_cls' must be at least 2 classes"),
+    ({"ints_cls": 1}, "lcnet.ints_cls' must be at least 2 classes"),
+])
+def test_lcnet_class_settings_are_checked(lcnet, needle):
+    """A review's fuzzing: a reversed intensity range and one class trained without a word."""
+    from psctl.train import DEFAULT_CONFIG, check_recipe
+
+    with pytest.raises(PsctlError, match=needle):
+        check_recipe(merge(DEFAULT_CONFIG, {"lcnet": lcnet}))
