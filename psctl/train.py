@@ -155,6 +155,9 @@ def check_recipe(config: dict) -> dict:
     if not isinstance(config["val"].get("data") or {}, dict):
         raise PsctlError(None, f"config 'val.data' must be a mapping of synth stream options, not "
                                f"{config['val']['data']!r}")
+    for where, value in (("train.init", config["train"].get("init")), ("lcnet.weights", config["lcnet"].get("weights"))):
+        if value is not None and not isinstance(value, str):  # a number or a list would fail later, unnamed
+            raise PsctlError(None, f"config '{where}' must be a weights file's path, not {value!r}")
     lc = config["lcnet"]
     lo_hi = lc["ints_range"]
     if not (len(lo_hi) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in lo_hi)

@@ -737,3 +737,12 @@ def test_lcnet_class_settings_are_checked(lcnet, needle):
 
     with pytest.raises(PsctlError, match=needle):
         check_recipe(merge(DEFAULT_CONFIG, {"lcnet": lcnet}))
+
+
+def test_weights_paths_in_a_recipe_are_named_when_wrong():
+    """train.init: 5 said 'weights must be a path ... not 5', naming neither file nor key."""
+    from psctl.train import DEFAULT_CONFIG, check_recipe
+
+    for cfg, key in (({"train": {"init": 5}}, "train.init"), ({"lcnet": {"weights": [1]}}, "lcnet.weights")):
+        with pytest.raises(PsctlError, match=f"config '{key}' must be a weights file's path"):
+            check_recipe(merge(DEFAULT_CONFIG, cfg))

@@ -320,7 +320,8 @@ def make_config(config: dict | None = None, **overrides) -> dict:
     lo, hi = cfg["scale"]
     if not (0 < cfg["crop"] <= cfg["size"] and cfg["crop"] <= lo <= hi):
         raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
-                               f"size {cfg['size']}, scale {cfg['scale']})")
+                               f"size {cfg['size']}, scale {cfg['scale']}; in a recipe: crop is train.crop or "
+                               f"val.size, size data.size, scale data.scale or val.data.scale)")
     if cfg["scale_law"] not in SCALE_LAWS:
         raise PsctlError(None, f"synth stream option 'scale_law': must be one of {', '.join(SCALE_LAWS)}, got {cfg['scale_law']!r}")
     if cfg["windows"] is not None and not (0 < int(cfg["windows"]) <= cfg["crop"]):
