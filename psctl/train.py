@@ -835,6 +835,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             first = " ".join(str(e).split())[:160]
             raise PsctlError(run / "model.pt", f"does not hold this {method} run's network ({first})") from None
         load_optimizer(run, optim, st["optim_files"], dev)
+        if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
+            best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
+            if best.method != method:
+                raise PsctlError(run / "best.pt", f"holds {best.method} weights, not this {method} run's")
 
     stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
                          crop=t["crop"], seed=st["stream_seed"], device=dev)

@@ -746,3 +746,13 @@ def test_weights_paths_in_a_recipe_are_named_when_wrong():
     for cfg, key in (({"train": {"init": 5}}, "train.init"), ({"lcnet": {"weights": [1]}}, "lcnet.weights")):
         with pytest.raises(PsctlError, match=f"config '{key}' must be a weights file's path"):
             check_recipe(merge(DEFAULT_CONFIG, cfg))
+
+
+def test_a_damaged_best_pt_stops_resume(tmp_path):
+    """A review's fuzzing: junk in best.pt went unnoticed, and the resumed run named it as its weights."""
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    assert (run / "best.pt").is_file()
+    (run / "best.pt").write_text("x\n")
+    with pytest.raises(PsctlError, match="best.pt"):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
