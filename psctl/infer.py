@@ -218,16 +218,10 @@ def _autocast(device: "torch.device", kind: str | None):
     return torch.autocast("cuda", dtype=dtypes[kind])
 
 
-def precision_autocast(precision: str, device: str = "auto") -> str | None:
-    """``DEFAULT_INFER["autocast"]`` for ``--precision`` (float32 -> None, bf16, fp16), checked
-    against ``device`` before any work: bf16 on a CPU that would emulate it, or fp16 off CUDA, is a
-    one-line error."""
-    from psctl.models import check_precision
-
-    kind = None if check_precision(precision) == "float32" else check_precision(precision)
-    if kind is not None:
-        _autocast(pick_device(device), kind)
-    return kind
+def check_autocast(kind: str, device: str = "auto") -> None:
+    """Autocast ``kind`` ("bf16", "fp16") on ``device``, checked before any work: bf16 on a CPU or
+    GPU that would emulate it, or fp16 off CUDA, is a one-line error (``psctl.models.precision_autocast``)."""
+    _autocast(pick_device(device), kind)
 
 
 # --- the image stream -------------------------------------------------------------------------

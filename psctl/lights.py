@@ -987,14 +987,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     check_views(views)  # options first: their errors name the option, not the capture folder
     if decode not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown --decode {decode!r}; choose argmax or soft")
-    from psctl.models import check_precision
+    from psctl.models import check_precision, precision_autocast
 
     precision = check_precision(precision)
-    net_cfg = {"device": device}
-    if precision != "float32" and refine:  # the network of the refinement; checked before any work
-        from psctl.infer import precision_autocast
-
-        net_cfg["autocast"] = precision_autocast(precision, device)
+    # the refinement's normals network; checked before any work
+    net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refine else None}
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer

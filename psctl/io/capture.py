@@ -216,7 +216,9 @@ def _not_utf8(path: Path) -> str:
     return "is not UTF-8 text (Latin-1 or another 8-bit encoding?): save it as UTF-8"
 
 
-def _read_list(path: Path, what: str = "images") -> list[str]:
+def _read_utf8(path: Path, what: str) -> str:
+    """A text file's contents, or a one-line error naming it: not UTF-8 (``_not_utf8`` says what it
+    looks like instead) or not readable (``what`` names it in the message)."""
     try:
         text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
         if "\0" in text:  # UTF-16 without a byte-order mark decodes as UTF-8 with a zero after each letter
@@ -224,7 +226,12 @@ def _read_list(path: Path, what: str = "images") -> list[str]:
     except UnicodeDecodeError:
         raise PsctlError(path, _not_utf8(path)) from None
     except OSError as e:
-        raise PsctlError(path, f"cannot read file ({e})") from None
+        raise PsctlError(path, f"cannot read {what} ({e})") from None
+    return text
+
+
+def _read_list(path: Path, what: str = "images") -> list[str]:
+    text = _read_utf8(path, "file")
     names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     if not names:
         raise PsctlError(path, f"lists no {what}")
@@ -240,14 +247,7 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
     Errors name the file and line: malformed numbers, wrong column counts, NaN/inf. ``lines``,
     when given, receives each row's line number in the file (comments and blank lines skipped).
     """
-    try:
-        text = path.read_text(encoding="utf-8-sig")  # -sig: Excel's and PowerShell's byte-order mark
-        if "\0" in text:  # UTF-16 without a byte-order mark decodes as UTF-8 with a zero after each letter
-            raise UnicodeDecodeError("utf-8", b"", 0, 1, "a zero byte")
-    except UnicodeDecodeError:
-        raise PsctlError(path, _not_utf8(path)) from None
-    except OSError as e:
-        raise PsctlError(path, f"cannot read {what} ({e})") from None
+    text = _read_utf8(path, what)
     rows: list[list[float]] = []
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()

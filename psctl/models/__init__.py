@@ -40,7 +40,7 @@ def check_downsample(k: object) -> int:
 
 
 # ``--precision``: the network methods' arithmetic. float32 (the default) gives the same normals
-# on every machine; bf16 / fp16 run the convolutions under autocast (psctl.infer._autocast).
+# on any CPU; bf16 / fp16 run the convolutions under autocast (psctl.infer._autocast).
 PRECISIONS = ("float32", "bf16", "fp16")
 
 
@@ -50,6 +50,19 @@ def check_precision(precision: object) -> str:
     if isinstance(precision, str) and precision.lower() in PRECISIONS:
         return precision.lower()
     raise PsctlError(None, f"unknown --precision {precision!r}; choose from {', '.join(PRECISIONS)}")
+
+
+def precision_autocast(precision: object, device: str = "auto") -> str | None:
+    """``psctl.infer.DEFAULT_INFER["autocast"]`` for ``--precision``: None for float32 (without
+    importing torch: l2 runs check the option too), else "bf16" / "fp16" once checked against
+    ``device`` (``psctl.infer.check_autocast``) before any work."""
+    kind = check_precision(precision)
+    if kind == "float32":
+        return None
+    from psctl.infer import check_autocast
+
+    check_autocast(kind, device)
+    return kind
 
 
 def check_device_name(name: str | None) -> str:
@@ -63,4 +76,5 @@ def check_device_name(name: str | None) -> str:
     raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
 
 
-__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", "check_device_name", "check_precision"]
+__all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", "check_device_name", "check_precision",
+           "precision_autocast"]
