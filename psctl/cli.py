@@ -80,6 +80,14 @@ class _Root(_Group):
         except typer.Abort:  # (typer's own name: its copy of click keeps Abort elsewhere)
             print("Aborted.", file=sys.stderr)
             sys.exit(1)
+        except SystemExit as e:
+            # click and Rich answer a closed stdout (`psctl info X | head -1`) with exit 1, having
+            # silenced stdout; 1 reads as a failure of psctl's own. Exit as cat and git do when their
+            # reader goes away: 128 + SIGPIPE, silently
+            if e.code == 1 and (isinstance(e.__context__, BrokenPipeError)
+                                or isinstance(sys.stdout, _click.utils.PacifyFlushWrapper)):
+                sys.exit(141)
+            raise
         # typer.Exit and Ctrl-C come back as an exit code; a finished command as None
         sys.exit(code if isinstance(code, int) else 0)
 

@@ -1430,3 +1430,19 @@ def test_second_review_of_the_fuzzing_fixes(capture, tmp_path, monkeypatch, caps
         raise RuntimeError("a bug")
     (tmp_path / "zeros.txt").write_bytes(bytes(64))
     assert "UTF-16" not in _not_utf8(tmp_path / "zeros.txt")
+
+
+def test_closed_stdout_exits_as_cat_does(capture, tmp_path):
+    """`psctl info X | head -1`: once the reader has gone, psctl stops silently with 128 + SIGPIPE
+    (click and Rich said 1, which reads as psctl's own failure); files already written stay."""
+    for args in (["info", capture], ["info", capture, "--json"], ["--help"],
+                 ["normals", capture, "-m", "l2", "-q", "-o", tmp_path / "o"]):
+        r, w = os.pipe()
+        os.close(r)  # no reader from the start: the first write fails, whatever its size
+        try:
+            proc = subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], stdout=w,
+                                  stderr=subprocess.PIPE, text=True)
+        finally:
+            os.close(w)
+        assert (proc.returncode, proc.stderr) == (141, ""), (args, proc.returncode, proc.stderr)
+    assert (tmp_path / "o" / "normal.png").is_file() and (tmp_path / "o" / "report.json").is_file()
