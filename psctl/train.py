@@ -307,6 +307,26 @@ def network_inputs(batch: dict, lights: bool, normalization: str) -> tuple[torch
     return images, (batch["lights"] if lights else None)
 
 
+@contextlib.contextmanager
+def _no_half_run(run: Path, log: Any, created: bool) -> Iterator[None]:
+    """Close the run's log; and if training fails (out of memory at the first step, a NaN loss, a
+    second Ctrl-C) before the first checkpoint, remove what it wrote: without state.json nothing
+    can be resumed, and a leftover best.pt would refuse the same --out next time."""
+    try:
+        yield
+    except BaseException:
+        log.close()
+        if not (run / "state.json").exists():
+            for name in ("log.jsonl", "best.pt"):
+                with contextlib.suppress(OSError):
+                    (run / name).unlink()
+            if created:
+                with contextlib.suppress(OSError):
+                    run.rmdir()  # only if empty: a file someone put there meanwhile stays
+        raise
+    log.close()
+
+
 class _Stop:
     """SIGINT/SIGTERM/SIGHUP set a flag; the loop checkpoints and leaves at the next step."""
 
@@ -853,6 +873,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     val = validation_set(config, task, dev, make_stream)
     # where fine-tuning starts from, measured before the folder exists (Ctrl-C here leaves none)
     init_mae = evaluate(task, val) if st.get("init") and st["samples"] == 0 and not st["val"] else None
+    created = not run.exists()
     run.mkdir(parents=True, exist_ok=True)  # only now: a bad recipe (crop > size, ...) leaves no folder behind
     log = open(run / "log.jsonl", "a")
     metric = f"synthetic_val_{task.metric}"
@@ -878,17 +899,16 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
 
         write_text_atomic(state_file, json.dumps(st, indent=1))
 
-    if init_mae is not None:
-        st["val"].append([0, round(init_mae, 4)])
-        log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")
-        log.flush()
-
     t_call = time.perf_counter()
     t_start = t_ckpt = t_call
     t_log, samples_log = t_call, st["samples"]
     next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
     loss_avg = None
-    with _Stop() as stop:
+    with _no_half_run(run, log, created), _Stop() as stop:
+        if init_mae is not None:
+            st["val"].append([0, round(init_mae, 4)])
+            log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")
+            log.flush()
         model.train()
         while st["samples"] < t["samples"]:
             for g in optim.param_groups:
@@ -896,7 +916,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             batch = stream.next_batch()
             loss = task.loss(batch)
             if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
-                kept = "the last checkpoint is kept" if state_file.is_file() else "no checkpoint had been written"
+                kept = "the last checkpoint is kept" if state_file.is_file() else "no checkpoint had been written, so nothing is kept"
                 raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
                                       f"({st['samples']:,} samples seen): stopped; {kept}")
             optim.zero_grad(set_to_none=True)
@@ -940,7 +960,6 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             st["seconds"] += time.perf_counter() - t_call
             with stop.whole():
                 checkpoint()
-    log.close()
     st["finished"] = st["samples"] >= t["samples"]
     st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM / SIGHUP's number)
     return st

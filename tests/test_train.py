@@ -69,8 +69,47 @@ def test_nan_loss_stops_the_run_before_the_step(tmp_path):
     with pytest.raises(PsctlError, match=r"training loss is nan at step 2"):
         train("ps-fcn", tiny(48), tmp_path / "run", device="cpu",
               make_stream=lambda *a, **k: Poisoned(synth_stream(*a, **k)))
-    # the run stopped before its first checkpoint: no weights file, so none with NaN in it
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["log.jsonl"]
+    # the run stopped before its first checkpoint: nothing to resume, so nothing is left (no
+    # weights file with NaN in it, no folder a new run with the same --out would trip on)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path):
+    """Out of memory at the first step left the new folder with an empty log.jsonl; a failure
+    after a validation also left best.pt, and the same --out was then refused."""
+    from psctl.train import synth_stream
+
+    class Failing:
+        def __init__(self, inner, at):
+            self.inner, self.at, self.calls = inner, at, 0
+
+        def next_batch(self):
+            self.calls += 1
+            if self.calls == self.at:
+                raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 1 bytes")
+            return self.inner.next_batch()
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    cfg = merge(tiny(48), {"train": {"val_every": 8}})
+    for at in (2, 4):  # the first training batch (the validation set takes one); after a validation
+        with pytest.raises(RuntimeError, match="can't allocate"):
+            train("ps-fcn", cfg, tmp_path / "run", device="cpu",
+                  make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), at))
+        assert not (tmp_path / "run").exists()
+    (tmp_path / "mine").mkdir()  # a folder the user made stays, emptied of what the run wrote
+    with pytest.raises(RuntimeError, match="can't allocate"):
+        train("ps-fcn", cfg, tmp_path / "mine", device="cpu",
+              make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), 4))
+    assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())
+    st = train("ps-fcn", cfg, tmp_path / "mine", device="cpu")  # and takes the run
+    assert st["finished"] and (tmp_path / "mine" / "best.pt").is_file()
+    # after a checkpoint a failure keeps the run, to resume
+    with pytest.raises(RuntimeError, match="can't allocate"):
+        train("ps-fcn", merge(cfg, {"train": {"samples": 96}}), tmp_path / "mine", resume=True, device="cpu",
+              make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), 3))
+    assert {"state.json", "model.pt", "best.pt", "log.jsonl"} <= {p.name for p in (tmp_path / "mine").iterdir()}
 
 
 def test_resume_continues_exactly(tmp_path):
