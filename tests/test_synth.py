@@ -1299,3 +1299,17 @@ def test_contact_sheet_of_small_renders_keeps_its_text_whole(tmp_path):
     sheet = read_image(rep["preview"])[0]
     assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT | NORMALS", 1) == [(2, 2)]
     assert _text_at(sheet, "BLOBBY_02", 1)
+
+
+def test_synth_refuses_more_objects_than_memory_holds():
+    """-k 100000000: every object's geometry is made before the first is rendered; that was an
+    out-of-memory kill after hours, not a line."""
+    import time
+
+    from psctl.synth.write import preset_objects
+
+    t = time.perf_counter()
+    for preset in ("blobby", "dragon-svbrdf"):
+        with pytest.raises(PsctlError, match=r"--materials 100000000 at --size 128 needs about [\d,]+ GiB"):
+            preset_objects(preset, size=128, n_lights=4, k=100_000_000)
+    assert time.perf_counter() - t < 5  # refused before any geometry is made

@@ -795,3 +795,21 @@ def test_a_damaged_best_pt_stops_resume(tmp_path):
     (run / "best.pt").write_text("x\n")
     with pytest.raises(PsctlError, match="best.pt"):
         train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+
+
+def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
+    """val.images: 100000 rendered for minutes and was killed for memory without a word."""
+    from psctl.train import check_memory, memory_needed
+
+    cfg = tiny(8)
+    small = memory_needed(cfg, torch.device("cpu"))
+    assert 0 < small < 2**27  # the tiny recipe: well under 128 MiB
+    check_memory(cfg, torch.device("cpu"))
+    huge = merge(cfg, {"val": {"images": 100_000, "size": 64, "samples": 256}})
+    assert memory_needed(huge, torch.device("cpu")) > 2**40
+    with pytest.raises(PsctlError, match=r"needs at least [\d,]+ GiB of memory .*config 'val'"):
+        train("ps-fcn", huge, tmp_path / "run", device="cpu")
+    assert not (tmp_path / "run").exists()
+    # the training stream's pool counts where it lives: on the host for a CPU run only
+    big_pool = merge(cfg, {"data": {"pool": 4096}})
+    assert memory_needed(big_pool, torch.device("cpu")) > memory_needed(big_pool, torch.device("meta")) + 2**28

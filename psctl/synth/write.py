@@ -118,6 +118,14 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     k = DEFAULT_K[preset] if k is None else k
     if k < 1:
         raise PsctlError(None, f"--materials must be at least 1 (got {k})")
+    # every object's geometry is made before the first is rendered: blobby's G-buffers (17 bytes a
+    # pixel, copied once per object while they are split: ~40 at the peak; blends and textures
+    # add ~5), dragon-svbrdf's blend weights (three per K, 4 bytes a pixel: 13 measured)
+    held = k * size * size * {"blobby": 40.0, "dragon-svbrdf": 13.0}.get(preset, 0.0)
+    if held + need > 0.8 * total:  # -k 100000000: an out-of-memory kill after hours, not a line
+        raise PsctlError(None, f"--materials {k} at --size {size} needs about {(held + need) / 2**30:,.0f} GiB of "
+                               f"memory (each object's geometry is held until it is written); this machine has "
+                               f"{total / 2**30:.0f} GiB: render fewer objects per folder")
     gen = torch.Generator().manual_seed(seed)
     lights = L.sample_lights((n_lights,), gen, light_dist)
     ones = torch.ones(n_lights)
