@@ -84,8 +84,7 @@ class _Root(_Group):
             # click and Rich answer a closed stdout (`psctl info X | head -1`) with exit 1, having
             # silenced stdout; 1 reads as a failure of psctl's own. Exit as cat and git do when their
             # reader goes away: 128 + SIGPIPE, silently
-            if e.code == 1 and (isinstance(e.__context__, BrokenPipeError)
-                                or isinstance(sys.stdout, _click.utils.PacifyFlushWrapper)):
+            if e.code == 1 and isinstance(e.__context__, BrokenPipeError):
                 sys.exit(141)
             raise
         # typer.Exit and Ctrl-C come back as an exit code; a finished command as None
@@ -523,12 +522,20 @@ def train(
 
             last = [0.0]
 
-            def log_line(rec: dict) -> None:
+            def log_line(rec: dict) -> bool:
                 if time.monotonic() - last[0] >= 30:
                     last[0] = time.monotonic()
-                    con.print(f"{rec['samples']:,}/{rec['total']:,} samples  loss {rec['loss']:.4f}  "
-                              f"{rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}  {rec['seconds']:.0f} s",
-                              highlight=False, soft_wrap=True)
+                    try:
+                        con.print(f"{rec['samples']:,}/{rec['total']:,} samples  loss {rec['loss']:.4f}  "
+                                  f"{rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}  {rec['seconds']:.0f} s",
+                                  highlight=False, soft_wrap=True)
+                    except BrokenPipeError:  # a closed pipe (`2>&1 | head`): stop at a checkpoint
+                        return True  # (exit 141) rather than die without one
+                    except SystemExit as e:  # Rich's own answer to the same
+                        if not isinstance(e.__context__, BrokenPipeError):
+                            raise
+                        return True
+                return False
 
             st = run_training(method, cfg, run_dir, progress=log_line, **kwargs)
         else:

@@ -195,10 +195,11 @@ def check_sizes(method: str, config: dict) -> None:
 
 
 def memory_needed(config: dict, device: torch.device) -> float:
-    """Bytes of host memory a run holds at least: the validation set (its stream batches and their
-    network inputs side by side while it is made, float32), the validation stream's geometry
-    pool, and the training stream's where it lives on the CPU. Python, torch and rendering a
-    batch come on top (configs/ps_fcn_n.yaml on the CPU: 0.95 GiB here, 1.8 GiB peak RSS)."""
+    """Bytes of host memory a run holds at least: the validation set (its stream batches and
+    their network inputs side by side while it is made, float32), the validation stream's
+    geometry pool, and the training stream's where it lives on the CPU. Python, torch and
+    rendering come on top. Against peak RSS on the CPU (2026-11-29, 2-core VM): 0.95 GiB here
+    and 1.8 GiB peak for configs/ps_fcn_n.yaml, 3.29 GiB and 6.0 GiB for configs/lcnet.yaml."""
     from psctl.synth.stream import make_config
 
     def pool(data: dict, crop: int) -> float:
@@ -221,9 +222,9 @@ def check_memory(config: dict, device: torch.device) -> None:
         return
     need = memory_needed(config, device)
     if need > 0.8 * total:
-        raise PsctlError(None, f"the recipe needs at least {need / 2**30:,.0f} GiB of memory (the validation set: "
-                               f"config 'val' samples, images, size; the geometry pools: 'data' pool, size) and this "
-                               f"machine has {total / 2**30:.0f} GiB: ask for less")
+        raise PsctlError(None, f"the recipe needs at least {need / 2**30:,.0f} GiB of memory, this machine has "
+                               f"{total / 2**30:.0f} GiB: ask for less (the validation set: config 'val' samples, "
+                               f"images, size; the geometry pools: 'data' pool, size)")
 
 
 def _unique_key_loader():
@@ -340,21 +341,33 @@ def network_inputs(batch: dict, lights: bool, normalization: str) -> tuple[torch
 
 
 @contextlib.contextmanager
-def _no_half_run(run: Path, log: Any, created: bool) -> Iterator[None]:
-    """Close the run's log; and if training fails (out of memory at the first step, a NaN loss, a
-    second Ctrl-C) before the first checkpoint, remove what it wrote: without state.json nothing
-    can be resumed, and a leftover best.pt would refuse the same --out next time."""
+def _no_half_run(run: Path, made: list[Path], log_start: int) -> Iterator[Any]:
+    """Open the run's log (yielded) and close it; and if training fails (out of memory at the
+    first step, a NaN loss, a second Ctrl-C, a full disk in the first checkpoint) before a
+    checkpoint is whole, remove what cannot be resumed without state.json (model.pt, stream.pt,
+    optim.*.pt). A validated best.pt is kept, with the log that says what it is; without one the
+    log goes back to what it held before this call (an earlier stopped run's lines stay) and the
+    folders this call made are removed, so that the same --out starts again."""
+    log = open(run / "log.jsonl", "a")
     try:
-        yield
+        yield log
     except BaseException:
         log.close()
         if not (run / "state.json").exists():
-            for name in ("log.jsonl", "best.pt"):
+            for p in [run / "model.pt", run / "stream.pt", *run.glob("optim.*.pt")]:
                 with contextlib.suppress(OSError):
-                    (run / name).unlink()
-            if created:
+                    p.unlink()
+            if not (run / "best.pt").exists():
                 with contextlib.suppress(OSError):
-                    run.rmdir()  # only if empty: a file someone put there meanwhile stays
+                    if log_start:
+                        os.truncate(run / "log.jsonl", log_start)
+                    else:
+                        (run / "log.jsonl").unlink()
+                for folder in made:  # the run folder, then parents it made; only while empty
+                    try:
+                        folder.rmdir()
+                    except OSError:
+                        break
         raise
     log.close()
 
@@ -766,7 +779,7 @@ def evaluate(task: Task, val: list[tuple]) -> float:
 
 
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
-          max_seconds: float | None = None, progress: Callable[[dict], None] | None = None,
+          max_seconds: float | None = None, progress: Callable[[dict], bool | None] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
@@ -777,7 +790,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         run_dir: run folder; with ``resume`` its checkpoint is continued.
         max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
             can be split into commands of a fixed length.
-        progress: called with a status dict after each logged step.
+        progress: called with a status dict after each logged step; if it returns True (it can no
+            longer report: the CLI's stderr lost its reader), the run stops at a checkpoint as on a
+            signal, and the returned state's ``signal`` is SIGPIPE's number.
         make_stream: the stream factory (default ``synth_stream``): returns an object with
             ``next_batch()``, and ``state_dict()`` / ``load_state_dict()`` for exact resumption.
         lcnet: ps-fcn-dagger only: the frozen LCNet's weights file (default: the recipe's
@@ -906,9 +921,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     val = validation_set(config, task, dev, make_stream)
     # where fine-tuning starts from, measured before the folder exists (Ctrl-C here leaves none)
     init_mae = evaluate(task, val) if st.get("init") and st["samples"] == 0 and not st["val"] else None
-    created = not run.exists()
+    made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
     run.mkdir(parents=True, exist_ok=True)  # only now: a bad recipe (crop > size, ...) leaves no folder behind
-    log = open(run / "log.jsonl", "a")
+    log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0
     metric = f"synthetic_val_{task.metric}"
 
     def metadata(metrics: dict) -> dict:
@@ -937,7 +952,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     t_log, samples_log = t_call, st["samples"]
     next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
     loss_avg = None
-    with _no_half_run(run, log, created), _Stop() as stop:
+    with _no_half_run(run, made, log_start) as log, _Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
             log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")
@@ -949,7 +964,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             batch = stream.next_batch()
             loss = task.loss(batch)
             if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
-                kept = "the last checkpoint is kept" if state_file.is_file() else "no checkpoint had been written, so nothing is kept"
+                kept = ("the last checkpoint is kept" if state_file.is_file() else
+                        f"no checkpoint had been written; best.pt (validated at {st['best_samples']:,} samples) is kept"
+                        if st["best_val"] is not None else "no checkpoint had been written, so nothing is kept")
                 raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
                                       f"({st['samples']:,} samples seen): stopped; {kept}")
             optim.zero_grad(set_to_none=True)
@@ -966,8 +983,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                        "seconds": round(st["seconds"] + now - t_call, 1)}
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
-                if progress:
-                    progress({**rec, "total": t["samples"]})
+                if progress and progress({**rec, "total": t["samples"]}) and not stop.requested:
+                    # the caller can no longer report (its reader went away): stop as on a signal,
+                    # at a checkpoint, as if SIGPIPE had been caught
+                    stop.requested, stop.signal = True, int(signal.SIGPIPE) if hasattr(signal, "SIGPIPE") else 13
                 t_log, samples_log = now, st["samples"]
             if st["samples"] >= next_val or st["samples"] >= t["samples"]:
                 mae = evaluate(task, val)

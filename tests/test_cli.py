@@ -1446,3 +1446,20 @@ def test_closed_stdout_exits_as_cat_does(capture, tmp_path):
             os.close(w)
         assert (proc.returncode, proc.stderr) == (141, ""), (args, proc.returncode, proc.stderr)
     assert (tmp_path / "o" / "normal.png").is_file() and (tmp_path / "o" / "report.json").is_file()
+
+
+def test_train_whose_stderr_reader_goes_away_stops_at_a_checkpoint(tmp_path):
+    """`psctl train ... 2>&1 | head -1` in a log: the progress line that finds no reader stops the
+    run at a checkpoint, exit 141 (it died at once, without one, before)."""
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "psctl.cli", "train", "ps-fcn", "--config",
+                               str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"), "--out", str(tmp_path / "run"), "--device", "cpu"],
+                              stdout=subprocess.PIPE, stderr=w, text=True)
+    finally:
+        os.close(w)
+    assert proc.returncode == 141 and proc.stdout == ""
+    state = json.loads((tmp_path / "run" / "state.json").read_text())
+    assert 0 < state["samples"] < 48  # stopped at the first progress line (tiny.yaml: 48 samples)
+    assert psctl("train", "ps-fcn", "--resume", tmp_path / "run", "--device", "cpu", "-q").returncode == 0

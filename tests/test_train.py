@@ -74,7 +74,7 @@ def test_nan_loss_stops_the_run_before_the_step(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path):
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, monkeypatch):
     """Out of memory at the first step left the new folder with an empty log.jsonl; a failure
     after a validation also left best.pt, and the same --out was then refused."""
     from psctl.train import synth_stream
@@ -92,25 +92,71 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path):
         def __getattr__(self, name):
             return getattr(self.inner, name)
 
+    def failing_at(at):  # the training stream only (made first); the validation set's stays whole
+        made = []
+
+        def make(*a, **k):
+            made.append(1)
+            return Failing(synth_stream(*a, **k), at) if len(made) == 1 else synth_stream(*a, **k)
+        return make
+
     cfg = merge(tiny(48), {"train": {"val_every": 8}})
-    for at in (2, 4):  # the first training batch (the validation set takes one); after a validation
-        with pytest.raises(RuntimeError, match="can't allocate"):
-            train("ps-fcn", cfg, tmp_path / "run", device="cpu",
-                  make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), at))
-        assert not (tmp_path / "run").exists()
+    with pytest.raises(RuntimeError, match="can't allocate"):  # the first step, in a folder with parents to make
+        train("ps-fcn", cfg, tmp_path / "a" / "b" / "run", device="cpu", make_stream=failing_at(1))
+    assert not (tmp_path / "a").exists()
+    # an earlier stopped run's log (configs/gpu_session.sh starts such folders again) keeps its lines
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "log.jsonl").write_text('{"step": 2}\n')
+    with pytest.raises(RuntimeError, match="can't allocate"):
+        train("ps-fcn", cfg, tmp_path / "run", device="cpu", make_stream=failing_at(2))
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["log.jsonl"]
+    assert (tmp_path / "run" / "log.jsonl").read_text() == '{"step": 2}\n'
+    # after a validation (8 samples: two batches of 4) best.pt is kept, with the log that says what it is
+    with pytest.raises(RuntimeError, match="can't allocate"):
+        train("ps-fcn", cfg, tmp_path / "v", device="cpu", make_stream=failing_at(3))
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["best.pt", "log.jsonl"]
+    assert '"val_mae"' in (tmp_path / "v" / "log.jsonl").read_text()
+    # a first checkpoint that fails half-way (a full disk at model.pt) leaves none of its parts
+    import psctl.models.weights as weights
+
+    real = weights.save_weights
+
+    def full_disk(path, *a, **k):
+        if Path(path).name == "model.pt":
+            raise OSError(28, "No space left on device", str(path))
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(weights, "save_weights", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        train("ps-fcn", merge(tiny(48), {"train": {"checkpoint_minutes": 0, "val_every": 1000}}), tmp_path / "c",
+              device="cpu")
+    assert not (tmp_path / "c").exists()
+    monkeypatch.undo()
     (tmp_path / "mine").mkdir()  # a folder the user made stays, emptied of what the run wrote
     with pytest.raises(RuntimeError, match="can't allocate"):
-        train("ps-fcn", cfg, tmp_path / "mine", device="cpu",
-              make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), 4))
+        train("ps-fcn", cfg, tmp_path / "mine", device="cpu", make_stream=failing_at(2))
     assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())
     st = train("ps-fcn", cfg, tmp_path / "mine", device="cpu")  # and takes the run
     assert st["finished"] and (tmp_path / "mine" / "best.pt").is_file()
     # after a checkpoint a failure keeps the run, to resume
     with pytest.raises(RuntimeError, match="can't allocate"):
         train("ps-fcn", merge(cfg, {"train": {"samples": 96}}), tmp_path / "mine", resume=True, device="cpu",
-              make_stream=lambda *a, **k: Failing(synth_stream(*a, **k), 3))
+              make_stream=failing_at(2))
     assert {"state.json", "model.pt", "best.pt", "log.jsonl"} <= {p.name for p in (tmp_path / "mine").iterdir()}
 
+
+def test_a_progress_that_cannot_report_stops_the_run_at_a_checkpoint(tmp_path):
+    """The CLI's progress returns True once stderr's reader is gone; the run then stops as on a
+    signal (SIGPIPE), checkpointed, instead of dying without a checkpoint."""
+    import signal
+
+    calls = []
+    st = train("ps-fcn", merge(tiny(480), {"train": {"log_every": 2}}), tmp_path / "run", device="cpu",
+               progress=lambda rec: calls.append(rec) or True)
+    assert len(calls) == 1 and st["signal"] == signal.SIGPIPE and not st["finished"]
+    assert st["samples"] == calls[0]["samples"] == 8 and (tmp_path / "run" / "state.json").is_file()
+    st = train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu", progress=lambda rec: None)
+    assert st["finished"] and st["samples"] == 480 and st["signal"] is None
 
 def test_resume_continues_exactly(tmp_path):
     """24 + 24 samples with a stop in between == 48 samples in one go."""
@@ -807,9 +853,12 @@ def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
     check_memory(cfg, torch.device("cpu"))
     huge = merge(cfg, {"val": {"images": 100_000, "size": 64, "samples": 256}})
     assert memory_needed(huge, torch.device("cpu")) > 2**40
-    with pytest.raises(PsctlError, match=r"needs at least [\d,]+ GiB of memory .*config 'val'"):
+    with pytest.raises(PsctlError, match=r"needs at least [\d,]+ GiB of memory, .*config 'val'"):
         train("ps-fcn", huge, tmp_path / "run", device="cpu")
     assert not (tmp_path / "run").exists()
+    # every shipped recipe fits an 8 GB laptop (the guard must not refuse what the project uses)
+    for recipe in sorted((REPO / "configs").glob("*.yaml")):
+        assert memory_needed(load_config(recipe), torch.device("cpu")) < 0.8 * 8 * 2**30, recipe.name
     # the training stream's pool counts where it lives: on the host for a CPU run only
     big_pool = merge(cfg, {"data": {"pool": 4096}})
     assert memory_needed(big_pool, torch.device("cpu")) > memory_needed(big_pool, torch.device("meta")) + 2**28
