@@ -198,8 +198,9 @@ def memory_needed(config: dict, device: torch.device) -> float:
     """Bytes of host memory a run holds at least: the validation set (its stream batches and
     their network inputs side by side while it is made, float32), the validation stream's
     geometry pool, and the training stream's where it lives on the CPU. Python, torch and
-    rendering come on top. Against peak RSS on the CPU (2026-11-29, 2-core VM): 0.95 GiB here
-    and 1.8 GiB peak for configs/ps_fcn_n.yaml, 3.29 GiB and 6.0 GiB for configs/lcnet.yaml."""
+    rendering come on top. Against peak RSS on the CPU (2026-11-29, 2-core VM, the validation set
+    made batch by batch): 0.95 GiB here and 1.7 GiB peak for configs/ps_fcn_n.yaml, 3.29 GiB and
+    5.3 GiB for configs/lcnet.yaml."""
     from psctl.synth.stream import make_config
 
     def pool(data: dict, crop: int) -> float:
@@ -749,10 +750,15 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
 def validation_batches(cfg: dict, device: torch.device, make_stream: Callable = synth_stream) -> list[dict]:
     """The stream batches of a recipe's fixed validation set (``val``: its seed, size, images and
     ``val.data`` over ``data``); benchmarks/val_compare.py measures other methods on the same."""
+    return list(_validation_stream(cfg, device, make_stream))
+
+
+def _validation_stream(cfg: dict, device: torch.device, make_stream: Callable) -> Iterator[dict]:
     v = cfg["val"]
     stream = make_stream({**cfg["data"], **(v.get("data") or {})}, batch_size=v["batch_size"], images=v["images"],
                          crop=v["size"], seed=v["seed"], device=device)
-    return [stream.next_batch() for _ in range(math.ceil(v["samples"] / v["batch_size"]))]
+    for _ in range(math.ceil(v["samples"] / v["batch_size"])):
+        yield stream.next_batch()
 
 
 def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Callable) -> list[tuple]:
@@ -760,10 +766,12 @@ def validation_set(cfg: dict, task: Task, device: torch.device, make_stream: Cal
 
     Rendered on the CPU whatever the training device, then moved there: CUDA's generator draws
     other numbers from the same seed, so a set rendered on the GPU was another set, and runs on
-    the two could not be compared (256 samples: 0.24 degrees apart between two seeds, session 44)."""
+    the two could not be compared (256 samples: 0.24 degrees apart between two seeds, session 44).
+    Each batch becomes the network's input as it comes: the raw batches are never all held (the
+    set's peak memory was twice its size)."""
     with torch.no_grad():
         return [task.val_item({k: v.to(device) if torch.is_tensor(v) else v for k, v in b.items()})
-                for b in validation_batches(cfg, torch.device("cpu"), make_stream)]
+                for b in _validation_stream(cfg, torch.device("cpu"), make_stream)]
 
 
 @torch.no_grad()
