@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -234,6 +235,12 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
                                + (f": {writer_error or _clean(err)}" if writer_error or err else ""))
 
 
+# File descriptor 2 is one per process: readers on several threads (psctl.io.capture reads a
+# capture's images in parallel) share one redirection, made by the first and undone by the last.
+# Each saving and restoring its own would leave stderr at /dev/null for good when they overlap.
+_quiet = {"lock": threading.Lock(), "depth": 0, "saved": -1, "fd": -1}
+
+
 @contextlib.contextmanager
 def _quiet_stderr() -> Iterator[None]:
     """Swallow what C libraries print on file descriptor 2 (libpng prints "libpng error: ..."
@@ -243,16 +250,24 @@ def _quiet_stderr() -> Iterator[None]:
     except (AttributeError, OSError, ValueError):
         yield
         return
-    sys.stderr.flush()
-    saved = os.dup(fd)
-    sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
-    os.dup2(sink, fd)
-    os.close(sink)
+    with _quiet["lock"]:
+        if _quiet["depth"] == 0:
+            sys.stderr.flush()
+            saved = os.dup(fd)
+            sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
+            os.dup2(sink, fd)
+            os.close(sink)
+            _quiet.update(saved=saved, fd=fd)
+        _quiet["depth"] += 1
     try:
         yield
     finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+        with _quiet["lock"]:
+            _quiet["depth"] -= 1
+            if _quiet["depth"] == 0:
+                os.dup2(_quiet["saved"], _quiet["fd"])
+                os.close(_quiet["saved"])
+                _quiet.update(saved=-1, fd=-1)
 
 
 def _clean(msg: str | None) -> str:
