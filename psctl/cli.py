@@ -123,6 +123,9 @@ LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights
 def _stderr():
     from rich.console import Console
 
+    images = sys.modules.get("psctl.io.images")
+    if images is not None:  # an image read still in flight on another thread has fd 2 at /dev/null
+        images.wait_for_stderr()
     return Console(stderr=True)
 
 

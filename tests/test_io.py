@@ -1339,3 +1339,45 @@ def test_images_are_read_ahead_in_order_and_the_first_bad_file_is_named(tmp_path
 
     proc = subprocess.run([sys.executable, "-c", code, *big, str(paths[2]), str(paths[6])], capture_output=True, text=True)
     assert proc.returncode == 0 and proc.stderr.endswith("stderr still here"), proc.stderr[-300:]
+
+
+def test_a_message_waits_for_reads_in_flight():
+    """The CLI prints an error after the main thread stopped, while another thread's read may
+    still hold fd 2 at /dev/null: psctl.io.images.wait_for_stderr holds the message until it ends."""
+    import subprocess
+
+    code = """if True:
+        import os, threading, time
+        from psctl.io.images import _quiet_stderr, wait_for_stderr
+        started = threading.Event()
+        def slow_read():
+            with _quiet_stderr():
+                started.set()
+                time.sleep(0.5)
+        t = threading.Thread(target=slow_read)
+        t.start()
+        started.wait()
+        os.write(2, b"lost;")  # inside the other thread's window: swallowed
+        wait_for_stderr()
+        os.write(2, b"kept")
+        t.join()
+    """
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0 and proc.stderr == "kept", proc.stderr
+
+
+def test_reads_in_flight_end_before_an_image_error_leaves_iter_images(tmp_path):
+    """An image that changed size since the folder was opened stops iter_images: the reads
+    already in flight on other threads end first (the pool is shut down on the way out), so
+    none holds fd 2 while the error is printed."""
+    import threading
+
+    from psctl.io.capture import iter_images
+
+    write_capture(tmp_path / "cap", n=12, size=64)
+    cap = open_capture(tmp_path / "cap")
+    write_image(cap.image_paths[1], np.full((32, 32, 3), 0.5, np.float32), "uint16")
+    with pytest.raises(PsctlError, match="differs from the other images") as e:
+        list(iter_images(cap))
+    assert cap.image_paths[1].name in str(e.value)
+    assert not [t for t in threading.enumerate() if t.name.startswith("psctl-read")]

@@ -15,6 +15,7 @@ before any pixel is decoded; ``iter_images`` then streams the pixels one image a
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -764,29 +765,32 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         rows, cols = np.arange(capture.height), np.arange(capture.width)
         if box is not None:
             rows, cols = rows[box[0]], cols[box[1]]
-    for k, (p, (pixels, info)) in enumerate(zip(capture.image_paths, read_ahead(capture.image_paths))):
-        if (info.width, info.height) != (capture.width, capture.height):  # changed since open
-            raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
-        rgb = to_rgb(pixels)
-        if box is not None:
-            rgb = rgb[box]
-        if clipped is not None and has_top_code(info):
-            clipped(k, saturated_map(rgb))
-        if capture.is_srgb(k):
-            rgb = srgb_to_linear(rgb)
-        if ambient is not None:
-            rgb = minus_ambient(rgb, ambient, capture, p.name)
-        with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
-            lit = rgb / capture.intensities[k]
-        if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
-            raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
-                                "pass float32's range; rescale the images or light_intensities.txt")
-        rgb = lit
-        if capture.near is not None:
-            rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
-        yield np.ascontiguousarray(rgb, dtype=np.float32)
-        if progress is not None:
-            progress(1)
+    # closed on the way out (an error, Ctrl-C, a consumer that stops): the reads in flight end
+    # before anything else happens, not while an error message is being printed
+    with contextlib.closing(read_ahead(capture.image_paths)) as reads:
+        for k, (p, (pixels, info)) in enumerate(zip(capture.image_paths, reads)):
+            if (info.width, info.height) != (capture.width, capture.height):  # changed since open
+                raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
+            rgb = to_rgb(pixels)
+            if box is not None:
+                rgb = rgb[box]
+            if clipped is not None and has_top_code(info):
+                clipped(k, saturated_map(rgb))
+            if capture.is_srgb(k):
+                rgb = srgb_to_linear(rgb)
+            if ambient is not None:
+                rgb = minus_ambient(rgb, ambient, capture, p.name)
+            with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
+                lit = rgb / capture.intensities[k]
+            if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
+                raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
+                                    "pass float32's range; rescale the images or light_intensities.txt")
+            rgb = lit
+            if capture.near is not None:
+                rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
+            yield np.ascontiguousarray(rgb, dtype=np.float32)
+            if progress is not None:
+                progress(1)
 
 
 # A run's note names the images with more of the object saturated than this: highlights of a

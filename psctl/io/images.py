@@ -238,7 +238,14 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
 # File descriptor 2 is one per process: readers on several threads (psctl.io.capture reads a
 # capture's images in parallel) share one redirection, made by the first and undone by the last.
 # Each saving and restoring its own would leave stderr at /dev/null for good when they overlap.
-_quiet = {"lock": threading.Lock(), "depth": 0, "saved": -1, "fd": -1}
+_quiet = {"lock": threading.Condition(), "depth": 0, "saved": -1, "fd": -1}
+
+
+def wait_for_stderr(timeout: float = 10.0) -> None:
+    """Wait until no reader holds file descriptor 2 at /dev/null (a read still in flight on
+    another thread after the main one stopped): a message printed then would be lost."""
+    with _quiet["lock"]:
+        _quiet["lock"].wait_for(lambda: _quiet["depth"] == 0, timeout)
 
 
 @contextlib.contextmanager
@@ -268,6 +275,7 @@ def _quiet_stderr() -> Iterator[None]:
                 os.dup2(_quiet["saved"], _quiet["fd"])
                 os.close(_quiet["saved"])
                 _quiet.update(saved=-1, fd=-1)
+                _quiet["lock"].notify_all()
 
 
 def _clean(msg: str | None) -> str:
