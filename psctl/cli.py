@@ -123,10 +123,7 @@ LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights
 def _stderr():
     from rich.console import Console
 
-    images = sys.modules.get("psctl.io.images")
-    if images is not None:  # an image read still in flight on another thread has fd 2 at /dev/null
-        images.wait_for_stderr()
-    return Console(stderr=True)
+    return Console(stderr=True)  # writes to sys.stderr as it is at each print (psctl.io.images._quiet_stderr)
 
 
 # errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
@@ -525,7 +522,9 @@ def train(
 
             last = [0.0]
 
-            def log_line(rec: dict) -> bool:
+            from psctl.train import STOP
+
+            def log_line(rec: dict) -> str | None:
                 if time.monotonic() - last[0] >= 30:
                     last[0] = time.monotonic()
                     try:
@@ -533,12 +532,12 @@ def train(
                                   f"{rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}  {rec['seconds']:.0f} s",
                                   highlight=False, soft_wrap=True)
                     except BrokenPipeError:  # a closed pipe (`2>&1 | head`): stop at a checkpoint
-                        return True  # (exit 141) rather than die without one
+                        return STOP  # (exit 141) rather than die without one
                     except SystemExit as e:  # Rich's own answer to the same
                         if not isinstance(e.__context__, BrokenPipeError):
                             raise
-                        return True
-                return False
+                        return STOP
+                return None
 
             st = run_training(method, cfg, run_dir, progress=log_line, **kwargs)
         else:

@@ -786,8 +786,12 @@ def evaluate(task: Task, val: list[tuple]) -> float:
     return total / max(1.0, count)
 
 
+# what a progress callback returns to stop the run at a checkpoint (train's ``progress``)
+STOP = "psctl.train.STOP"
+
+
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
-          max_seconds: float | None = None, progress: Callable[[dict], bool | None] | None = None,
+          max_seconds: float | None = None, progress: Callable[[dict], object] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
@@ -798,9 +802,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         run_dir: run folder; with ``resume`` its checkpoint is continued.
         max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
             can be split into commands of a fixed length.
-        progress: called with a status dict after each logged step; if it returns True (it can no
-            longer report: the CLI's stderr lost its reader), the run stops at a checkpoint as on a
-            signal, and the returned state's ``signal`` is SIGPIPE's number.
+        progress: called with a status dict after each logged step; if it returns ``STOP`` (it
+            can no longer report: the CLI's stderr lost its reader), the run stops at a checkpoint
+            as on a signal, and the returned state's ``signal`` is SIGPIPE's number. Any other
+            value is ignored (tqdm's ``update`` returns True when it redraws).
         make_stream: the stream factory (default ``synth_stream``): returns an object with
             ``next_batch()``, and ``state_dict()`` / ``load_state_dict()`` for exact resumption.
         lcnet: ps-fcn-dagger only: the frozen LCNet's weights file (default: the recipe's
@@ -826,6 +831,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     # a run writes log.jsonl, optim.*.pt, ... there; a folder with only a log.jsonl is a run of
     # ours that stopped before its first checkpoint (configs/gpu_session.sh starts it again)
     if not resume and run.is_dir() and [p.name for p in run.iterdir()] not in ([], ["log.jsonl"]):
+        if sorted(p.name for p in run.iterdir()) == ["best.pt", "log.jsonl"]:  # kept by _no_half_run
+            raise PsctlError(run, "holds the best.pt of a run that failed before its first checkpoint (nothing to "
+                                  "resume); keep it and choose another --out, or remove the folder")
         raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
     saved = None
     if resume:
@@ -991,7 +999,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                        "seconds": round(st["seconds"] + now - t_call, 1)}
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
-                if progress and progress({**rec, "total": t["samples"]}) and not stop.requested:
+                if progress and progress({**rec, "total": t["samples"]}) is STOP and not stop.requested:
                     # the caller can no longer report (its reader went away): stop as on a signal,
                     # at a checkpoint, as if SIGPIPE had been caught
                     stop.requested, stop.signal = True, int(signal.SIGPIPE) if hasattr(signal, "SIGPIPE") else 13

@@ -116,6 +116,8 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, m
         train("ps-fcn", cfg, tmp_path / "v", device="cpu", make_stream=failing_at(3))
     assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["best.pt", "log.jsonl"]
     assert '"val_mae"' in (tmp_path / "v" / "log.jsonl").read_text()
+    with pytest.raises(PsctlError, match="holds the best.pt of a run that failed before its first checkpoint"):
+        train("ps-fcn", cfg, tmp_path / "v", device="cpu")
     # a first checkpoint that fails half-way (a full disk at model.pt) leaves none of its parts
     import psctl.models.weights as weights
 
@@ -146,13 +148,18 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, m
 
 
 def test_a_progress_that_cannot_report_stops_the_run_at_a_checkpoint(tmp_path):
-    """The CLI's progress returns True once stderr's reader is gone; the run then stops as on a
-    signal (SIGPIPE), checkpointed, instead of dying without a checkpoint."""
+    """The CLI's progress returns STOP once stderr's reader is gone; the run then stops as on a
+    signal (SIGPIPE), checkpointed, instead of dying without a checkpoint. Another value (tqdm's
+    update returns True) stops nothing."""
     import signal
 
+    from psctl.train import STOP
+
+    st = train("ps-fcn", tiny(16), tmp_path / "truthy", device="cpu", progress=lambda rec: True)
+    assert st["finished"] and st["signal"] is None
     calls = []
     st = train("ps-fcn", merge(tiny(480), {"train": {"log_every": 2}}), tmp_path / "run", device="cpu",
-               progress=lambda rec: calls.append(rec) or True)
+               progress=lambda rec: calls.append(rec) or STOP)
     assert len(calls) == 1 and st["signal"] == signal.SIGPIPE and not st["finished"]
     assert st["samples"] == calls[0]["samples"] == 8 and (tmp_path / "run" / "state.json").is_file()
     st = train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu", progress=lambda rec: None)

@@ -711,13 +711,21 @@ def saturated_map(rgb: np.ndarray) -> np.ndarray:
     return top
 
 
-def read_ahead(paths: Sequence[Path], workers: int | None = None) -> Iterator[tuple[np.ndarray, ImageInfo]]:
-    """``read_image`` of each path, in order, decoded on up to ``workers`` threads (default: the
-    CPU count, at most 4) a few files ahead: decoding a PNG is most of reading one, and it runs
-    outside Python's lock, so a capture reads about twice as fast on two cores (ballPNG's 96
-    16-bit images: 1.07 -> 0.54 s). The first file that fails raises, as when read one by one;
-    at most ``workers`` images wait in memory."""
-    workers = max(1, min(4, os.cpu_count() or 1)) if workers is None else workers
+# Images decoded ahead may hold this much memory together (a 24-megapixel capture reads one at a
+# time, as before the read-ahead; a 12-megapixel one two at a time)
+READ_AHEAD_BYTES = 512 << 20
+
+
+def read_ahead(paths: Sequence[Path], workers: int | None = None,
+               image_bytes: int = 0) -> Iterator[tuple[np.ndarray, ImageInfo]]:
+    """``read_image`` of each path, in order, decoded on up to ``workers`` threads a few files
+    ahead (default: the CPU count, at most 4, and at most READ_AHEAD_BYTES of images of
+    ``image_bytes`` each in flight): decoding a PNG is most of reading one, and it runs outside
+    Python's lock, so a capture reads about twice as fast on two cores (ballPNG's 96 16-bit
+    images: 1.07 -> 0.54 s). The first file that fails, in order, raises, as when read one by
+    one. At most ``workers`` images are being read and one handed over at a time."""
+    if workers is None:
+        workers = max(1, min(4, os.cpu_count() or 1, READ_AHEAD_BYTES // max(image_bytes, 1)))
     if workers == 1 or len(paths) < 2:
         for p in paths:
             yield read_image(p)
@@ -767,7 +775,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rows, cols = rows[box[0]], cols[box[1]]
     # closed on the way out (an error, Ctrl-C, a consumer that stops): the reads in flight end
     # before anything else happens, not while an error message is being printed
-    with contextlib.closing(read_ahead(capture.image_paths)) as reads:
+    # float32 as read, up to 4 channels
+    with contextlib.closing(read_ahead(capture.image_paths, image_bytes=capture.width * capture.height * 16)) as reads:
         for k, (p, (pixels, info)) in enumerate(zip(capture.image_paths, reads)):
             if (info.width, info.height) != (capture.width, capture.height):  # changed since open
                 raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")

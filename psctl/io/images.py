@@ -10,9 +10,11 @@ of camera JPEGs (psctl.io.capture decides which images need it).
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
 import threading
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,46 +238,58 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
 
 
 # File descriptor 2 is one per process: readers on several threads (psctl.io.capture reads a
-# capture's images in parallel) share one redirection, made by the first and undone by the last.
-# Each saving and restoring its own would leave stderr at /dev/null for good when they overlap.
-_quiet = {"lock": threading.Condition(), "depth": 0, "saved": -1, "fd": -1}
+# capture's images in parallel) share one redirection, made by the first and undone by the last
+# (each saving and restoring its own left stderr at /dev/null for good when they overlapped).
+# Meanwhile Python's sys.stderr writes to a copy of the real stderr: a progress bar, a note or an
+# error printed by Python code during the reads still shows; only what C libraries write to fd 2
+# directly is swallowed.
+_quiet = {"lock": threading.Lock(), "depth": 0, "fd": -1, "stream": None, "was": None}
 
 
-def wait_for_stderr(timeout: float = 10.0) -> None:
-    """Wait until no reader holds file descriptor 2 at /dev/null (a read still in flight on
-    another thread after the main one stopped): a message printed then would be lost."""
-    with _quiet["lock"]:
-        _quiet["lock"].wait_for(lambda: _quiet["depth"] == 0, timeout)
+def _stderr_copy(fd: int) -> io.TextIOWrapper:
+    """A line-buffered text stream on a duplicate of ``fd``, like sys.stderr. The duplicate is
+    closed when the last holder lets go of the stream (a thread may be writing to it as the
+    redirection ends), never under it, and without a ResourceWarning."""
+    saved = os.dup(fd)
+    raw = io.BufferedWriter(io.FileIO(saved, "w", closefd=False))
+    stream = io.TextIOWrapper(raw, encoding=sys.stderr.encoding or "utf-8", errors=sys.stderr.errors or "backslashreplace",
+                              line_buffering=True)
+    weakref.finalize(stream, os.close, saved)
+    return stream
 
 
 @contextlib.contextmanager
 def _quiet_stderr() -> Iterator[None]:
     """Swallow what C libraries print on file descriptor 2 (libpng prints "libpng error: ..."
     for truncated files even though OpenImageIO also reports it): the CLI promises one line."""
-    try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):
-        yield
-        return
     with _quiet["lock"]:
         if _quiet["depth"] == 0:
-            sys.stderr.flush()
-            saved = os.dup(fd)
-            sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
-            os.dup2(sink, fd)
-            os.close(sink)
-            _quiet.update(saved=saved, fd=fd)
+            try:  # looked up under the lock: during a redirection sys.stderr is the copy
+                fd = sys.stderr.fileno()
+            except (AttributeError, OSError, ValueError):  # no descriptor (a StringIO): nothing to silence
+                fd = -1
+            if fd >= 0:
+                sys.stderr.flush()
+                stream = _stderr_copy(fd)
+                sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
+                os.dup2(sink, fd)
+                os.close(sink)
+                _quiet.update(fd=fd, stream=stream, was=sys.stderr)
+                sys.stderr = stream
         _quiet["depth"] += 1
     try:
         yield
     finally:
         with _quiet["lock"]:
             _quiet["depth"] -= 1
-            if _quiet["depth"] == 0:
-                os.dup2(_quiet["saved"], _quiet["fd"])
-                os.close(_quiet["saved"])
-                _quiet.update(saved=-1, fd=-1)
-                _quiet["lock"].notify_all()
+            if _quiet["depth"] == 0 and _quiet["stream"] is not None:
+                stream = _quiet["stream"]
+                with contextlib.suppress(OSError, ValueError):
+                    stream.flush()
+                os.dup2(stream.fileno(), _quiet["fd"])
+                if sys.stderr is stream:  # unless someone replaced it meanwhile
+                    sys.stderr = _quiet["was"]
+                _quiet.update(fd=-1, stream=None, was=None)
 
 
 def _clean(msg: str | None) -> str:
