@@ -1345,7 +1345,7 @@ def test_images_are_read_ahead_in_order_and_the_first_bad_file_is_named(tmp_path
         threads = [threading.Thread(target=read_all) for _ in range(4)]
         [t.start() for t in threads]
         [t.join() for t in threads]
-        assert _quiet["depth"] == 0 and _quiet["stream"] is None and sys.stderr is original
+        assert _quiet["depth"] == 0 and _quiet["forwarder"] is None and sys.stderr is original
         os.write(2, b"stderr still here")
     """
     import subprocess
@@ -1354,17 +1354,16 @@ def test_images_are_read_ahead_in_order_and_the_first_bad_file_is_named(tmp_path
     assert proc.returncode == 0 and proc.stderr == "stderr still here", proc.stderr[-300:]  # no libpng line either
 
 
-def test_python_output_shows_while_another_thread_reads():
-    """While a reader on another thread holds fd 2 at /dev/null (for libpng's messages), what
-    Python code prints to sys.stderr (a progress line, a note, an error) still shows: it goes to
-    a copy of the real stderr. Only writes to fd 2 itself are swallowed. Afterwards sys.stderr is
-    the original object again."""
+def test_output_shows_while_another_thread_reads():
+    """While a reader on another thread keeps libpng's lines off fd 2, everything else written
+    there (Python's prints, a progress bar, other C code) still shows, in order; only libpng's
+    own lines are dropped. sys.stderr is never swapped, and fd 2 is itself again afterwards."""
     import subprocess
 
     code = """if True:
-        import os, sys, threading, time
+        import os, sys, threading
         from psctl.io.images import _quiet, _quiet_stderr
-        original = sys.stderr
+        original, before = sys.stderr, os.fstat(2)
         started, done = threading.Event(), threading.Event()
         def slow_read():
             with _quiet_stderr():
@@ -1373,16 +1372,20 @@ def test_python_output_shows_while_another_thread_reads():
         t = threading.Thread(target=slow_read)
         t.start()
         started.wait()
-        os.write(2, b"lost;")  # what a C library writes: swallowed
+        assert sys.stderr is original
         print("progress 1", file=sys.stderr)
+        os.write(2, b"libpng error: IDAT: Read error\\n")  # what libpng prints: dropped
+        os.write(2, b"c-level;")
         sys.stderr.write("note;")
         done.set()
         t.join()
-        assert sys.stderr is original and _quiet["depth"] == 0 and _quiet["stream"] is None
+        after = os.fstat(2)
+        assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+        assert sys.stderr is original and _quiet["depth"] == 0 and _quiet["forwarder"] is None
         print("kept", file=sys.stderr)
     """
     proc = subprocess.run([sys.executable, "-W", "error::ResourceWarning", "-c", code], capture_output=True, text=True)
-    assert proc.returncode == 0 and proc.stderr == "progress 1\nnote;kept\n", proc.stderr
+    assert proc.returncode == 0 and proc.stderr == "progress 1\nc-level;note;kept\n", proc.stderr
 
 def test_reads_in_flight_end_before_an_image_error_leaves_iter_images(tmp_path, monkeypatch):
     """An image that changed size since the folder was opened stops iter_images: the reads
