@@ -120,12 +120,10 @@ PrecisionOpt = Annotated[str, typer.Option("--precision", help="Network methods:
 LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights). Given with --method auto, it selects sdps also on folders with light_directions.txt (which then only score the estimated lights).")]
 
 
-def _stderr(terminal: bool | None = None):
+def _stderr():
     from rich.console import Console
 
-    # terminal=True for progress bars, drawn only when stderr is a terminal: while images are
-    # read, fd 2 is a pipe (psctl.io.images._quiet_stderr), and Rich would stop drawing the bar
-    return Console(stderr=True, force_terminal=terminal)
+    return Console(stderr=True)
 
 
 # errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
@@ -239,7 +237,7 @@ def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=_stderr(terminal=True), transient=True) as bar:
+                  TimeRemainingColumn(), console=_stderr(), transient=True) as bar:
         def factory(description: str, total: int) -> Callable[[int], None]:
             task = bar.add_task(description, total=total)
             return lambda n: bar.advance(task, n)

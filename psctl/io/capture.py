@@ -15,7 +15,6 @@ before any pixel is decoded; ``iter_images`` then streams the pixels one image a
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -711,46 +710,6 @@ def saturated_map(rgb: np.ndarray) -> np.ndarray:
     return top
 
 
-# Images decoded ahead may hold this much memory together (a 24-megapixel capture reads one at a
-# time, as before the read-ahead; a 12-megapixel one two at a time)
-READ_AHEAD_BYTES = 512 << 20
-
-
-def read_ahead(paths: Sequence[Path], workers: int | None = None,
-               image_bytes: int = 0) -> Iterator[tuple[np.ndarray, ImageInfo]]:
-    """``read_image`` of each path, in order, decoded on up to ``workers`` threads a few files
-    ahead (default: the CPU count, at most 4, and at most READ_AHEAD_BYTES of images of
-    ``image_bytes`` each in flight): decoding a PNG is most of reading one, and it runs outside
-    Python's lock, so a capture reads about twice as fast on two cores (ballPNG's 96 16-bit
-    images: 1.07 -> 0.54 s). The first file that fails, in order, raises, as when read one by
-    one. At most ``workers`` images are being read and one handed over at a time."""
-    if workers is None:
-        workers = max(1, min(4, os.cpu_count() or 1, READ_AHEAD_BYTES // max(image_bytes, 1)))
-    if workers == 1 or len(paths) < 2:
-        for p in paths:
-            yield read_image(p)
-        return
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
-    pool = ThreadPoolExecutor(workers, thread_name_prefix="psctl-read")
-    try:
-        ahead: deque = deque()
-        it = iter(paths)
-        for p in it:
-            ahead.append(pool.submit(read_image, p))
-            if len(ahead) >= workers:
-                break
-        while ahead:
-            result = ahead.popleft().result()
-            for p in it:  # one more in flight before this one is handed over
-                ahead.append(pool.submit(read_image, p))
-                break
-            yield result
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # Ctrl-C or an error: the files in flight finish
-
-
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None) -> Iterator[np.ndarray]:
@@ -773,33 +732,30 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         rows, cols = np.arange(capture.height), np.arange(capture.width)
         if box is not None:
             rows, cols = rows[box[0]], cols[box[1]]
-    # closed on the way out (an error, Ctrl-C, a consumer that stops): the reads in flight end
-    # before anything else happens, not while an error message is being printed
-    # float32 as read, up to 4 channels
-    with contextlib.closing(read_ahead(capture.image_paths, image_bytes=capture.width * capture.height * 16)) as reads:
-        for k, (p, (pixels, info)) in enumerate(zip(capture.image_paths, reads)):
-            if (info.width, info.height) != (capture.width, capture.height):  # changed since open
-                raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
-            rgb = to_rgb(pixels)
-            if box is not None:
-                rgb = rgb[box]
-            if clipped is not None and has_top_code(info):
-                clipped(k, saturated_map(rgb))
-            if capture.is_srgb(k):
-                rgb = srgb_to_linear(rgb)
-            if ambient is not None:
-                rgb = minus_ambient(rgb, ambient, capture, p.name)
-            with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
-                lit = rgb / capture.intensities[k]
-            if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
-                raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
-                                    "pass float32's range; rescale the images or light_intensities.txt")
-            rgb = lit
-            if capture.near is not None:
-                rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
-            yield np.ascontiguousarray(rgb, dtype=np.float32)
-            if progress is not None:
-                progress(1)
+    for k, p in enumerate(capture.image_paths):
+        pixels, info = read_image(p)
+        if (info.width, info.height) != (capture.width, capture.height):  # changed since open
+            raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
+        rgb = to_rgb(pixels)
+        if box is not None:
+            rgb = rgb[box]
+        if clipped is not None and has_top_code(info):
+            clipped(k, saturated_map(rgb))
+        if capture.is_srgb(k):
+            rgb = srgb_to_linear(rgb)
+        if ambient is not None:
+            rgb = minus_ambient(rgb, ambient, capture, p.name)
+        with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
+            lit = rgb / capture.intensities[k]
+        if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
+            raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
+                                "pass float32's range; rescale the images or light_intensities.txt")
+        rgb = lit
+        if capture.near is not None:
+            rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]
+        yield np.ascontiguousarray(rgb, dtype=np.float32)
+        if progress is not None:
+            progress(1)
 
 
 # A run's note names the images with more of the object saturated than this: highlights of a

@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import sys
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,85 +234,25 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
                                + (f": {writer_error or _clean(err)}" if writer_error or err else ""))
 
 
-# libpng prints its own line for a broken file ("libpng error: IDAT: ...") on file descriptor 2,
-# beside the error OpenImageIO reports, and the CLI promises one line. While images are read
-# (on several threads: psctl.io.capture.read_ahead), fd 2 is a pipe whose reader thread copies
-# everything to the real stderr as it comes, less libpng's lines: what Python code prints
-# meanwhile (a progress bar, a note, an error) still shows, and sys.stderr is never swapped (a
-# notebook's or Rich's own stream stays as it is). One redirection for all readers, made by the
-# first and undone by the last (each saving and restoring its own left stderr at /dev/null for
-# good when they overlapped); fd 2 is not a terminal meanwhile.
-_quiet = {"lock": threading.Lock(), "depth": 0, "saved": -1, "forwarder": None}
-_LIBRARY_PREFIXES = (b"libpng error: ", b"libpng warning: ")
-_LIBRARY_LINE = re.compile(rb"libpng (?:error|warning): ")
-
-
-def _forward(read_fd: int, out_fd: int) -> None:
-    """Copy the pipe to ``out_fd`` until every writer has closed it, less libpng's lines; if the
-    real stderr is gone, keep draining, so that no writer blocks on a full pipe."""
-    owed = 0  # libpng writes its message, then its newline: two writes, other threads' between
-    try:
-        while True:
-            try:
-                chunk = os.read(read_fd, 1 << 16)
-            except OSError:
-                break
-            if not chunk:
-                break
-            kept = []
-            for seg in chunk.splitlines(keepends=True):
-                if seg.startswith(_LIBRARY_PREFIXES):
-                    n = len(_LIBRARY_LINE.findall(seg))  # messages run together, without their newlines
-                    owed += n - 1 if seg.endswith(b"\n") else n
-                elif seg == b"\n" and owed:
-                    owed -= 1
-                else:
-                    kept.append(seg)
-            out = b"".join(kept)
-            with contextlib.suppress(OSError):
-                while out:
-                    out = out[os.write(out_fd, out):]
-    finally:
-        os.close(read_fd)
-        os.close(out_fd)
-
-
 @contextlib.contextmanager
 def _quiet_stderr() -> Iterator[None]:
-    """Keep libpng's own lines off file descriptor 2 while the block runs (see _LIBRARY_LINE)."""
-    with _quiet["lock"]:
-        if _quiet["depth"] == 0:
-            try:
-                os.fstat(2)
-                ok = True
-            except OSError:  # no stderr at all: nothing to keep clean
-                ok = False
-            if ok:
-                with contextlib.suppress(Exception):
-                    sys.stderr.flush()  # what Python holds goes out before, in order
-                saved = os.dup(2)
-                r, w = os.pipe()
-                forwarder = threading.Thread(target=_forward, args=(r, os.dup(saved)), name="psctl-stderr", daemon=True)
-                forwarder.start()
-                os.dup2(w, 2)
-                os.close(w)
-                _quiet.update(saved=saved, forwarder=forwarder)
-        _quiet["depth"] += 1
-    forwarder = None
+    """Swallow what C libraries print on file descriptor 2 (libpng prints "libpng error: ..."
+    for truncated files even though OpenImageIO also reports it): the CLI promises one line."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
+    os.dup2(sink, fd)
+    os.close(sink)
     try:
         yield
     finally:
-        with _quiet["lock"]:
-            _quiet["depth"] -= 1
-            if _quiet["depth"] == 0 and _quiet["forwarder"] is not None:
-                with contextlib.suppress(Exception):
-                    sys.stderr.flush()  # through the pipe, before the switch back
-                os.dup2(_quiet["saved"], 2)  # closes the pipe's last writer: the copy ends
-                os.close(_quiet["saved"])
-                forwarder = _quiet["forwarder"]
-                _quiet.update(saved=-1, forwarder=None)
-        if forwarder is not None:
-            forwarder.join(1.0)  # drained (longer only if a child process inherited the pipe)
+        os.dup2(saved, fd)
+        os.close(saved)
 
 
 def _clean(msg: str | None) -> str:
