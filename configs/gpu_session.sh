@@ -74,7 +74,12 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
   for r in $RUNS; do
     IFS=: read -r m c name <<< "$r"
     restore $name
-    if [ -f runs/$name/state.json ]; then a=(--resume runs/$name); else a=(--config $c --out runs/$name); fi
+    if [ -f runs/$name/state.json ]; then a=(--resume runs/$name); else
+      # a run that failed before its first checkpoint keeps its validated best.pt (psctl train
+      # then refuses the folder): set it aside, with its log, and start the run again
+      [ -f runs/$name/best.pt ] && mv runs/$name runs/$name.early-$SECONDS
+      a=(--config $c --out runs/$name)
+    fi
     # --max-minutes counts training only; the setup before it (the validation set, the first
     # pool; with interreflections both are slow) is not, so SIGTERM at the deadline as well:
     # the run checkpoints at its next step and leaves, and the files are still packed in time
