@@ -41,6 +41,13 @@ _Command, _Group = _no_flag_type(typer.core.TyperCommand), _no_flag_type(typer.c
 _click = getattr(typer.core, "_click", None) or __import__("click")
 
 
+def _eprint(line: str) -> None:
+    """A line on stderr, or nowhere when there is none (`2>&-`: sys.stderr is None, and print
+    would write it to stdout, among the results)."""
+    if sys.stderr is not None:
+        print(line, file=sys.stderr)
+
+
 def _refuse_empty(argv: list[str]) -> None:
     """An empty argument is a mistake (an unset shell variable: ``-o "$OUT"``): no psctl option
     takes one, and click would make an empty path "." (the current folder) without a word."""
@@ -53,7 +60,7 @@ def _refuse_empty(argv: list[str]) -> None:
         sub = bool(argv) and not argv[0].startswith("-") and i > 0  # counted from the command's own arguments
         command = f"psctl {argv[0]}" if sub else "psctl"
         what = f"an empty value after {flag}" if flag else f"argument {i if sub else i + 1} is empty"
-        print(f"{command}: {what} (an unset shell variable?)", file=sys.stderr)
+        _eprint(f"{command}: {what} (an unset shell variable?)")
         sys.exit(2)
 
 
@@ -75,10 +82,10 @@ class _Root(_Group):
                 path = ctx.command_path if ctx is not None else (
                     f"psctl {argv[0]}" if argv and argv[0] in self.commands else "psctl")
                 where, hint = f"{path}: ", f"; see '{path} --help'"
-                print(f"{where}{e.format_message().rstrip('.')}{hint}", file=sys.stderr)
+                _eprint(f"{where}{e.format_message().rstrip('.')}{hint}")
             sys.exit(e.exit_code)
         except typer.Abort:  # (typer's own name: its copy of click keeps Abort elsewhere)
-            print("Aborted.", file=sys.stderr)
+            _eprint("Aborted.")
             sys.exit(1)
         except SystemExit as e:
             # click and Rich answer a closed stdout (`psctl info X | head -1`) with exit 1, having
@@ -226,12 +233,18 @@ def _user_errors() -> Iterator[None]:
         raise typer.Exit(130) from None
 
 
+def _stderr_is_terminal() -> bool:
+    """False also where there is no stderr at all: Python makes sys.stderr None when file
+    descriptor 2 is closed at start (`2>&-`, some daemons), and a run must still work."""
+    return sys.stderr is not None and sys.stderr.isatty()
+
+
 @contextlib.contextmanager
 def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None]] | None]:
     """A progress factory for the library (see psctl.api.ProgressFactory), drawn on stderr.
 
     Only on a terminal: in a log or a pipe a bar is noise (and Rich leaves an empty line)."""
-    if quiet or not sys.stderr.isatty():
+    if quiet or not _stderr_is_terminal():
         yield None
         return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -517,7 +530,9 @@ def train(
                       max_seconds=None if max_minutes is None else 60 * max_minutes)
         if quiet:
             st = run_training(method, cfg, run_dir, **kwargs)
-        elif not sys.stderr.isatty():  # a log (e.g. a remote GPU run): a plain line every 30 s
+        elif sys.stderr is None:  # closed (`2>&-`, a daemon): train quietly
+            st = run_training(method, cfg, run_dir, **kwargs)
+        elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s
             import time
 
             last = [0.0]

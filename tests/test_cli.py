@@ -1463,3 +1463,20 @@ def test_train_whose_stderr_reader_goes_away_stops_at_a_checkpoint(tmp_path):
     state = json.loads((tmp_path / "run" / "state.json").read_text())
     assert 0 < state["samples"] < 48  # stopped at the first progress line (tiny.yaml: 48 samples)
     assert psctl("train", "ps-fcn", "--resume", tmp_path / "run", "--device", "cpu", "-q").returncode == 0
+
+
+def test_a_closed_stderr_at_start_still_runs(capture, tmp_path):
+    """`psctl normals X 2>&-` (or a daemon without fd 2): Python makes sys.stderr None; the run
+    failed with exit 1 and wrote nothing. Now it runs, without progress bars or messages, and a
+    user error is still exit 2, with nothing printed on stdout in its place."""
+    run = lambda *a: subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, a)], capture_output=False,  # noqa: E731
+                                    stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.close(2))
+    proc = run("normals", capture, "-m", "l2", "-o", tmp_path / "o")
+    assert proc.returncode == 0 and (tmp_path / "o" / "normal.png").is_file()
+    proc = run("normals", tmp_path / "missing", "-m", "l2")
+    assert proc.returncode == 2 and proc.stdout == ""
+    proc = run("normals", capture, "--bogus")
+    assert proc.returncode == 2 and proc.stdout == ""
+    proc = run("train", "ps-fcn", "--config", Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml",
+               "--out", tmp_path / "run", "--device", "cpu")
+    assert proc.returncode == 0 and (tmp_path / "run" / "best.pt").is_file()
