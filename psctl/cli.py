@@ -48,6 +48,12 @@ def _eprint(line: str) -> None:
         print(line, file=sys.stderr)
 
 
+def _reader_gone(e: BaseException) -> bool:
+    """A write to a pipe whose reader went away (`| head`): BrokenPipeError, or the exit 1 that
+    click and Rich raise after catching one."""
+    return isinstance(e, BrokenPipeError) or (isinstance(e, SystemExit) and isinstance(e.__context__, BrokenPipeError))
+
+
 def _refuse_empty(argv: list[str]) -> None:
     """An empty argument is a mistake (an unset shell variable: ``-o "$OUT"``): no psctl option
     takes one, and click would make an empty path "." (the current folder) without a word."""
@@ -91,7 +97,7 @@ class _Root(_Group):
             # click and Rich answer a closed stdout (`psctl info X | head -1`) with exit 1, having
             # silenced stdout; 1 reads as a failure of psctl's own. Exit as cat and git do when their
             # reader goes away: 128 + SIGPIPE, silently
-            if e.code == 1 and isinstance(e.__context__, BrokenPipeError):
+            if e.code == 1 and _reader_gone(e):
                 sys.exit(141)
             raise
         # typer.Exit and Ctrl-C come back as an exit code; a finished command as None
@@ -528,9 +534,7 @@ def train(
         con = _stderr()
         kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
                       max_seconds=None if max_minutes is None else 60 * max_minutes)
-        if quiet:
-            st = run_training(method, cfg, run_dir, **kwargs)
-        elif sys.stderr is None:  # closed (`2>&-`, a daemon): train quietly
+        if quiet or sys.stderr is None:  # no stderr (`2>&-`, a daemon): as quiet
             st = run_training(method, cfg, run_dir, **kwargs)
         elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s
             import time
@@ -546,10 +550,8 @@ def train(
                         con.print(f"{rec['samples']:,}/{rec['total']:,} samples  loss {rec['loss']:.4f}  "
                                   f"{rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}  {rec['seconds']:.0f} s",
                                   highlight=False, soft_wrap=True)
-                    except BrokenPipeError:  # a closed pipe (`2>&1 | head`): stop at a checkpoint
-                        return STOP  # (exit 141) rather than die without one
-                    except SystemExit as e:  # Rich's own answer to the same
-                        if not isinstance(e.__context__, BrokenPipeError):
+                    except (BrokenPipeError, SystemExit) as e:  # a closed pipe (`2>&1 | head`): stop at a
+                        if not _reader_gone(e):                 # checkpoint (exit 141), not die without one
                             raise
                         return STOP
                 return None

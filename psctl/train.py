@@ -217,10 +217,9 @@ def memory_needed(config: dict, device: torch.device) -> float:
 def check_memory(config: dict, device: torch.device) -> None:
     """A recipe that needs more memory than the machine has is one line before minutes of
     rendering (``val.images: 100000`` was an out-of-memory kill, no word said)."""
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): no check
-        return
+    from psctl.synth import physical_memory
+
+    total = physical_memory()
     need = memory_needed(config, device)
     if need > 0.8 * total:
         raise PsctlError(None, f"the recipe needs at least {need / 2**30:,.0f} GiB of memory, this machine has "
@@ -342,13 +341,16 @@ def network_inputs(batch: dict, lights: bool, normalization: str) -> tuple[torch
 
 
 @contextlib.contextmanager
-def _no_half_run(run: Path, made: list[Path], log_start: int) -> Iterator[Any]:
-    """Open the run's log (yielded) and close it; and if training fails (out of memory at the
+def _no_half_run(run: Path) -> Iterator[Any]:
+    """Make the run folder, open its log (yielded) and close it; and if training fails (out of memory at the
     first step, a NaN loss, a second Ctrl-C, a full disk in the first checkpoint) before a
     checkpoint is whole, remove what cannot be resumed without state.json (model.pt, stream.pt,
     optim.*.pt). A validated best.pt is kept, with the log that says what it is; without one the
     log goes back to what it held before this call (an earlier stopped run's lines stay) and the
     folders this call made are removed, so that the same --out starts again."""
+    made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
+    run.mkdir(parents=True, exist_ok=True)
+    log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0
     log = open(run / "log.jsonl", "a")
     try:
         yield log
@@ -937,9 +939,6 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     val = validation_set(config, task, dev, make_stream)
     # where fine-tuning starts from, measured before the folder exists (Ctrl-C here leaves none)
     init_mae = evaluate(task, val) if st.get("init") and st["samples"] == 0 and not st["val"] else None
-    made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
-    run.mkdir(parents=True, exist_ok=True)  # only now: a bad recipe (crop > size, ...) leaves no folder behind
-    log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0
     metric = f"synthetic_val_{task.metric}"
 
     def metadata(metrics: dict) -> dict:
@@ -968,7 +967,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     t_log, samples_log = t_call, st["samples"]
     next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
     loss_avg = None
-    with _no_half_run(run, made, log_start) as log, _Stop() as stop:
+    # the folder is made only now: a bad recipe (crop > size, ...) leaves none behind
+    with _no_half_run(run) as log, _Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
             log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")

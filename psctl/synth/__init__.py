@@ -24,6 +24,17 @@ PRESETS = {
 DEFAULT_K = {"syntest": 4, "dragon-svbrdf": 1, "blobby": 8}
 
 
+def physical_memory() -> float:
+    """This machine's memory in bytes (inf where the system does not say: no sysconf on
+    Windows), for the guards that refuse work that cannot fit (psctl synth, psctl train)."""
+    import os
+
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return float("inf")
+
+
 def check_preset(preset: str) -> str:
     """The preset name, or a PsctlError listing the valid ones."""
     if preset not in PRESETS:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from psctl.errors import PsctlError
-from psctl.synth import DEFAULT_K, check_preset
+from psctl.synth import DEFAULT_K, check_preset, physical_memory
 from psctl.synth import lights as L
 from psctl.synth import materials as M
 from psctl.synth import render as R
@@ -108,10 +108,7 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     if not 0 <= seed <= MAX_SEED:  # seed + 1 and seed + 2 seed generators too; torch takes 64 bits
         raise PsctlError(None, f"--seed must be from 0 to 2^62 (got {seed})")
     need = render_bytes(size, n_lights)
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): no check
-        total = math.inf
+    total = physical_memory()
     if need > 0.8 * total:  # before minutes of work, and an out-of-memory kill or traceback
         raise PsctlError(None, f"--size {size} with {n_lights} lights needs about {need / 2**30:.0f} GiB of memory "
                                f"to render one object; this machine has {total / 2**30:.0f} GiB")
