@@ -41,8 +41,9 @@ import numpy as np
 from psctl.classic import dark_pixels
 from psctl.errors import PsctlError, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
-from psctl.models import NETWORK_METHODS, check_device_name, check_downsample
-from psctl.models.ps_fcn import HALO, NORM_EPS, STRIDE
+# the constants from psctl.models, not ps_fcn: importing this module does not import torch, so that
+# the images can be decoded while torch imports (psctl.io.prefetch)
+from psctl.models import HALO, NETWORK_METHODS, NORM_EPS, STRIDE, check_device_name, check_downsample
 
 if TYPE_CHECKING:
     import torch
@@ -65,6 +66,9 @@ DEFAULT_INFER = {
     "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
     "autocast": None,  # None | "bf16" (CUDA, CPUs with native bf16) | "fp16" (CUDA); off by default
+    # a helper process decodes the images (cut to the region) into a ring of shared memory of at most
+    # this many MB while this one imports torch and loads the weights (psctl.io.prefetch); 0 = off
+    "prefetch_mb": 256,
     # symmetric views averaged (psctl.symmetry): 1 = one pass (the paper); 8 = the capture turned
     # and mirrored about the view axis, each view's normals turned back, their unit mean. 8x the work.
     "views": 1,
@@ -96,6 +100,18 @@ class InferResult:
 
 def _ceil(v: int, m: int) -> int:
     return -(-v // m) * m
+
+
+def region_box(mask: np.ndarray, cfg: dict) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the region ``run_network`` processes under the config ``cfg``."""
+    H, W = mask.shape
+    return crop_region(mask, cfg["margin"]) if cfg["crop"] else (0, _ceil(H, STRIDE), 0, _ceil(W, STRIDE))
+
+
+def read_box(box: tuple[int, int, int, int], shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The part of a region ``box`` inside an image of ``shape`` (H, W): what is read of each image."""
+    y0, y1, x0, x1 = box
+    return slice(y0, min(y1, shape[0])), slice(x0, min(x1, shape[1]))
 
 
 def crop_region(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
@@ -239,7 +255,7 @@ class _RegionImages:
         y0, y1, x0, x1 = box
         H, W = mask.shape
         self.reader, self.n, self.advance = reader, n, advance
-        self.read_box = (slice(y0, min(y1, H)), slice(x0, min(x1, W)))
+        self.read_box = read_box(box, (H, W))
         self.rh, self.rw = min(y1, H) - y0, min(x1, W) - x0
         self.shape = (y1 - y0, x1 - x0)
         self.mask = mask[self.read_box].astype(np.float32)[..., None]
@@ -350,7 +366,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     model = model.to(device=device, memory_format=fmt).eval()
 
     H, W = mask.shape
-    box = crop_region(mask, cfg["margin"]) if cfg["crop"] else (0, _ceil(H, STRIDE), 0, _ceil(W, STRIDE))
+    box = region_box(mask, cfg)
     h, w = box[1] - box[0], box[3] - box[2]
     tiles = plan_tiles(h, w, cfg["tile"], cfg["halo"])
     groups = group_tiles(tiles, cfg["group_mb"] << 20)
@@ -677,21 +693,49 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     """A network method on a capture folder, streaming its images from disk. ``method``
     "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
     for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again."""
-    if method == "ensemble":
-        from psctl.io.capture import ImageCheck
+    with _prefetch(capture, mask, config) as decoded:
+        if method == "ensemble":
+            from psctl.io.capture import ImageCheck
 
-        # one check and one read of the images for all members: the second network takes the
-        # images the first read from memory (up to cache_mb), not from disk again
-        check = ImageCheck(capture)
-        reads = ReadMemo(check.reader(capture, mask), {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
-        return ensemble_normals([_capture_member(capture, mask, m, _no_weights(weights), config, progress, check, reads)
-                                 for m in ENSEMBLE])
-    return _capture_member(capture, mask, method, weights, config, progress)
+            # one check and one read of the images for all members: the second network takes the
+            # images the first read from memory (up to cache_mb), not from disk again
+            _no_weights(weights)
+            check = ImageCheck(capture)
+            reads = ReadMemo(check.reader(capture, mask, decoded), {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
+            res = ensemble_normals([_capture_member(capture, mask, m, None, config, progress, check, reads, decoded)
+                                    for m in ENSEMBLE])
+        else:
+            res = _capture_member(capture, mask, method, weights, config, progress, decoded=decoded)
+        res.info["prefetched"] = decoded.served
+    return res
+
+
+def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
+    """The helper process that decodes ``capture``'s images for the first pass over them
+    (``psctl.io.prefetch``), started before torch is imported, which is the time it wins. Off
+    (an object that serves nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads
+    shrunk images), an empty mask, or when torch is already imported (``psctl eval``'s later
+    objects: decoding here as the network runs takes the same time)."""
+    import sys
+
+    from psctl.io.prefetch import Prefetch
+
+    cfg = {**DEFAULT_INFER, **(config or {})}
+    mb = cfg["prefetch_mb"]
+    if isinstance(mb, bool) or not isinstance(mb, (int, np.integer)) or mb < 0:
+        raise PsctlError(None, f"prefetch_mb must be a whole number of MB >= 0 (0: off), got {mb!r}")
+    mask = np.asarray(mask, bool)
+    budget = int(mb) << 20
+    if "torch" in sys.modules or check_downsample(cfg["downsample"]) > 1 or not mask.any() \
+            or mask.shape != (capture.height, capture.width):
+        budget = 0
+    box = read_box(region_box(mask, cfg), mask.shape) if budget else (slice(0, 0), slice(0, 0))
+    return Prefetch(capture.image_paths, box, (capture.width, capture.height), budget)
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
                     config: dict | None, progress: "ProgressFactory | None", check=None,
-                    reads: "ReadMemo | None" = None) -> InferResult:
+                    reads: "ReadMemo | None" = None, decoded=None) -> InferResult:
     from psctl.io.capture import ImageCheck
 
     model, run, note = _prepare_network(method, weights, config)
@@ -708,7 +752,7 @@ def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: 
     if check is None:
         check = ImageCheck(capture)  # black images, negative values: notes
     # UPS-FCN reads the images undivided (capture replaced above): never through the shared reads
-    reader = reads if reads is not None and model.uses_lights else check.reader(capture, mask)
+    reader = reads if reads is not None and model.uses_lights else check.reader(capture, mask, decoded)
     with naming(capture.path):  # all images black, ...
         res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",

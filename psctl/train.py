@@ -186,7 +186,7 @@ def check_sizes(method: str, config: dict) -> None:
                                f"the key or train {config['method']}")
     if method == "lcnet":  # LCNet resizes every view to its input size
         return
-    from psctl.models.ps_fcn import STRIDE
+    from psctl.models import STRIDE
 
     for where, size in (("train.crop", config["train"]["crop"]), ("val.size", config["val"]["size"])):
         if size % STRIDE:

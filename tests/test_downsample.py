@@ -15,7 +15,7 @@ from psctl.errors import PsctlError
 from psctl.eval import run_benchmark
 from psctl.hotpixels import clamp_hot_pixels
 from psctl.infer import block_mean, check_downsample, run_network, run_views, upsample_normals
-from psctl.models.ps_fcn import HALO
+from psctl.models import HALO
 from psctl.models.weights import save_weights
 from tests.conftest import write_capture
 from tests.test_ps_fcn import model, scene

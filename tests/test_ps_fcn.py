@@ -18,7 +18,8 @@ import torch
 
 from psctl.errors import PsctlError
 from psctl.infer import all_at_once_normals, array_normals, crop_region, plan_tiles, run_network, run_views
-from psctl.models.ps_fcn import HALO, RECEPTIVE_RADIUS, PSFCN, count_parameters, normalize_observations
+from psctl.models import HALO, RECEPTIVE_RADIUS
+from psctl.models.ps_fcn import PSFCN, count_parameters, normalize_observations
 from psctl.models.weights import build_network, check_state_dict, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs, untransform_images
 from tests.conftest import hemisphere_lights, render_lambertian, sphere, write_capture

@@ -20,6 +20,7 @@ import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,6 +28,9 @@ from psctl.arrays import check_lights_face_camera, unit_rows
 from psctl.errors import PsctlError, check_int, check_path
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.nearlight import NearLights
+
+if TYPE_CHECKING:
+    from psctl.io.prefetch import Prefetch
 
 LIST_FILES = ("filenames.txt", "names.txt")
 LIGHTS_FILE = "light_directions.txt"
@@ -712,12 +716,14 @@ def saturated_map(rgb: np.ndarray) -> np.ndarray:
 
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None,
-                clipped: Callable[[int, np.ndarray], None] | None = None) -> Iterator[np.ndarray]:
+                clipped: Callable[[int, np.ndarray], None] | None = None,
+                decoded: "Prefetch | None" = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
     given, gets each integer image's [h, w] bool map of pixels at the top code value (saturated),
-    before anything is subtracted or divided."""
+    before anything is subtracted or divided. ``decoded`` (``psctl.io.prefetch.Prefetch``): the
+    images as a helper process decoded them, where it has them; the same values as reading here."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -733,12 +739,16 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if box is not None:
             rows, cols = rows[box[0]], cols[box[1]]
     for k, p in enumerate(capture.image_paths):
-        pixels, info = read_image(p)
-        if (info.width, info.height) != (capture.width, capture.height):  # changed since open
-            raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
-        rgb = to_rgb(pixels)
-        if box is not None:
-            rgb = rgb[box]
+        got = None if decoded is None or box is None else decoded.take(p, box)
+        if got is not None:
+            rgb, info = got  # cut to box in the helper; the same size checked there
+        else:
+            pixels, info = read_image(p)
+            if (info.width, info.height) != (capture.width, capture.height):  # changed since open
+                raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
+            rgb = to_rgb(pixels)
+            if box is not None:
+                rgb = rgb[box]
         if clipped is not None and has_top_code(info):
             clipped(k, saturated_map(rgb))
         if capture.is_srgb(k):
@@ -799,14 +809,17 @@ class ImageCheck:
         if pixels.size and pixels.min() < 0:
             self.negative.add(k)
 
-    def reader(self, capture: Capture, mask: np.ndarray) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
+    def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None
+               ) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
         """The network runners' reader: ``capture``'s images from ``start`` on, cut to ``box``,
         each seen by this check over ``mask`` (``capture`` may be this check's with other
-        intensities: the image indices, and so the names in the notes, are the same)."""
+        intensities: the image indices, and so the names in the notes, are the same).
+        ``decoded``: as ``iter_images``."""
 
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
-                                                clipped=self.clipped_reader(mask, box, start)), start):
+                                                clipped=self.clipped_reader(mask, box, start), decoded=decoded),
+                                    start):
                 self.see(k, img[mask[box]])
                 yield img
 

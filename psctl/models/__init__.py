@@ -30,6 +30,16 @@ LIGHT_METHODS: dict[str, dict] = {
 # Every method that has a weights file.
 WEIGHTS_METHODS: dict[str, dict] = {**NETWORK_METHODS, **LIGHT_METHODS}
 
+# Two stride-2 convolutions: inputs must have sides that are a multiple of this.
+STRIDE = 4
+# Receptive field radius of the whole network (extractor + regressor) in input pixels, measured
+# (tests/test_ps_fcn.py checks it on the real model): one output pixel depends on inputs at most
+# 23 px away. Tiles and crops keep this much context (rounded up to STRIDE) so that tiling and
+# cropping give the same normals as one pass over the full image.
+RECEPTIVE_RADIUS = 23
+HALO = -(-RECEPTIVE_RADIUS // STRIDE) * STRIDE  # 24
+NORM_EPS = 1e-10  # +N: added to the norm, as the authors do
+
 
 def check_downsample(k: object) -> int:
     """``--downsample`` (``psctl.infer.run_downsampled``): ``k`` if it is an integer >= 1, else a

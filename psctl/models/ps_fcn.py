@@ -30,27 +30,22 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from psctl.models import NORM_EPS
+
 DEFAULT_CONFIG = {
     "lights": True,  # 6 input channels (RGB + light direction); False: UPS-FCN, 3 channels
     "fuse": "max",  # "max" (the paper) or "mean"
     "slope": 0.1,  # LeakyReLU negative slope
 }
 
-# Two stride-2 convolutions: inputs must have sides that are a multiple of this.
-STRIDE = 4
-# Receptive field radius of the whole network (extractor + regressor) in input pixels, measured
-# (tests/test_ps_fcn.py checks it on the real model): one output pixel depends on inputs at most
-# 23 px away. Tiles and crops keep this much context (rounded up to STRIDE) so that tiling and
-# cropping give the same normals as one pass over the full image.
-RECEPTIVE_RADIUS = 23
-HALO = math.ceil(RECEPTIVE_RADIUS / STRIDE) * STRIDE  # 24
+# The network's STRIDE (4), RECEPTIVE_RADIUS (23) and HALO (24) are in psctl/models/__init__.py:
+# the inference engine reads them without importing torch.
 
 # +N variants. "per-channel": each colour channel divided by its norm over the N images (the
 # paper's definition; the authors' code does the same: pms_transforms.normalize reshapes each
 # H x W x 3 image to a column of H*W*3 values, so the norm runs over images per pixel and per
 # channel). "per-pixel": the concatenated 3N-vector of a pixel divided by its norm.
 NORMALIZATIONS = ("none", "per-channel", "per-pixel")
-NORM_EPS = 1e-10  # added to the norm, as the authors do
 
 
 def _conv(c_in: int, c_out: int, stride: int, slope: float) -> nn.Sequential:

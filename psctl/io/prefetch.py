@@ -1,0 +1,194 @@
+"""Decoding a capture's images in a helper process while psctl starts its network.
+
+Before the first image goes through a network, psctl imports torch and loads the weights (about
+1 s on a laptop CPU), and decoding 96 16-bit PNGs takes about as long again on one core.
+``Prefetch`` runs the decoding in a child Python process, which writes each image, cut to the
+region the network reads, into shared memory: the two overlap on two cores (docs/performance.md,
+"Decoding while torch imports").
+
+The child only decodes (``read_image``, ``to_rgb``, the crop). Everything the readers do next
+(intensities, ambient, saturation and black-image checks, notes) stays in this process. Whatever
+the child cannot do (an unreadable file, a size that changed, a crash, a system without
+``memfd_create``) only means that this process reads that image and the rest itself, as it did
+before: the same values, and the same one-line errors. A process and not a thread, because psctl
+silences file descriptor 2 around each decode (libpng prints its own line for a broken PNG) and a
+process's threads share fd 2 (docs/performance.md, "Reading on two threads").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import mmap
+import os
+import select
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from psctl.io.images import ImageInfo
+
+# A decode that takes longer than this (seconds) is given up and read here instead: the largest
+# EXR decodes in a few seconds; a child that hangs must not hang psctl.
+TIMEOUT = 120.0
+
+# The child: psctl importable from the same sys.path as this process (a source checkout, a
+# notebook's added paths), then the loop. Its stderr is /dev/null: a failure is read again here.
+_BOOT = "import sys, json; sys.path[:] = json.loads(sys.argv[1]); from psctl.io.prefetch import _child; _child()"
+
+_Box = tuple[slice, slice]
+
+
+def _box_key(box: _Box) -> tuple[int, int, int, int]:
+    return (box[0].start, box[0].stop, box[1].start, box[1].stop)
+
+
+class Prefetch:
+    """Decode ``paths`` in order in a child process, each cut to ``box`` (two slices with
+    explicit starts and stops inside the ``size`` (width, height) of the capture), into a ring
+    of shared memory of at most ``budget`` bytes.
+
+    ``take(path, box)``, called for the paths in order, returns what ``read_image`` and
+    ``to_rgb`` give for that image, cut to ``box``: ([h, w, 3] float32, ImageInfo); or None,
+    from which point on the caller reads the images itself: the child stopped (an image it
+    could not decode or whose size changed: the caller's own read then gives the error), or
+    the call is not the next path with this box. ``served`` counts the images handed over.
+    Use it as a context manager, or call ``close()``: the child is killed and its memory freed.
+    When the ring cannot be made (no ``os.memfd_create``, an image larger than ``budget``), the
+    object starts nothing and every ``take`` returns None.
+    """
+
+    def __init__(self, paths: Sequence[Path], box: _Box, size: tuple[int, int], budget: int):
+        self.paths = list(paths)
+        self.key = _box_key(box)
+        y0, y1, x0, x1 = self.key
+        self.shape = (y1 - y0, x1 - x0, 3)
+        self.served = 0
+        self.proc: subprocess.Popen | None = None
+        self.mm: mmap.mmap | None = None
+        self.fd = -1
+        self._buf = b""
+        page = mmap.PAGESIZE  # slots on page boundaries: a used slot's pages are given back at once
+        self.slot = -(-int(np.prod(self.shape)) * 4 // page) * page
+        # at most 4096 images ahead: the credits for them fit in the pipe's 64 KiB
+        self.slots = min(len(self.paths), budget // self.slot, 4096) if self.slot else 0
+        if self.slots < 1 or not hasattr(os, "memfd_create") or min(self.shape[:2]) < 1 \
+                or not sys.executable or getattr(sys, "frozen", False):  # no Python to start (embedded, frozen)
+            return
+        try:
+            self.fd = os.memfd_create("psctl-prefetch")
+            os.ftruncate(self.fd, self.slots * self.slot)
+            self.mm = mmap.mmap(self.fd, self.slots * self.slot)
+            # the list of files in a file of its own: through the pipe, thousands of names would
+            # wait for the child's start (its imports), which is the time this is meant to win
+            spec = json.dumps({"paths": [os.fsdecode(p) for p in self.paths], "box": self.key, "size": list(size),
+                               "fd": self.fd, "slots": self.slots, "slot": self.slot}).encode()  # ASCII
+            spec_fd = os.memfd_create("psctl-prefetch-spec")
+            try:
+                os.write(spec_fd, spec)  # tmpfs: one call writes it all
+                os.lseek(spec_fd, 0, os.SEEK_SET)
+                where = json.dumps([p for p in sys.path if isinstance(p, str)])
+                self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, where, str(spec_fd)], bufsize=0,
+                                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                             pass_fds=(self.fd, spec_fd))
+            finally:
+                os.close(spec_fd)
+        except (OSError, ValueError):  # no memory for the ring, no process to spare: read here
+            self.close()
+
+    def __enter__(self) -> "Prefetch":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the child (if still running) and free the ring. Idempotent."""
+        proc, self.proc = self.proc, None
+        if proc is not None:
+            for f in (proc.stdin, proc.stdout):  # first: a child waiting on a pipe then ends by itself
+                try:
+                    f.close()
+                except OSError:
+                    pass
+            if proc.poll() is None:
+                proc.kill()  # mid-decode: no need to wait for that image
+            proc.wait()
+        if self.mm is not None:
+            self.mm.close()
+            self.mm = None
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+    def _line(self) -> bytes | None:
+        """The child's next status line, None at its end or after TIMEOUT."""
+        out = self.proc.stdout.fileno()
+        poll = select.poll()  # not select.select: it fails for descriptors above 1023
+        poll.register(out, select.POLLIN)
+        while b"\n" not in self._buf:
+            chunk = os.read(out, 65536) if poll.poll(TIMEOUT * 1000) else b""
+            if not chunk:
+                return None
+            self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        return line
+
+    def take(self, path: Path, box: _Box) -> tuple[np.ndarray, ImageInfo] | None:
+        k = self.served
+        if self.proc is None or k >= len(self.paths) or Path(path) != self.paths[k] or _box_key(box) != self.key:
+            self.close()  # out of order or another region: the caller reads from here on
+            return None
+        try:
+            line = self._line()
+            status = json.loads(line) if line else None
+        except (OSError, ValueError):
+            status = None
+        if not isinstance(status, dict) or status.get("k") != k or not isinstance(status.get("info"), dict):
+            self.close()
+            return None
+        off = (k % self.slots) * self.slot
+        pixels = np.frombuffer(self.mm, np.float32, int(np.prod(self.shape)), off).reshape(self.shape).copy()
+        if hasattr(mmap, "MADV_REMOVE"):
+            self.mm.madvise(mmap.MADV_REMOVE, off, self.slot)  # the pages go back now, not at the end
+        self.served += 1
+        try:
+            self.proc.stdin.write(b"\x01")  # the slot is free again
+        except OSError:  # the child has finished
+            pass
+        return pixels, ImageInfo(self.paths[k], **status["info"])
+
+
+def _child() -> None:
+    """The helper process: decode, crop, write into the ring slot, say so on stdout; wait for a
+    free slot on stdin. Any failure ends it; the parent then reads the image itself."""
+    try:
+        import OpenImageIO as oiio
+
+        from psctl.io.images import read_image, to_rgb
+
+        oiio.attribute("threads", 1)  # one core: the other one is the parent's
+        with open(int(sys.argv[2]), "rb") as f:
+            spec = json.loads(f.read())
+        y0, y1, x0, x1 = spec["box"]
+        shape = (y1 - y0, x1 - x0, 3)
+        slots, slot = spec["slots"], spec["slot"]
+        ring = mmap.mmap(spec["fd"], slots * slot)
+        for k, name in enumerate(spec["paths"]):
+            if k >= slots and not os.read(0, 1):  # wait until the parent has taken a slot's image
+                break
+            pixels, info = read_image(name)
+            if [info.width, info.height] != spec["size"]:
+                break  # the parent's own read says what is wrong
+            rgb = to_rgb(pixels)[y0:y1, x0:x1]
+            if rgb.shape != shape:
+                break
+            np.frombuffer(ring, np.float32, rgb.size, (k % slots) * slot).reshape(shape)[...] = rgb
+            header = {f.name: getattr(info, f.name) for f in dataclasses.fields(info) if f.name != "path"}
+            os.write(1, json.dumps({"k": k, "info": header}).encode() + b"\n")
+    except BaseException:  # noqa: BLE001 - whatever it was, the parent reads the image itself
+        pass
+    os._exit(0)
