@@ -177,3 +177,23 @@ def test_a_bad_prefetch_setting_is_one_line(tmp_path):
     for bad in (-1, 1.5, "64", True):
         with pytest.raises(PsctlError, match="prefetch_mb must be a whole number"):
             capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad})
+
+
+def test_the_helper_works_when_stderr_was_closed_at_start(tmp_path):
+    """A process started with fd 2 closed (``2>&-``, a daemon) is handed fd 2 for the ring by the
+    system; the child's stderr (/dev/null) would then replace it. The ring is moved above 2."""
+    write_capture(tmp_path / "cap", n=6, size=40)
+    code = textwrap.dedent(f"""
+        import json, sys
+        import numpy as np
+        from psctl.io.capture import open_capture, load_mask
+        from psctl.infer import capture_normals
+        cap = open_capture({str(tmp_path / "cap")!r}); mask = load_mask(cap)
+        a = capture_normals(cap, mask, "ps-fcn-n")
+        b = capture_normals(cap, mask, "ps-fcn-n", config={{"prefetch_mb": 0}})
+        print(json.dumps([a.info["prefetched"], bool(np.array_equal(a.normals, b.normals))]))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=tmp_path,
+                          timeout=300, preexec_fn=lambda: os.close(2))
+    assert proc.returncode == 0
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [6, True]

@@ -42,6 +42,19 @@ _BOOT = "import sys, json; sys.path[:] = json.loads(sys.argv[1]); from psctl.io.
 _Box = tuple[slice, slice]
 
 
+def _above_stdio(fd: int) -> int:
+    """``fd`` moved to 3 or above: a process started with stdout or stderr closed (``2>&-``)
+    hands out 1 or 2 next, where a C library's message (libpng's) would land in the ring."""
+    if fd > 2:
+        return fd
+    import fcntl  # here: not on Windows (which has no memfd_create either)
+
+    try:
+        return fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 3)
+    finally:
+        os.close(fd)
+
+
 def _box_key(box: _Box) -> tuple[int, int, int, int]:
     return (box[0].start, box[0].stop, box[1].start, box[1].stop)
 
@@ -79,14 +92,14 @@ class Prefetch:
                 or not sys.executable or getattr(sys, "frozen", False):  # no Python to start (embedded, frozen)
             return
         try:
-            self.fd = os.memfd_create("psctl-prefetch")
+            self.fd = _above_stdio(os.memfd_create("psctl-prefetch"))
             os.ftruncate(self.fd, self.slots * self.slot)
             self.mm = mmap.mmap(self.fd, self.slots * self.slot)
             # the list of files in a file of its own: through the pipe, thousands of names would
             # wait for the child's start (its imports), which is the time this is meant to win
             spec = json.dumps({"paths": [os.fsdecode(p) for p in self.paths], "box": self.key, "size": list(size),
                                "fd": self.fd, "slots": self.slots, "slot": self.slot}).encode()  # ASCII
-            spec_fd = os.memfd_create("psctl-prefetch-spec")
+            spec_fd = _above_stdio(os.memfd_create("psctl-prefetch-spec"))
             try:
                 os.write(spec_fd, spec)  # tmpfs: one call writes it all
                 os.lseek(spec_fd, 0, os.SEEK_SET)
@@ -98,6 +111,9 @@ class Prefetch:
                 os.close(spec_fd)
         except (OSError, ValueError):  # no memory for the ring, no process to spare: read here
             self.close()
+        except BaseException:  # Ctrl-C while starting: nothing left behind
+            self.close()
+            raise
 
     def __enter__(self) -> "Prefetch":
         return self
