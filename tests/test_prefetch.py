@@ -179,11 +179,49 @@ def test_a_bad_prefetch_setting_is_one_line(tmp_path):
             capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad})
 
 
-def test_the_helper_works_when_stderr_was_closed_at_start(tmp_path):
-    """A process started with fd 2 closed (``2>&-``, a daemon) is handed fd 2 for the ring by the
-    system; the child's stderr (/dev/null) would then replace it. The ring is moved above 2."""
-    write_capture(tmp_path / "cap", n=6, size=40)
-    code = textwrap.dedent(f"""
+def _run_closed(code: str, tmp_path, closed: tuple[int, ...] = ()) -> list:
+    """Run ``code`` in a new interpreter with the descriptors ``closed`` shut at start; it writes
+    its JSON answer to ``tmp_path / "out.json"`` (stdout may be one of them)."""
+    out = tmp_path / "out.json"
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(out)], cwd=tmp_path, timeout=300,
+                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          preexec_fn=lambda: [os.close(fd) for fd in closed])
+    assert proc.returncode == 0, (proc.returncode, proc.stderr)
+    return json.loads(out.read_text())
+
+
+_RING_OF_TWO = """
+    import json, os, sys, time
+    import numpy as np
+    from psctl.io.capture import open_capture
+    from psctl.io.images import read_image, to_rgb
+    from psctl.io.prefetch import Prefetch
+    BOX = (slice(4, 36), slice(8, 30))
+    cap = open_capture({cap!r})
+    pf = Prefetch(cap.image_paths, BOX, (40, 40), 2 * 3 * 4096)  # two slots for ten images
+    got = [pf.take(cap.image_paths[0], BOX)]
+    time.sleep(0.5)  # the helper writes image 2 into image 0's slot
+    try:
+        os.write(2, b"libgomp: Invalid value for environment variable OMP_NUM_THREADS\\n")  # a C library's line
+    except OSError:
+        pass
+    time.sleep(0.5)  # and whatever the line set going is done
+    got += [pf.take(p, BOX) for p in cap.image_paths[1:]]
+    pf.close()
+    same = [g is None or bool(np.array_equal(g[0], to_rgb(read_image(p)[0])[BOX])) for g, p in zip(got, cap.image_paths)]
+    open(sys.argv[1], "w").write(json.dumps([sum(g is not None for g in got), same]))
+"""
+
+
+@pytest.mark.parametrize("closed", [(2,), (0, 1, 2)])
+def test_closed_standard_descriptors_never_reach_the_ring(tmp_path, closed):
+    """A process started with 2>&- (or 0-2 closed, a daemon) is handed those numbers for the next
+    files it opens: had the ring or its credits got fd 2, a C library's line on stderr would land
+    in the pixels. What is handed over equals what is read, and so do the normals."""
+    write_capture(tmp_path / "cap", n=10, size=40)
+    served, same = _run_closed(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path, closed)
+    assert all(same), same
+    normals = _run_closed(f"""
         import json, sys
         import numpy as np
         from psctl.io.capture import open_capture, load_mask
@@ -191,9 +229,73 @@ def test_the_helper_works_when_stderr_was_closed_at_start(tmp_path):
         cap = open_capture({str(tmp_path / "cap")!r}); mask = load_mask(cap)
         a = capture_normals(cap, mask, "ps-fcn-n")
         b = capture_normals(cap, mask, "ps-fcn-n", config={{"prefetch_mb": 0}})
-        print(json.dumps([a.info["prefetched"], bool(np.array_equal(a.normals, b.normals))]))
-    """)
-    proc = subprocess.run([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=tmp_path,
-                          timeout=300, preexec_fn=lambda: os.close(2))
-    assert proc.returncode == 0
-    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [6, True]
+        open(sys.argv[1], "w").write(json.dumps(bool(np.array_equal(a.normals, b.normals))))
+    """, tmp_path, closed)
+    assert normals is True
+
+
+def test_the_ring_is_right_with_every_descriptor_open(tmp_path):
+    """The same script with 0-2 open: the helper serves all ten (the test above is not vacuous)."""
+    write_capture(tmp_path / "cap", n=10, size=40)
+    served, same = _run_closed(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path)
+    assert served == 10 and all(same)
+
+
+def test_a_caller_with_sigpipe_at_its_default_is_not_killed(tmp_path):
+    """Scripts that set SIGPIPE to SIG_DFL (``| head``) must not die when the helper has ended
+    (after the last image, or at a broken one) and a slot is freed: exit 0, the error still raised."""
+    write_capture(tmp_path / "cap", n=8, size=40)
+    bad = sorted((tmp_path / "cap").glob("*.png"))[4]
+    bad.write_bytes(bad.read_bytes()[:300])
+    out = _run_closed(f"""
+        import json, signal, sys, time
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+        from psctl.errors import PsctlError
+        from psctl.io.capture import iter_images, open_capture
+        from psctl.io.prefetch import Prefetch
+        BOX = (slice(4, 36), slice(8, 30))
+        cap = open_capture({str(tmp_path / "cap")!r})
+        pf = Prefetch(cap.image_paths, BOX, (40, 40), 2 * 3 * 4096)
+        got = []
+        for k, p in enumerate(cap.image_paths[:4]):
+            got.append(pf.take(p, BOX) is not None)
+            if k == 2:
+                time.sleep(0.5)  # the helper reaches the broken image and ends
+        got.append(pf.take(cap.image_paths[4], BOX) is not None)
+        pf.close()
+        with Prefetch(cap.image_paths, BOX, (40, 40), 2 * 3 * 4096) as pf:
+            try:
+                list(iter_images(cap, BOX, decoded=pf))
+                err = None
+            except PsctlError as e:
+                err = str(e)
+        open(sys.argv[1], "w").write(json.dumps([got, err]))
+    """, tmp_path)
+    assert out[0] == [True, True, True, True, False]
+    assert out[1] is not None and bad.name in out[1]
+
+
+def test_a_larger_image_put_in_after_opening_is_left_to_the_reader(tmp_path):
+    """An image replaced by a larger one after the folder was opened: the helper must not hand
+    over its crop (which has the right shape); the reader then says the size differs."""
+    from psctl.io.images import write_image
+
+    write_capture(tmp_path / "cap", n=5, size=40)
+    cap = open_capture(tmp_path / "cap")
+    write_image(cap.image_paths[2], np.full((48, 48, 3), 0.5, np.float32), "uint16")
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
+        with pytest.raises(PsctlError, match="size 48x48 differs"):
+            list(iter_images(cap, BOX, decoded=pf))
+        assert pf.served == 2
+
+
+def test_a_child_that_imports_another_psctl_hands_over_nothing(tmp_path, monkeypatch):
+    """The child imports psctl by name; where that finds another copy than this process's (a
+    changed sys.path, a notebook), its reading might differ: it stops, and the images are read here."""
+    import psctl
+
+    write_capture(tmp_path / "cap", n=3, size=40)
+    cap = open_capture(tmp_path / "cap")
+    monkeypatch.setattr(psctl, "__file__", str(tmp_path / "elsewhere" / "psctl" / "__init__.py"))
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
+        assert pf.proc is not None and pf.take(cap.image_paths[0], BOX) is None

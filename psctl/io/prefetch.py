@@ -22,6 +22,7 @@ import json
 import mmap
 import os
 import select
+import socket
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -42,21 +43,25 @@ _BOOT = "import sys, json; sys.path[:] = json.loads(sys.argv[1]); from psctl.io.
 _Box = tuple[slice, slice]
 
 
-def _above_stdio(fd: int) -> int:
-    """``fd`` moved to 3 or above: a process started with stdout or stderr closed (``2>&-``)
-    hands out 1 or 2 next, where a C library's message (libpng's) would land in the ring."""
-    if fd > 2:
-        return fd
-    import fcntl  # here: not on Windows (which has no memfd_create either)
-
-    try:
-        return fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 3)
-    finally:
-        os.close(fd)
-
-
 def _box_key(box: _Box) -> tuple[int, int, int, int]:
     return (box[0].start, box[0].stop, box[1].start, box[1].stop)
+
+
+def _usable() -> bool:
+    """Whether a helper can run here: Linux's memfd, a Python to start, two CPUs to overlap on,
+    and file descriptors 0-2 open. A process started with one of them closed (``2>&-``, a daemon)
+    would be handed 0-2 for the ring's and pipes' own descriptors, and a C library's message on
+    stderr (libgomp, libpng) would then land in the ring or among the credits."""
+    if not hasattr(os, "memfd_create") or not sys.executable or getattr(sys, "frozen", False):
+        return False  # no memfd (Windows, macOS); embedded or frozen: no Python to start
+    if hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) < 2:
+        return False  # one CPU: the decoding would only take turns with the import (measured: 0.3 s slower)
+    try:
+        for fd in (0, 1, 2):
+            os.fstat(fd)
+    except OSError:
+        return False
+    return True
 
 
 class Prefetch:
@@ -70,8 +75,9 @@ class Prefetch:
     could not decode or whose size changed: the caller's own read then gives the error), or
     the call is not the next path with this box. ``served`` counts the images handed over.
     Use it as a context manager, or call ``close()``: the child is killed and its memory freed.
-    When the ring cannot be made (no ``os.memfd_create``, an image larger than ``budget``), the
-    object starts nothing and every ``take`` returns None.
+    Where a helper cannot run or would not help (``_usable``: no ``os.memfd_create``, one CPU,
+    a closed stdin, stdout or stderr) or an image is larger than ``budget``, the object starts
+    nothing and every ``take`` returns None.
     """
 
     def __init__(self, paths: Sequence[Path], box: _Box, size: tuple[int, int], budget: int):
@@ -86,29 +92,37 @@ class Prefetch:
         self._buf = b""
         page = mmap.PAGESIZE  # slots on page boundaries: a used slot's pages are given back at once
         self.slot = -(-int(np.prod(self.shape)) * 4 // page) * page
-        # at most 4096 images ahead: the credits for them fit in the pipe's 64 KiB
+        # at most 4096 images ahead: the credits for them fit in the socket's buffer
         self.slots = min(len(self.paths), budget // self.slot, 4096) if self.slot else 0
-        if self.slots < 1 or not hasattr(os, "memfd_create") or min(self.shape[:2]) < 1 \
-                or not sys.executable or getattr(sys, "frozen", False):  # no Python to start (embedded, frozen)
+        self.credits: socket.socket | None = None
+        if self.slots < 1 or min(self.shape[:2]) < 1 or not _usable():
             return
+        import psctl
+
         try:
-            self.fd = _above_stdio(os.memfd_create("psctl-prefetch"))
+            self.fd = os.memfd_create("psctl-prefetch")
             os.ftruncate(self.fd, self.slots * self.slot)
             self.mm = mmap.mmap(self.fd, self.slots * self.slot)
             # the list of files in a file of its own: through the pipe, thousands of names would
             # wait for the child's start (its imports), which is the time this is meant to win
+            # "psctl": this process's package; the child stops if sys.path gives it another one
             spec = json.dumps({"paths": [os.fsdecode(p) for p in self.paths], "box": self.key, "size": list(size),
-                               "fd": self.fd, "slots": self.slots, "slot": self.slot}).encode()  # ASCII
-            spec_fd = _above_stdio(os.memfd_create("psctl-prefetch-spec"))
+                               "fd": self.fd, "slots": self.slots, "slot": self.slot,
+                               "psctl": os.path.realpath(psctl.__file__)}).encode()  # ASCII
+            spec_fd = os.memfd_create("psctl-prefetch-spec")
+            # credits on a socket, not a pipe: sent with MSG_NOSIGNAL, a child that has ended is an
+            # error here and not SIGPIPE, which kills a caller that set it to SIG_DFL (``| head``)
+            self.credits, theirs = socket.socketpair()
             try:
                 os.write(spec_fd, spec)  # tmpfs: one call writes it all
                 os.lseek(spec_fd, 0, os.SEEK_SET)
                 where = json.dumps([p for p in sys.path if isinstance(p, str)])
                 self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, where, str(spec_fd)], bufsize=0,
-                                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                             stdin=theirs.fileno(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                              pass_fds=(self.fd, spec_fd))
             finally:
                 os.close(spec_fd)
+                theirs.close()
         except (OSError, ValueError):  # no memory for the ring, no process to spare: read here
             self.close()
         except BaseException:  # Ctrl-C while starting: nothing left behind
@@ -124,12 +138,11 @@ class Prefetch:
     def close(self) -> None:
         """Stop the child (if still running) and free the ring. Idempotent."""
         proc, self.proc = self.proc, None
+        if self.credits is not None:  # first: a child waiting for a credit then ends by itself
+            self.credits.close()
+            self.credits = None
         if proc is not None:
-            for f in (proc.stdin, proc.stdout):  # first: a child waiting on a pipe then ends by itself
-                try:
-                    f.close()
-                except OSError:
-                    pass
+            proc.stdout.close()
             if proc.poll() is None:
                 proc.kill()  # mid-decode: no need to wait for that image
             proc.wait()
@@ -161,9 +174,10 @@ class Prefetch:
         try:
             line = self._line()
             status = json.loads(line) if line else None
-        except (OSError, ValueError):
-            status = None
-        if not isinstance(status, dict) or status.get("k") != k or not isinstance(status.get("info"), dict):
+            info = ImageInfo(self.paths[k], **status["info"])
+        except (OSError, ValueError, TypeError, KeyError):  # no line, or not one this process wrote
+            info = None
+        if info is None or status.get("k") != k:
             self.close()
             return None
         off = (k % self.slots) * self.slot
@@ -171,11 +185,12 @@ class Prefetch:
         if hasattr(mmap, "MADV_REMOVE"):
             self.mm.madvise(mmap.MADV_REMOVE, off, self.slot)  # the pages go back now, not at the end
         self.served += 1
-        try:
-            self.proc.stdin.write(b"\x01")  # the slot is free again
-        except OSError:  # the child has finished
-            pass
-        return pixels, ImageInfo(self.paths[k], **status["info"])
+        if k + self.slots < len(self.paths):  # an image still to come needs this slot
+            try:
+                self.credits.send(b"\x01", socket.MSG_NOSIGNAL)
+            except OSError:  # the child has stopped; the next take says so
+                pass
+        return pixels, info
 
 
 def _child() -> None:
@@ -184,11 +199,14 @@ def _child() -> None:
     try:
         import OpenImageIO as oiio
 
+        import psctl
         from psctl.io.images import read_image, to_rgb
 
         oiio.attribute("threads", 1)  # one core: the other one is the parent's
         with open(int(sys.argv[2]), "rb") as f:
             spec = json.loads(f.read())
+        if os.path.realpath(psctl.__file__) != spec["psctl"]:
+            raise ImportError("another psctl")  # its reading might differ: the parent reads
         y0, y1, x0, x1 = spec["box"]
         shape = (y1 - y0, x1 - x0, 3)
         slots, slot = spec["slots"], spec["slot"]
