@@ -18,10 +18,11 @@ import pytest
 from psctl.errors import PsctlError
 from psctl.io.capture import iter_images, open_capture
 from psctl.io.images import read_image, to_rgb
-from psctl.io.prefetch import Prefetch
+from psctl.io.prefetch import Prefetch, _usable
 from tests.conftest import write_capture
 
-pytestmark = pytest.mark.skipif(not hasattr(os, "memfd_create"), reason="the helper needs os.memfd_create (Linux)")
+pytestmark = pytest.mark.skipif(not _usable(), reason="the helper is off here: it needs os.memfd_create (Linux), "
+                                                      "two CPUs and file descriptors 0-2 open")
 
 BOX = (slice(4, 36), slice(8, 30))
 
@@ -179,11 +180,11 @@ def test_a_bad_prefetch_setting_is_one_line(tmp_path):
             capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad})
 
 
-def _run_closed(code: str, tmp_path, closed: tuple[int, ...] = ()) -> list:
+def _run_closed(code: str, tmp_path, closed: tuple[int, ...] = (), timeout: float = 300) -> list:
     """Run ``code`` in a new interpreter with the descriptors ``closed`` shut at start; it writes
     its JSON answer to ``tmp_path / "out.json"`` (stdout may be one of them)."""
     out = tmp_path / "out.json"
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(out)], cwd=tmp_path, timeout=300,
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(out)], cwd=tmp_path, timeout=timeout,
                           stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                           preexec_fn=lambda: [os.close(fd) for fd in closed])
     assert proc.returncode == 0, (proc.returncode, proc.stderr)
@@ -296,6 +297,74 @@ def test_a_child_that_imports_another_psctl_hands_over_nothing(tmp_path, monkeyp
 
     write_capture(tmp_path / "cap", n=3, size=40)
     cap = open_capture(tmp_path / "cap")
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:  # the control: this psctl
+        assert pf.take(cap.image_paths[0], BOX) is not None
     monkeypatch.setattr(psctl, "__file__", str(tmp_path / "elsewhere" / "psctl" / "__init__.py"))
     with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
         assert pf.proc is not None and pf.take(cap.image_paths[0], BOX) is None
+
+
+def test_many_small_images_run_ahead_without_a_deadlock(tmp_path):
+    """1,300 images with 1,000 slots: the freed slots pile up unread while the child decodes its
+    first thousand, and its status lines fill the pipe. A blocking send for each freed slot filled
+    the socket after about 280 and both sides waited for ever; here it must end, all handed over."""
+    from psctl.io.images import write_image
+
+    write_image(tmp_path / "one.png", np.full((8, 8, 3), 0.25, np.float32), "uint16")
+    n = _run_closed(f"""
+        import json, sys
+        from pathlib import Path
+        from psctl.io.prefetch import Prefetch
+        box = (slice(0, 8), slice(0, 8))
+        paths = [Path({str(tmp_path / "one.png")!r})] * 1300
+        with Prefetch(paths, box, (8, 8), 1000 * 4096) as pf:
+            assert pf.slots == 1000
+            served = sum(pf.take(p, box) is not None for p in paths)
+        open(sys.argv[1], "w").write(json.dumps(served))
+    """, tmp_path, timeout=120)
+    assert n == 1300
+
+
+def test_an_executable_that_is_not_python_is_given_up_quickly(tmp_path, monkeypatch):
+    """An application embedding Python may name itself in sys.executable: the child then never
+    starts. Without its "ready" line within START_TIMEOUT the images are read here, not after 120 s."""
+    import time
+
+    import psctl.io.prefetch as prefetch
+
+    fake = tmp_path / "app"
+    fake.write_text("#!/bin/sh\nexec sleep 1000\n")
+    fake.chmod(0o755)
+    write_capture(tmp_path / "cap", n=3, size=40)
+    cap = open_capture(tmp_path / "cap")
+    monkeypatch.setattr(sys, "executable", str(fake))
+    monkeypatch.setattr(prefetch, "START_TIMEOUT", 1.0)
+    t = time.perf_counter()
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
+        assert pf.proc is not None and pf.take(cap.image_paths[0], BOX) is None
+    assert time.perf_counter() - t < 10
+
+
+def test_a_broken_image_in_a_network_run_after_images_were_handed_over(tmp_path):
+    """In a fresh process (torch not imported) the helper hands over the images before the broken
+    one, then the network's own read gives the one-line error naming it."""
+    write_capture(tmp_path / "cap", n=8, size=40)
+    bad = sorted((tmp_path / "cap").glob("*.png"))[4]
+    bad.write_bytes(bad.read_bytes()[:300])
+    msg, served = _run_closed(f"""
+        import json, sys
+        import psctl.infer as infer
+        from psctl.errors import PsctlError
+        from psctl.io.capture import open_capture, load_mask
+        made = []
+        start = infer._prefetch
+        infer._prefetch = lambda *a: made.append(start(*a)) or made[-1]
+        cap = open_capture({str(tmp_path / "cap")!r}); mask = load_mask(cap)
+        try:
+            infer.capture_normals(cap, mask, "ensemble")
+            msg = None
+        except PsctlError as e:
+            msg = str(e)
+        open(sys.argv[1], "w").write(json.dumps([msg, made[0].served]))
+    """, tmp_path)
+    assert served == 4 and msg is not None and bad.name in msg and "\n" not in msg

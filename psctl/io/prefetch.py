@@ -35,6 +35,10 @@ from psctl.io.images import ImageInfo
 # A decode that takes longer than this (seconds) is given up and read here instead: the largest
 # EXR decodes in a few seconds; a child that hangs must not hang psctl.
 TIMEOUT = 120.0
+# The child says "ready" once started (Python, numpy, OpenImageIO imported); without that line
+# within this many seconds, ``sys.executable`` is not a Python that can run it (an application
+# embedding Python, uWSGI) and this process reads the images itself.
+START_TIMEOUT = 10.0
 
 # The child: psctl importable from the same sys.path as this process (a source checkout, a
 # notebook's added paths), then the loop. Its stderr is /dev/null: a failure is read again here.
@@ -47,6 +51,26 @@ def _box_key(box: _Box) -> tuple[int, int, int, int]:
     return (box[0].start, box[0].stop, box[1].start, box[1].stop)
 
 
+def _cpus() -> float:
+    """The CPUs this process may use: its affinity, and a container's CPU quota (cgroup v2
+    ``cpu.max``, v1 ``cpu.cfs_quota_us``), which the affinity does not show."""
+    n = float(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    for quota_file, period_file in (("/sys/fs/cgroup/cpu.max", None),
+                                    ("/sys/fs/cgroup/cpu/cpu.cfs_quota_us", "/sys/fs/cgroup/cpu/cpu.cfs_period_us")):
+        try:
+            with open(quota_file) as f:
+                words = f.read().split()
+            if period_file is not None:
+                with open(period_file) as f:
+                    words.append(f.read().strip())
+            quota, period = words[0], float(words[1])
+            if quota not in ("max", "-1") and period > 0:
+                n = min(n, float(quota) / period)
+        except (OSError, ValueError, IndexError):
+            pass
+    return n
+
+
 def _usable() -> bool:
     """Whether a helper can run here: Linux's memfd, a Python to start, two CPUs to overlap on,
     and file descriptors 0-2 open. A process started with one of them closed (``2>&-``, a daemon)
@@ -54,7 +78,7 @@ def _usable() -> bool:
     stderr (libgomp, libpng) would then land in the ring or among the credits."""
     if not hasattr(os, "memfd_create") or not sys.executable or getattr(sys, "frozen", False):
         return False  # no memfd (Windows, macOS); embedded or frozen: no Python to start
-    if hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) < 2:
+    if _cpus() < 2:
         return False  # one CPU: the decoding would only take turns with the import (measured: 0.3 s slower)
     try:
         for fd in (0, 1, 2):
@@ -92,14 +116,21 @@ class Prefetch:
         self._buf = b""
         page = mmap.PAGESIZE  # slots on page boundaries: a used slot's pages are given back at once
         self.slot = -(-int(np.prod(self.shape)) * 4 // page) * page
-        # at most 4096 images ahead: the credits for them fit in the socket's buffer
-        self.slots = min(len(self.paths), budget // self.slot, 4096) if self.slot else 0
+        self.slots = min(len(self.paths), budget // self.slot) if self.slot else 0
         self.credits: socket.socket | None = None
+        self.owed = 0  # freed slots not yet told to the child (its socket buffer was full)
+        self.started = False  # the child's "ready" line read
         if self.slots < 1 or min(self.shape[:2]) < 1 or not _usable():
             return
         import psctl
 
+        spec_fd, theirs = -1, None
         try:
+            # credits on a socket, not a pipe: sent with MSG_NOSIGNAL, a child that has ended is an
+            # error here and not SIGPIPE, which kills a caller that set it to SIG_DFL (``| head``);
+            # never blocking: each send takes a buffer of its own, and a few hundred fill the socket
+            self.credits, theirs = socket.socketpair()
+            self.credits.setblocking(False)
             self.fd = os.memfd_create("psctl-prefetch")
             os.ftruncate(self.fd, self.slots * self.slot)
             self.mm = mmap.mmap(self.fd, self.slots * self.slot)
@@ -110,24 +141,22 @@ class Prefetch:
                                "fd": self.fd, "slots": self.slots, "slot": self.slot,
                                "psctl": os.path.realpath(psctl.__file__)}).encode()  # ASCII
             spec_fd = os.memfd_create("psctl-prefetch-spec")
-            # credits on a socket, not a pipe: sent with MSG_NOSIGNAL, a child that has ended is an
-            # error here and not SIGPIPE, which kills a caller that set it to SIG_DFL (``| head``)
-            self.credits, theirs = socket.socketpair()
-            try:
-                os.write(spec_fd, spec)  # tmpfs: one call writes it all
-                os.lseek(spec_fd, 0, os.SEEK_SET)
-                where = json.dumps([p for p in sys.path if isinstance(p, str)])
-                self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, where, str(spec_fd)], bufsize=0,
-                                             stdin=theirs.fileno(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                             pass_fds=(self.fd, spec_fd))
-            finally:
-                os.close(spec_fd)
-                theirs.close()
+            os.write(spec_fd, spec)  # tmpfs: one call writes it all
+            os.lseek(spec_fd, 0, os.SEEK_SET)
+            where = json.dumps([p for p in sys.path if isinstance(p, str)])
+            self.proc = subprocess.Popen([sys.executable, "-c", _BOOT, where, str(spec_fd)], bufsize=0,
+                                         stdin=theirs.fileno(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                         pass_fds=(self.fd, spec_fd))
         except (OSError, ValueError):  # no memory for the ring, no process to spare: read here
             self.close()
         except BaseException:  # Ctrl-C while starting: nothing left behind
             self.close()
             raise
+        finally:
+            if spec_fd >= 0:
+                os.close(spec_fd)
+            if theirs is not None:  # the child's end: the child has its own copy
+                theirs.close()
 
     def __enter__(self) -> "Prefetch":
         return self
@@ -153,13 +182,13 @@ class Prefetch:
             os.close(self.fd)
             self.fd = -1
 
-    def _line(self) -> bytes | None:
-        """The child's next status line, None at its end or after TIMEOUT."""
+    def _line(self, timeout: float = TIMEOUT) -> bytes | None:
+        """The child's next status line, None at its end or after ``timeout`` seconds."""
         out = self.proc.stdout.fileno()
         poll = select.poll()  # not select.select: it fails for descriptors above 1023
         poll.register(out, select.POLLIN)
         while b"\n" not in self._buf:
-            chunk = os.read(out, 65536) if poll.poll(TIMEOUT * 1000) else b""
+            chunk = os.read(out, 65536) if poll.poll(timeout * 1000) else b""
             if not chunk:
                 return None
             self._buf += chunk
@@ -172,6 +201,10 @@ class Prefetch:
             self.close()  # out of order or another region: the caller reads from here on
             return None
         try:
+            if not self.started:
+                self.started = self._line(START_TIMEOUT) == b"ready"
+                if not self.started:
+                    raise OSError("the helper did not start")
             line = self._line()
             status = json.loads(line) if line else None
             info = ImageInfo(self.paths[k], **status["info"])
@@ -186,10 +219,14 @@ class Prefetch:
             self.mm.madvise(mmap.MADV_REMOVE, off, self.slot)  # the pages go back now, not at the end
         self.served += 1
         if k + self.slots < len(self.paths):  # an image still to come needs this slot
+            self.owed += 1
+        if self.owed:
             try:
-                self.credits.send(b"\x01", socket.MSG_NOSIGNAL)
-            except OSError:  # the child has stopped; the next take says so
+                self.owed -= self.credits.send(b"\x01" * self.owed, socket.MSG_NOSIGNAL)
+            except BlockingIOError:  # the child has plenty unread: told at a later take
                 pass
+            except OSError:  # the child has stopped; the next take says so
+                self.owed = 0
         return pixels, info
 
 
@@ -211,9 +248,15 @@ def _child() -> None:
         shape = (y1 - y0, x1 - x0, 3)
         slots, slot = spec["slots"], spec["slot"]
         ring = mmap.mmap(spec["fd"], slots * slot)
+        os.write(1, b"ready\n")
+        credits = 0
         for k, name in enumerate(spec["paths"]):
-            if k >= slots and not os.read(0, 1):  # wait until the parent has taken a slot's image
-                break
+            if k >= slots:  # wait until the parent has taken the image in this slot
+                if not credits:
+                    credits = len(os.read(0, 65536))
+                    if not credits:
+                        break  # the parent has closed its end
+                credits -= 1
             pixels, info = read_image(name)
             if [info.width, info.height] != spec["size"]:
                 break  # the parent's own read says what is wrong
