@@ -712,25 +712,16 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
 
 def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
     """The helper process that decodes ``capture``'s images for the first pass over them
-    (``psctl.io.prefetch``), started before torch is imported, which is the time it wins. Off
-    (an object that serves nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads
-    shrunk images), an empty mask, or when torch is already imported (``psctl eval``'s later
-    objects: decoding here as the network runs takes the same time)."""
-    import sys
-
-    from psctl.io.prefetch import Prefetch
+    (``psctl.io.prefetch.prefetch``: only before torch is imported). Off (an object that serves
+    nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads shrunk images) or an
+    empty mask."""
+    from psctl.io.prefetch import prefetch
 
     cfg = {**DEFAULT_INFER, **(config or {})}
-    mb = cfg["prefetch_mb"]
-    if isinstance(mb, bool) or not isinstance(mb, (int, np.integer)) or mb < 0:
-        raise PsctlError(None, f"prefetch_mb must be a whole number of MB >= 0 (0: off), got {mb!r}")
     mask = np.asarray(mask, bool)
-    budget = int(mb) << 20
-    if "torch" in sys.modules or check_downsample(cfg["downsample"]) > 1 or not mask.any() \
-            or mask.shape != (capture.height, capture.width):
-        budget = 0
-    box = read_box(region_box(mask, cfg), mask.shape) if budget else (slice(0, 0), slice(0, 0))
-    return Prefetch(capture.image_paths, box, (capture.width, capture.height), budget)
+    on = check_downsample(cfg["downsample"]) == 1 and mask.any() and mask.shape == (capture.height, capture.width)
+    box = read_box(region_box(mask, cfg), mask.shape) if on else (slice(0, 0), slice(0, 0))
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"] if on else 0)
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,

@@ -65,6 +65,9 @@ DEFAULT_LIGHTS = {
     "chunk": None,  # images per network batch: None = 8 on CPU, 64 on CUDA
     "margin": 15,  # pixels kept around the mask's bounding box (the authors' DiLiGenT crop)
     "cache_mb": 64,  # per-image features kept from pass 1 for pass 2 (64 KB each at 128 px)
+    # a helper process decodes the images (cut to the crop) into a ring of shared memory of at
+    # most this many MB while this one imports torch and loads LCNet (psctl.io.prefetch); 0 = off
+    "prefetch_mb": 256,
     # soft-argmax: better than the paper's argmax (class centres) on held-out synthetic sets with
     # both release LCNets (7.53 vs 7.67 and 7.60 vs 7.99 degrees; docs/uncalibrated.md)
     "decode": "soft",  # soft | argmax
@@ -337,14 +340,23 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     """Lights of a capture folder, streaming its images from disk as captured (the folder's
     light_intensities.txt, if any, is not applied)."""
     from psctl.io.capture import ImageCheck
+    from psctl.io.prefetch import prefetch
 
-    model, w = load_lcnet(weights, flag)
-    if w.official:  # the guard's band describes psctl's training exposures, not the authors'
-        config = {"exposure_band": None, **(config or {})}
-    raw = replace(capture, intensities=np.ones_like(capture.intensities))
-    check = ImageCheck(capture)  # black images, negative values: notes
-    with naming(capture.path):  # all images black, ...
-        res = run_lcnet(model, check.reader(raw, mask), raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
+    cfg = {**DEFAULT_LIGHTS, **(config or {})}
+    mask = np.asarray(mask, bool)
+    on = mask.any() and mask.shape == (capture.height, capture.width)
+    box = crop_box(mask, int(cfg["margin"])) if on else (slice(0, 0), slice(0, 0))
+    # started before LCNet's weights import torch: the decoding overlaps that import
+    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"] if on else 0) as pf:
+        model, w = load_lcnet(weights, flag)
+        if w.official:  # the guard's band describes psctl's training exposures, not the authors'
+            config = {"exposure_band": None, **(config or {})}
+        raw = replace(capture, intensities=np.ones_like(capture.intensities))
+        check = ImageCheck(capture)  # black images, negative values: notes
+        with naming(capture.path):  # all images black, ...
+            res = run_lcnet(model, check.reader(raw, mask, pf), raw.n_images, mask, config, progress,
+                            f"{capture.name}: reading + LCNet")
+        res.info["prefetched"] = pf.served
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
     res.notes += check.notes() + hot_pixel_notes(res.info, [p.name for p in capture.image_paths])
     return res

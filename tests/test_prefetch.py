@@ -368,3 +368,21 @@ def test_a_broken_image_in_a_network_run_after_images_were_handed_over(tmp_path)
         open(sys.argv[1], "w").write(json.dumps([msg, made[0].served]))
     """, tmp_path)
     assert served == 4 and msg is not None and bad.name in msg and "\n" not in msg
+
+
+def test_lcnet_gets_the_same_lights_with_the_helper(tmp_path):
+    """`psctl lights` and sdps: LCNet's first pass takes the images from the helper too (in a fresh
+    process, before torch is imported), with the same directions, intensities and notes."""
+    write_capture(tmp_path / "cap", n=10, size=48)
+    out = _run_closed(f"""
+        import json, sys
+        import numpy as np
+        from psctl.io.capture import open_capture, load_mask
+        from psctl.lights import capture_lights
+        cap = open_capture({str(tmp_path / "cap")!r}); mask = load_mask(cap)
+        a = capture_lights(cap, mask)
+        b = capture_lights(cap, mask, config={{"prefetch_mb": 0}})
+        same = bool(np.array_equal(a.directions, b.directions) and np.array_equal(a.intensities, b.intensities))
+        open(sys.argv[1], "w").write(json.dumps([a.info["prefetched"], b.info["prefetched"], same, a.notes == b.notes]))
+    """, tmp_path)
+    assert out == [10, 0, True, True]

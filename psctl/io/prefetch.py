@@ -230,6 +230,18 @@ class Prefetch:
         return pixels, info
 
 
+def prefetch(paths: Sequence[Path], box: _Box, size: tuple[int, int], mb: object) -> Prefetch:
+    """A ``Prefetch`` for a first pass over ``paths`` cut to ``box`` with a ring of ``mb`` MB (a
+    network's ``prefetch_mb`` setting; 0: off), started only while torch is not imported: the
+    child's decoding overlaps torch's import, and once torch is loaded there is nothing to overlap
+    (``psctl eval``'s later objects: the same time either way)."""
+    from psctl.errors import PsctlError
+
+    if isinstance(mb, bool) or not isinstance(mb, (int, np.integer)) or mb < 0:
+        raise PsctlError(None, f"prefetch_mb must be a whole number of MB >= 0 (0: off), got {mb!r}")
+    return Prefetch(paths, box, size, 0 if "torch" in sys.modules else int(mb) << 20)
+
+
 def _child() -> None:
     """The helper process: decode, crop, write into the ring slot, say so on stdout; wait for a
     free slot on stdin. Any failure ends it; the parent then reads the image itself."""
