@@ -721,7 +721,7 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
     mask = np.asarray(mask, bool)
     on = check_downsample(cfg["downsample"]) == 1 and mask.any() and mask.shape == (capture.height, capture.width)
     box = read_box(region_box(mask, cfg), mask.shape) if on else (slice(0, 0), slice(0, 0))
-    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"] if on else 0)
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])  # an empty box: off
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,

@@ -347,7 +347,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     on = mask.any() and mask.shape == (capture.height, capture.width)
     box = crop_box(mask, int(cfg["margin"])) if on else (slice(0, 0), slice(0, 0))
     # started before LCNet's weights import torch: the decoding overlaps that import
-    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"] if on else 0) as pf:
+    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"]) as pf:  # empty box: off
         model, w = load_lcnet(weights, flag)
         if w.official:  # the guard's band describes psctl's training exposures, not the authors'
             config = {"exposure_band": None, **(config or {})}

@@ -176,8 +176,9 @@ def test_a_bad_prefetch_setting_is_one_line(tmp_path):
     write_capture(tmp_path / "cap", n=4, size=40)
     cap = open_capture(tmp_path / "cap")
     for bad in (-1, 1.5, "64", True):
-        with pytest.raises(PsctlError, match="prefetch_mb must be a whole number"):
-            capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad})
+        for extra in ({}, {"downsample": 2}):  # also where the helper would be off anyway
+            with pytest.raises(PsctlError, match="prefetch_mb must be a whole number"):
+                capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad, **extra})
 
 
 def _run_closed(code: str, tmp_path, closed: tuple[int, ...] = (), timeout: float = 300) -> list:
