@@ -720,8 +720,8 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
     cfg = {**DEFAULT_INFER, **(config or {})}
     mask = np.asarray(mask, bool)
     on = check_downsample(cfg["downsample"]) == 1 and mask.any() and mask.shape == (capture.height, capture.width)
-    box = read_box(region_box(mask, cfg), mask.shape) if on else (slice(0, 0), slice(0, 0))
-    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])  # an empty box: off
+    box = read_box(region_box(mask, cfg), mask.shape) if on else None
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,

@@ -345,9 +345,9 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     cfg = {**DEFAULT_LIGHTS, **(config or {})}
     mask = np.asarray(mask, bool)
     on = mask.any() and mask.shape == (capture.height, capture.width)
-    box = crop_box(mask, int(cfg["margin"])) if on else (slice(0, 0), slice(0, 0))
+    box = crop_box(mask, int(cfg["margin"])) if on else None
     # started before LCNet's weights import torch: the decoding overlaps that import
-    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"]) as pf:  # empty box: off
+    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"]) as pf:
         model, w = load_lcnet(weights, flag)
         if w.official:  # the guard's band describes psctl's training exposures, not the authors'
             config = {"exposure_band": None, **(config or {})}

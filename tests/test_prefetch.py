@@ -116,12 +116,16 @@ def test_close_stops_a_helper_that_is_still_working(tmp_path):
     pf.close()  # twice is fine
 
 
-def _fresh(code: str, tmp_path) -> dict:
-    """Run ``code`` in a new interpreter (torch not imported yet, as in `psctl normals`), return its JSON."""
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+def _fresh(code: str, tmp_path, closed: tuple[int, ...] = (), timeout: float = 300):
+    """Run ``code`` in a new interpreter (torch not imported yet, as in `psctl normals`), with the
+    descriptors ``closed`` shut at start; it writes its JSON answer to the file named by
+    ``sys.argv[1]`` (stdout may be one of the closed ones), returned here."""
+    out = tmp_path / "out.json"
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(out)], cwd=tmp_path, timeout=timeout,
+                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          preexec_fn=lambda: [os.close(fd) for fd in closed])
+    assert proc.returncode == 0, (proc.returncode, proc.stderr)
+    return json.loads(out.read_text())
 
 
 def test_the_network_runs_get_the_same_normals_and_notes_with_the_helper(tmp_path):
@@ -147,7 +151,7 @@ def test_the_network_runs_get_the_same_normals_and_notes_with_the_helper(tmp_pat
             b = capture_normals(cap, mask, method, config={{"prefetch_mb": 0}})
             res[method] = [a.info["prefetched"], b.info["prefetched"], bool(np.array_equal(a.normals, b.normals)),
                            a.notes == b.notes, a.notes]
-        print(json.dumps(res))
+        open(sys.argv[1], "w").write(json.dumps(res))
     """, tmp_path)
     # the first run (the ensemble's) had the helper; ps-fcn-n, with torch imported by then, does not
     assert out["ensemble"][:4] == [10, 0, True, True]
@@ -181,17 +185,6 @@ def test_a_bad_prefetch_setting_is_one_line(tmp_path):
                 capture_normals(cap, load_mask(cap), "ps-fcn-n", config={"prefetch_mb": bad, **extra})
 
 
-def _run_closed(code: str, tmp_path, closed: tuple[int, ...] = (), timeout: float = 300) -> list:
-    """Run ``code`` in a new interpreter with the descriptors ``closed`` shut at start; it writes
-    its JSON answer to ``tmp_path / "out.json"`` (stdout may be one of them)."""
-    out = tmp_path / "out.json"
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(out)], cwd=tmp_path, timeout=timeout,
-                          stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                          preexec_fn=lambda: [os.close(fd) for fd in closed])
-    assert proc.returncode == 0, (proc.returncode, proc.stderr)
-    return json.loads(out.read_text())
-
-
 _RING_OF_TWO = """
     import json, os, sys, time
     import numpy as np
@@ -221,9 +214,9 @@ def test_closed_standard_descriptors_never_reach_the_ring(tmp_path, closed):
     files it opens: had the ring or its credits got fd 2, a C library's line on stderr would land
     in the pixels. What is handed over equals what is read, and so do the normals."""
     write_capture(tmp_path / "cap", n=10, size=40)
-    served, same = _run_closed(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path, closed)
+    served, same = _fresh(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path, closed)
     assert all(same), same
-    normals = _run_closed(f"""
+    normals = _fresh(f"""
         import json, sys
         import numpy as np
         from psctl.io.capture import open_capture, load_mask
@@ -239,7 +232,7 @@ def test_closed_standard_descriptors_never_reach_the_ring(tmp_path, closed):
 def test_the_ring_is_right_with_every_descriptor_open(tmp_path):
     """The same script with 0-2 open: the helper serves all ten (the test above is not vacuous)."""
     write_capture(tmp_path / "cap", n=10, size=40)
-    served, same = _run_closed(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path)
+    served, same = _fresh(_RING_OF_TWO.format(cap=str(tmp_path / "cap")), tmp_path)
     assert served == 10 and all(same)
 
 
@@ -249,7 +242,7 @@ def test_a_caller_with_sigpipe_at_its_default_is_not_killed(tmp_path):
     write_capture(tmp_path / "cap", n=8, size=40)
     bad = sorted((tmp_path / "cap").glob("*.png"))[4]
     bad.write_bytes(bad.read_bytes()[:300])
-    out = _run_closed(f"""
+    out = _fresh(f"""
         import json, signal, sys, time
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)
         from psctl.errors import PsctlError
@@ -312,7 +305,7 @@ def test_many_small_images_run_ahead_without_a_deadlock(tmp_path):
     from psctl.io.images import write_image
 
     write_image(tmp_path / "one.png", np.full((8, 8, 3), 0.25, np.float32), "uint16")
-    n = _run_closed(f"""
+    n = _fresh(f"""
         import json, sys
         from pathlib import Path
         from psctl.io.prefetch import Prefetch
@@ -352,7 +345,7 @@ def test_a_broken_image_in_a_network_run_after_images_were_handed_over(tmp_path)
     write_capture(tmp_path / "cap", n=8, size=40)
     bad = sorted((tmp_path / "cap").glob("*.png"))[4]
     bad.write_bytes(bad.read_bytes()[:300])
-    msg, served = _run_closed(f"""
+    msg, served = _fresh(f"""
         import json, sys
         import psctl.infer as infer
         from psctl.errors import PsctlError
@@ -375,7 +368,7 @@ def test_lcnet_gets_the_same_lights_with_the_helper(tmp_path):
     """`psctl lights` and sdps: LCNet's first pass takes the images from the helper too (in a fresh
     process, before torch is imported), with the same directions, intensities and notes."""
     write_capture(tmp_path / "cap", n=10, size=48)
-    out = _run_closed(f"""
+    out = _fresh(f"""
         import json, sys
         import numpy as np
         from psctl.io.capture import open_capture, load_mask
