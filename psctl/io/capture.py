@@ -27,6 +27,7 @@ import numpy as np
 from psctl.arrays import check_lights_face_camera, unit_rows
 from psctl.errors import PsctlError, check_int, check_path
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
+from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
 
 if TYPE_CHECKING:
@@ -576,15 +577,18 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
 
 def _check_mat_header(p: Path, ref: ImageInfo) -> None:
     """Normal_gt.mat's variable list (names and shapes, no values): what load_ground_truth
-    would refuse later, said when the folder is opened (psctl info too)."""
-    import scipy.io
+    would refuse later, said when the folder is opened (psctl info too). psctl's reader of plain
+    files first (importing scipy.io costs more than reading the file); scipy for the rest."""
+    shapes = variable_shapes(p)
+    if shapes is None:
+        import scipy.io
 
-    try:
-        shapes = {name: tuple(shape) for name, shape, _ in scipy.io.whosmat(str(p))}
-    except NotImplementedError:  # MATLAB v7.3 (HDF5): not read here; only methods with ground truth need it
-        return
-    except Exception as e:  # scipy raises several types for bad/unsupported files
-        raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
+        try:
+            shapes = {name: tuple(shape) for name, shape, _ in scipy.io.whosmat(str(p))}
+        except NotImplementedError:  # MATLAB v7.3 (HDF5): not read here; only methods with ground truth need it
+            return
+        except Exception as e:  # scipy raises several types for bad/unsupported files
+            raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
     if "Normal_gt" not in shapes:
         raise PsctlError(p, "has no variable 'Normal_gt'")
     shape = shapes["Normal_gt"]
@@ -636,15 +640,17 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
     if p is None:
         return None
     if p.suffix.lower() == ".mat":
-        import scipy.io
+        raw = load_variable(p, "Normal_gt")  # None: not a plain file (or no such variable): scipy says why
+        if raw is None:
+            import scipy.io
 
-        try:
-            mat = scipy.io.loadmat(str(p))
-        except Exception as e:  # scipy raises several types for bad/unsupported files
-            raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
-        if "Normal_gt" not in mat:
-            raise PsctlError(p, "has no variable 'Normal_gt'")
-        raw = np.asarray(mat["Normal_gt"])
+            try:
+                mat = scipy.io.loadmat(str(p))
+            except Exception as e:  # scipy raises several types for bad/unsupported files
+                raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
+            if "Normal_gt" not in mat:
+                raise PsctlError(p, "has no variable 'Normal_gt'")
+            raw = np.asarray(mat["Normal_gt"])
         if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
             raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
         with np.errstate(over="ignore"):  # beyond float32: inf, refused below
