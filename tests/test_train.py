@@ -869,3 +869,41 @@ def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
     # the training stream's pool counts where it lives: on the host for a CPU run only
     big_pool = merge(cfg, {"data": {"pool": 4096}})
     assert memory_needed(big_pool, torch.device("cpu")) > memory_needed(big_pool, torch.device("meta")) + 2**28
+
+
+_WITHOUT_OIIO = r"""
+import importlib.abc, sys
+from pathlib import Path
+
+
+class NoOpenImageIO(importlib.abc.MetaPathFinder):  # the GPU machine has no OpenImageIO
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "OpenImageIO":
+            raise ImportError("OpenImageIO is not on the GPU machine")
+
+
+sys.meta_path.insert(0, NoOpenImageIO())
+import torch
+from psctl.train import load_config, merge, train
+
+torch.set_num_threads(1)
+repo, out = Path(sys.argv[1]), Path(sys.argv[2])
+cfg = merge(load_config(repo / "configs" / "tiny.yaml"), {"train": {"samples": 16}})
+for method in ("ps-fcn-n", "ps-fcn", "lcnet"):
+    assert train(method, cfg, out / method, device="cpu")["finished"]
+assert train("ps-fcn-dagger", cfg, out / "dagger", device="cpu", lcnet=out / "lcnet" / "best.pt")["finished"]
+print(sorted(p.name for p in out.iterdir()))
+"""
+
+
+def test_training_needs_no_image_io(tmp_path):
+    """The GPU machine that trains the release weights has torch, numpy, scipy, yaml, typer and rich
+    but not OpenImageIO (DEVELOPERS.md): every network's training, validation and checkpoints run
+    with it unimportable (configs/gpu_session.sh's path)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _WITHOUT_OIIO, str(REPO), str(tmp_path)], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split("\n")[-2] == "['dagger', 'lcnet', 'ps-fcn', 'ps-fcn-n']"
