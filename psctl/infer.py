@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     import torch
 
     from psctl.api import ProgressFactory
-    from psctl.io.capture import Capture
+    from psctl.io.capture import Capture, DecodeMemo
     from psctl.models.ps_fcn import PSFCN
 
 DEFAULT_INFER = {
@@ -61,7 +61,8 @@ DEFAULT_INFER = {
     "halo": HALO,  # context kept around each tile, pixels (>= receptive field radius)
     "group_mb": 256,  # fused features held per pass over the images
     # cropped images kept from the first pass for the next ones (RSS stays flat); the ensemble keeps
-    # up to this much more, its first network's reads for the second (ReadMemo)
+    # up to this much more, its first network's reads for the second (ReadMemo), and sdps as much,
+    # the images as decoded for its passes (psctl.io.capture.DecodeMemo)
     "cache_mb": 64,
     "work_mb": None,  # extractor activations per chunk, caps chunk for large tiles: None = 256 CPU, 4096 CUDA
     "channels_last": True,
@@ -689,10 +690,15 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 
 
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
-                    config: dict | None = None, progress: "ProgressFactory | None" = None) -> InferResult:
+                    config: dict | None = None, progress: "ProgressFactory | None" = None,
+                    memo: "DecodeMemo | None" = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk. ``method``
     "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
-    for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again."""
+    for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again.
+    ``memo`` (``psctl.io.capture.DecodeMemo``, not with "ensemble"): images decoded by an
+    earlier pass over this capture, and this pass's kept there (sdps' passes)."""
+    if memo is not None and method == "ensemble":
+        raise ValueError("the ensemble shares its reads through ReadMemo; memo is for one network's passes")
     with _prefetch(capture, mask, config) as decoded:
         if method == "ensemble":
             from psctl.io.capture import ImageCheck
@@ -705,7 +711,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
             res = ensemble_normals([_capture_member(capture, mask, m, None, config, progress, check, reads, decoded)
                                     for m in ENSEMBLE])
         else:
-            res = _capture_member(capture, mask, method, weights, config, progress, decoded=decoded)
+            res = _capture_member(capture, mask, method, weights, config, progress, decoded=decoded, memo=memo)
         res.info["prefetched"] = decoded.served
     return res
 
@@ -726,7 +732,7 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
                     config: dict | None, progress: "ProgressFactory | None", check=None,
-                    reads: "ReadMemo | None" = None, decoded=None) -> InferResult:
+                    reads: "ReadMemo | None" = None, decoded=None, memo=None) -> InferResult:
     from psctl.io.capture import ImageCheck
 
     model, run, note = _prepare_network(method, weights, config)
@@ -743,7 +749,7 @@ def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: 
     if check is None:
         check = ImageCheck(capture)  # black images, negative values: notes
     # UPS-FCN reads the images undivided (capture replaced above): never through the shared reads
-    reader = reads if reads is not None and model.uses_lights else check.reader(capture, mask, decoded)
+    reader = reads if reads is not None and model.uses_lights else check.reader(capture, mask, decoded, memo)
     with naming(capture.path):  # all images black, ...
         res = run_views(model, reader, capture.n_images, capture.lights, mask, run["normalization"],
                         run["train_images"], config, progress, f"{capture.name}: reading + {method}",

@@ -57,7 +57,7 @@ if TYPE_CHECKING:
 
     from psctl.api import ProgressFactory
     from psctl.infer import Reader  # reader(start, box) yields images start.. as float32 [h, w, 3] cropped to box
-    from psctl.io.capture import Capture
+    from psctl.io.capture import Capture, DecodeMemo
     from psctl.models.lcnet import LCNet
 
 DEFAULT_LIGHTS = {
@@ -779,16 +779,16 @@ def lit_capture(capture: "Capture", est: LightEstimate) -> "Capture":
 
 def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,
                    method: str = "PS-FCN", progress: "ProgressFactory | None" = None,
-                   config: dict | None = None) -> LightEstimate:
+                   config: dict | None = None, memo: "DecodeMemo | None" = None) -> LightEstimate:
     """``refine_estimate`` on a capture folder's images as captured (its light_intensities.txt,
-    if any, is not applied: the fit estimates the intensities)."""
+    if any, is not applied: the fit estimates the intensities). ``memo``: as ``iter_images``."""
     from psctl.io.capture import iter_images
 
     # the estimate's directions: near lights' falloff follows them (psctl.nearlight)
     raw = replace(capture, lights=est.directions, intensities=np.ones_like(capture.intensities))
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        yield from iter_images(raw.subset(range(start, raw.n_images)), box)
+        yield from iter_images(raw.subset(range(start, raw.n_images)), box, memo=memo)
 
     return refine_estimate(est, reader, capture.n_images, mask, normals, config, method=method, progress=progress,
                            label=f"{capture.name}: reading for the light fit")

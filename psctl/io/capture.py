@@ -723,13 +723,15 @@ def saturated_map(rgb: np.ndarray) -> np.ndarray:
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None,
-                decoded: "Prefetch | None" = None) -> Iterator[np.ndarray]:
+                decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
     given, gets each integer image's [h, w] bool map of pixels at the top code value (saturated),
     before anything is subtracted or divided. ``decoded`` (``psctl.io.prefetch.Prefetch``): the
-    images as a helper process decoded them, where it has them; the same values as reading here."""
+    images as a helper process decoded them, where it has them; the same values as reading here.
+    ``memo`` (``DecodeMemo``): images an earlier pass decoded, taken before ``decoded``'s, and
+    this pass's decoded images kept in it."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -745,9 +747,12 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if box is not None:
             rows, cols = rows[box[0]], cols[box[1]]
     for k, p in enumerate(capture.image_paths):
-        got = None if decoded is None or box is None else decoded.take(p, box)
+        got = None if memo is None or box is None else memo.take(p, box)
+        fresh = got is None  # not from the memo: kept there below
+        if got is None and decoded is not None and box is not None:
+            got = decoded.take(p, box)
         if got is not None:
-            rgb, info = got  # cut to box in the helper; the same size checked there
+            rgb, info = got  # cut to box in the helper or an earlier pass; the same size checked there
         else:
             pixels, info = read_image(p)
             if (info.width, info.height) != (capture.width, capture.height):  # changed since open
@@ -755,6 +760,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rgb = to_rgb(pixels)
             if box is not None:
                 rgb = rgb[box]
+        if memo is not None and box is not None and fresh:
+            memo.keep(p, box, rgb, info)
         if clipped is not None and has_top_code(info):
             clipped(k, saturated_map(rgb))
         if capture.is_srgb(k):
@@ -772,6 +779,55 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         yield np.ascontiguousarray(rgb, dtype=np.float32)
         if progress is not None:
             progress(1)
+
+
+class DecodeMemo:
+    """Images as decoded (``read_image``, ``to_rgb``, cut to a box), kept for later passes over
+    the same capture that divide them by other intensities (sdps: the second stage on LCNet's
+    lights, the light fit, the second stage on the refined lights), up to ``budget`` bytes.
+
+    ``take(path, box)`` gives (rgb [h, w, 3], ImageInfo) when the kept box of ``path`` holds
+    ``box`` (a view into it: the readers never change what they are given), else None.
+    ``keep(path, box, rgb, info)`` keeps a copy of a decoded image, replacing a kept one whose
+    box the new box holds, while the budget allows. ``served`` counts the images handed back."""
+
+    def __init__(self, budget: int):
+        self.budget = int(budget)
+        self.used = 0
+        self.served = 0
+        self.kept: dict[Path, tuple[tuple[int, int, int, int], np.ndarray, ImageInfo]] = {}
+
+    @staticmethod
+    def _key(box: tuple[slice, slice]) -> tuple[int, int, int, int] | None:
+        (r, c) = box
+        if r.step not in (None, 1) or c.step not in (None, 1) or None in (r.start, r.stop, c.start, c.stop):
+            return None  # only boxes with explicit bounds, as bounding_box and the engine's give
+        return r.start, r.stop, c.start, c.stop
+
+    def take(self, path: Path, box: tuple[slice, slice]) -> tuple[np.ndarray, ImageInfo] | None:
+        hit, want = self.kept.get(Path(path)), self._key(box)
+        if hit is None or want is None:
+            return None
+        (y0, y1, x0, x1), rgb, info = hit
+        if not (y0 <= want[0] <= want[1] <= y1 and x0 <= want[2] <= want[3] <= x1):
+            return None
+        self.served += 1
+        return rgb[want[0] - y0:want[1] - y0, want[2] - x0:want[3] - x0], info
+
+    def keep(self, path: Path, box: tuple[slice, slice], rgb: np.ndarray, info: ImageInfo) -> None:
+        key, path = self._key(box), Path(path)
+        if key is None or rgb.shape[:2] != (key[1] - key[0], key[3] - key[2]):
+            return  # a box clipped by the image's edge: its slices do not say where its pixels are
+        old = self.kept.get(path)
+        if old is not None:
+            (y0, y1, x0, x1) = old[0]
+            if not (key[0] <= y0 and y1 <= key[1] and key[2] <= x0 and x1 <= key[3]):
+                return  # the kept box is not inside this one: keep it
+        freed = 0 if old is None else old[1].nbytes
+        if self.used - freed + rgb.nbytes > self.budget:
+            return
+        self.kept[path] = (key, np.array(rgb, np.float32, copy=True), info)  # a copy: not a view of the whole image
+        self.used += rgb.nbytes - freed
 
 
 # A run's note names the images with more of the object saturated than this: highlights of a
@@ -815,16 +871,17 @@ class ImageCheck:
         if pixels.size and pixels.min() < 0:
             self.negative.add(k)
 
-    def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None
-               ) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
+    def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None,
+               memo: DecodeMemo | None = None) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
         """The network runners' reader: ``capture``'s images from ``start`` on, cut to ``box``,
         each seen by this check over ``mask`` (``capture`` may be this check's with other
         intensities: the image indices, and so the names in the notes, are the same).
-        ``decoded``: as ``iter_images``."""
+        ``decoded``, ``memo``: as ``iter_images``."""
 
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
-                                                clipped=self.clipped_reader(mask, box, start), decoded=decoded),
+                                                clipped=self.clipped_reader(mask, box, start), decoded=decoded,
+                                                memo=memo),
                                     start):
                 self.see(k, img[mask[box]])
                 yield img
