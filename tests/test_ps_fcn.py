@@ -298,6 +298,12 @@ def test_sdps_second_stage_can_be_the_ensemble(tmp_path, monkeypatch):
     images, _, mask = scene(6, 20, 24)
     n = estimate_normals(images, None, mask, method="sdps", device="cpu")
     np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
+    from psctl.api import run_normals  # and on a capture folder (its passes share no DecodeMemo)
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "cap", n=6, size=24)
+    r = run_normals(tmp_path / "cap", method="sdps", write=False, device="cpu")
+    assert r["second_stage"] == "ensemble" and np.isfinite(r["mae"])
     monkeypatch.setattr(psctl.sdps, "SDPS_ENSEMBLE", False)
     assert sdps_second_stage()[0] == "ps-fcn"
 

@@ -645,49 +645,65 @@ def test_erode_mask_is_scipys_binary_erosion():
         assert np.array_equal(erode_mask(m, it), binary_erosion(m, iterations=it)), (h, w, it)
 
 
-def test_decode_memo_serves_boxes_inside_the_kept_one():
+def test_decode_memo_serves_boxes_inside_the_kept_one(tmp_path):
     from psctl.io.capture import DecodeMemo
-    from psctl.io.images import ImageInfo  # noqa: F401 (only passed through)
 
     rng = np.random.default_rng(0)
+    a, b, c = (tmp_path / n for n in ("a.png", "b.png", "c.png"))
+    for f in (a, b, c):
+        f.write_bytes(b"stand-in")  # the memo looks at the files' stamps only
     info = object()  # passed through as is
     big = rng.random((10, 12, 3), dtype=np.float32)
     memo = DecodeMemo(10 * 12 * 3 * 4)
-    memo.keep("a.png", (slice(2, 12), slice(3, 15)), big, info)
+    memo.keep(a, (slice(2, 12), slice(3, 15)), big, info, DecodeMemo.stamp(a))
     orig, big[:] = big.copy(), -1.0  # the memo holds a copy: the reader's array may be reused
     big = orig
-    rgb, got_info = memo.take("a.png", (slice(4, 8), slice(5, 9)))
+    rgb, got_info = memo.take(a, (slice(4, 8), slice(5, 9)))
     assert got_info is info and rgb.shape == (4, 4, 3)
     np.testing.assert_array_equal(rgb, big[2:6, 2:6])
-    assert memo.take("a.png", (slice(1, 8), slice(5, 9))) is None  # not inside the kept box
-    assert memo.take("b.png", (slice(4, 8), slice(5, 9))) is None
-    assert memo.take("a.png", (slice(4, 8, 2), slice(5, 9))) is None  # a step: not a crop
+    assert memo.take(a, (slice(1, 8), slice(5, 9))) is None  # not inside the kept box
+    assert memo.take(b, (slice(4, 8), slice(5, 9))) is None
+    assert memo.take(a, (slice(4, 8, 2), slice(5, 9))) is None  # a step: not a crop
     assert memo.served == 1 and memo.used == big.nbytes
-    # the budget is full: another image is not kept; a clipped box (shape not the slices') never is
-    memo.keep("b.png", (slice(0, 2), slice(0, 2)), big[:2, :2], info)
-    assert memo.take("b.png", (slice(0, 2), slice(0, 2))) is None
+    # the budget is full: another image is not kept; a clipped box (shape not the slices') never is,
+    # nor one without a stamp (a file that cannot be looked at)
+    memo.keep(b, (slice(0, 2), slice(0, 2)), big[:2, :2], info, DecodeMemo.stamp(b))
+    assert memo.take(b, (slice(0, 2), slice(0, 2))) is None
     roomy = DecodeMemo(1 << 20)
-    roomy.keep("c.png", (slice(0, 20), slice(0, 12)), big, info)  # 10 rows where the box says 20
-    assert roomy.take("c.png", (slice(0, 5), slice(0, 5))) is None and roomy.used == 0
+    roomy.keep(c, (slice(0, 20), slice(0, 12)), big, info, DecodeMemo.stamp(c))  # 10 rows where the box says 20
+    roomy.keep(b, (slice(0, 2), slice(0, 2)), big[:2, :2], info, None)
+    assert roomy.take(c, (slice(0, 5), slice(0, 5))) is None and roomy.used == 0
     # a box holding the kept one replaces it; a smaller one does not
-    roomy.keep("a.png", (slice(4, 8), slice(5, 9)), big[:4, :4], info)
-    roomy.keep("a.png", (slice(2, 12), slice(3, 15)), big, info)
-    assert roomy.used == big.nbytes and roomy.take("a.png", (slice(2, 4), slice(3, 4))) is not None
-    roomy.keep("a.png", (slice(4, 8), slice(5, 9)), np.zeros((4, 4, 3), np.float32), info)
-    np.testing.assert_array_equal(roomy.take("a.png", (slice(4, 8), slice(5, 9)))[0], big[2:6, 2:6])
+    roomy.keep(a, (slice(4, 8), slice(5, 9)), big[:4, :4], info, DecodeMemo.stamp(a))
+    roomy.keep(a, (slice(2, 12), slice(3, 15)), big, info, DecodeMemo.stamp(a))
+    assert roomy.used == big.nbytes and roomy.take(a, (slice(2, 4), slice(3, 4))) is not None
+    roomy.keep(a, (slice(4, 8), slice(5, 9)), np.zeros((4, 4, 3), np.float32), info, DecodeMemo.stamp(a))
+    np.testing.assert_array_equal(roomy.take(a, (slice(4, 8), slice(5, 9)))[0], big[2:6, 2:6])
+    # a file changed since it was read is read again, and its copy freed
+    a.write_bytes(b"changed, and longer")
+    assert roomy.take(a, (slice(4, 8), slice(5, 9))) is None and roomy.used == 0
 
 
-@pytest.mark.parametrize("cache_mb", [0, 64])
-def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch, cache_mb):  # noqa: F811
+@pytest.mark.parametrize("extras", ["plain", "ambient, sRGB, near lights"])
+def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch, extras):  # noqa: F811
     """sdps' second stage, the light fit and the second stage again read the capture three times,
     each divided by other intensities: the images are decoded once (DecodeMemo, cache_mb), and
-    every pass gets what it got when each decoded them itself."""
+    every pass gets what it got when each decoded them itself; the memo keeps the images as
+    decoded, before the ambient image, sRGB and the near lights' falloff are applied."""
+    from dataclasses import replace
+
     import psctl.io.capture
     from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import write_image
+    from psctl.nearlight import NearLights
     from psctl.sdps import capture_source
 
     write_capture(tmp_path / "cap", n=12, size=40, seed=2)
-    cap = open_capture(tmp_path / "cap")
+    if extras != "plain":
+        write_image(tmp_path / "cap" / "ambient.png", np.full((40, 40, 3), 0.02, np.float32), "uint16")
+    cap = open_capture(tmp_path / "cap", encoding="linear" if extras == "plain" else "srgb")
+    if extras != "plain":
+        cap = replace(cap, near=NearLights(60.0, (20.0, 20.0)))
     mask = load_mask(cap)
     reads = []
     real = psctl.io.capture.read_image
@@ -700,7 +716,7 @@ def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch,
     monkeypatch.setattr(psctl.io.capture, "read_image", counting)
     est = LightEstimate(rotate_randomly(cap.lights, 5.0, 3), np.linspace(0.5, 1.5, 12, dtype=np.float32), {})
     results = {}
-    for mb in (0, cache_mb):
+    for mb in (0, 64):
         reads.clear()
         source = capture_source(cap, mask, "ps-fcn-dagger", fake_weights / "ps_fcn_dagger.pt",
                                 {"device": "cpu", "cache_mb": mb})
@@ -710,7 +726,7 @@ def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch,
         again = source.normals(refined)
         results[mb] = (first.normals, refined.directions, refined.intensities, again.normals, len(reads))
     assert results[0][4] == 3 * 12  # without the memo: every pass decodes every image
-    assert results[cache_mb][4] == (12 if cache_mb else 36)
-    for a, b in zip(results[0][:4], results[cache_mb][:4]):
-        np.testing.assert_array_equal(a, b)
+    assert results[64][4] == 12
+    for x, y in zip(results[0][:4], results[64][:4]):
+        np.testing.assert_array_equal(x, y)
     assert not np.array_equal(results[0][0], results[0][3])  # the second pass saw other lights

@@ -749,6 +749,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     for k, p in enumerate(capture.image_paths):
         got = None if memo is None or box is None else memo.take(p, box)
         fresh = got is None  # not from the memo: kept there below
+        stamp = memo.stamp(p) if memo is not None and box is not None and fresh else None  # the file as read
         if got is None and decoded is not None and box is not None:
             got = decoded.take(p, box)
         if got is not None:
@@ -760,8 +761,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rgb = to_rgb(pixels)
             if box is not None:
                 rgb = rgb[box]
-        if memo is not None and box is not None and fresh:
-            memo.keep(p, box, rgb, info)
+        if stamp is not None:
+            memo.keep(p, box, rgb, info, stamp)
         if clipped is not None and has_top_code(info):
             clipped(k, saturated_map(rgb))
         if capture.is_srgb(k):
@@ -787,36 +788,53 @@ class DecodeMemo:
     lights, the light fit, the second stage on the refined lights), up to ``budget`` bytes.
 
     ``take(path, box)`` gives (rgb [h, w, 3], ImageInfo) when the kept box of ``path`` holds
-    ``box`` (a view into it: the readers never change what they are given), else None.
-    ``keep(path, box, rgb, info)`` keeps a copy of a decoded image, replacing a kept one whose
-    box the new box holds, while the budget allows. ``served`` counts the images handed back."""
+    ``box`` (a view into it: the readers never change what they are given) and the file is as it
+    was when read (``stamp``: inode, size, modification time), else None. ``keep(path, box, rgb,
+    info, stamp)`` keeps a copy of a decoded image, replacing a kept one whose box the new box
+    holds, while the budget allows; ``stamp`` is taken before the file is read. ``served``
+    counts the images handed back."""
 
     def __init__(self, budget: int):
         self.budget = int(budget)
         self.used = 0
         self.served = 0
-        self.kept: dict[Path, tuple[tuple[int, int, int, int], np.ndarray, ImageInfo]] = {}
+        self.kept: dict[Path, tuple[tuple[int, int, int, int], np.ndarray, ImageInfo, tuple]] = {}
+
+    @staticmethod
+    def stamp(path: str | os.PathLike) -> tuple[int, int, int] | None:
+        """The file's inode, size and modification time (ns); None when it cannot be read."""
+        try:
+            st = os.stat(path)
+        except OSError:
+            return None
+        return st.st_ino, st.st_size, st.st_mtime_ns
 
     @staticmethod
     def _key(box: tuple[slice, slice]) -> tuple[int, int, int, int] | None:
         (r, c) = box
-        if r.step not in (None, 1) or c.step not in (None, 1) or None in (r.start, r.stop, c.start, c.stop):
+        bounds = (r.start, r.stop, c.start, c.stop)
+        if r.step not in (None, 1) or c.step not in (None, 1) or None in bounds or min(bounds) < 0:
             return None  # only boxes with explicit bounds, as bounding_box and the engine's give
-        return r.start, r.stop, c.start, c.stop
+        return tuple(int(b) for b in bounds)
 
     def take(self, path: Path, box: tuple[slice, slice]) -> tuple[np.ndarray, ImageInfo] | None:
         hit, want = self.kept.get(Path(path)), self._key(box)
         if hit is None or want is None:
             return None
-        (y0, y1, x0, x1), rgb, info = hit
+        (y0, y1, x0, x1), rgb, info, stamp = hit
+        if stamp != self.stamp(path):  # changed since: read again (with the size check)
+            del self.kept[Path(path)]
+            self.used -= rgb.nbytes
+            return None
         if not (y0 <= want[0] <= want[1] <= y1 and x0 <= want[2] <= want[3] <= x1):
             return None
         self.served += 1
         return rgb[want[0] - y0:want[1] - y0, want[2] - x0:want[3] - x0], info
 
-    def keep(self, path: Path, box: tuple[slice, slice], rgb: np.ndarray, info: ImageInfo) -> None:
+    def keep(self, path: Path, box: tuple[slice, slice], rgb: np.ndarray, info: ImageInfo,
+             stamp: tuple[int, int, int] | None) -> None:
         key, path = self._key(box), Path(path)
-        if key is None or rgb.shape[:2] != (key[1] - key[0], key[3] - key[2]):
+        if key is None or stamp is None or rgb.shape[:2] != (key[1] - key[0], key[3] - key[2]):
             return  # a box clipped by the image's edge: its slices do not say where its pixels are
         old = self.kept.get(path)
         if old is not None:
@@ -826,7 +844,7 @@ class DecodeMemo:
         freed = 0 if old is None else old[1].nbytes
         if self.used - freed + rgb.nbytes > self.budget:
             return
-        self.kept[path] = (key, np.array(rgb, np.float32, copy=True), info)  # a copy: not a view of the whole image
+        self.kept[path] = (key, np.array(rgb, np.float32, copy=True), info, stamp)  # a copy: not a view of the whole image
         self.used += rgb.nbytes - freed
 
 
