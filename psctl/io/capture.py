@@ -842,10 +842,11 @@ class DecodeMemo:
             if not (key[0] <= y0 and y1 <= key[1] and key[2] <= x0 and x1 <= key[3]):
                 return  # the kept box is not inside this one: keep it
         freed = 0 if old is None else old[1].nbytes
-        if self.used - freed + rgb.nbytes > self.budget:
+        size = rgb.size * 4  # kept as float32
+        if self.used - freed + size > self.budget:
             return
         self.kept[path] = (key, np.array(rgb, np.float32, copy=True), info, stamp)  # a copy: not a view of the whole image
-        self.used += rgb.nbytes - freed
+        self.used += size - freed
 
 
 # A run's note names the images with more of the object saturated than this: highlights of a
