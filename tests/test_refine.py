@@ -679,6 +679,10 @@ def test_decode_memo_serves_boxes_inside_the_kept_one(tmp_path):
     assert roomy.used == big.nbytes and roomy.take(a, (slice(2, 4), slice(3, 4))) is not None
     roomy.keep(a, (slice(4, 8), slice(5, 9)), np.zeros((4, 4, 3), np.float32), info, DecodeMemo.stamp(a))
     np.testing.assert_array_equal(roomy.take(a, (slice(4, 8), slice(5, 9)))[0], big[2:6, 2:6])
+    # kept as float32, and counted so against the budget, whatever it was given in
+    exact = DecodeMemo(2 * 2 * 3 * 4)
+    exact.keep(b, (slice(0, 2), slice(0, 2)), big[:2, :2].astype(np.float64), info, DecodeMemo.stamp(b))
+    assert exact.used == 48 and exact.take(b, (slice(0, 2), slice(0, 2)))[0].dtype == np.float32
     # a file changed since it was read is read again, and its copy freed
     a.write_bytes(b"changed, and longer")
     assert roomy.take(a, (slice(4, 8), slice(5, 9))) is None and roomy.used == 0
