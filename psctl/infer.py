@@ -695,10 +695,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     """A network method on a capture folder, streaming its images from disk. ``method``
     "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
     for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again.
-    ``memo`` (``psctl.io.capture.DecodeMemo``, not with "ensemble"): images decoded by an
-    earlier pass over this capture, and this pass's kept there (sdps' passes)."""
-    if memo is not None and method == "ensemble":
-        raise ValueError("the ensemble shares its reads through ReadMemo; memo is for one network's passes")
+    ``memo`` (``psctl.io.capture.DecodeMemo``): images decoded by an earlier pass over this
+    capture, and this pass's kept there (sdps' passes)."""
     with _prefetch(capture, mask, config) as decoded:
         if method == "ensemble":
             from psctl.io.capture import ImageCheck
@@ -707,7 +705,8 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
             # images the first read from memory (up to cache_mb), not from disk again
             _no_weights(weights)
             check = ImageCheck(capture)
-            reads = ReadMemo(check.reader(capture, mask, decoded), {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
+            reads = ReadMemo(check.reader(capture, mask, decoded, memo),
+                             {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
             res = ensemble_normals([_capture_member(capture, mask, m, None, config, progress, check, reads, decoded)
                                     for m in ENSEMBLE])
         else:

@@ -164,14 +164,13 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
 def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: str | os.PathLike | None = None,
                    config: dict | None = None, progress: "ProgressFactory | None" = None) -> Source:
     """A capture folder, streamed from disk (its light files, if any, are not used); as
-    ``array_source`` otherwise. The passes of one network share a ``DecodeMemo`` of ``cache_mb``:
-    each divides the images by other intensities, so what the first decodes is kept as decoded
-    (the ensemble shares its members' reads through ``ReadMemo`` within each pass instead)."""
+    ``array_source`` otherwise. The passes share a ``DecodeMemo`` of ``cache_mb``: each divides
+    the images by other intensities, so what the first decodes is kept as decoded."""
     from psctl.infer import DEFAULT_INFER, capture_normals
     from psctl.io.capture import DecodeMemo
     from psctl.lights import lit_capture, refine_capture
 
-    memo = None if method == "ensemble" else DecodeMemo({**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
+    memo = DecodeMemo({**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
 
     def normals(est: "LightEstimate") -> "InferResult":
         return capture_normals(lit_capture(capture, est), mask, method, weights, config, progress, memo)

@@ -298,7 +298,7 @@ def test_sdps_second_stage_can_be_the_ensemble(tmp_path, monkeypatch):
     images, _, mask = scene(6, 20, 24)
     n = estimate_normals(images, None, mask, method="sdps", device="cpu")
     np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1, atol=1e-5)
-    from psctl.api import run_normals  # and on a capture folder (its passes share no DecodeMemo)
+    from psctl.api import run_normals  # and on a capture folder (its passes share a DecodeMemo)
     from tests.conftest import write_capture
 
     write_capture(tmp_path / "cap", n=6, size=24)

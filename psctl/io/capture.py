@@ -576,9 +576,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
 
 
 def _check_mat_header(p: Path, ref: ImageInfo) -> None:
-    """Normal_gt.mat's variable list (names and shapes, no values): what load_ground_truth
-    would refuse later, said when the folder is opened (psctl info too). psctl's reader of plain
-    files first (importing scipy.io costs more than reading the file); scipy for the rest."""
+    """Normal_gt.mat's variable list (names and shapes): what load_ground_truth would refuse
+    later, said when the folder is opened (psctl info too). psctl's reader of plain files first
+    (it decodes the values to know a file whole, and importing scipy.io costs more); scipy, which
+    reads only the headers, for the rest."""
     shapes = variable_shapes(p)
     if shapes is None:
         import scipy.io
@@ -748,8 +749,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             rows, cols = rows[box[0]], cols[box[1]]
     for k, p in enumerate(capture.image_paths):
         got = None if memo is None or box is None else memo.take(p, box)
-        fresh = got is None  # not from the memo: kept there below
-        stamp = memo.stamp(p) if memo is not None and box is not None and fresh else None  # the file as read
+        # not from the memo: kept there below, stamped as the file was before it is read
+        stamp = memo.stamp(p) if memo is not None and box is not None and got is None else None
         if got is None and decoded is not None and box is not None:
             got = decoded.take(p, box)
         if got is not None:
