@@ -18,6 +18,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "estimate_normals": "psctl.api",
     "estimate_lights": "psctl.api",
+    "estimate_albedo": "psctl.albedo",
     "run_normals": "psctl.api",
     "integrate_normals": "psctl.depth",
     "run_lights": "psctl.lights",
@@ -31,6 +32,7 @@ _LAZY = {
 }
 
 if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ imports on first use
+    from psctl.albedo import estimate_albedo
     from psctl.api import estimate_lights, estimate_normals, run_normals
     from psctl.depth import integrate_normals, run_depth
     from psctl.errors import PsctlError
@@ -85,5 +87,5 @@ def __dir__() -> list[str]:
     return sorted({*globals(), *_LAZY})
 
 
-__all__ = ["__version__", "estimate_normals", "estimate_lights", "run_normals", "integrate_normals", "run_lights",
-           "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError"]
+__all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
+           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError"]

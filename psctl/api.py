@@ -307,7 +307,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
                 light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1,
-                precision: str = "float32") -> dict:
+                precision: str = "float32", albedo: bool = False) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -342,8 +342,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
     [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth; 0 outside the mask,
-    NaN on mask pixels whose ground truth is zero or NaN, which the metrics leave out) and "spread"
-    [H, W] degrees (None but for the ensemble).
+    NaN on mask pixels whose ground truth is zero or NaN, which the metrics leave out), "spread"
+    [H, W] degrees (None but for the ensemble) and "albedo" [H, W, 3] (None without ``albedo``).
+    ``albedo``: also the albedo map from the normals, the lights (sdps: as estimated) and the
+    images (``psctl.albedo``: per channel, the median of image / (n . l) over the images that
+    light each pixel well; one more pass over the images), in each of ``formats``
+    (``albedo.png``: an sRGB picture scaled to the report's ``albedo.png_scale``; ``albedo.exr``
+    and ``albedo.npy``: linear values), and the report's "albedo" (None without it).
     """
     from dataclasses import replace
 
@@ -354,7 +359,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.io.atomic import check_inputs_kept, check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
                                   load_ground_truth, load_mask, open_capture, select_images, selection_notes)
-    from psctl.io.normals import FORMATS, parse_formats, write_normal_map
+    from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
     from psctl.metrics import angular_error, summarize
 
@@ -370,10 +375,14 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         raise PsctlError(None, f"batch must be a psctl.io.atomic.OutputBatch or None, not {type(batch).__name__}")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
+    want_albedo = check_bool("albedo", albedo)
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     precision = check_precision(precision)
     cap = open_capture(path, encoding)
     method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
+    if want_albedo and method == "ups-fcn":
+        raise PsctlError(None, "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's "
+                               "lights) or a folder with light_directions.txt")
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")
@@ -421,10 +430,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if write and SDPS_FILES["light_images"] in light_files:
         notes.append(f"images: the estimated light files have {cap.n_images} rows, one per image listed in "
                      f"{SDPS_FILES['light_images']}")
-    names = [FORMATS[f] for f in formats] + (["error.png"] if cap.gt_path else []) + \
+    names = [FORMATS[f] for f in formats] + ([ALBEDO_FORMATS[f] for f in formats] if want_albedo else []) + \
+        (["error.png"] if cap.gt_path else []) + \
         (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
     # every file psctl normals may write
-    all_names = (*FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
+    all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
     stale: list[str] = []
     if write:
         check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
@@ -464,10 +474,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             cap = replace(cap, near=near)
 
     # --- solve -------------------------------------------------------------------------------
+    memo = None  # the albedo's pass takes the images this one decodes, where they fit
+    if want_albedo:
+        from psctl.albedo import DEFAULT_ALBEDO
+        from psctl.io.capture import DecodeMemo
+
+        memo = DecodeMemo(DEFAULT_ALBEDO["memo_mb"] << 20)
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
-        from psctl.lights import capture_lights, light_errors, lights_changed
+        from psctl.lights import capture_lights, light_errors, lights_changed, lit_capture
         from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
@@ -476,7 +492,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg,
-                                progress)
+                                progress, memo)
         est, net = second_stage(source, est, refine, fit)
         normals, dark = net.normals, net.dark
         notes += list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
@@ -490,7 +506,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
-        net = capture_normals(cap, mask, method, weights, net_cfg, progress)
+        net = capture_normals(cap, mask, method, weights, net_cfg, progress, memo)
         normals, dark, spread = net.normals, net.dark, net.spread
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])
@@ -498,7 +514,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         acc = L2Accumulator(mask[box])
         advance = progress(f"{cap.name}: reading + l2", cap.n_images)
         check = ImageCheck(cap)  # black images, negative values: notes
-        for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box))):
+        for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo)):
             acc.add(img, cap.lights[k])
             check.see(k, img[mask[box]])
             advance(1)
@@ -514,6 +530,24 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         raise RuntimeError("internal error: non-finite normals")
     if method in LISTED_LIGHTS:  # the light file's methods
         notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
+
+    alb = None
+    if want_albedo:
+        from psctl.albedo import albedo_png_scale, capture_albedo
+
+        lit = cap if method != "sdps" else lit_capture(replace(cap, near=near), est)  # the lights the normals used
+        alb = capture_albedo(lit, np.where(dark[..., None], 0.0, normals), mask, progress=progress,
+                             memo=memo)  # dark pixels: no normal
+        undetermined = int(alb.undetermined.sum())
+        albedo_stats = {"png_scale": albedo_png_scale(alb.albedo, mask & ~alb.undetermined),
+                        "median": [float(v) for v in np.median(alb.albedo[mask & ~alb.undetermined], axis=0)]
+                        if (mask & ~alb.undetermined).any() else None,
+                        "n_undetermined": undetermined}
+        if undetermined:
+            notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (dark in every "
+                         f"image, or no light in front of their normal): 0 in the albedo maps")
+        if method == "sdps":
+            notes.append("albedo: on the scale of the estimated intensities (sdps knows them up to one factor)")
 
     # --- evaluate ------------------------------------------------------------------------------
     error = None
@@ -553,6 +587,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     }
     if spread is not None:
         report["spread"] = spread_stats(spread, mask, error, valid if gt is not None else None)
+    report["albedo"] = albedo_stats if want_albedo else None
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
         report["lcnet_decode"] = lc_cfg["decode"]
@@ -564,7 +599,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
 
     if arrays is not None:
-        arrays.update(normals=normals, mask=mask, error=error, spread=spread)
+        arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo)
 
     # --- write ---------------------------------------------------------------------------------
     if write:
@@ -575,6 +610,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             write_outputs_list(stage, names, "normals")
             for f in formats:
                 write_normal_map(stage / FORMATS[f], normals, mask, f)
+                if alb is not None:
+                    write_albedo_map(stage / ALBEDO_FORMATS[f], alb.albedo, mask, f, albedo_stats["png_scale"])
             label = f"{report['object']}  {report['method']}"  # which run: pictures get compared side by side
             if error is not None:
                 write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"], label=label)

@@ -320,6 +320,7 @@ def normals(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
+    albedo: Annotated[bool, _flag("--albedo", help="Also the albedo map in each --format (albedo.png: an sRGB picture; albedo.exr, albedo.npy: linear): per channel the median of image / (n . l) over the images that light each pixel well, from the normals and the lights (sdps: as estimated); one more pass over the images.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -335,7 +336,7 @@ def normals(
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
                                           views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
                                           light_distance=light_distance, downsample=downsample,
-                                          precision=precision),
+                                          precision=precision, albedo=albedo),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 

@@ -21,7 +21,7 @@ from psctl.errors import PsctlError
 if TYPE_CHECKING:
     from psctl.api import ProgressFactory
     from psctl.infer import InferResult
-    from psctl.io.capture import Capture
+    from psctl.io.capture import Capture, DecodeMemo
     from psctl.lights import LightEstimate
 
 # sdps (uncalibrated): LCNet estimates the lights (weights/lcnet.pt or --lcnet FILE), then PS-FCN†
@@ -162,15 +162,18 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
 
 
 def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: str | os.PathLike | None = None,
-                   config: dict | None = None, progress: "ProgressFactory | None" = None) -> Source:
+                   config: dict | None = None, progress: "ProgressFactory | None" = None,
+                   memo: "DecodeMemo | None" = None) -> Source:
     """A capture folder, streamed from disk (its light files, if any, are not used); as
-    ``array_source`` otherwise. The passes share a ``DecodeMemo`` of ``cache_mb``: each divides
-    the images by other intensities, so what the first decodes is kept as decoded."""
+    ``array_source`` otherwise. The passes share a ``DecodeMemo`` (``memo``, or one of
+    ``cache_mb``): each divides the images by other intensities, so what the first decodes is
+    kept as decoded."""
     from psctl.infer import DEFAULT_INFER, capture_normals
     from psctl.io.capture import DecodeMemo
     from psctl.lights import lit_capture, refine_capture
 
-    memo = DecodeMemo({**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
+    if memo is None:
+        memo = DecodeMemo({**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
 
     def normals(est: "LightEstimate") -> "InferResult":
         return capture_normals(lit_capture(capture, est), mask, method, weights, config, progress, memo)

@@ -41,7 +41,7 @@ MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
 AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "ambient.jpg", "ambient.jpeg")
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's eval.png).
-_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights)([._-].*)?|ambient|eval|spread)$", re.I)
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|spread)$", re.I)
 
 Progress = Callable[[int], None]
 

@@ -141,6 +141,13 @@ def srgb_to_linear(values: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def linear_to_srgb(values: np.ndarray) -> np.ndarray:
+    """The sRGB encoding curve, inverse of ``srgb_to_linear`` on [0, 1]; values are clipped to
+    [0, 1] first (for pictures)."""
+    v = np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
+    return np.where(v <= 0.0031308, v * 12.92, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
 def to_rgb(pixels: np.ndarray) -> np.ndarray:
     """[H, W, C] -> [H, W, 3]: grey is repeated, alpha and extra channels are dropped."""
     c = pixels.shape[-1]

@@ -1,4 +1,5 @@
-"""Normal-map encodings: 16/8-bit PNG ((n + 1) / 2 per channel), float EXR, NumPy .npy.
+"""Normal-map encodings: 16/8-bit PNG ((n + 1) / 2 per channel), float EXR, NumPy .npy; and the
+albedo map's, in the same formats (``write_albedo_map``).
 
 Convention everywhere: x right, y up, z toward the camera; row 0 is the top of the image.
 Pixels outside the mask are 0 in every encoding (PNG 0 decodes to "no normal").
@@ -13,9 +14,10 @@ import numpy as np
 
 from psctl.errors import PsctlError
 from psctl.io.atomic import atomic_path
-from psctl.io.images import ImageInfo, read_image, write_image
+from psctl.io.images import ImageInfo, linear_to_srgb, read_image, write_image
 
 FORMATS = {"png16": "normal.png", "png8": "normal_8bit.png", "exr": "normal.exr", "npy": "normal.npy"}
+ALBEDO_FORMATS = {"png16": "albedo.png", "png8": "albedo_8bit.png", "exr": "albedo.exr", "npy": "albedo.npy"}
 
 
 def parse_formats(spec: str) -> list[str]:
@@ -93,3 +95,21 @@ def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndar
                 np.save(f, normals)
     else:
         raise PsctlError(None, f"unknown normal-map format {fmt!r}")
+
+
+def write_albedo_map(path: str | os.PathLike, albedo: np.ndarray, mask: np.ndarray, fmt: str, scale: float) -> None:
+    """Write one albedo encoding atomically. ``fmt`` is one of ALBEDO_FORMATS. EXR and .npy hold
+    the albedo as estimated (linear, float32); the PNGs are pictures: albedo / ``scale``, clipped
+    to [0, 1] and sRGB-encoded (tagged sRGB), so that linear = srgb_to_linear(png) * scale below
+    white."""
+    albedo = np.where(mask[..., None], albedo, 0.0).astype(np.float32)
+    if fmt in ("png16", "png8"):
+        write_image(path, linear_to_srgb(albedo / scale), "uint16" if fmt == "png16" else "uint8", kind="picture")
+    elif fmt == "exr":
+        write_image(path, albedo, "float", kind="linear")
+    elif fmt == "npy":
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, albedo)
+    else:
+        raise PsctlError(None, f"unknown albedo-map format {fmt!r}")

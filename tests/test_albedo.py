@@ -1,0 +1,233 @@
+"""The albedo map (psctl.albedo, psctl normals --albedo) on data the tests make."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import hemisphere_lights, render_lambertian, sphere, write_capture
+
+
+def _textured(size: int = 24, n: int = 40, seed: int = 1):
+    normals, mask = sphere(size)
+    lights = hemisphere_lights(n, max_angle_deg=40.0, seed=seed)
+    rng = np.random.default_rng(seed)
+    albedo = rng.uniform(0.1, 0.9, (size, size, 3)).astype(np.float32)
+    images = render_lambertian(normals, mask, lights, albedo)
+    return normals, mask, lights, albedo, images
+
+
+def test_median_is_exact_on_lambertian_and_ignores_a_minority_of_outliers():
+    from psctl.albedo import estimate_albedo
+
+    normals, mask, lights, albedo, images = _textured()
+    got = estimate_albedo(images, lights, normals, mask)
+    assert np.allclose(got[mask], albedo[mask], rtol=1e-5, atol=1e-6)
+    assert (got[~mask] == 0).all()
+
+    # highlights (much too bright) in 12 and cast shadows (black) in 8 of each pixel's 40 images
+    rng = np.random.default_rng(2)
+    bad = images.copy()
+    order = np.argsort(rng.random((len(lights),) + mask.shape), axis=0)
+    bright, dark = order[:12], order[12:20]
+    for k in range(len(lights)):
+        bad[k][(bright == k).any(0)] *= 5.0
+        bad[k][(dark == k).any(0)] = 0.0
+    shading = np.einsum("hwc,nc->nhw", normals, lights)
+    ok = mask & (shading >= 0.2).all(0)  # every image counts there: 20 of 40 exact, the median's middle pair
+    got = estimate_albedo(bad, lights, normals, mask)
+    assert ok.sum() > 100
+    assert np.allclose(got[ok], albedo[ok], rtol=1e-5, atol=1e-6)
+    # a least-squares albedo over the same images is far off: the median is what makes it robust
+    s = np.clip(shading, 0, None)[..., None]
+    ls = (bad * s).sum(0) / (s * s).sum(0).clip(1e-12)
+    assert np.abs(ls[ok] / albedo[ok] - 1).mean() > 0.3
+
+
+def test_grazing_pixels_use_their_best_lit_images_and_unlit_ones_are_undetermined():
+    from psctl.albedo import albedo_from_reader
+
+    lights = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.954], [-0.3, 0.0, 0.954]], np.float32)
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    # pixel 0: n . l about 0.1 for all three (below min_shading 0.2); pixel 1: faces away (x = -1
+    # side, lights in front); pixel 2: no normal (dark)
+    grazing = np.array([0.0, 0.995, 0.1], np.float32)
+    grazing /= np.linalg.norm(grazing)
+    normals = np.zeros((1, 3, 3), np.float32)
+    normals[0, 0] = grazing
+    normals[0, 1] = [0.0, 0.0, -1.0]
+    mask = np.ones((1, 3), bool)
+    shading = normals[0] @ lights.T  # [3, 3]
+    rho = np.array([0.3, 0.5, 0.7], np.float32)
+    images = [np.clip(shading[:, k], 0, None)[None, :, None] * rho for k in range(3)]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, mask)
+    lit = shading[0] >= 0.5 * shading[0].max()
+    assert 0 < shading[0].max() < 0.2 and lit.all()
+    assert np.allclose(res.albedo[0, 0], rho, rtol=1e-5)
+    assert (res.albedo[0, 1:] == 0).all()
+    assert res.undetermined.tolist() == [[False, True, True]]
+
+
+def test_bands_give_the_same_albedo_and_read_once_each():
+    from psctl.albedo import albedo_from_reader, row_bands
+
+    normals, mask, lights, albedo, images = _textured(size=20, n=12)
+    mask[:3] = False  # empty rows are skipped
+    calls = []
+
+    def read(box):
+        calls.append(box)
+        return (img[box] for img in images)
+
+    one = albedo_from_reader(read, lights, normals, mask)
+    assert len(calls) == 1
+    calls.clear()
+    many = albedo_from_reader(read, lights, normals, mask, {"budget_mb": 0})  # one row per band
+    bands = row_bands(mask, len(lights), 0)
+    assert len(calls) == len(bands) == mask.any(axis=1).sum()
+    assert np.array_equal(one.albedo, many.albedo)
+    covered = np.zeros(mask.shape[0], bool)
+    for r0, r1 in bands:
+        covered[r0:r1] = True
+    assert covered[mask.any(axis=1)].all()
+
+
+def test_reader_with_the_wrong_number_of_images_is_an_error():
+    from psctl.albedo import albedo_from_reader
+    from psctl.errors import PsctlError
+
+    normals, mask, lights, albedo, images = _textured(size=12, n=6)
+    with pytest.raises(PsctlError, match="5 images for 6 lights"):
+        albedo_from_reader(lambda box: (img[box] for img in images[:5]), lights, normals, mask)
+
+
+def test_estimate_albedo_checks_its_arrays():
+    import psctl
+
+    normals, mask, lights, albedo, images = _textured(size=12, n=6)
+    with pytest.raises(psctl.PsctlError, match=r"normals must be \[H, W, 3\]"):
+        psctl.estimate_albedo(images, lights, normals[:5], mask)
+    bad = normals.copy()
+    bad[3, 3, 0] = np.nan
+    with pytest.raises(psctl.PsctlError, match="NaN"):
+        psctl.estimate_albedo(images, lights, bad, mask)
+    with pytest.raises(psctl.PsctlError, match="min_shading"):
+        psctl.estimate_albedo(images, lights, normals, mask, min_shading=0)
+    with pytest.raises(psctl.PsctlError, match="light directions"):
+        psctl.estimate_albedo(images, None, normals, mask)
+    # grey images and a normal map read back from 8 bits (not unit length) work
+    grey = images[..., 1]
+    got = psctl.estimate_albedo(grey, lights, normals * 0.98, mask)
+    assert np.allclose(got[mask][:, 0], albedo[mask][:, 1], rtol=1e-5)
+
+
+def test_run_normals_writes_albedo_maps(tmp_path):
+    import psctl
+    from psctl.io.images import read_image, srgb_to_linear
+
+    folder = tmp_path / "sphere"
+    made = write_capture(folder, n=12, size=32)  # albedo 0.7, intensities listed
+    # where every light is in front of the normal l2's normals are exact (elsewhere attached
+    # shadows bend them, and the albedo follows)
+    front = made["mask"] & (np.einsum("hwc,nc->nhw", made["normals"], made["lights"]) > 0).all(0)
+    arrays = {}
+    r = psctl.run_normals(folder, method="l2", out=tmp_path / "out", formats=("png16", "exr", "npy"), albedo=True,
+                          arrays=arrays)
+    out = tmp_path / "out"
+    for name in ("albedo.png", "albedo.exr", "albedo.npy"):
+        assert (out / name).is_file()
+    assert {"albedo_png", "albedo_exr", "albedo_npy"} <= set(r["outputs"])
+    mask = arrays["mask"]
+    exr = read_image(out / "albedo.exr")[0]
+    assert front.sum() > 400 and (mask == made["mask"]).all()
+    assert np.allclose(exr[front], 0.7, atol=2e-3) and (exr[~mask] == 0).all()
+    assert np.array_equal(np.load(out / "albedo.npy"), arrays["albedo"])
+    assert np.allclose(r["albedo"]["median"], 0.7, atol=1e-3)
+    assert r["albedo"]["n_undetermined"] == 0
+    # the PNG is a picture: sRGB of albedo / png_scale
+    png = read_image(out / "albedo.png")[0]
+    back = srgb_to_linear(png) * r["albedo"]["png_scale"]
+    assert np.allclose(back[mask], exr[mask], atol=2e-3)
+    assert json.loads((out / "report.json").read_text())["albedo"]["png_scale"] == r["albedo"]["png_scale"]
+
+    # without --albedo the next run into the folder removes them, and says so
+    r2 = psctl.run_normals(folder, method="l2", out=out)
+    assert not (out / "albedo.png").exists() and not (out / "albedo.npy").exists()
+    assert r2["albedo"] is None
+    assert any("removed" in n and "albedo.png" in n for n in r2["notes"])
+
+
+def test_dark_pixels_are_undetermined(tmp_path):
+    import psctl
+
+    folder = tmp_path / "nomask"
+    write_capture(folder, n=12, size=32, mask=False)  # the black background is in the object: dark
+    arrays = {}
+    r = psctl.run_normals(folder, method="l2", write=False, albedo=True, arrays=arrays)
+    n_dark = r["n_dark"]
+    assert n_dark > 0 and r["albedo"]["n_undetermined"] == n_dark
+    assert any(n.startswith("albedo:") and "undetermined" in n for n in r["notes"])
+    lit = arrays["albedo"].sum(-1) > 0
+    assert lit.sum() == 32 * 32 - n_dark
+    assert np.allclose(r["albedo"]["median"], 0.7, atol=1e-3)  # dark pixels do not pull it down
+
+
+def test_cli_albedo_refused_for_ups_fcn_before_any_output(tmp_path):
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "psctl", "normals", str(folder), "-m", "ups-fcn", "--albedo", "-o",
+                        str(out)], capture_output=True, text=True)
+    assert p.returncode == 2
+    assert p.stderr.strip().count("\n") == 0 and "--albedo" in p.stderr and "ups-fcn" in p.stderr
+    assert not out.exists()
+
+
+def test_cli_albedo_with_sdps_uses_the_estimated_lights(tmp_path):
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=12, size=32, intensities=False)
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "psctl", "normals", str(folder), "-m", "sdps", "--albedo", "-o",
+                        str(out), "--json", "-q"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    r = json.loads(p.stdout)
+    assert any("scale of the estimated intensities" in n for n in r["notes"])
+    from psctl.io.images import read_image
+
+    exr = read_image(out / "albedo.exr")[0]
+    mask = exr.sum(-1) > 0
+    vals = exr[mask][:, 0]
+    # a uniform albedo up to sdps' scale: nearly one value where the normals are good
+    assert np.median(np.abs(vals / np.median(vals) - 1)) < 0.05
+
+
+def test_the_albedo_pass_takes_the_images_the_method_decoded(tmp_path, monkeypatch):
+    import psctl
+    import psctl.io.capture as capture_io
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=12, size=32)
+    reads = []
+    real = capture_io.read_image
+
+    def counted(path, *args, **kwargs):
+        if str(path).endswith(tuple(f"{k + 1:03d}.png" for k in range(12))):  # the images, not the mask
+            reads.append(path)
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(capture_io, "read_image", counted)
+    got = {}
+    for mb in (0, DEFAULT_ALBEDO["memo_mb"]):
+        monkeypatch.setitem(DEFAULT_ALBEDO, "memo_mb", mb)
+        reads.clear()
+        arrays = {}
+        psctl.run_normals(folder, method="l2", write=False, albedo=True, arrays=arrays)
+        got[mb] = (arrays["albedo"], len(reads))
+    (off, n_off), (on, n_on) = got.values()
+    assert np.array_equal(off, on)
+    assert n_off == 24 and n_on == 12  # without the memo each image is decoded twice
