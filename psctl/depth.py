@@ -704,7 +704,6 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     # --- normals and mask ----------------------------------------------------------------------
     mask = _capture_mask(cap)
-    mean_image = None
     if normals is None:
         for name in NORMAL_FILES:
             if (cap.path / "psctl" / name).is_file():
@@ -760,7 +759,13 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     # --- surface products ----------------------------------------------------------------------
     valid = res.valid
-    if mean_image is None:
+    # the mesh's colours: the albedo the same psctl normals run wrote beside its normal map (the
+    # surface's own colour), else the images' mean (shading and all)
+    albedo = None if normals is None else albedo_beside(Path(normals), (cap.height, cap.width), notes)
+    if albedo is not None:
+        colors_source, mean_image = os.path.abspath(albedo[0]), albedo[1]
+    else:
+        colors_source = "mean image"
         box = bounding_box(valid)
         mean_image = np.zeros((cap.height, cap.width, 3), np.float32)
         advance = progress(f"{cap.name}: mean image for vertex colours", cap.n_images)
@@ -798,6 +803,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "z_min": round(float(z.min()), 6),
         "z_max": round(float(z.max()), 6),
         "z_units": "pixels" if K is None else "geometric-mean distance of each region",
+        "colors": colors_source,
         "n_vertices": int(len(mesh.vertices)),
         "n_faces": int(len(mesh.faces)),
         "seconds_integrate": round(t_integrate, 3),
@@ -808,6 +814,45 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     if write:
         _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply, t0)
     return report
+
+
+def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None = None
+                  ) -> tuple[Path, np.ndarray] | None:
+    """The albedo map (``psctl normals --albedo``: albedo.exr, albedo.npy, else a PNG of it,
+    sRGB-decoded: linear up to its scale, which ``display_colors`` sets anyway) that the same
+    psctl normals run wrote beside the normal map ``normals`` (both in its folder's list of
+    outputs), as (path, [H, W, 3] float32); None when there is none, or (with a note in
+    ``notes``) when it cannot be read or has another size: the vertex colours then come from
+    the images."""
+    from psctl.io.atomic import read_outputs_list
+
+    listed = read_outputs_list(normals.parent, "normals")
+    if normals.name not in listed:
+        return None
+    for name in ("albedo.exr", "albedo.npy", "albedo.png", "albedo_8bit.png"):
+        path = normals.parent / name
+        if name not in listed or not path.is_file():
+            continue
+        try:
+            if name.endswith(".npy"):
+                arr = np.load(path, allow_pickle=False)
+            else:
+                from psctl.io.images import read_image, srgb_to_linear, to_rgb
+
+                arr = to_rgb(read_image(path)[0])
+                if path.suffix == ".png":
+                    arr = srgb_to_linear(arr)
+            arr = np.asarray(arr, np.float32)
+            ok = arr.shape == (*shape, 3) and np.isfinite(arr).all()
+            why = "" if ok else f"shape {arr.shape}, not {(*shape, 3)} of finite values"
+        except (PsctlError, OSError, ValueError) as e:
+            ok, why = False, e.message if isinstance(e, PsctlError) else str(e)
+        if ok:
+            return path, arr
+        if notes is not None:
+            notes.append(f"colours: {path} not used ({why}); the mesh's colours are the images' mean")
+        return None
+    return None
 
 
 def _capture_mask(cap) -> np.ndarray | None:

@@ -231,3 +231,33 @@ def test_the_albedo_pass_takes_the_images_the_method_decoded(tmp_path, monkeypat
     (off, n_off), (on, n_on) = got.values()
     assert np.array_equal(off, on)
     assert n_off == 24 and n_on == 12  # without the memo each image is decoded twice
+
+
+def test_depth_colours_the_mesh_by_the_albedo_written_with_the_normals(tmp_path):
+    import psctl
+    from psctl.io.mesh import read_ply
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=12, size=32)  # one albedo, 0.7: the mean image has the shading in it
+    out = folder / "psctl"
+    psctl.run_normals(folder, method="l2", albedo=True)
+    r = psctl.run_depth(folder, out=tmp_path / "d1")
+    assert r["colors"] == str(out / "albedo.exr")
+    flat = read_ply(tmp_path / "d1" / "mesh.ply").colors.astype(float)
+    psctl.run_normals(folder, method="l2")  # without --albedo: the albedo files are removed
+    assert not (out / "albedo.exr").exists()
+    r = psctl.run_depth(folder, out=tmp_path / "d2")
+    assert r["colors"] == "mean image"
+    shaded = read_ply(tmp_path / "d2" / "mesh.ply").colors.astype(float)
+    assert flat.std(0).max() * 3 < shaded.std(0).min()  # (l2's normals, bent at the rim, bend its albedo there)
+
+    # a file the normal map's run did not list (copied in by hand) is not taken for its albedo
+    np.save(out / "albedo.npy", np.ones((32, 32, 3), np.float32))
+    assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
+
+    # a listed albedo that cannot be read: a note, and the mean image
+    psctl.run_normals(folder, method="l2", albedo=True, formats=("exr",))
+    (out / "albedo.exr").write_bytes(b"not an image")
+    r = psctl.run_depth(folder, write=False)
+    assert r["colors"] == "mean image"
+    assert any(n.startswith("colours:") and "albedo.exr" in n for n in r["notes"])
