@@ -5,12 +5,16 @@ lights the pixel gives one estimate rho = m_i / (e_i n . l_i) (the images are re
 their intensities e_i). Real surfaces add highlights (too bright) and cast shadows,
 interreflections and saturation (too dark or too bright), so the albedo is the **median** of these
 ratios per channel, over the images that light the pixel well (``n . l_i >= min_shading``; where
-none does, those with at least half the pixel's best shading), not their least-squares mean. On a
-Lambertian surface every ratio is the albedo, so the median is exact wherever lights reach.
+none does, those with at least half the pixel's best shading), each channel leaving out the
+images where it is black (at most BLACK times its brightest value among them: a cast shadow,
+not evidence of a dark surface), not their least-squares mean. On a Lambertian surface every ratio
+is the albedo, so the median is exact wherever lights reach; outliers are left out while they
+are fewer than half of the pixel's counted images.
 
-The albedo is on the images' scale, per unit light intensity: with intensities estimated up to
-one factor (sdps), it is up to that factor too. Any method's normals can be used; with better
-normals the ratios agree better.
+The albedo is on the images' scale, per unit light intensity. With intensities estimated (sdps:
+one grey intensity per image) it is known up to one factor per channel: the lights' colour,
+which is not estimated. Any method's normals can be used; with better normals the ratios agree
+better.
 """
 
 from __future__ import annotations
@@ -32,34 +36,35 @@ DEFAULT_ALBEDO = {
     "budget_mb": 256,  # the ratios of one band of pixels; larger objects are done in bands, each a pass over the images
     "memo_mb": 128,  # images as the method's own pass decoded them, kept for the albedo's (psctl.io.capture.DecodeMemo)
 }
+BLACK = 1e-6  # an image this dark at a pixel, relative to the pixel's brightest counted image, is a shadow there
 PNG_PERCENTILE = 99.0  # albedo.png maps this percentile of the object's albedo (all channels) to white
 
 
 @dataclass(frozen=True)
 class AlbedoResult:
     """albedo [H, W, 3] float32 (0 outside the mask and where undetermined); undetermined [H, W]
-    bool: object pixels that no light reaches by their normal (n . l <= 0 for every image) or
-    that have no normal (dark)."""
+    bool: object pixels without a normal (dark, or none given), that no light reaches by their
+    normal (n . l <= 0 for every image), or that are black in every image that lights them."""
     albedo: np.ndarray
     undetermined: np.ndarray
 
 
-def _median_ratios(ratios: np.ndarray, counted: np.ndarray) -> np.ndarray:
-    """ratios [P, C, N] (not counted: +inf), counted [P, N] bool -> [P, C] median of each
-    pixel's counted ratios (0 where none counts). Sorted in place."""
-    ratios.sort(axis=-1)  # the uncounted (+inf) go last
-    k = counted.sum(axis=1)  # [P]
+def _median_ratios(ratios: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ratios [N, P, C] (+inf where not counted) -> ([P, C] median of each pixel's and channel's
+    finite ratios, 0 where there are none; [P, C] their number). Sorted in place."""
+    k = np.isfinite(ratios).sum(axis=0)  # [P, C]
+    ratios.sort(axis=0)  # the uncounted (+inf) go last
     lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
-    rows = np.arange(len(k))[:, None]
-    chans = np.arange(ratios.shape[1])[None, :]
-    med = 0.5 * (ratios[rows, chans, lo[:, None]] + ratios[rows, chans, hi[:, None]])
-    return np.where(k[:, None] > 0, med, 0.0).astype(np.float32)
+    med = 0.5 * (np.take_along_axis(ratios, lo[None], 0)[0] + np.take_along_axis(ratios, hi[None], 0)[0])
+    return np.where(k > 0, med, 0.0).astype(np.float32), k
 
 
 def counted_images(shading: np.ndarray, min_shading: float) -> np.ndarray:
-    """shading [P, N] (n . l) -> [P, N] bool: the observations the median takes."""
+    """shading [P, N] (n . l) -> [P, N] bool: the images that light each pixel well enough to
+    count: n . l >= min_shading, or, for a pixel where no image reaches that, at least half its
+    best n . l (and above 0)."""
     best = shading.max(axis=1, keepdims=True)
-    return (shading >= np.minimum(min_shading, 0.5 * best)) & (shading > 0)
+    return (shading >= np.where(best >= min_shading, min_shading, 0.5 * best)) & (shading > 0)
 
 
 def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray]], lights: np.ndarray,
@@ -67,8 +72,9 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
                        progress: Callable[[int], None] | None = None) -> AlbedoResult:
     """The albedo of the ``mask`` pixels whose ``normals`` [H, W, 3] are nonzero, ``read(box)``
     yielding the N images cut to ``box`` (float [h, w, 3], divided by their intensities) and
-    ``lights`` [N, 3] their unit directions. Pixels are done in bands of rows whose ratios fit
-    ``budget_mb``; each band reads the images once."""
+    ``lights`` [N, 3] their unit directions. Pixels are done in bands of rows whose working
+    arrays (BYTES_PER_OBSERVATION per image and pixel) fit ``budget_mb``; each band reads the
+    images once."""
     cfg = {**DEFAULT_ALBEDO, **(config or {})}
     h, w = mask.shape
     lights = np.asarray(lights, np.float32)
@@ -81,45 +87,61 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
         return AlbedoResult(albedo, undetermined)
     cols = np.flatnonzero(has.any(axis=0))
     x0, x1 = int(cols[0]), int(cols[-1]) + 1
-    for r, r1 in row_bands(has, n, int(cfg["budget_mb"])):
+    for r, r1 in row_bands(has, n, cfg["budget_mb"]):
         box = (slice(r, r1), slice(x0, x1))
         sel = has[box]
         nrm = (normals[box][sel] / length[box][sel][:, None]).astype(np.float32)  # [P, 3], unit (maps read from 8 bits are not)
         shading = nrm @ lights.T  # [P, N]
         counted = counted_images(shading, float(cfg["min_shading"]))
-        ratios = np.full((len(nrm), 3, n), np.inf, np.float32)
-        safe = np.where(counted, shading, 1.0)
+        ratios = np.empty((n, len(nrm), 3), np.float32)  # image by image: each a contiguous block
+        peak = np.zeros((len(nrm), 3), np.float32)  # each channel's brightest counted value
         got = 0
         for i, img in enumerate(read(box)):
             if i >= n:
                 raise PsctlError(None, f"albedo: the reader gave more than the {n} images of the lights")
             vals = img[sel]  # [P, 3]
-            ratios[:, :, i] = np.where(counted[:, i:i + 1], vals / safe[:, i:i + 1], np.inf)
+            c = counted[:, i, None]
+            with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # n . l <= 0: not counted
+                r = vals / shading[:, i, None]
+            if (~np.isfinite(r) & c).any():
+                raise PsctlError(None, "albedo: image / (n . l) passes float32's range; rescale the images")
+            ratios[i] = np.where(c, r, np.inf)
+            np.maximum(peak, vals, out=peak, where=c)
             got += 1
             if progress is not None:
                 progress(1)
         if got != n:
             raise PsctlError(None, f"albedo: the reader gave {got} images for {n} lights")
-        med = _median_ratios(ratios, counted)
+        lim = BLACK * peak  # a channel this dark in an image is in shadow there (value = ratio * n . l)
+        with np.errstate(invalid="ignore", over="ignore"):  # inf * (n . l <= 0): not counted anyway
+            for i in range(n):
+                r = ratios[i]
+                r[r * shading[:, i, None] <= lim] = np.inf
+        med, k = _median_ratios(ratios)
         band = albedo[box]
         band[sel] = med
-        undetermined[box] |= _none_counted(counted, sel)
+        undetermined[box] |= _none_counted(k.any(axis=1), sel)
     return AlbedoResult(albedo, undetermined)
 
 
-def _none_counted(counted: np.ndarray, sel: np.ndarray) -> np.ndarray:
-    """[h, w] bool: the ``sel`` pixels with no counted observation."""
+def _none_counted(any_counted: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """[h, w] bool: the ``sel`` pixels whose ``any_counted`` [P] is False."""
     out = np.zeros(sel.shape, bool)
-    out[sel] = ~counted.any(axis=1)
+    out[sel] = ~any_counted
     return out
 
 
-def row_bands(has: np.ndarray, n_images: int, budget_mb: int) -> list[tuple[int, int]]:
+# a band's working arrays per image and pixel: the ratios (3 x float32), n . l (float32) and the
+# counted flags (bool)
+BYTES_PER_OBSERVATION = 12 + 4 + 1
+
+
+def row_bands(has: np.ndarray, n_images: int, budget_mb: float) -> list[tuple[int, int]]:
     """[(first row, end row)] of the bands ``albedo_from_reader`` does: consecutive rows whose
-    ``has`` pixels' ratios (3 x ``n_images`` float32 each) fit ``budget_mb``, at least one row
-    each; rows without pixels are skipped at a band's start."""
+    ``has`` pixels' working arrays (BYTES_PER_OBSERVATION x ``n_images`` each) fit ``budget_mb``,
+    at least one row each; rows without pixels are skipped at a band's start."""
     per_row = has.sum(axis=1)
-    cap = max(1, (int(budget_mb) << 20) // (3 * 4 * max(n_images, 1)))
+    cap = max(1, int(float(budget_mb) * (1 << 20)) // (BYTES_PER_OBSERVATION * max(n_images, 1)))
     out: list[tuple[int, int]] = []
     rows = np.flatnonzero(per_row)
     if not rows.size:
@@ -151,7 +173,10 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
     has = mask & (np.linalg.norm(normals, axis=-1) > 0)
     passes = len(row_bands(has, capture.n_images, cfg["budget_mb"]))
     advance = None if progress is None or not passes else progress(f"{capture.name}: albedo", passes * capture.n_images)
-    return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo), lights, normals, mask, cfg, advance)
+    # each image was checked against the ambient image over the method's whole box: a band of a
+    # few rows may lie in an image's shadow, black once the ambient image is subtracted
+    return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo, ambient_check=False), lights,
+                              normals, mask, cfg, advance)
 
 
 def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray, mask: np.ndarray | None = None,
@@ -187,7 +212,10 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
                                f"got {list(normals.shape)}")
     if not np.isfinite(normals).all():
         raise PsctlError(None, "normals contain NaN or infinite values")
-    min_shading = float(min_shading)
+    try:
+        min_shading = float(min_shading)
+    except (TypeError, ValueError):
+        raise PsctlError(None, f"min_shading must be a number in (0, 1], not {min_shading!r}") from None
     if not 0.0 < min_shading <= 1.0:
         raise PsctlError(None, f"min_shading must be in (0, 1], got {min_shading:g}")
     return albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, mask,

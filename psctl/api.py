@@ -379,10 +379,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     precision = check_precision(precision)
     cap = open_capture(path, encoding)
+    asked = method
     method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
     if want_albedo and method == "ups-fcn":
-        raise PsctlError(None, "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's "
-                               "lights) or a folder with light_directions.txt")
+        if asked == "ups-fcn":
+            raise PsctlError(None, "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's "
+                                   "lights) or a folder with light_directions.txt")
+        from psctl.models.weights import weights_where
+
+        raise PsctlError(None, f"--albedo needs lights, and without light_directions.txt --method {asked} chose "
+                               f"ups-fcn, which estimates none: sdps (estimated lights) needs LCNet's weights, "
+                               f"lcnet.pt, in {weights_where()} or --lcnet FILE; or add light_directions.txt")
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")
@@ -544,10 +551,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                         if (mask & ~alb.undetermined).any() else None,
                         "n_undetermined": undetermined}
         if undetermined:
-            notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (dark in every "
-                         f"image, or no light in front of their normal): 0 in the albedo maps")
+            notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
+                         f"light in front of their normal, or black in every image that lights them): 0 in the "
+                         f"albedo maps")
         if method == "sdps":
-            notes.append("albedo: on the scale of the estimated intensities (sdps knows them up to one factor)")
+            notes.append("albedo: on the scale of the estimated intensities, one per image: known up to one "
+                         "factor per channel (the lights' colour, which sdps does not estimate)")
 
     # --- evaluate ------------------------------------------------------------------------------
     error = None

@@ -261,3 +261,95 @@ def test_depth_colours_the_mesh_by_the_albedo_written_with_the_normals(tmp_path)
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "mean image"
     assert any(n.startswith("colours:") and "albedo.exr" in n for n in r["notes"])
+
+
+def test_counted_images_follow_the_documented_rule():
+    from psctl.albedo import counted_images
+
+    s = np.array([[0.30, 0.15, 0.10], [0.15, 0.10, 0.05], [0.5, -0.2, 0.0]], np.float32)
+    # a pixel some image lights with n . l >= 0.2 takes only those; else those at half its best
+    assert counted_images(s, 0.2).tolist() == [[True, False, False], [True, True, False], [True, False, False]]
+
+
+def test_cast_shadows_are_left_out_per_channel_and_all_black_pixels_are_undetermined():
+    from psctl.albedo import albedo_from_reader
+
+    lights = hemisphere_lights(10, max_angle_deg=20.0, seed=3)
+    normals = np.zeros((1, 3, 3), np.float32)
+    normals[0, :] = [0.0, 0.0, 1.0]
+    mask = np.ones((1, 3), bool)
+    rho = np.array([[0.5, 0.4, 0.3], [0.6, 0.0, 0.0], [0.5, 0.5, 0.5]], np.float32)  # pixel 1: pure red
+    shading = lights[:, 2]
+    images = [shading[k] * rho[None].copy() for k in range(10)]
+    for k in range(6):  # pixel 0 in cast shadow under 6 of its 10 lights: black
+        images[k][0, 0] = 0.0
+    for k in range(10):  # pixel 2 in shadow under every light
+        images[k][0, 2] = 0.0
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, mask)
+    assert np.allclose(res.albedo[0, 0], rho[0], rtol=1e-5)
+    assert np.allclose(res.albedo[0, 1], rho[1], rtol=1e-5)
+    assert (res.albedo[0, 2] == 0).all()
+    assert res.undetermined.tolist() == [[False, False, True]]
+
+
+def test_bands_with_an_ambient_image_are_not_refused_as_black(tmp_path, monkeypatch):
+    import psctl
+    from psctl.albedo import DEFAULT_ALBEDO
+    from psctl.io.images import read_image, write_image
+
+    folder = tmp_path / "sphere"
+    made = write_capture(folder, n=12, size=32)
+    ambient = np.full((32, 32, 3), 0.05, np.float32)
+    write_image(folder / "ambient.png", ambient, "uint16")
+    for k in range(12):  # the room light in every image
+        p = folder / f"{k + 1:03d}.png"
+        write_image(p, read_image(p)[0] + ambient, "uint16")
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)  # a band per row: some rows lie in an image's shadow
+    arrays = {}
+    psctl.run_normals(folder, method="l2", write=False, albedo=True, arrays=arrays)
+    front = made["mask"] & (np.einsum("hwc,nc->nhw", made["normals"], made["lights"]) > 0).all(0)
+    assert np.allclose(arrays["albedo"][front], 0.7, atol=3e-3)
+
+
+def test_auto_choosing_ups_fcn_says_why_the_albedo_has_no_lights(tmp_path):
+    import os
+
+    from conftest import REPO
+
+    weights = tmp_path / "w"
+    weights.mkdir()
+    os.symlink(REPO / "weights" / "ups_fcn.pt", weights / "ups_fcn.pt")
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    (folder / "light_directions.txt").unlink()
+    (folder / "light_intensities.txt").unlink()
+    p = subprocess.run([sys.executable, "-m", "psctl", "normals", str(folder), "--albedo", "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, env={**os.environ, "PSCTL_WEIGHTS": str(weights)})
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "chose ups-fcn" in p.stderr and "lcnet.pt" in p.stderr
+
+
+def test_depth_refuses_the_albedo_map_as_normals(tmp_path):
+    import psctl
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    psctl.run_normals(folder, method="l2", albedo=True)
+    with pytest.raises(psctl.PsctlError, match="albedo map, not a normal map"):
+        psctl.run_depth(folder, normals=folder / "psctl" / "albedo.exr", write=False)
+
+
+def test_images_below_the_shading_threshold_do_not_count_even_when_most():
+    from psctl.albedo import albedo_from_reader
+
+    z = np.array([0.9, 0.9, 0.9, 0.1, 0.1, 0.1, 0.1, 0.1], np.float32)
+    phi = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    r = np.sqrt(1 - z**2)
+    lights = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1).astype(np.float32)
+    normals = np.zeros((1, 1, 3), np.float32)
+    normals[0, 0] = [0.0, 0.0, 1.0]
+    rho = np.array([0.5, 0.4, 0.3], np.float32)
+    # the five grazing lights (n . l = 0.1) see the pixel three times too bright (interreflections, a sheen)
+    images = [(z[k] * rho * (3.0 if z[k] < 0.2 else 1.0))[None, None] for k in range(8)]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 1), bool))
+    assert np.allclose(res.albedo[0, 0], rho, rtol=1e-5)

@@ -698,11 +698,12 @@ def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[
     return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
 
 
-def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str) -> np.ndarray:
+def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str, check: bool = True) -> np.ndarray:
     """Image ``name`` (linear) less the ambient image, clipped at 0; one that this turns black
-    from lit is a user error naming the ambient file (shared by the reader and info --check)."""
+    from lit is a user error naming the ambient file (shared by the reader and info --check),
+    unless not ``check`` (a part of the image, which may lie in shadow)."""
     out = np.maximum(rgb - ambient, 0.0)
-    if rgb.any() and not out.any():
+    if check and rgb.any() and not out.any():
         raise PsctlError(capture.ambient_path, f"subtracting it leaves {name} black: is it brighter than the "
                                                f"images (taken with a light on)?")
     return out
@@ -724,7 +725,8 @@ def saturated_map(rgb: np.ndarray) -> np.ndarray:
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None,
-                decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None) -> Iterator[np.ndarray]:
+                decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None,
+                ambient_check: bool = True) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
@@ -732,7 +734,9 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     before anything is subtracted or divided. ``decoded`` (``psctl.io.prefetch.Prefetch``): the
     images as a helper process decoded them, where it has them; the same values as reading here.
     ``memo`` (``DecodeMemo``): images an earlier pass decoded, taken before ``decoded``'s, and
-    this pass's decoded images kept in it."""
+    this pass's decoded images kept in it. ``ambient_check``: an image that subtracting the
+    ambient image turns black inside ``box`` is an error (False: a later pass over parts of
+    images the first pass checked whole)."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -769,7 +773,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if capture.is_srgb(k):
             rgb = srgb_to_linear(rgb)
         if ambient is not None:
-            rgb = minus_ambient(rgb, ambient, capture, p.name)
+            rgb = minus_ambient(rgb, ambient, capture, p.name, ambient_check)
         with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
             lit = rgb / capture.intensities[k]
         if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message

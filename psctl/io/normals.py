@@ -55,6 +55,9 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise PsctlError(path, "is a folder, not a normal map file" if path.is_dir() else "normal map file is missing")
+    if path.name.lower() in ALBEDO_FORMATS.values():  # beside normal.* in psctl normals' folder: an easy slip
+        raise PsctlError(path, "is psctl normals' albedo map, not a normal map (psctl normals writes the normal "
+                               f"map beside it as {' or '.join(FORMATS.values())})")
     if path.suffix.lower() == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)

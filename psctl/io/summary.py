@@ -304,6 +304,10 @@ def render_normals(r: dict, quiet: bool = False) -> None:
             line += f"; error where it is above that {sp['mae_top10']:.2f}°, elsewhere {sp['mae_rest']:.2f}°"
     if r.get("n_dark"):
         line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
+    alb = r.get("albedo")
+    if alb and alb.get("median") is not None:
+        line += (f"\n  albedo median (R, G, B) {', '.join(f'{v:.3g}' for v in alb['median'])}; albedo.png is white at "
+                 f"{alb['png_scale']:.3g}")
     con.print(line, highlight=False, soft_wrap=True)
     for key, p in r["outputs"].items():
         con.print(f"  wrote {p}", highlight=False, markup=False)
