@@ -93,9 +93,7 @@ def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndar
     elif fmt == "exr":
         write_image(path, normals, "float", kind="data")
     elif fmt == "npy":
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, normals)
+        write_npy(path, normals)
     else:
         raise PsctlError(None, f"unknown normal-map format {fmt!r}")
 
@@ -111,8 +109,13 @@ def write_albedo_map(path: str | os.PathLike, albedo: np.ndarray, mask: np.ndarr
     elif fmt == "exr":
         write_image(path, albedo, "float", kind="linear")
     elif fmt == "npy":
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, albedo)
+        write_npy(path, albedo)
     else:
         raise PsctlError(None, f"unknown albedo-map format {fmt!r}")
+
+
+def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+    """``np.save`` atomically (a temporary name, then the rename)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
