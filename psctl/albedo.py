@@ -36,7 +36,7 @@ DEFAULT_ALBEDO = {
     "budget_mb": 256,  # the ratios of one band of pixels; larger objects are done in bands, each a pass over the images
     "memo_mb": 128,  # images as the method's own pass decoded them, kept for the albedo's (psctl.io.capture.DecodeMemo)
 }
-BLACK = 1e-6  # an image this dark at a pixel, relative to the pixel's brightest counted image, is a shadow there
+BLACK = 1e-6  # a channel this dark in an image, relative to its brightest value among a pixel's counted images, is in shadow there
 PNG_PERCENTILE = 99.0  # albedo.png maps this percentile of the object's albedo (all channels) to white
 
 
@@ -87,8 +87,8 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
         return AlbedoResult(albedo, undetermined)
     cols = np.flatnonzero(has.any(axis=0))
     x0, x1 = int(cols[0]), int(cols[-1]) + 1
-    for r, r1 in row_bands(has, n, cfg["budget_mb"]):
-        box = (slice(r, r1), slice(x0, x1))
+    for y0, y1 in row_bands(has, n, cfg["budget_mb"]):
+        box = (slice(y0, y1), slice(x0, x1))
         sel = has[box]
         nrm = (normals[box][sel] / length[box][sel][:, None]).astype(np.float32)  # [P, 3], unit (maps read from 8 bits are not)
         shading = nrm @ lights.T  # [P, N]
