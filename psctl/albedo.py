@@ -4,10 +4,10 @@ A Lambertian pixel's image under light i is m_i = rho * e_i * max(n . l_i, 0), s
 lights the pixel gives one estimate rho = m_i / (e_i n . l_i) (the images are read divided by
 their intensities e_i). Real surfaces add highlights (too bright) and cast shadows,
 interreflections and saturation (too dark or too bright), so the albedo is the **median** of these
-ratios per channel, over the images that light the pixel well (``n . l_i >= min_shading``; where
-none does, those with at least half the pixel's best shading), each channel leaving out the
-images where it is black (at most BLACK times its brightest value among them: a cast shadow,
-not evidence of a dark surface), not their least-squares mean. On a Lambertian surface every ratio
+ratios per channel, over the images that light the pixel well by its normal (``n . l_i >=
+min_shading``; where none does, those with at least half the pixel's best shading) and in which
+the pixel is not black (every channel at most BLACK times its brightest value among them: a cast
+shadow, not evidence of a dark surface), not their least-squares mean. On a Lambertian surface every ratio
 is the albedo, so the median is exact wherever lights reach; outliers are left out while they
 are fewer than half of the pixel's counted images.
 
@@ -36,7 +36,7 @@ DEFAULT_ALBEDO = {
     "budget_mb": 256,  # the ratios of one band of pixels; larger objects are done in bands, each a pass over the images
     "memo_mb": 128,  # images as the method's own pass decoded them, kept for the albedo's (psctl.io.capture.DecodeMemo)
 }
-BLACK = 1e-6  # a channel this dark in an image, relative to its brightest value among a pixel's counted images, is in shadow there
+BLACK = 1e-6  # an image with every channel this dark at a pixel (relative to the channel's brightest counted value) is a shadow there
 PNG_PERCENTILE = 99.0  # albedo.png maps this percentile of the object's albedo (all channels) to white
 
 
@@ -44,19 +44,19 @@ PNG_PERCENTILE = 99.0  # albedo.png maps this percentile of the object's albedo 
 class AlbedoResult:
     """albedo [H, W, 3] float32 (0 outside the mask and where undetermined); undetermined [H, W]
     bool: object pixels without a normal (dark, or none given), that no light reaches by their
-    normal (n . l <= 0 for every image), or that are black in every image that lights them."""
+    normal (n . l <= 0 for every image), or that are black in every counted image."""
     albedo: np.ndarray
     undetermined: np.ndarray
 
 
-def _median_ratios(ratios: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ratios [N, P, C] (+inf where not counted) -> ([P, C] median of each pixel's and channel's
-    finite ratios, 0 where there are none; [P, C] their number). Sorted in place."""
-    k = np.isfinite(ratios).sum(axis=0)  # [P, C]
+def _median_ratios(ratios: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """ratios [N, P, C] (+inf where not counted), k [P, C] the number of finite ones -> [P, C]
+    the median of each pixel's and channel's finite ratios, 0 where there are none. Sorted in
+    place."""
     ratios.sort(axis=0)  # the uncounted (+inf) go last
     lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
     med = 0.5 * (np.take_along_axis(ratios, lo[None], 0)[0] + np.take_along_axis(ratios, hi[None], 0)[0])
-    return np.where(k > 0, med, 0.0).astype(np.float32), k
+    return np.where(k > 0, med, 0.0).astype(np.float32)
 
 
 def counted_images(shading: np.ndarray, min_shading: float) -> np.ndarray:
@@ -112,12 +112,16 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
                 progress(1)
         if got != n:
             raise PsctlError(None, f"albedo: the reader gave {got} images for {n} lights")
-        lim = BLACK * peak  # a channel this dark in an image is in shadow there (value = ratio * n . l)
+        # an image in which every channel is black at the pixel is a cast shadow there; one dark
+        # channel alone is not (a dark, noisy channel of a lit surface reads 0 or less at times)
+        lim = BLACK * peak
+        k = np.zeros((len(nrm), 3), np.int32)  # the images each median takes
         with np.errstate(invalid="ignore", over="ignore"):  # inf * (n . l <= 0): not counted anyway
             for i in range(n):
                 r = ratios[i]
-                r[r * shading[:, i, None] <= lim] = np.inf
-        med, k = _median_ratios(ratios)
+                r[(r * shading[:, i, None] <= lim).all(axis=1)] = np.inf
+                k += np.isfinite(r)
+        med = _median_ratios(ratios, k)
         band = albedo[box]
         band[sel] = med
         undetermined[box] |= _none_counted(k.any(axis=1), sel)
@@ -131,9 +135,9 @@ def _none_counted(any_counted: np.ndarray, sel: np.ndarray) -> np.ndarray:
     return out
 
 
-# a band's working arrays per image and pixel: the ratios (3 x float32), n . l (float32) and the
-# counted flags (bool)
-BYTES_PER_OBSERVATION = 12 + 4 + 1
+# a band's working arrays per image and pixel: the ratios (3 x float32), n . l (float32), the
+# counted flags (bool) and counted_images' temporaries (bool, 2)
+BYTES_PER_OBSERVATION = 12 + 4 + 1 + 2
 
 
 def row_bands(has: np.ndarray, n_images: int, budget_mb: float) -> list[tuple[int, int]]:

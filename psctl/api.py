@@ -286,6 +286,23 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     return l2_normals(images, lights, mask).normals
 
 
+def ups_fcn_albedo_message(asked: str, weights: str | os.PathLike | None) -> str:
+    """Why --albedo cannot run where ``asked`` (the --method given) resolved to ups-fcn, which
+    estimates no lights, and what would give it lights."""
+    if asked == "ups-fcn":
+        return "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's lights) or a folder " \
+               "with light_directions.txt"
+    if weights is not None:
+        return "holds UPS-FCN weights, which estimate no lights, and --albedo needs them: give a PS-FCN or " \
+               "PS-FCN+N file (or none)"
+    from psctl.models.weights import installed_path, weights_where
+
+    need = f"LCNet's weights, lcnet.pt, in {weights_where()} (or --lcnet FILE)" if installed_path("lcnet") is None \
+        else f"a second stage (PS-FCN†, PS-FCN or PS-FCN+N weights) in {weights_where()}"
+    return (f"--albedo needs lights, and without light_directions.txt --method {asked} chose ups-fcn, which "
+            f"estimates none: sdps (estimated lights) needs {need}; or add light_directions.txt")
+
+
 def undetermined_note(method: str, lights: np.ndarray) -> str:
     """The note for a network given fewer than 3 images or (nearly) coplanar lights."""
     what = f"only {len(lights)} image(s)" if len(lights) < 3 else "the light directions are (nearly) coplanar"
@@ -382,14 +399,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     asked = method
     method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
     if want_albedo and method == "ups-fcn":
-        if asked == "ups-fcn":
-            raise PsctlError(None, "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's "
-                                   "lights) or a folder with light_directions.txt")
-        from psctl.models.weights import weights_where
-
-        raise PsctlError(None, f"--albedo needs lights, and without light_directions.txt --method {asked} chose "
-                               f"ups-fcn, which estimates none: sdps (estimated lights) needs LCNet's weights, "
-                               f"lcnet.pt, in {weights_where()} or --lcnet FILE; or add light_directions.txt")
+        raise PsctlError(weights, ups_fcn_albedo_message(asked, weights))
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")

@@ -816,42 +816,59 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     return report
 
 
+ALBEDO_FILES = ("albedo.exr", "albedo.npy", "albedo.png", "albedo_8bit.png")  # psctl normals --albedo, the most precise first
+SAME_RUN_SECONDS = 60  # a run writes its files one after the other: a normal map written further apart is another's
+
+
 def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None = None
                   ) -> tuple[Path, np.ndarray] | None:
-    """The albedo map (``psctl normals --albedo``: albedo.exr, albedo.npy, else a PNG of it,
-    sRGB-decoded: linear up to its scale, which ``display_colors`` sets anyway) that the same
-    psctl normals run wrote beside the normal map ``normals`` (both in its folder's list of
-    outputs), as (path, [H, W, 3] float32); None when there is none, or (with a note in
-    ``notes``) when it cannot be read or has another size: the vertex colours then come from
-    the images."""
+    """The albedo map that the psctl normals run which wrote the normal map ``normals`` wrote
+    beside it (``--albedo``): the first of ALBEDO_FILES that the folder's list of that run's
+    outputs names, written within SAME_RUN_SECONDS of the normal map (a normal map replaced
+    since is not that run's) and readable as a finite [H, W, 3] map of ``shape``; a PNG is
+    sRGB-decoded (linear up to its scale, which ``display_colors`` sets anyway). Returns (path,
+    [H, W, 3] float32), or None; each listed file passed over gets a note in ``notes``."""
     from psctl.io.atomic import read_outputs_list
 
     listed = read_outputs_list(normals.parent, "normals")
     if normals.name not in listed:
         return None
-    for name in ("albedo.exr", "albedo.npy", "albedo.png", "albedo_8bit.png"):
+    try:
+        written = normals.stat().st_mtime
+    except OSError:
+        return None
+    for name in ALBEDO_FILES:
         path = normals.parent / name
         if name not in listed or not path.is_file():
             continue
+        why = None
         try:
-            if name.endswith(".npy"):
+            if abs(path.stat().st_mtime - written) > SAME_RUN_SECONDS:
+                why = f"written {abs(path.stat().st_mtime - written):.0f} s apart from {normals.name}: another run's"
+            elif name.endswith(".npy"):
                 arr = np.load(path, allow_pickle=False)
+                if arr.dtype.kind != "f":
+                    why = f"holds {arr.dtype} values, not floats"
             else:
                 from psctl.io.images import read_image, srgb_to_linear, to_rgb
 
-                arr = to_rgb(read_image(path)[0])
+                arr = to_rgb(read_image(path, allow_nonfinite=True)[0])
                 if path.suffix == ".png":
                     arr = srgb_to_linear(arr)
-            arr = np.asarray(arr, np.float32)
-            ok = arr.shape == (*shape, 3) and np.isfinite(arr).all()
-            why = "" if ok else f"shape {arr.shape}, not {(*shape, 3)} of finite values"
-        except (PsctlError, OSError, ValueError) as e:
-            ok, why = False, e.message if isinstance(e, PsctlError) else str(e)
-        if ok:
-            return path, arr
+        except PsctlError as e:
+            why = e.message
+        except (OSError, ValueError) as e:
+            why = "not a NumPy array file" if "pickle" in str(e) else " ".join(str(e).split()) or type(e).__name__
+        if why is None and arr.shape != (*shape, 3):
+            why = f"shape {arr.shape}, not {(*shape, 3)}"
+        if why is None and not np.isfinite(arr).all():
+            why = "NaN or infinite values"
+        if why is None:
+            return path, np.asarray(arr, np.float32)
         if notes is not None:
-            notes.append(f"colours: {path} not used ({why}); the mesh's colours are the images' mean")
-        return None
+            notes.append(f"colours: {path} not used ({why})")
+    if notes is not None and any(n.startswith("colours:") for n in notes):
+        notes.append("colours: the mesh's colours are the images' mean")
     return None
 
 

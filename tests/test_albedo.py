@@ -327,6 +327,17 @@ def test_auto_choosing_ups_fcn_says_why_the_albedo_has_no_lights(tmp_path):
                        capture_output=True, text=True, env={**os.environ, "PSCTL_WEIGHTS": str(weights)})
     assert p.returncode == 2 and p.stderr.count("\n") == 1
     assert "chose ups-fcn" in p.stderr and "lcnet.pt" in p.stderr
+    # LCNet there, no second stage: that is what is missing
+    os.symlink(REPO / "weights" / "lcnet.pt", weights / "lcnet.pt")
+    p = subprocess.run([sys.executable, "-m", "psctl", "normals", str(folder), "--albedo", "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True, env={**os.environ, "PSCTL_WEIGHTS": str(weights)})
+    assert p.returncode == 2 and "second stage" in p.stderr and "lcnet.pt" not in p.stderr
+    # a calibrated folder, --weights naming UPS-FCN: the file is the reason
+    write_capture(tmp_path / "cal", n=6, size=16)
+    p = subprocess.run([sys.executable, "-m", "psctl", "normals", str(tmp_path / "cal"), "--albedo", "--weights",
+                        str(REPO / "weights" / "ups_fcn.pt"), "-o", str(tmp_path / "o")], capture_output=True, text=True)
+    assert p.returncode == 2 and "ups_fcn.pt: holds UPS-FCN weights" in p.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_depth_refuses_the_albedo_map_as_normals(tmp_path):
@@ -353,3 +364,47 @@ def test_images_below_the_shading_threshold_do_not_count_even_when_most():
     images = [(z[k] * rho * (3.0 if z[k] < 0.2 else 1.0))[None, None] for k in range(8)]
     res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 1), bool))
     assert np.allclose(res.albedo[0, 0], rho, rtol=1e-5)
+
+
+def test_a_dark_noisy_channel_of_a_lit_surface_is_not_taken_for_shadow():
+    from psctl.albedo import albedo_from_reader
+
+    rng = np.random.default_rng(4)
+    lights = hemisphere_lights(96, max_angle_deg=40.0, seed=4)
+    normals = np.zeros((1, 200, 3), np.float32)
+    normals[..., 2] = 1.0
+    rho = np.array([0.5, 0.4, 0.002], np.float32)  # blue at the noise floor: 0 or below at times
+    images = []
+    for k in range(96):
+        img = np.broadcast_to(lights[k, 2] * rho, (1, 200, 3)).copy()
+        img[..., 2] += rng.normal(0, 0.002, (1, 200))
+        images.append(np.clip(img, 0, None).astype(np.float32))  # a black level subtracted and clipped
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 200), bool))
+    blue = res.albedo[0, :, 2]
+    assert abs(np.median(blue) / 0.002 - 1) < 0.1  # leaving out the zeros made it +50 %
+    assert np.allclose(res.albedo[0, :, :2], rho[:2], rtol=1e-5)
+
+
+def test_depth_takes_the_next_listed_albedo_and_not_another_runs(tmp_path):
+    import os
+
+    import psctl
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    out = folder / "psctl"
+    psctl.run_normals(folder, method="l2", albedo=True, formats=("exr", "npy"))
+    (out / "albedo.exr").write_bytes(b"damaged")
+    r = psctl.run_depth(folder, write=False)
+    assert r["colors"] == str(out / "albedo.npy")  # the next listed file of the same run
+    assert any(n.startswith("colours:") and "albedo.exr" in n for n in r["notes"])
+    np.save(out / "albedo.npy", np.ones((16, 16, 3), np.complex64))  # not floats: passed over, no warning
+    r = psctl.run_depth(folder, write=False)
+    assert r["colors"] == "mean image" and any("complex64" in n for n in r["notes"])
+
+    # a normal map replaced after the run (written far apart from its albedo) is not that run's
+    psctl.run_normals(folder, method="l2", albedo=True, formats=("exr",))
+    t = (out / "normal.exr").stat().st_mtime
+    os.utime(out / "normal.exr", (t + 3600, t + 3600))
+    r = psctl.run_depth(folder, write=False)
+    assert r["colors"] == "mean image" and any("another run's" in n for n in r["notes"])

@@ -306,8 +306,10 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         line += f"\n  {r['n_dark']} mask pixels are dark in every image (given the normal (0, 0, 1))"
     alb = r.get("albedo")
     if alb and alb.get("median") is not None:
-        line += (f"\n  albedo median (R, G, B) {', '.join(f'{v:.3g}' for v in alb['median'])}; albedo.png is white at "
-                 f"{alb['png_scale']:.3g}")
+        line += f"\n  albedo median (R, G, B) {', '.join(f'{v:.3g}' for v in alb['median'])}"
+        pngs = [k.replace("_png", ".png") for k in ("albedo_png", "albedo_8bit_png") if k in r.get("outputs", {})]
+        if pngs:  # the pictures' white, to read their values back
+            line += f"; {' and '.join(pngs)} white at {alb['png_scale']:.3g}"
     con.print(line, highlight=False, soft_wrap=True)
     for key, p in r["outputs"].items():
         con.print(f"  wrote {p}", highlight=False, markup=False)
