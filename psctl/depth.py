@@ -704,6 +704,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     # --- normals and mask ----------------------------------------------------------------------
     mask = _capture_mask(cap)
+    got: dict = {}  # the arrays of psctl normals' run here, when the normals are estimated
     if normals is None:
         for name in NORMAL_FILES:
             if (cap.path / "psctl" / name).is_file():
@@ -724,12 +725,13 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         normals_source = os.path.abspath(source)
         notes += encoding_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
-        from psctl.api import run_normals
+        from psctl.api import resolve_method, run_normals
 
-        got: dict = {}
         try:
+            # and its albedo for the mesh's colours, where the method has lights (not ups-fcn)
+            chosen = resolve_method("auto", cap.calibrated, lights_file=cap.path / "light_directions.txt")[0]
             estimated = run_normals(cap.path, method="auto", write=False, progress=progress, encoding=encoding,
-                                    arrays=got)
+                                    arrays=got, albedo=chosen != "ups-fcn")
         except PsctlError as e:
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None
@@ -764,6 +766,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     albedo = None if normals is None else albedo_beside(Path(normals), (cap.height, cap.width), notes)
     if albedo is not None:
         colors_source, mean_image = os.path.abspath(albedo[0]), albedo[1]
+    elif normals is None and got.get("albedo") is not None:  # estimated here with the normals
+        colors_source, mean_image = "albedo (estimated with the normals)", got["albedo"]
     else:
         colors_source = "mean image"
         box = bounding_box(valid)

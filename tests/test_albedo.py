@@ -408,3 +408,12 @@ def test_depth_takes_the_next_listed_albedo_and_not_another_runs(tmp_path):
     os.utime(out / "normal.exr", (t + 3600, t + 3600))
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "mean image" and any("another run's" in n for n in r["notes"])
+
+
+def test_depth_estimating_the_normals_colours_by_their_albedo(tmp_path):
+    import psctl
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=12, size=32)
+    r = psctl.run_depth(folder, write=False)
+    assert r["colors"] == "albedo (estimated with the normals)"
