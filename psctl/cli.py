@@ -359,6 +359,7 @@ def evaluate(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
+    albedo: Annotated[bool, _flag("--albedo", help="With --out: each object's albedo maps too, as psctl normals --albedo writes them.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -371,7 +372,7 @@ def evaluate(
                                             progress=progress, weights=weights, device=device, lcnet=lcnet,
                                             views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
                                             light_distance=light_distance, downsample=downsample,
-                                            precision=precision),
+                                            precision=precision, albedo=albedo),
              json_out, quiet, render_benchmark)
 
 

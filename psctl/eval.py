@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
-from psctl.errors import PsctlError, check_path, check_progress
+from psctl.errors import PsctlError, check_bool, check_path, check_progress
 
 DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
 
@@ -64,7 +64,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                   encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
-                  precision: str = "float32") -> dict:
+                  precision: str = "float32", albedo: bool = False) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
@@ -84,6 +84,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "mean_lcnet_intensity_re", and "paper_lights" (None where the folder has no ground truth).
     The ensemble gives each object's "spread" (its report's: ``psctl.api.spread_stats``).
     "notes": about the run (with ``out``: object folders of an earlier run left there).
+    ``albedo`` (with ``out``): each object's folder also gets its albedo maps, as ``psctl
+    normals --albedo`` writes them (every object's method must have lights: not ups-fcn).
     """
     from psctl.io.atomic import OutputBatch, check_output_dir
     from psctl.io.capture import GT_FILES, find_objects, holds_capture, object_name, open_capture, root_notes
@@ -97,6 +99,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     views, downsample = check_views(views), check_downsample(downsample)  # ints: eval.json must serialise them
     precision = check_precision(precision)
     check_progress(progress)
+    albedo = check_bool("albedo", albedo)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
     if not isinstance(benchmark, str):
@@ -114,6 +117,13 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     for folder in folders:
         if open_capture(folder, encoding).gt_path is None:
             raise PsctlError(folder, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
+    if albedo and out is not None:  # before any object runs, not minutes in
+        from psctl.api import resolve_method, ups_fcn_albedo_message
+
+        for folder in folders:
+            cap = open_capture(folder, encoding)
+            if resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")[0] == "ups-fcn":
+                raise PsctlError(folder if weights is None else weights, ups_fcn_albedo_message(method, weights))
     names = [object_name(f) for f in folders]
     for name in dict.fromkeys(names):
         same = [f.name for f, n in zip(folders, names) if n == name]
@@ -142,7 +152,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
                             light_distance=light_distance, arrays=arrays, downsample=downsample,
-                            precision=precision)
+                            precision=precision, albedo=albedo and out is not None)
             _collect(objects, used, r)
             precisions.append(r["precision"])  # float32 for l2 (float64), whatever was asked
             used_views.add(r["views"])  # 1 for l2, whatever was asked
@@ -156,6 +166,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                         used_views.pop() if len(used_views) == 1 else views,
                         used_k.pop() if len(used_k) == 1 else downsample, " + ".join(dict.fromkeys(precisions)))
         result["notes"] += root_notes(root)
+        if albedo and out is None:
+            result["notes"].append("albedo: --albedo writes each object's albedo maps under --out; unused without it")
         if out is not None:
             # object folders an earlier run wrote there (each holds psctl normals' list of outputs),
             # not in this run: left as they are, but never silently beside a table without them

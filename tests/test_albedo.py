@@ -417,3 +417,25 @@ def test_depth_estimating_the_normals_colours_by_their_albedo(tmp_path):
     write_capture(folder, n=12, size=32)
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "albedo (estimated with the normals)"
+
+
+def test_eval_writes_each_objects_albedo_with_out(tmp_path):
+    import psctl
+
+    root = tmp_path / "root"
+    for k in range(2):
+        write_capture(root / f"obj{k}", n=8, size=16, seed=k)
+    r = psctl.run_benchmark("folder", root=root, method="l2", out=tmp_path / "out", albedo=True)
+    for k in range(2):
+        assert (tmp_path / "out" / f"obj{k}" / "albedo.png").is_file()
+        assert (tmp_path / "out" / f"obj{k}" / "albedo.exr").is_file()
+    assert r["mean_mae"] is not None
+    r = psctl.run_benchmark("folder", root=root, method="l2", albedo=True)  # nothing to write them to
+    assert any(n.startswith("albedo:") for n in r["notes"])
+    # a method without lights is refused before any object runs
+    from conftest import REPO
+
+    with pytest.raises(psctl.PsctlError, match="UPS-FCN"):
+        psctl.run_benchmark("folder", root=root, method="auto", weights=REPO / "weights" / "ups_fcn.pt",
+                            out=tmp_path / "out2", albedo=True)
+    assert not (tmp_path / "out2").exists()
