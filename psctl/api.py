@@ -286,15 +286,17 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     return l2_normals(images, lights, mask).normals
 
 
-def ups_fcn_albedo_message(asked: str, weights: str | os.PathLike | None) -> str:
+def ups_fcn_albedo_message(asked: str, weights: str | os.PathLike | None, calibrated: bool) -> str:
     """Why --albedo cannot run where ``asked`` (the --method given) resolved to ups-fcn, which
-    estimates no lights, and what would give it lights."""
-    if asked == "ups-fcn":
-        return "--albedo: ups-fcn estimates no lights, which the albedo needs; use sdps (LCNet's lights) or a folder " \
-               "with light_directions.txt"
+    estimates no lights, on a folder with (``calibrated``) or without light_directions.txt, and
+    what would give it lights."""
+    if str(asked).lower() == "ups-fcn":
+        return "--albedo: ups-fcn estimates no lights, which the albedo needs; use " + (
+            "l2, ps-fcn, ps-fcn-n or ensemble (the folder lists its lights)" if calibrated else
+            "sdps (LCNet's lights) or a folder with light_directions.txt")
     if weights is not None:
-        return "holds UPS-FCN weights, which estimate no lights, and --albedo needs them: give a PS-FCN or " \
-               "PS-FCN+N file (or none)"
+        return "holds UPS-FCN weights, which estimate no lights, and --albedo needs them: give another --weights " \
+               "file, or none (then auto chooses for each folder)"
     from psctl.models.weights import installed_path, weights_where
 
     need = f"LCNet's weights, lcnet.pt, in {weights_where()} (or --lcnet FILE)" if installed_path("lcnet") is None \
@@ -399,7 +401,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     asked = method
     method, note = resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")
     if want_albedo and method == "ups-fcn":
-        raise PsctlError(weights, ups_fcn_albedo_message(asked, weights))
+        raise PsctlError(weights, ups_fcn_albedo_message(asked, weights, cap.calibrated))
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")

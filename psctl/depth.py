@@ -727,18 +727,25 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import resolve_method, run_normals
 
+        from psctl.albedo import DEFAULT_ALBEDO, row_bands
+
         try:
-            # and its albedo for the mesh's colours, where the method has lights (not ups-fcn)
+            # and its albedo for the mesh's colours, where the method has lights (not ups-fcn) and
+            # the albedo takes one pass over the images (a large object's takes one per band: then
+            # the images' mean, one pass)
             chosen = resolve_method("auto", cap.calibrated, lights_file=cap.path / "light_directions.txt")[0]
+            one_pass = len(row_bands(np.ones((cap.height, cap.width), bool) if mask is None else mask, cap.n_images,
+                                     DEFAULT_ALBEDO["budget_mb"])) <= 1
             estimated = run_normals(cap.path, method="auto", write=False, progress=progress, encoding=encoding,
-                                    arrays=got, albedo=chosen != "ups-fcn")
+                                    arrays=got, albedo=chosen != "ups-fcn" and one_pass)
         except PsctlError as e:
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None
         nmap = got["normals"]
         if mask is None:
             mask = got["mask"]
-        notes += [n for n in estimated["notes"] if n not in notes]
+        # its albedo notes speak of albedo maps, which depth does not write (black vertices here, below)
+        notes += [n for n in estimated["notes"] if n not in notes and not n.startswith("albedo:")]
         source = cap.path
         normals_source = f"estimated (psctl normals --method auto: {estimated['method']})"
         notes.append(f"no normal map given or found in PATH/psctl: normals estimated from the images by "
@@ -768,6 +775,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         colors_source, mean_image = os.path.abspath(albedo[0]), albedo[1]
     elif normals is None and got.get("albedo") is not None:  # estimated here with the normals
         colors_source, mean_image = "albedo (estimated with the normals)", got["albedo"]
+        black = int((valid & (mean_image == 0).all(axis=-1)).sum())
+        if black:
+            notes.append(f"colours: {black} vertices have no albedo (dark in every image, or no light in front "
+                         f"of their normal): black")
     else:
         colors_source = "mean image"
         box = bounding_box(valid)
@@ -848,7 +859,7 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
         why = None
         try:
             if abs(path.stat().st_mtime - written) > SAME_RUN_SECONDS:
-                why = f"written {abs(path.stat().st_mtime - written):.0f} s apart from {normals.name}: another run's"
+                why = f"written {abs(path.stat().st_mtime - written):.0f} s apart from {normals.name}; taken as another run's"
             elif name.endswith(".npy"):
                 arr = np.load(path, allow_pickle=False)
                 if arr.dtype.kind != "f":

@@ -123,7 +123,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         for folder in folders:
             cap = open_capture(folder, encoding)
             if resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")[0] == "ups-fcn":
-                raise PsctlError(folder if weights is None else weights, ups_fcn_albedo_message(method, weights))
+                raise PsctlError(folder if weights is None else weights,
+                                 ups_fcn_albedo_message(method, weights, cap.calibrated))
     names = [object_name(f) for f in folders]
     for name in dict.fromkeys(names):
         same = [f.name for f, n in zip(folders, names) if n == name]

@@ -271,7 +271,7 @@ def test_counted_images_follow_the_documented_rule():
     assert counted_images(s, 0.2).tolist() == [[True, False, False], [True, True, False], [True, False, False]]
 
 
-def test_cast_shadows_are_left_out_per_channel_and_all_black_pixels_are_undetermined():
+def test_cast_shadows_are_left_out_and_all_black_pixels_are_undetermined():
     from psctl.albedo import albedo_from_reader
 
     lights = hemisphere_lights(10, max_angle_deg=20.0, seed=3)
@@ -439,3 +439,22 @@ def test_eval_writes_each_objects_albedo_with_out(tmp_path):
         psctl.run_benchmark("folder", root=root, method="auto", weights=REPO / "weights" / "ups_fcn.pt",
                             out=tmp_path / "out2", albedo=True)
     assert not (tmp_path / "out2").exists()
+
+
+def test_the_ups_fcn_refusal_in_any_case_and_on_a_calibrated_folder(tmp_path):
+    import psctl
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    with pytest.raises(psctl.PsctlError, match="use l2, ps-fcn, ps-fcn-n or ensemble"):
+        psctl.run_normals(folder, method="UPS-FCN", albedo=True, write=False)
+
+
+def test_depth_estimating_a_large_object_colours_by_the_mean_image(tmp_path, monkeypatch):
+    import psctl
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=12, size=32)
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-3)  # the albedo would take several passes
+    assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
