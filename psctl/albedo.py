@@ -19,6 +19,7 @@ better.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -33,7 +34,7 @@ if TYPE_CHECKING:
 
 DEFAULT_ALBEDO = {
     "min_shading": 0.2,  # n . l below this (78 degrees off the normal) counts only where nothing is brighter lit
-    "budget_mb": 256,  # the ratios of one band of pixels; larger objects are done in bands, each a pass over the images
+    "budget_mb": 256,  # the ratios in memory; a larger object's go to a temporary file, their medians taken in bands
     "memo_mb": 128,  # images as the method's own pass decoded them, kept for the albedo's (psctl.io.capture.DecodeMemo)
 }
 BLACK = 1e-6  # an image with every channel this dark at a pixel (relative to the channel's brightest counted value) is a shadow there
@@ -63,8 +64,13 @@ def counted_images(shading: np.ndarray, min_shading: float) -> np.ndarray:
     """shading [P, N] (n . l) -> [P, N] bool: the images that light each pixel well enough to
     count: n . l >= min_shading, or, for a pixel where no image reaches that, at least half its
     best n . l (and above 0)."""
-    best = shading.max(axis=1, keepdims=True)
-    return (shading >= np.where(best >= min_shading, min_shading, 0.5 * best)) & (shading > 0)
+    return (shading >= shading_floor(shading.max(axis=1, keepdims=True), min_shading)) & (shading > 0)
+
+
+def shading_floor(best: np.ndarray, min_shading: float) -> np.ndarray:
+    """The least n . l that counts at pixels whose best n . l is ``best``: ``min_shading``, or
+    half the best where no image reaches ``min_shading``."""
+    return np.where(best >= min_shading, min_shading, 0.5 * best)
 
 
 def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray]], lights: np.ndarray,
@@ -72,9 +78,10 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
                        progress: Callable[[int], None] | None = None) -> AlbedoResult:
     """The albedo of the ``mask`` pixels whose ``normals`` [H, W, 3] are nonzero, ``read(box)``
     yielding the N images cut to ``box`` (float [h, w, 3], divided by their intensities) and
-    ``lights`` [N, 3] their unit directions. Pixels are done in bands of rows whose working
-    arrays (BYTES_PER_OBSERVATION per image and pixel) fit ``budget_mb``; each band reads the
-    images once."""
+    ``lights`` [N, 3] their unit directions. ``read`` is called once. The ratios are kept in
+    memory when they fit ``budget_mb`` (BYTES_PER_OBSERVATION per image and pixel), else in a
+    temporary file (``RatioStore``), and their medians are then taken in bands of pixels that
+    fit it."""
     cfg = {**DEFAULT_ALBEDO, **(config or {})}
     h, w = mask.shape
     lights = np.asarray(lights, np.float32)
@@ -85,82 +92,121 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
     undetermined = mask & ~has
     if not has.any():
         return AlbedoResult(albedo, undetermined)
-    cols = np.flatnonzero(has.any(axis=0))
-    x0, x1 = int(cols[0]), int(cols[-1]) + 1
-    for y0, y1 in row_bands(has, n, cfg["budget_mb"]):
-        box = (slice(y0, y1), slice(x0, x1))
-        sel = has[box]
-        nrm = (normals[box][sel] / length[box][sel][:, None]).astype(np.float32)  # [P, 3], unit (maps read from 8 bits are not)
-        shading = nrm @ lights.T  # [P, N]
-        counted = counted_images(shading, float(cfg["min_shading"]))
-        ratios = np.empty((n, len(nrm), 3), np.float32)  # image by image: each a contiguous block
-        peak = np.zeros((len(nrm), 3), np.float32)  # each channel's brightest counted value
+    rows, cols = np.flatnonzero(has.any(axis=1)), np.flatnonzero(has.any(axis=0))
+    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    sel = has[box]
+    nrm = (normals[box][sel] / length[box][sel][:, None]).astype(np.float32)  # [P, 3], unit (maps read from 8 bits are not)
+    npx = len(nrm)
+    min_shading = float(cfg["min_shading"])
+    best = np.full(npx, -np.inf, np.float32)
+    for light in lights:  # each pixel's best n . l, for counted_images' rule without a [P, N] array
+        np.maximum(best, nrm @ light, out=best)
+    floor = shading_floor(best, min_shading)
+    budget = int(float(cfg["budget_mb"]) * (1 << 20))
+    peak = np.zeros((npx, 3), np.float32)  # each channel's brightest counted value
+    with RatioStore(n, npx, in_memory=n * npx * BYTES_PER_OBSERVATION <= budget) as ratios:
         got = 0
         for i, img in enumerate(read(box)):
             if i >= n:
                 raise PsctlError(None, f"albedo: the reader gave more than the {n} images of the lights")
             vals = img[sel]  # [P, 3]
-            c = counted[:, i, None]
+            s = nrm @ lights[i]
+            c = ((s >= floor) & (s > 0))[:, None]  # the images that count (counted_images)
             with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # n . l <= 0: not counted
-                r = vals / shading[:, i, None]
+                r = vals / s[:, None]
             if (~np.isfinite(r) & c).any():
                 raise PsctlError(None, "albedo: image / (n . l) passes float32's range; rescale the images")
-            ratios[i] = np.where(c, r, np.inf)
+            ratios.put(i, np.where(c, r, np.inf).astype(np.float32))
             np.maximum(peak, vals, out=peak, where=c)
             got += 1
             if progress is not None:
                 progress(1)
         if got != n:
             raise PsctlError(None, f"albedo: the reader gave {got} images for {n} lights")
-        # an image in which every channel is black at the pixel is a cast shadow there; one dark
-        # channel alone is not (a dark, noisy channel of a lit surface reads 0 or less at times)
+        med = np.zeros((npx, 3), np.float32)
+        none = np.zeros(npx, bool)
         lim = BLACK * peak
-        k = np.zeros((len(nrm), 3), np.int32)  # the images each median takes
-        with np.errstate(invalid="ignore", over="ignore"):  # inf * (n . l <= 0): not counted anyway
-            for i in range(n):
-                r = ratios[i]
-                r[(r * shading[:, i, None] <= lim).all(axis=1)] = np.inf
-                k += np.isfinite(r)
-        med = _median_ratios(ratios, k)
-        band = albedo[box]
-        band[sel] = med
-        undetermined[box] |= _none_counted(k.any(axis=1), sel)
+        step = npx if ratios.in_memory else max(1, budget // (n * BAND_BYTES_PER_OBSERVATION))
+        for p0 in range(0, npx, step):
+            p1 = min(p0 + step, npx)
+            block = ratios.block(p0, p1)  # [N, p, 3]
+            shading = nrm[p0:p1] @ lights.T  # [p, N]
+            k = np.zeros((p1 - p0, 3), np.int32)  # the images each median takes
+            # an image in which every channel is black at the pixel is a cast shadow there; one dark
+            # channel alone is not (a dark, noisy channel of a lit surface reads 0 or less at times)
+            with np.errstate(invalid="ignore", over="ignore"):  # inf * (n . l <= 0): not counted anyway
+                for i in range(n):
+                    r = block[i]
+                    r[(r * shading[:, i, None] <= lim[p0:p1]).all(axis=1)] = np.inf
+                    k += np.isfinite(r)
+            med[p0:p1] = _median_ratios(block, k)
+            none[p0:p1] = ~k.any(axis=1)
+    out = albedo[box]
+    out[sel] = med
+    undetermined[box] |= _none_counted(none, sel)
     return AlbedoResult(albedo, undetermined)
 
 
-def _none_counted(any_counted: np.ndarray, sel: np.ndarray) -> np.ndarray:
-    """[h, w] bool: the ``sel`` pixels whose ``any_counted`` [P] is False."""
+def _none_counted(none: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """[h, w] bool: the ``sel`` pixels whose ``none`` [P] is True."""
     out = np.zeros(sel.shape, bool)
-    out[sel] = ~any_counted
+    out[sel] = none
     return out
 
 
-# a band's working arrays per image and pixel: the ratios (3 x float32), n . l (float32), the
-# counted flags (bool) and counted_images' temporaries (bool, 2)
-BYTES_PER_OBSERVATION = 12 + 4 + 1 + 2
+# per image and pixel: the ratios (3 x float32), a band's n . l (float32) and flags (bool, 3)
+BYTES_PER_OBSERVATION = 12 + 4 + 3
+BAND_BYTES_PER_OBSERVATION = BYTES_PER_OBSERVATION + 12  # a band read from the file: a copy beside
 
 
-def row_bands(has: np.ndarray, n_images: int, budget_mb: float) -> list[tuple[int, int]]:
-    """[(first row, end row)] of the bands ``albedo_from_reader`` does: consecutive rows whose
-    ``has`` pixels' working arrays (BYTES_PER_OBSERVATION x ``n_images`` each) fit ``budget_mb``,
-    at least one row each; rows without pixels are skipped at a band's start."""
-    per_row = has.sum(axis=1)
-    cap = max(1, int(float(budget_mb) * (1 << 20)) // (BYTES_PER_OBSERVATION * max(n_images, 1)))
-    out: list[tuple[int, int]] = []
-    rows = np.flatnonzero(per_row)
-    if not rows.size:
+class RatioStore:
+    """The ratios [N, P, 3] float32, image by image: in memory, or (``in_memory`` False) in an
+    unnamed temporary file (``tempfile.TemporaryFile``: gone when closed, or when the process
+    ends) whose space is reserved first, so that a full disk is one line before any image is
+    read. ``put(i, [P, 3])``; ``block(p0, p1)`` -> [N, p1 - p0, 3] (in memory: a view, which the
+    caller may sort)."""
+
+    def __init__(self, n: int, npx: int, in_memory: bool):
+        self.n, self.npx, self.in_memory = n, npx, in_memory
+        self.array = np.empty((n, npx, 3), np.float32) if in_memory else None
+        self.file = None
+
+    def __enter__(self) -> "RatioStore":
+        if not self.in_memory:
+            import tempfile
+
+            self.file = tempfile.TemporaryFile(prefix="psctl-albedo-")
+            size = self.n * self.npx * 12
+            try:
+                os.posix_fallocate(self.file.fileno(), 0, size)
+            except OSError as e:
+                self.file.close()
+                raise PsctlError(tempfile.gettempdir(), f"no room for the albedo's temporary ratios ({size / 2**30:.1f} "
+                                                        f"GB: {e.strerror or e}); free space there, or set TMPDIR to "
+                                                        f"another folder") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.file is not None:
+            self.file.close()
+
+    def put(self, i: int, ratios: np.ndarray) -> None:
+        if self.array is not None:
+            self.array[i] = ratios
+        else:
+            os.pwrite(self.file.fileno(), np.ascontiguousarray(ratios, np.float32).tobytes(), i * self.npx * 12)
+
+    def block(self, p0: int, p1: int) -> np.ndarray:
+        if self.array is not None:
+            return self.array[:, p0:p1]
+        out = np.empty((self.n, p1 - p0, 3), np.float32)
+        width = (p1 - p0) * 12
+        for i in range(self.n):
+            data = os.pread(self.file.fileno(), width, (i * self.npx + p0) * 12)
+            if len(data) != width:
+                raise PsctlError(None, "albedo: the temporary ratios file was cut short")
+            out[i] = np.frombuffer(data, np.float32).reshape(p1 - p0, 3)
         return out
-    r, stop = int(rows[0]), int(rows[-1]) + 1
-    while r < stop:
-        r1, count = r + 1, int(per_row[r])
-        while r1 < stop and count + per_row[r1] <= cap:
-            count += int(per_row[r1])
-            r1 += 1
-        out.append((r, r1))
-        while r1 < stop and per_row[r1] == 0:
-            r1 += 1
-        r = r1
-    return out
 
 
 def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, config: dict | None = None,
@@ -174,9 +220,7 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
         raise PsctlError(capture.path / "light_directions.txt", "missing: the albedo needs light directions")
     cfg = {**DEFAULT_ALBEDO, **(config or {})}
     lights = capture.lights / np.linalg.norm(capture.lights, axis=1, keepdims=True)
-    has = mask & (np.linalg.norm(normals, axis=-1) > 0)
-    passes = len(row_bands(has, capture.n_images, cfg["budget_mb"]))
-    advance = None if progress is None or not passes else progress(f"{capture.name}: albedo", passes * capture.n_images)
+    advance = None if progress is None else progress(f"{capture.name}: albedo", capture.n_images)
     # each image was checked against the ambient image over the method's whole box: a band of a
     # few rows may lie in an image's shadow, black once the ambient image is subtracted
     return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo, ambient_check=False), lights,

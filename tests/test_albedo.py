@@ -72,11 +72,13 @@ def test_grazing_pixels_use_their_best_lit_images_and_unlit_ones_are_undetermine
     assert res.undetermined.tolist() == [[False, True, True]]
 
 
-def test_bands_give_the_same_albedo_and_read_once_each():
-    from psctl.albedo import albedo_from_reader, row_bands
+def test_a_temporary_file_gives_the_same_albedo_and_the_images_are_read_once(monkeypatch):
+    import tempfile
+
+    from psctl.albedo import albedo_from_reader
 
     normals, mask, lights, albedo, images = _textured(size=20, n=12)
-    mask[:3] = False  # empty rows are skipped
+    mask[:3] = False
     calls = []
 
     def read(box):
@@ -84,16 +86,37 @@ def test_bands_give_the_same_albedo_and_read_once_each():
         return (img[box] for img in images)
 
     one = albedo_from_reader(read, lights, normals, mask)
-    assert len(calls) == 1
-    calls.clear()
-    many = albedo_from_reader(read, lights, normals, mask, {"budget_mb": 0})  # one row per band
-    bands = row_bands(mask, len(lights), 0)
-    assert len(calls) == len(bands) == mask.any(axis=1).sum()
-    assert np.array_equal(one.albedo, many.albedo)
-    covered = np.zeros(mask.shape[0], bool)
-    for r0, r1 in bands:
-        covered[r0:r1] = True
-    assert covered[mask.any(axis=1)].all()
+    made = []
+    real = tempfile.TemporaryFile
+
+    def spy(*args, **kwargs):
+        made.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", spy)
+    for mb in (1e-4, 0.01):  # the ratios in a file; medians in bands of 1 pixel and of several
+        got = albedo_from_reader(read, lights, normals, mask, {"budget_mb": mb})
+        assert np.array_equal(one.albedo, got.albedo) and np.array_equal(one.undetermined, got.undetermined)
+    assert len(calls) == 3 and len(made) == 2
+
+
+def test_no_room_for_the_temporary_file_is_one_line(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import psctl
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    with pytest.raises(psctl.PsctlError, match="no room for the albedo's temporary ratios.*TMPDIR"):
+        psctl.run_normals(folder, method="l2", albedo=True, out=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
 
 
 def test_reader_with_the_wrong_number_of_images_is_an_error():
@@ -292,7 +315,7 @@ def test_cast_shadows_are_left_out_and_all_black_pixels_are_undetermined():
     assert res.undetermined.tolist() == [[False, False, True]]
 
 
-def test_bands_with_an_ambient_image_are_not_refused_as_black(tmp_path, monkeypatch):
+def test_the_albedo_with_an_ambient_image_and_its_ratios_in_a_file(tmp_path, monkeypatch):
     import psctl
     from psctl.albedo import DEFAULT_ALBEDO
     from psctl.io.images import read_image, write_image
@@ -304,7 +327,7 @@ def test_bands_with_an_ambient_image_are_not_refused_as_black(tmp_path, monkeypa
     for k in range(12):  # the room light in every image
         p = folder / f"{k + 1:03d}.png"
         write_image(p, read_image(p)[0] + ambient, "uint16")
-    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)  # a band per row: some rows lie in an image's shadow
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)  # the ratios in a file, medians pixel by pixel
     arrays = {}
     psctl.run_normals(folder, method="l2", write=False, albedo=True, arrays=arrays)
     front = made["mask"] & (np.einsum("hwc,nc->nhw", made["normals"], made["lights"]) > 0).all(0)
@@ -450,11 +473,13 @@ def test_the_ups_fcn_refusal_in_any_case_and_on_a_calibrated_folder(tmp_path):
         psctl.run_normals(folder, method="UPS-FCN", albedo=True, write=False)
 
 
+
+
 def test_depth_estimating_a_large_object_colours_by_the_mean_image(tmp_path, monkeypatch):
     import psctl
     from psctl.albedo import DEFAULT_ALBEDO
 
     folder = tmp_path / "sphere"
     write_capture(folder, n=12, size=32)
-    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-3)  # the albedo would take several passes
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-3)  # the albedo's arrays would go to a file
     assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
