@@ -19,6 +19,7 @@ better.
 
 from __future__ import annotations
 
+import errno
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -175,16 +176,23 @@ class RatioStore:
         if not self.in_memory:
             import tempfile
 
-            self.file = tempfile.TemporaryFile(prefix="psctl-albedo-")
-            size = self.n * self.npx * 12
             try:
-                os.posix_fallocate(self.file.fileno(), 0, size)
+                self.file = tempfile.TemporaryFile(prefix="psctl-albedo-")
+                os.posix_fallocate(self.file.fileno(), 0, self.n * self.npx * 12)
             except OSError as e:
-                self.file.close()
-                raise PsctlError(tempfile.gettempdir(), f"no room for the albedo's temporary ratios ({size / 2**30:.1f} "
-                                                        f"GB: {e.strerror or e}); free space there, or set TMPDIR to "
-                                                        f"another folder") from None
+                if self.file is not None and e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                    return self  # a file system that cannot reserve: the writes say whether there is room
+                self._no_room(e)
         return self
+
+    def _no_room(self, e: OSError) -> None:
+        import tempfile
+
+        if self.file is not None:
+            self.file.close()
+        raise PsctlError(tempfile.gettempdir(), f"no room for the albedo's temporary ratios "
+                                                f"({self.n * self.npx * 12 / 2**30:.1f} GB: {e.strerror or e}); free "
+                                                f"space there, or set TMPDIR to another folder") from None
 
     def __exit__(self, *exc: object) -> None:
         if self.file is not None:
@@ -194,7 +202,12 @@ class RatioStore:
         if self.array is not None:
             self.array[i] = ratios
         else:
-            os.pwrite(self.file.fileno(), np.ascontiguousarray(ratios, np.float32).tobytes(), i * self.npx * 12)
+            data = np.ascontiguousarray(ratios, np.float32).tobytes()
+            try:
+                if os.pwrite(self.file.fileno(), data, i * self.npx * 12) != len(data):
+                    raise OSError(errno.ENOSPC, "a short write")
+            except OSError as e:
+                self._no_room(e)
 
     def block(self, p0: int, p1: int) -> np.ndarray:
         if self.array is not None:

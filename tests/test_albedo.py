@@ -483,3 +483,30 @@ def test_depth_estimating_a_large_object_colours_by_the_mean_image(tmp_path, mon
     write_capture(folder, n=12, size=32)
     monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-3)  # the albedo's arrays would go to a file
     assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
+
+
+def test_a_file_system_that_cannot_reserve_space_still_works_and_a_failed_write_is_one_line(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import psctl
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    def unsupported(fd, offset, length):
+        raise OSError(errno.EOPNOTSUPP, "Operation not supported")
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    monkeypatch.setattr(os, "posix_fallocate", unsupported)
+    arrays = {}
+    psctl.run_normals(folder, method="l2", albedo=True, write=False, arrays=arrays)
+    assert arrays["albedo"].any()
+
+    def full(fd, data, offset):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    with pytest.raises(psctl.PsctlError, match="no room for the albedo's temporary ratios"):
+        psctl.run_normals(folder, method="l2", albedo=True, out=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
