@@ -731,8 +731,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
         try:
             # and its albedo for the mesh's colours, where the method has lights (not ups-fcn) and
-            # the albedo's arrays fit in memory: a larger object's go through a temporary file,
-            # slower than the mean image (a 1200 x 1200 sphere's depth: 8.0-8.5 -> 11.2 s)
+            # the albedo's arrays fit in memory: a larger object's albedo costs more than its mean
+            # image (a 1200 x 1200 sphere's depth: 8.0-8.5 -> 11.2 s)
             chosen = resolve_method("auto", cap.calibrated, lights_file=cap.path / "light_directions.txt")[0]
             pixels = cap.height * cap.width if mask is None else int(mask.sum())
             fits = pixels * cap.n_images * BYTES_PER_OBSERVATION <= DEFAULT_ALBEDO["budget_mb"] * (1 << 20)

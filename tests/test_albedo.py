@@ -510,3 +510,39 @@ def test_a_file_system_that_cannot_reserve_space_still_works_and_a_failed_write_
     with pytest.raises(psctl.PsctlError, match="no room for the albedo's temporary ratios"):
         psctl.run_normals(folder, method="l2", albedo=True, out=tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_the_temporary_file_in_pieces_and_when_it_cannot_be_made(tmp_path, monkeypatch):
+    import errno
+    import os
+    import tempfile
+
+    import psctl
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    whole = {}
+    psctl.run_normals(folder, method="l2", albedo=True, write=False, arrays=whole)
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    real_write, real_read = os.pwrite, os.preadv
+
+    def small_write(fd, data, offset):  # as Linux past 2 GB: less than asked
+        return real_write(fd, bytes(data[:100]), offset)
+
+    def small_read(fd, buffers, offset):
+        return real_read(fd, [buffers[0][:100]], offset)
+
+    monkeypatch.setattr(os, "pwrite", small_write)
+    monkeypatch.setattr(os, "preadv", small_read)
+    pieces = {}
+    psctl.run_normals(folder, method="l2", albedo=True, write=False, arrays=pieces)
+    assert np.array_equal(whole["albedo"], pieces["albedo"])
+
+    def no_folder(*args, **kwargs):
+        raise FileNotFoundError(errno.ENOENT, "No usable temporary directory found")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", no_folder)
+    with pytest.raises(psctl.PsctlError, match="cannot make the albedo's temporary file.*TMPDIR"):
+        psctl.run_normals(folder, method="l2", albedo=True, out=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
