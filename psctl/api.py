@@ -596,6 +596,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "width": cap.width,
         "seconds": round(seconds, 3),
         "outputs": {},
+        "written": {},  # filled as the files are written
         **stats,
         "n_mask_pixels": int(mask.sum()),
         "n_evaluated_pixels": n_eval,
@@ -648,6 +649,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 if SDPS_FILES["light_images"] in light_files:  # one row per image used, in this order
                     (stage / SDPS_FILES["light_images"]).write_text(
                         "".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
+            # each file as written (bytes, modification time in ns: kept by the rename), so that a
+            # later command can tell this run's files from ones replaced since (psctl depth's colours)
+            report["written"] = {n: [st.st_size, st.st_mtime_ns] for n in names if n != "report.json"
+                                 for st in [os.stat(stage / n)]}
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
             write_json(stage / "report.json", report)
     return report

@@ -832,34 +832,41 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
 
 ALBEDO_FILES = ("albedo.exr", "albedo.npy", "albedo.png", "albedo_8bit.png")  # psctl normals --albedo, the most precise first
-SAME_RUN_SECONDS = 60  # a run writes its files one after the other: a normal map written further apart is another's
 
 
 def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None = None
                   ) -> tuple[Path, np.ndarray] | None:
     """The albedo map that the psctl normals run which wrote the normal map ``normals`` wrote
-    beside it (``--albedo``): the first of ALBEDO_FILES that the folder's list of that run's
-    outputs names, written within SAME_RUN_SECONDS of the normal map (a normal map replaced
-    since is not that run's) and readable as a finite [H, W, 3] map of ``shape``; a PNG is
-    sRGB-decoded (linear up to its scale, which ``display_colors`` sets anyway). Returns (path,
-    [H, W, 3] float32), or None; each listed file passed over gets a note in ``notes``."""
-    from psctl.io.atomic import read_outputs_list
+    beside it (``--albedo``): the first of ALBEDO_FILES whose size and modification time, and the
+    normal map's, are as that run's report.json recorded them ("written": a file replaced since
+    is not that run's), readable as a finite [H, W, 3] map of ``shape``; a PNG is sRGB-decoded
+    (linear up to its scale, which ``display_colors`` sets anyway). Returns (path, [H, W, 3]
+    float32), or None; each of that run's albedo files passed over gets a note in ``notes``."""
+    import json
 
-    listed = read_outputs_list(normals.parent, "normals")
-    if normals.name not in listed:
-        return None
+    def as_written(path: Path) -> bool:
+        try:
+            st = path.stat()
+        except OSError:
+            return False
+        return written.get(path.name) == [st.st_size, st.st_mtime_ns]
+
     try:
-        written = normals.stat().st_mtime
-    except OSError:
+        written = json.loads((normals.parent / "report.json").read_text()).get("written")
+    except (OSError, ValueError, AttributeError):
         return None
+    if not isinstance(written, dict) or normals.name not in written:
+        return None
+    same = as_written(normals)
     for name in ALBEDO_FILES:
         path = normals.parent / name
-        if name not in listed or not path.is_file():
+        if name not in written or not path.is_file():
             continue
         why = None
         try:
-            if abs(path.stat().st_mtime - written) > SAME_RUN_SECONDS:
-                why = f"written {abs(path.stat().st_mtime - written):.0f} s apart from {normals.name}; taken as another run's"
+            if not same or not as_written(path):
+                why = (f"{normals.name if not same else name} is not as the psctl normals run that wrote "
+                       f"{'it' if not same else 'the albedo'} left it (its report.json); taken as another run's")
             elif name.endswith(".npy"):
                 arr = np.load(path, allow_pickle=False)
                 if arr.dtype.kind != "f":

@@ -417,20 +417,27 @@ def test_depth_takes_the_next_listed_albedo_and_not_another_runs(tmp_path):
     write_capture(folder, n=6, size=16)
     out = folder / "psctl"
     psctl.run_normals(folder, method="l2", albedo=True, formats=("exr", "npy"))
-    (out / "albedo.exr").write_bytes(b"damaged")
+    (out / "albedo.exr").write_bytes(b"damaged")  # replaced since the run (its report.json says what it wrote)
     r = psctl.run_depth(folder, write=False)
-    assert r["colors"] == str(out / "albedo.npy")  # the next listed file of the same run
-    assert any(n.startswith("colours:") and "albedo.exr" in n for n in r["notes"])
-    np.save(out / "albedo.npy", np.ones((16, 16, 3), np.complex64))  # not floats: passed over, no warning
+    assert r["colors"] == str(out / "albedo.npy")  # the next file of the same run
+    assert any(n.startswith("colours:") and "albedo.exr" in n and "another run's" in n for n in r["notes"])
+    np.save(out / "albedo.npy", np.ones((16, 16, 3), np.complex64))
     r = psctl.run_depth(folder, write=False)
-    assert r["colors"] == "mean image" and any("complex64" in n for n in r["notes"])
+    assert r["colors"] == "mean image" and any("albedo.npy" in n for n in r["notes"])
 
-    # a normal map replaced after the run (written far apart from its albedo) is not that run's
+    # a normal map replaced after the run, even by a copy keeping its date, is not that run's
+    import shutil
+
+    psctl.run_normals(folder, method="l2", albedo=True, formats=("exr",), out=tmp_path / "other")
     psctl.run_normals(folder, method="l2", albedo=True, formats=("exr",))
-    t = (out / "normal.exr").stat().st_mtime
-    os.utime(out / "normal.exr", (t + 3600, t + 3600))
+    assert psctl.run_depth(folder, write=False)["colors"] == str(out / "albedo.exr")
+    shutil.copy2(tmp_path / "other" / "normal.exr", out / "normal.exr")
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "mean image" and any("another run's" in n for n in r["notes"])
+    t = (out / "albedo.exr").stat().st_mtime  # and a touched albedo
+    psctl.run_normals(folder, method="l2", albedo=True, formats=("exr",))
+    os.utime(out / "albedo.exr", (t + 1, t + 1))
+    assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
 
 
 def test_depth_estimating_the_normals_colours_by_their_albedo(tmp_path):
