@@ -866,7 +866,8 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
         try:
             if not same or not as_written(path):
                 why = (f"{normals.name if not same else name} is not as the psctl normals run that wrote "
-                       f"{'it' if not same else 'the albedo'} left it (its report.json); taken as another run's")
+                       f"{'it' if not same else 'the albedo'} left it, by its report.json (replaced, or copied "
+                       f"without its dates); taken as another run's")
             elif name.endswith(".npy"):
                 arr = np.load(path, allow_pickle=False)
                 if arr.dtype.kind != "f":
