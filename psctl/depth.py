@@ -853,21 +853,30 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
 
     try:
         written = json.loads((normals.parent / "report.json").read_text()).get("written")
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
+        written = None
+    if not isinstance(written, dict):
+        if notes is not None and any((normals.parent / n).is_file() for n in ALBEDO_FILES):
+            notes.append(f"colours: the albedo beside {normals.name} not used: its report.json does not record the "
+                         f"files as written (a psctl before session 48?); run psctl normals --albedo again")
         return None
-    if not isinstance(written, dict) or normals.name not in written:
+    if normals.name not in written:
         return None
-    same = as_written(normals)
+    if not as_written(normals):
+        if notes is not None and any(n in written for n in ALBEDO_FILES):
+            notes.append(f"colours: {normals.name} is not as the psctl normals run that wrote it left it, by its "
+                         f"report.json (replaced, or copied without its files' times); its albedo not used, the "
+                         f"mesh's colours are the images' mean")
+        return None
     for name in ALBEDO_FILES:
         path = normals.parent / name
         if name not in written or not path.is_file():
             continue
         why = None
         try:
-            if not same or not as_written(path):
-                why = (f"{normals.name if not same else name} is not as the psctl normals run that wrote "
-                       f"{'it' if not same else 'the albedo'} left it, by its report.json (replaced, or copied "
-                       f"without its dates); taken as another run's")
+            if not as_written(path):
+                why = ("not as the psctl normals run that wrote it left it, by its report.json (replaced, or copied "
+                       "without its files' times); taken as another run's")
             elif name.endswith(".npy"):
                 arr = np.load(path, allow_pickle=False)
                 if arr.dtype.kind != "f":
