@@ -105,7 +105,7 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
     floor = shading_floor(best, min_shading)
     budget = int(float(cfg["budget_mb"]) * (1 << 20))
     peak = np.zeros((npx, 3), np.float32)  # each channel's brightest counted value
-    with RatioStore(n, npx, in_memory=n * npx * BYTES_PER_OBSERVATION <= budget) as ratios:
+    with RatioStore(n, npx, in_memory=fits_in_memory(npx, n, cfg)) as ratios:
         got = 0
         for i, img in enumerate(read(box)):
             if i >= n:
@@ -160,6 +160,13 @@ def _none_counted(none: np.ndarray, sel: np.ndarray) -> np.ndarray:
 BYTES_PER_OBSERVATION = 12 + 3
 BAND_BYTES_PER_OBSERVATION = BYTES_PER_OBSERVATION + 12  # a band read from the file: a copy beside
 NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def fits_in_memory(n_pixels: int, n_images: int, config: dict | None = None) -> bool:
+    """Whether the albedo of ``n_pixels`` object pixels under ``n_images`` images keeps its ratios
+    in memory (``budget_mb``), not in a temporary file."""
+    cfg = {**DEFAULT_ALBEDO, **(config or {})}
+    return n_pixels * n_images * BYTES_PER_OBSERVATION <= float(cfg["budget_mb"]) * (1 << 20)
 
 
 class RatioStore:
@@ -247,8 +254,8 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
     cfg = {**DEFAULT_ALBEDO, **(config or {})}
     lights = capture.lights / np.linalg.norm(capture.lights, axis=1, keepdims=True)
     advance = None if progress is None else progress(f"{capture.name}: albedo", capture.n_images)
-    # each image was checked against the ambient image over the method's whole box: a band of a
-    # few rows may lie in an image's shadow, black once the ambient image is subtracted
+    # each image was checked against the ambient image over the method's whole box; the albedo's
+    # box (the pixels with a normal) may be a smaller part, black in an image once it is subtracted
     return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo, ambient_check=False), lights,
                               normals, mask, cfg, advance)
 

@@ -550,7 +550,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method in LISTED_LIGHTS:  # the light file's methods
         notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
 
-    alb = None
+    alb = albedo_stats = None
     if want_albedo:
         from psctl.albedo import albedo_png_scale, capture_albedo
 
@@ -558,9 +558,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         alb = capture_albedo(lit, np.where(dark[..., None], 0.0, normals), mask, progress=progress,
                              memo=memo)  # dark pixels: no normal
         undetermined = int(alb.undetermined.sum())
-        albedo_stats = {"png_scale": albedo_png_scale(alb.albedo, mask & ~alb.undetermined),
-                        "median": [float(v) for v in np.median(alb.albedo[mask & ~alb.undetermined], axis=0)]
-                        if (mask & ~alb.undetermined).any() else None,
+        determined = mask & ~alb.undetermined
+        albedo_stats = {"png_scale": albedo_png_scale(alb.albedo, determined),
+                        "median": [float(v) for v in np.median(alb.albedo[determined], axis=0)]
+                        if determined.any() else None,
                         "n_undetermined": undetermined}
         if undetermined:
             notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
@@ -609,7 +610,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     }
     if spread is not None:
         report["spread"] = spread_stats(spread, mask, error, valid if gt is not None else None)
-    report["albedo"] = albedo_stats if want_albedo else None
+    report["albedo"] = albedo_stats
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
         report["lcnet_decode"] = lc_cfg["decode"]

@@ -57,6 +57,7 @@ import numpy as np
 
 from psctl.arrays import as_mask, plain
 from psctl.errors import PsctlError, check_bool, check_path, check_progress, like_default
+from psctl.io.normals import ALBEDO_FORMATS
 
 # progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
@@ -727,7 +728,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import resolve_method, run_normals
 
-        from psctl.albedo import BYTES_PER_OBSERVATION, DEFAULT_ALBEDO
+        from psctl.albedo import fits_in_memory
 
         try:
             # and its albedo for the mesh's colours, where the method has lights (not ups-fcn) and
@@ -735,9 +736,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             # image (a 1200 x 1200 sphere's depth: 8.0-8.5 -> 11.2 s)
             chosen = resolve_method("auto", cap.calibrated, lights_file=cap.path / "light_directions.txt")[0]
             pixels = cap.height * cap.width if mask is None else int(mask.sum())
-            fits = pixels * cap.n_images * BYTES_PER_OBSERVATION <= DEFAULT_ALBEDO["budget_mb"] * (1 << 20)
             estimated = run_normals(cap.path, method="auto", write=False, progress=progress, encoding=encoding,
-                                    arrays=got, albedo=chosen != "ups-fcn" and fits)
+                                    arrays=got, albedo=chosen != "ups-fcn" and fits_in_memory(pixels, cap.n_images))
         except PsctlError as e:
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None
@@ -831,7 +831,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     return report
 
 
-ALBEDO_FILES = ("albedo.exr", "albedo.npy", "albedo.png", "albedo_8bit.png")  # psctl normals --albedo, the most precise first
+# psctl normals --albedo's files, the most precise first
+ALBEDO_FILES = tuple(ALBEDO_FORMATS[f] for f in ("exr", "npy", "png16", "png8"))
 
 
 def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None = None
