@@ -76,13 +76,16 @@ def shading_floor(best: np.ndarray, min_shading: float) -> np.ndarray:
 
 def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray]], lights: np.ndarray,
                        normals: np.ndarray, mask: np.ndarray, config: dict | None = None,
-                       progress: Callable[[int], None] | None = None) -> AlbedoResult:
+                       progress: Callable[[int], None] | None = None,
+                       median_progress: Callable[[int], Callable[[int], None]] | None = None) -> AlbedoResult:
     """The albedo of the ``mask`` pixels whose ``normals`` [H, W, 3] are nonzero, ``read(box)``
     yielding the N images cut to ``box`` (float [h, w, 3], divided by their intensities) and
     ``lights`` [N, 3] their unit directions. ``read`` is called once. The ratios are kept in
     memory when they fit ``budget_mb`` (BYTES_PER_OBSERVATION per image and pixel), else in a
     temporary file (``RatioStore``), and their medians are then taken in bands of pixels that
-    fit it."""
+    fit it. ``progress(1)`` after each image read; ``median_progress(total)`` -> ``advance(pixels)``
+    for the bands of the temporary file, which can take as long as the reading (not called when
+    the ratios are in memory: their medians take a small part of the pass)."""
     cfg = {**DEFAULT_ALBEDO, **(config or {})}
     h, w = mask.shape
     lights = np.asarray(lights, np.float32)
@@ -128,6 +131,7 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
         none = np.zeros(npx, bool)
         lim = BLACK * peak
         step = npx if ratios.in_memory else max(1, budget // (n * BAND_BYTES_PER_OBSERVATION))
+        advance = None if ratios.in_memory or median_progress is None else median_progress(npx)
         for p0 in range(0, npx, step):
             p1 = min(p0 + step, npx)
             block = ratios.block(p0, p1)  # [N, p, 3]
@@ -142,6 +146,8 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
                     k += np.isfinite(r)
             med[p0:p1] = _median_ratios(block, k)
             none[p0:p1] = ~k.any(axis=1)
+            if advance is not None:
+                advance(p1 - p0)
     out = albedo[box]
     out[sel] = med
     undetermined[box] |= _none_counted(none, sel)
@@ -256,8 +262,9 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
     advance = None if progress is None else progress(f"{capture.name}: albedo", capture.n_images)
     # each image was checked against the ambient image over the method's whole box; the albedo's
     # box (the pixels with a normal) may be a smaller part, black in an image once it is subtracted
+    medians = None if progress is None else (lambda total: progress(f"{capture.name}: albedo medians", total))
     return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo, ambient_check=False), lights,
-                              normals, mask, cfg, advance)
+                              normals, mask, cfg, advance, medians)
 
 
 def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray, mask: np.ndarray | None = None,

@@ -565,7 +565,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                         "n_undetermined": undetermined}
         if undetermined:
             notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
-                         f"light in front of their normal, or black in every image that lights them): 0 in the "
+                         f"light in front of their normal, or black in every image that counts, docs/formats.md): 0 in the "
                          f"albedo maps")
         if method == "sdps":
             notes.append("albedo: on the scale of the estimated intensities, one per image: known up to one "

@@ -85,7 +85,14 @@ def test_a_temporary_file_gives_the_same_albedo_and_the_images_are_read_once(mon
         calls.append(box)
         return (img[box] for img in images)
 
-    one = albedo_from_reader(read, lights, normals, mask)
+    bars = []
+
+    def median_progress(total):
+        bars.append([total])
+        return bars[-1].append
+
+    one = albedo_from_reader(read, lights, normals, mask, median_progress=median_progress)
+    assert bars == []  # in memory: the medians are a small part of the pass, no bar of their own
     made = []
     real = tempfile.TemporaryFile
 
@@ -95,9 +102,22 @@ def test_a_temporary_file_gives_the_same_albedo_and_the_images_are_read_once(mon
 
     monkeypatch.setattr(tempfile, "TemporaryFile", spy)
     for mb in (1e-4, 0.01):  # the ratios in a file; medians in bands of 1 pixel and of several
-        got = albedo_from_reader(read, lights, normals, mask, {"budget_mb": mb})
+        got = albedo_from_reader(read, lights, normals, mask, {"budget_mb": mb}, median_progress=median_progress)
         assert np.array_equal(one.albedo, got.albedo) and np.array_equal(one.undetermined, got.undetermined)
     assert len(calls) == 3 and len(made) == 2
+    npx = int((mask & (np.linalg.norm(normals, axis=-1) > 0)).sum())
+    assert [b[0] for b in bars] == [npx, npx]  # each file's bands advance its bar to the pixel count
+    assert [sum(b[1:]) for b in bars] == [npx, npx] and len(bars[0]) == npx + 1 and 2 < len(bars[1]) < npx + 1
+
+
+def _capture_with_ratios_in_a_file(tmp_path, monkeypatch, n=6, size=16):
+    """A small capture folder, with the albedo's budget so small that its ratios go to a file."""
+    from psctl.albedo import DEFAULT_ALBEDO
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=n, size=size)
+    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    return folder
 
 
 def test_no_room_for_the_temporary_file_is_one_line(tmp_path, monkeypatch):
@@ -105,14 +125,11 @@ def test_no_room_for_the_temporary_file_is_one_line(tmp_path, monkeypatch):
     import os
 
     import psctl
-    from psctl.albedo import DEFAULT_ALBEDO
 
     def full(fd, offset, length):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    folder = tmp_path / "sphere"
-    write_capture(folder, n=6, size=16)
-    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    folder = _capture_with_ratios_in_a_file(tmp_path, monkeypatch)
     monkeypatch.setattr(os, "posix_fallocate", full)
     with pytest.raises(psctl.PsctlError, match="no room for the albedo's temporary ratios.*TMPDIR"):
         psctl.run_normals(folder, method="l2", albedo=True, out=tmp_path / "out")
@@ -497,14 +514,11 @@ def test_a_file_system_that_cannot_reserve_space_still_works_and_a_failed_write_
     import os
 
     import psctl
-    from psctl.albedo import DEFAULT_ALBEDO
 
     def unsupported(fd, offset, length):
         raise OSError(errno.EOPNOTSUPP, "Operation not supported")
 
-    folder = tmp_path / "sphere"
-    write_capture(folder, n=6, size=16)
-    monkeypatch.setitem(DEFAULT_ALBEDO, "budget_mb", 1e-4)
+    folder = _capture_with_ratios_in_a_file(tmp_path, monkeypatch)
     monkeypatch.setattr(os, "posix_fallocate", unsupported)
     arrays = {}
     psctl.run_normals(folder, method="l2", albedo=True, write=False, arrays=arrays)
