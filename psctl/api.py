@@ -502,12 +502,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
+        from psctl.infer import DEFAULT_INFER, first_read_box
+        from psctl.io.capture import DecodeMemo
         from psctl.lights import capture_lights, light_errors, lights_changed, lit_capture
         from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
         lc_cfg = sdps_lcnet_config(second, weights, device)
-        est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet")
+        if memo is None:  # every pass takes the images LCNet's decoded, where they fit
+            memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
+        est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
+                             keep_box=first_read_box(cap, mask, net_cfg))
         gt_ints = cap.intensities if cap.intensities_given else None
         lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
         source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg,

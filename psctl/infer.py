@@ -723,10 +723,18 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
     from psctl.io.prefetch import prefetch
 
     cfg = {**DEFAULT_INFER, **(config or {})}
+    return prefetch(capture.image_paths, first_read_box(capture, mask, cfg), (capture.width, capture.height),
+                    cfg["prefetch_mb"])
+
+
+def first_read_box(capture: "Capture", mask: np.ndarray, config: dict | None = None) -> tuple[slice, slice] | None:
+    """What ``capture_normals`` reads of each image at full resolution (the helper's box, and
+    the box a ``DecodeMemo`` must hold to serve it); None where it reads shrunk images
+    (``downsample`` > 1) or the mask is empty or not the capture's size."""
+    cfg = {**DEFAULT_INFER, **(config or {})}
     mask = np.asarray(mask, bool)
     on = check_downsample(cfg["downsample"]) == 1 and mask.any() and mask.shape == (capture.height, capture.width)
-    box = read_box(region_box(mask, cfg), mask.shape) if on else None
-    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])
+    return read_box(region_box(mask, cfg), mask.shape) if on else None
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,

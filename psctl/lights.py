@@ -336,9 +336,13 @@ def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: st
 
 def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathLike | None = None,
                    config: dict | None = None, progress: "ProgressFactory | None" = None,
-                   flag: str = "--weights") -> LightEstimate:
+                   flag: str = "--weights", memo: "DecodeMemo | None" = None,
+                   keep_box: tuple[slice, slice] | None = None) -> LightEstimate:
     """Lights of a capture folder, streaming its images from disk as captured (the folder's
-    light_intensities.txt, if any, is not applied)."""
+    light_intensities.txt, if any, is not applied). ``memo`` (``DecodeMemo``): the decoded
+    images are kept there for a later pass (sdps' second stage); ``keep_box``: what that pass
+    reads of each image (``psctl.infer.first_read_box``), decoded here with LCNet's crop so that
+    the memo serves it."""
     from psctl.io.capture import ImageCheck
     from psctl.io.prefetch import prefetch
 
@@ -346,20 +350,41 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     mask = np.asarray(mask, bool)
     on = mask.any() and mask.shape == (capture.height, capture.width)
     box = crop_box(mask, int(cfg["margin"])) if on else None
+    # decoded once for both passes: the smallest box holding LCNet's crop and the later pass's
+    read = box if box is None or keep_box is None or memo is None else (
+        slice(min(box[0].start, keep_box[0].start), max(box[0].stop, keep_box[0].stop)),
+        slice(min(box[1].start, keep_box[1].start), max(box[1].stop, keep_box[1].stop)))
     # started before LCNet's weights import torch: the decoding overlaps that import
-    with prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"]) as pf:
+    with prefetch(capture.image_paths, read, (capture.width, capture.height), cfg["prefetch_mb"]) as pf:
         model, w = load_lcnet(weights, flag)
         if w.official:  # the guard's band describes psctl's training exposures, not the authors'
             config = {"exposure_band": None, **(config or {})}
         raw = replace(capture, intensities=np.ones_like(capture.intensities))
         check = ImageCheck(capture)  # black images, negative values: notes
+        reader = check.reader(raw, mask, pf, memo)
+        if read != box:
+            reader = _cut_reader(reader, read)
         with naming(capture.path):  # all images black, ...
-            res = run_lcnet(model, check.reader(raw, mask, pf), raw.n_images, mask, config, progress,
-                            f"{capture.name}: reading + LCNet")
+            res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
         res.info["prefetched"] = pf.served
     res.notes.append(f"lcnet: weights {w.path}" + (" (the authors' checkpoint)" if w.official else ""))
     res.notes += check.notes() + hot_pixel_notes(res.info, [p.name for p in capture.image_paths])
     return res
+
+
+def _cut_reader(reader: "Reader", outer: tuple[slice, slice]) -> "Reader":
+    """``reader`` asked for ``outer`` (a box holding every box asked for), each image then cut
+    to the box asked for. The checks behind ``reader`` see the same object pixels."""
+
+    def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        if not all(o.start <= b.start and b.stop <= o.stop for o, b in zip(outer, box)):
+            yield from reader(start, box)
+            return
+        cut = tuple(slice(b.start - o.start, b.stop - o.start) for o, b in zip(outer, box))
+        for img in reader(start, outer):
+            yield np.ascontiguousarray(img[cut])
+
+    return read
 
 
 # --- refinement against the normals (sdps) ---------------------------------------------------
@@ -1055,11 +1080,19 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         near = near_lights(light_distance, mask, cap.mask_path)
         picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
                       f"each image by its light's falloff (LCNet reads the images as captured)")
-    est = capture_lights(cap, mask, weights, {"device": device, "decode": decode, "views": views}, progress)
+    memo = keep_box = None
+    if refine:  # the refinement's passes take the images LCNet's decoded, where they fit
+        from psctl.infer import DEFAULT_INFER, first_read_box
+        from psctl.io.capture import DecodeMemo
+
+        memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
+        keep_box = first_read_box(cap, mask, net_cfg)
+    est = capture_lights(cap, mask, weights, {"device": device, "decode": decode, "views": views}, progress,
+                         memo=memo, keep_box=keep_box)
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refine:
-        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit)
+        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit, memo)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll),
@@ -1110,9 +1143,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
-                    net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None) -> LightEstimate:
+                    net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None,
+                    memo: "DecodeMemo | None" = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
-    turned by the roll of the normals from the refined lights when the config says so)."""
+    turned by the roll of the normals from the refined lights when the config says so).
+    ``memo``: images decoded by LCNet's pass."""
     from psctl.models.weights import installed_path
     from psctl.sdps import SDPS_SECOND, capture_source, sdps_second_stage, second_stage
 
@@ -1120,7 +1155,7 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
         return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                                "LCNet's lights are not refined"])
     second = sdps_second_stage(weights, flag="--normals-weights")[0]
-    source = capture_source(cap, mask, second, weights, net_cfg, progress)
+    source = capture_source(cap, mask, second, weights, net_cfg, progress, memo)
     return second_stage(source, est, True, config, normals=False)[0]
 
 

@@ -95,6 +95,33 @@ def test_another_region_or_order_is_read_here(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(helped, iter_images(cap, BOX), strict=True))
 
 
+def test_a_memo_keeps_the_file_as_the_helper_found_it_before_decoding(tmp_path):
+    """A file changed after the helper decoded it and before the parent took it: the memo keeps
+    the helper's stamp, taken before its read, so a later pass reads the file again instead of
+    taking the decoded image for the changed file's."""
+    import time
+
+    from psctl.io.capture import DecodeMemo
+
+    write_capture(tmp_path / "cap", n=4, size=40)
+    cap = open_capture(tmp_path / "cap")
+    memo = DecodeMemo(1 << 30)
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
+        assert pf.proc is not None
+        second = np.frombuffer(pf.mm, np.float32, 32 * 22 * 3, pf.slot)  # image 2's slot of the ring
+        deadline = time.monotonic() + 60
+        while not second.any():  # decoded (the helper stamps each file before it reads it)
+            assert time.monotonic() < deadline, "the helper decoded nothing in 60 s"
+            time.sleep(0.01)
+        del second  # a view of the ring, which close() unmaps
+        st = os.stat(cap.image_paths[1])
+        os.utime(cap.image_paths[1], ns=(st.st_atime_ns, st.st_mtime_ns + 5 * 10**9))  # 'changed' since
+        got = list(iter_images(cap, BOX, decoded=pf, memo=memo))
+        assert pf.served == 4 and len(got) == 4
+    assert memo.take(cap.image_paths[0], BOX) is not None
+    assert memo.take(cap.image_paths[1], BOX) is None  # as found before the change: stale now
+
+
 def test_an_image_larger_than_the_budget_starts_nothing(tmp_path):
     write_capture(tmp_path / "cap", n=3, size=40)
     cap = open_capture(tmp_path / "cap")

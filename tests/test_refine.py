@@ -175,7 +175,8 @@ def stand_in_networks(monkeypatch):
 
     calls = []
 
-    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights"):
+    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights", memo=None,
+                       keep_box=None):
         n = capture.n_images
         return LightEstimate(rotate_randomly(capture.lights, 8.0, 5), np.ones(n, np.float32), {},
                              {"decode": "soft", "views": 8, "device": "cpu"}, [])
@@ -424,7 +425,8 @@ def test_sdps_and_lights_apply_the_roll_when_it_is_on(tmp_path, fake_weights, mo
     from psctl.io.capture import load_ground_truth
     from psctl.lights import run_lights, turn_about_view_axis
 
-    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights"):
+    def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights", memo=None,
+                       keep_box=None):
         return LightEstimate(rotate_randomly(capture.lights, 8.0, 5), np.ones(capture.n_images, np.float32), {},
                              {"decode": "soft", "views": 8, "device": "cpu"}, [])
 
@@ -734,3 +736,56 @@ def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch,
     for x, y in zip(results[0][:4], results[64][:4]):
         np.testing.assert_array_equal(x, y)
     assert not np.array_equal(results[0][0], results[0][3])  # the second pass saw other lights
+
+
+@pytest.mark.parametrize("command", ["normals", "lights"])
+def test_lcnet_and_the_passes_after_it_decode_each_image_once(tmp_path, fake_weights, monkeypatch, command):  # noqa: F811
+    """`psctl normals -m sdps` and `psctl lights`: LCNet's pass decodes each image with the box the
+    second stage reads (which holds LCNet's crop) and keeps it in the DecodeMemo; the second
+    stage, the light fit and the second stage again take it from there. The same lights and
+    normals as when every pass decodes for itself."""
+    import psctl.io.capture
+    from psctl.infer import DEFAULT_INFER
+    from psctl.lights import run_lights
+
+    import psctl
+
+    from psctl.infer import first_read_box
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import DEFAULT_LIGHTS, crop_box
+
+    write_capture(tmp_path / "cap", n=12, size=120, seed=2)
+    yy, xx = np.mgrid[:120, :120]
+    write_image(tmp_path / "cap" / "mask.png", ((yy - 60) ** 2 + (xx - 60) ** 2 < 400).astype(np.float32), "uint8")
+    cap = open_capture(tmp_path / "cap")
+    mask = load_mask(cap)
+    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
+    assert lc != net and all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))  # two boxes: one held
+    reads = []
+    real = psctl.io.capture.read_image
+
+    def counting(path, *a, **k):
+        if path.parent == tmp_path / "cap" and path.name[0].isdigit():
+            reads.append(path)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(psctl.io.capture, "read_image", counting)
+    got = {}
+    for mb in (0, 64):
+        monkeypatch.setitem(DEFAULT_INFER, "cache_mb", mb)
+        reads.clear()
+        arrays = {}
+        if command == "normals":
+            rep = psctl.run_normals(tmp_path / "cap", method="sdps", lcnet=fake_weights / "lcnet.pt",
+                                    weights=fake_weights / "ps_fcn_dagger.pt", device="cpu", write=False,
+                                    arrays=arrays)
+        else:
+            rep = run_lights(tmp_path / "cap", weights=fake_weights / "lcnet.pt", device="cpu", write=False,
+                             normals_weights=fake_weights / "ps_fcn_dagger.pt")
+        assert rep["lights_refined"] is not None
+        got[mb] = (rep["light_mae"], rep["intensity_re"], arrays.get("normals"), len(reads))
+    assert got[0][3] >= 3 * 12 and got[64][3] == 12, (got[0][3], got[64][3])
+    assert got[0][:2] == got[64][:2]
+    if command == "normals":
+        np.testing.assert_array_equal(got[0][2], got[64][2])

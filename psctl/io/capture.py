@@ -757,6 +757,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         stamp = memo.stamp(p) if memo is not None and box is not None and got is None else None
         if got is None and decoded is not None and box is not None:
             got = decoded.take(p, box)
+            if got is not None and stamp is not None:
+                stamp = decoded.stamp  # taken before the helper read the file, not after
         if got is not None:
             rgb, info = got  # cut to box in the helper or an earlier pass; the same size checked there
         else:

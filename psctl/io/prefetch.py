@@ -120,6 +120,9 @@ class Prefetch:
         self.credits: socket.socket | None = None
         self.owed = 0  # freed slots not yet told to the child (its socket buffer was full)
         self.started = False  # the child's "ready" line read
+        # the file's (inode, size, mtime ns) as the child found it before decoding the image that
+        # ``take`` last returned (DecodeMemo.stamp's): a memo keeps what the file held then
+        self.stamp: tuple[int, int, int] | None = None
         if self.slots < 1 or min(self.shape[:2]) < 1 or not _usable():
             return
         import psctl
@@ -208,6 +211,7 @@ class Prefetch:
             line = self._line()
             status = json.loads(line) if line else None
             info = ImageInfo(self.paths[k], **status["info"])
+            stamp = tuple(int(v) for v in status["stamp"])
         except (OSError, ValueError, TypeError, KeyError):  # no line, or not one this process wrote
             info = None
         if info is None or status.get("k") != k:
@@ -218,6 +222,7 @@ class Prefetch:
         if hasattr(mmap, "MADV_REMOVE"):
             self.mm.madvise(mmap.MADV_REMOVE, off, self.slot)  # the pages go back now, not at the end
         self.served += 1
+        self.stamp = stamp
         if k + self.slots < len(self.paths):  # an image still to come needs this slot
             self.owed += 1
         if self.owed:
@@ -271,6 +276,7 @@ def _child() -> None:
                     if not credits:
                         break  # the parent has closed its end
                 credits -= 1
+            st = os.stat(name)  # before the read, as DecodeMemo.stamp: a later change is seen
             pixels, info = read_image(name)
             if [info.width, info.height] != spec["size"]:
                 break  # the parent's own read says what is wrong
@@ -279,7 +285,8 @@ def _child() -> None:
                 break
             np.frombuffer(ring, np.float32, rgb.size, (k % slots) * slot).reshape(shape)[...] = rgb
             header = {f.name: getattr(info, f.name) for f in dataclasses.fields(info) if f.name != "path"}
-            os.write(1, json.dumps({"k": k, "info": header}).encode() + b"\n")
+            stamp = [st.st_ino, st.st_size, st.st_mtime_ns]
+            os.write(1, json.dumps({"k": k, "info": header, "stamp": stamp}).encode() + b"\n")
     except BaseException:  # noqa: BLE001 - whatever it was, the parent reads the image itself
         pass
     os._exit(0)
