@@ -223,6 +223,24 @@ def test_ply_round_trip(tmp_path, binary):
     assert bare.normals is None and bare.colors is None
 
 
+def test_an_object_name_outside_ascii_is_escaped_in_the_ply_header(tmp_path):
+    """The PLY header is ASCII; `psctl depth` names the object in a comment. A folder named
+    "café ☃" (tab, newline inside) gave a UnicodeEncodeError traceback."""
+    import psctl
+    from conftest import write_capture
+
+    folder = tmp_path / "caf\u00e9 \u2603"
+    write_capture(folder, n=8, size=24)
+    report = psctl.run_depth(folder)
+    head = open(report["outputs"]["mesh_ply"], "rb").read().split(b"end_header")[0]
+    assert b"comment" in head and b"caf\\xe9 \\u2603" in head
+    assert len(read_ply(report["outputs"]["mesh_ply"]).vertices) > 0
+    write_ply(tmp_path / "m.ply", Mesh(np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32)),
+              comment="a\tb\nsecond line \u00fc")
+    lines = open(tmp_path / "m.ply", "rb").read().split(b"end_header")[0].splitlines()
+    assert [x for x in lines if x.startswith(b"comment")] == [b"comment a\\tb", b"comment second line \\xfc"]
+
+
 def _write(path, mesh, binary):
     write_ply(path, mesh, binary=binary)
     return path

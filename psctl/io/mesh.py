@@ -57,7 +57,9 @@ def write_ply(path: str | os.PathLike, mesh: Mesh, binary: bool = True, comment:
     names = {"<f4": "float", "u1": "uchar"}
     header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
     if comment:
-        header += [f"comment {line}" for line in comment.splitlines()]
+        # a PLY header is ASCII: other characters (an object named "café") and control characters
+        # are written as Python escapes (\xe9), one comment line per line
+        header += [f"comment {line.encode('unicode_escape').decode('ascii')}" for line in comment.splitlines()]
     header += [f"element vertex {len(v)}"]
     header += [f"property {names[t]} {name}" for name, t in fields]
     header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
