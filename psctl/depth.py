@@ -852,14 +852,20 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
             return False
         return written.get(path.name) == [st.st_size, st.st_mtime_ns]
 
+    why = None
     try:
-        written = json.loads((normals.parent / "report.json").read_text()).get("written")
-    except (OSError, ValueError, AttributeError, RecursionError):
-        written = None
+        report = json.loads((normals.parent / "report.json").read_text())
+    except FileNotFoundError:
+        report, why = None, "there is no report.json beside it"
+    except (OSError, ValueError, RecursionError):  # unreadable, not text, not JSON
+        report, why = None, "its report.json cannot be read as JSON"
+    written = report.get("written") if isinstance(report, dict) else None
     if not isinstance(written, dict):
         if notes is not None and any((normals.parent / n).is_file() for n in ALBEDO_FILES):
-            notes.append(f"colours: the albedo beside {normals.name} not used: its report.json does not record the "
-                         f"files as written (a psctl before session 48?); run psctl normals --albedo again")
+            why = why or ("its report.json does not record the files as written (an older psctl wrote it?)"
+                          if isinstance(report, dict) else "its report.json is not a psctl report")
+            notes.append(f"colours: the albedo beside {normals.name} not used: {why}; run psctl normals --albedo "
+                         f"again")
         return None
     if normals.name not in written:
         return None

@@ -579,9 +579,21 @@ def test_depth_with_a_report_without_the_written_record_says_so(tmp_path):
     psctl.run_normals(folder, method="l2", albedo=True)
     report = folder / "psctl" / "report.json"
     r = json.loads(report.read_text())
-    del r["written"]  # as a psctl before session 48 wrote it
+    del r["written"]  # as an older psctl wrote it
     report.write_text(json.dumps(r))
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "mean image" and any("does not record the files as written" in n for n in r["notes"])
     report.write_text('{"written": ' + "[" * 100000 + "]" * 100000 + "}")  # deeper than json can read
     assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
+    # each other report says what is wrong with it, in words a user knows
+    for text, why in (("{not json", "cannot be read as JSON"), (b"\xff\xfe\x00", "cannot be read as JSON"),
+                      ("[1, 2]", "is not a psctl report"), ('{"written": [1]}', "does not record the files"),
+                      (None, "there is no report.json beside it")):
+        if text is None:
+            report.unlink()
+        elif isinstance(text, bytes):
+            report.write_bytes(text)
+        else:
+            report.write_text(text)
+        r = psctl.run_depth(folder, write=False)
+        assert r["colors"] == "mean image" and any(why in n and "session" not in n for n in r["notes"]), (text, r["notes"])
