@@ -306,7 +306,9 @@ def normals(
     path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
     method: MethodOpt = "auto",
     out: OutDir = None,
-    fmt: Annotated[str, typer.Option("--format", "-f", help="Comma list of png16, png8, exr, npy.")] = "png16,exr",
+    fmt: Annotated[list[str] | None, typer.Option("--format", "-f", show_default="png16,exr", metavar="F[,F...]",
+                                                  help="Comma list of png16, png8, exr, npy; may be given more "
+                                                       "than once (-f png16 -f npy).")] = None,
     images: Images = None,
     seed: Seed = None,
     weights: WeightsOpt = None,
@@ -331,7 +333,7 @@ def normals(
 
         from psctl.io.summary import render_normals
 
-        formats = parse_formats(fmt)
+        formats = parse_formats("png16,exr" if not fmt else ",".join(fmt))
         _run(lambda progress: run_normals(path, method=method, out=out, formats=formats, n_images=images, seed=seed,
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
                                           views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,

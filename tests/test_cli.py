@@ -66,6 +66,10 @@ def test_default_output_folder_and_formats(capture):
     assert sorted(os.listdir(capture / "psctl")) == [".psctl-normals", "error.png", "normal.npy", "normal_8bit.png",
                                                      "report.json"]
     assert "ball" not in proc.stdout and "sphere" in proc.stdout
+    # -f given more than once adds up (it kept only the last before)
+    proc = psctl("normals", capture, "-m", "l2", "-f", "png16", "-f", "npy,exr", "-o", capture.parent / "o2", "-q")
+    assert proc.returncode == 0, proc.stderr
+    assert {"normal.png", "normal.npy", "normal.exr"} <= set(os.listdir(capture.parent / "o2"))
 
 
 def test_images_subset(capture, tmp_path):
