@@ -409,6 +409,24 @@ def test_a_stray_image_is_named_in_the_count_error(tmp_path):
         open_capture(tmp_path / "cap")
 
 
+def test_images_left_out_for_their_names_are_named_in_the_count_error(tmp_path):
+    """Images named like psctl's outputs (depth_002.png) or hidden are not read; when the count is
+    then wrong the error says so, and never lists the mask or the ground truth."""
+    write_capture(tmp_path / "cap", n=6, size=16, gt="png")
+    folder = tmp_path / "cap"
+    (folder / "filenames.txt").unlink()
+    for k in (2, 3, 4, 5):
+        (folder / f"{k:03d}.png").rename(folder / f"depth_{k:03d}.png")
+    (folder / "006.png").rename(folder / ".006.png")
+    with pytest.raises(PsctlError) as e:
+        open_capture(folder)
+    msg = str(e.value)
+    assert "6 light rows but 1 image" in msg
+    assert "left out for their names (hidden files, or names psctl gives its outputs): 5, .006.png, depth_002.png, " \
+           "depth_003.png ..." in msg, msg
+    assert "mask.png" not in msg and "Normal_gt" not in msg
+
+
 def test_a_capture_given_as_a_benchmark_root_says_so(tmp_path):
     write_capture(tmp_path / "cap", n=4, size=16)
     with pytest.raises(PsctlError, match="no object folders found .*one capture folder: psctl normals"):

@@ -204,6 +204,14 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
                      for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
     if skipped:
         named += f"; not files, so not read: {', '.join(skipped[:3])}{' ...' if len(skipped) > 3 else ''}"
+    # a capture whose images are named like psctl's outputs or masks (depth_001.png) loses them
+    known = {n.lower() for n in (*MASK_FILES, *AMBIENT_FILES, *GT_FILES)}  # read as what they are
+    unnamed = sorted((p.name for p in entries if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+                      and p.name.lower() not in known and (p.name.startswith(".") or _NOT_IMAGES.match(p.stem))),
+                     key=natural_key)
+    if unnamed:
+        named += (f"; left out for their names (hidden files, or names psctl gives its outputs): {len(unnamed)}, "
+                  f"{', '.join(unnamed[:3])}{' ...' if len(unnamed) > 3 else ''}")
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
 
 
