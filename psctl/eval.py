@@ -165,7 +165,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         # what ran: the objects' own values where they agree (l2 runs one view at full size)
         result = _table(benchmark, root, objects, used, light_distance,
                         used_views.pop() if len(used_views) == 1 else views,
-                        used_k.pop() if len(used_k) == 1 else downsample, " + ".join(dict.fromkeys(precisions)))
+                        used_k.pop() if len(used_k) == 1 else downsample, " + ".join(dict.fromkeys(precisions)),
+                        {n for f, n in zip(folders, names) if f.name == n + "PNG"})
         result["notes"] += root_notes(root)
         if albedo and out is None:
             result["notes"].append("albedo: --albedo writes each object's albedo maps under --out; unused without it")
@@ -205,11 +206,17 @@ def method_label(result: dict) -> str:
 
 
 def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], light_distance: float | None,
-           views: int = 1, downsample: int = 1, precision: str = "float32") -> dict:
-    """The run's JSON object from its objects' rows."""
+           views: int = 1, downsample: int = 1, precision: str = "float32",
+           as_diligent: set[str] | None = None) -> dict:
+    """The run's JSON object from its objects' rows. ``as_diligent``: the objects whose folders
+    are named as DiLiGenT's (ballPNG): only those get the paper's numbers (None: all)."""
     used_method = " + ".join(dict.fromkeys(used))  # one name unless the objects differ
     paper_method = PAPER_STAND_IN.get(used_method, used_method)
     paper = PAPER_DILIGENT.get(paper_method, {}) if benchmark == "diligent" else {}
+    # a folder "cat" of one's own data is not DiLiGenT's catPNG: no published number beside it
+    unlike = [o["name"] for o in objects if as_diligent is not None and o["name"] not in as_diligent
+              and (o["name"] in paper or o["name"] in PAPER_DILIGENT_LIGHTS)] if benchmark == "diligent" else []
+    paper = {k: v for k, v in paper.items() if k not in unlike}
     result = {
         "benchmark": benchmark,
         "root": os.path.abspath(root),
@@ -221,14 +228,19 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "downsample": downsample,
         "precision": precision,
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
-        "paper_method": paper_method if paper else None,  # whose published numbers "paper" holds
+        # whose published numbers "paper" holds
+        "paper_method": paper_method if any(o["name"] in paper for o in objects) else None,
         "notes": [],  # about the run as a whole (each object's are in its row)
     }
+    if unlike:
+        result["notes"].append(f"paper: {', '.join(unlike)} not in folders named as DiLiGenT's ({unlike[0]}PNG): "
+                               f"no published numbers beside {'them' if len(unlike) > 1 else 'it'} (--benchmark folder "
+                               f"for data of your own)")
     if any("light_mae" in o for o in objects):
         for key in ("light_mae", "intensity_re", "lcnet_light_mae", "lcnet_intensity_re"):
             vals = [o.get(key) for o in objects]
             result[f"mean_{key}"] = None if any(v is None for v in vals) else float(np.mean(vals))
-        lights = PAPER_DILIGENT_LIGHTS if benchmark == "diligent" else {}
+        lights = {k: v for k, v in PAPER_DILIGENT_LIGHTS.items() if k not in unlike} if benchmark == "diligent" else {}
         result["paper_lights"] = {o["name"]: lights[o["name"]] for o in objects if o["name"] in lights}
     return result
 

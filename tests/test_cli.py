@@ -687,6 +687,22 @@ def test_eval_out_uses_object_names(tmp_path):
     assert "normal.png" in os.listdir(tmp_path / "out" / "a")
 
 
+def test_eval_shows_published_numbers_only_beside_folders_named_as_diligent(tmp_path):
+    """`psctl eval --root R` defaults to --benchmark diligent; a folder "cat" of one's own data is
+    not DiLiGenT's catPNG and gets no paper number (it got DiLiGenT's cat's before)."""
+    write_capture(tmp_path / "root" / "ballPNG", n=6, seed=0)
+    write_capture(tmp_path / "root" / "cat", n=6, seed=1)
+    proc = psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True)
+    r = json.loads(proc.stdout)
+    assert set(r["paper"]) == {"ball"} and r["paper_method"] == "l2"
+    assert any("paper: cat not in folders named as DiLiGenT's (catPNG)" in n for n in r["notes"]), r["notes"]
+    text = psctl("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    assert "catPNG" in " ".join(text.split())
+    (tmp_path / "root" / "ballPNG").rename(tmp_path / "root" / "ball")
+    r = json.loads(psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
+    assert r["paper"] == {} and r["paper_method"] is None and any("ball, cat not in" in n for n in r["notes"])
+
+
 def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
     from psctl.io.capture import load_ground_truth, load_mask, open_capture
     from psctl.io.report import object_panel
