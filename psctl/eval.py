@@ -180,9 +180,15 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                     f"outputs: {out} also holds {', '.join(earlier[:5])}{' ...' if len(earlier) > 5 else ''} from an "
                     f"earlier run, not in this run's eval.json and eval.png (left as they are)")
         if batch is not None:
+            from psctl.io.atomic import replaced_notes, write_outputs_list
+
             result["outputs"] = {"eval.png": os.path.abspath(Path(out) / "eval.png"),
                                  "eval.json": os.path.abspath(Path(out) / "eval.json")}
+            # a file of the user's replaced, here or in an object's folder: said on the terminal too
+            result["notes"] += [n for o in objects for n in o["notes"] if n.startswith("outputs: replaced ")]
+            result["notes"] += replaced_notes(Path(out), EVAL_FILES, "eval")
             stage = batch.stage(out).path
+            write_outputs_list(stage, EVAL_FILES, "eval")
             title = f"{method_label(result)}  MEAN {result['mean_mae']:.2f}°" + (
                 f"  LIGHTS {result['mean_light_mae']:.2f}°" if result.get("mean_light_mae") is not None else "") + (
                 f"  D {light_distance:g}" if light_distance is not None else "") + f"  ({root.resolve().name})" + (
@@ -190,6 +196,9 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             write_image(stage / "eval.png", benchmark_sheet(panels, title, per_row=sheet_layout(len(folders))[0]), "uint8")
             write_json(stage / "eval.json", result)
     return result
+
+
+EVAL_FILES = ("eval.png", "eval.json")
 
 
 def method_label(result: dict) -> str:

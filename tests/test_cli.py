@@ -683,7 +683,7 @@ def test_eval_out_uses_object_names(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "out",
           "--quiet", check=True)
-    assert sorted(os.listdir(tmp_path / "out")) == ["a", "eval.json", "eval.png"]
+    assert sorted(os.listdir(tmp_path / "out")) == [".psctl-eval", "a", "eval.json", "eval.png"]
     assert "normal.png" in os.listdir(tmp_path / "out" / "a")
 
 
@@ -734,7 +734,7 @@ def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
     (out / "eval.png").write_bytes(b"an earlier run's")  # replaced, not kept
     r2 = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, "--quiet",
                check=True)
-    assert "eval.png" in r2.stdout and sorted(os.listdir(out)) == ["a", "b", "eval.json", "eval.png"]
+    assert "eval.png" in r2.stdout and sorted(os.listdir(out)) == [".psctl-eval", "a", "b", "eval.json", "eval.png"]
     assert np.array_equal(read_image(out / "eval.png")[0], sheet)
 
 
@@ -750,7 +750,24 @@ def test_eval_out_names_an_earlier_runs_objects(tmp_path):
                  check=True)
     assert "also holds b from an earlier run" in " ".join(proc.stdout.split())
     assert json.loads((out / "eval.json").read_text())["notes"][0].startswith("outputs:")
-    assert sorted(os.listdir(out)) == ["a", "b", "eval.json", "eval.png"]  # left as they are
+    assert sorted(os.listdir(out)) == [".psctl-eval", "a", "b", "eval.json", "eval.png"]  # left as they are
+
+
+def test_eval_out_says_on_the_terminal_which_files_of_the_users_it_replaced(tmp_path):
+    """A user's own eval.png in OUT, or normal.png in OUT/<object>, is replaced with a note printed
+    on the terminal (the object's note was only in eval.json); psctl's own from an earlier run
+    are replaced silently."""
+    write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
+    out = tmp_path / "out"
+    (out / "a").mkdir(parents=True)
+    (out / "eval.png").write_text("mine")
+    (out / "a" / "normal.png").write_text("mine too")
+    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
+    text = " ".join(proc.stdout.split())
+    assert f"replaced eval.png in {out}, which no earlier psctl eval run there had listed" in text, text
+    assert f"replaced normal.png in {out / 'a'}" in text
+    again = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
+    assert "replaced" not in again.stdout
 
 
 def test_eval_out_inside_the_root_runs_twice(tmp_path):
