@@ -487,6 +487,28 @@ def test_a_capture_of_turned_photos_reads_upright_with_a_note(tmp_path):
     assert any("8 of 8 images turned upright" in n for n in b["notes"])
 
 
+def test_a_size_error_after_an_exif_turn_gives_both_sizes(tmp_path):
+    """Every file holds 6 x 4 pixels, but the first is tagged Orientation 6 (upright: 4 x 6): the
+    size error says so, not a bare 4x6 that no other program shows for the file."""
+    import OpenImageIO as oiio
+
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    for k, o in enumerate((6, 1, 1)):
+        spec = oiio.ImageSpec(6, 4, 3, "uint8")
+        if o != 1:
+            spec.attribute("Orientation", o)
+        path = str(folder / f"{k + 1:03d}.jpg")
+        out = oiio.ImageOutput.create(path)
+        assert out.open(path, spec) and out.write_image(np.full((4, 6, 3), 0.5, np.float32))
+        out.close()
+    np.savetxt(folder / "light_directions.txt", [[0, 0, 1]] * 3)
+    with pytest.raises(PsctlError) as e:
+        open_capture(folder)
+    assert str(e.value).endswith("002.jpg: size 6x4 differs from 001.jpg (4x6 upright (EXIF orientation 6; 6x4 as "
+                                 "stored))"), str(e.value)
+
+
 def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
     """Mask.PNG and Light_Directions.txt are the mask and the light file; two masks are an error;
     a file that looks meant for psctl but is not read (light_intensity.txt) gets a note."""

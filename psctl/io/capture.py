@@ -517,8 +517,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     first = infos[0]
     for info in infos[1:]:
         if (info.width, info.height) != (first.width, first.height):
-            raise PsctlError(info.path, f"size {info.width}x{info.height} differs from "
-                                        f"{first.path.name} ({first.width}x{first.height})")
+            raise PsctlError(info.path, f"size {size_text(info)} differs from {first.path.name} ({size_text(first)})")
     n = len(image_paths)
     found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
@@ -609,8 +608,16 @@ def _check_mat_header(p: Path, ref: ImageInfo) -> None:
 
 def _check_size(info: ImageInfo, ref: ImageInfo) -> None:
     if (info.width, info.height) != (ref.width, ref.height):
-        raise PsctlError(info.path, f"size {info.width}x{info.height} differs from the images "
-                                    f"({ref.width}x{ref.height})")
+        raise PsctlError(info.path, f"size {size_text(info)} differs from the images ({size_text(ref)})")
+
+
+def size_text(info: ImageInfo) -> str:
+    """"640x480", or for an image an EXIF orientation turns on its side (the file holds 480x640
+    pixels), "640x480 upright (EXIF orientation 6; 480x640 as stored)": a size message that only
+    gave the upright size contradicted every other program's view of the file."""
+    if info.orientation < 5:  # 1: as stored; 2-4: mirrored or a half turn, the same size
+        return f"{info.width}x{info.height}"
+    return f"{info.width}x{info.height} upright (EXIF orientation {info.orientation}; {info.height}x{info.width} as stored)"
 
 
 def as_capture(capture: "Capture | str | os.PathLike") -> Capture:

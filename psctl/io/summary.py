@@ -384,7 +384,7 @@ def render_benchmark(result: dict) -> None:
     n = {o["n_images"] for o in objs}
     secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
-              f"{secs:.1f} s", highlight=False)
+              f"{secs:.{2 if secs < 10 else 1}f} s", highlight=False)
     if result.get("outputs"):  # --out
         spread = ", spread maps" if any("spread" in o for o in objs) else ""
         con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
