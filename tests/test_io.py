@@ -509,6 +509,24 @@ def test_a_size_error_after_an_exif_turn_gives_both_sizes(tmp_path):
                                  "stored))"), str(e.value)
 
 
+def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):
+    """A folder whose images were saved at different depths, or some in grey, runs, with a note
+    (psctl info showed the mix; psctl normals said nothing)."""
+    from psctl.api import run_normals
+
+    write_capture(tmp_path / "cap", n=6, size=16)
+    img, _ = read_image(tmp_path / "cap" / "002.png")
+    write_image(tmp_path / "cap" / "002.png", img, "uint8")
+    write_image(tmp_path / "cap" / "003.png", img[..., :1], "uint16")
+    notes = run_normals(tmp_path / "cap", method="l2", write=False)["notes"]
+    assert "images: of mixed sample types (5 16-bit, 1 8-bit); each is read with its own full scale as 1 " \
+           "(psctl info --check compares their brightness)" in notes, notes
+    assert any(n.startswith("images: of mixed channel counts (5 of 3 channels, 1 of 1 channel)") for n in notes)
+    plain = run_normals(write_capture(tmp_path / "plain", n=6, size=16) and tmp_path / "plain", method="l2",
+                        write=False)["notes"]
+    assert not any("mixed" in n for n in plain)
+
+
 def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
     """Mask.PNG and Light_Directions.txt are the mask and the light file; two masks are an error;
     a file that looks meant for psctl but is not read (light_intensity.txt) gets a note."""

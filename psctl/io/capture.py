@@ -989,6 +989,17 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
                      f"orientation tag, as photo viewers show them (the mask and lights refer to that frame)")
+    # one capture's images come from one camera setting: a mix is worth a look (psctl info)
+    import collections
+
+    kinds = collections.Counter(f"{b}-bit" if t.startswith(("uint", "int")) else t for b, t in capture.kinds)
+    if len(kinds) > 1:
+        notes.append(f"images: of mixed sample types ({', '.join(f'{n} {k}' for k, n in kinds.most_common())}); "
+                     f"each is read with its own full scale as 1 (psctl info --check compares their brightness)")
+    channels = collections.Counter(capture.channel_counts)
+    if len(channels) > 1:
+        notes.append(f"images: of mixed channel counts ({', '.join(f'{n} of {c} channel' + 's' * (c > 1) for c, n in channels.most_common())}"
+                     f"); grey ones (1 channel, or 2: grey and alpha) are read as RGB")
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
