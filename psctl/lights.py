@@ -363,7 +363,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
         check = ImageCheck(capture)  # black images, negative values: notes
         reader = check.reader(raw, mask, pf, memo)
         if read != box:
-            reader = _cut_reader(reader, read)
+            reader = _cut_reader(reader, check.reader(raw, mask, pf, memo, _inner(box, read)), box, read)
         with naming(capture.path):  # all images black, ...
             res = run_lcnet(model, reader, raw.n_images, mask, config, progress, f"{capture.name}: reading + LCNet")
         res.info["prefetched"] = pf.served
@@ -372,16 +372,24 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     return res
 
 
-def _cut_reader(reader: "Reader", outer: tuple[slice, slice]) -> "Reader":
-    """``reader`` asked for ``outer`` (a box holding every box asked for), each image then cut
-    to the box asked for. The checks behind ``reader`` see the same object pixels."""
+def _inner(box: tuple[slice, slice], outer: tuple[slice, slice]) -> tuple[slice, slice]:
+    """``box`` (inside ``outer``) in the coordinates of an array cut to ``outer``."""
+    return tuple(slice(b.start - o.start, b.stop - o.start) for o, b in zip(outer, box))
 
-    def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        if not all(o.start <= b.start and b.stop <= o.stop for o, b in zip(outer, box)):
-            yield from reader(start, box)
+
+def _cut_reader(reader: "Reader", outer_reader: "Reader", box: tuple[slice, slice],
+                outer: tuple[slice, slice]) -> "Reader":
+    """A reader that, asked for ``box``, has ``outer_reader`` read ``outer`` (which holds
+    ``box``; the images a later pass reads) and cuts each image to ``box``; any other box it
+    leaves to ``reader``. ``outer_reader`` runs its checks on ``box``'s part, as ``reader``
+    would on ``box``: the object's pixels for the notes, and the ambient image's check."""
+    cut = _inner(box, outer)
+
+    def read(start: int, asked: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        if asked != box:
+            yield from reader(start, asked)
             return
-        cut = tuple(slice(b.start - o.start, b.stop - o.start) for o, b in zip(outer, box))
-        for img in reader(start, outer):
+        for img in outer_reader(start, outer):
             yield np.ascontiguousarray(img[cut])
 
     return read

@@ -8,6 +8,7 @@ import os
 import numpy as np
 import pytest
 
+from psctl.errors import PsctlError
 from psctl.lights import DEFAULT_REFINE, LightEstimate, refine_estimate, refine_lights, sample_observations
 from psctl.metrics import light_direction_error
 from tests.conftest import hemisphere_lights, sphere, write_capture
@@ -789,3 +790,44 @@ def test_lcnet_and_the_passes_after_it_decode_each_image_once(tmp_path, fake_wei
     assert got[0][:2] == got[64][:2]
     if command == "normals":
         np.testing.assert_array_equal(got[0][2], got[64][2])
+
+
+def test_lcnet_reading_the_second_stages_box_gives_what_reading_its_own_crop_does(tmp_path, fake_weights):  # noqa: F811
+    """capture_lights decoding the larger box of the pass after it (keep_box) and cutting LCNet's
+    crop from it gives the lights of reading the crop itself, and checks the ambient image on the
+    crop as before: an image the ambient image blacks out inside the crop, though lit outside it
+    in the larger box, is the same one-line error."""
+    from psctl.infer import first_read_box
+    from psctl.io.capture import DecodeMemo, load_mask, open_capture
+    from psctl.io.images import read_image, write_image
+    from psctl.lights import DEFAULT_LIGHTS, capture_lights, crop_box
+
+    write_capture(tmp_path / "cap", n=12, size=120, seed=3)
+    yy, xx = np.mgrid[:120, :120]
+    write_image(tmp_path / "cap" / "mask.png", ((yy - 60) ** 2 + (xx - 57) ** 2 < 400).astype(np.float32), "uint8")
+    cap = open_capture(tmp_path / "cap")
+    mask = load_mask(cap)
+    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
+    assert all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))
+    weights, cfg = fake_weights / "lcnet.pt", {"device": "cpu"}
+    own = capture_lights(cap, mask, weights, cfg)
+    memo = DecodeMemo(64 << 20)
+    cut = capture_lights(cap, mask, weights, cfg, memo=memo, keep_box=net)
+    np.testing.assert_array_equal(own.directions, cut.directions)
+    np.testing.assert_array_equal(own.intensities, cut.intensities)
+    assert own.notes == cut.notes and memo.take(cap.image_paths[0], net) is not None
+
+    # image 5: lit in the larger box only where the ambient image leaves it, outside the crop
+    img = read_image(tmp_path / "cap" / "005.png")[0]
+    amb = np.zeros_like(img)
+    amb[lc] = img[lc]
+    img[net[0].start:net[0].start + 3, net[1].start:net[1].start + 3] = 0.3
+    write_image(tmp_path / "cap" / "005.png", img, "uint16")
+    write_image(tmp_path / "cap" / "ambient.png", amb, "uint16")
+    cap = open_capture(tmp_path / "cap")
+    errors = []
+    for kw in ({}, {"memo": DecodeMemo(64 << 20), "keep_box": net}):
+        with pytest.raises(PsctlError) as e:
+            capture_lights(cap, mask, weights, cfg, **kw)
+        errors.append(str(e.value))
+    assert errors[0] == errors[1] and "subtracting it leaves 005.png black" in errors[0]

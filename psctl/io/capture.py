@@ -713,12 +713,15 @@ def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[
     return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
 
 
-def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str, check: bool = True) -> np.ndarray:
+def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str,
+                  check: "bool | tuple[slice, slice]" = True) -> np.ndarray:
     """Image ``name`` (linear) less the ambient image, clipped at 0; one that this turns black
     from lit is a user error naming the ambient file (shared by the reader and info --check),
-    unless not ``check`` (a part of the image, which may lie in shadow)."""
+    unless not ``check`` (a part of the image, which may lie in shadow); ``check`` a pair of
+    slices: judged on that part of ``rgb`` only."""
     out = np.maximum(rgb - ambient, 0.0)
-    if check and rgb.any() and not out.any():
+    seen, left = (rgb, out) if isinstance(check, bool) else (rgb[check], out[check])
+    if check is not False and seen.any() and not left.any():
         raise PsctlError(capture.ambient_path, f"subtracting it leaves {name} black: is it brighter than the "
                                                f"images (taken with a light on)?")
     return out
@@ -741,7 +744,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None,
                 decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None,
-                ambient_check: bool = True) -> Iterator[np.ndarray]:
+                ambient_check: "bool | tuple[slice, slice]" = True) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
@@ -751,7 +754,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     ``memo`` (``DecodeMemo``): images an earlier pass decoded, taken before ``decoded``'s, and
     this pass's decoded images kept in it. ``ambient_check``: an image that subtracting the
     ambient image turns black inside ``box`` is an error (False: a later pass over parts of
-    images the first pass checked whole)."""
+    images the first pass checked whole; a pair of slices: inside that part of ``box``, the
+    part a caller uses of a larger box read for a later pass)."""
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
@@ -913,16 +917,17 @@ class ImageCheck:
             self.negative.add(k)
 
     def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None,
-               memo: DecodeMemo | None = None) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
+               memo: DecodeMemo | None = None, ambient_check: "bool | tuple[slice, slice]" = True
+               ) -> Callable[[int, tuple[slice, slice]], Iterator[np.ndarray]]:
         """The network runners' reader: ``capture``'s images from ``start`` on, cut to ``box``,
         each seen by this check over ``mask`` (``capture`` may be this check's with other
         intensities: the image indices, and so the names in the notes, are the same).
-        ``decoded``, ``memo``: as ``iter_images``."""
+        ``decoded``, ``memo``, ``ambient_check``: as ``iter_images``."""
 
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
                                                 clipped=self.clipped_reader(mask, box, start), decoded=decoded,
-                                                memo=memo),
+                                                memo=memo, ambient_check=ambient_check),
                                     start):
                 self.see(k, img[mask[box]])
                 yield img
