@@ -29,13 +29,14 @@ _LAZY = {
     "load_mask": "psctl.io.capture",
     "angular_error": "psctl.metrics",
     "PsctlError": "psctl.errors",
+    "PsctlWarning": "psctl.errors",
 }
 
 if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ imports on first use
     from psctl.albedo import estimate_albedo
     from psctl.api import estimate_lights, estimate_normals, run_normals
     from psctl.depth import integrate_normals, run_depth
-    from psctl.errors import PsctlError
+    from psctl.errors import PsctlError, PsctlWarning
     from psctl.eval import run_benchmark
     from psctl.io.capture import load_images, load_mask, open_capture
     from psctl.lights import run_lights
@@ -76,7 +77,7 @@ def __getattr__(name: str) -> Any:
         import importlib
 
         value = getattr(importlib.import_module(_LAZY[name]), name)
-        if name != "PsctlError":
+        if name not in ("PsctlError", "PsctlWarning"):
             value = _for_python(value)
         globals()[name] = value  # imported once
         return value
@@ -88,4 +89,5 @@ def __dir__() -> list[str]:
 
 
 __all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
-           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError"]
+           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError",
+           "PsctlWarning"]

@@ -12,22 +12,16 @@ import os
 import time
 import sys
 import warnings
-from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, PsctlWarning, check_bool, check_formats, check_path, check_progress
-from psctl.io.atomic import outputs_list, read_outputs_list, replaced_notes, write_outputs_list
+# ProgressFactory: progress(description, total) -> advance(n), how library code reports progress
+# without depending on a UI (the CLI passes a Rich one; None is silent); defined in psctl.errors
+from psctl.errors import (ProgressFactory, PsctlError, PsctlWarning, check_bool, check_formats,  # noqa: F401
+                          check_path, check_progress)
+from psctl.io.atomic import OutputBatch, outputs_list, read_outputs_list, replaced_notes, write_outputs_list
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
-
-if TYPE_CHECKING:
-    from psctl.io.atomic import OutputBatch
-
-# progress(description, total) -> advance(n): how library code reports progress without
-# depending on a UI. The CLI passes a Rich implementation; None means silent.
-ProgressFactory = Callable[[str, int], Callable[[int], None]]
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
@@ -331,7 +325,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
     n_images, height, width, views, downsample, precision, light_distance, seconds, outputs, mae, median, within,
-    n_mask_pixels, n_evaluated_pixels, n_dark and notes (docs/formats.md has each key).
+    n_mask_pixels, n_evaluated_pixels, n_dark, albedo ({png_scale, median, n_undetermined} with
+    ``albedo``, else None), written ({file: [bytes, mtime ns]} of the files written) and notes
+    (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
     ``PATH/psctl``. With the ensemble also ``spread.png``, the angle between its members'

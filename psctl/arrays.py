@@ -18,8 +18,14 @@ from psctl.errors import PsctlError, _short
 
 def plain(x: object) -> object:
     """A torch tensor as a plain CPU tensor (one that requires grad, or lives on a GPU, cannot
-    become a numpy array as it is); anything else as it is."""
-    return x.detach().cpu() if hasattr(x, "detach") and hasattr(x, "cpu") else x
+    become a numpy array as it is; bfloat16 and float8, which numpy has no type for, as
+    float32); anything else as it is."""
+    if not (hasattr(x, "detach") and hasattr(x, "cpu")):
+        return x
+    x = x.detach().cpu()
+    if str(getattr(x, "dtype", "")).startswith(("torch.bfloat16", "torch.float8")):
+        x = x.float()  # exact: float32 holds every such value
+    return x
 
 
 def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:

@@ -10,7 +10,7 @@ import contextlib
 import math
 import numbers
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 
@@ -26,6 +26,11 @@ class PsctlError(ValueError):
         self.path = None if path is None else os.fspath(path)
         self.message = message
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+    def __reduce__(self):
+        # pickled and copied by (path, message), not by the formatted line: a worker process of
+        # a ProcessPoolExecutor hands it back whole (else its pool breaks on the first bad folder)
+        return type(self), (self.path, self.message)
 
 
 class PsctlWarning(UserWarning):
@@ -142,6 +147,11 @@ def check_formats(value: Any) -> str:
     raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {_short(value)}")
 
 
+# progress(description, total) -> advance(n) (psctl.api.ProgressFactory): defined here, where the
+# modules that take one can import it at run time (typing.get_type_hints resolves it)
+ProgressFactory = Callable[[str, int], Callable[[int], None]]
+
+
 def check_progress(progress: Any) -> Any:
     """A progress factory ``(label, total) -> advance(k)``, or a no-op one for None; anything
     else (a number, True) is a one-line error, not "'int' object is not callable" mid-run."""
@@ -163,13 +173,14 @@ PYTHON_ARGS = {
     "--format": "formats", "--out": "out", "--light-distance": "light_distance", "--falloff": "falloff",
     "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
     "--benchmark": "benchmark", "--decode": "decode", "--K": "K", "--downsample": "downsample",
+    "--precision": "precision",
 }
 _SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
              "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",
-             "`psctl eval`": "psctl.run_benchmark"}
+             "`psctl eval`": "psctl.run_benchmark", "--albedo": "albedo=True"}
 # values an option may have in a message: quoted in the Python wording (method='sdps')
 _WORDS = ("auto|l2|ps-fcn-dagger|ps-fcn-n|ps-fcn|ensemble|ups-fcn|sdps|lcnet|cpu|cuda(?::\\d+)?|diligent|folder|"
-          "linear|srgb|shifted|lambertian|soft|argmax|poisson|bilateral")
+          "linear|srgb|shifted|lambertian|soft|argmax|poisson|bilateral|float32|bf16|fp16")
 
 
 def python_wording(text: str) -> str:

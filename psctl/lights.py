@@ -49,13 +49,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool, check_path, check_progress, naming
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 
 if TYPE_CHECKING:
     import torch
 
-    from psctl.api import ProgressFactory
     from psctl.infer import Reader  # reader(start, box) yields images start.. as float32 [h, w, 3] cropped to box
     from psctl.io.capture import Capture, DecodeMemo
     from psctl.models.lcnet import LCNet

@@ -12,8 +12,9 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
 
     Returns a float array of the pixels selected by ``mask`` (the maps' shape without the last
     axis, [H, W] for normal maps; bool, or numbers as ``psctl.arrays.as_mask`` reads them; all
-    pixels when None). Inputs need not be exactly unit
-    length; both are normalised. Other shapes or dtypes are a ``PsctlError``.
+    pixels when None); for two [3] vectors a 0-d array. Inputs need not be exactly unit
+    length; both are normalised. Other shapes or dtypes (unsigned integers: an encoded map's
+    pixels) are a ``PsctlError``.
     """
     from psctl.arrays import as_mask, plain
     from psctl.errors import PsctlError
@@ -21,8 +22,10 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     arrays = []
     for name, a in (("normals", normals), ("gt", gt)):
         a = np.asarray(plain(a))
-        if a.dtype.kind not in "iuf":  # text, objects, complex: nothing to measure
-            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}")
+        if a.dtype.kind not in "if":  # text, objects, complex: nothing to measure
+            # unsigned: an encoded normal map's pixels ((n + 1) / 2), which would measure as vectors
+            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}" + (
+                " (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)" if a.dtype.kind in "ub" else ""))
         arrays.append(a)
     normals, gt = arrays
     if normals.shape != gt.shape or normals.ndim < 1 or normals.shape[-1] != 3:
@@ -47,7 +50,7 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     with np.errstate(invalid="ignore"):
         a, b = unit(normals), unit(gt)
     cos = np.clip((a * b).sum(-1), -1.0, 1.0)
-    deg = np.degrees(np.arccos(cos))
+    deg = np.asarray(np.degrees(np.arccos(cos)))  # an array also for one pair of [3] vectors
     deg[~(np.isfinite(normals).all(-1) & np.isfinite(gt).all(-1))] = np.nan  # NaN in, NaN out
     return deg
 

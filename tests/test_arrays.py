@@ -383,3 +383,60 @@ def test_more_wrong_inputs_are_one_error(data, tmp_path):
         read_intrinsics(np.eye(3))
     with pytest.raises(PsctlError, match="progress must be None or a callable"):
         run_normals(tmp_path, method="l2", progress=5)
+
+
+def test_a_psctl_error_survives_pickling_and_copying():
+    """A ProcessPoolExecutor hands a worker's exception back pickled: PsctlError(path, message)
+    failed to unpickle (its args held only the formatted line) and broke the whole pool."""
+    import copy
+    import pickle
+
+    for e in (PsctlError("/data/cat", "folder does not exist"), PsctlError(None, "no file involved")):
+        for back in (pickle.loads(pickle.dumps(e)), copy.copy(e), copy.deepcopy(e)):
+            assert type(back) is PsctlError and str(back) == str(e)
+            assert (back.path, back.message) == (e.path, e.message)
+
+
+def test_angular_error_of_two_vectors_and_of_encoded_pixels():
+    import psctl
+
+    got = psctl.angular_error(np.array([0, 0, 1.0]), np.array([0, 1, 1.0]))
+    assert got.shape == () and float(got) == pytest.approx(45.0)
+    assert np.isnan(psctl.angular_error([0, 0, np.nan], [0, 0, 1]))
+    assert float(psctl.angular_error([0, 0, 1], [0, 0, 1])) == 0.0  # integer vectors are vectors
+    pixels = np.full((2, 2, 3), 128, np.uint8)  # a normal map's PNG pixels, (n + 1) / 2
+    with pytest.raises(PsctlError, match="dtype uint8 .*decode_normal_pixels"):
+        psctl.angular_error(pixels, pixels)
+
+
+def test_bfloat16_tensors_are_taken_as_float32(data):
+    torch = pytest.importorskip("torch")
+    import psctl
+
+    images, lights, mask, normals = data
+    half = torch.from_numpy(np.ascontiguousarray(images)).to(torch.bfloat16)
+    got = psctl.estimate_normals(half, torch.from_numpy(lights).to(torch.bfloat16), mask, method="l2")
+    want = psctl.estimate_normals(half.float().numpy(), torch.from_numpy(lights).to(torch.bfloat16).float().numpy(),
+                                  mask, method="l2")
+    np.testing.assert_array_equal(got, want)
+
+
+def test_public_functions_have_resolvable_type_hints_and_python_wording():
+    import inspect
+    import typing
+    import warnings
+
+    import psctl
+    from psctl.errors import python_wording
+
+    for name in psctl.__all__:
+        obj = getattr(psctl, name)
+        if inspect.isfunction(obj):
+            typing.get_type_hints(obj)  # a name imported only for type checkers raised NameError
+    assert issubclass(psctl.PsctlWarning, UserWarning)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", psctl.PsctlWarning)  # filterable by the exported class
+        with pytest.raises(psctl.PsctlWarning):
+            warnings.warn("x", psctl.PsctlWarning)
+    assert python_wording("use --precision float32 or bf16") == "use precision='float32' or bf16"
+    assert python_wording("--albedo: ups-fcn estimates no lights") == "albedo=True: ups-fcn estimates no lights"
