@@ -1009,7 +1009,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                progress: "ProgressFactory | None" = None, views: int = DEFAULT_LIGHTS["views"],
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
                falloff: str | None = None, roll: bool | None = None, encoding: str = "auto",
-               light_distance: float | None = None, precision: str = "float32") -> dict:
+               light_distance: float | None = None, precision: str = "float32",
+               arrays: dict | None = None) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
@@ -1030,6 +1031,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     lights_refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re
     (LCNet's own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
     lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
+    ``arrays`` (a dict) receives what the light files hold: "directions" [N, 3] unit vectors (x
+    right, y up, z toward the camera) and "intensities" [N, 3], one row per image (with
+    ``n_images``, the chosen ones).
     """
     from psctl.io.atomic import check_output_dir, output_folder, staged_outputs
     from psctl.io.capture import (check_not_capture, capture_notes, load_mask, open_capture, select_images,
@@ -1038,6 +1042,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     t0 = time.perf_counter()
     for name, value in (("path", path), ("out", out), ("weights", weights), ("normals_weights", normals_weights)):
         check_path(name, value, optional=name != "path")
+    if arrays is not None and not isinstance(arrays, dict):
+        raise PsctlError(None, f"arrays must be a dict (it receives the light directions and intensities), not a "
+                               f"{type(arrays).__name__}")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
     progress = check_progress(progress)
@@ -1109,6 +1116,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if not refine:
         precision = "float32"  # LCNet's, the only network that ran
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
+    if arrays is not None:
+        ints = np.array(est.intensities, np.float32).reshape(len(est.directions), -1)
+        arrays.update(directions=np.array(est.directions, np.float32),
+                      intensities=np.repeat(ints, 3, 1) if ints.shape[1] == 1 else ints)  # as the file: R G B
     report = {
         "object": cap.name,
         "path": os.path.abspath(cap.path),

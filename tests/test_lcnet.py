@@ -798,9 +798,16 @@ def test_lights_subset_lists_its_images(tmp_path, fake_weights):
     write_capture(tmp_path / "cap", n=10, size=40)
     names = (tmp_path / "cap" / "filenames.txt").read_text().split()
     out = tmp_path / "out"
+    arrays = {}
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", n_images=3,
-                   refine=False, views=1)
+                   refine=False, views=1, arrays=arrays)
     assert r["n_images"] == 3 and np.loadtxt(out / "light_directions.txt").shape == (3, 3)
+    # arrays: what the files hold, for a Python caller (run_lights with write=False returned nothing)
+    assert arrays["directions"].shape == arrays["intensities"].shape == (3, 3)
+    np.testing.assert_allclose(arrays["directions"], np.loadtxt(out / "light_directions.txt"), atol=1e-6)
+    np.testing.assert_allclose(arrays["intensities"], np.loadtxt(out / "light_intensities.txt"), rtol=1e-5)
+    with pytest.raises(PsctlError, match="arrays must be a dict"):
+        run_lights(tmp_path / "cap", write=False, weights=fake_weights / "lcnet.pt", arrays=[])
     assert (out / "light_images.txt").read_text().split() == [names[i] for i in select_images(10, 3, 0)]
     assert r["outputs"]["light_images"] == str(out / "light_images.txt")
     assert any("seed 0" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
