@@ -257,6 +257,19 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
+    # options the method does not use: run_normals notes them; here, a warning, not silence
+    unused = [f"{k}={v!r}" for k, v, off in (("views", views, views > 1 and method == "l2"),
+                                              ("downsample", downsample, downsample > 1 and method == "l2"),
+                                              ("precision", precision, precision != "float32" and method == "l2"),
+                                              ("refine", refine, not refine and method != "sdps"),
+                                              ("falloff", falloff, falloff is not None and method != "sdps"),
+                                              ("roll", roll, roll is not None and method != "sdps")) if off]
+    if unused:
+        why = [w for w, on in (("l2 solves each pixel alone, at full size, in float64",
+                                any(u.split("=")[0] in ("views", "downsample", "precision") for u in unused)),
+                               ("only sdps refines lights",
+                                any(u.split("=")[0] in ("refine", "falloff", "roll") for u in unused))) if on]
+        warnings.warn(f"{method}: {', '.join(unused)} unused ({'; '.join(why)})", PsctlWarning, stacklevel=level)
     if method == "sdps":
         from psctl.lights import array_lights
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage

@@ -440,3 +440,21 @@ def test_public_functions_have_resolvable_type_hints_and_python_wording():
             warnings.warn("x", psctl.PsctlWarning)
     assert python_wording("use --precision float32 or bf16") == "use precision='float32' or bf16"
     assert python_wording("--albedo: ups-fcn estimates no lights") == "albedo=True: ups-fcn estimates no lights"
+
+
+def test_options_a_method_does_not_use_are_a_warning(data):
+    """estimate_normals took views, precision, refine, ... that the method ignores without a word
+    (run_normals notes them)."""
+    import warnings
+
+    import psctl
+
+    images, lights, mask, _ = data
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        psctl.estimate_normals(images, lights, mask, method="l2", views=8, precision="bf16", refine=False)
+        psctl.estimate_normals(images, lights, mask, method="l2")
+    assert [str(w.message) for w in got] == [
+        "l2: views=8, precision='bf16', refine=False unused (l2 solves each pixel alone, at full size, in float64; "
+        "only sdps refines lights)"]
+    assert got[0].category is psctl.PsctlWarning and got[0].filename == __file__
