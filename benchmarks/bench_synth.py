@@ -189,7 +189,7 @@ def main() -> None:
     if args.json:
         print(json.dumps({"machine": machine, "results": results}, indent=2))
         return
-    print(f"{machine['date']}  {machine['device']}  cpus={machine['cpus']}  torch threads={machine['torch_threads']}  "
+    print(f"{machine['date']}  {machine['device']}  cpus={machine['cores']}  torch threads={machine['threads']}  "
           f"torch {machine['torch']}  load {machine['loadavg_before'][0]:.1f} -> {machine['loadavg_after'][0]:.1f}")
     for r in results:
         if r["what"] == "stream":
