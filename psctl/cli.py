@@ -536,8 +536,12 @@ def train(
         cfg = load_config(config) if config is not None or resume is None else None
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
         con = _stderr()
+        from rich.markup import escape
+
         kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
-                      max_seconds=None if max_minutes is None else 60 * max_minutes)
+                      max_seconds=None if max_minutes is None else 60 * max_minutes,
+                      note=None if quiet or sys.stderr is None else
+                      lambda n: con.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True))
         if quiet or sys.stderr is None:  # no stderr (`2>&-`, a daemon): as quiet
             st = run_training(method, cfg, run_dir, **kwargs)
         elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s

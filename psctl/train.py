@@ -513,7 +513,12 @@ def _check_state(path: Path, saved: dict) -> None:
              "best_samples": lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool)),
              "val": lambda v: isinstance(v, list),
              "optim_files": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
-             "config": lambda v: isinstance(v, dict)}
+             "config": lambda v: isinstance(v, dict),
+             "log_bytes": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+             "loss_avg": lambda v: v is None or number(v),
+             "data_notes": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
+             "data_sources": lambda v: isinstance(v, list),
+             "lcnet_sha256": lambda v: isinstance(v, str)}
     for key, ok in kinds.items():
         if key in saved and not ok(saved[key]):
             raise PsctlError(path, f"holds a bad {key!r} ({json.dumps(saved[key])[:40]}): the run state is damaged")
@@ -615,10 +620,20 @@ def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.dev
         raise no_weights_error("lcnet", "--lcnet")
     model, _, w = load_network("lcnet", path, device=device)
     model.requires_grad_(False)
-    info = {"path": str(w.path), "official": w.official, "date": w.metadata.get("date"),
+    info = {"path": str(w.path), "sha256": _sha256(w.path), "official": w.official, "date": w.metadata.get("date"),
             "samples_seen": w.metadata.get("samples_seen"), "metrics": w.metadata.get("metrics"),
             "decode": config["lcnet"]["decode"]}
     return model.eval(), info
+
+
+def _sha256(path: str | os.PathLike) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def crop_windows(x: torch.Tensor, windows: torch.Tensor, side: int) -> torch.Tensor:
@@ -794,7 +809,8 @@ STOP = "psctl.train.STOP"
 
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], object] | None = None,
-          make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None) -> dict:
+          make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None,
+          note: Callable[[str], object] | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
     Args:
@@ -811,7 +827,11 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         make_stream: the stream factory (default ``synth_stream``): returns an object with
             ``next_batch()``, and ``state_dict()`` / ``load_state_dict()`` for exact resumption.
         lcnet: ps-fcn-dagger only: the frozen LCNet's weights file (default: the recipe's
-            ``lcnet.weights``, else weights/lcnet.pt; a resumed run keeps the file it started with).
+            ``lcnet.weights``, else weights/lcnet.pt; a resumed run keeps the file it started with,
+            and refuses it if its contents changed).
+        note: called with each note on the data at the start (the stream had no training
+            meshes: procedural shapes only); the notes are also in state.json and the weights'
+            metadata (``data_notes``).
     """
     from psctl.infer import pick_device
     from psctl.models.weights import save_weights
@@ -902,6 +922,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     model = task.model
     if "lcnet" in task.metadata:
         st["lcnet"] = _portable(task.metadata["lcnet"]["path"])
+        digest = task.metadata["lcnet"]["sha256"]
+        if saved is not None and saved.get("lcnet_sha256") not in (None, digest):
+            # the documented flow replaces weights/lcnet.pt (train lcnet --install --force)
+            raise PsctlError(task.metadata["lcnet"]["path"], "is not the frozen LCNet this run started with (its "
+                                                              "contents changed since); put that file back to resume")
+        st["lcnet_sha256"] = digest
     if t["init"] and not resume:  # fine-tuning: start from another run's weights (recorded)
         st["init"] = init_from(model, t["init"])
     if st.get("init"):
@@ -921,6 +947,17 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             first = " ".join(str(e).split())[:160]
             raise PsctlError(run / "model.pt", f"does not hold this {method} run's network ({first})") from None
         load_optimizer(run, optim, st["optim_files"], dev)
+        # files of one checkpoint, not one from another point of the run (a folder put together
+        # from parts, as the GPU workflow moves it): each says how far it got
+        seen = w.metadata.get("samples_seen")
+        if seen is not None and seen != st["samples"]:
+            raise PsctlError(run / "model.pt", f"was saved at {seen:,} samples, state.json at {st['samples']:,}: "
+                                               f"not this checkpoint's; the run cannot continue exactly")
+        steps = {int(v["step"]) for v in optim.state.values() if "step" in v}
+        if steps and steps != {st["step"]}:
+            raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json at "
+                                                         f"step {st['step']:,}: not this checkpoint's; the run cannot "
+                                                         f"continue exactly")
         if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
             best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
             if best.method != method:
@@ -932,10 +969,29 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         if not (run / "stream.pt").is_file():
             raise PsctlError(run / "stream.pt", "is missing: the run cannot continue its data stream exactly")
         state = _load_part(run / "stream.pt")
+        if isinstance(state, dict) and set(state) == {"samples", "stream"}:  # since session 49: with its count
+            if state["samples"] != st["samples"]:
+                raise PsctlError(run / "stream.pt", f"was saved at {state['samples']:,} samples, state.json at "
+                                                    f"{st['samples']:,}: not this checkpoint's; the run cannot "
+                                                    f"continue exactly")
+            state = state["stream"]
         try:
             stream.load_state_dict(state)
         except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
             raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
+    # what the stream had to leave out (no training meshes: procedural shapes only), said and
+    # recorded; a resume must see the same data as the run's start
+    data_notes = list(dict.fromkeys(getattr(stream, "notes", None) or []))
+    # the geometry sources and their weights (where the meshes are may differ between machines)
+    sources = [list(x) for x in getattr(getattr(stream, "pool", None), "sources", [])]
+    if saved is not None and "data_sources" in saved and saved["data_sources"] != sources:
+        was = "; ".join(saved.get("data_notes") or []) or "every source"
+        raise PsctlError(state_file, f"the run's data differ from its start (then: {was}; now: "
+                                     f"{'; '.join(data_notes) or 'every source'}): it cannot continue exactly")
+    st["data_notes"], st["data_sources"] = data_notes, sources
+    if note is not None:
+        for n in data_notes:
+            note(f"data: {n}")
     val = validation_set(config, task, dev, make_stream)
     # where fine-tuning starts from, measured before the folder exists (Ctrl-C here leaves none)
     init_mae = evaluate(task, val) if st.get("init") and st["samples"] == 0 and not st["val"] else None
@@ -948,7 +1004,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 "samples_seen": st["samples"], "wall_seconds": round(st["seconds"], 1),
                 "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"cpu: {cpu_name()} ({os.cpu_count()} cores)",
                 "precision": f"{str(amp_dtype).removeprefix('torch.')} autocast" if use_amp else "float32",
-                "metrics": metrics}
+                "metrics": metrics, **({"data_notes": data_notes} if data_notes else {})}
 
     def checkpoint() -> None:
         from psctl.io.atomic import atomic_path
@@ -956,17 +1012,26 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
-                save_torch(stream.state_dict(), tmp)
-        save_weights(run / "model.pt", model, metadata({metric: st["best_val"]}))
+                save_torch({"samples": st["samples"], "stream": stream.state_dict()}, tmp)
+        # model.pt's own validation (at this very sample count), not the run's best so far
+        own = st["val"][-1][1] if st["val"] and st["val"][-1][0] == st["samples"] else None
+        save_weights(run / "model.pt", model, metadata({metric: own}))
         from psctl.io.atomic import write_text_atomic
 
+        log.flush()
+        st["log_bytes"] = os.fstat(log.fileno()).st_size  # a resume after a hard kill drops what was logged after this
+        st["loss_avg"] = loss_avg
         write_text_atomic(state_file, json.dumps(st, indent=1))
 
     t_call = time.perf_counter()
     t_start = t_ckpt = t_call
     t_log, samples_log = t_call, st["samples"]
     next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
-    loss_avg = None
+    # the logged loss: an exponential moving average (0.9) of the steps' losses, kept across a resume
+    loss_avg = st.get("loss_avg")
+    if resume and st.get("log_bytes") is not None and (run / "log.jsonl").is_file() \
+            and (run / "log.jsonl").stat().st_size > st["log_bytes"]:
+        os.truncate(run / "log.jsonl", st["log_bytes"])  # lines of steps after the checkpoint (a hard kill)
     # the folder is made only now: a bad recipe (crop > size, ...) leaves none behind
     with _no_half_run(run) as log, _Stop() as stop:
         if init_mae is not None:

@@ -907,3 +907,90 @@ def test_training_needs_no_image_io(tmp_path):
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.split("\n")[-2] == "['dagger', 'lcnet', 'ps-fcn', 'ps-fcn-n']"
+
+
+@pytest.mark.parametrize("part", ["stream.pt", "optim.0.pt", "model.pt"])
+def test_a_checkpoint_file_from_another_point_of_the_run_is_refused(tmp_path, part):
+    """A run folder put together from parts (as the GPU workflow moves it) with one file from
+    another checkpoint resumed without a word, inexactly; each file now says how far it got."""
+    import shutil
+
+    cfg = tiny(48)
+    train("ps-fcn", merge(cfg, {"train": {"samples": 16}}), tmp_path / "early", device="cpu")
+    train("ps-fcn", merge(cfg, {"train": {"samples": 32}}), tmp_path / "late", device="cpu")
+    shutil.copy(tmp_path / "early" / part, tmp_path / "late" / part)
+    with pytest.raises(PsctlError, match=f"{part}: .*(saved at|optimiser at step).*not this checkpoint's"):
+        train("ps-fcn", cfg, tmp_path / "late", resume=True, device="cpu")
+
+
+def test_log_and_loss_average_continue_across_a_resume_and_model_pt_holds_its_own_metric(tmp_path):
+    """After a hard kill the log held the killed process's lines past the checkpoint, and a resume
+    wrote them again; the logged loss (an average) restarted; model.pt's metric was the run's best."""
+    cfg = merge(tiny(48), {"train": {"val_every": 16}})
+    a = train("ps-fcn", cfg, tmp_path / "a", device="cpu")
+    from psctl.train import STOP
+
+    calls = []  # stopped at its first logged step, with a checkpoint (as on a signal)
+    train("ps-fcn", cfg, tmp_path / "b", device="cpu", progress=lambda rec: calls.append(rec) or STOP)
+    assert len(calls) == 1
+    log = tmp_path / "b" / "log.jsonl"
+    with open(log, "a") as f:  # what a process killed after its checkpoint had logged
+        f.write('{"step": 99, "samples": 400, "loss": 1.0}\n')
+    b = train("ps-fcn", cfg, tmp_path / "b", resume=True, device="cpu")
+    assert a["samples"] == b["samples"] == 48
+    def lines(path):  # what does not depend on the clock
+        return [{k: v for k, v in json.loads(x).items() if k not in ("samples_per_s", "seconds")}
+                for x in path.read_text().splitlines()]
+
+    assert lines(log) == lines(tmp_path / "a" / "log.jsonl")  # no line twice, the same average losses
+    c = train("ps-fcn", merge(tiny(32), {"train": {"val_every": 8}}), tmp_path / "c", device="cpu")
+    vals = dict(map(tuple, c["val"]))
+    assert vals[32] > min(vals.values())  # its last validation is not its best
+    assert read_weights(tmp_path / "c" / "model.pt").metadata["metrics"]["synthetic_val_mae"] == vals[32]
+    assert read_weights(tmp_path / "c" / "best.pt").metadata["metrics"]["synthetic_val_mae"] == min(vals.values())
+
+
+def test_a_run_without_training_meshes_says_so_and_keeps_to_its_data(tmp_path, monkeypatch):
+    """No lucy.obj: the stream drew procedural shapes only and nobody was told (docs/synthetic.md
+    says it says so); a resume that would now draw meshes too is refused."""
+    cfg = merge(tiny(16), {"data": {"shapes": {"blobby": 1.0, "mesh": 0.5}}})
+    monkeypatch.setenv("PSCTL_MESHES", str(tmp_path / "none"))
+    (tmp_path / "none").mkdir()
+    said = []
+    st = train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu", note=said.append)
+    assert len(said) == 1 and said[0].startswith("data: no training meshes under") and "procedural shapes only" in said[0]
+    assert st["data_sources"] == [["blobby", 1.0]]
+    assert read_weights(tmp_path / "run" / "model.pt").metadata["data_notes"] == [said[0].removeprefix("data: ")]
+    elsewhere = tmp_path / "other-none"  # another machine's folder, also without meshes: the same data
+    elsewhere.mkdir()
+    monkeypatch.setenv("PSCTL_MESHES", str(elsewhere))
+    assert train("ps-fcn", merge(cfg, {"train": {"samples": 12}}), tmp_path / "run", resume=True, device="cpu")["samples"] == 12
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    from tests.test_synth import uv_sphere, write_obj
+
+    write_obj(meshes / "lucy.obj", *uv_sphere(8, 16))
+    monkeypatch.setenv("PSCTL_MESHES", str(meshes))
+    with pytest.raises(PsctlError, match="the run's data differ from its start"):
+        train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")
+
+
+def test_a_ps_fcn_dagger_run_refuses_a_frozen_lcnet_whose_file_changed(tmp_path):
+    """state.json kept only the LCNet's path; `psctl train lcnet --install --force` replaces the
+    file at that path, and a resume then trained on another LCNet's lights without a word."""
+    from psctl.models.lcnet import LCNet
+    from psctl.models.weights import save_weights
+
+    torch.manual_seed(0)
+    lc = tmp_path / "lc.pt"
+    save_weights(lc, LCNet({"size": 32}), {"method": "lcnet", "train_images": 8})
+    cfg = tiny(16)
+    cfg = merge(cfg, {"data": {**cfg["data"], "size": 32, "windows": 16}})
+    train("ps-fcn-dagger", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu", lcnet=lc)
+    same = lc.read_bytes()
+    torch.manual_seed(1)
+    save_weights(lc, LCNet({"size": 32}), {"method": "lcnet", "train_images": 8})
+    with pytest.raises(PsctlError, match="lc.pt: is not the frozen LCNet this run started with"):
+        train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")
+    lc.write_bytes(same)
+    assert train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
