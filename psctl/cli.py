@@ -526,7 +526,8 @@ def train(
             if not quiet:
                 metrics = read_weights(path).metadata["metrics"]
                 said = "".join(f"; synthetic validation {v:.4f}" for v in metrics.values())
-                _stderr().print(f"averaged {len(average)} files: weights {path}{said}", highlight=False, markup=False)
+                _stderr().print(f"averaged {len(average)} files: weights {path}{said}", highlight=False, markup=False,
+                                soft_wrap=True)
             if install:
                 _stderr().print(f"installed {install_weights(out, method, replace=force)}", highlight=False, markup=False)
             return
@@ -548,6 +549,8 @@ def train(
             import time
 
             last = [0.0]
+            con.print(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl has "
+                      f"every one)", highlight=False, soft_wrap=True, markup=False)
 
             from psctl.train import STOP
 
@@ -577,8 +580,13 @@ def train(
                                info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
 
                 st = run_training(method, cfg, run_dir, progress=report, **kwargs)
-        state = "finished" if st["finished"] else f"stopped (continue with --resume {run_dir})"
-        said = (f"best synthetic validation MAE {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"
+        import signal as signals
+
+        why = ("--max-minutes" if not st.get("signal") else
+               {int(signals.SIGINT): "Ctrl-C (SIGINT)"}.get(st["signal"]) or f"{signals.Signals(st['signal']).name}")
+        state = "finished" if st["finished"] else f"stopped by {why} (continue with --resume {run_dir})"
+        what = "light direction error" if method == "lcnet" else "MAE"
+        said = (f"best synthetic validation {what} {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"
                 if st["best_val"] is not None else "no validation yet, so no best.pt")
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; {said}",
                   highlight=False, soft_wrap=True, markup=False)

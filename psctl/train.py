@@ -743,6 +743,9 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
     provenance for the new weights' metadata."""
     from psctl.models.weights import read_weights
 
+    if not Path(path).is_file():  # the recipes' starts are git-ignored .cache files their comments say how to make
+        raise PsctlError(path, "not found: the recipe's train.init (the weights to start from); make it as the "
+                               "recipe's comment says, or set train.init to another weights file")
     w = read_weights(path)
     arch, own = dict(w.metadata.get("architecture", {})), dict(model.config)
     state = {k: v.float() for k, v in w.state_dict.items()}
@@ -880,6 +883,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             if changed:
                 raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
                                              "(a run keeps its recipe) or start a new run with --out")
+            if config["train"]["samples"] < saved["samples"]:  # it would "finish" without its last samples validated
+                raise PsctlError(state_file, f"the run has seen {saved['samples']:,} samples; a recipe of "
+                                             f"{config['train']['samples']:,} would end before them (train.samples)")
             saved["config"]["train"].update({k: config["train"][k] for k in RESUME_MAY_CHANGE})
         config = saved["config"]
         if lcnet is not None and saved.get("lcnet") and _portable(lcnet) != saved["lcnet"]:

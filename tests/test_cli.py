@@ -1069,6 +1069,11 @@ def test_train_says_how_it_stopped(tmp_path, monkeypatch):
                env={"PSCTL_WEIGHTS": str(tmp_path / "w")})
     assert proc.returncode == 130, proc.stderr
     assert "no validation yet, so no best.pt" in proc.stderr and "not installed: the run stopped" in proc.stderr
+    assert "stopped by Ctrl-C (SIGINT) (continue with --resume" in " ".join(proc.stderr.split())
+    for sig, exit_code, said in ((signal.SIGTERM, 143, "stopped by SIGTERM"), (None, 0, "stopped by --max-minutes")):
+        stopped["signal"] = None if sig is None else int(sig)
+        proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q")
+        assert proc.returncode == exit_code and said in proc.stderr, proc.stderr
 
 
 def test_train_install_refuses_to_replace_a_release_file(tmp_path):

@@ -994,3 +994,12 @@ def test_a_ps_fcn_dagger_run_refuses_a_frozen_lcnet_whose_file_changed(tmp_path)
         train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")
     lc.write_bytes(same)
     assert train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
+
+
+def test_a_resume_that_would_end_before_the_samples_seen_and_a_missing_start_are_one_line(tmp_path):
+    train("ps-fcn", tiny(16), tmp_path / "run", device="cpu")
+    with pytest.raises(PsctlError, match="the run has seen 16 samples; a recipe of 8 would end before them"):
+        train("ps-fcn", tiny(8), tmp_path / "run", resume=True, device="cpu")
+    with pytest.raises(PsctlError, match=r"gone.pt: not found: the recipe's train.init"):
+        train("ps-fcn", merge(tiny(8), {"train": {"init": str(tmp_path / "gone.pt")}}), tmp_path / "new", device="cpu")
+    assert not (tmp_path / "new").exists()
