@@ -548,13 +548,20 @@ def train(
         elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s
             import time
 
-            last = [0.0]
-            con.print(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl has "
-                      f"every one)", highlight=False, soft_wrap=True, markup=False)
+            last, gone = [0.0], [False]
+            try:
+                con.print(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl "
+                          f"has every one)", highlight=False, soft_wrap=True, markup=False)
+            except (BrokenPipeError, SystemExit) as e:  # no reader: the first progress report stops the
+                if not _reader_gone(e):                 # run at a checkpoint (exit 141)
+                    raise
+                gone[0] = True
 
             from psctl.train import STOP
 
             def log_line(rec: dict) -> str | None:
+                if gone[0]:
+                    return STOP
                 if time.monotonic() - last[0] >= 30:
                     last[0] = time.monotonic()
                     try:
