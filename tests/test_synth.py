@@ -1313,3 +1313,14 @@ def test_synth_refuses_more_objects_than_memory_holds():
         with pytest.raises(PsctlError, match=r"--materials 100000000 at --size 128 needs about [\d,]+ GiB"):
             preset_objects(preset, size=128, n_lights=4, k=100_000_000)
     assert time.perf_counter() - t < 5  # refused before any geometry is made
+
+
+def test_the_view_renderer_refuses_a_test_shape_in_one_line_with_exit_2(tmp_path):
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "psctl.synth.meshes", "bunny", "--out", str(tmp_path / "v.npz")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "error: 'bunny' is a test shape (sphere, bunny, dragon, armadillo): never train on it"]
+    assert not (tmp_path / "v.npz").exists()

@@ -304,8 +304,9 @@ def main(argv: list[str] | None = None) -> None:
         rots = random_rotations((a.views,), torch.Generator().manual_seed(a.seed))
         views = GBuffer.cat([mesh_views(v, f, rots[i:i + 16], a.size, name=path.stem) for i in range(0, a.views, 16)])
         save_views(a.out, views)
-    except PsctlError as e:
-        sys.exit(f"error: {e}")
+    except PsctlError as e:  # a user error: one line and exit 2, as psctl's commands
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     print(f"wrote {a.views} views of {path.stem} at {a.size}px to {a.out} ({a.out.stat().st_size / 1e6:.1f} MB)")
 
 
