@@ -539,16 +539,25 @@ def train(
         con = _stderr()
         from rich.markup import escape
 
+        gone = [False]  # stderr's reader went away (`2>&1 | head`): the first progress report stops the run
+
+        def note(text: str) -> None:
+            try:
+                con.print(f"[yellow]note:[/] {escape(text)}", highlight=False, soft_wrap=True)
+            except (BrokenPipeError, SystemExit) as e:  # before the run folder exists: stop at the first
+                if not _reader_gone(e):                 # report, with a checkpoint (exit 141), not here
+                    raise
+                gone[0] = True
+
         kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
                       max_seconds=None if max_minutes is None else 60 * max_minutes,
-                      note=None if quiet or sys.stderr is None else
-                      lambda n: con.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True))
+                      note=None if quiet or sys.stderr is None else note)
         if quiet or sys.stderr is None:  # no stderr (`2>&-`, a daemon): as quiet
             st = run_training(method, cfg, run_dir, **kwargs)
         elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s
             import time
 
-            last, gone = [0.0], [False]
+            last = [0.0]
             try:
                 con.print(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl "
                           f"has every one)", highlight=False, soft_wrap=True, markup=False)

@@ -499,6 +499,26 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
                                          "the run's checkpoint is damaged") from None
 
 
+def _drop_lines_after_checkpoint(log: Path, size: int, samples: int) -> None:
+    """A process killed after its last checkpoint (SIGKILL, a lost machine) logged steps that the
+    resume runs again: cut ``log`` back to its ``size`` at that checkpoint, but only where the
+    file still is that log (a line ends there) and everything after it is lines of later steps
+    (JSON records with more than ``samples``); an edited or rotated log is left as it is."""
+    try:
+        if not log.is_file() or log.stat().st_size <= size:
+            return
+        data = log.read_bytes()
+        if size and data[size - 1:size] != b"\n":
+            return
+        for line in data[size:].splitlines():
+            rec = json.loads(line)
+            if not isinstance(rec, dict) or not isinstance(rec.get("samples"), int) or rec["samples"] <= samples:
+                return
+        os.truncate(log, size)
+    except (OSError, ValueError):  # unreadable, not JSON: not psctl's lines, left alone
+        return
+
+
 def _check_state(path: Path, saved: dict) -> None:
     """The kinds of a run state's bookkeeping values (an edited or damaged state.json is one line,
     not a TypeError deep in the loop)."""
@@ -518,7 +538,8 @@ def _check_state(path: Path, saved: dict) -> None:
              "loss_avg": lambda v: v is None or number(v),
              "data_notes": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
              "data_sources": lambda v: isinstance(v, list),
-             "lcnet_sha256": lambda v: isinstance(v, str)}
+             "lcnet_sha256": lambda v: isinstance(v, str),
+             "optim_step": lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)}
     for key, ok in kinds.items():
         if key in saved and not ok(saved[key]):
             raise PsctlError(path, f"holds a bad {key!r} ({json.dumps(saved[key])[:40]}): the run state is damaged")
@@ -883,9 +904,13 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             if changed:
                 raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
                                              "(a run keeps its recipe) or start a new run with --out")
-            if config["train"]["samples"] < saved["samples"]:  # it would "finish" without its last samples validated
+            config = check_recipe(config)  # a bad value is its one line, not a TypeError here
+            asked = config["train"]["samples"]
+            if asked < saved["samples"] and asked != saved["config"]["train"]["samples"]:
+                # a shorter recipe would "finish" without its last samples validated (a run's own
+                # length may be passed a little: its last batch)
                 raise PsctlError(state_file, f"the run has seen {saved['samples']:,} samples; a recipe of "
-                                             f"{config['train']['samples']:,} would end before them (train.samples)")
+                                             f"{asked:,} would end before them (train.samples)")
             saved["config"]["train"].update({k: config["train"][k] for k in RESUME_MAY_CHANGE})
         config = saved["config"]
         if lcnet is not None and saved.get("lcnet") and _portable(lcnet) != saved["lcnet"]:
@@ -959,11 +984,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         if seen is not None and seen != st["samples"]:
             raise PsctlError(run / "model.pt", f"was saved at {seen:,} samples, state.json at {st['samples']:,}: "
                                                f"not this checkpoint's; the run cannot continue exactly")
+        # (Adam's own count: a resume with fresh moments, "optim_files": [], starts it again at 0)
         steps = {int(v["step"]) for v in optim.state.values() if "step" in v}
-        if steps and steps != {st["step"]}:
-            raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json at "
-                                                         f"step {st['step']:,}: not this checkpoint's; the run cannot "
-                                                         f"continue exactly")
+        if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
+            raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json "
+                                                         f"at step {st['optim_step']:,}: not this checkpoint's; the "
+                                                         f"run cannot continue exactly")
         if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
             best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
             if best.method != method:
@@ -989,7 +1015,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     # recorded; a resume must see the same data as the run's start
     data_notes = list(dict.fromkeys(getattr(stream, "notes", None) or []))
     # the geometry sources and their weights (where the meshes are may differ between machines)
-    sources = [list(x) for x in getattr(getattr(stream, "pool", None), "sources", [])]
+    pool = getattr(stream, "pool", None)
+    sources = [list(x) for x in getattr(pool, "sources", [])]
+    if any(x[0] == "mesh" for x in sources):  # .obj files and a view cache draw their views differently
+        bank = getattr(pool, "mesh_bank", None)
+        sources.append(["mesh_from", "cache" if bank is not None else "obj",
+                        sorted(set(bank.names)) if bank is not None else sorted(m[0] for m in pool.mesh_data)])
     if saved is not None and "data_sources" in saved and saved["data_sources"] != sources:
         was = "; ".join(saved.get("data_notes") or []) or "every source"
         raise PsctlError(state_file, f"the run's data differ from its start (then: {was}; now: "
@@ -1016,6 +1047,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         from psctl.io.atomic import atomic_path
 
         st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
+        steps = {int(v["step"]) for v in optim.state.values() if "step" in v}
+        st["optim_step"] = max(steps) if steps else None
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
                 save_torch({"samples": st["samples"], "stream": stream.state_dict()}, tmp)
@@ -1035,9 +1068,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     next_val = (st["samples"] // t["val_every"] + 1) * t["val_every"]
     # the logged loss: an exponential moving average (0.9) of the steps' losses, kept across a resume
     loss_avg = st.get("loss_avg")
-    if resume and st.get("log_bytes") is not None and (run / "log.jsonl").is_file() \
-            and (run / "log.jsonl").stat().st_size > st["log_bytes"]:
-        os.truncate(run / "log.jsonl", st["log_bytes"])  # lines of steps after the checkpoint (a hard kill)
+    if resume and st.get("log_bytes") is not None:
+        _drop_lines_after_checkpoint(run / "log.jsonl", st["log_bytes"], st["samples"])
     # the folder is made only now: a bad recipe (crop > size, ...) leaves none behind
     with _no_half_run(run) as log, _Stop() as stop:
         if init_mae is not None:
@@ -1104,6 +1136,18 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     return st
 
 
+def _same_lcnet(a: Any, b: Any) -> bool:
+    """Two PS-FCN† files' frozen LCNet records (``frozen_lcnet``'s) name one network: the same
+    sha256 where both record it (a copy at another path is the same), else the same record
+    without it (files from before the sha256 was kept)."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return a == b
+    if a.get("sha256") and b.get("sha256"):
+        return a["sha256"] == b["sha256"] and a.get("decode") == b.get("decode")
+    strip = lambda d: {k: v for k, v in d.items() if k != "sha256"}  # noqa: E731
+    return strip(a) == strip(b)
+
+
 RELEASE_MAX_BYTES = 10_000_000  # the project's limit per release weights file
 
 
@@ -1152,6 +1196,8 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         if w.official:
             raise PsctlError(w.path, "only psctl's own weights can be averaged (their metadata says what they are)")
         for key in AVERAGE_SAME:
+            if key == "lcnet" and _same_lcnet(w.metadata.get(key), first.metadata.get(key)):
+                continue
             if w.metadata.get(key) != first.metadata.get(key):
                 raise PsctlError(w.path, f"metadata {key!r} is {w.metadata.get(key)!r}, but {first.path} has "
                                          f"{first.metadata.get(key)!r}: only the same network can be averaged")

@@ -1507,6 +1507,26 @@ def test_train_whose_stderr_reader_goes_away_stops_at_a_checkpoint(tmp_path):
     assert psctl("train", "ps-fcn", "--resume", tmp_path / "run", "--device", "cpu", "-q").returncode == 0
 
 
+def test_train_whose_note_finds_no_reader_still_stops_at_a_checkpoint(tmp_path):
+    """The data note (no training meshes) is printed before the run folder exists: with no reader
+    it must not end the run there without a checkpoint (a review's finding)."""
+    (tmp_path / "none").mkdir()
+    cfg = tmp_path / "mesh.yaml"
+    text = (Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml").read_text()
+    cfg.write_text(text.replace("shapes: {blobby: 1.0}", "shapes: {blobby: 1.0, mesh: 0.5}"))
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "psctl.cli", "train", "ps-fcn", "--config", str(cfg), "--out",
+                               str(tmp_path / "run"), "--device", "cpu"], stdout=subprocess.PIPE, stderr=w, text=True,
+                              env={**os.environ, "PSCTL_MESHES": str(tmp_path / "none")})
+    finally:
+        os.close(w)
+    assert proc.returncode == 141
+    state = json.loads((tmp_path / "run" / "state.json").read_text())
+    assert 0 < state["samples"] < 48 and state["data_notes"]
+
+
 def test_a_closed_stderr_at_start_still_runs(capture, tmp_path):
     """`psctl normals X 2>&-` (or a daemon without fd 2): Python makes sys.stderr None; the run
     failed with exit 1 and wrote nothing. Now it runs, without progress bars or messages, and a

@@ -1003,3 +1003,39 @@ def test_a_resume_that_would_end_before_the_samples_seen_and_a_missing_start_are
     with pytest.raises(PsctlError, match=r"gone.pt: not found: the recipe's train.init"):
         train("ps-fcn", merge(tiny(8), {"train": {"init": str(tmp_path / "gone.pt")}}), tmp_path / "new", device="cpu")
     assert not (tmp_path / "new").exists()
+
+
+def test_resume_checks_hold_after_a_fresh_moments_resume_an_edited_log_and_a_finished_run(tmp_path):
+    """A review's cases: a resume with fresh Adam moments ("optim_files": [], configs/gpu_session.sh)
+    made every later resume 'not this checkpoint's'; a log the user rotated or edited must not be
+    cut; a finished run overshooting its train.samples resumes with its own recipe; a bad value
+    is one line, not a TypeError."""
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(16), run, device="cpu")
+    st = json.loads((run / "state.json").read_text())
+    st["optim_files"] = []
+    (run / "state.json").write_text(json.dumps(st))
+    assert train("ps-fcn", tiny(32), run, resume=True, device="cpu")["samples"] == 32
+    assert train("ps-fcn", tiny(48), run, resume=True, device="cpu")["samples"] == 48
+    log = run / "log.jsonl"
+    with open(log, "a") as f:  # the user's own line after the checkpoint: not a later step's
+        f.write('{"comment": "rotated here"}\n')
+    before = log.read_text()
+    assert train("ps-fcn", tiny(56), run, resume=True, device="cpu")["samples"] == 56
+    assert log.read_text().startswith(before)
+    odd = merge(tiny(10), {"train": {"batch_size": 4}})  # ends at 12
+    assert train("ps-fcn", odd, tmp_path / "odd", device="cpu")["samples"] == 12
+    assert train("ps-fcn", odd, tmp_path / "odd", resume=True, device="cpu")["samples"] == 12
+    bad = tiny(64)
+    bad["train"]["samples"] = "1e5"
+    with pytest.raises(PsctlError, match="'train.samples' must be a finite integer"):
+        train("ps-fcn", bad, run, resume=True, device="cpu")
+
+
+def test_ps_fcn_dagger_files_from_before_and_after_the_lcnet_digest_average():
+    from psctl.train import _same_lcnet
+
+    old = {"path": "weights/lcnet.pt", "official": False, "decode": "soft"}
+    new = {**old, "sha256": "ab" * 32}
+    assert _same_lcnet(old, new) and _same_lcnet(new, {**new, "path": "copy/lcnet.pt"})
+    assert not _same_lcnet(new, {**new, "sha256": "cd" * 32}) and not _same_lcnet(old, {**old, "decode": "argmax"})
