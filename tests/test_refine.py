@@ -739,6 +739,25 @@ def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch,
     assert not np.array_equal(results[0][0], results[0][3])  # the second pass saw other lights
 
 
+def _small_object_capture(folder, seed: int, cx: int):
+    """12 images of 120 px, the mask a disc of radius 20 about (60, cx): LCNet's crop (margin 15)
+    lies strictly inside the box the second stage reads (halo 24). Returns (capture, mask, LCNet's
+    box, the second stage's box)."""
+    from psctl.infer import first_read_box
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import DEFAULT_LIGHTS, crop_box
+
+    write_capture(folder, n=12, size=120, seed=seed)
+    yy, xx = np.mgrid[:120, :120]
+    write_image(folder / "mask.png", ((yy - 60) ** 2 + (xx - cx) ** 2 < 400).astype(np.float32), "uint8")
+    cap = open_capture(folder)
+    mask = load_mask(cap)
+    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
+    assert lc != net and all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))  # two boxes: one held
+    return cap, mask, lc, net
+
+
 @pytest.mark.parametrize("command", ["normals", "lights"])
 def test_lcnet_and_the_passes_after_it_decode_each_image_once(tmp_path, fake_weights, monkeypatch, command):  # noqa: F811
     """`psctl normals -m sdps` and `psctl lights`: LCNet's pass decodes each image with the box the
@@ -751,18 +770,7 @@ def test_lcnet_and_the_passes_after_it_decode_each_image_once(tmp_path, fake_wei
 
     import psctl
 
-    from psctl.infer import first_read_box
-    from psctl.io.capture import load_mask, open_capture
-    from psctl.io.images import write_image
-    from psctl.lights import DEFAULT_LIGHTS, crop_box
-
-    write_capture(tmp_path / "cap", n=12, size=120, seed=2)
-    yy, xx = np.mgrid[:120, :120]
-    write_image(tmp_path / "cap" / "mask.png", ((yy - 60) ** 2 + (xx - 60) ** 2 < 400).astype(np.float32), "uint8")
-    cap = open_capture(tmp_path / "cap")
-    mask = load_mask(cap)
-    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
-    assert lc != net and all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))  # two boxes: one held
+    _small_object_capture(tmp_path / "cap", seed=2, cx=60)
     reads = []
     real = psctl.io.capture.read_image
 
@@ -797,18 +805,11 @@ def test_lcnet_reading_the_second_stages_box_gives_what_reading_its_own_crop_doe
     crop from it gives the lights of reading the crop itself, and checks the ambient image on the
     crop as before: an image the ambient image blacks out inside the crop, though lit outside it
     in the larger box, is the same one-line error."""
-    from psctl.infer import first_read_box
-    from psctl.io.capture import DecodeMemo, load_mask, open_capture
+    from psctl.io.capture import DecodeMemo, open_capture
     from psctl.io.images import read_image, write_image
-    from psctl.lights import DEFAULT_LIGHTS, capture_lights, crop_box
+    from psctl.lights import capture_lights
 
-    write_capture(tmp_path / "cap", n=12, size=120, seed=3)
-    yy, xx = np.mgrid[:120, :120]
-    write_image(tmp_path / "cap" / "mask.png", ((yy - 60) ** 2 + (xx - 57) ** 2 < 400).astype(np.float32), "uint8")
-    cap = open_capture(tmp_path / "cap")
-    mask = load_mask(cap)
-    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
-    assert all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))
+    cap, mask, lc, net = _small_object_capture(tmp_path / "cap", seed=3, cx=57)
     weights, cfg = fake_weights / "lcnet.pt", {"device": "cpu"}
     own = capture_lights(cap, mask, weights, cfg)
     memo = DecodeMemo(64 << 20)
