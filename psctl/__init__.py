@@ -89,5 +89,5 @@ def __dir__() -> list[str]:
 
 
 __all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
-           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error", "PsctlError",
-           "PsctlWarning"]
+           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error",
+           "PsctlError", "PsctlWarning"]

@@ -258,18 +258,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
-    unused = [f"{k}={v!r}" for k, v, off in (("views", views, views > 1 and method == "l2"),
-                                              ("downsample", downsample, downsample > 1 and method == "l2"),
-                                              ("precision", precision, precision != "float32" and method == "l2"),
-                                              ("refine", refine, not refine and method != "sdps"),
-                                              ("falloff", falloff, falloff is not None and method != "sdps"),
-                                              ("roll", roll, roll is not None and method != "sdps")) if off]
-    if unused:
-        why = [w for w, on in (("l2 solves each pixel alone, at full size, in float64",
-                                any(u.split("=")[0] in ("views", "downsample", "precision") for u in unused)),
-                               ("only sdps refines lights",
-                                any(u.split("=")[0] in ("refine", "falloff", "roll") for u in unused))) if on]
-        warnings.warn(f"{method}: {', '.join(unused)} unused ({'; '.join(why)})", PsctlWarning, stacklevel=level)
+    by_l2 = [f"{k}={v!r}" for k, v, off in (("views", views, views > 1), ("downsample", downsample, downsample > 1),
+                                             ("precision", precision, precision != "float32"))
+             if off and method == "l2"]
+    by_sdps = [f"{k}={v!r}" for k, v, off in (("refine", refine, not refine), ("falloff", falloff, falloff is not None),
+                                              ("roll", roll, roll is not None)) if off and method != "sdps"]
+    if by_l2 or by_sdps:
+        why = (["l2 solves each pixel alone, at full size, in float64"] if by_l2 else []) + (
+            ["only sdps refines lights"] if by_sdps else [])
+        warnings.warn(f"{method}: {', '.join(by_l2 + by_sdps)} unused ({'; '.join(why)})", PsctlWarning,
+                      stacklevel=level)
     if method == "sdps":
         from psctl.lights import array_lights
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
@@ -579,8 +577,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                         "n_undetermined": undetermined}
         if undetermined:
             notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
-                         f"light in front of their normal, or black in every image that counts, docs/formats.md): 0 in the "
-                         f"albedo maps")
+                         f"light in front of their normal, or black in every image that counts, docs/formats.md): "
+                         f"0 in the albedo maps")
         if method == "sdps":
             notes.append("albedo: on the scale of the estimated intensities, one per image: known up to one "
                          "factor per channel (the lights' colour, which sdps does not estimate)")

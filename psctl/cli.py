@@ -541,30 +541,28 @@ def train(
 
         gone = [False]  # stderr's reader went away (`2>&1 | head`): the first progress report stops the run
 
-        def note(text: str) -> None:
+        def say(line: str) -> None:
+            """A line (Rich markup) before the run folder exists: without a reader the run goes on to
+            stop at its first report, with a checkpoint (exit 141), not here without one."""
             try:
-                con.print(f"[yellow]note:[/] {escape(text)}", highlight=False, soft_wrap=True)
-            except (BrokenPipeError, SystemExit) as e:  # before the run folder exists: stop at the first
-                if not _reader_gone(e):                 # report, with a checkpoint (exit 141), not here
+                con.print(line, highlight=False, soft_wrap=True)
+            except (BrokenPipeError, SystemExit) as e:
+                if not _reader_gone(e):
                     raise
                 gone[0] = True
 
         kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
                       max_seconds=None if max_minutes is None else 60 * max_minutes,
-                      note=None if quiet or sys.stderr is None else note)
+                      note=None if quiet or sys.stderr is None else
+                      lambda text: say(f"[yellow]note:[/] {escape(text)}"))
         if quiet or sys.stderr is None:  # no stderr (`2>&-`, a daemon): as quiet
             st = run_training(method, cfg, run_dir, **kwargs)
         elif not _stderr_is_terminal():  # a log (e.g. a remote GPU run): a plain line every 30 s
             import time
 
             last = [0.0]
-            try:
-                con.print(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl "
-                          f"has every one)", highlight=False, soft_wrap=True, markup=False)
-            except (BrokenPipeError, SystemExit) as e:  # no reader: the first progress report stops the
-                if not _reader_gone(e):                 # run at a checkpoint (exit 141)
-                    raise
-                gone[0] = True
+            say(escape(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl has "
+                       f"every one)"))
 
             from psctl.train import STOP
 
@@ -596,10 +594,10 @@ def train(
                                info=f"loss {rec['loss']:.4f}  {rec['samples_per_s']:.0f}/s  lr {rec['lr']:.2g}")
 
                 st = run_training(method, cfg, run_dir, progress=report, **kwargs)
-        import signal as signals
+        import signal
 
         why = ("--max-minutes" if not st.get("signal") else
-               {int(signals.SIGINT): "Ctrl-C (SIGINT)"}.get(st["signal"]) or f"{signals.Signals(st['signal']).name}")
+               "Ctrl-C (SIGINT)" if st["signal"] == signal.SIGINT else signal.Signals(st["signal"]).name)
         state = "finished" if st["finished"] else f"stopped by {why} (continue with --resume {run_dir})"
         what = "light direction error" if method == "lcnet" else "MAE"
         said = (f"best synthetic validation {what} {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"

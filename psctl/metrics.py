@@ -24,8 +24,9 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
         a = np.asarray(plain(a))
         if a.dtype.kind not in "if":  # text, objects, complex: nothing to measure
             # unsigned: an encoded normal map's pixels ((n + 1) / 2), which would measure as vectors
-            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}" + (
-                " (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)" if a.dtype.kind in "ub" else ""))
+            hint = (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
+                    if a.dtype.kind in "ub" else "")
+            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}{hint}")
         arrays.append(a)
     normals, gt = arrays
     if normals.shape != gt.shape or normals.ndim < 1 or normals.shape[-1] != 3:

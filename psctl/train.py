@@ -499,6 +499,11 @@ def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], de
                                          "the run's checkpoint is damaged") from None
 
 
+def _adam_steps(optim: torch.optim.Optimizer) -> set[int]:
+    """The step counts Adam keeps per parameter (one value while every parameter gets a step)."""
+    return {int(v["step"]) for v in optim.state.values() if "step" in v}
+
+
 def _drop_lines_after_checkpoint(log: Path, size: int, samples: int) -> None:
     """A process killed after its last checkpoint (SIGKILL, a lost machine) logged steps that the
     resume runs again: cut ``log`` back to its ``size`` at that checkpoint, but only where the
@@ -648,6 +653,7 @@ def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.dev
 
 
 def _sha256(path: str | os.PathLike) -> str:
+    """A file's sha256 (hex), read in blocks: the frozen LCNet's and the averaged members'."""
     import hashlib
 
     h = hashlib.sha256()
@@ -985,7 +991,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(run / "model.pt", f"was saved at {seen:,} samples, state.json at {st['samples']:,}: "
                                                f"not this checkpoint's; the run cannot continue exactly")
         # (Adam's own count: a resume with fresh moments, "optim_files": [], starts it again at 0)
-        steps = {int(v["step"]) for v in optim.state.values() if "step" in v}
+        steps = _adam_steps(optim)
         if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
             raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json "
                                                          f"at step {st['optim_step']:,}: not this checkpoint's; the "
@@ -1047,8 +1053,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         from psctl.io.atomic import atomic_path
 
         st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
-        steps = {int(v["step"]) for v in optim.state.values() if "step" in v}
-        st["optim_step"] = max(steps) if steps else None
+        st["optim_step"] = max(_adam_steps(optim), default=None)
         if hasattr(stream, "state_dict"):
             with atomic_path(run / "stream.pt") as tmp:
                 save_torch({"samples": st["samples"], "stream": stream.state_dict()}, tmp)
@@ -1171,8 +1176,6 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     rule decides on it like on any run's ``best.pt``, and ``install_weights(out_dir, method)``
     installs it.
     """
-    import hashlib
-
     import torch
 
     from psctl.models.weights import _training_clip, read_weights, save_weights
@@ -1218,7 +1221,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
     def member(w) -> dict:
         m = w.metadata
-        return {"path": str(w.path), "sha256": hashlib.sha256(Path(w.path).read_bytes()).hexdigest(),
+        return {"path": str(w.path), "sha256": _sha256(w.path),
                 "samples_seen": m.get("samples_seen"), "wall_seconds": m.get("wall_seconds"),
                 "metrics": m.get("metrics", {}), "date": m.get("date"), "recipe": m.get("recipe")}
 

@@ -617,7 +617,8 @@ def size_text(info: ImageInfo) -> str:
     gave the upright size contradicted every other program's view of the file."""
     if info.orientation < 5:  # 1: as stored; 2-4: mirrored or a half turn, the same size
         return f"{info.width}x{info.height}"
-    return f"{info.width}x{info.height} upright (EXIF orientation {info.orientation}; {info.height}x{info.width} as stored)"
+    return (f"{info.width}x{info.height} upright (EXIF orientation {info.orientation}; "
+            f"{info.height}x{info.width} as stored)")
 
 
 def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
@@ -1003,8 +1004,9 @@ def capture_notes(capture: Capture) -> list[str]:
                      f"each is read with its own full scale as 1 (psctl info --check compares their brightness)")
     channels = collections.Counter(capture.channel_counts)
     if len(channels) > 1:
-        notes.append(f"images: of mixed channel counts ({', '.join(f'{n} of {c} channel' + 's' * (c > 1) for c, n in channels.most_common())}"
-                     f"); grey ones (1 channel, or 2: grey and alpha) are read as RGB")
+        counts = ", ".join(f"{n} of {c} channel" + "s" * (c > 1) for c, n in channels.most_common())
+        notes.append(f"images: of mixed channel counts ({counts}); grey ones (1 channel, or 2: grey and alpha) are "
+                     f"read as RGB")
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
