@@ -560,6 +560,7 @@ RESUME_MAY_CHANGE = ("samples", "checkpoint_minutes", "log_every", "val_every") 
 
 def _recipe_core(config: dict) -> Any:
     core = _plain_json(config)
+    core.pop("method", None)  # a label the run's own method already checks (runs from before recipes had it resume)
     for k in RESUME_MAY_CHANGE:
         core["train"].pop(k, None)
     return core
@@ -911,6 +912,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
                                              "(a run keeps its recipe) or start a new run with --out")
             config = check_recipe(config)  # a bad value is its one line, not a TypeError here
+            check_sizes(method, config)  # its method label too, which the comparison leaves out
             asked = config["train"]["samples"]
             if asked < saved["samples"] and asked != saved["config"]["train"]["samples"]:
                 # a shorter recipe would "finish" without its last samples validated (a run's own

@@ -13,6 +13,7 @@ import torch
 from psctl.errors import PsctlError
 from psctl.infer import cpu_has_bf16
 from psctl.models.ps_fcn import PSFCN
+from psctl.models import WEIGHTS_METHODS
 from psctl.models.weights import read_weights
 from psctl.train import load_config, merge, train
 
@@ -203,6 +204,40 @@ def test_a_run_from_before_a_new_recipe_key_resumes(tmp_path):
     state.write_text(json.dumps(st))
     assert train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")["samples"] == 8
     assert train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
+
+
+def test_a_run_resumes_with_its_recipe_now_naming_the_method(tmp_path):
+    """The recipes in configs/ gained a ``method:`` key in session 50: runs started from them
+    before resume with the edited file (the key is a label the run's method already checks)."""
+    cfg = tiny(16)
+    train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
+    assert train("ps-fcn", {**cfg, "method": "ps-fcn"}, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
+    with pytest.raises(PsctlError, match="config 'method' is 'lcnet', but the command trains ps-fcn"):
+        train("ps-fcn", {**cfg, "method": "lcnet"}, tmp_path / "run", resume=True, device="cpu")
+
+
+def test_shipped_recipes_name_their_method_and_fit_it():
+    """Every recipe but tiny.yaml (for any method) says which network it trains, as
+    docs/training.md's table does, so ``psctl train ps-fcn --config configs/ps_fcn_n_....yaml``
+    (same shapes, another normalisation) is one line, not a silently wrong run."""
+    import re
+
+    from psctl.train import check_recipe, check_sizes
+
+    table = {}
+    for line in (REPO / "docs" / "training.md").read_text().splitlines():
+        cells = line.strip().strip("|").split("|") if line.startswith("| `configs/") else []
+        if len(cells) > 1:
+            names, methods = re.findall(r"configs/(\w+\.yaml)", cells[0]), re.findall(r"`([\w-]+)`", cells[1])
+            table.update(zip(names, methods if len(methods) == len(names) else methods * len(names)))
+    for recipe in sorted((REPO / "configs").glob("*.yaml")):
+        cfg = load_config(recipe)
+        if recipe.name == "tiny.yaml":
+            assert "method" not in cfg
+            continue
+        assert cfg.get("method") in WEIGHTS_METHODS, recipe.name
+        assert table.get(recipe.name, cfg["method"]) == cfg["method"], recipe.name
+        check_sizes(cfg["method"], check_recipe(cfg))
 
 
 def test_a_run_without_its_optimiser_state_resumes_with_fresh_moments(tmp_path):
