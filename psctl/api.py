@@ -167,7 +167,14 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
-    if refine and any(installed_path(m) is not None for m in SDPS_SECOND):
+    refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
+    unused = [f"{k}={v!r}" for k, v in (("falloff", falloff), ("roll", roll),
+                                        ("precision", None if precision == "float32" else precision)) if v is not None]
+    if unused and not refines:  # as run_lights' notes: a warning, not silence
+        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+        why = UNUSED_WHY["refine"] if not refine else "no normals network installed (PS-FCN†, PS-FCN or PS-FCN+N)"
+        warnings.warn(f"estimate_lights: {', '.join(unused)} unused ({why})", PsctlWarning, stacklevel=level)
+    if refines:
         source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg)
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
@@ -258,16 +265,14 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
-    by_l2 = [f"{k}={v!r}" for k, v, off in (("views", views, views > 1), ("downsample", downsample, downsample > 1),
-                                             ("precision", precision, precision != "float32"))
-             if off and method == "l2"]
-    by_sdps = [f"{k}={v!r}" for k, v, off in (("refine", refine, not refine), ("falloff", falloff, falloff is not None),
-                                              ("roll", roll, roll is not None)) if off and method != "sdps"]
-    if by_l2 or by_sdps:
-        why = (["l2 solves each pixel alone, at full size, in float64"] if by_l2 else []) + (
-            ["only sdps refines lights"] if by_sdps else [])
-        warnings.warn(f"{method}: {', '.join(by_l2 + by_sdps)} unused ({'; '.join(why)})", PsctlWarning,
-                      stacklevel=level)
+    unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
+    if unused:
+        given = {"views": views, "downsample": downsample, "precision": precision, "refine": refine,
+                 "falloff": falloff, "roll": roll}
+        unused.sort(key=lambda kw: list(given).index(kw[0]))
+        why = list(dict.fromkeys(UNUSED_WHY[w] for _, w in unused))
+        warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
+                      PsctlWarning, stacklevel=level)
     if method == "sdps":
         from psctl.lights import array_lights
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
@@ -321,6 +326,37 @@ def few_images_note(method: str, n_images: int) -> str:
     """The note for a method without listed lights (sdps, ups-fcn) given fewer than 3 images."""
     return (f"images: only {n_images}, which leaves the normals undetermined; {method} answers from what it "
             "learnt: expect large errors")
+
+
+UNUSED_WHY = {"l2": "l2 solves each pixel alone, at full size, in float64", "sdps": "only sdps refines lights",
+              "refine": "sdps refines lights only with refine=True"}
+
+
+def unused_options(method: str, refine: bool, views: int, downsample: int, precision: str,
+                   falloff: str | None, roll: bool | None) -> list[tuple[str, str]]:
+    """The options ``method`` ignores, as (option, why), why a key of ``UNUSED_WHY``: "l2" (one
+    pass at full size in float64), "sdps" (only sdps refines lights), "refine" (sdps without
+    refinement). One table for run_normals' notes (``unused_note``) and estimate_normals' warning,
+    which word it each their own way. ``refine`` False counts as asked for (its default is True)."""
+    out = [(k, "sdps" if method != "sdps" else "refine") for k, v in (("falloff", falloff), ("roll", roll))
+           if v is not None and (method != "sdps" or not refine)]
+    if not refine and method != "sdps":
+        out.append(("refine", "sdps"))
+    if method == "l2":
+        out += [(k, "l2") for k, off in (("views", views > 1), ("downsample", downsample > 1),
+                                          ("precision", precision != "float32")) if off]
+    return out
+
+
+def unused_note(option: str, why: str, value: object = None) -> str:
+    """A note for the command line (``psctl normals``, ``psctl lights``) on an option the method
+    ignores (``unused_options``); ``value`` is the --precision asked for."""
+    if option in ("falloff", "roll", "refine"):
+        flag = {"falloff": "--falloff", "roll": "--roll/--no-roll", "refine": "--no-refine"}[option]
+        return f"lights: {flag} is unused " + ("without --refine" if why == "refine" else "(only sdps refines lights)")
+    return {"views": "views: l2 gives the same normals in every view; one pass",
+            "downsample": "downsample: l2 solves each pixel alone, at full size; unused",
+            "precision": f"precision: l2 solves in float64; --precision {value} unused"}[option]
 
 
 def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.PathLike | None = None,
@@ -418,23 +454,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     n_all = cap.n_images
     cap = cap.subset(select_images(cap.n_images, n_images, seed, cap.lights if by_lights else None))
     notes = ([note] if note else []) + picked + capture_notes(cap)
-    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll)):
-        if value is not None and (method != "sdps" or not refine):
-            notes.append(f"lights: {flag} is unused " + ("without --refine" if method == "sdps" else
-                                                          "(only sdps refines lights)"))
-    if not refine and method != "sdps":  # refine's default is True: False was asked for
-        notes.append("lights: --no-refine is unused (only sdps refines lights)")
-    views = check_views(views)
-    if views > 1 and method == "l2":
-        notes.append("views: l2 gives the same normals in every view; one pass")
-        views = 1
-    downsample = check_downsample(downsample)
-    if downsample > 1 and method == "l2":
-        notes.append("downsample: l2 solves each pixel alone, at full size; unused")
-        downsample = 1
-    if precision != "float32" and method == "l2":
-        notes.append(f"precision: l2 solves in float64; --precision {precision} unused")
-        precision = "float32"
+    views, downsample = check_views(views), check_downsample(downsample)
+    notes += [unused_note(k, why, precision) for k, why in
+              unused_options(method, refine, views, downsample, precision, falloff, roll)]
+    if method == "l2":  # what l2 does whatever was asked (the notes above say so)
+        views, downsample, precision = 1, 1, "float32"
     # bf16 this CPU would emulate: refused here, before any work
     net_cfg = {"device": device, "views": views, "downsample": downsample,
                "autocast": precision_autocast(precision, device)}

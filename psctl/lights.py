@@ -1109,10 +1109,12 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit, memo)
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
-    for flag, value in (("--falloff", falloff), ("--roll/--no-roll", roll),
-                        ("--precision", None if precision == "float32" else precision)):
-        if not refine and value is not None:
-            est = replace(est, notes=[*est.notes, f"lights: {flag} is unused without --refine"])
+    from psctl.api import unused_note, unused_options
+
+    unused = [unused_note(k, why) for k, why in unused_options("sdps", refine, 1, 1, "float32", falloff, roll)]
+    if not refine and precision != "float32":  # the refinement's network: LCNet alone runs in float32
+        unused.append("lights: --precision is unused without --refine")
+    est = replace(est, notes=[*est.notes, *unused])
     if not refine:
         precision = "float32"  # LCNet's, the only network that ran
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -101,3 +103,34 @@ def capture(tmp_path: Path) -> Path:
     folder = tmp_path / "spherePNG"
     write_capture(folder)
     return folder
+
+
+@pytest.fixture(scope="module")
+def fake_weights(tmp_path_factory) -> Path:
+    """A weights folder with seeded random LCNet and PS-FCN† files (stand-ins for trained ones)."""
+    import torch
+
+    from psctl.models.lcnet import LCNet
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    folder = tmp_path_factory.mktemp("weights")
+    torch.manual_seed(0)
+    save_weights(folder / "lcnet.pt", LCNet().eval(), {"method": "lcnet", "train_images": 32})
+    torch.manual_seed(1)
+    save_weights(folder / "ps_fcn_dagger.pt", PSFCN(), {"method": "ps-fcn-dagger", "train_images": 32})
+    return folder
+
+
+@contextlib.contextmanager
+def weights_in(folder: str | os.PathLike):
+    """$PSCTL_WEIGHTS set to ``folder`` for the block; its value before (a user's own) restored."""
+    old = os.environ.get("PSCTL_WEIGHTS")
+    os.environ["PSCTL_WEIGHTS"] = str(folder)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("PSCTL_WEIGHTS", None)
+        else:
+            os.environ["PSCTL_WEIGHTS"] = old

@@ -458,3 +458,38 @@ def test_options_a_method_does_not_use_are_a_warning(data):
         "l2: views=8, precision='bf16', refine=False unused (l2 solves each pixel alone, at full size, in float64; "
         "only sdps refines lights)"]
     assert got[0].category is psctl.PsctlWarning and got[0].filename == __file__
+
+
+def test_refinement_options_sdps_or_estimate_lights_do_not_use_are_a_warning(data):
+    """sdps and estimate_lights with refine=False took falloff, roll and precision without a
+    word (run_normals and run_lights noted them; an audit found the array API's table had drifted)."""
+    import warnings
+
+    import psctl
+
+    images, lights, mask, _ = data
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        psctl.estimate_normals(images, None, mask, method="sdps", refine=False, falloff="lambertian", roll=False,
+                               device="cpu")
+        psctl.estimate_lights(images, mask, refine=False, roll=True, precision="bf16", device="cpu")
+        psctl.estimate_lights(images, mask, refine=False, device="cpu")  # nothing asked that goes unused
+    assert [str(w.message) for w in got if issubclass(w.category, psctl.PsctlWarning)] == [
+        "sdps: falloff='lambertian', roll=False unused (sdps refines lights only with refine=True)",
+        "estimate_lights: roll=True, precision='bf16' unused (sdps refines lights only with refine=True)"]
+    assert {w.filename for w in got} == {__file__}
+
+
+def test_run_normals_and_estimate_normals_share_the_unused_option_table(tmp_path):
+    """The notes psctl normals prints and the array API's warnings come from one table
+    (psctl.api.unused_options): each option the table names is noted by run_normals."""
+    from psctl.api import run_normals, unused_note, unused_options
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "o", n=6)
+    r = run_normals(tmp_path / "o", method="l2", views=8, downsample=2, precision="bf16", refine=False,
+                    falloff="lambertian", write=False)
+    table = unused_options("l2", False, 8, 2, "bf16", "lambertian", None)
+    assert [k for k, _ in table] == ["falloff", "refine", "views", "downsample", "precision"]
+    assert [n for n in r["notes"] if "unused" in n or "one pass" in n] == [unused_note(k, w, "bf16") for k, w in table]
+    assert r["precision"] == "float32"

@@ -28,7 +28,7 @@ from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_
 from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import load_network, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs
-from tests.conftest import write_capture
+from tests.conftest import write_capture, weights_in
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -57,16 +57,6 @@ def lcnet(seed: int = 0, **config) -> LCNet:
 def psctl(*args, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True,
                           env={**os.environ, "COLUMNS": "100", **(env or {})})
-
-
-@pytest.fixture(scope="module")
-def fake_weights(tmp_path_factory) -> Path:
-    """A weights folder with seeded random LCNet and PS-FCN† files (stand-ins for trained ones)."""
-    folder = tmp_path_factory.mktemp("weights")
-    save_weights(folder / "lcnet.pt", lcnet(), {"method": "lcnet", "train_images": 32})
-    torch.manual_seed(1)
-    save_weights(folder / "ps_fcn_dagger.pt", PSFCN(), {"method": "ps-fcn-dagger", "train_images": 32})
-    return folder
 
 
 # --- architecture -----------------------------------------------------------------------------
@@ -421,8 +411,7 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
 
     write_capture(tmp_path / "root" / "aPNG", n=6, size=40, seed=1)
     write_capture(tmp_path / "root" / "bPNG", n=6, size=40, seed=2)
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         r = run_normals(tmp_path / "root" / "aPNG", method="sdps", out=tmp_path / "o", device="cpu")
         assert r["method"] == "sdps" and any("LCNet" in n and "PS-FCN†" in n for n in r["notes"])
         assert r["light_mae"] is not None and r["intensity_re"] is not None and r["mae"] is not None
@@ -434,8 +423,6 @@ def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
         # --weights names the PS-FCN† file; an LCNet file there is refused clearly
         with pytest.raises(PsctlError, match="LCNet"):
             run_normals(tmp_path / "root" / "aPNG", method="sdps", weights=fake_weights / "lcnet.pt", write=False)
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_sdps_normals_write_the_lights_they_came_from(tmp_path, fake_weights, monkeypatch):
@@ -493,16 +480,13 @@ def test_sdps_decodes_lights_as_its_ps_fcn_dagger_was_trained(tmp_path, fake_wei
     assert sdps_decode("ps-fcn-dagger", tmp_path / "soft.pt") == "soft"
     assert sdps_decode("ps-fcn-n", tmp_path / "soft.pt") == "soft"  # calibrated: continuous lights
     assert sdps_decode("ps-fcn") == "soft"
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         assert sdps_decode("ps-fcn-dagger") == "argmax"  # the installed (fake) file records none
         r = run_normals(tmp_path / "aPNG", method="sdps", weights=tmp_path / "soft.pt", write=False, device="cpu")
         assert r["lcnet_decode"] == "soft" and r["lcnet_views"] == 8
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
         assert r["lcnet_decode"] == "argmax"
         assert r["lcnet_views"] == 1  # bin centres, as that PS-FCN† was trained on
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_path, fake_weights):
@@ -521,8 +505,7 @@ def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_pa
                                                     "train_images": 32})
     data = write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
     (tmp_path / "aPNG" / "light_directions.txt").unlink()  # uncalibrated
-    os.environ["PSCTL_WEIGHTS"] = str(folder)
-    try:
+    with weights_in(folder):
         r = run_normals(tmp_path / "aPNG", out=tmp_path / "o", device="cpu")  # auto
         assert r["method"] == "sdps" and r["second_stage"] == "ps-fcn-n"
         assert any("PS-FCN+N on those lights" in n and "not installed" in n for n in r["notes"])
@@ -534,16 +517,11 @@ def test_sdps_without_ps_fcn_dagger_uses_the_installed_calibrated_network(tmp_pa
                              folder / "ps_fcn_n.pt", {"device": "cpu"}).normals
         got = estimate_normals(images, None, mask, method="sdps", device="cpu", refine=False)
         assert np.abs(got - want).max() < 1e-5
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
     # an explicit PS-FCN† file still wins over the installed PS-FCN+N
-    os.environ["PSCTL_WEIGHTS"] = str(folder)
-    try:
+    with weights_in(folder):
         r = run_normals(tmp_path / "aPNG", method="sdps", weights=fake_weights / "ps_fcn_dagger.pt", write=False,
                         device="cpu")
         assert r["second_stage"] == "ps-fcn-dagger" and any("PS-FCN†" in n for n in r["notes"])
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_sdps_prefers_ps_fcn_dagger_then_ps_fcn_then_ps_fcn_n(tmp_path):
@@ -551,15 +529,12 @@ def test_sdps_prefers_ps_fcn_dagger_then_ps_fcn_then_ps_fcn_n(tmp_path):
 
     folder = tmp_path / "w"
     folder.mkdir()
-    os.environ["PSCTL_WEIGHTS"] = str(folder)
-    try:
+    with weights_in(folder):
         for name, want in (("ps_fcn_n.pt", "ps-fcn-n"), ("ps_fcn.pt", "ps-fcn"), ("ps_fcn_dagger.pt", "ps-fcn-dagger")):
             save_weights(folder / name, PSFCN(), {"method": want, "train_images": 32})
             method, note = sdps_second_stage()
             assert method == want, name
             assert ("not installed" in note) == (want != "ps-fcn-dagger")
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_lights_help_imports_nothing_heavy():
@@ -606,11 +581,8 @@ def test_tiny_ps_fcn_dagger_training_uses_the_frozen_lcnet(tmp_path):
     save_weights(tmp_path / "lc.pt", lcnet(size=32), {"method": "lcnet", "train_images": 8})
     cfg = tiny(16)
     with pytest.raises(PsctlError, match="lcnet"):  # nothing installed and no --lcnet
-        os.environ["PSCTL_WEIGHTS"] = str(tmp_path / "none")
-        try:
+        with weights_in(tmp_path / "none"):
             train("ps-fcn-dagger", cfg, tmp_path / "fail", device="cpu")
-        finally:
-            del os.environ["PSCTL_WEIGHTS"]
     st = train("ps-fcn-dagger", cfg, tmp_path / "run", device="cpu", lcnet=tmp_path / "lc.pt")
     assert st["finished"] and st["lcnet"] == str(tmp_path / "lc.pt")
     w = read_weights(tmp_path / "run" / "best.pt")

@@ -11,7 +11,6 @@ from psctl.io.images import write_image
 from psctl.nearlight import NearLights, near_lights
 from tests.conftest import write_capture
 from tests.test_cli import psctl
-from tests.test_lcnet import fake_weights  # noqa: F401 (a fixture)
 
 
 def _falloff(light: np.ndarray, distance: float, centre: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -11,8 +10,8 @@ import pytest
 from psctl.errors import PsctlError
 from psctl.lights import DEFAULT_REFINE, LightEstimate, refine_estimate, refine_lights, sample_observations
 from psctl.metrics import light_direction_error
-from tests.conftest import hemisphere_lights, sphere, write_capture
-from tests.test_lcnet import fake_weights, psctl  # noqa: F401 (a fixture)
+from tests.conftest import hemisphere_lights, sphere, write_capture, weights_in
+from tests.test_lcnet import psctl
 
 
 def rotate_randomly(dirs: np.ndarray, degrees: float, seed: int) -> np.ndarray:
@@ -197,8 +196,7 @@ def test_sdps_and_lights_use_the_refined_lights(tmp_path, fake_weights, stand_in
     from psctl.lights import run_lights
 
     data = write_capture(tmp_path / "aPNG", n=24, size=48, seed=1)
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
         assert r["lights_refined"]["weight"] == 1.0 and r["lights_refined"]["status"] == "fitted"
         assert r["lcnet_light_mae"] == pytest.approx(8.0, abs=1e-3) and r["light_mae"] < 2.0
@@ -220,8 +218,6 @@ def test_sdps_and_lights_use_the_refined_lights(tmp_path, fake_weights, stand_in
         assert light_direction_error(written, data["lights"]).mean() == pytest.approx(rl["light_mae"], abs=1e-4)
         rl0 = run_lights(tmp_path / "aPNG", write=False, device="cpu", refine=False)
         assert rl0["lights_refined"] is None and rl0["light_mae"] == pytest.approx(8.0, abs=1e-3)
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_lights_without_a_normals_network_says_so(tmp_path, fake_weights):
@@ -233,13 +229,10 @@ def test_lights_without_a_normals_network_says_so(tmp_path, fake_weights):
     folder.mkdir()
     shutil.copy(fake_weights / "lcnet.pt", folder / "lcnet.pt")
     write_capture(tmp_path / "aPNG", n=6, size=40, seed=1)
-    os.environ["PSCTL_WEIGHTS"] = str(folder)
-    try:
+    with weights_in(folder):
         r = run_lights(tmp_path / "aPNG", write=False, device="cpu")
         assert r["lights_refined"] is None and r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
         assert any("not refined" in n for n in r["notes"])
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
 
 
 def test_cli_no_refine_flag(tmp_path, fake_weights):
@@ -295,11 +288,8 @@ def test_sdps_runs_the_second_stage_once_when_the_gate_keeps_lcnets_lights(tmp_p
 
     write_capture(tmp_path / "aPNG", n=12, size=48, seed=1)
     monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "gate", (-2.0, -1.0))  # every fit counts as bad
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
     assert r["lights_refined"]["weight"] == 0.0 and len(stand_in_networks) == 1
     assert r["light_mae"] == pytest.approx(r["lcnet_light_mae"])
     assert any("LCNet's lights kept" in n for n in r["notes"])
@@ -328,11 +318,8 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
 
     monkeypatch.setattr(psctl.lights, "array_lights", array_lights)
     monkeypatch.setattr(psctl.infer, "array_normals", array_normals)
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         out = estimate_normals(images, None, mask, method="sdps", device="cpu")
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
     assert len(seen) == 2 and np.array_equal(out, normals)
     assert light_direction_error(seen[1][0], lights).mean() < 4.0  # the second pass got the refined lights (LCNet: 8)
     # and images divided by the refined intensities: the same up to one scale in every image
@@ -342,11 +329,8 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     fits = []
     real = psctl.lights.refine_arrays
     monkeypatch.setattr(psctl.lights, "refine_arrays", lambda *a: fits.append(a[-1]) or real(*a))
-    os.environ["PSCTL_WEIGHTS"] = str(fake_weights)
-    try:
+    with weights_in(fake_weights):
         estimate_normals(images, None, mask, method="sdps", device="cpu", falloff="lambertian")
-    finally:
-        del os.environ["PSCTL_WEIGHTS"]
     assert fits and all(f is not None and f["falloff"] == "lambertian" for f in fits)
 
 
