@@ -127,7 +127,7 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
     return unit
 
 
-def check_lights_face_camera(unit: np.ndarray, path) -> None:
+def check_lights_face_camera(unit: np.ndarray, path: str | os.PathLike | None) -> None:
     """An error naming ``path`` (light_directions.txt; None: the array) when every light [N, 3]
     has z <= 0: behind the object, most likely an axis convention with z pointing away."""
     if (unit[:, 2] <= 0).all():

@@ -52,15 +52,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import PsctlError, check_bool, check_path, check_progress, like_default
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default
 from psctl.io.normals import ALBEDO_FORMATS
 
-# progress(description, total) -> advance(n), as in psctl.api.ProgressFactory.
-ProgressFactory = Callable[[str, int], Callable[[int], None]]
+if TYPE_CHECKING:
+    from psctl.io.mesh import Mesh
 
 METHODS = ("poisson", "bilateral")
 
@@ -566,7 +567,7 @@ def shade(normals: np.ndarray, light: np.ndarray = LIGHT, ambient: float = 0.08)
 
 
 def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarray | None = None,
-               colors: np.ndarray | None = None, cut: np.ndarray | None = None):
+               colors: np.ndarray | None = None, cut: np.ndarray | None = None) -> "Mesh":
     """A triangle mesh with one vertex per pixel of finite depth.
 
     Each 2 x 2 block of pixels gives two triangles when all four have depth, one when three do,

@@ -11,8 +11,6 @@ import numpy as np
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
 from psctl.errors import PsctlError, check_bool, check_path, check_progress
 
-DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
-
 # Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
 # objects of the DiLiGenT development split. Shown beside our numbers, never mixed with them.
 PAPER_DILIGENT = {

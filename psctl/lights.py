@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -58,6 +58,7 @@ if TYPE_CHECKING:
     from psctl.infer import Reader  # reader(start, box) yields images start.. as float32 [h, w, 3] cropped to box
     from psctl.io.capture import Capture, DecodeMemo
     from psctl.models.lcnet import LCNet
+    from psctl.models.weights import Weights
 
 DEFAULT_LIGHTS = {
     "device": "auto",  # auto | cpu | cuda
@@ -108,7 +109,7 @@ class LightEstimate:
 
 # --- the network ------------------------------------------------------------------------------
 
-def load_lcnet(weights: str | os.PathLike | None = None, flag: str = "--weights"):
+def load_lcnet(weights: str | os.PathLike | None = None, flag: str = "--weights") -> tuple["LCNet", "Weights"]:
     """LCNet with installed weights (weights/lcnet.pt) or ``weights`` (psctl's file or the
     authors' LCNet_CVPR2019.pth.tar); returns (model, weights). ``flag`` names the option that
     passes a file, for the error message when nothing is installed."""
@@ -571,7 +572,8 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
 
 
 def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
-                        config: dict | None = None, advance=None) -> tuple[np.ndarray, np.ndarray]:
+                        config: dict | None = None,
+                        advance: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Grey observations [n, P] and normals [P, 3] at up to ``pixels`` seeded mask pixels.
 
     ``reader(start, box)`` yields the images as captured (see ``psctl.infer.Reader``); they are

@@ -30,7 +30,6 @@ This module must not import OpenImageIO: it runs on the GPU machine, which lacks
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import copy
 import json
@@ -42,13 +41,17 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from psctl.errors import PsctlError, like_default
 from psctl.models.weights import save_torch
 from psctl.synth.stream import MAX_SEED
+
+if TYPE_CHECKING:
+    from psctl.models.lcnet import LCNet
+    from psctl.synth.stream import SynthStream
 
 DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"fuse": "max"},
@@ -421,14 +424,6 @@ class _Stop:
                 signal.signal(sig, old)
 
 
-def _rng_to_text(state: torch.Tensor) -> str:
-    return base64.b64encode(state.cpu().numpy().tobytes()).decode()
-
-
-def _rng_from_text(text: str) -> torch.Tensor:
-    return torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone()
-
-
 def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] | tuple = ()) -> list[str]:
     """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file);
     ``previous`` (the parts the run's state listed) not written again are removed, and no
@@ -471,6 +466,7 @@ def _load_part(path: Path) -> Any:
 
 
 def load_optimizer(run: Path, optim: torch.optim.Optimizer, names: list[str], device: torch.device) -> None:
+    """Adam's state from the parts ``names`` (``save_optimizer``) in ``run``, onto ``device``."""
     if not names:  # a run whose Adam state was dropped on purpose (state.json "optim_files": []): fresh moments
         return
     state: dict = {}
@@ -612,7 +608,8 @@ def lr_at(samples: int, cfg: dict) -> float:
     return lr
 
 
-def synth_stream(data: dict, *, batch_size: int, images: int, crop: int, seed: int, device: torch.device):
+def synth_stream(data: dict, *, batch_size: int, images: int, crop: int, seed: int,
+                 device: torch.device) -> "SynthStream":
     """The synthetic training stream (psctl.synth.stream.SynthStream) for a recipe's ``data`` section."""
     from psctl.synth.stream import SynthStream
 
@@ -634,7 +631,7 @@ class Task:
     metadata: dict = field(default_factory=dict)  # method-specific weights metadata
 
 
-def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.device):
+def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.device) -> tuple["LCNet", dict]:
     """The LCNet that estimates PS-FCN†'s training lights: ``path``, else the recipe's
     ``lcnet.weights``, else the installed weights/lcnet.pt. Returns (model, provenance)."""
     from psctl.models.lcnet import DECODINGS

@@ -1542,3 +1542,22 @@ def test_a_closed_stderr_at_start_still_runs(capture, tmp_path):
     proc = run("train", "ps-fcn", "--config", Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml",
                "--out", tmp_path / "run", "--device", "cpu")
     assert proc.returncode == 0 and (tmp_path / "run" / "best.pt").is_file()
+
+
+def test_eval_takes_every_option_normals_takes():
+    """`psctl eval` runs each object as `psctl normals` does: a method option added to one and
+    not the other (the commands and their library functions pass 14 of them along by name) would
+    make the benchmark's numbers come from other settings than a user's run. Same names, same
+    defaults, on both layers."""
+    import inspect
+
+    from psctl import cli
+    from psctl.api import run_normals
+    from psctl.eval import run_benchmark
+
+    def options(f, own):
+        return {k: p.default for k, p in inspect.signature(f).parameters.items() if k not in own}
+
+    assert options(run_normals, {"path", "arrays", "batch", "formats", "write"}) == \
+        options(run_benchmark, {"benchmark", "root"})
+    assert options(cli.normals, {"path", "fmt"}) == options(cli.evaluate, {"benchmark", "root"})

@@ -62,11 +62,13 @@ def _umask() -> int:
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """``data`` into ``path`` through a temporary name beside it (no half-written file)."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """``text`` as UTF-8 into ``path``, atomically (``write_bytes_atomic``)."""
     write_bytes_atomic(path, text.encode("utf-8"))
 
 

@@ -138,6 +138,7 @@ def object_name(path: str | os.PathLike) -> str:
 
 
 def natural_key(s: str) -> list:
+    """Sort key that orders file names as people count: img2 before img10, case ignored."""
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
 
 
@@ -355,6 +356,7 @@ def _unread(entries: list[Path], used: set[Path]) -> tuple[str, ...]:
 
 
 def is_capture_folder(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder that holds a capture (images, maybe light files)."""
     path = Path(path)
     return path.is_dir() and _is_capture(path, list(path.iterdir()))
 
@@ -440,6 +442,7 @@ def root_notes(root: str | os.PathLike) -> list[str]:
 
 
 def is_benchmark_root(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder of capture folders (a benchmark root such as DiLiGenT's)."""
     path = Path(path)
     return path.is_dir() and _is_benchmark_root(path, list(path.iterdir()))
 

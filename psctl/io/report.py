@@ -352,4 +352,5 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
 
 
 def write_json(path: str | os.PathLike, obj: dict) -> None:
+    """``obj`` as indented JSON into ``path``, atomically."""
     write_text_atomic(Path(path), json.dumps(obj, indent=2) + "\n")

@@ -184,6 +184,7 @@ def _console():
 
 
 def render_info(report: dict) -> None:
+    """The human-readable summary of ``psctl info``'s report (Rich, stdout)."""
     from rich.table import Table
 
     con = _console()
@@ -284,6 +285,7 @@ def _fmt(x: float | None) -> str:
 
 
 def render_normals(r: dict, quiet: bool = False) -> None:
+    """The human-readable summary of ``run_normals``'s report (Rich, stdout); notes only when ``quiet``."""
     con = _console()
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
@@ -351,6 +353,7 @@ def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[st
 
 
 def render_benchmark(result: dict) -> None:
+    """The table of ``psctl eval``'s result, one row an object, with the paper's numbers where known."""
     con = _console()
     objs = result["objects"]
     # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal

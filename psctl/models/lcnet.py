@@ -165,6 +165,7 @@ class LCNet(nn.Module):
 
 
 def count_parameters(model: nn.Module) -> int:
+    """Number of learnt values (weights and biases)."""
     return sum(p.numel() for p in model.parameters())
 
 
@@ -297,11 +298,6 @@ def classification_loss(logits: dict[str, torch.Tensor], dirs: torch.Tensor, int
     terms = {k: F.cross_entropy(logits[k].float().flatten(0, -2), targets[k].flatten()) for k in targets}
     total = sum(w * terms[k] for w, k in zip(weights, ("dir_x", "dir_y", "ints")))
     return total, {k: float(v.detach()) for k, v in terms.items()}
-
-
-def bin_width_degrees(k: int = DEFAULT_CONFIG["dirs_cls"]) -> float:
-    """Angular width of one azimuth / elevation class."""
-    return 180.0 / k
 
 
 __all__ = ["LCNet", "DEFAULT_CONFIG", "decode", "classification_loss", "resize_inputs", "dirs_to_classes",

@@ -146,6 +146,7 @@ class PSFCN(nn.Module):
 
 
 def count_parameters(model: nn.Module) -> int:
+    """Number of learnt values (weights and biases)."""
     return sum(p.numel() for p in model.parameters())
 
 

@@ -105,6 +105,7 @@ def _not_a_folder(d: Path) -> str:
 
 
 def file_name(method: str) -> str:
+    """The release file name of ``method``'s weights: ps-fcn-n -> ps_fcn_n.pt."""
     return method.replace("-", "_") + SUFFIX
 
 
@@ -121,6 +122,7 @@ _TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
 
 
 def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
+    """The error for ``method`` with nothing installed: where it looked, and how to train or pass a file."""
     where = f"{weights_dir() / file_name(method)}{missing_folder_note()}"
     if method in _TRAIN_HINTS:
         recipe, official = _TRAIN_HINTS[method]

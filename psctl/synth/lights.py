@@ -118,13 +118,3 @@ def sample_intensities(shape: tuple[int, ...], gen: torch.Generator, mode: str =
         pick = torch.rand((*shape[:-1], 1), generator=gen, device=dev) < 0.5
         e = torch.where(pick, e, iid)
     return e
-
-
-def fibonacci_lights(n: int, max_zenith: float = 90.0, device: torch.device | str = "cpu") -> Tensor:
-    """[n, 3] deterministic, evenly spread directions over the cap of zenith <= max_zenith."""
-    k = torch.arange(n, dtype=torch.float64, device=device) + 0.5
-    zmin = math.cos(math.radians(max_zenith))
-    z = 1.0 - (1.0 - zmin) * k / n
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    r = (1.0 - z * z).clamp_min(0.0).sqrt()
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).float()

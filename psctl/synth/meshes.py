@@ -31,7 +31,6 @@ from psctl.errors import PsctlError
 from psctl.synth.shapes import BACKGROUND, GBuffer, random_rotations
 
 TEST_SHAPES = ("sphere", "bunny", "dragon", "armadillo")
-TRAIN_MESHES = ("lucy",)
 
 
 def mesh_dir() -> Path:

@@ -14,6 +14,7 @@ The union and the dents give concavities and creases, the low frequencies smooth
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -260,7 +261,8 @@ def _march(s: dict[str, Tensor], sdf, x: Tensor, y: Tensor, ids: Tensor, z: Tens
     return z_stop, z_prev
 
 
-def render_sdf(s: dict[str, Tensor], size: int, sdf=blobby_sdf, steps: int = BLOBBY["steps"],
+def render_sdf(s: dict[str, Tensor], size: int,
+               sdf: Callable[[Tensor, dict[str, Tensor]], Tensor] = blobby_sdf, steps: int = BLOBBY["steps"],
                bound: float = 1.0, name: str = "blobby", block: int = 4) -> GBuffer:
     """Sphere-trace n SDF shapes into size x size G-buffers (orthographic, rays along -z).
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -116,7 +117,7 @@ DEFAULT_CONFIG: dict = {
 }
 
 
-def intensity_errors(b: int, n: int, opts: dict, gen: torch.Generator, device) -> Tensor:
+def intensity_errors(b: int, n: int, opts: dict, gen: torch.Generator, device: torch.device | str) -> Tensor:
     """[b, n] true / listed intensity factors for ``intensity_error`` (1 where listed is true)."""
     lo_s, hi_s = opts.get("share", (0.0, 0.4))
     lo_f, hi_f = opts.get("scale", (0.7, 1.4))
@@ -187,7 +188,7 @@ def _error_opts(name: str, opts, keys: tuple[str, ...]) -> Callable[[str, tuple]
     return pair
 
 
-def check_direction_error(opts) -> None:
+def check_direction_error(opts: dict | None) -> None:
     """Raise PsctlError unless ``opts`` is None or a valid ``direction_error`` dict (keys p,
     zenith_scale, jitter; 0 <= p <= 1, 0 < zenith_scale lo <= hi <= 1.5, 0 <= jitter lo <= hi <= 10)."""
     pair = _error_opts("direction_error", opts, DIRECTION_ERROR_KEYS)
@@ -201,7 +202,7 @@ def check_direction_error(opts) -> None:
         raise PsctlError(None, f"{where}: need 0 <= jitter lo <= hi <= 10 (degrees), got [{j_lo}, {j_hi}]")
 
 
-def check_intensity_error(opts) -> None:
+def check_intensity_error(opts: dict | None) -> None:
     """Raise PsctlError unless ``opts`` is None or a valid ``intensity_error`` dict (keys p, share,
     scale; 0 <= p <= 1, 0 <= share lo <= hi <= 1, 0 < scale lo <= hi)."""
     pair = _error_opts("intensity_error", opts, INTENSITY_ERROR_KEYS)
@@ -215,7 +216,7 @@ def check_intensity_error(opts) -> None:
         raise PsctlError(None, f"{where}: need 0 < scale lo <= hi, got [{f_lo}, {f_hi}]")
 
 
-def check_near_lights(opts) -> None:
+def check_near_lights(opts: dict | None) -> None:
     """Raise PsctlError unless ``opts`` is None or a valid ``near_lights`` dict (keys p, radii;
     0 <= p <= 1, 2 <= radii lo <= hi, finite: a light must clear the object)."""
     pair = _error_opts("near_lights", opts, NEAR_LIGHTS_KEYS)
@@ -303,7 +304,7 @@ def _check_options(cfg: dict) -> None:
             raise PsctlError(None, f"{where('interreflection')}: need 0 <= albedo lo <= hi < 1, got [{lo}, {hi}]")
 
 
-def make_config(config: dict | None = None, **overrides) -> dict:
+def make_config(config: dict | None = None, **overrides: Any) -> dict:
     """DEFAULT_CONFIG updated by ``config`` and keyword overrides; unknown keys, and values of
     the wrong kind or out of range, are errors."""
     if config is not None and not isinstance(config, dict):

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from psctl.errors import PsctlError
+from psctl.errors import ProgressFactory, PsctlError
 from psctl.synth import DEFAULT_K, check_preset, physical_memory
 from psctl.synth import lights as L
 from psctl.synth import materials as M
@@ -360,7 +360,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
                  k: int | None = None, preview: bool = False, shadows: bool = True,
                  sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
                  interreflections: int = 0, ir_albedo: float | None = None, light_distance: float | None = None,
-                 progress=None) -> dict:
+                 progress: "ProgressFactory | None" = None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
 
     Args:
