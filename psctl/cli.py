@@ -431,22 +431,13 @@ def synth(
     with _user_errors():
         from psctl.synth import check_preset
 
-        preset, light_dist, intensities = preset.lower(), light_dist.lower(), intensities.lower()  # as --method: BLOBBY is blobby
-        check_preset(preset)  # before the heavy imports: a typo fails at once
-        from psctl.synth.write import write_preset  # (preset_objects checks --light-dist before writing)
-
-        def show(report: dict) -> None:
-            n = len(report["objects"])
-            typer.echo(f"wrote {n} object{'s' if n != 1 else ''} to {report['out']} ({report['seconds']:.1f} s)")
-            if report["preview"]:
-                typer.echo(f"preview: {report['preview']}")
-            if report.get("removed"):
-                typer.echo(f"removed {', '.join(report['removed'])}, left by an earlier psctl synth run")
+        check_preset(preset)  # before the heavy imports: a typo fails at once (write_preset takes BLOBBY as blobby)
+        from psctl.synth.write import render_synth, write_preset  # (preset_objects checks --light-dist before writing)
 
         _run(lambda progress: write_preset(out, preset, seed=seed, size=size, n_lights=lights, k=materials, light_dist=light_dist,
                                            intensities=intensities, interreflections=interreflections, ir_albedo=ir_albedo,
                                            light_distance=light_distance, preview=preview, progress=progress),
-             json_out, quiet, show)
+             json_out, quiet, render_synth)
 
 
 @app.command(cls=_Command)
@@ -484,10 +475,10 @@ def train(
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
-    method = method.lower()  # as --method of normals: PS-FCN is ps-fcn
     with _user_errors():
-        from psctl.models.weights import installed_path, read_weights
-        from psctl.train import average_weights, check_method, install_weights, load_config, train as run_training
+        from psctl.models.weights import read_weights
+        from psctl.train import (average_weights, check_install, check_method, install_weights, load_config,
+                                 train as run_training)
 
         from psctl.errors import PsctlError
 
@@ -495,15 +486,9 @@ def train(
             raise PsctlError("--force", "only replaces an installed file together with --install")
         if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
             raise PsctlError("--max-minutes", f"must be a positive number of minutes, not {max_minutes}")
-        if install:  # where --install writes must be a folder (or become one): said before training
-            from psctl.models.weights import weights_dir
-
-            if weights_dir().exists() and not weights_dir().is_dir():
-                raise PsctlError(weights_dir(), "is not a folder: --install writes the weights there ($PSCTL_WEIGHTS)")
-        if install and not force and installed_path(method) is not None:  # say so before hours of training
-            raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
-                                                     "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
-        check_method(method)  # before anything else is said about the other options
+        if install:  # said before hours of training
+            check_install(method, replace=force)
+        method = check_method(method)  # before anything else is said about the other options
         if average:
             if resume is not None or out is None:
                 raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "

@@ -125,12 +125,16 @@ _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max
             ("lcnet", "decode"): ("argmax", "soft")}
 
 
-def check_method(method: str) -> None:
-    """A method ``psctl train`` trains (psctl.models.WEIGHTS_METHODS), or a one-line error."""
+def check_method(method: str) -> str:
+    """A method ``psctl train`` trains (psctl.models.WEIGHTS_METHODS), in lower case as the
+    command line takes it (PS-FCN is ps-fcn), or a one-line error."""
     from psctl.models import WEIGHTS_METHODS
 
+    if isinstance(method, str):
+        method = method.lower()
     if method not in WEIGHTS_METHODS:
         raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
+    return method
 
 
 def check_recipe(config: dict) -> dict:
@@ -860,11 +864,14 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         note: called with each note on the data at the start (the stream had no training
             meshes: procedural shapes only); the notes are also in state.json and the weights'
             metadata (``data_notes``).
+
+    Side effects on the process: torch's global generator is seeded (the initial weights), and
+    on a CPU ``keep_freed_memory`` keeps the heap at its peak size afterwards.
     """
     from psctl.infer import pick_device
     from psctl.models.weights import save_weights
 
-    check_method(method)
+    method = check_method(method)
     if lcnet is not None and method != "ps-fcn-dagger":
         raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
     dev = pick_device(device)
@@ -1179,6 +1186,8 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
     from psctl.models.weights import _training_clip, read_weights, save_weights
 
+    if method is not None:
+        method = check_method(method)
     if len(files) < 2:
         raise PsctlError(None, f"averaging needs at least two weight files, got {len(files)}")
     seen: dict = {}
@@ -1267,6 +1276,21 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     return save_weights(out, avg, meta)
 
 
+def check_install(method: str, replace: bool = False) -> None:
+    """Before a run whose weights will be installed (``psctl train --install``; in Python, call
+    it before ``train`` and ``install_weights``): hours of training must not end in a refusal. The
+    weights folder must be a folder (or not exist yet), and ``method``'s release file absent
+    unless ``replace``."""
+    from psctl.models.weights import installed_path, weights_dir
+
+    method = check_method(method)
+    if weights_dir().exists() and not weights_dir().is_dir():
+        raise PsctlError(weights_dir(), "is not a folder: --install writes the weights there ($PSCTL_WEIGHTS)")
+    if not replace and installed_path(method) is not None:
+        raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
+                                                 "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
+
+
 def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:
     """Copy a run's best weights into the weights folder as the release file for ``method``.
 
@@ -1284,6 +1308,7 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     from psctl.io.atomic import atomic_path
     from psctl.models.weights import file_name, installed_path, read_weights, save_weights, weights_dir
 
+    method = check_method(method)
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
         raise PsctlError(src, "no best weights in this run yet")

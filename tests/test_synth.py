@@ -534,8 +534,8 @@ def test_synth_folder_intensities(tmp_path):
     assert not torch.equal(dirn[0].intensities, dirn[1].intensities)  # a rig per object
     with pytest.raises(PsctlError, match="unknown --intensities 'bright'"):
         preset_objects("blobby", size=16, n_lights=12, k=1, intensities="bright")
-    r = write_preset(tmp_path / "set", "blobby", seed=3, size=16, n_lights=12, k=2, intensities="directional")
-    assert r["intensities"] == "directional"
+    r = write_preset(tmp_path / "set", "BLOBBY", seed=3, size=16, n_lights=12, k=2, intensities="Directional")
+    assert r["intensities"] == "directional" and r["preset"] == "blobby"  # names as the command line takes them
     for o in dirn:  # the files hold the drawn intensities, one RGB row per light
         e = np.loadtxt(tmp_path / "set" / o.name / "light_intensities.txt")
         assert np.allclose(e, o.intensities.numpy()[:, None].repeat(3, 1), atol=1e-5)

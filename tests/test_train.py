@@ -341,6 +341,19 @@ def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeyp
     assert small.read_bytes() == (run / "best.pt").read_bytes()
     with pytest.raises(PsctlError, match="already installed"):  # a release file is replaced on purpose only
         T.install_weights(run, "ps-fcn")
+    # what psctl train --install checks before training, for Python too; names as the CLI takes them
+    with pytest.raises(PsctlError, match="already installed"):
+        T.check_install("PS-FCN")
+    T.check_install("ps-fcn", replace=True)
+    T.check_install("ps-fcn-n")
+    assert T.check_method("PS-FCN-N") == "ps-fcn-n"
+    with pytest.raises(PsctlError, match="cannot train 'ps-fcn-x'"):
+        T.check_install("PS-FCN-X")
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "file"))
+    with pytest.raises(PsctlError, match="is not a folder: --install writes the weights there"):
+        T.check_install("ps-fcn")
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))
     monkeypatch.setattr(T, "RELEASE_MAX_BYTES", small.stat().st_size - 1)
     half = T.install_weights(run, "ps-fcn", replace=True)
     w = read_weights(half)

@@ -36,7 +36,10 @@ def physical_memory() -> float:
 
 
 def check_preset(preset: str) -> str:
-    """The preset name, or a PsctlError listing the valid ones."""
+    """The preset name in lower case (as the command line takes it: SYNTEST is syntest), or a
+    PsctlError listing the valid ones."""
+    if isinstance(preset, str):
+        preset = preset.lower()
     if preset not in PRESETS:
         raise PsctlError(None, f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     return preset

@@ -90,6 +90,11 @@ def render_bytes(size: int, n_lights: int) -> float:
     return 0.4e9 + 44.0 * n_lights * size * size
 
 
+def _lower(*names: str) -> tuple:
+    """Names in lower case, as the command line takes them (DILIGENT is diligent); others as given."""
+    return tuple(n.lower() if isinstance(n, str) else n for n in names)
+
+
 def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                    k: int | None = None, light_dist: str = "hemisphere", intensities: str = "unit") -> list[SynthObject]:
     """The objects of a preset (geometry, materials, lights), not yet rendered.
@@ -100,6 +105,7 @@ def preset_objects(preset: str, seed: int = 0, size: int = 128, n_lights: int = 
     intensities, drawn per object (each object its own rig), for uncalibrated methods; unit
     keeps the presets as they were.
     """
+    preset, light_dist, intensities = _lower(preset, light_dist, intensities)
     check_preset(preset)
     L.zenith_band(light_dist)  # validates the name before any work
     L.check_intensities(intensities, "--intensities")
@@ -383,6 +389,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     from psctl.io.atomic import check_output_dir, ensure_writable_dir, missing_folders, remove_empty
 
     t0 = time.perf_counter()
+    preset, light_dist, intensities = _lower(preset, light_dist, intensities)
     out = Path(out)
     check_output_dir(out)
     _check_synth_root(out)
@@ -518,3 +525,13 @@ def _sheet(rows: list[np.ndarray]) -> np.ndarray:
     for r in rows:
         out += [r, gap]
     return np.concatenate(out[:-1], 0)
+
+
+def render_synth(report: dict) -> None:
+    """The human-readable summary of ``write_preset``'s report (stdout)."""
+    n = len(report["objects"])
+    print(f"wrote {n} object{'s' if n != 1 else ''} to {report['out']} ({report['seconds']:.1f} s)")
+    if report["preview"]:
+        print(f"preview: {report['preview']}")
+    if report.get("removed"):
+        print(f"removed {', '.join(report['removed'])}, left by an earlier psctl synth run")
