@@ -839,6 +839,109 @@ def evaluate(task: Task, val: list[tuple]) -> float:
 STOP = "psctl.train.STOP"
 
 
+def _resumed_state(state_file: Path, method: str, config: dict | None,
+                   lcnet: str | os.PathLike | None) -> tuple[dict, dict]:
+    """A run's state.json, checked against the resume's arguments: the same method, the recipe
+    it started with (``config`` may only lengthen it), the same frozen LCNet. Returns (state,
+    the recipe to go on with)."""
+    try:
+        saved = json.loads(state_file.read_text())
+        if not isinstance(saved, dict) or "method" not in saved:
+            raise ValueError("not a run's state")
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise PsctlError(state_file, f"is not a readable run state ({e}); the run cannot be resumed") from None
+    _check_state(state_file, saved)
+    if saved["method"] != method:
+        raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
+    if "config" not in saved:
+        raise PsctlError(state_file, "records no recipe (a run from an older psctl): cannot resume it safely")
+    # a run started by an older psctl lacks keys added since: they take their defaults
+    # (which reproduce the old behaviour), so it resumes, and compares equal to its recipe
+    saved["config"] = _plain_json(merge(DEFAULT_CONFIG, saved["config"]))
+    if config is not None:
+        # only the length of the run and its bookkeeping may change on resume
+        changed = _recipe_core(config) != _recipe_core(saved["config"])
+        if changed:
+            raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
+                                         "(a run keeps its recipe) or start a new run with --out")
+        config = check_recipe(config)  # a bad value is its one line, not a TypeError here
+        check_sizes(method, config)  # its method label too, which the comparison leaves out
+        asked = config["train"]["samples"]
+        if asked < saved["samples"] and asked != saved["config"]["train"]["samples"]:
+            # a shorter recipe would "finish" without its last samples validated (a run's own
+            # length may be passed a little: its last batch)
+            raise PsctlError(state_file, f"the run has seen {saved['samples']:,} samples; a recipe of "
+                                         f"{asked:,} would end before them (train.samples)")
+        saved["config"]["train"].update({k: config["train"][k] for k in RESUME_MAY_CHANGE})
+    config = saved["config"]
+    if lcnet is not None and saved.get("lcnet") and _portable(lcnet) != saved["lcnet"]:
+        raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
+    return saved, config
+
+
+def _restore_checkpoint(run: Path, st: dict, method: str, model: torch.nn.Module, optim: torch.optim.Optimizer,
+                        dev: torch.device) -> None:
+    """The checkpoint's weights and Adam state into ``model`` and ``optim``, each file checked to
+    be this run's and of this checkpoint (``st``: state.json)."""
+    from psctl.models.weights import read_weights
+
+    w = read_weights(run / "model.pt")
+    if w.method != method:  # same shapes (PS-FCN and PS-FCN+N) would load without a word
+        raise PsctlError(run / "model.pt", f"holds {w.method} weights, not this {method} run's")
+    try:
+        model.load_state_dict(w.state_dict)
+    except RuntimeError as e:  # another network's file in this run's folder
+        first = " ".join(str(e).split())[:160]
+        raise PsctlError(run / "model.pt", f"does not hold this {method} run's network ({first})") from None
+    load_optimizer(run, optim, st["optim_files"], dev)
+    # files of one checkpoint, not one from another point of the run (a folder put together
+    # from parts, as the GPU workflow moves it): each says how far it got
+    seen = w.metadata.get("samples_seen")
+    if seen is not None and seen != st["samples"]:
+        raise PsctlError(run / "model.pt", f"was saved at {seen:,} samples, state.json at {st['samples']:,}: "
+                                           f"not this checkpoint's; the run cannot continue exactly")
+    # (Adam's own count: a resume with fresh moments, "optim_files": [], starts it again at 0)
+    steps = _adam_steps(optim)
+    if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
+        raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json "
+                                                     f"at step {st['optim_step']:,}: not this checkpoint's; the "
+                                                     f"run cannot continue exactly")
+    if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
+        best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
+        if best.method != method:
+            raise PsctlError(run / "best.pt", f"holds {best.method} weights, not this {method} run's")
+
+
+def _restore_stream(run: Path, st: dict, stream: Any) -> None:
+    """The data stream's state from the checkpoint's stream.pt, checked to be of this checkpoint."""
+    if not (run / "stream.pt").is_file():
+        raise PsctlError(run / "stream.pt", "is missing: the run cannot continue its data stream exactly")
+    state = _load_part(run / "stream.pt")
+    if isinstance(state, dict) and set(state) == {"samples", "stream"}:  # since session 49: with its count
+        if state["samples"] != st["samples"]:
+            raise PsctlError(run / "stream.pt", f"was saved at {state['samples']:,} samples, state.json at "
+                                                f"{st['samples']:,}: not this checkpoint's; the run cannot "
+                                                f"continue exactly")
+        state = state["stream"]
+    try:
+        stream.load_state_dict(state)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
+        raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
+
+
+def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
+    """What the stream says it left out (its notes), and its geometry sources with their weights
+    (not where the meshes are, which may differ between machines)."""
+    data_notes = list(dict.fromkeys(getattr(stream, "notes", None) or []))
+    pool = getattr(stream, "pool", None)
+    sources = [list(x) for x in getattr(pool, "sources", [])]
+    if any(x[0] == "mesh" for x in sources):  # .obj files and a view cache draw their views differently
+        bank = getattr(pool, "mesh_bank", None)
+        sources.append(["mesh_from", "cache" if bank is not None else "obj",
+                        sorted(set(bank.names)) if bank is not None else sorted(m[0] for m in pool.mesh_data)])
+    return data_notes, sources
+
+
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], object] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None,
@@ -894,39 +997,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
     saved = None
     if resume:
-        try:
-            saved = json.loads(state_file.read_text())
-            if not isinstance(saved, dict) or "method" not in saved:
-                raise ValueError("not a run's state")
-        except (OSError, UnicodeDecodeError, ValueError) as e:
-            raise PsctlError(state_file, f"is not a readable run state ({e}); the run cannot be resumed") from None
-    if saved is not None:
-        _check_state(state_file, saved)
-        if saved["method"] != method:
-            raise PsctlError(state_file, f"is a {saved['method']} run, not {method}")
-        if "config" not in saved:
-            raise PsctlError(state_file, "records no recipe (a run from an older psctl): cannot resume it safely")
-        # a run started by an older psctl lacks keys added since: they take their defaults
-        # (which reproduce the old behaviour), so it resumes, and compares equal to its recipe
-        saved["config"] = _plain_json(merge(DEFAULT_CONFIG, saved["config"]))
-        if config is not None:
-            # only the length of the run and its bookkeeping may change on resume
-            changed = _recipe_core(config) != _recipe_core(saved["config"])
-            if changed:
-                raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
-                                             "(a run keeps its recipe) or start a new run with --out")
-            config = check_recipe(config)  # a bad value is its one line, not a TypeError here
-            check_sizes(method, config)  # its method label too, which the comparison leaves out
-            asked = config["train"]["samples"]
-            if asked < saved["samples"] and asked != saved["config"]["train"]["samples"]:
-                # a shorter recipe would "finish" without its last samples validated (a run's own
-                # length may be passed a little: its last batch)
-                raise PsctlError(state_file, f"the run has seen {saved['samples']:,} samples; a recipe of "
-                                             f"{asked:,} would end before them (train.samples)")
-            saved["config"]["train"].update({k: config["train"][k] for k in RESUME_MAY_CHANGE})
-        config = saved["config"]
-        if lcnet is not None and saved.get("lcnet") and _portable(lcnet) != saved["lcnet"]:
-            raise PsctlError(lcnet, f"the run's frozen LCNet is {saved['lcnet']}; resume without --lcnet")
+        saved, config = _resumed_state(state_file, method, config, lcnet)
     if config is None:
         config = load_config(None)
     config = check_recipe(config)  # a recipe given as a dict, not through load_config
@@ -979,60 +1050,15 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         model.to(memory_format=torch.channels_last)  # in place: the task's closures hold this module
     optim = torch.optim.Adam(model.parameters(), lr=t["lr"], betas=tuple(t["betas"]), weight_decay=t["weight_decay"])
     if resume:
-        from psctl.models.weights import read_weights
-
-        w = read_weights(run / "model.pt")
-        if w.method != method:  # same shapes (PS-FCN and PS-FCN+N) would load without a word
-            raise PsctlError(run / "model.pt", f"holds {w.method} weights, not this {method} run's")
-        try:
-            model.load_state_dict(w.state_dict)
-        except RuntimeError as e:  # another network's file in this run's folder
-            first = " ".join(str(e).split())[:160]
-            raise PsctlError(run / "model.pt", f"does not hold this {method} run's network ({first})") from None
-        load_optimizer(run, optim, st["optim_files"], dev)
-        # files of one checkpoint, not one from another point of the run (a folder put together
-        # from parts, as the GPU workflow moves it): each says how far it got
-        seen = w.metadata.get("samples_seen")
-        if seen is not None and seen != st["samples"]:
-            raise PsctlError(run / "model.pt", f"was saved at {seen:,} samples, state.json at {st['samples']:,}: "
-                                               f"not this checkpoint's; the run cannot continue exactly")
-        # (Adam's own count: a resume with fresh moments, "optim_files": [], starts it again at 0)
-        steps = _adam_steps(optim)
-        if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
-            raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json "
-                                                         f"at step {st['optim_step']:,}: not this checkpoint's; the "
-                                                         f"run cannot continue exactly")
-        if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
-            best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
-            if best.method != method:
-                raise PsctlError(run / "best.pt", f"holds {best.method} weights, not this {method} run's")
+        _restore_checkpoint(run, st, method, model, optim, dev)
 
     stream = make_stream(config["data"], batch_size=t["batch_size"], images=t["images_per_sample"],
                          crop=t["crop"], seed=st["stream_seed"], device=dev)
     if resume and hasattr(stream, "load_state_dict"):  # without it the run would go on, but not exactly
-        if not (run / "stream.pt").is_file():
-            raise PsctlError(run / "stream.pt", "is missing: the run cannot continue its data stream exactly")
-        state = _load_part(run / "stream.pt")
-        if isinstance(state, dict) and set(state) == {"samples", "stream"}:  # since session 49: with its count
-            if state["samples"] != st["samples"]:
-                raise PsctlError(run / "stream.pt", f"was saved at {state['samples']:,} samples, state.json at "
-                                                    f"{st['samples']:,}: not this checkpoint's; the run cannot "
-                                                    f"continue exactly")
-            state = state["stream"]
-        try:
-            stream.load_state_dict(state)
-        except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
-            raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
+        _restore_stream(run, st, stream)
     # what the stream had to leave out (no training meshes: procedural shapes only), said and
     # recorded; a resume must see the same data as the run's start
-    data_notes = list(dict.fromkeys(getattr(stream, "notes", None) or []))
-    # the geometry sources and their weights (where the meshes are may differ between machines)
-    pool = getattr(stream, "pool", None)
-    sources = [list(x) for x in getattr(pool, "sources", [])]
-    if any(x[0] == "mesh" for x in sources):  # .obj files and a view cache draw their views differently
-        bank = getattr(pool, "mesh_bank", None)
-        sources.append(["mesh_from", "cache" if bank is not None else "obj",
-                        sorted(set(bank.names)) if bank is not None else sorted(m[0] for m in pool.mesh_data)])
+    data_notes, sources = _data_sources(stream)
     if saved is not None and "data_sources" in saved and saved["data_sources"] != sources:
         was = "; ".join(saved.get("data_notes") or []) or "every source"
         raise PsctlError(state_file, f"the run's data differ from its start (then: {was}; now: "
