@@ -50,7 +50,7 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
     when there is none, or when the file holds another network (``flag`` names the option that
     passed it).
     """
-    from psctl.models.weights import installed_path, no_weights_error, read_weights
+    from psctl.models.weights import ENV_VAR, file_name, installed_path, missing_folder_note, read_weights, weights_dir
 
     if weights is not None:
         w = read_weights(weights)
@@ -63,8 +63,15 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
         method = kind
     else:
         have = [m for m in SDPS_SECOND if installed_path(m) is not None]
-        if not have:
-            raise no_weights_error("ps-fcn-dagger")
+        if not have:  # LCNet alone: any of the three would do, so name them all
+            where = weights_dir()
+            raise PsctlError(None, f"sdps needs a normals network after LCNet (PS-FCN†, else PS-FCN or PS-FCN+N), and "
+                                   f"none is installed (looked for {where / file_name('ps-fcn-dagger')}, "
+                                   f"{where / file_name('ps-fcn')} and {where / file_name('ps-fcn-n')}"
+                                   f"{missing_folder_note()}; set ${ENV_VAR} to use another folder; a clone of psctl "
+                                   f"ships ps_fcn.pt in weights/). Train one with `psctl train ps-fcn --config "
+                                   f"configs/ps_fcn.yaml --install` (docs/training.md), or pass a weights file with "
+                                   f"{flag.split()[0]} FILE (docs/uncalibrated.md)")
         method = "ensemble" if SDPS_ENSEMBLE and have == ["ps-fcn", "ps-fcn-n"] else have[0]
     if method == "ps-fcn-dagger":
         return method, SDPS_NOTE

@@ -403,6 +403,13 @@ def test_missing_weights_are_one_clear_line(tmp_path, capture):
     (capture / "light_directions.txt").unlink()  # uncalibrated: auto means sdps
     proc = psctl("normals", capture, env=env)
     assert proc.returncode == 2 and "sdps" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    # LCNet alone installed: the error named only PS-FCN† (an audit), though PS-FCN or PS-FCN+N would do
+    (tmp_path / "lc").mkdir()
+    save_weights(tmp_path / "lc" / "lcnet.pt", lcnet(), {"method": "lcnet", "train_images": 32})
+    proc = psctl("normals", capture, env={"PSCTL_WEIGHTS": str(tmp_path / "lc")})
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert all(f"{tmp_path / 'lc' / n}" in proc.stderr for n in ("ps_fcn_dagger.pt", "ps_fcn.pt", "ps_fcn_n.pt"))
+    assert "needs a normals network after LCNet" in proc.stderr and "--weights FILE" in proc.stderr
 
 
 def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):
