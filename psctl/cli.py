@@ -546,8 +546,8 @@ def train(
             import time
 
             last = [0.0]
-            say(escape(f"train {method} in {run_dir}: a line every 30 s from the first logged step (log.jsonl has "
-                       f"every one)"))
+            kwargs["started"] = lambda: say(escape(f"train {method} in {run_dir}: a line every 30 s from the first "
+                                                   f"logged step (log.jsonl has every one)"))
 
             from psctl.train import STOP
 

@@ -945,7 +945,7 @@ def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], object] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None,
-          note: Callable[[str], object] | None = None) -> dict:
+          note: Callable[[str], object] | None = None, started: Callable[[], object] | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
     Args:
@@ -967,6 +967,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         note: called with each note on the data at the start (the stream had no training
             meshes: procedural shapes only); the notes are also in state.json and the weights'
             metadata (``data_notes``).
+        started: called once when every check has passed, before the data notes, the validation
+            set and the run folder (a log's first line: a run refused at once prints none).
 
     Side effects on the process: torch's global generator is seeded (the initial weights), and
     on a CPU ``keep_freed_memory`` keeps the heap at its peak size afterwards.
@@ -1064,6 +1066,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         raise PsctlError(state_file, f"the run's data differ from its start (then: {was}; now: "
                                      f"{'; '.join(data_notes) or 'every source'}): it cannot continue exactly")
     st["data_notes"], st["data_sources"] = data_notes, sources
+    if started is not None:
+        started()
     if note is not None:
         for n in data_notes:
             note(f"data: {n}")

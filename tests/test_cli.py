@@ -1561,3 +1561,16 @@ def test_eval_takes_every_option_normals_takes():
     assert options(run_normals, {"path", "arrays", "batch", "formats", "write"}) == \
         options(run_benchmark, {"benchmark", "root"})
     assert options(cli.normals, {"path", "fmt"}) == options(cli.evaluate, {"benchmark", "root"})
+
+
+def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path):
+    """In a log (stderr not a terminal) psctl train opens with a line naming the run; a recipe
+    refused at once printed it too, before its error (seen in session 50): now one line."""
+    repo = Path(__file__).resolve().parents[1]
+    bad = psctl("train", "ps-fcn", "--config", repo / "configs" / "ps_fcn_n_gpu_stage12.yaml", "--out", tmp_path / "x")
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
+        "error: config 'method' is 'ps-fcn-n', but the command trains ps-fcn: remove the key or train ps-fcn-n"]
+    assert not (tmp_path / "x").exists()
+    good = psctl("train", "ps-fcn", "--config", repo / "configs" / "tiny.yaml", "--out", tmp_path / "run", "--device", "cpu")
+    assert good.returncode == 0, good.stderr
+    assert good.stderr.splitlines()[0].startswith(f"train ps-fcn in {tmp_path / 'run'}: a line every 30 s")
