@@ -168,12 +168,16 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
     refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
-    unused = [f"{k}={v!r}" for k, v in (("falloff", falloff), ("roll", roll),
-                                        ("precision", None if precision == "float32" else precision)) if v is not None]
-    if unused and not refines:  # as run_lights' notes: a warning, not silence
+    # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
+    given = {"falloff": falloff, "roll": roll, "precision": precision}
+    unused = [k for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
+    unused += ["precision"] if not refines and precision != "float32" else []
+    if unused:
         level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
-        why = UNUSED_WHY["refine"] if not refine else "no normals network installed (PS-FCN†, PS-FCN or PS-FCN+N)"
-        warnings.warn(f"estimate_lights: {', '.join(unused)} unused ({why})", PsctlWarning, stacklevel=level)
+        why = "the refinement's, and refine=False" if not refine else \
+            "the refinement's, and no normals network is installed to refine with: PS-FCN†, PS-FCN or PS-FCN+N"
+        warnings.warn(f"estimate_lights: {', '.join(f'{k}={given[k]!r}' for k in unused)} unused ({why})",
+                      PsctlWarning, stacklevel=level)
     if refines:
         source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg)
         est = second_stage(source, est, True, fit, normals=False)[0]

@@ -70,8 +70,9 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
                                    f"{where / file_name('ps-fcn')} and {where / file_name('ps-fcn-n')}"
                                    f"{missing_folder_note()}; set ${ENV_VAR} to use another folder; a clone of psctl "
                                    f"ships ps_fcn.pt in weights/). Train one with `psctl train ps-fcn --config "
-                                   f"configs/ps_fcn.yaml --install` (docs/training.md), or pass a weights file with "
-                                   f"{flag.split()[0]} FILE (docs/uncalibrated.md)")
+                                   f"configs/ps_fcn.yaml --install` (a GPU is needed, see docs/training.md), or pass "
+                                   f"{flag.split()[0]} FILE: psctl's PS-FCN†, PS-FCN or PS-FCN+N file, or the "
+                                   f"authors' NENet (docs/uncalibrated.md)")
         method = "ensemble" if SDPS_ENSEMBLE and have == ["ps-fcn", "ps-fcn-n"] else have[0]
     if method == "ps-fcn-dagger":
         return method, SDPS_NOTE

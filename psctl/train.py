@@ -125,15 +125,15 @@ _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max
             ("lcnet", "decode"): ("argmax", "soft")}
 
 
-def check_method(method: str) -> str:
+def check_method(method: str, verb: str = "train") -> str:
     """A method ``psctl train`` trains (psctl.models.WEIGHTS_METHODS), in lower case as the
-    command line takes it (PS-FCN is ps-fcn), or a one-line error."""
+    command line takes it (PS-FCN is ps-fcn), or a one-line error ("cannot ``verb`` ...")."""
     from psctl.models import WEIGHTS_METHODS
 
     if isinstance(method, str):
         method = method.lower()
     if method not in WEIGHTS_METHODS:
-        raise PsctlError(None, f"cannot train {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
+        raise PsctlError(None, f"cannot {verb} {method!r}; choose from {', '.join(WEIGHTS_METHODS)}")
     return method
 
 
@@ -188,9 +188,10 @@ def check_sizes(method: str, config: dict) -> None:
     """The recipe against the method: its own ``method`` key, if any, must agree, and PS-FCN's
     training crops and validation windows must be multiples of 4 (two stride-2 layers: another
     size comes back from the network a few pixels off, a torch error minutes into the run)."""
-    if config.get("method") not in (None, method):
-        raise PsctlError(None, f"config 'method' is {config['method']!r}, but the command trains {method}: remove "
-                               f"the key or train {config['method']}")
+    label = config.get("method")
+    if label is not None and (label.lower() if isinstance(label, str) else label) != method:
+        raise PsctlError(None, f"config 'method' is {label!r}: the recipe is for another network than {method}; "
+                               f"train {label} with it, or choose a {method} recipe")
     if method == "lcnet":  # LCNet resizes every view to its input size
         return
     from psctl.models import STRIDE
@@ -865,7 +866,10 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
             raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
                                          "(a run keeps its recipe) or start a new run with --out")
         config = check_recipe(config)  # a bad value is its one line, not a TypeError here
-        check_sizes(method, config)  # its method label too, which the comparison leaves out
+        label = config.get("method")  # the one key the comparison leaves out
+        if label is not None and (label.lower() if isinstance(label, str) else label) != method:
+            raise PsctlError(state_file, f"is a {method} run, and the recipe's 'method' is {label!r}: resume "
+                                         f"without --config (a run keeps its recipe)")
         asked = config["train"]["samples"]
         if asked < saved["samples"] and asked != saved["config"]["train"]["samples"]:
             # a shorter recipe would "finish" without its last samples validated (a run's own
@@ -1217,7 +1221,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
     from psctl.models.weights import _training_clip, read_weights, save_weights
 
     if method is not None:
-        method = check_method(method)
+        method = check_method(method, "average")
     if len(files) < 2:
         raise PsctlError(None, f"averaging needs at least two weight files, got {len(files)}")
     seen: dict = {}
@@ -1313,12 +1317,12 @@ def check_install(method: str, replace: bool = False) -> None:
     unless ``replace``."""
     from psctl.models.weights import installed_path, weights_dir
 
-    method = check_method(method)
+    method = check_method(method, "install")
     if weights_dir().exists() and not weights_dir().is_dir():
         raise PsctlError(weights_dir(), "is not a folder: --install writes the weights there ($PSCTL_WEIGHTS)")
     if not replace and installed_path(method) is not None:
         raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
-                                                 "(or later: psctl.train.install_weights(RUN, METHOD, replace=True))")
+                                                 "(in Python: replace=True)")
 
 
 def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:
@@ -1338,7 +1342,7 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     from psctl.io.atomic import atomic_path
     from psctl.models.weights import file_name, installed_path, read_weights, save_weights, weights_dir
 
-    method = check_method(method)
+    method = check_method(method, "install")
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
         raise PsctlError(src, "no best weights in this run yet")

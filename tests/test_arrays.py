@@ -476,7 +476,7 @@ def test_refinement_options_sdps_or_estimate_lights_do_not_use_are_a_warning(dat
         psctl.estimate_lights(images, mask, refine=False, device="cpu")  # nothing asked that goes unused
     assert [str(w.message) for w in got if issubclass(w.category, psctl.PsctlWarning)] == [
         "sdps: falloff='lambertian', roll=False unused (sdps refines lights only with refine=True)",
-        "estimate_lights: roll=True, precision='bf16' unused (sdps refines lights only with refine=True)"]
+        "estimate_lights: roll=True, precision='bf16' unused (the refinement's, and refine=False)"]
     assert {w.filename for w in got} == {__file__}
 
 
@@ -492,4 +492,32 @@ def test_run_normals_and_estimate_normals_share_the_unused_option_table(tmp_path
     table = unused_options("l2", False, 8, 2, "bf16", "lambertian", None)
     assert [k for k, _ in table] == ["falloff", "refine", "views", "downsample", "precision"]
     assert [n for n in r["notes"] if "unused" in n or "one pass" in n] == [unused_note(k, w, "bf16") for k, w in table]
+    assert [unused_note(k, w, "bf16") for k, w in table] == [  # the words psctl normals prints
+        "lights: --falloff is unused (only sdps refines lights)",
+        "lights: --no-refine is unused (only sdps refines lights)",
+        "views: l2 gives the same normals in every view; one pass",
+        "downsample: l2 solves each pixel alone, at full size; unused",
+        "precision: l2 solves in float64; --precision bf16 unused"]
+    assert unused_note("roll", "refine") == "lights: --roll/--no-roll is unused without --refine"
     assert r["precision"] == "float32"
+
+
+def test_estimate_lights_says_when_no_network_refines(data, tmp_path, fake_weights):
+    """With LCNet alone installed estimate_lights cannot refine: options of the refinement are
+    then a warning that says why (a review found that branch untested)."""
+    import shutil
+    import warnings
+
+    import psctl
+    from tests.conftest import weights_in
+
+    images, _, mask, _ = data
+    (tmp_path / "lc").mkdir()
+    shutil.copy(fake_weights / "lcnet.pt", tmp_path / "lc")
+    with weights_in(tmp_path / "lc"), warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        psctl.estimate_lights(images, mask, falloff="lambertian", device="cpu", views=1)
+        psctl.estimate_lights(images, mask, device="cpu", views=1)  # nothing asked that goes unused
+    assert [str(w.message) for w in got if issubclass(w.category, psctl.PsctlWarning)] == [
+        "estimate_lights: falloff='lambertian' unused (the refinement's, and no normals network is installed to "
+        "refine with: PS-FCN†, PS-FCN or PS-FCN+N)"]

@@ -409,7 +409,8 @@ def test_missing_weights_are_one_clear_line(tmp_path, capture):
     proc = psctl("normals", capture, env={"PSCTL_WEIGHTS": str(tmp_path / "lc")})
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert all(f"{tmp_path / 'lc' / n}" in proc.stderr for n in ("ps_fcn_dagger.pt", "ps_fcn.pt", "ps_fcn_n.pt"))
-    assert "needs a normals network after LCNet" in proc.stderr and "--weights FILE" in proc.stderr
+    assert "needs a normals network after LCNet" in proc.stderr and "--weights FILE: psctl's PS-FCN†" in proc.stderr
+    assert "a GPU is needed" in proc.stderr
 
 
 def test_sdps_runs_lcnet_then_ps_fcn_dagger(tmp_path, fake_weights):

@@ -212,8 +212,10 @@ def test_a_run_resumes_with_its_recipe_now_naming_the_method(tmp_path):
     cfg = tiny(16)
     train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
     assert train("ps-fcn", {**cfg, "method": "ps-fcn"}, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
-    with pytest.raises(PsctlError, match="config 'method' is 'lcnet', but the command trains ps-fcn"):
+    with pytest.raises(PsctlError, match="is a ps-fcn run, and the recipe's 'method' is 'lcnet': resume without --config"):
         train("ps-fcn", {**cfg, "method": "lcnet"}, tmp_path / "run", resume=True, device="cpu")
+    # the label in any case, as the command line takes method names (PS-FCN)
+    assert train("PS-FCN", {**cfg, "method": "PS-FCN"}, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
 
 
 def test_shipped_recipes_name_their_method_and_fit_it():
@@ -236,7 +238,7 @@ def test_shipped_recipes_name_their_method_and_fit_it():
             assert "method" not in cfg
             continue
         assert cfg.get("method") in WEIGHTS_METHODS, recipe.name
-        assert table.get(recipe.name, cfg["method"]) == cfg["method"], recipe.name
+        assert table.get(recipe.name) == cfg["method"], recipe.name  # and every recipe is in the table
         check_sizes(cfg["method"], check_recipe(cfg))
 
 
@@ -347,7 +349,7 @@ def test_install_stores_float16_when_float32_is_over_the_limit(tmp_path, monkeyp
     T.check_install("ps-fcn", replace=True)
     T.check_install("ps-fcn-n")
     assert T.check_method("PS-FCN-N") == "ps-fcn-n"
-    with pytest.raises(PsctlError, match="cannot train 'ps-fcn-x'"):
+    with pytest.raises(PsctlError, match="cannot install 'ps-fcn-x'"):
         T.check_install("PS-FCN-X")
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "file"))
@@ -819,12 +821,14 @@ def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
         assert not (tmp_path / "r").exists()
     cfg = tiny()
     cfg["method"] = "lcnet"
-    with pytest.raises(PsctlError, match="config 'method' is 'lcnet', but the command trains ps-fcn"):
+    with pytest.raises(PsctlError, match="config 'method' is 'lcnet': the recipe is for another network than ps-fcn; "
+                                         "train lcnet with it, or choose a ps-fcn recipe"):
         train("ps-fcn", cfg, tmp_path / "r")
     cfg["method"] = "ps-fcn"  # the same method: allowed
     from psctl.train import check_sizes
 
     check_sizes("ps-fcn", cfg)
+    check_sizes("ps-fcn", {**cfg, "method": "PS-FCN"})  # names in any case, as the command line takes them
     from psctl.models.weights import save_weights
 
     for name in ("a.pt", "b.pt"):
