@@ -607,8 +607,12 @@ def _root(version: Annotated[bool, _flag("--version", help="Print the version.")
         raise typer.Exit()
 
 
-def main() -> None:
-    app()
+def main(prog_name: str | None = None) -> None:
+    """The ``psctl`` command (its script, ``python -m psctl`` and ``python -m psctl.cli``)."""
+    from psctl.errors import C_STDERR
+
+    C_STDERR["silence"] = True  # libpng's own lines would break the one-line errors (not for library callers)
+    app(prog_name=prog_name)
 
 
 if __name__ == "__main__":

@@ -147,6 +147,13 @@ def check_formats(value: Any) -> str:
     raise PsctlError(None, f"formats must be text such as 'png16,exr' or a list of names, not {_short(value)}")
 
 
+# C libraries (libpng) print their own line on file descriptor 2 for a broken file, beside the
+# error OpenImageIO returns, which psctl's message carries. The command line promises one line,
+# so psctl.cli.main sets "silence"; a library caller's fd 2 is left alone, since silencing it is
+# process-wide: another thread's stderr would be lost while an image is read (an audit found a
+# service's log gone to /dev/null).
+C_STDERR = {"silence": False}
+
 # progress(description, total) -> advance(n) (psctl.api.ProgressFactory): defined here, where the
 # modules that take one can import it at run time (typing.get_type_hints resolves it)
 ProgressFactory = Callable[[str, int], Callable[[int], None]]

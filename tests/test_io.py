@@ -1362,3 +1362,36 @@ def test_a_truncated_png_is_one_line_without_libpngs_own(tmp_path):
     assert proc.returncode == 2 and "libpng" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and bad.name in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_stderr_is_silenced_for_the_command_line_only_and_put_back_across_threads(tmp_path, monkeypatch):
+    """An audit embedding psctl in a service: two threads reading images each saved fd 2 and put
+    it back, so one could save the other's /dev/null and leave the process's stderr there for
+    good; and a library caller's other threads lost their stderr while any image was read. Now
+    only the command line silences fd 2 (psctl.errors.C_STDERR), through one shared redirection."""
+    import threading
+
+    from psctl.errors import C_STDERR
+
+    write_image(tmp_path / "a.png", np.random.default_rng(0).random((32, 32, 3), np.float32), "uint16")
+    calls = []
+    real_dup2 = os.dup2
+    monkeypatch.setattr(os, "dup2", lambda a, b, *k: (calls.append(b), real_dup2(a, b, *k))[1])
+    read_image(tmp_path / "a.png")
+    assert calls == []  # a library call leaves fd 2 alone
+    monkeypatch.setattr(os, "dup2", real_dup2)
+    monkeypatch.setitem(C_STDERR, "silence", True)
+    monkeypatch.setattr(sys, "stderr", sys.__stderr__)  # pytest's stand-in has no file descriptor
+    before = os.fstat(2)
+
+    def reads():
+        for _ in range(300):
+            read_image(tmp_path / "a.png")
+
+    threads = [threading.Thread(target=reads) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    after = os.fstat(2)
+    assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)  # not /dev/null

@@ -12,13 +12,14 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import C_STDERR, PsctlError
 from psctl.io.atomic import atomic_path, utf8_path
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
@@ -241,25 +242,42 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
                                + (f": {writer_error or _clean(err)}" if writer_error or err else ""))
 
 
+_QUIET_LOCK = threading.Lock()
+_QUIET: dict = {"depth": 0, "saved": None, "fd": None}  # the readers inside, and fd 2 as it was
+
+
 @contextlib.contextmanager
 def _quiet_stderr() -> Iterator[None]:
     """Swallow what C libraries print on file descriptor 2 (libpng prints "libpng error: ..."
-    for truncated files even though OpenImageIO also reports it): the CLI promises one line."""
+    for truncated files even though OpenImageIO also reports it) where the command line runs
+    (``psctl.errors.C_STDERR``): it promises one line. Readers in several threads share one
+    redirection: the first in saves fd 2, the last out puts it back (each saving its own, one
+    could save the other's /dev/null and leave it there for good)."""
+    if not C_STDERR["silence"]:
+        yield
+        return
     try:
         fd = sys.stderr.fileno()
     except (AttributeError, OSError, ValueError):
         yield
         return
-    sys.stderr.flush()
-    saved = os.dup(fd)
-    sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
-    os.dup2(sink, fd)
-    os.close(sink)
+    with _QUIET_LOCK:
+        if _QUIET["depth"] == 0:
+            sys.stderr.flush()
+            _QUIET["saved"], _QUIET["fd"] = os.dup(fd), fd
+            sink = os.open(os.devnull, os.O_WRONLY)  # not a temporary file: /tmp may be full (or missing)
+            os.dup2(sink, fd)
+            os.close(sink)
+        _QUIET["depth"] += 1
     try:
         yield
     finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+        with _QUIET_LOCK:
+            _QUIET["depth"] -= 1
+            if _QUIET["depth"] == 0:
+                os.dup2(_QUIET["saved"], _QUIET["fd"])
+                os.close(_QUIET["saved"])
+                _QUIET["saved"] = None
 
 
 def _clean(msg: str | None) -> str:
