@@ -386,7 +386,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
         earlier psctl synth run left in ``out`` and this one replaced).
     """
-    from psctl.io.atomic import check_output_dir, ensure_writable_dir, missing_folders, remove_empty
+    from psctl.io.atomic import check_output_dir, current_umask, ensure_writable_dir, missing_folders, remove_empty
 
     t0 = time.perf_counter()
     preset, light_dist, intensities = _lower(preset, light_dist, intensities)
@@ -412,9 +412,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     gen = torch.Generator().manual_seed(seed + 1)
     sheet_rows = []
     on_sheet = set(np.linspace(0, len(objs) - 1, min(len(objs), SHEET_ROWS)).round().astype(int).tolist())
-    umask = os.umask(0)  # read the process's umask (set back at once): a folder's mode as mkdir would give
-    os.umask(umask)
-    folder_mode = 0o777 & ~umask
+    folder_mode = 0o777 & ~current_umask()  # a folder's mode as mkdir would give
     cache: dict[int, torch.Tensor] = {}  # visibility is shared by objects with the same view
     kernels: dict[int, torch.Tensor] = {}  # and so are the interreflection form factors
     # The whole set is written into one hidden folder and moved into place at the end: an
