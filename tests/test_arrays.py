@@ -521,3 +521,19 @@ def test_estimate_lights_says_when_no_network_refines(data, tmp_path, fake_weigh
     assert [str(w.message) for w in got if issubclass(w.category, psctl.PsctlWarning)] == [
         "estimate_lights: falloff='lambertian' unused (the refinement's, and no normals network is installed to "
         "refine with: PS-FCN†, PS-FCN or PS-FCN+N)"]
+
+
+def test_network_calls_leave_torchs_global_generator_as_it_was(data):
+    """A notebook that seeds torch got other random numbers after any network call: building the
+    layers drew their initial weights from the global generator (an audit). Now it is untouched."""
+    import torch
+
+    import psctl
+
+    images, lights, mask, _ = data
+    torch.manual_seed(0)
+    want = torch.rand(3)
+    torch.manual_seed(0)
+    psctl.estimate_normals(images, lights, mask, method="ensemble", device="cpu")
+    psctl.estimate_lights(images, mask, refine=True, device="cpu", views=1)  # LCNet, then PS-FCN's refinement
+    assert torch.equal(torch.rand(3), want)

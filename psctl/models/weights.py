@@ -355,7 +355,16 @@ def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Modul
 
 def build_network(weights: Weights, method: str,
                   device: "str | torch.device" = "cpu") -> tuple["PSFCN | LCNet", dict]:
-    """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``)."""
+    """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``).
+    Torch's global generator is left as it was (building the layers draws their random initial
+    weights from it, which the loaded ones replace: a caller's seeded stream would shift)."""
+    import torch
+
+    with torch.random.fork_rng(devices=[]):
+        return _build_network(weights, method, device)
+
+
+def _build_network(weights: Weights, method: str, device: "str | torch.device") -> tuple["PSFCN | LCNet", dict]:
     run = for_method(weights, method)
     if WEIGHTS_METHODS[method]["architecture"] == "lcnet":
         from psctl.models.lcnet import DEFAULT_CONFIG, LCNet
