@@ -428,6 +428,15 @@ class _Stop:
             if old is not None:  # None: a handler not set from Python, which cannot be put back
                 signal.signal(sig, old)
 
+    def pass_on(self) -> None:
+        """After the run stopped on a signal, with the handlers put back: raise it again when the
+        caller had set its own Python handler for it, which would otherwise never hear of it.
+        Python's and the system's defaults are not called (Ctrl-C's KeyboardInterrupt, SIGTERM's
+        exit): the run has stopped as asked, and the state it returns says why."""
+        old = self._old.get(self.signal) if self.signal is not None else None
+        if callable(old) and old is not signal.default_int_handler:
+            signal.raise_signal(self.signal)
+
 
 def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] | tuple = ()) -> list[str]:
     """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file);
@@ -1178,6 +1187,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 checkpoint()
     st["finished"] = st["samples"] >= t["samples"]
     st["signal"] = stop.signal  # not in state.json: how this call ended (None, or SIGINT / SIGTERM / SIGHUP's number)
+    stop.pass_on()  # the caller's own handler of that signal (a service's shutdown hook) hears of it too
     return st
 
 

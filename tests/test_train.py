@@ -1091,3 +1091,30 @@ def test_ps_fcn_dagger_files_from_before_and_after_the_lcnet_digest_average():
     new = {**old, "sha256": "ab" * 32}
     assert _same_lcnet(old, new) and _same_lcnet(new, {**new, "path": "copy/lcnet.pt"})
     assert not _same_lcnet(new, {**new, "sha256": "cd" * 32}) and not _same_lcnet(old, {**old, "decode": "argmax"})
+
+
+def test_a_callers_own_signal_handler_hears_of_the_signal_that_stopped_the_run(tmp_path):
+    """train() takes SIGTERM to checkpoint and stop; a service that had its own SIGTERM handler
+    (its shutdown hook) never heard of it (an audit). Now the signal is raised again once the
+    handler is back; Python's and the system's defaults are not (the run stopped as asked)."""
+    import os
+    import signal
+
+    heard = []
+    mine = signal.signal(signal.SIGTERM, lambda s, f: heard.append(s))
+    try:
+        sent = []
+
+        def progress(rec):
+            if not sent:
+                sent.append(os.kill(os.getpid(), signal.SIGTERM))
+
+        st = train("ps-fcn", tiny(48), tmp_path / "run", device="cpu", progress=progress)
+        assert st["signal"] == signal.SIGTERM and not st["finished"]
+        assert heard == [signal.SIGTERM] and signal.getsignal(signal.SIGTERM) is not None
+    finally:
+        signal.signal(signal.SIGTERM, mine)
+    sent.clear()  # Ctrl-C with Python's default handler: no KeyboardInterrupt after the run's own stop
+    st = train("ps-fcn", tiny(96), tmp_path / "run", resume=True, device="cpu",
+               progress=lambda rec: sent or sent.append(os.kill(os.getpid(), signal.SIGINT)))
+    assert st["signal"] == signal.SIGINT
