@@ -166,6 +166,9 @@ def _raise_terminated(signum, frame) -> None:
     raise _Terminated(signum)
 
 
+_raise_terminated.psctl_cli = True  # psctl.train's pass_on leaves it be: the command reports the stop itself
+
+
 @contextlib.contextmanager
 def _on_termination() -> Iterator[None]:
     """Python's default for SIGTERM and SIGHUP is to die at once, skipping every cleanup. Only
@@ -612,7 +615,10 @@ def main(prog_name: str | None = None) -> None:
     from psctl.errors import C_STDERR
 
     C_STDERR["silence"] = True  # libpng's own lines would break the one-line errors (not for library callers)
-    app(prog_name=prog_name)
+    try:
+        app(prog_name=prog_name)
+    finally:  # main() called in a notebook: later library calls keep their stderr
+        C_STDERR["silence"] = False
 
 
 if __name__ == "__main__":

@@ -434,7 +434,8 @@ class _Stop:
         Python's and the system's defaults are not called (Ctrl-C's KeyboardInterrupt, SIGTERM's
         exit): the run has stopped as asked, and the state it returns says why."""
         old = self._old.get(self.signal) if self.signal is not None else None
-        if callable(old) and old is not signal.default_int_handler:
+        # psctl train's own (psctl.cli): the command says how the run stopped and exits 128 + signal
+        if callable(old) and old is not signal.default_int_handler and not getattr(old, "psctl_cli", False):
             signal.raise_signal(self.signal)
 
 

@@ -1575,3 +1575,39 @@ def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path)
     good = psctl("train", "ps-fcn", "--config", repo / "configs" / "tiny.yaml", "--out", tmp_path / "run", "--device", "cpu")
     assert good.returncode == 0, good.stderr
     assert good.stderr.splitlines()[0].startswith(f"train ps-fcn in {tmp_path / 'run'}: a line every 30 s")
+
+
+def test_train_stopped_by_sigterm_says_so_and_exits_143(tmp_path):
+    """A real SIGTERM to psctl train (configs/gpu_session.sh's deadline, `timeout -s TERM`): a
+    checkpoint, the line saying how the run stopped, exit 143. (A change for library callers
+    re-raised the signal into the command's own handler, which then printed only 'terminated'.)"""
+    import signal
+    import time
+
+    cfg = tmp_path / "long.yaml"
+    cfg.write_text((Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml").read_text()
+                   .replace("samples: 48", "samples: 100000"))
+    proc = subprocess.Popen([sys.executable, "-m", "psctl.cli", "train", "ps-fcn", "--config", str(cfg), "--out",
+                             str(tmp_path / "run"), "--device", "cpu"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    log = tmp_path / "run" / "log.jsonl"
+    deadline = time.monotonic() + 120
+    while not (log.is_file() and log.read_text().strip()) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert f"stopped by SIGTERM (continue with --resume {tmp_path / 'run'})" in err, err
+    assert (tmp_path / "run" / "state.json").is_file()
+
+
+def test_main_silences_libpng_only_while_it_runs(monkeypatch):
+    """psctl.cli.main turns fd 2's silencing on for the command; called in a notebook, it must
+    not leave it on for the library calls after it."""
+    from psctl.cli import main
+    from psctl.errors import C_STDERR
+
+    monkeypatch.setattr(sys, "argv", ["psctl", "--help"])
+    with pytest.raises(SystemExit):
+        main()
+    assert C_STDERR["silence"] is False

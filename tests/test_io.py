@@ -1395,6 +1395,16 @@ def test_stderr_is_silenced_for_the_command_line_only_and_put_back_across_thread
         t.join()
     after = os.fstat(2)
     assert (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)  # not /dev/null
+    if hasattr(os, "fork"):  # a child forked while a reader holds fd 2 silenced gets it back
+        from psctl.io.images import _QUIET, _quiet_stderr
+
+        with _quiet_stderr():
+            pid = os.fork()
+            if pid == 0:
+                st = os.fstat(2)
+                os._exit(0 if (st.st_dev, st.st_ino) == (before.st_dev, before.st_ino) and _QUIET["depth"] == 0 else 1)
+        assert os.waitpid(pid, 0)[1] == 0
+        assert _QUIET["depth"] == 0 and (os.fstat(2).st_dev, os.fstat(2).st_ino) == (before.st_dev, before.st_ino)
 
 
 def test_the_umask_is_read_without_being_changed(monkeypatch):

@@ -242,8 +242,21 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
                                + (f": {writer_error or _clean(err)}" if writer_error or err else ""))
 
 
-_QUIET_LOCK = threading.Lock()
-_QUIET: dict = {"depth": 0, "saved": None, "fd": None}  # the readers inside, and fd 2 as it was
+_QUIET: dict = {"lock": threading.Lock(), "depth": 0, "saved": None, "fd": None}  # the readers inside, fd 2 as it was
+
+
+def _quiet_after_fork() -> None:
+    """A child forked while a thread of its parent was reading: that thread is not in the child,
+    so put its fd 2 back now (it would stay on /dev/null) and take a fresh lock."""
+    if _QUIET["depth"]:
+        with contextlib.suppress(OSError):
+            os.dup2(_QUIET["saved"], _QUIET["fd"])
+            os.close(_QUIET["saved"])
+    _QUIET.update(lock=threading.Lock(), depth=0, saved=None, fd=None)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_quiet_after_fork)
 
 
 @contextlib.contextmanager
@@ -261,7 +274,7 @@ def _quiet_stderr() -> Iterator[None]:
     except (AttributeError, OSError, ValueError):
         yield
         return
-    with _QUIET_LOCK:
+    with _QUIET["lock"]:
         if _QUIET["depth"] == 0:
             sys.stderr.flush()
             _QUIET["saved"], _QUIET["fd"] = os.dup(fd), fd
@@ -272,7 +285,7 @@ def _quiet_stderr() -> Iterator[None]:
     try:
         yield
     finally:
-        with _QUIET_LOCK:
+        with _QUIET["lock"]:
             _QUIET["depth"] -= 1
             if _QUIET["depth"] == 0:
                 os.dup2(_QUIET["saved"], _QUIET["fd"])

@@ -356,16 +356,25 @@ def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Modul
 def build_network(weights: Weights, method: str,
                   device: "str | torch.device" = "cpu") -> tuple["PSFCN | LCNet", dict]:
     """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``).
-    Torch's global generator is left as it was (building the layers draws their random initial
-    weights from it, which the loaded ones replace: a caller's seeded stream would shift)."""
+
+    The layers are made on the meta device (shapes, no values), given empty memory, then the
+    file's values: building them on the CPU drew throwaway initial weights from torch's global
+    generator, which shifted a caller's seeded stream (and saving and restoring it instead would
+    replay numbers to the caller's other threads). Copied into fresh memory, not assigned: the
+    file's own tensors gave LCNet outputs 1e-5 apart (the same values, other allocations)."""
     import torch
 
-    with torch.random.fork_rng(devices=[]):
-        return _build_network(weights, method, device)
-
-
-def _build_network(weights: Weights, method: str, device: "str | torch.device") -> tuple["PSFCN | LCNet", dict]:
     run = for_method(weights, method)
+    with torch.device("meta"):
+        model, name = _network(weights, method, run)
+    check_state_dict(weights.path, weights.state_dict, model, name)
+    model = model.to_empty(device="cpu")
+    model.load_state_dict(weights.state_dict, strict=True)  # an LCNet stored in float16 is cast to its float32
+    return model.to(device).eval(), run
+
+
+def _network(weights: Weights, method: str, run: dict) -> tuple["PSFCN | LCNet", str]:
+    """The network ``method``'s weights ``run`` describe (their architecture), not yet loaded."""
     if WEIGHTS_METHODS[method]["architecture"] == "lcnet":
         from psctl.models.lcnet import DEFAULT_CONFIG, LCNet
 
@@ -379,9 +388,7 @@ def _build_network(weights: Weights, method: str, device: "str | torch.device") 
 
         model = PSFCN({k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")})
         name = "PS-FCN"
-    check_state_dict(weights.path, weights.state_dict, model, name)
-    model.load_state_dict(weights.state_dict, strict=True)
-    return model.to(device).eval(), run
+    return model, name
 
 
 def load_network(method: str, weights_file: str | os.PathLike | None = None,
