@@ -184,6 +184,17 @@ def check_recipe(config: dict) -> dict:
     return config
 
 
+def _full_recipe(config: dict | None) -> dict | None:
+    """A recipe given as a dict from Python, perhaps only the keys that differ from the defaults
+    ({"train": {"samples": 64}}), as load_config would merge it (a KeyError before)."""
+    if config is None:
+        return None
+    if not isinstance(config, dict):
+        raise PsctlError(None, f"config must be a recipe (a dict, e.g. psctl.train.load_config(PATH)), not a "
+                               f"{type(config).__name__}")
+    return merge(DEFAULT_CONFIG, config)
+
+
 def check_sizes(method: str, config: dict) -> None:
     """The recipe against the method: its own ``method`` key, if any, must agree, and PS-FCN's
     training crops and validation windows must be multiples of 4 (two stride-2 layers: another
@@ -991,6 +1002,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     from psctl.models.weights import save_weights
 
     method = check_method(method)
+    config = _full_recipe(config)
     if lcnet is not None and method != "ps-fcn-dagger":
         raise PsctlError(lcnet, f"--lcnet is for ps-fcn-dagger (the frozen LCNet), not {method}")
     dev = pick_device(device)
@@ -1303,6 +1315,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         from psctl.infer import pick_device
 
         method, dev = first.metadata["method"], pick_device(device)
+        config = _full_recipe(config)
         check_sizes(method, check_recipe(config))
         amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
         # PS-FCN† is measured on the lights of the LCNet its members were trained with (AVERAGE_SAME

@@ -1118,3 +1118,13 @@ def test_a_callers_own_signal_handler_hears_of_the_signal_that_stopped_the_run(t
     st = train("ps-fcn", tiny(96), tmp_path / "run", resume=True, device="cpu",
                progress=lambda rec: sent or sent.append(os.kill(os.getpid(), signal.SIGINT)))
     assert st["signal"] == signal.SIGINT
+
+
+def test_a_partial_recipe_from_python_is_merged_with_the_defaults(tmp_path):
+    """train(method, {"train": {...}}) raised KeyError: 'model' (a review's side note): a dict of
+    the keys that differ is merged as load_config merges a YAML file; a non-dict is one line."""
+    cfg = tiny(8)
+    st = train("ps-fcn", {"data": cfg["data"], "train": cfg["train"], "val": cfg["val"]}, tmp_path / "run", device="cpu")
+    assert st["samples"] == 8 and st["config"]["model"] == {"fuse": "max"}
+    with pytest.raises(PsctlError, match="config must be a recipe .* not a str"):
+        train("ps-fcn", "configs/tiny.yaml", tmp_path / "other", device="cpu")
