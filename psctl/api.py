@@ -354,10 +354,15 @@ def unused_options(method: str, refine: bool, views: int, downsample: int, preci
 
 def unused_note(option: str, why: str, value: object = None) -> str:
     """A note for the command line (``psctl normals``, ``psctl lights``) on an option the method
-    ignores (``unused_options``); ``value`` is the --precision asked for."""
-    if option in ("falloff", "roll", "refine"):
-        flag = {"falloff": "--falloff", "roll": "--roll/--no-roll", "refine": "--no-refine"}[option]
-        return f"lights: {flag} is unused " + ("without --refine" if why == "refine" else "(only sdps refines lights)")
+    ignores (``unused_options``); ``value`` is the --precision asked for. ``psctl lights`` adds
+    why "no-network" (--refine, but no normals network installed to refine with) and the option
+    "precision-refine" (the refinement network's --precision)."""
+    if option in ("falloff", "roll", "refine", "precision-refine"):
+        flag = {"falloff": "--falloff", "roll": "--roll/--no-roll", "refine": "--no-refine",
+                "precision-refine": "--precision"}[option]
+        return f"lights: {flag} is unused " + {"refine": "without --refine",
+                                               "no-network": "(no normals network is installed to refine with)",
+                                               }.get(why, "(only sdps refines lights)")
     return {"views": "views: l2 gives the same normals in every view; one pass",
             "downsample": "downsample: l2 solves each pixel alone, at full size; unused",
             "precision": f"precision: l2 solves in float64; --precision {value} unused"}[option]

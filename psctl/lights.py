@@ -1112,12 +1112,17 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     from psctl.api import unused_note, unused_options
+    from psctl.models.weights import installed_path
+    from psctl.sdps import SDPS_SECOND
 
-    unused = [unused_note(k, why) for k, why in unused_options("sdps", refine, 1, 1, "float32", falloff, roll)]
-    if not refine and precision != "float32":  # the refinement's network: LCNet alone runs in float32
-        unused.append("lights: --precision is unused without --refine")
+    # refined only with a normals network: asked for, but none installed, the refinement's options go unused too
+    refines = refine and (normals_weights is not None or any(installed_path(m) for m in SDPS_SECOND))
+    why = "refine" if not refine else "no-network"
+    unused = [unused_note(k, why) for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
+    if not refines and precision != "float32":  # the refinement's network: LCNet alone runs in float32
+        unused.append(unused_note("precision-refine", why))
     est = replace(est, notes=[*est.notes, *unused])
-    if not refine:
+    if not refines:
         precision = "float32"  # LCNet's, the only network that ran
     errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if arrays is not None:

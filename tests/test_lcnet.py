@@ -872,6 +872,16 @@ def test_lights_precision_is_the_refinements_network(tmp_path, fake_weights, mon
     assert r["precision"] == "bf16" and seen and set(seen) == {"bf16"}
     r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="bf16", refine=False, write=False)
     assert r["precision"] == "float32" and any("--precision is unused without --refine" in n for n in r["notes"])
+    # --refine with LCNet alone installed: nothing refines, so the refinement's options go unused
+    (tmp_path / "lc").mkdir()
+    (tmp_path / "lc" / "lcnet.pt").write_bytes((fake_weights / "lcnet.pt").read_bytes())
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "lc"))
+    r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="bf16", falloff="lambertian", write=False)
+    assert r["precision"] == "float32" and [n for n in r["notes"] if "unused" in n or "not refined" in n] == [
+        "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); LCNet's lights are not refined",
+        "lights: --falloff is unused (no normals network is installed to refine with)",
+        "lights: --precision is unused (no normals network is installed to refine with)"]
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
     seen.clear()
     from tests.conftest import render_lambertian, sphere, hemisphere_lights
 
