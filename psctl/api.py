@@ -162,12 +162,12 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     fit = refine_config(falloff, roll)
     refine = check_bool("refine", refine)
     check_precision(precision)  # a bad name is an error with refine=False too
-    # the refinement's normals network; checked before any work
-    net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refine else None}
+    refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
+    # the refinement's normals network; checked before any work (not where none will run)
+    net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refines else None}
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
-    refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
     given = {"falloff": falloff, "roll": roll, "precision": precision}
     unused = [k for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]

@@ -1058,8 +1058,13 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.models import check_precision, precision_autocast
 
     precision = check_precision(precision)
-    # the refinement's normals network; checked before any work
-    net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refine else None}
+    from psctl.models.weights import installed_path
+    from psctl.sdps import SDPS_SECOND
+
+    # refined only with a normals network: asked for, but none installed, the refinement's options go unused
+    refines = refine and (normals_weights is not None or any(installed_path(m) for m in SDPS_SECOND))
+    # the refinement's normals network; checked before any work (not where none will run)
+    net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refines else None}
     cap = open_capture(path, encoding)
     n_all = cap.n_images
     picked = selection_notes(n_all, n_images, seed)  # never by the folder's lights: they are the answer
@@ -1112,11 +1117,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     from psctl.api import unused_note, unused_options
-    from psctl.models.weights import installed_path
-    from psctl.sdps import SDPS_SECOND
 
-    # refined only with a normals network: asked for, but none installed, the refinement's options go unused too
-    refines = refine and (normals_weights is not None or any(installed_path(m) for m in SDPS_SECOND))
     why = "refine" if not refine else "no-network"
     unused = [unused_note(k, why) for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
     if not refines and precision != "float32":  # the refinement's network: LCNet alone runs in float32

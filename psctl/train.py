@@ -1315,8 +1315,8 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         from psctl.infer import pick_device
 
         method, dev = first.metadata["method"], pick_device(device)
-        config = _full_recipe(config)
-        check_sizes(method, check_recipe(config))
+        config = check_recipe(_full_recipe(config))
+        check_sizes(method, config)
         amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
         # PS-FCN† is measured on the lights of the LCNet its members were trained with (AVERAGE_SAME
         # makes them agree), not the recipe's or the installed one

@@ -881,6 +881,9 @@ def test_lights_precision_is_the_refinements_network(tmp_path, fake_weights, mon
         "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); LCNet's lights are not refined",
         "lights: --falloff is unused (no normals network is installed to refine with)",
         "lights: --precision is unused (no normals network is installed to refine with)"]
+    # fp16 is for CUDA, but no network would run in it: a note, not the refusal (a review)
+    r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="fp16", write=False)
+    assert "lights: --precision is unused (no normals network is installed to refine with)" in r["notes"]
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
     seen.clear()
     from tests.conftest import render_lambertian, sphere, hemisphere_lights

@@ -364,6 +364,11 @@ def build_network(weights: Weights, method: str,
     file's own tensors gave LCNet outputs 1e-5 apart (the same values, other allocations)."""
     import torch
 
+    import importlib
+
+    for module in ("psctl.models.lcnet", "psctl.models.ps_fcn"):  # imported here, not first inside the meta
+        importlib.import_module(module)                           # context below (a module-level tensor would be meta)
+
     run = for_method(weights, method)
     with torch.device("meta"):
         model, name = _network(weights, method, run)
