@@ -1112,8 +1112,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                          memo=memo, keep_box=keep_box)
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-    if refine:
+    if refines:
         est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit, memo)
+    elif refine:
+        est = replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
+                                              "LCNet's lights are not refined"])
     elif normals_weights is not None:
         est = replace(est, notes=[*est.notes, "lights: --normals-weights is unused without --refine"])
     from psctl.api import unused_note, unused_options
@@ -1175,13 +1178,10 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
                     memo: "DecodeMemo | None" = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
     turned by the roll of the normals from the refined lights when the config says so).
-    ``memo``: images decoded by LCNet's pass."""
-    from psctl.models.weights import installed_path
-    from psctl.sdps import SDPS_SECOND, capture_source, sdps_second_stage, second_stage
+    ``memo``: images decoded by LCNet's pass. ``weights`` None: the installed network (run_lights
+    has checked that there is one)."""
+    from psctl.sdps import capture_source, sdps_second_stage, second_stage
 
-    if weights is None and not any(installed_path(m) for m in SDPS_SECOND):
-        return replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
-                                               "LCNet's lights are not refined"])
     second = sdps_second_stage(weights, flag="--normals-weights")[0]
     source = capture_source(cap, mask, second, weights, net_cfg, progress, memo)
     return second_stage(source, est, True, config, normals=False)[0]
