@@ -656,6 +656,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if spread is not None:
         report["spread"] = spread_stats(spread, mask, error, valid if gt is not None else None)
     report["albedo"] = albedo_stats
+    if cap.n_images < n_all:  # an --images subset: which images, so that the run can be repeated
+        report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
+        report["seed"] = seed
+    if method != "l2":
+        from psctl.infer import pick_device
+
+        dev = str(pick_device(device))
+    report["provenance"] = provenance(weights_used(method, weights, lcnet, second if method == "sdps" else None),
+                                      None if method == "l2" else dev)
     if light_stats is not None:
         report["second_stage"] = second  # the network that turned LCNet's lights into normals
         report["lcnet_decode"] = lc_cfg["decode"]
@@ -705,6 +714,40 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
 
 OUTPUTS_LIST = outputs_list("normals")  # in an output folder: the files psctl normals wrote there last
+
+
+def provenance(weights_used: dict[str, "str | os.PathLike | None"], device: str | None = None) -> dict:
+    """What produced a result, for its report: psctl's, Python's, NumPy's and torch's versions
+    (torch: None where it is not loaded), the device the networks ran on, and each weights file
+    used by its role (``{"ps-fcn": PATH, ...}``) with its sha256, so that a report from before
+    the weights were replaced still names the file that made it."""
+    import platform
+
+    import psctl
+    from psctl.models.weights import file_sha256
+
+    torch = sys.modules.get("torch")
+    return {"psctl": psctl.__version__, "python": platform.python_version(), "numpy": np.__version__,
+            "torch": None if torch is None else torch.__version__, "device": device,
+            "weights": {role: {"path": os.path.abspath(p), "sha256": file_sha256(p)}
+                        for role, p in weights_used.items() if p is not None}}
+
+
+def weights_used(method: str, weights: "str | os.PathLike | None", lcnet: "str | os.PathLike | None" = None,
+                 second: str | None = None) -> dict[str, "str | os.PathLike | None"]:
+    """The weights files a resolved ``method`` reads, by role (``second``: sdps' second stage)."""
+    from psctl.infer import ENSEMBLE
+    from psctl.models.weights import installed_path
+
+    if method == "ensemble":
+        return {m: installed_path(m) for m in ENSEMBLE}
+    if method == "sdps":
+        stage = {m: installed_path(m) for m in ENSEMBLE} if second == "ensemble" else \
+            {second: weights if weights is not None else installed_path(second)}
+        return {"lcnet": lcnet if lcnet is not None else installed_path("lcnet"), **stage}
+    if method == "l2":
+        return {}
+    return {method: weights if weights is not None else installed_path(method)}
 
 
 def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None = None,

@@ -66,7 +66,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "n_images",
-    "n_dark", "seconds", "notes"}], "mean_mae", "paper", "paper_method", "light_distance", "views",
+    "n_dark", "seconds", "notes", "provenance"}], "mean_mae", "paper", "paper_method", "light_distance", "views",
     "downsample", "precision", "notes"}
     (docs/formats.md has each key; "paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
@@ -257,6 +257,9 @@ def _collect(objects: list[dict], used: list[str], r: dict) -> None:
     used.append(r["method"])
     objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
                     "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"], "notes": r["notes"]})
+    objects[-1]["provenance"] = r["provenance"]  # the weights (sha256) and versions behind the row
+    if "images_used" in r:  # an --images subset: which images, to repeat the run
+        objects[-1].update(images_used=r["images_used"], seed=r["seed"])
     if "spread" in r:  # the ensemble: where its networks disagree
         objects[-1]["spread"] = r["spread"]
     if "light_mae" in r:  # sdps: the lights LCNet estimated

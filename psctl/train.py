@@ -677,14 +677,10 @@ def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.dev
 
 
 def _sha256(path: str | os.PathLike) -> str:
-    """A file's sha256 (hex), read in blocks: the frozen LCNet's and the averaged members'."""
-    import hashlib
+    """A file's sha256 (hex): the frozen LCNet's and the averaged members'."""
+    from psctl.models.weights import file_sha256
 
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return file_sha256(path)
 
 
 def crop_windows(x: torch.Tensor, windows: torch.Tensor, side: int) -> torch.Tensor:

@@ -4,6 +4,8 @@ refused for, integer pixels scaled as image files are, inputs never written to."
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -537,3 +539,34 @@ def test_network_calls_leave_torchs_global_generator_as_it_was(data):
     psctl.estimate_normals(images, lights, mask, method="ensemble", device="cpu")
     psctl.estimate_lights(images, mask, refine=True, device="cpu", views=1)  # LCNet, then PS-FCN's refinement
     assert torch.equal(torch.rand(3), want)
+
+
+def test_a_report_names_what_made_it_and_its_image_subset(tmp_path, fake_weights, monkeypatch):
+    """A report could not tell which weights, image subset or versions produced it (weights are
+    replaced in place; an audit): it now records them (provenance; images_used and seed)."""
+    import hashlib
+
+    from psctl.api import run_normals
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "o", n=8, size=32)
+    w = _ps_fcn_file(tmp_path)
+    r = run_normals(tmp_path / "o", method="ps-fcn", weights=w, n_images=5, seed=3, write=False, device="cpu")
+    p = r["provenance"]
+    assert p["psctl"] and p["numpy"] == np.__version__ and p["device"] == "cpu" and p["torch"]
+    assert p["weights"] == {"ps-fcn": {"path": str(Path(w).resolve()),
+                                       "sha256": hashlib.sha256(Path(w).read_bytes()).hexdigest()}}
+    assert r["seed"] == 3 and len(r["images_used"]) == 5 and all((tmp_path / "o" / n).is_file() for n in r["images_used"])
+    r = run_normals(tmp_path / "o", method="l2", write=False)
+    assert r["provenance"]["weights"] == {} and r["provenance"]["device"] is None and "images_used" not in r
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))  # sdps: LCNet and its second stage
+    r = run_normals(tmp_path / "o", method="sdps", write=False, device="cpu", views=1, refine=False)
+    assert set(r["provenance"]["weights"]) == {"lcnet", "ps-fcn-dagger"}
+    assert r["provenance"]["weights"]["lcnet"]["path"] == str(fake_weights / "lcnet.pt")
+    from psctl.eval import run_benchmark
+
+    write_capture(tmp_path / "root" / "a", n=6, size=24, seed=1)
+    write_capture(tmp_path / "root" / "b", n=6, size=24, seed=2)
+    res = run_benchmark("folder", root=tmp_path / "root", method="ps-fcn", weights=w, n_images=4, device="cpu")
+    assert [o["provenance"]["weights"]["ps-fcn"]["sha256"] for o in res["objects"]] == [p["weights"]["ps-fcn"]["sha256"]] * 2
+    assert all(len(o["images_used"]) == 4 and o["seed"] is None for o in res["objects"])

@@ -109,6 +109,17 @@ def file_name(method: str) -> str:
     return method.replace("-", "_") + SUFFIX
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """A file's sha256 (hex), read in blocks: which weights produced a result, whatever their name."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def installed_path(method: str) -> Path | None:
     """The installed weights file of a network method, or None."""
     p = weights_dir() / file_name(method)
