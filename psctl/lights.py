@@ -1151,6 +1151,15 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "seconds": round(time.perf_counter() - t0, 3),
         "notes": picked + est.notes,
     }
+    from psctl.api import provenance, weights_used
+
+    used = {"lcnet": weights if weights is not None else installed_path("lcnet")}
+    if refines:  # the refinement's network (sdps' second stage, or --normals-weights)
+        from psctl.sdps import sdps_second_stage
+
+        second = sdps_second_stage(normals_weights, flag="--normals-weights")[0]
+        used.update({k: v for k, v in weights_used("sdps", normals_weights, None, second).items() if k != "lcnet"})
+    report["provenance"] = provenance(used, est.info["device"])
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
 

@@ -884,7 +884,10 @@ def test_lights_precision_is_the_refinements_network(tmp_path, fake_weights, mon
     # fp16 is for CUDA, but no network would run in it: a note, not the refusal (a review)
     r = run_lights(tmp_path / "aPNG", device="cpu", views=1, precision="fp16", write=False)
     assert "lights: --precision is unused (no normals network is installed to refine with)" in r["notes"]
+    assert set(r["provenance"]["weights"]) == {"lcnet"}  # what made the lights: LCNet alone
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    r = run_lights(tmp_path / "aPNG", device="cpu", views=1, write=False)
+    assert set(r["provenance"]["weights"]) == {"lcnet", "ps-fcn-dagger"}  # and the refinement's network
     seen.clear()
     from tests.conftest import render_lambertian, sphere, hemisphere_lights
 
