@@ -1324,3 +1324,25 @@ def test_the_view_renderer_refuses_a_test_shape_in_one_line_with_exit_2(tmp_path
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
         "error: 'bunny' is a test shape (sphere, bunny, dragon, armadillo): never train on it"]
     assert not (tmp_path / "v.npz").exists()
+
+
+def test_the_same_seed_writes_the_same_bytes(tmp_path, monkeypatch):
+    """psctl synth with one seed twice: every file byte for byte, Normal_gt.mat included (its
+    header held the time of writing: a reproducibility audit); the .mat still reads as one."""
+    import scipy.io
+
+    from psctl.io.matfile import load_variable
+    from psctl.synth.write import write_preset
+
+    import time
+
+    write_preset(tmp_path / "a", "blobby", seed=3, size=24, n_lights=6, k=2)
+    monkeypatch.setattr(time, "asctime", lambda *a: "Thu Jan  1 00:00:00 1970")  # as if written at another time
+    write_preset(tmp_path / "b", "blobby", seed=3, size=24, n_lights=6, k=2)
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    assert any(p.name == "Normal_gt.mat" for p in files)
+    differ = [p for p in files if (tmp_path / "a" / p).read_bytes() != (tmp_path / "b" / p).read_bytes()]
+    assert differ == []
+    mat = next(tmp_path.glob("a/*/Normal_gt.mat"))
+    n = scipy.io.loadmat(mat)["Normal_gt"]
+    assert n.shape == (24, 24, 3) and np.array_equal(load_variable(mat, "Normal_gt"), n)

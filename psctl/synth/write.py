@@ -266,9 +266,11 @@ def exposure_scale(images: torch.Tensor, mask: torch.Tensor, gen: torch.Generato
 
 def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
     """Write one capture folder (images already exposed, values in [0, 1])."""
+    import io
+
     import scipy.io
 
-    from psctl.io.atomic import write_text_atomic
+    from psctl.io.atomic import write_bytes_atomic, write_text_atomic
     from psctl.io.images import write_image
     from psctl.io.normals import write_normal_map
 
@@ -287,12 +289,13 @@ def write_object(folder: Path, obj: SynthObject, images: torch.Tensor) -> None:
     write_text_atomic(folder / "light_intensities.txt",
                       "".join(f"{e:.6f} {e:.6f} {e:.6f}\n" for e in obj.intensities.tolist()))
     write_image(folder / "mask.png", mask.astype(np.float32), "uint8", kind="data")
-    try:
-        scipy.io.savemat(str(folder / "Normal_gt.mat"), {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
-    except OSError as e:  # scipy's carries no file name: a full disk would be reported without one
-        if e.filename is not None:
-            raise
-        raise OSError(e.errno, e.strerror or str(e), str(folder / "Normal_gt.mat")) from None
+    mat = io.BytesIO()
+    scipy.io.savemat(mat, {"Normal_gt": np.where(mask[..., None], normals, 0.0).astype(np.float64)})
+    # the header's 116 bytes of text carry the time of writing: without it the same seed gives
+    # the same bytes (a dataset's checksums match between runs; readers skip this text)
+    data = bytearray(mat.getvalue())
+    data[:116] = b"MATLAB 5.0 MAT-file, written by psctl synth".ljust(116, b" ")
+    write_bytes_atomic(folder / "Normal_gt.mat", bytes(data))  # a full disk: one error naming the file
     write_normal_map(folder / "Normal_gt.png", normals, mask, "png16")
     write_text_atomic(folder / "synth.json", json.dumps(obj.meta, indent=2) + "\n")
 
