@@ -1063,6 +1063,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     # refined only with a normals network: asked for, but none installed, the refinement's options go unused
     refines = refine and (normals_weights is not None or any(installed_path(m) for m in SDPS_SECOND))
+    second = None
+    if refines:  # which network refines, decided once (a file given is checked here, before any work)
+        from psctl.sdps import sdps_second_stage
+
+        second = sdps_second_stage(normals_weights, flag="--normals-weights")[0]
     # the refinement's normals network; checked before any work (not where none will run)
     net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refines else None}
     cap = open_capture(path, encoding)
@@ -1113,7 +1118,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refines:
-        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, net_cfg, progress, fit, memo)
+        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, second, net_cfg, progress, fit,
+                              memo)
     elif refine:
         est = replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                               "LCNet's lights are not refined"])
@@ -1155,9 +1161,6 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     used = {"lcnet": weights if weights is not None else installed_path("lcnet")}
     if refines:  # the refinement's network (sdps' second stage, or --normals-weights)
-        from psctl.sdps import sdps_second_stage
-
-        second = sdps_second_stage(normals_weights, flag="--normals-weights")[0]
         used.update({k: v for k, v in weights_used("sdps", normals_weights, None, second).items() if k != "lcnet"})
     report["provenance"] = provenance(used, est.info["device"])
     if write:
@@ -1183,15 +1186,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
-                    net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None,
+                    second: str, net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None,
                     memo: "DecodeMemo | None" = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
     turned by the roll of the normals from the refined lights when the config says so).
-    ``memo``: images decoded by LCNet's pass. ``weights`` None: the installed network (run_lights
-    has checked that there is one)."""
-    from psctl.sdps import capture_source, sdps_second_stage, second_stage
+    ``memo``: images decoded by LCNet's pass. ``second``: the second stage's method, which
+    run_lights chose once, before any work (``weights`` None: the installed network)."""
+    from psctl.sdps import capture_source, second_stage
 
-    second = sdps_second_stage(weights, flag="--normals-weights")[0]
     source = capture_source(cap, mask, second, weights, net_cfg, progress, memo)
     return second_stage(source, est, True, config, normals=False)[0]
 
