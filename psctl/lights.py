@@ -1159,9 +1159,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     }
     from psctl.api import provenance, weights_used
 
-    used = {"lcnet": weights if weights is not None else installed_path("lcnet")}
-    if refines:  # the refinement's network (sdps' second stage, or --normals-weights)
-        used.update({k: v for k, v in weights_used("sdps", normals_weights, None, second).items() if k != "lcnet"})
+    # LCNet's file, and the refinement's network where one ran (sdps' second stage, or --normals-weights)
+    used = weights_used("sdps", normals_weights, weights, second) if refines else \
+        {"lcnet": weights if weights is not None else installed_path("lcnet")}
     report["provenance"] = provenance(used, est.info["device"])
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from psctl.errors import PsctlError, like_default
-from psctl.models.weights import save_torch
+from psctl.models.weights import file_sha256, save_torch
 from psctl.synth.stream import MAX_SEED
 
 if TYPE_CHECKING:
@@ -195,12 +195,19 @@ def _full_recipe(config: dict | None) -> dict | None:
     return merge(DEFAULT_CONFIG, config)
 
 
+def _other_method(config: dict, method: str) -> Any:
+    """The recipe's own ``method`` label where it names another network than ``method`` (in any
+    case, as the command line takes names), else None."""
+    label = config.get("method")
+    return label if label is not None and (label.lower() if isinstance(label, str) else label) != method else None
+
+
 def check_sizes(method: str, config: dict) -> None:
     """The recipe against the method: its own ``method`` key, if any, must agree, and PS-FCN's
     training crops and validation windows must be multiples of 4 (two stride-2 layers: another
     size comes back from the network a few pixels off, a torch error minutes into the run)."""
-    label = config.get("method")
-    if label is not None and (label.lower() if isinstance(label, str) else label) != method:
+    label = _other_method(config, method)
+    if label is not None:
         raise PsctlError(None, f"config 'method' is {label!r}: the recipe is for another network than {method}; "
                                f"train {label} with it, or choose a {method} recipe")
     if method == "lcnet":  # LCNet resizes every view to its input size
@@ -670,17 +677,10 @@ def frozen_lcnet(config: dict, path: str | os.PathLike | None, device: torch.dev
         raise no_weights_error("lcnet", "--lcnet")
     model, _, w = load_network("lcnet", path, device=device)
     model.requires_grad_(False)
-    info = {"path": str(w.path), "sha256": _sha256(w.path), "official": w.official, "date": w.metadata.get("date"),
+    info = {"path": str(w.path), "sha256": file_sha256(w.path), "official": w.official, "date": w.metadata.get("date"),
             "samples_seen": w.metadata.get("samples_seen"), "metrics": w.metadata.get("metrics"),
             "decode": config["lcnet"]["decode"]}
     return model.eval(), info
-
-
-def _sha256(path: str | os.PathLike) -> str:
-    """A file's sha256 (hex): the frozen LCNet's and the averaged members'."""
-    from psctl.models.weights import file_sha256
-
-    return file_sha256(path)
 
 
 def crop_windows(x: torch.Tensor, windows: torch.Tensor, side: int) -> torch.Tensor:
@@ -883,8 +883,8 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
             raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
                                          "(a run keeps its recipe) or start a new run with --out")
         config = check_recipe(config)  # a bad value is its one line, not a TypeError here
-        label = config.get("method")  # the one key the comparison leaves out
-        if label is not None and (label.lower() if isinstance(label, str) else label) != method:
+        label = _other_method(config, method)  # the one key the comparison leaves out
+        if label is not None:
             raise PsctlError(state_file, f"is a {method} run, and the recipe's 'method' is {label!r}: resume "
                                          f"without --config (a run keeps its recipe)")
         asked = config["train"]["samples"]
@@ -1282,7 +1282,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
     def member(w) -> dict:
         m = w.metadata
-        return {"path": str(w.path), "sha256": _sha256(w.path),
+        return {"path": str(w.path), "sha256": file_sha256(w.path),
                 "samples_seen": m.get("samples_seen"), "wall_seconds": m.get("wall_seconds"),
                 "metrics": m.get("metrics", {}), "date": m.get("date"), "recipe": m.get("recipe")}
 

@@ -373,16 +373,8 @@ def build_network(weights: Weights, method: str,
     generator, which shifted a caller's seeded stream (and saving and restoring it instead would
     replay numbers to the caller's other threads). Copied into fresh memory, not assigned: the
     file's own tensors gave LCNet outputs 1e-5 apart (the same values, other allocations)."""
-    import torch
-
-    import importlib
-
-    for module in ("psctl.models.lcnet", "psctl.models.ps_fcn"):  # imported here, not first inside the meta
-        importlib.import_module(module)                           # context below (a module-level tensor would be meta)
-
     run = for_method(weights, method)
-    with torch.device("meta"):
-        model, name = _network(weights, method, run)
+    model, name = _network(weights, method, run)
     check_state_dict(weights.path, weights.state_dict, model, name)
     model = model.to_empty(device="cpu")
     model.load_state_dict(weights.state_dict, strict=True)  # an LCNet stored in float16 is cast to its float32
@@ -390,21 +382,22 @@ def build_network(weights: Weights, method: str,
 
 
 def _network(weights: Weights, method: str, run: dict) -> tuple["PSFCN | LCNet", str]:
-    """The network ``method``'s weights ``run`` describe (their architecture), not yet loaded."""
+    """The network ``method``'s weights ``run`` describe (their architecture), on the meta device
+    (shapes, no values; its module imported first, so no module-level tensor is made there)."""
+    import torch
+
     if WEIGHTS_METHODS[method]["architecture"] == "lcnet":
         from psctl.models.lcnet import DEFAULT_CONFIG, LCNet
 
         try:
-            model = LCNet({k: v for k, v in run["architecture"].items() if k in DEFAULT_CONFIG})
+            with torch.device("meta"):
+                return LCNet({k: v for k, v in run["architecture"].items() if k in DEFAULT_CONFIG}), "LCNet"
         except (ValueError, TypeError) as e:
             raise PsctlError(weights.path, f"bad LCNet architecture in the metadata ({e})") from None
-        name = "LCNet"
-    else:
-        from psctl.models.ps_fcn import PSFCN
+    from psctl.models.ps_fcn import PSFCN
 
-        model = PSFCN({k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")})
-        name = "PS-FCN"
-    return model, name
+    with torch.device("meta"):
+        return PSFCN({k: v for k, v in run["architecture"].items() if k in ("lights", "fuse", "slope")}), "PS-FCN"
 
 
 def load_network(method: str, weights_file: str | os.PathLike | None = None,
