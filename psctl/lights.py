@@ -93,6 +93,9 @@ DEFAULT_LIGHTS = {
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png"}
 SUBSET_FILE = "light_images.txt"  # with --images: the image each light file row belongs to
+# the run's report (what --json prints: errors, notes, provenance), beside the light files it
+# describes; named as psctl depth's depth_report.json, so never psctl normals' report.json
+REPORT_FILE = "lights_report.json"
 # psctl normals --method sdps: the lights its normals were estimated from, under names of their own
 # so that they never replace psctl lights' files in the same folder (both default to PATH/psctl)
 SDPS_FILES = {k: v.replace(".", "_estimated.", 1) for k, v in {**OUTPUT_FILES, "light_images": SUBSET_FILE}.items()}
@@ -1082,12 +1085,12 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if write:
         check_not_capture(out_dir, cap)  # its light files are inputs
         inputs = {p.resolve() for p in cap.input_paths}
-        clash = [f for f in OUTPUT_FILES.values() if (out_dir / f).resolve() in inputs]
+        clash = [f for f in (*OUTPUT_FILES.values(), REPORT_FILE) if (out_dir / f).resolve() in inputs]
         if clash:
             raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
         from psctl.io.atomic import check_inputs_kept
 
-        check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE],
+        check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE, REPORT_FILE],
                           (("--weights", weights), ("--normals-weights", normals_weights)))
         check_output_dir(out_dir)
     mask = load_mask(cap)
@@ -1165,9 +1168,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     report["provenance"] = provenance(used, est.info["device"])
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
+        from psctl.io.report import write_json
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
-        names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else [])]
+        names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), REPORT_FILE]
         report["notes"] += replaced_notes(out_dir, names, "lights")  # a same-named file of the user's
         if subset:
             report["outputs"]["light_images"] = os.path.abspath(out_dir / SUBSET_FILE)
@@ -1181,7 +1185,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                 (stage / SUBSET_FILE).write_text("".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
                               errors["light_mae"], cap.name)
-        report["seconds"] = round(time.perf_counter() - t0, 3)
+            report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)
+            report["seconds"] = round(time.perf_counter() - t0, 3)  # the file and the return agree
+            write_json(stage / REPORT_FILE, report)
     return report
 
 

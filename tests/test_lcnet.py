@@ -26,7 +26,7 @@ from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_
                                 count_parameters, decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
                                 resize_inputs)
 from psctl.models.ps_fcn import PSFCN
-from psctl.models.weights import load_network, read_weights, save_weights
+from psctl.models.weights import file_sha256, load_network, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs
 from tests.conftest import write_capture, weights_in
 
@@ -363,8 +363,13 @@ def test_lights_command(tmp_path, fake_weights):
     assert {"object", "n_images", "light_mae", "intensity_re", "outputs"} <= set(r)
     assert r["object"] == "ball" and r["n_images"] == 8
     assert 0 <= r["light_mae"] <= 180 and r["intensity_re"] >= 0
-    assert sorted(os.listdir(out)) == [".psctl-lights", "light_directions.txt", "light_intensities.txt", "lights.png"]
-    assert set(r["outputs"]) == {"light_directions", "light_intensities", "lights"}
+    assert sorted(os.listdir(out)) == [".psctl-lights", "light_directions.txt", "light_intensities.txt", "lights.png",
+                                       "lights_report.json"]
+    assert set(r["outputs"]) == {"light_directions", "light_intensities", "lights", "report"}
+    # the folder says what made its light files: the report file is what --json printed
+    assert json.loads((out / "lights_report.json").read_text()) == r
+    assert r["outputs"]["report"] == str(out / "lights_report.json")
+    assert r["provenance"]["weights"]["lcnet"]["sha256"] == file_sha256(fake_weights / "lcnet.pt")
     est = np.loadtxt(out / "light_directions.txt")
     from psctl.metrics import light_direction_error
 
