@@ -12,6 +12,8 @@ import os
 import time
 import sys
 import warnings
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +24,14 @@ from psctl.errors import (ProgressFactory, PsctlError, PsctlWarning, check_bool,
 from psctl.io.atomic import OutputBatch, outputs_list, read_outputs_list, replaced_notes, write_outputs_list
 from psctl.models import NETWORK_METHODS, check_device_name
 from psctl.sdps import SDPS_SECOND, check_sdps_weights, sdps_second_stage  # noqa: F401 (sdps_second_stage: API)
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from psctl.albedo import AlbedoResult
+    from psctl.io.capture import Capture, DecodeMemo
+    from psctl.lights import LightEstimate
+    from psctl.nearlight import NearLights
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
 NETWORKS = ("ps-fcn", "ps-fcn-n", "ups-fcn")  # need weights: installed in weights/ or --weights FILE
@@ -423,16 +433,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     """
     from dataclasses import replace
 
-    from psctl.classic import L2Accumulator, lights_problem
+    from psctl.classic import lights_problem
     from psctl.models import check_downsample, check_precision, precision_autocast
     from psctl.lights import SDPS_FILES, refine_config
     from psctl.symmetry import check_views
-    from psctl.io.atomic import check_inputs_kept, check_output_dir, output_folder, staged_outputs
-    from psctl.io.capture import (ImageCheck, bounding_box, check_not_capture, capture_notes, iter_images,
-                                  load_ground_truth, load_mask, open_capture, select_images, selection_notes)
+    from psctl.io.atomic import output_folder, staged_outputs
+    from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture, select_images,
+                                  selection_notes)
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
-    from psctl.metrics import angular_error, summarize
 
     t0 = time.perf_counter()
     for name, value in (("path", path), ("out", out), ("weights", weights), ("lcnet", lcnet)):
@@ -482,40 +491,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     elif method in ("sdps", "ups-fcn") and cap.n_images < 3:  # no listed lights, the same shortage
         notes.append(few_images_note(method, cap.n_images))
     out_dir = output_folder(out, cap.path)
-    # report.json always: without ground truth it still records the method, notes and timings
-    # sdps: the lights its normals came from (with an --images subset, the images they belong to)
-    light_files = [] if method != "sdps" else [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] \
-        + ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
-    if write and SDPS_FILES["light_images"] in light_files:
-        notes.append(f"images: the estimated light files have {cap.n_images} rows, one per image listed in "
-                     f"{SDPS_FILES['light_images']}")
-    names = [FORMATS[f] for f in formats] + ([ALBEDO_FORMATS[f] for f in formats] if want_albedo else []) + \
-        (["error.png"] if cap.gt_path else []) + \
-        (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
-    # every file psctl normals may write
-    all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
-    stale: list[str] = []
-    if write:
-        check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
-        inputs = {p.resolve() for p in cap.input_paths}
-        clash = [n for n in names if (out_dir / n).resolve() in inputs]
-        if clash:
-            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
-        check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
-        check_output_dir(out_dir)
-        # psctl's own files from an earlier run there (its list says which), that this run does not write
-        given = {os.path.realpath(p) for p in (weights, lcnet) if p is not None}  # never removed: they are read
-        stale = sorted(n for n in read_outputs_list(out_dir, "normals")
-                       if n in all_names and n not in names and (out_dir / n).is_file()
-                       and os.path.realpath(out_dir / n) not in given)
-        if stale:
-            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
-                         "(a folder holds one run's outputs)")
-        for n in names:  # a folder in the way would fail the run only after its work
-            if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
-                raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
-                                              "or choose another --out")
-        notes += replaced_notes(out_dir, names, "normals")  # not psctl's (or from a psctl without the list)
+    names, light_files, stale, out_notes = _normals_outputs(method, cap, n_all, formats, want_albedo, write, out_dir,
+                                                            weights, lcnet)
+    notes += out_notes
 
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
@@ -542,31 +520,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
-        from psctl.infer import DEFAULT_INFER, first_read_box
-        from psctl.io.capture import DecodeMemo
-        from psctl.lights import capture_lights, light_errors, lights_changed, lit_capture
-        from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
-
-        second = sdps_second_stage(weights)[0]
-        lc_cfg = sdps_lcnet_config(second, weights, device)
-        if memo is None:  # every pass takes the images LCNet's decoded, where they fit
-            memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-        est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
-                             keep_box=first_read_box(cap, mask, net_cfg))
-        gt_ints = cap.intensities if cap.intensities_given else None
-        lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-        source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg,
-                                progress, memo)
-        est, net = second_stage(source, est, refine, fit)
-        normals, dark = net.normals, net.dark
-        notes += list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
-        light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-        if light_stats["light_mae"] is not None:
-            refined = refine and lights_changed(est.info["refine"])
-            notes.append(f"lights: direction error {light_stats['light_mae']:.2f}° (mean)" + (
-                "" if light_stats["intensity_re"] is None else
-                f", intensity relative error {light_stats['intensity_re']:.3f}") + (
-                f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
+        sd = _sdps_normals(cap, mask, near, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
+        est, normals, dark, light_stats = sd.lights, sd.normals, sd.dark, sd.light_stats
+        notes += sd.notes
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
@@ -575,21 +531,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])
     else:
-        acc = L2Accumulator(mask[box])
-        advance = progress(f"{cap.name}: reading + l2", cap.n_images)
-        check = ImageCheck(cap)  # black images, negative values: notes
-        for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo)):
-            acc.add(img, cap.lights[k])
-            check.see(k, img[mask[box]])
-            advance(1)
-        res = acc.solve()
-        if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
-            raise PsctlError(cap.path, "all images are black inside the mask")
-        notes += check.notes()
-        normals = np.zeros((cap.height, cap.width, 3), np.float32)
-        normals[box] = res.normals
-        dark = np.zeros(mask.shape, bool)
-        dark[box] = res.dark
+        normals, dark, l2_notes = _l2_normals(cap, mask, box, progress, memo)
+        notes += l2_notes
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
     if method in LISTED_LIGHTS:  # the light file's methods
@@ -597,39 +540,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     alb = albedo_stats = None
     if want_albedo:
-        from psctl.albedo import albedo_png_scale, capture_albedo
+        from psctl.lights import lit_capture
 
         lit = cap if method != "sdps" else lit_capture(replace(cap, near=near), est)  # the lights the normals used
-        alb = capture_albedo(lit, np.where(dark[..., None], 0.0, normals), mask, progress=progress,
-                             memo=memo)  # dark pixels: no normal
-        undetermined = int(alb.undetermined.sum())
-        determined = mask & ~alb.undetermined
-        albedo_stats = {"png_scale": albedo_png_scale(alb.albedo, determined),
-                        "median": [float(v) for v in np.median(alb.albedo[determined], axis=0)]
-                        if determined.any() else None,
-                        "n_undetermined": undetermined}
-        if undetermined:
-            notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
-                         f"light in front of their normal, or black in every image that counts, docs/formats.md): "
-                         f"0 in the albedo maps")
-        if method == "sdps":
-            notes.append("albedo: on the scale of the estimated intensities, one per image: known up to one "
-                         "factor per channel (the lights' colour, which sdps does not estimate)")
+        alb, albedo_stats, alb_notes = _capture_albedo(lit, method, normals, dark, mask, progress, memo)
+        notes += alb_notes
 
     # --- evaluate ------------------------------------------------------------------------------
-    error = None
-    stats = {"mae": None, "median": None, "within": {"11.25": None, "22.5": None, "30": None}}
-    n_eval = 0
-    if gt is not None:
-        valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
-        if not valid.any():
-            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
-        error = np.zeros(mask.shape, np.float32)
-        error[mask & ~valid] = np.nan  # no ground truth there: the maps show it apart from 0 degrees
-        error[valid] = angular_error(normals, gt, valid)
-        stats = summarize(error[valid])
-        n_eval = int(valid.sum())
-        notes += convention_notes(normals, gt, valid, stats["mae"], cap.gt_path.name)
+    error, stats, valid, eval_notes = _evaluate(normals, gt, mask, cap.gt_path)
+    n_eval = 0 if valid is None else int(valid.sum())
+    notes += eval_notes
 
     seconds = time.perf_counter() - t0
     report = {
@@ -654,7 +574,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         "notes": notes,
     }
     if spread is not None:
-        report["spread"] = spread_stats(spread, mask, error, valid if gt is not None else None)
+        report["spread"] = spread_stats(spread, mask, error, valid)
     report["albedo"] = albedo_stats
     if cap.n_images < n_all:  # an --images subset: which images, so that the run can be repeated
         report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
@@ -663,16 +583,16 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.infer import pick_device
 
         dev = str(pick_device(device))
-    report["provenance"] = provenance(weights_used(method, weights, lcnet, second if method == "sdps" else None),
+    report["provenance"] = provenance(weights_used(method, weights, lcnet, sd.second if method == "sdps" else None),
                                       None if method == "l2" else dev)
     if light_stats is not None:
-        report["second_stage"] = second  # the network that turned LCNet's lights into normals
-        report["lcnet_decode"] = lc_cfg["decode"]
-        report["lcnet_views"] = lc_cfg["views"]
+        report["second_stage"] = sd.second  # the network that turned LCNet's lights into normals
+        report["lcnet_decode"] = sd.lcnet_config["decode"]
+        report["lcnet_views"] = sd.lcnet_config["views"]
         report["light_mae"] = light_stats["light_mae"]
         report["intensity_re"] = light_stats["intensity_re"]
-        report["lcnet_light_mae"] = lcnet_stats["light_mae"]  # before refinement
-        report["lcnet_intensity_re"] = lcnet_stats["intensity_re"]
+        report["lcnet_light_mae"] = sd.lcnet_stats["light_mae"]  # before refinement
+        report["lcnet_intensity_re"] = sd.lcnet_stats["intensity_re"]
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
 
     if arrays is not None:
@@ -711,6 +631,179 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             report["seconds"] = round(time.perf_counter() - t0, 3)  # report.json and the return agree
             write_json(stage / "report.json", report)
     return report
+
+
+def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str], want_albedo: bool, write: bool,
+                     out_dir: "Path", weights: str | os.PathLike | None,
+                     lcnet: str | os.PathLike | None) -> tuple[list[str], list[str], list[str], list[str]]:
+    """The files a psctl normals run writes into ``out_dir``: (names, light_files: sdps' among
+    them, stale: an earlier run's files there that this one removes, notes). With ``write``,
+    ``out_dir`` is checked here, before any work: no capture's inputs, no file the run reads,
+    no folder in the way of an output."""
+    from psctl.io.atomic import check_inputs_kept, check_output_dir
+    from psctl.io.capture import check_not_capture
+    from psctl.io.normals import ALBEDO_FORMATS, FORMATS
+    from psctl.lights import SDPS_FILES
+
+    notes: list[str] = []
+    # report.json always: without ground truth it still records the method, notes and timings
+    # sdps: the lights its normals came from (with an --images subset, the images they belong to)
+    light_files = [] if method != "sdps" else [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] \
+        + ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
+    if write and SDPS_FILES["light_images"] in light_files:
+        notes.append(f"images: the estimated light files have {cap.n_images} rows, one per image listed in "
+                     f"{SDPS_FILES['light_images']}")
+    names = [FORMATS[f] for f in formats] + ([ALBEDO_FORMATS[f] for f in formats] if want_albedo else []) + \
+        (["error.png"] if cap.gt_path else []) + \
+        (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
+    # every file psctl normals may write
+    all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
+    stale: list[str] = []
+    if write:
+        check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
+        inputs = {p.resolve() for p in cap.input_paths}
+        clash = [n for n in names if (out_dir / n).resolve() in inputs]
+        if clash:
+            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
+        check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
+        check_output_dir(out_dir)
+        # psctl's own files from an earlier run there (its list says which), that this run does not write
+        given = {os.path.realpath(p) for p in (weights, lcnet) if p is not None}  # never removed: they are read
+        stale = sorted(n for n in read_outputs_list(out_dir, "normals")
+                       if n in all_names and n not in names and (out_dir / n).is_file()
+                       and os.path.realpath(out_dir / n) not in given)
+        if stale:
+            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
+                         "(a folder holds one run's outputs)")
+        for n in names:  # a folder in the way would fail the run only after its work
+            if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
+                raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
+                                              "or choose another --out")
+        notes += replaced_notes(out_dir, names, "normals")  # not psctl's (or from a psctl without the list)
+    return names, light_files, stale, notes
+
+
+def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: ProgressFactory,
+                memo: "DecodeMemo | None") -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """l2 on a capture folder, streamed image by image: (normals [H, W, 3], dark [H, W], notes)."""
+    from psctl.classic import L2Accumulator
+    from psctl.io.capture import ImageCheck, iter_images
+
+    acc = L2Accumulator(mask[box])
+    advance = progress(f"{cap.name}: reading + l2", cap.n_images)
+    check = ImageCheck(cap)  # black images, negative values: notes
+    for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo)):
+        acc.add(img, cap.lights[k])
+        check.see(k, img[mask[box]])
+        advance(1)
+    res = acc.solve()
+    if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
+        raise PsctlError(cap.path, "all images are black inside the mask")
+    normals = np.zeros((cap.height, cap.width, 3), np.float32)
+    normals[box] = res.normals
+    dark = np.zeros(mask.shape, bool)
+    dark[box] = res.dark
+    return normals, dark, check.notes()
+
+
+@dataclass
+class _SdpsRun:
+    """What sdps gave a capture folder: the report's parts beside the normals."""
+    lights: "LightEstimate"  # as the second stage last used them (refined or not)
+    normals: np.ndarray  # [H, W, 3]
+    dark: np.ndarray  # [H, W] bool
+    notes: list[str]
+    second: str  # the second stage's method
+    lcnet_config: dict  # how LCNet ran (decode, views)
+    lcnet_stats: dict  # LCNet's own lights against the folder's: light_mae, intensity_re (None without)
+    light_stats: dict  # the lights the normals came from, likewise
+
+
+def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", weights: str | os.PathLike | None,
+                  lcnet: str | os.PathLike | None, device: str, net_cfg: dict, refine: bool, fit: dict,
+                  progress: ProgressFactory, memo: "DecodeMemo | None") -> _SdpsRun:
+    """sdps on a capture folder: LCNet's lights, the second stage, the refinement (``refine``,
+    ``fit``); ``near``: the lights' distance, whose falloff the second stage divides out."""
+    from dataclasses import replace
+
+    from psctl.infer import DEFAULT_INFER, first_read_box
+    from psctl.io.capture import DecodeMemo
+    from psctl.lights import capture_lights, light_errors, lights_changed
+    from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
+
+    second = sdps_second_stage(weights)[0]
+    lc_cfg = sdps_lcnet_config(second, weights, device)
+    if memo is None:  # every pass takes the images LCNet's decoded, where they fit
+        memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
+    est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
+                         keep_box=first_read_box(cap, mask, net_cfg))
+    gt_ints = cap.intensities if cap.intensities_given else None
+    lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
+    source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg, progress, memo)
+    est, net = second_stage(source, est, refine, fit)
+    notes = list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
+    light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
+    if light_stats["light_mae"] is not None:
+        refined = refine and lights_changed(est.info["refine"])
+        notes.append(f"lights: direction error {light_stats['light_mae']:.2f}° (mean)" + (
+            "" if light_stats["intensity_re"] is None else
+            f", intensity relative error {light_stats['intensity_re']:.3f}") + (
+            f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
+    return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats)
+
+
+def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,
+                    progress: ProgressFactory, memo: "DecodeMemo | None") -> tuple["AlbedoResult", dict, list[str]]:
+    """The albedo of a capture whose lights (``lit``) the normals came from: (the albedo, the
+    report's "albedo" {png_scale, median, n_undetermined}, notes)."""
+    from psctl.albedo import albedo_png_scale, capture_albedo
+
+    alb = capture_albedo(lit, np.where(dark[..., None], 0.0, normals), mask, progress=progress,
+                         memo=memo)  # dark pixels: no normal
+    undetermined = int(alb.undetermined.sum())
+    determined = mask & ~alb.undetermined
+    stats = {"png_scale": albedo_png_scale(alb.albedo, determined),
+             "median": [float(v) for v in np.median(alb.albedo[determined], axis=0)] if determined.any() else None,
+             "n_undetermined": undetermined}
+    notes = []
+    if undetermined:
+        notes.append(f"albedo: {undetermined} of {int(mask.sum())} object pixels undetermined (no normal, no "
+                     f"light in front of their normal, or black in every image that counts, docs/formats.md): "
+                     f"0 in the albedo maps")
+    if method == "sdps":
+        notes.append("albedo: on the scale of the estimated intensities, one per image: known up to one "
+                     "factor per channel (the lights' colour, which sdps does not estimate)")
+    return alb, stats, notes
+
+
+def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
+              gt_path: "Path | None") -> tuple[np.ndarray | None, dict, np.ndarray | None, list[str]]:
+    """Normals [H, W, 3] against the ground truth (None: not scored): (the error map [H, W]
+    degrees, 0 outside the mask and NaN where the ground truth has no normal; the summary
+    (mae, median, within); the scored pixels [H, W]; notes). Without ground truth: None, the
+    summary's keys with None, None, no notes."""
+    from psctl.metrics import angular_error, summarize
+
+    if gt is None:
+        return None, {"mae": None, "median": None, "within": {"11.25": None, "22.5": None, "30": None},
+                      "mae_missing_as_90": None}, None, []
+    valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
+    if not valid.any():
+        raise PsctlError(gt_path, "ground truth has no valid normal inside the mask")
+    error = np.zeros(mask.shape, np.float32)
+    error[mask & ~valid] = np.nan  # no ground truth there: the maps show it apart from 0 degrees
+    error[valid] = angular_error(normals, gt, valid)
+    stats = summarize(error[valid])
+    # the authors' evaluation code scores every mask pixel, a zero ground truth at 90 degrees (its
+    # dot product is 0): their published numbers hold those pixels, so the report gives both
+    n_missing, n_mask = int((mask & ~valid).sum()), int(mask.sum())
+    stats["mae_missing_as_90"] = (stats["mae"] * (n_mask - n_missing) + 90.0 * n_missing) / n_mask
+    notes = convention_notes(normals, gt, valid, stats["mae"], gt_path.name)
+    if n_missing:
+        notes.append(f"scoring: {n_missing} of {n_mask} mask pixels have no ground-truth normal in {gt_path.name} (zero "
+                     f"or NaN) and are not scored (grey in error.png); at 90 degrees each, as the authors' evaluation "
+                     f"code counts them, the MAE would be {stats['mae_missing_as_90']:.2f} (mae_missing_as_90)")
+    return error, stats, valid, notes
 
 
 OUTPUTS_LIST = outputs_list("normals")  # in an output folder: the files psctl normals wrote there last

@@ -343,7 +343,7 @@ def test_eval_light_means_and_paper_lights():
     would sit beside the paper's over all); the paper's light numbers only on DiLiGenT."""
     from psctl.eval import PAPER_DILIGENT_LIGHTS, _table
 
-    row = {"name": "ball", "mae": 3.0, "median": 2.0, "light_mae": 2.0, "intensity_re": 0.05,
+    row = {"name": "ball", "mae": 3.0, "median": 2.0, "mae_missing_as_90": 3.0, "light_mae": 2.0, "intensity_re": 0.05,
            "lcnet_light_mae": 3.0, "lcnet_intensity_re": 0.06}
     r = _table("folder", Path("."), [dict(row), {**row, "name": "cat", "light_mae": None}], ["sdps"], None)
     assert r["mean_light_mae"] is None and r["mean_intensity_re"] == pytest.approx(0.05)
@@ -393,8 +393,10 @@ def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     from psctl.eval import PAPER_DILIGENT, _table
     from psctl.io.summary import render_benchmark
 
-    objs = [{"name": n, "mae": 3.0, "n_images": 96, "seconds": 1.0} for n in ("ball", "cat")]
+    objs = [{"name": n, "mae": 3.0, "mae_missing_as_90": 3.0 + k, "n_images": 96, "seconds": 1.0}
+            for k, n in enumerate(("ball", "cat"))]
     r = _table("diligent", Path("root"), objs, ["ensemble", "ensemble"], None)
+    assert r["mean_mae"] == 3.0 and r["mean_mae_missing_as_90"] == 3.5
     assert r["method"] == "ensemble" and r["paper_method"] == "ps-fcn-n"
     assert r["paper"] == {n: PAPER_DILIGENT["ps-fcn-n"][n] for n in ("ball", "cat")}
     render_benchmark(r)
@@ -402,6 +404,10 @@ def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     assert "ensemble (psctl)" in out and "ps-fcn-n (paper)" in out
     r = _table("diligent", Path("root"), objs, ["l2", "l2"], None)
     assert r["paper_method"] == "l2" and r["paper"]["cat"] == PAPER_DILIGENT["l2"]["cat"]
+    # the published numbers as published: no digit the paper did not give (2.8, not 2.80)
+    render_benchmark(r)
+    paper_row = next(line for line in capsys.readouterr().out.splitlines() if "l2 (paper)" in line)
+    assert " 4.1 " in paper_row and " 8.41 " in paper_row and "4.10" not in paper_row
     r = _table("folder", Path("root"), objs, ["ensemble", "ensemble"], None)
     assert r["paper"] == {} and r["paper_method"] is None
     # the settings that change the numbers are named beside the method; the defaults are not

@@ -845,6 +845,15 @@ def test_score_skips_pixels_without_gt(tmp_path):
     assert holed["n_mask_pixels"] == full["n_mask_pixels"] == int(arrays["mask"].sum())
     assert holed["n_evaluated_pixels"] == full["n_evaluated_pixels"] - len(holes)
     assert holed["mae"] < 1.0  # Lambertian sphere, L2: near exact on the scored pixels, no 90s
+    # and as the authors' code scores (a zero ground truth at 90 degrees), with a note saying so
+    n = holed["n_mask_pixels"]
+    assert holed["mae_missing_as_90"] == pytest.approx((holed["mae"] * (n - len(holes)) + 90 * len(holes)) / n)
+    assert full["mae_missing_as_90"] == full["mae"]
+    assert [x for x in holed["notes"] if x.startswith("scoring:")] == [
+        f"scoring: {len(holes)} of {n} mask pixels have no ground-truth normal in Normal_gt.mat (zero or NaN) and are "
+        f"not scored (grey in error.png); at 90 degrees each, as the authors' evaluation code counts them, the MAE "
+        f"would be {holed['mae_missing_as_90']:.2f} (mae_missing_as_90)"]
+    assert not any(x.startswith("scoring:") for x in full["notes"])
     # the error array and error.png keep them apart from a perfect pixel: NaN, drawn grey
     err = got["error"]
     assert np.isnan(err[holes[:, 0], holes[:, 1]]).all() and np.isnan(err).sum() == len(holes)

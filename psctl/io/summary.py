@@ -367,7 +367,8 @@ def render_benchmark(result: dict) -> None:
     if paper:
         vals = [paper.get(o["name"]) for o in objs]
         avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
-        rows.append((f"{result.get('paper_method') or result['method']} (paper)", [_fmt(v) for v in vals], _fmt(avg),
+        rows.append((f"{result.get('paper_method') or result['method']} (paper)",
+                     ["-" if v is None else f"{v:g}" for v in vals], _fmt(avg),
                      "dim"))
     if "mean_light_mae" in result:  # sdps: the lights LCNet estimated, and the paper's LCNet
         paper_l = result.get("paper_lights") or {}
@@ -402,7 +403,7 @@ def render_benchmark(result: dict) -> None:
     from psctl.io.capture import READ_NOTES
 
     # and the images used, where not what --images asked for
-    shown = (*READ_NOTES, "ground truth:", "images: --")
+    shown = (*READ_NOTES, "ground truth:", "images: --", "scoring:")
     by_note: dict[str, list[str]] = {}
     for o in objs:
         for n in o.get("notes", []):
