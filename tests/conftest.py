@@ -66,6 +66,20 @@ def render_lambertian(normals: np.ndarray, mask: np.ndarray, lights: np.ndarray,
     return (imgs * mask[None, ..., None]).astype(np.float32)
 
 
+def random_biases(net: "torch.nn.Module", seed: int = 0, std: float = 0.1) -> "torch.nn.Module":
+    """Give ``net``'s biases seeded random values. Fresh networks start with zero biases, and with
+    zero biases and LeakyReLU a layer ignores any positive scale of its input, so an exactness
+    test on them cannot see a wrong scale (a mean fusion that divides by n - 1: a mutation audit)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in net.named_parameters():
+            if name.endswith("bias"):
+                p.copy_(torch.randn(p.shape, generator=g, dtype=torch.float64).to(p.dtype) * std)
+    return net
+
+
 def write_capture(folder: Path, n: int = 12, size: int = 40, bits: int = 16, intensities: bool = True,
                   gt: str = "mat", mask: bool = True, seed: int = 0) -> dict:
     """Write a DiLiGenT-style folder of a Lambertian sphere; return its arrays."""

@@ -1426,3 +1426,28 @@ def test_the_umask_is_read_without_being_changed(monkeypatch):
         assert os.umask(0o027) == 0o027
     finally:
         os.umask(old)
+
+
+def test_normal_maps_keep_axis_normals_and_their_bit_depths(tmp_path):
+    """A unit normal with a component at -1 is stored as 0 in that channel (an image's (n + 1) / 2):
+    only a pixel that is 0 in every channel means "no normal". And each encoding has the bit
+    depth its name says (a mutation audit: either slip went unnoticed)."""
+    from psctl.io.images import image_info
+    from psctl.io.normals import ALBEDO_FORMATS, FORMATS, write_albedo_map
+
+    axes = np.array([(-1, 0, 0), (0, -1, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (0.6, 0, -0.8)], np.float32)
+    nmap = np.zeros((2, 4, 3), np.float32)
+    nmap.reshape(-1, 3)[:6] = axes
+    mask = np.zeros((2, 4), bool)
+    mask.reshape(-1)[:6] = True
+    bits = {"png16": 16, "png8": 8, "exr": 32}
+    for fmt in FORMATS:
+        write_normal_map(tmp_path / FORMATS[fmt], nmap, mask, fmt)
+        back = read_normal_map(tmp_path / FORMATS[fmt])
+        assert np.isfinite(back[mask]).all() and (back[~mask] == 0).all(), fmt
+        assert angular_error(back[mask], axes).max() < 0.5, fmt
+        if fmt in bits:
+            assert image_info(tmp_path / FORMATS[fmt]).bits == bits[fmt], fmt
+    for fmt in ("png16", "png8"):
+        write_albedo_map(tmp_path / ALBEDO_FORMATS[fmt], np.full((2, 4, 3), 0.3, np.float32), mask, fmt, 1.0)
+        assert image_info(tmp_path / ALBEDO_FORMATS[fmt]).bits == bits[fmt], fmt

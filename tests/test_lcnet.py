@@ -28,7 +28,7 @@ from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_
 from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import file_sha256, load_network, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs
-from tests.conftest import write_capture, weights_in
+from tests.conftest import random_biases, write_capture, weights_in
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -221,6 +221,19 @@ def test_streamed_and_chunked_equal_all_at_once():
     assert est.info["passes"] == 3 and est.info["cached_features"] == 5  # the exposure read, pass 1, pass 2
     assert est.directions.shape == (11, 3) and est.intensities.shape == (11,)
     np.testing.assert_allclose(np.linalg.norm(est.directions, axis=1), 1, atol=1e-6)
+
+
+def test_mean_fused_lcnet_streams_exactly():
+    """A mean-fused LCNet (``fuse: mean``) streamed and chunked gives the all-at-once logits. The
+    biases are random: with a fresh network's zero biases a wrong scale of the mean (over n - 1
+    images, say) would not change the logits (a mutation audit)."""
+    net = random_biases(lcnet(fuse="mean").double())
+    images, mask = scene()
+    ref = all_at_once(net, images, mask)
+    for config in ({}, {"chunk": 3, "cache_mb": 0}, {"chunk": 4, "cache_mb": 5 * 256 * 64 * 8 / 2**20}):
+        est = array_lights(images, mask, model=net, config={**config, "views": 1})
+        for k in ref:
+            np.testing.assert_allclose(est.logits[k], ref[k], atol=1e-6, rtol=0)
 
 
 def test_pipeline_reads_each_image_once_when_the_features_fit():

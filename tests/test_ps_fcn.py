@@ -22,7 +22,7 @@ from psctl.models import HALO, RECEPTIVE_RADIUS
 from psctl.models.ps_fcn import PSFCN, count_parameters, normalize_observations
 from psctl.models.weights import build_network, check_state_dict, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs, untransform_images
-from tests.conftest import hemisphere_lights, render_lambertian, sphere, write_capture
+from tests.conftest import hemisphere_lights, random_biases, render_lambertian, sphere, write_capture
 
 # The authors' release (models/PS_FCN.py, fuse max, no batch norm, lights in): name -> shape.
 OFFICIAL = {
@@ -591,9 +591,17 @@ def test_input_mean_in_metadata(tmp_path):
 def test_mean_fusion_streams_too():
     images, lights, mask = scene(5)
     torch.manual_seed(0)
-    net = PSFCN({"fuse": "mean"}).eval().double()
-    np.testing.assert_allclose(stream(images, lights, mask, net, chunk=2),
-                               all_at_once_normals(net, images, lights, mask), atol=1e-6)
+    net = random_biases(PSFCN({"fuse": "mean"}).eval().double())  # zero biases would hide a wrong scale
+    ref = all_at_once_normals(net, images, lights, mask)
+    np.testing.assert_allclose(stream(images, lights, mask, net, chunk=2), ref, atol=1e-6)
+    # the check can fail: with these biases the regressor sees the fused features' scale (a mean
+    # over n - 1 images is the mean x 5/4), which zero biases would hide
+    f = net.extract(torch.rand(5, 3, 16, 16, dtype=torch.float64), torch.tensor(lights[:5], dtype=torch.float64))
+    with torch.no_grad():
+        assert (net.regress(f.mean(0, keepdim=True)) - net.regress(f.mean(0, keepdim=True) * 5 / 4)).abs().max() > 1e-3
+        net_zero = PSFCN({"fuse": "mean"}).eval().double()  # and zero biases (a fresh network) would hide it
+        assert (net_zero.regress(f.mean(0, keepdim=True)) - net_zero.regress(f.mean(0, keepdim=True) * 5 / 4)
+                ).abs().max() < 1e-6  # float32 unit normals: rounding only
 
 
 def test_tiled_equals_untiled():
@@ -825,6 +833,27 @@ def test_folder_and_in_memory_paths_agree(tmp_path):
     b = array_normals(load_images(cap), cap.lights, mask, "ps-fcn", w, {"device": "cpu"})
     assert a.info["exposure_scale"] == b.info["exposure_scale"]
     np.testing.assert_array_equal(a.normals, b.normals)
+
+
+def test_score_is_inside_the_mask_only(tmp_path):
+    """Ground truth that reaches past the mask (an eroded mask, a ground-truth map of the whole
+    frame) is scored inside the mask only: outside it the method gives no normal."""
+    import scipy.io
+
+    from psctl.api import run_normals
+    from psctl.metrics import angular_error
+
+    arrays = write_capture(tmp_path / "obj", n=8, size=36)
+    gt = scipy.io.loadmat(tmp_path / "obj" / "Normal_gt.mat")["Normal_gt"]
+    gt[~arrays["mask"]] = (0.6, 0.0, 0.8)  # a valid normal on every background pixel
+    scipy.io.savemat(tmp_path / "obj" / "Normal_gt.mat", {"Normal_gt": gt})
+    got: dict = {}
+    r = run_normals(tmp_path / "obj", method="l2", write=False, arrays=got)
+    m = arrays["mask"]
+    assert r["n_evaluated_pixels"] == r["n_mask_pixels"] == int(m.sum())
+    assert r["mae"] == pytest.approx(float(angular_error(got["normals"], gt, m).mean()), rel=1e-5)
+    assert r["mae"] < 1.0 and r["mae_missing_as_90"] == r["mae"]
+    assert (got["error"][~m] == 0).all()
 
 
 def test_score_skips_pixels_without_gt(tmp_path):
