@@ -252,10 +252,23 @@ def test_rejected_normals_are_counted_not_fatal():
     bad[16, 16] = np.nan
     bad[10, 12] = (0.0, 0.0, -1.0)  # facing away
     bad[12, 10] = 0.0  # no normal inside the mask
+    bad[14, 20] = (1.0, 0.0, 0.0)  # edge-on (nz = 0): no slope, rejected as facing away (nz <= 0)
     res = integrate(bad, mask)
-    assert (res.n_rejected_nan, res.n_rejected_facing, res.n_rejected) == (2, 1, 3)
-    assert np.isnan(res.depth[16, 16]) and np.isnan(res.depth[10, 12])
-    assert res.valid.sum() == mask.sum() - 3
+    assert (res.n_rejected_nan, res.n_rejected_facing, res.n_rejected) == (2, 2, 4)
+    assert np.isnan(res.depth[16, 16]) and np.isnan(res.depth[10, 12]) and np.isnan(res.depth[14, 20])
+    assert res.valid.sum() == mask.sum() - 4
+
+
+def test_grazing_normals_count_as_the_grazing_limit():
+    """A plane at 88 degrees (slope 33 px per px) integrates as slope nx / grazing_nz: 10 with the
+    default 0.1 (rims are unreliable), 33 when the limit is below its nz."""
+    a = 33.0
+    n = np.array([a, 0.0, 1.0]) / np.hypot(a, 1.0)
+    normals = np.broadcast_to(n, (8, 12, 3)).astype(np.float32).copy()
+    for grazing, slope in ((None, n[0] / 0.1), (0.01, a)):
+        depth = integrate_normals(normals, config=None if grazing is None else {"grazing_nz": grazing})
+        steps = np.diff(depth.astype(np.float64), axis=1)
+        np.testing.assert_allclose(steps, -slope, rtol=1e-3)  # nx > 0: the surface falls to the right
 
 
 @pytest.mark.parametrize("case, needle", [

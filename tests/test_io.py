@@ -170,6 +170,11 @@ def test_select_images():
     assert list(select_images(10, 3, None)) == list(select_images(10, 3, 0))  # without lights: seed 0
     a, b = select_images(10, 4, seed=1), select_images(10, 4, seed=1)
     assert list(a) == list(b) and len(set(a)) == 4
+    # pinned: a report's --images K --seed S must pick the same images in a later psctl (the
+    # reports record them, docs/formats.md), and they come sorted, in the capture's order
+    assert select_images(10, 4, seed=1).tolist() == [3, 4, 6, 9]
+    assert select_images(96, 5, seed=7).tolist() == [55, 58, 64, 85, 86]
+    assert select_images(10, 4, None).tolist() == [2, 4, 5, 7]  # no lights: seed 0
 
 
 def test_bounding_box_multiple():
@@ -360,6 +365,12 @@ def test_images_subset_spreads_over_the_lights():
         assert len(idx) == k == len(set(idx)) and list(idx) == sorted(idx) and cond(idx) < 5
         assert list(idx) == list(spread_lights(rig, k))  # deterministic
     assert list(select_images(96, 12, 3, rig)) == list(select_images(96, 12, 3))  # a seed ignores the lights
+    # it starts from the light nearest the mean direction: a rig with one light on the axis keeps it
+    ring = [(np.cos(a) * 0.5, np.sin(a) * 0.5, 0.8) for a in np.linspace(0, 2 * np.pi, 9)[:-1]]
+    lights = np.array([*ring[:3], (0.0, 0.0, 1.0), *ring[3:]])  # the axial light is row 3
+    for k in (1, 2, 5):
+        assert 3 in spread_lights(lights, k).tolist()
+    assert spread_lights(lights, 1).tolist() == [3]
 
 
 def test_light_rows_of_any_magnitude(tmp_path):
@@ -1426,6 +1437,30 @@ def test_the_umask_is_read_without_being_changed(monkeypatch):
         assert os.umask(0o027) == 0o027
     finally:
         os.umask(old)
+
+
+def test_output_files_get_the_usual_mode(tmp_path):
+    """Files are written under a temporary name (mkstemp: mode 0600) and renamed: they get 0666 &
+    ~umask, as any program's new file, so that others on a shared machine can read the results."""
+    from psctl.io.atomic import write_bytes_atomic, write_text_atomic
+    from psctl.io.normals import write_npy
+    from psctl.io.report import write_json
+
+    old = os.umask(0o022)
+    try:
+        write_image(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32), "uint16")
+        write_image(tmp_path / "a.exr", np.zeros((4, 4, 3), np.float32), "float")
+        write_npy(tmp_path / "a.npy", np.zeros((4, 4, 3), np.float32))
+        write_text_atomic(tmp_path / "a.txt", "x\n")
+        write_bytes_atomic(tmp_path / "a.bin", b"x")
+        write_json(tmp_path / "a.json", {"x": 1})
+        os.umask(0o077)
+        write_text_atomic(tmp_path / "private.txt", "x\n")
+    finally:
+        os.umask(old)
+    modes = {p.name: p.stat().st_mode & 0o777 for p in tmp_path.iterdir()}
+    assert modes == {"a.png": 0o644, "a.exr": 0o644, "a.npy": 0o644, "a.txt": 0o644, "a.bin": 0o644,
+                     "a.json": 0o644, "private.txt": 0o600}
 
 
 def test_normal_maps_keep_axis_normals_and_their_bit_depths(tmp_path):

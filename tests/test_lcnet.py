@@ -123,6 +123,26 @@ def test_classes_decode_to_themselves():
     # bin edges: (angle + 90) / 180 * K, clamped
     assert dirs_to_classes(torch.tensor([0.0, 0.0, 1.0]), 36)[0] == 18
     assert ints_to_classes(torch.tensor([0.1, 0.2, 2.0, 3.0]), 20).tolist() == [0, 0, 19, 19]
+    # the ends, exactly: +-90 degrees (a light at (1, 0, 0) or (0, 1, 0)) is the last or first
+    # class, never class K (cross-entropy would fail on it, decoding would give 92.5 degrees)
+    from psctl.models.lcnet import angles_to_classes
+
+    assert angles_to_classes(torch.tensor([-90.0, 90.0, -100.0, 100.0]), 36).tolist() == [0, 35, 0, 35]
+    edge = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    cx, cy = dirs_to_classes(edge, 36)
+    assert cx.tolist() == [35, 18, 0, 18] and cy.tolist() == [18, 35, 18, 0]
+
+
+def test_resized_inputs_are_black_outside_the_mask():
+    """LCNet was trained on images zeroed outside the mask after resizing (an antialiased shrink
+    blurs the object's edge into the background): checked on the data, not with the function itself."""
+    yy, xx = np.mgrid[:200, :200]
+    disc = torch.from_numpy(((yy - 100) ** 2 + (xx - 100) ** 2 < 70 ** 2).astype(np.float32))[None, None]
+    x, m = resize_inputs(torch.ones(2, 3, 200, 200), disc.expand(2, 1, 200, 200), 128)
+    assert x.shape == (2, 3, 128, 128) and m.shape == (2, 1, 128, 128)
+    assert set(m.unique().tolist()) == {0.0, 1.0}
+    assert (x[m.expand_as(x) == 0] == 0).all() and (x[m.expand_as(x) == 1] > 0.99).all()
+    assert 0.2 < float(m.mean()) < 0.5  # the disc (pi 0.35^2 = 0.38 of the frame), not all or nothing
 
 
 def test_soft_argmax_decoding():
