@@ -391,7 +391,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
     n_images, height, width, views, downsample, precision, light_distance, seconds, outputs, mae, median, within,
-    n_mask_pixels, n_evaluated_pixels, n_dark, albedo ({png_scale, median, n_undetermined} with
+    mae_missing_as_90 (the MAE as the authors' code scores: mask pixels without ground truth at 90
+    degrees), n_mask_pixels, n_evaluated_pixels, n_dark, albedo ({png_scale, median, n_undetermined} with
     ``albedo``, else None), written ({file: [bytes, mtime ns]} of the files written) and notes
     (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
@@ -438,8 +439,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.lights import SDPS_FILES, refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
-    from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture, select_images,
-                                  selection_notes)
+    from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture,
+                                  select_images, selection_notes)
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
 
@@ -648,8 +649,9 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
     notes: list[str] = []
     # report.json always: without ground truth it still records the method, notes and timings
     # sdps: the lights its normals came from (with an --images subset, the images they belong to)
-    light_files = [] if method != "sdps" else [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] \
-        + ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
+    light_files = [] if method != "sdps" else \
+        [SDPS_FILES[k] for k in ("light_directions", "light_intensities", "lights")] + \
+        ([SDPS_FILES["light_images"]] if cap.n_images < n_all else [])
     if write and SDPS_FILES["light_images"] in light_files:
         notes.append(f"images: the estimated light files have {cap.n_images} rows, one per image listed in "
                      f"{SDPS_FILES['light_images']}")
@@ -657,7 +659,8 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
         (["error.png"] if cap.gt_path else []) + \
         (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
     # every file psctl normals may write
-    all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(), "report.json")
+    all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(),
+                 "report.json")
     stale: list[str] = []
     if write:
         check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
@@ -795,14 +798,15 @@ def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
     error[valid] = angular_error(normals, gt, valid)
     stats = summarize(error[valid])
     # the authors' evaluation code scores every mask pixel, a zero ground truth at 90 degrees (its
-    # dot product is 0): their published numbers hold those pixels, so the report gives both
+    # dot product is 0): their published numbers hold those pixels, so the report gives both (a
+    # NaN or short ground truth, which their code would turn into NaN or an angle, counts 90 here)
     n_missing, n_mask = int((mask & ~valid).sum()), int(mask.sum())
     stats["mae_missing_as_90"] = (stats["mae"] * (n_mask - n_missing) + 90.0 * n_missing) / n_mask
     notes = convention_notes(normals, gt, valid, stats["mae"], gt_path.name)
     if n_missing:
-        notes.append(f"scoring: {n_missing} of {n_mask} mask pixels have no ground-truth normal in {gt_path.name} (zero "
-                     f"or NaN) and are not scored (grey in error.png); at 90 degrees each, as the authors' evaluation "
-                     f"code counts them, the MAE would be {stats['mae_missing_as_90']:.2f} (mae_missing_as_90)")
+        notes.append(f"scoring: {n_missing} of {n_mask} mask pixels have no ground-truth normal in {gt_path.name} "
+                     f"(zero or NaN) and are not scored; at 90 degrees each, as the authors' evaluation code counts "
+                     f"a zero normal, the MAE would be {stats['mae_missing_as_90']:.2f} (mae_missing_as_90)")
     return error, stats, valid, notes
 
 

@@ -401,7 +401,7 @@ def lights(
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
-    """Estimate light directions and intensities (LCNet): light_directions.txt, light_intensities.txt, lights.png."""
+    """Estimate light directions and intensities (LCNet): light_directions.txt, light_intensities.txt, lights.png, lights_report.json."""
     with _user_errors():
         from psctl.lights import render_lights, run_lights
 

@@ -14,7 +14,8 @@ from psctl.errors import PsctlError, check_bool, check_path, check_progress
 # Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
 # objects of the DiLiGenT development split (L2: DiLiGenT's own baseline, to two decimals; the
 # networks to one, as the issues give them). Shown beside our numbers, never mixed with them,
-# and printed as published (2.8, not 2.80: no digit the paper did not give).
+# and printed with the decimals published (PAPER_DECIMALS: 4.10 and 2.8, not 4.1 and 2.80).
+PAPER_DECIMALS = {"l2": 2, "ps-fcn": 1, "ps-fcn-n": 1, "sdps": 1}
 PAPER_DILIGENT = {
     "l2": {"ball": 4.10, "cat": 8.41, "pot1": 8.89, "bear": 8.39, "pot2": 14.65},
     "ps-fcn": {"ball": 2.8, "cat": 6.2, "pot1": 7.1, "bear": 7.6, "pot2": 7.3},
@@ -68,7 +69,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
-    "n_images", "n_dark", "seconds", "notes", "provenance"}], "mean_mae", "mean_mae_missing_as_90", "paper", "paper_method", "light_distance", "views",
+    "n_images", "n_dark", "seconds", "notes", "provenance"}], "mean_mae", "mean_mae_missing_as_90", "paper",
+    "paper_method", "light_distance", "views",
     "downsample", "precision", "notes"}
     (docs/formats.md has each key; "paper": the published numbers of
     "paper_method", the method itself or, for ``ensemble``, the paper's PS-FCN+N). With ``out``,
@@ -259,7 +261,8 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
 def _collect(objects: list[dict], used: list[str], r: dict) -> None:
     """One object's row of the table from its ``run_normals`` report."""
     used.append(r["method"])
-    objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"], "mae_missing_as_90": r["mae_missing_as_90"],
+    objects.append({"name": r["object"], "mae": r["mae"], "median": r["median"],
+                    "mae_missing_as_90": r["mae_missing_as_90"],
                     "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"], "notes": r["notes"]})
     objects[-1]["provenance"] = r["provenance"]  # the weights (sha256) and versions behind the row
     if "images_used" in r:  # an --images subset: which images, to repeat the run

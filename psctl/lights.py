@@ -1,6 +1,7 @@
 """Light estimation for uncalibrated photometric stereo: LCNet over all images of a capture.
 
-    psctl lights ballPNG     ->  ballPNG/psctl/light_directions.txt, light_intensities.txt, lights.png
+    psctl lights ballPNG     ->  ballPNG/psctl/light_directions.txt, light_intensities.txt, lights.png,
+                                 lights_report.json
 
     >>> from psctl.lights import run_lights
     >>> report = run_lights("ballPNG")            # report["light_mae"] with ground-truth lights
@@ -1034,8 +1035,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,
     lights_refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re
-    (LCNet's own lights), seconds and notes. Outputs (when ``write``, all or none): light_directions.txt, light_intensities.txt,
-    lights.png in ``out`` (default ``PATH/psctl``), never in the capture folder itself.
+    (LCNet's own lights), seconds, notes and provenance (``psctl.api.provenance``). Outputs (when
+    ``write``, all or none): light_directions.txt, light_intensities.txt, lights.png and
+    lights_report.json (this report) in ``out`` (default ``PATH/psctl``), never in the capture
+    folder itself; with an ``n_images`` subset also light_images.txt.
     ``arrays`` (a dict) receives what the light files hold: "directions" [N, 3] unit vectors (x
     right, y up, z toward the camera) and "intensities" [N, 3], one row per image (with
     ``n_images``, the chosen ones).

@@ -338,6 +338,29 @@ def test_eval_on_a_folder_of_objects(tmp_path):
     assert "avg" in table
 
 
+def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):
+    """An object whose ground truth has holes in the mask (DiLiGenT's pot2): its row carries the
+    score as the authors' code counts it, the mean too, and the table shows both beside the paper's."""
+    import scipy.io
+
+    for name, seed in (("ballPNG", 1), ("catPNG", 2)):
+        write_capture(tmp_path / "root" / name, n=6, seed=seed)
+    mat = tmp_path / "root" / "catPNG" / "Normal_gt.mat"
+    gt = scipy.io.loadmat(mat)["Normal_gt"]
+    inside = np.argwhere(np.linalg.norm(gt, axis=-1) > 0.5)[::5]
+    gt[inside[:, 0], inside[:, 1]] = 0
+    scipy.io.savemat(mat, {"Normal_gt": gt})
+    r = json.loads(psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", check=True).stdout)
+    ball, cat = r["objects"]
+    assert ball["mae_missing_as_90"] == ball["mae"] and cat["mae_missing_as_90"] > cat["mae"] + 10
+    assert r["mean_mae_missing_as_90"] == pytest.approx((ball["mae"] + cat["mae_missing_as_90"]) / 2)
+    table = psctl("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    row = next(line for line in table.splitlines() if "scored as the paper" in line)
+    assert f"{cat['mae_missing_as_90']:.2f}" in row and f"{r['mean_mae_missing_as_90']:.2f}" in row
+    assert "l2 (paper)" in table and " 4.10 " in table  # DiLiGenT's ball, as published
+    assert "cat: scoring:" in " ".join(table.split())  # the note under the table names the object
+
+
 def test_eval_light_means_and_paper_lights():
     """sdps rows: a mean light error only when every object has one (an average over some objects
     would sit beside the paper's over all); the paper's light numbers only on DiLiGenT."""
@@ -404,10 +427,13 @@ def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     assert "ensemble (psctl)" in out and "ps-fcn-n (paper)" in out
     r = _table("diligent", Path("root"), objs, ["l2", "l2"], None)
     assert r["paper_method"] == "l2" and r["paper"]["cat"] == PAPER_DILIGENT["l2"]["cat"]
-    # the published numbers as published: no digit the paper did not give (2.8, not 2.80)
+    # the published numbers with the decimals published: DiLiGenT's L2 4.10, the networks' 2.8
     render_benchmark(r)
     paper_row = next(line for line in capsys.readouterr().out.splitlines() if "l2 (paper)" in line)
-    assert " 4.1 " in paper_row and " 8.41 " in paper_row and "4.10" not in paper_row
+    assert " 4.10 " in paper_row and " 8.41 " in paper_row
+    render_benchmark(_table("diligent", Path("root"), objs, ["ps-fcn", "ps-fcn"], None))
+    paper_row = next(line for line in capsys.readouterr().out.splitlines() if "ps-fcn (paper)" in line)
+    assert " 2.8 " in paper_row and " 6.2 " in paper_row and "2.80" not in paper_row
     r = _table("folder", Path("root"), objs, ["ensemble", "ensemble"], None)
     assert r["paper"] == {} and r["paper_method"] is None
     # the settings that change the numbers are named beside the method; the defaults are not

@@ -599,9 +599,6 @@ def test_mean_fusion_streams_too():
     f = net.extract(torch.rand(5, 3, 16, 16, dtype=torch.float64), torch.tensor(lights[:5], dtype=torch.float64))
     with torch.no_grad():
         assert (net.regress(f.mean(0, keepdim=True)) - net.regress(f.mean(0, keepdim=True) * 5 / 4)).abs().max() > 1e-3
-        net_zero = PSFCN({"fuse": "mean"}).eval().double()  # and zero biases (a fresh network) would hide it
-        assert (net_zero.regress(f.mean(0, keepdim=True)) - net_zero.regress(f.mean(0, keepdim=True) * 5 / 4)
-                ).abs().max() < 1e-6  # float32 unit normals: rounding only
 
 
 def test_tiled_equals_untiled():
@@ -874,13 +871,17 @@ def test_score_skips_pixels_without_gt(tmp_path):
     assert holed["n_mask_pixels"] == full["n_mask_pixels"] == int(arrays["mask"].sum())
     assert holed["n_evaluated_pixels"] == full["n_evaluated_pixels"] - len(holes)
     assert holed["mae"] < 1.0  # Lambertian sphere, L2: near exact on the scored pixels, no 90s
-    # and as the authors' code scores (a zero ground truth at 90 degrees), with a note saying so
+    # and as the authors' code scores, written out here on its own: both maps normalised (a zero
+    # vector stays zero), the clipped dot product's angle averaged over every mask pixel
     n = holed["n_mask_pixels"]
-    assert holed["mae_missing_as_90"] == pytest.approx((holed["mae"] * (n - len(holes)) + 90 * len(holes)) / n)
+    m = arrays["mask"]
+    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+    dots = np.clip((unit(got["normals"].astype(np.float64)) * unit(gt)).sum(-1), -1, 1)
+    assert holed["mae_missing_as_90"] == pytest.approx(float(np.degrees(np.arccos(dots[m])).mean()), rel=1e-5)
     assert full["mae_missing_as_90"] == full["mae"]
     assert [x for x in holed["notes"] if x.startswith("scoring:")] == [
         f"scoring: {len(holes)} of {n} mask pixels have no ground-truth normal in Normal_gt.mat (zero or NaN) and are "
-        f"not scored (grey in error.png); at 90 degrees each, as the authors' evaluation code counts them, the MAE "
+        f"not scored; at 90 degrees each, as the authors' evaluation code counts a zero normal, the MAE "
         f"would be {holed['mae_missing_as_90']:.2f} (mae_missing_as_90)"]
     assert not any(x.startswith("scoring:") for x in full["notes"])
     # the error array and error.png keep them apart from a perfect pixel: NaN, drawn grey

@@ -365,11 +365,18 @@ def render_benchmark(result: dict) -> None:
     rows = [(f"{method_label(result)} (psctl)", [_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]), "")]
     paper = result.get("paper") or {}
     if paper:
+        from psctl.eval import PAPER_DECIMALS
+
+        # the paper's code scores mask pixels without ground truth at 90 degrees (pot2 has 73):
+        # where that changes a number, psctl's score that way too, to set beside the paper's
+        if any(o.get("mae_missing_as_90") not in (None, o["mae"]) for o in objs):
+            rows.append(("  scored as the paper", [_fmt(o.get("mae_missing_as_90")) for o in objs],
+                         _fmt(result.get("mean_mae_missing_as_90")), ""))
         vals = [paper.get(o["name"]) for o in objs]
         avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
+        digits = PAPER_DECIMALS.get(result.get("paper_method"), 2)
         rows.append((f"{result.get('paper_method') or result['method']} (paper)",
-                     ["-" if v is None else f"{v:g}" for v in vals], _fmt(avg),
-                     "dim"))
+                     ["-" if v is None else f"{v:.{digits}f}" for v in vals], _fmt(avg), "dim"))
     if "mean_light_mae" in result:  # sdps: the lights LCNet estimated, and the paper's LCNet
         paper_l = result.get("paper_lights") or {}
         for key, label, fmt in (("light_mae", "light direction (°)", _fmt),
