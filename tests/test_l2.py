@@ -58,6 +58,17 @@ def test_dark_pixels_get_a_defined_normal_and_are_counted(capture, tmp_path):
     res = l2_normals(imgs, lights, m)
     assert np.isfinite(res.normals).all()
     assert res.dark.sum() == 16 and np.all(res.normals[res.dark] == [0, 0, 1])
+    assert (res.albedo[res.dark] == 0).all() and (res.albedo[m & ~res.dark] > 0).all()
+    faint = render_lambertian(n, m, lights)
+    faint[:, 10:14, 10:14] *= 1e-8  # not black, but below DARK: dark, its (tiny) albedo 0 as well
+    res = l2_normals(faint, lights, m)
+    assert res.dark.sum() == 16 and (res.albedo[res.dark] == 0).all()
+    # darkness is "at most DARK of the brightest pixel's peak": a pixel exactly at it is dark,
+    # one just above it is not (a mutation audit: < instead of <= went unnoticed)
+    from psctl.classic import DARK, dark_pixels
+
+    peak = np.array([1.0, DARK, DARK * 1.001, 0.0])
+    assert dark_pixels(peak).tolist() == [False, True, False, True]
 
 
 def test_l2_needs_three_images_and_non_coplanar_lights():
