@@ -444,7 +444,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
 
-    t0 = time.perf_counter()
+    t0, started = time.perf_counter(), time.time()  # started: for weights files replaced during the run
     for name, value in (("path", path), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=name != "path")  # before minutes of work, as every check here
     formats = parse_formats(check_formats(formats))
@@ -585,7 +585,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
         dev = str(pick_device(device))
     report["provenance"] = provenance(weights_used(method, weights, lcnet, sd.second if method == "sdps" else None),
-                                      None if method == "l2" else dev)
+                                      None if method == "l2" else dev, started)
+    notes += provenance_notes(report["provenance"])  # report["notes"] is this list
     if light_stats is not None:
         report["second_stage"] = sd.second  # the network that turned LCNet's lights into normals
         report["lcnet_decode"] = sd.lcnet_config["decode"]
@@ -813,21 +814,35 @@ def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
 OUTPUTS_LIST = outputs_list("normals")  # in an output folder: the files psctl normals wrote there last
 
 
-def provenance(weights_used: dict[str, "str | os.PathLike | None"], device: str | None = None) -> dict:
+def provenance(weights_used: dict[str, "str | os.PathLike | None"], device: str | None = None,
+               started: float | None = None) -> dict:
     """What produced a result, for its report: psctl's, Python's, NumPy's and torch's versions
     (torch: None where it is not loaded), the device the networks ran on, and each weights file
     used by its role (``{"ps-fcn": PATH, ...}``) with its sha256, so that a report from before
-    the weights were replaced still names the file that made it."""
+    the weights were replaced still names the file that made it. The digest is taken now, at the
+    report; ``started`` (``time.time()`` when the run began): a file modified since then gets
+    ``"modified_during_run": true``, as its digest may not be what the run read."""
     import platform
 
     import psctl
     from psctl.models.weights import file_sha256
 
+    def entry(p: "str | os.PathLike") -> dict:
+        e = {"path": os.path.abspath(p), "sha256": file_sha256(p)}
+        if started is not None and os.stat(p).st_mtime > started:
+            e["modified_during_run"] = True
+        return e
+
     torch = sys.modules.get("torch")
     return {"psctl": psctl.__version__, "python": platform.python_version(), "numpy": np.__version__,
             "torch": None if torch is None else torch.__version__, "device": device,
-            "weights": {role: {"path": os.path.abspath(p), "sha256": file_sha256(p)}
-                        for role, p in weights_used.items() if p is not None}}
+            "weights": {role: entry(p) for role, p in weights_used.items() if p is not None}}
+
+
+def provenance_notes(prov: dict) -> list[str]:
+    """A note for each weights file of ``provenance`` modified while the run went on."""
+    return [f"weights: {w['path']} was modified during the run; the report's sha256 is of the file as it is now, "
+            f"which may not be what the run read" for w in prov["weights"].values() if w.get("modified_during_run")]
 
 
 def weights_used(method: str, weights: "str | os.PathLike | None", lcnet: "str | os.PathLike | None" = None,

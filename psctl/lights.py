@@ -1047,7 +1047,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.io.capture import (check_not_capture, capture_notes, load_mask, open_capture, select_images,
                                   selection_notes)
 
-    t0 = time.perf_counter()
+    t0, started = time.perf_counter(), time.time()  # started: for weights files replaced during the run
     for name, value in (("path", path), ("out", out), ("weights", weights), ("normals_weights", normals_weights)):
         check_path(name, value, optional=name != "path")
     if arrays is not None and not isinstance(arrays, dict):
@@ -1163,12 +1163,13 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         "seconds": round(time.perf_counter() - t0, 3),
         "notes": picked + est.notes,
     }
-    from psctl.api import provenance, weights_used
+    from psctl.api import provenance, provenance_notes, weights_used
 
     # LCNet's file, and the refinement's network where one ran (sdps' second stage, or --normals-weights)
     used = weights_used("sdps", normals_weights, weights, second) if refines else \
         {"lcnet": weights if weights is not None else installed_path("lcnet")}
-    report["provenance"] = provenance(used, est.info["device"])
+    report["provenance"] = provenance(used, est.info["device"], started)
+    report["notes"] += provenance_notes(report["provenance"])
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
         from psctl.io.report import write_json
