@@ -664,15 +664,12 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
                  "report.json")
     stale: list[str] = []
     if write:
-        check_not_capture(out_dir, cap)  # normal.png there would be read as ground truth next time
-        inputs = {p.resolve() for p in cap.input_paths}
-        clash = [n for n in names if (out_dir / n).resolve() in inputs]
-        if clash:
-            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
+        check_not_capture(out_dir, cap, names)  # normal.png there would be read as ground truth next time
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         # psctl's own files from an earlier run there (its list says which), that this run does not write
-        given = {os.path.realpath(p) for p in (weights, lcnet) if p is not None}  # never removed: they are read
+        # never removed: the files this run reads (an image listed by its path in an output folder)
+        given = {os.path.realpath(p) for p in (weights, lcnet, *cap.input_paths) if p is not None}
         stale = sorted(n for n in read_outputs_list(out_dir, "normals")
                        if n in all_names and n not in names and (out_dir / n).is_file()
                        and os.path.realpath(out_dir / n) not in given)

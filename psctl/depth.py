@@ -685,7 +685,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     if write:
         from psctl.io.atomic import replaced_notes
 
-        check_not_capture(out_dir, cap)  # inputs are never touched
+        check_not_capture(out_dir, cap, OUTPUTS)  # inputs are never touched
         from psctl.io.atomic import check_inputs_kept
 
         check_inputs_kept(out_dir, OUTPUTS, (("--normals", normals), ("--K", K)))

@@ -1086,11 +1086,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         picked.append(f"images: the light files have {cap.n_images} rows, one per image listed in {SUBSET_FILE}")
     out_dir = output_folder(out, cap.path)
     if write:
-        check_not_capture(out_dir, cap)  # its light files are inputs
-        inputs = {p.resolve() for p in cap.input_paths}
-        clash = [f for f in (*OUTPUT_FILES.values(), REPORT_FILE) if (out_dir / f).resolve() in inputs]
-        if clash:
-            raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
+        check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))  # its light files are inputs
         from psctl.io.atomic import check_inputs_kept
 
         check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE, REPORT_FILE],

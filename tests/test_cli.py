@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -1645,3 +1646,39 @@ def test_main_silences_libpng_only_while_it_runs(monkeypatch):
     with pytest.raises(SystemExit):
         main()
     assert C_STDERR["silence"] is False
+
+
+def test_an_input_listed_in_the_output_folder_is_never_removed_nor_replaced(tmp_path, fake_weights):
+    """An image listed by its path in filenames.txt can sit in an output folder under an output's
+    name (a hostile-input audit): psctl normals removed it as an earlier run's leftover, and
+    psctl depth wrote over it. Inputs are never modified: a clash is refused, a leftover kept."""
+    import hashlib
+
+    from psctl.api import run_normals
+    from psctl.depth import run_depth
+    from psctl.errors import PsctlError
+    from psctl.lights import run_lights
+
+    digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()
+    write_capture(tmp_path / "c1", n=6, size=32, seed=1)
+    out = tmp_path / "O"
+    run_normals(tmp_path / "c1", method="l2", out=out, albedo=True)  # albedo.png is on O's list now
+    write_capture(tmp_path / "c2", n=6, size=32, seed=2)
+    names = (tmp_path / "c2" / "filenames.txt").read_text().split()
+    shutil.copy(tmp_path / "c2" / names[0], out / "albedo.png")  # c2's first image, kept in O
+    (tmp_path / "c2" / "filenames.txt").write_text("\n".join([str(out / "albedo.png"), *names[1:]]) + "\n")
+    before = digest(out / "albedo.png")
+    r = run_normals(tmp_path / "c2", method="l2", out=out)  # without --albedo: albedo.png would be stale
+    assert digest(out / "albedo.png") == before and "albedo.png" not in " ".join(r["notes"])
+    assert r["mae"] < 2
+    # an output of this run under the input's name: refused before any work, by every command
+    for name, run in (("shading.png", lambda: run_depth(tmp_path / "c2", out=out)),
+                      ("lights.png", lambda: run_lights(tmp_path / "c2", out=out, weights=fake_weights / "lcnet.pt",
+                                                        device="cpu", views=1, refine=False)),
+                      ("error.png", lambda: run_normals(tmp_path / "c2", method="l2", out=out))):
+        shutil.copy(tmp_path / "c2" / names[1], out / name)
+        (tmp_path / "c2" / "filenames.txt").write_text("\n".join([names[0], str(out / name), *names[2:]]) + "\n")
+        kept = digest(out / name)
+        with pytest.raises(PsctlError, match="is an input of this capture; choose another --out"):
+            run()
+        assert digest(out / name) == kept, name

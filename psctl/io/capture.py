@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -173,16 +173,21 @@ def holds_capture(path: str | os.PathLike) -> bool:
     return any(p.name.lower() in named for p in entries) or bool(_image_files(entries))
 
 
-def check_not_capture(out_dir: Path, capture: "Capture") -> None:
+def check_not_capture(out_dir: Path, capture: "Capture", names: Iterable[str] = ()) -> None:
     """Refuse an output folder that is ``capture``'s own folder or holds a capture (``holds_capture``):
     its files are inputs (psctl lights' files would overwrite its light files, psctl normals'
-    normal.png would become its ground truth)."""
+    normal.png would become its ground truth); and one where an output of ``names`` is one of the
+    capture's inputs (an image listed by its path in filenames.txt, named like an output)."""
     if out_dir.resolve() == capture.path.resolve():
         raise PsctlError(out_dir, "is the capture folder: its files are inputs and are never overwritten; "
                                   "choose another --out (the default is PATH/psctl)")
     if holds_capture(out_dir):
         raise PsctlError(out_dir, "holds a capture (images, a mask, an ambient image or ground truth), whose files are inputs; "
                                   "choose another --out")
+    inputs = {p.resolve() for p in capture.input_paths}
+    clash = [n for n in names if (out_dir / n).resolve() in inputs]
+    if clash:
+        raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
 
 
 def _pages_note(infos: list[ImageInfo]) -> str:
