@@ -855,7 +855,9 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
 
     why = None
     try:
-        report = json.loads((normals.parent / "report.json").read_text())
+        from psctl.io.atomic import read_small_text
+
+        report = json.loads(read_small_text(normals.parent / "report.json", 64 << 20))
     except FileNotFoundError:
         report, why = None, "there is no report.json beside it"
     except (OSError, ValueError, RecursionError):  # unreadable, not text, not JSON

@@ -1682,3 +1682,31 @@ def test_an_input_listed_in_the_output_folder_is_never_removed_nor_replaced(tmp_
         with pytest.raises(PsctlError, match="is an input of this capture; choose another --out"):
             run()
         assert digest(out / name) == kept, name
+
+
+def test_a_fifo_or_endless_file_in_place_of_psctls_own_files_does_not_hang(tmp_path):
+    """psctl reads back files it wrote itself (an output folder's list, report.json beside a
+    normal map). A FIFO there blocked the run for ever and a link to /dev/zero filled the memory
+    (a hostile-input audit): only a regular file of bounded size is read, anything else counts as
+    absent (the list: no earlier run; report.json: no albedo for the mesh's colours)."""
+    write_capture(tmp_path / "c", n=6, size=32)
+    run = lambda *a: subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, a)], capture_output=True,
+                                    text=True, timeout=120)
+    for kind in ("fifo", "zero"):
+        out = tmp_path / f"o_{kind}"
+        out.mkdir()
+        odd = out / ".psctl-normals"
+        os.mkfifo(odd) if kind == "fifo" else os.symlink("/dev/zero", odd)
+        proc = run("normals", tmp_path / "c", "-m", "l2", "--out", out, "-q")
+        if kind == "fifo":  # not a file: in the way, refused in one line before any work
+            assert proc.returncode == 2 and "is in the way of an output file" in proc.stderr, proc.stderr
+            odd.unlink()
+            proc = run("normals", tmp_path / "c", "-m", "l2", "--out", out, "-q")
+        assert proc.returncode == 0, proc.stderr
+        assert odd.is_file() and "normal.png" in odd.read_text().split()  # replaced by the run's own list
+        report = out / "report.json"
+        report.unlink()
+        os.mkfifo(report) if kind == "fifo" else os.symlink("/dev/zero", report)
+        proc = run("depth", tmp_path / "c", "--normals", out / "normal.png", "--out", tmp_path / f"d_{kind}", "-q")
+        assert proc.returncode == 0, proc.stderr
+        assert (tmp_path / f"d_{kind}" / "depth.exr").is_file()

@@ -137,10 +137,26 @@ def outputs_list(command: str) -> str:
     return f".psctl-{command}"
 
 
+def read_small_text(path: str | os.PathLike, limit: int = 1 << 20) -> str:
+    """A file psctl wrote itself (an output list, a report), read only when it is a regular file
+    of at most ``limit`` bytes: a FIFO there would block the read for ever, a link to /dev/zero
+    fill the memory (a hostile-input audit). Else OSError, as for a missing file."""
+    import stat
+
+    with open(path, "rb", opener=lambda p, flags: os.open(p, flags | os.O_NONBLOCK)) as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise OSError(f"{path}: not a regular file")
+        data = f.read(limit + 1)
+    if len(data) > limit:
+        raise OSError(f"{path}: larger than {limit} bytes")
+    return data.decode("utf-8")
+
+
 def read_outputs_list(out_dir: Path, command: str) -> list[str]:
     """The files the last ``psctl COMMAND`` run wrote into ``out_dir`` (none without its list)."""
     try:
-        return (Path(out_dir) / outputs_list(command)).read_text().split()
+        return read_small_text(Path(out_dir) / outputs_list(command)).split()
     except (OSError, UnicodeDecodeError):
         return []
 
