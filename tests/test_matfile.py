@@ -253,3 +253,26 @@ def test_ground_truth_without_scipy(tmp_path):
     norm = np.linalg.norm(gt, axis=-1, keepdims=True)
     expected = np.where(norm > 1e-6, gt / np.maximum(norm, 1e-6), 0).astype(np.float32)
     np.testing.assert_array_equal(np.load(tmp_path / "g.npy"), expected)
+
+
+def test_other_variables_are_checked_but_not_kept(tmp_path):
+    """A small compressed file can hold a huge array beside Normal_gt (a 1 MB file took 3 GB, a
+    hostile-input audit): only the variable asked for is kept; the others are inflated a block at
+    a time to check them and dropped. Their shapes are still listed."""
+    import tracemalloc
+
+    gt = np.random.default_rng(0).normal(size=(20, 30, 3))
+    path = tmp_path / "Normal_gt.mat"
+    scipy.io.savemat(path, {"junk": np.zeros((5_000_000, 1)), "Normal_gt": gt}, do_compression=True)
+    assert path.stat().st_size < 1 << 20  # 40 MB of zeros, compressed
+    tracemalloc.start()
+    try:
+        got = load_variable(path, "Normal_gt")
+        shapes = variable_shapes(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(got, gt)
+    assert shapes == {"junk": (5_000_000, 1), "Normal_gt": (20, 30, 3)}
+    assert peak < 12 << 20, peak  # a few blocks of 1 MB, not the 40 MB array
+    assert load_variable(path, "junk").shape == (5_000_000, 1)  # asked for, it is read whole

@@ -670,7 +670,8 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             import scipy.io
 
             try:
-                mat = scipy.io.loadmat(str(p))
+                # Normal_gt alone: scipy skips the other variables unread (a huge one would fill the memory)
+                mat = scipy.io.loadmat(str(p), variable_names=["Normal_gt"])
             except Exception as e:  # scipy raises several types for bad/unsupported files
                 raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
             if "Normal_gt" not in mat:
