@@ -134,9 +134,9 @@ LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights
 
 
 def _stderr():
-    from rich.console import Console
+    from psctl.errors import console
 
-    return Console(stderr=True)
+    return console(stderr=True)
 
 
 # errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
@@ -148,7 +148,10 @@ def _fail(message: str) -> None:
     from rich.markup import escape
 
     # escaped: a path like cap[red]x or a message quoting [fx, 0, cx] is text, not Rich markup
-    _stderr().print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    from psctl.errors import visible
+
+    # one line: a line break or an escape sequence in a file's name is written out
+    _stderr().print(f"[bold red]error:[/] {escape(visible(message, newlines=False))}", highlight=False, soft_wrap=True)
     raise typer.Exit(2)
 
 
@@ -260,8 +263,10 @@ def _progress(quiet: bool) -> Iterator[Callable[[str, int], Callable[[int], None
 
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TimeRemainingColumn(), console=_stderr(), transient=True) as bar:
+        from psctl.io.summary import escape
+
         def factory(description: str, total: int) -> Callable[[int], None]:
-            task = bar.add_task(description, total=total)
+            task = bar.add_task(escape(description), total=total)  # an object's name: text, not markup
             return lambda n: bar.advance(task, n)
 
         yield factory

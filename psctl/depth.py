@@ -951,10 +951,10 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
 
 def render_depth(r: dict, quiet: bool = False) -> None:
     """Print a ``run_depth`` report for people (Rich, stdout)."""
-    from rich.console import Console
-    from rich.markup import escape
+    from psctl.errors import console
+    from psctl.io.summary import escape
 
-    con = Console()
+    con = console()
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     con.print(f"[bold]{escape(r['object'])}[/]: {r['method']} ({r['projection']}), {r['n_pixels']} pixels, "

@@ -14,6 +14,27 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 
+def visible(text: str, newlines: bool = True) -> str:
+    """``text`` with its control characters written out (ESC as \\x1b), tabs and, with
+    ``newlines``, line breaks kept: a file or folder name is printed in messages, and one holding
+    an escape sequence (a downloaded capture's filenames.txt) would retitle or clear the user's
+    terminal (a hostile-input audit)."""
+    keep = "\t\n" if newlines else "\t"
+    return "".join(c if c in keep or not (ord(c) < 32 or 127 <= ord(c) < 160) else f"\\x{ord(c):02x}" for c in text)
+
+
+def console(stderr: bool = False) -> Any:
+    """A Rich console for psctl's messages and summaries: every string it prints has its control
+    characters written out (``visible``)."""
+    from rich.console import Console
+
+    class _Console(Console):
+        def print(self, *objects: Any, **kwargs: Any) -> None:
+            super().print(*(visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
+
+    return _Console(stderr=stderr)
+
+
 class PsctlError(ValueError):
     """A user error: bad folder, missing or malformed file, mismatched sizes, ...
 

@@ -1206,10 +1206,10 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
 
 def render_lights(r: dict) -> None:
     """The human-readable summary of ``run_lights``'s report (Rich, stdout)."""
-    from rich.console import Console
-    from rich.markup import escape
+    from psctl.errors import console
+    from psctl.io.summary import escape
 
-    con = Console()
+    con = console()
     for note in r.get("notes", []):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     line = f"[bold]{escape(r['object'])}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"

@@ -1710,3 +1710,28 @@ def test_a_fifo_or_endless_file_in_place_of_psctls_own_files_does_not_hang(tmp_p
         proc = run("depth", tmp_path / "c", "--normals", out / "normal.png", "--out", tmp_path / f"d_{kind}", "-q")
         assert proc.returncode == 0, proc.stderr
         assert (tmp_path / f"d_{kind}" / "depth.exr").is_file()
+
+
+def test_escape_sequences_in_names_are_written_out(tmp_path):
+    """A file name holding a terminal escape sequence (a downloaded capture's filenames.txt) was
+    echoed raw in the error line, able to retitle or clear the user's terminal (a hostile-input
+    audit): control characters are written out, and the error stays one line."""
+    write_capture(tmp_path / "c", n=6, size=32)
+    bad = "x\x1b]0;PWNED\x07\x1b[2J\n.png"
+    listed = [*[f"{k:03d}.png" for k in range(1, 6)], bad.replace("\n", "")]  # a missing image, so named
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join(listed) + "\n")
+    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
+    assert proc.returncode == 2 and "\x1b" not in proc.stderr and "\x07" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "\\x1b]0;PWNED" in proc.stderr, proc.stderr
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join([*listed[:5], "006.png"]) + "\n")
+    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / ("o" + bad) / "x")  # a line break too
+    assert proc.returncode == 0 and "\x1b" not in proc.stderr + proc.stdout, proc.stderr
+    (tmp_path / "a\nfile").write_text("")  # --out under a file whose name breaks the line: still one line
+    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "a\nfile" / "x")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "a\\x0afile" in proc.stderr
+    # a note naming the folder, and the summary's lines: written out as well
+    (tmp_path / "c" / "filenames.txt").unlink()
+    os.rename(tmp_path / "c", tmp_path / ("c" + bad.replace("\n", "")))
+    proc = psctl("normals", tmp_path / ("c" + bad.replace("\n", "")), "-m", "l2", "--out", tmp_path / "o2")
+    assert proc.returncode == 0, proc.stderr
+    assert "\x1b" not in proc.stdout + proc.stderr and "\\x1b]0;PWNED" in proc.stdout

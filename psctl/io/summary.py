@@ -171,16 +171,19 @@ def describe(path: str | os.PathLike, encoding: str = "auto", check: bool = Fals
 
 
 def escape(text: object) -> str:
-    """``text`` shown as it is by Rich (a path like cap[red]x is not markup)."""
+    """``text`` shown as it is by Rich (a path like cap[red]x is not markup; control characters
+    written out, ``psctl.errors.visible``: table cells too)."""
     from rich.markup import escape as _escape
 
-    return _escape(str(text))
+    from psctl.errors import visible
+
+    return _escape(visible(str(text)))
 
 
 def _console():
-    from rich.console import Console
+    from psctl.errors import console
 
-    return Console()
+    return console()
 
 
 def render_info(report: dict) -> None:
