@@ -63,7 +63,8 @@ def clamp_hot_pixels(img: np.ndarray, mask: np.ndarray | None = None, level: flo
             v[ok] = x[yy[ok], xx[ok], cs[ok]]
             np.maximum(neighbours, v, out=neighbours)
     # neighbours at or below 0 (shadow, or noise about 0): the level test alone decides
-    hot = x[ys, xs, cs] > ratio * neighbours
+    with np.errstate(over="ignore"):  # neighbours near float32's limit: inf, and nothing above it is hot
+        hot = x[ys, xs, cs] > ratio * neighbours
     if not hot.any():
         return img, 0
     out = x.copy()

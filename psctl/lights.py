@@ -811,8 +811,9 @@ def refine_config(falloff: str | None, roll: bool | None = None) -> dict | None:
 
 def lit_capture(capture: "Capture", est: LightEstimate) -> "Capture":
     """``capture`` with ``est``'s lights in place of its light files (the same intensity in R, G
-    and B): what sdps' second stage reads."""
-    return replace(capture, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1))
+    and B): what sdps' second stage reads (intensities_given False: the folder's file is not them)."""
+    return replace(capture, lights=est.directions, intensities=np.repeat(est.intensities[:, None], 3, 1),
+                   intensities_given=False)
 
 
 def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, normals: np.ndarray,

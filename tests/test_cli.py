@@ -1735,3 +1735,33 @@ def test_escape_sequences_in_names_are_written_out(tmp_path):
     proc = psctl("normals", tmp_path / ("c" + bad.replace("\n", "")), "-m", "l2", "--out", tmp_path / "o2")
     assert proc.returncode == 0, proc.stderr
     assert "\x1b" not in proc.stdout + proc.stderr and "\\x1b]0;PWNED" in proc.stdout
+
+
+def test_values_near_float32s_limit_give_one_line_and_the_right_advice(tmp_path):
+    """A float image with values near float32's limit: numpy's overflow warnings broke the one-line
+    rule (hot pixels, psctl info's mean), and sdps' error told to rescale light_intensities.txt,
+    which it does not read, quoting LCNet's estimate as if it were the file's (a hostile-input audit)."""
+    from psctl.io.images import read_image, write_image
+
+    write_capture(tmp_path / "c", n=6, size=32)
+    names = (tmp_path / "c" / "filenames.txt").read_text().split()
+    img = read_image(tmp_path / "c" / names[0])[0].astype(np.float32)
+    img[10, 10:12, 0] = 3e38
+    (tmp_path / "c" / names[0]).unlink()
+    write_image(tmp_path / "c" / "001.exr", img, "float")
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join(["001.exr", *names[1:]]) + "\n")
+    proc = psctl("info", tmp_path / "c", "--check")
+    assert proc.returncode == 0 and "Warning" not in proc.stderr and ".. inf" not in proc.stdout, proc.stderr
+    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "divided by its light intensity" in proc.stderr and "or light_intensities.txt" in proc.stderr
+    # sdps' second stage reads the images divided by LCNet's intensities (here a small estimate)
+    from psctl.errors import PsctlError
+    from psctl.io.capture import iter_images, open_capture
+    from psctl.lights import LightEstimate, lit_capture
+
+    cap = open_capture(tmp_path / "c")
+    est = LightEstimate(cap.lights, np.full(cap.n_images, 0.25, np.float32), {})
+    with pytest.raises(PsctlError, match=r"divided by its estimated light intensity \(0.25\) its values pass "
+                                         r"float32's range; rescale the images$"):
+        list(iter_images(lit_capture(cap, est)))

@@ -808,8 +808,10 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
             lit = rgb / capture.intensities[k]
         if not np.isfinite(lit).all() and np.isfinite(rgb).all():  # NaN in the file: the readers' own message
-            raise PsctlError(p, f"divided by its light intensity ({float(capture.intensities[k].min()):.3g}) its values "
-                                "pass float32's range; rescale the images or light_intensities.txt")
+            which = "light intensity" if capture.intensities_given else "estimated light intensity"
+            raise PsctlError(p, f"divided by its {which} ({float(capture.intensities[k].min()):.3g}) its values "
+                                "pass float32's range; rescale the images" +
+                                (" or light_intensities.txt" if capture.intensities_given else ""))
         rgb = lit
         if capture.near is not None:
             rgb *= capture.near.correction(capture.lights[k], rows, cols)[..., None]

@@ -80,7 +80,9 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         _, count = clamp_hot_pixels(np.where(box_mask[..., None], region, np.float32(0.0)), box_mask)
         if count:
             hot[k] = count
-        per_image.append({"image": p.name, "mean": float(rgb.mean()) if len(rgb) else 0.0, "saturated": saturated})
+        # float64: a float image's values near float32's limit would overflow its sum (a warning, then inf)
+        per_image.append({"image": p.name, "mean": float(rgb.mean(dtype=np.float64)) if len(rgb) else 0.0,
+                          "saturated": saturated})
         if progress is not None:
             progress(1)
     if damaged:
