@@ -1486,3 +1486,35 @@ def test_normal_maps_keep_axis_normals_and_their_bit_depths(tmp_path):
     for fmt in ("png16", "png8"):
         write_albedo_map(tmp_path / ALBEDO_FORMATS[fmt], np.full((2, 4, 3), 0.3, np.float32), mask, fmt, 1.0)
         assert image_info(tmp_path / ALBEDO_FORMATS[fmt]).bits == bits[fmt], fmt
+
+
+def test_a_signal_while_outputs_move_into_place_waits_for_the_clean_up(tmp_path, monkeypatch):
+    """SIGTERM in the clean-up after the move left the staging folder behind beside complete
+    outputs (a hostile-input audit): the move and the clean-up now hold the signal, and its
+    handler runs once they are done."""
+    import signal
+
+    from psctl.io.atomic import Staging, staged_outputs
+
+    class Term(Exception):
+        pass
+
+    def on_term(signum, frame):
+        raise Term
+
+    old = signal.signal(signal.SIGTERM, on_term)
+    real = Staging.discard
+
+    def discard(self, remove_created=True):
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives in the middle of the clean-up
+        real(self, remove_created)
+
+    monkeypatch.setattr(Staging, "discard", discard)
+    try:
+        with pytest.raises(Term):
+            with staged_outputs(tmp_path / "out") as stage:
+                (stage / "a.txt").write_text("new")
+        assert sorted(os.listdir(tmp_path / "out")) == ["a.txt"]  # in place, nothing staged left
+        assert signal.getsignal(signal.SIGTERM) is on_term  # the caller's handler, back
+    finally:
+        signal.signal(signal.SIGTERM, old)

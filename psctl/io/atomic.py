@@ -296,22 +296,57 @@ class Staging:
 
 
 @contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP until the block ends, then hand the first one to the
+    handler that was set: moving the outputs into place and removing the staging folder is not
+    to be cut in two (a SIGTERM during the clean-up left the staging folder behind beside complete
+    outputs, a hostile-input audit). Python runs signal handlers in the main thread only: in any
+    other thread (and where handlers cannot be set) the block runs as it is."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None]
+    pending: list[int] = []
+    before = {}
+    try:
+        for s in sigs:
+            before[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        if pending:  # as if it came now: the handler it would have met
+            handler = before[pending[0]]
+            if callable(handler):
+                handler(pending[0], None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(pending[0])
+
+
+@contextlib.contextmanager
 def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Iterator[Path]:
     """Yield a hidden staging folder inside ``out_dir``; when the block succeeds, move every file
     written there into ``out_dir`` (``Staging``). On error nothing appears in ``out_dir`` (and
     ``out_dir`` itself is removed again if this call created it): a run gives all of its files or
     none."""
     stage = Staging(out_dir, replaces)
-    ok = False
     try:
-        try:
-            yield stage.path
-        except PsctlError as e:
+        yield stage.path
+    except BaseException as e:
+        stage.discard()
+        if isinstance(e, PsctlError):
             raise _by_final_name(e, [stage]) from None
-        stage.commit()
-        ok = True
-    finally:
-        stage.discard(remove_created=not ok)
+        raise
+    with signals_deferred():  # moved and cleaned up in one piece
+        ok = False
+        try:
+            stage.commit()
+            ok = True
+        finally:
+            stage.discard(remove_created=not ok)
 
 
 def _by_final_name(error: PsctlError, stagings: "list[Staging]") -> PsctlError:
@@ -344,6 +379,10 @@ class OutputBatch:
         return self
 
     def __exit__(self, kind, value, tb) -> None:
+        with signals_deferred():  # committed and cleaned up in one piece
+            self._finish(kind, value)
+
+    def _finish(self, kind, value) -> None:
         ok = False
         try:
             if isinstance(value, PsctlError):
