@@ -57,7 +57,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import as_mask, plain
-from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
 
 if TYPE_CHECKING:
@@ -301,7 +301,7 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
 
     path = Path(check_path("path", path))  # an array here is a K, not a file: check_intrinsics
     if not path.is_file():
-        raise PsctlError(path, "intrinsics file is missing")
+        raise PsctlError(path, not_a_file(path, "intrinsics file is missing"))
     K = read_matrix(path, (3,), "intrinsics")
     if K.shape != (3, 3):
         raise PsctlError(path, f"expected 3 rows of 3 numbers, found {K.shape[0]} rows")

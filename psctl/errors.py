@@ -134,6 +134,22 @@ def check_bool(where: str, value: Any) -> bool:
     return bool(value)
 
 
+def not_a_file(path: str | os.PathLike, missing: str, folder: str | None = None) -> str:
+    """Why ``path``, which is not a regular file, cannot be read as one: ``folder`` for a folder,
+    a device, FIFO or socket said as such (/dev/zero, a named pipe: not "missing"), else
+    ``missing``."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return missing
+    if stat.S_ISDIR(mode):
+        return folder or f"is a folder; {missing}"
+    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+    return f"is {kind}, not a regular file"
+
+
 def check_path(where: str, value: Any, optional: bool = False) -> Any:
     """A path argument given as something else (None where one is needed, a number, a list) or as
     an empty string is a one-line error naming ``where``, not Python's TypeError from deep inside

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from psctl.errors import PsctlError, like_default
+from psctl.errors import PsctlError, like_default, not_a_file
 from psctl.models.weights import file_sha256, save_torch
 from psctl.synth.stream import MAX_SEED
 
@@ -287,7 +287,7 @@ def load_config(path: str | os.PathLike | None) -> dict:
     if path.is_dir():
         raise PsctlError(path, "is a folder; --config takes a YAML file")
     if not path.is_file():
-        raise PsctlError(path, "config file is missing")
+        raise PsctlError(path, not_a_file(path, "config file is missing"))
     try:
         raw = yaml.load(path.read_text(), Loader=_unique_key_loader())
     except yaml.YAMLError as e:

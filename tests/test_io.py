@@ -113,7 +113,7 @@ def test_a_matlab_v73_ground_truth_does_not_stop_what_does_not_read_it(tmp_path)
     write_capture(folder, n=4)
     (folder / "Normal_gt.mat").write_bytes(b"MATLAB 7.3 MAT-file".ljust(116) + bytes(8) + b"\x00\x02IM" + bytes(512))
     assert open_capture(folder).gt_path.name == "Normal_gt.mat"
-    with pytest.raises(PsctlError, match="cannot read .mat file"):  # where it is read
+    with pytest.raises(PsctlError, match=r"MATLAB 7.3 \(HDF5\) file, which psctl does not read"):  # where it is read
         load_ground_truth(open_capture(folder))
 
 
@@ -1518,3 +1518,33 @@ def test_a_signal_while_outputs_move_into_place_waits_for_the_clean_up(tmp_path,
         assert signal.getsignal(signal.SIGTERM) is on_term  # the caller's handler, back
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+def test_messages_for_odd_files_say_what_they_are(tmp_path):
+    """A device or FIFO named as a file was 'missing' or 'not found'; Normal_gt.mat listed as an
+    image failed in the image reader; a MATLAB 7.3 file passed on scipy's advice to use h5py
+    (a hostile-input audit): each now says what is wrong with it."""
+    from psctl.api import run_normals
+    from psctl.io.normals import read_normal_map
+    from psctl.models.weights import read_weights
+
+    os.mkfifo(tmp_path / "fifo")
+    for read, missing in ((read_weights, "weights file not found"), (read_normal_map, "normal map file is missing")):
+        with pytest.raises(PsctlError, match="/dev/zero: is a device, not a regular file$"):
+            read("/dev/zero")
+        with pytest.raises(PsctlError, match="fifo: is a FIFO, not a regular file$"):
+            read(tmp_path / "fifo")
+        with pytest.raises(PsctlError, match=f"nope: {missing}$"):
+            read(tmp_path / "nope")
+    write_capture(tmp_path / "c", n=6, size=32)
+    names = (tmp_path / "c" / "filenames.txt").read_text().split()
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join([*names[:5], "Normal_gt.mat"]) + "\n")
+    with pytest.raises(PsctlError, match="Normal_gt.mat: is the ground truth's file name but is listed in "
+                                         "filenames.txt as an input image"):
+        run_normals(tmp_path / "c", method="l2", write=False)
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join(names) + "\n")
+    header = b"MATLAB 7.3 MAT-file".ljust(116, b" ") + bytes(8) + b"\x00\x02IM"  # version 0x0200: HDF5
+    (tmp_path / "c" / "Normal_gt.mat").write_bytes(header + bytes(512))
+    with pytest.raises(PsctlError, match=r"is a MATLAB 7.3 \(HDF5\) file, which psctl does not read: save it with "
+                                         r"save\(\.\.\., '-v7'\)"):
+        run_normals(tmp_path / "c", method="l2", write=False)

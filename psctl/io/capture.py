@@ -508,6 +508,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                 other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
                 hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
                 raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
+        for p in image_paths:  # before any header is read: Normal_gt.mat is no image to open
+            if p.name.lower() in {n.lower() for n in GT_FILES if not n.lower().endswith(IMAGE_EXTENSIONS)}:
+                raise PsctlError(p, f"is the ground truth's file name but is listed in {list_file.name} as an "
+                                    f"input image")
     else:
         image_paths = _image_files(entries)
         if not image_paths:
@@ -672,6 +676,9 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             try:
                 # Normal_gt alone: scipy skips the other variables unread (a huge one would fill the memory)
                 mat = scipy.io.loadmat(str(p), variable_names=["Normal_gt"])
+            except NotImplementedError:  # scipy's advice (h5py) is for its own users
+                raise PsctlError(p, "is a MATLAB 7.3 (HDF5) file, which psctl does not read: save it with "
+                                    "save(..., '-v7') or as Normal_gt.png (docs/formats.md)") from None
             except Exception as e:  # scipy raises several types for bad/unsupported files
                 raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
             if "Normal_gt" not in mat:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.errors import C_STDERR, PsctlError
+from psctl.errors import C_STDERR, PsctlError, not_a_file
 from psctl.io.atomic import atomic_path, utf8_path
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
@@ -75,7 +75,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
     oiio = _oiio()
     path = Path(path)
     if not path.is_file():
-        raise PsctlError(path, "image file is missing")
+        raise PsctlError(path, not_a_file(path, "image file is missing"))
     name = _oiio_name(path)
     with _quiet_stderr():  # libpng prints its own line for a garbage file; the error below says it
         inp = oiio.ImageInput.open(name)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, not_a_file
 from psctl.io.atomic import atomic_path
 from psctl.io.images import ImageInfo, linear_to_srgb, read_image, write_image
 
@@ -54,7 +54,7 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
     """Read a normal map written by psctl (png16/png8/exr/npy) -> float32 [H, W, 3]."""
     path = Path(path)
     if not path.is_file():
-        raise PsctlError(path, "is a folder, not a normal map file" if path.is_dir() else "normal map file is missing")
+        raise PsctlError(path, not_a_file(path, "normal map file is missing", "is a folder, not a normal map file"))
     if path.name.lower() in ALBEDO_FORMATS.values():  # beside normal.* in psctl normals' folder: an easy slip
         raise PsctlError(path, "is psctl normals' albedo map, not a normal map (psctl normals writes the normal "
                                f"map beside it as {' or '.join(FORMATS.values())})")

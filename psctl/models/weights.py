@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from psctl.errors import PsctlError, check_path
+from psctl.errors import PsctlError, check_path, not_a_file
 from psctl.models import NETWORK_METHODS, WEIGHTS_METHODS
 
 if TYPE_CHECKING:  # torch is imported inside the functions: finding files must stay cheap
@@ -205,7 +205,7 @@ def read_weights(path: str | os.PathLike) -> Weights:
 
     path = Path(check_path("weights", path))
     if not path.is_file():
-        raise PsctlError(path, "is a folder, not a weights file" if path.is_dir() else "weights file not found")
+        raise PsctlError(path, not_a_file(path, "weights file not found", "is a folder, not a weights file"))
     obj = _torch_load(path)
     if not isinstance(obj, dict) or "state_dict" not in obj:
         raise PsctlError(path, "not a weights file: expected a dict with a 'state_dict' entry "
