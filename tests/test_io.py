@@ -516,8 +516,9 @@ def test_a_size_error_after_an_exif_turn_gives_both_sizes(tmp_path):
     np.savetxt(folder / "light_directions.txt", [[0, 0, 1]] * 3)
     with pytest.raises(PsctlError) as e:
         open_capture(folder)
-    assert str(e.value).endswith("002.jpg: size 6x4 differs from 001.jpg (4x6 upright (EXIF orientation 6; 6x4 as "
-                                 "stored))"), str(e.value)
+    # the odd one out is named (the first image here), against the size most images have
+    assert str(e.value).endswith("001.jpg: size 4x6 upright (EXIF orientation 6; 6x4 as stored) differs from the "
+                                 "other 2 images' (6x4)"), str(e.value)
 
 
 def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):

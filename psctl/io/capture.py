@@ -527,9 +527,17 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                                        f"in {list_file.name} as an input image")
     infos = [image_info(p) for p in image_paths]
     first = infos[0]
-    for info in infos[1:]:
-        if (info.width, info.height) != (first.width, first.height):
-            raise PsctlError(info.path, f"size {size_text(info)} differs from {first.path.name} ({size_text(first)})")
+    sizes = [(i.width, i.height) for i in infos]
+    if len(set(sizes)) > 1:  # name the odd one out: the first image of a size most images do not have
+        import collections
+
+        (common, count), = collections.Counter(sizes).most_common(1)
+        ref = next(i for i in infos if (i.width, i.height) == common)
+        odd = next(i for i in infos if (i.width, i.height) != common)
+        if count == 1:  # no majority: the first two that differ
+            ref, odd = first, next(i for i in infos if (i.width, i.height) != sizes[0])
+        others = f"the other {count} images'" if count > 1 else f"{ref.path.name}'s"
+        raise PsctlError(odd.path, f"size {size_text(odd)} differs from {others} ({size_text(ref)})")
     n = len(image_paths)
     found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
