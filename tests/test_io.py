@@ -1549,3 +1549,22 @@ def test_messages_for_odd_files_say_what_they_are(tmp_path):
     with pytest.raises(PsctlError, match=r"is a MATLAB 7.3 \(HDF5\) file, which psctl does not read: save it with "
                                          r"save\(\.\.\., '-v7'\)"):
         run_normals(tmp_path / "c", method="l2", write=False)
+
+
+def test_an_encoded_normal_map_saved_as_normal_gt_mat_is_refused(tmp_path):
+    """uint8 codes ((n + 1) / 2 * 255) saved in Normal_gt.mat were scored as directions, all in one
+    octant (41.9 degrees on a sphere, a hostile-input audit); whole numbers -1, 0 and 1 (how
+    MATLAB may store a double array of them) are still normals."""
+    import scipy.io
+
+    from psctl.io.capture import load_ground_truth
+
+    arrays = write_capture(tmp_path / "c", n=4, size=24)
+    codes = np.round((arrays["normals"] + 1) / 2 * 255).astype(np.uint8)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": codes})
+    with pytest.raises(PsctlError, match=r"Normal_gt holds whole numbers \d+ \.\. 255 \(uint8\): an encoded image's"):
+        load_ground_truth(open_capture(tmp_path / "c"))
+    flat = np.zeros((24, 24, 3), np.int8)
+    flat[..., 2] = 1
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": flat})
+    np.testing.assert_array_equal(load_ground_truth(open_capture(tmp_path / "c"))[..., 2], 1)

@@ -694,6 +694,12 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             raw = np.asarray(mat["Normal_gt"])
         if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
             raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
+        # whole numbers beyond 1: an image's codes ((n + 1) / 2 * 255), not vectors, which would be
+        # scored as directions all in one octant (MATLAB stores a double array of -1, 0 and 1 as integers)
+        if raw.dtype.kind in "iu" and raw.size and int(raw.max()) > 1 and int(raw.min()) >= 0:
+            raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
+                                "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
+                                "Normal_gt.png an encoded image")
         with np.errstate(over="ignore"):  # beyond float32: inf, refused below
             gt = raw.astype(np.float32)
         gt = np.where(np.isnan(gt).any(axis=-1, keepdims=True), 0.0, gt) if gt.ndim == 3 else gt  # NaN: no normal
