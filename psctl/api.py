@@ -826,7 +826,8 @@ def provenance(weights_used: dict[str, "str | os.PathLike | None"], device: str 
 
     def entry(p: "str | os.PathLike") -> dict:
         e = {"path": os.path.abspath(p), "sha256": file_sha256(p)}
-        if started is not None and os.stat(p).st_mtime > started:
+        # after the start, and not in the future (a file dated ahead, clock skew: not a change)
+        if started is not None and started < os.stat(p).st_mtime <= time.time():
             e["modified_during_run"] = True
         return e
 

@@ -575,7 +575,8 @@ def test_a_report_names_what_made_it_and_its_image_subset(tmp_path, fake_weights
 def test_a_weights_file_modified_during_the_run_is_flagged(tmp_path, fake_weights):
     """The digest is taken at the report: a weights file replaced while the run went on would be
     hashed as the new file, so the report says so (modified_during_run and a note) instead of
-    naming it silently. A file's modification time after the run's start stands in for that here."""
+    naming it silently. The progress callback touches the file, mid-run; a file dated in the
+    future (a tarball's, clock skew) is not flagged."""
     import os
     import shutil
     import time as _time
@@ -586,19 +587,28 @@ def test_a_weights_file_modified_during_the_run_is_flagged(tmp_path, fake_weight
 
     write_capture(tmp_path / "o", n=8, size=32)
     w = _ps_fcn_file(tmp_path)
-    r = run_normals(tmp_path / "o", method="ps-fcn", weights=w, write=False, device="cpu")
-    assert "modified_during_run" not in r["provenance"]["weights"]["ps-fcn"]
-    assert not any(n.startswith("weights:") for n in r["notes"])
+
+    def touching(path):
+        def progress(description, total):
+            os.utime(path)  # now: after the run began
+            return lambda n: None
+        return progress
+
     later = _time.time() + 3600
     os.utime(w, (later, later))
     r = run_normals(tmp_path / "o", method="ps-fcn", weights=w, write=False, device="cpu")
+    assert "modified_during_run" not in r["provenance"]["weights"]["ps-fcn"]
+    assert not any(n.startswith("weights:") for n in r["notes"])
+    _time.sleep(0.01)
+    r = run_normals(tmp_path / "o", method="ps-fcn", weights=w, write=False, device="cpu", progress=touching(w))
     assert r["provenance"]["weights"]["ps-fcn"]["modified_during_run"] is True
     assert [n for n in r["notes"] if n.startswith("weights:")] == [
         f"weights: {Path(w).resolve()} was modified during the run; the report's sha256 is of the file as it is now, "
         "which may not be what the run read"]
     lc = tmp_path / "lcnet.pt"  # a copy: the fixture's files are shared with other tests
     shutil.copy(fake_weights / "lcnet.pt", lc)
-    os.utime(lc, (later, later))
-    r = run_lights(tmp_path / "o", weights=lc, write=False, device="cpu", views=1, refine=False)
+    _time.sleep(0.01)
+    r = run_lights(tmp_path / "o", weights=lc, write=False, device="cpu", views=1, refine=False,
+                   progress=touching(lc))
     assert r["provenance"]["weights"]["lcnet"]["modified_during_run"] is True
     assert any(n.startswith(f"weights: {lc}") for n in r["notes"])

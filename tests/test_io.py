@@ -1568,3 +1568,69 @@ def test_an_encoded_normal_map_saved_as_normal_gt_mat_is_refused(tmp_path):
     flat[..., 2] = 1
     scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": flat})
     np.testing.assert_array_equal(load_ground_truth(open_capture(tmp_path / "c"))[..., 2], 1)
+
+
+def test_held_signals_skip_ignored_ones_and_reach_the_handler(tmp_path):
+    """With SIGHUP ignored (nohup), a SIGHUP then a SIGTERM while outputs move into place: the
+    SIGTERM still reaches its handler (a review: the ignored one was taken as the signal to pass
+    on, and the real one was lost); every handler is back afterwards."""
+    import signal
+
+    from psctl.io.atomic import signals_deferred
+
+    class Term(Exception):
+        pass
+
+    def on_term(signum, frame):
+        raise Term
+
+    old = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with pytest.raises(Term):
+            with signals_deferred():
+                os.kill(os.getpid(), signal.SIGHUP)
+                os.kill(os.getpid(), signal.SIGTERM)
+                done = True
+        assert done
+        assert signal.getsignal(signal.SIGTERM) is on_term and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def test_a_link_loop_under_an_output_name_is_no_traceback(tmp_path):
+    """check_not_capture compares real paths: a symbolic-link loop where an output goes is a path
+    like any other (Path.resolve raised RuntimeError on it, a review)."""
+    from psctl.depth import run_depth
+
+    write_capture(tmp_path / "c", n=6, size=32)
+    from psctl.api import run_normals
+
+    run_normals(tmp_path / "c", method="l2")
+    out = tmp_path / "d"
+    out.mkdir()
+    os.symlink(out / "loop2", out / "loop1")
+    os.symlink(out / "loop1", out / "loop2")
+    os.symlink(out / "loop1", out / "depth.png")
+    r = run_depth(tmp_path / "c", out=out)
+    assert (out / "depth.png").is_file() and not (out / "depth.png").is_symlink() and r["outputs"]
+
+
+def test_scaled_signed_whole_number_normals_are_still_normals(tmp_path):
+    """Only unsigned whole numbers beyond 1 look like an image's codes; int16 normals scaled by
+    1000 (one component negative or not) are directions, normalised as any others."""
+    import scipy.io
+
+    from psctl.io.capture import load_ground_truth
+
+    write_capture(tmp_path / "c", n=4, size=24)
+    gt = np.zeros((24, 24, 3), np.int16)
+    gt[...] = (300, 200, 930)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt})
+    n = load_ground_truth(open_capture(tmp_path / "c"))
+    np.testing.assert_allclose(n[0, 0], np.array([300, 200, 930]) / np.linalg.norm([300, 200, 930]), rtol=1e-6)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt.astype(np.uint16)})
+    with pytest.raises(PsctlError, match="an encoded image's values"):
+        load_ground_truth(open_capture(tmp_path / "c"))

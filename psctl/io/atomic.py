@@ -303,12 +303,16 @@ def signals_deferred() -> Iterator[None]:
     outputs, a hostile-input audit). Python runs signal handlers in the main thread only: in any
     other thread (and where handlers cannot be set) the block runs as it is."""
     import signal
+    import sys
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    sigs = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None]
+    # not an ignored signal (nohup's SIGHUP: it would hide one that counts), nor one whose handler
+    # was set outside Python (getsignal None: it could not be put back)
+    sigs = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None))
+            if s is not None and signal.getsignal(s) not in (None, signal.SIG_IGN)]
     pending: list[int] = []
     before = {}
     try:
@@ -316,12 +320,19 @@ def signals_deferred() -> Iterator[None]:
             before[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
         yield
     finally:
-        for s, handler in before.items():
-            signal.signal(s, handler)
+        failed = None
+        for s, handler in before.items():  # every one back, whatever happens to one of them
+            try:
+                signal.signal(s, handler)
+            except BaseException as e:  # noqa: BLE001 (a signal arriving now, put back after the rest)
+                failed = failed or e
+                signal.signal(s, handler)
+        if failed is not None:
+            raise failed
         if pending:  # as if it came now: the handler it would have met
             handler = before[pending[0]]
             if callable(handler):
-                handler(pending[0], None)
+                handler(pending[0], sys._getframe())
             elif handler == signal.SIG_DFL:
                 signal.raise_signal(pending[0])
 
@@ -336,7 +347,8 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> 
     try:
         yield stage.path
     except BaseException as e:
-        stage.discard()
+        with signals_deferred():  # removed in one piece
+            stage.discard()
         if isinstance(e, PsctlError):
             raise _by_final_name(e, [stage]) from None
         raise

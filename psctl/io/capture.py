@@ -184,8 +184,9 @@ def check_not_capture(out_dir: Path, capture: "Capture", names: Iterable[str] = 
     if holds_capture(out_dir):
         raise PsctlError(out_dir, "holds a capture (images, a mask, an ambient image or ground truth), whose files are inputs; "
                                   "choose another --out")
-    inputs = {p.resolve() for p in capture.input_paths}
-    clash = [n for n in names if (out_dir / n).resolve() in inputs]
+    # realpath, not Path.resolve: a symbolic-link loop in the way is a path like any other here
+    inputs = {os.path.realpath(p) for p in capture.input_paths}
+    clash = [n for n in names if os.path.realpath(out_dir / n) in inputs]
     if clash:
         raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
 
@@ -696,7 +697,7 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
         # whole numbers beyond 1: an image's codes ((n + 1) / 2 * 255), not vectors, which would be
         # scored as directions all in one octant (MATLAB stores a double array of -1, 0 and 1 as integers)
-        if raw.dtype.kind in "iu" and raw.size and int(raw.max()) > 1 and int(raw.min()) >= 0:
+        if raw.dtype.kind == "u" and raw.size and int(raw.max()) > 1:
             raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                                 "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                                 "Normal_gt.png an encoded image")

@@ -73,7 +73,8 @@ def _read(path: str | os.PathLike, keep: str | None) -> tuple[dict[str, tuple[in
         return None
 
 
-_HEAD = 4096  # a variable's header (flags, up to 32 dimensions, its name, its data's tag) fits
+_HEAD = 4096  # a variable's header (flags, up to 32 dimensions, its name, its data's tag) fits, but
+# for a name over about 4,000 characters, whose file then goes to scipy
 
 
 def _parse(raw: bytes, keep: str | None = None) -> tuple[dict[str, tuple[int, ...]], dict[str, np.ndarray]]:
