@@ -684,6 +684,17 @@ def test_a_tiff_stack_is_named_in_the_count_error(tmp_path):
     np.savetxt(cap / "light_directions.txt", [[0, 0, 1], [0.3, 0, 1], [0, 0.3, 1], [-0.3, 0, 1]])
     with pytest.raises(PsctlError, match=r"4 light rows but 1 image .*stack.tif holds 4 pages: psctl reads one image per file"):
         open_capture(cap)
+    # where the counts agree (stacks among single images), a note says which file is a stack
+    from psctl.io.capture import capture_notes
+
+    for k in range(2, 5):
+        write_image(cap / f"{k:03d}.tif", np.full((8, 8, 3), k / 5, np.float32))
+    (cap / "filenames.txt").write_text("stack.tif\n002.tif\n003.tif\n004.tif\n")
+    c = open_capture(cap)
+    assert c.pages == (4, 1, 1, 1) and c.subset([1, 0]).pages == (1, 4)
+    assert [n for n in capture_notes(c) if "pages" in n] == [
+        "images: stack.tif holds 4 pages; psctl reads one image per file, its first page"]
+    assert not any("pages" in n for n in capture_notes(c.subset([1, 2])))
 
 
 def test_more_capture_mistakes_name_their_cause(tmp_path):

@@ -69,6 +69,7 @@ class Capture:
     kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
     channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
     jpeg: tuple[bool, ...] = ()  # each image is JPEG data, by its content (whatever its name)
+    pages: tuple[int, ...] = ()  # each image file's subimages (a TIFF stack: psctl reads the first)
     ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
@@ -118,6 +119,7 @@ class Capture:
             kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
             channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
             jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
+            pages=tuple(self.pages[i] for i in idx) if self.pages else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -597,7 +599,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
-        lights_path=lights_path, intensities_path=intensities_path,
+        pages=tuple(i.pages for i in infos), lights_path=lights_path, intensities_path=intensities_path,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )
@@ -1025,6 +1027,10 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
+    stacks = [(p.name, k) for p, k in zip(capture.image_paths, capture.pages) if k > 1]
+    if stacks:  # a TIFF stack of the whole capture in one file would otherwise pass as one image
+        named = ", ".join(f"{n} holds {k} pages" for n, k in stacks[:3]) + (" ..." if len(stacks) > 3 else "")
+        notes.append(f"images: {named}; psctl reads one image per file, its first page")
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
                      f"orientation tag, as photo viewers show them (the mask and lights refer to that frame)")
