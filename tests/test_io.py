@@ -1645,3 +1645,17 @@ def test_scaled_signed_whole_number_normals_are_still_normals(tmp_path):
     scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt.astype(np.uint16)})
     with pytest.raises(PsctlError, match="an encoded image's values"):
         load_ground_truth(open_capture(tmp_path / "c"))
+
+
+def test_a_listed_name_with_spaces_reads_that_file(tmp_path):
+    """Spaces around a name in filenames.txt are layout, unless a file of that very name exists:
+    " 003.png" beside "003.png" read the neighbour (a hostile-input audit)."""
+    import shutil
+
+    write_capture(tmp_path / "c", n=6, size=24)
+    names = (tmp_path / "c" / "filenames.txt").read_text().split()
+    shutil.copy(tmp_path / "c" / names[3], tmp_path / "c" / f" {names[2]}")  # another image, a space before
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join([*names[:2], f" {names[2]}", *names[3:]]) + "\n")
+    assert [p.name for p in open_capture(tmp_path / "c").image_paths][2] == f" {names[2]}"
+    (tmp_path / "c" / "filenames.txt").write_text("\n".join(f"  {n}\t" for n in names) + "\n")
+    assert [p.name for p in open_capture(tmp_path / "c").image_paths] == names

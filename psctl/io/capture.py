@@ -254,7 +254,10 @@ def _read_utf8(path: Path, what: str) -> str:
 
 def _read_list(path: Path, what: str = "images") -> list[str]:
     text = _read_utf8(path, "file")
-    names = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    # a line's spaces around the name are layout, unless a file of that very name is there
+    # (" 003.png" and "003.png" both present: the one listed, not its neighbour)
+    names = [ln if ln != ln.strip() and os.path.lexists(path.parent / ln) else ln.strip()
+             for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     if not names:
         raise PsctlError(path, f"lists no {what}")
     return names
