@@ -1659,3 +1659,13 @@ def test_a_listed_name_with_spaces_reads_that_file(tmp_path):
     assert [p.name for p in open_capture(tmp_path / "c").image_paths][2] == f" {names[2]}"
     (tmp_path / "c" / "filenames.txt").write_text("\n".join(f"  {n}\t" for n in names) + "\n")
     assert [p.name for p in open_capture(tmp_path / "c").image_paths] == names
+
+
+def test_an_object_listed_as_a_broken_link_says_so(tmp_path):
+    """objects.txt naming a dangling link or a link loop: "a broken link", not "missing"."""
+    (tmp_path / "root").mkdir()
+    os.symlink(tmp_path / "root" / "b", tmp_path / "root" / "a")
+    os.symlink(tmp_path / "root" / "a", tmp_path / "root" / "b")
+    (tmp_path / "root" / "objects.txt").write_text("a\n")
+    with pytest.raises(PsctlError, match=r"a: listed in objects.txt but is a broken link \(to .*b\)$"):
+        find_objects(tmp_path / "root")

@@ -390,8 +390,9 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
             if f.is_dir() and f.resolve() == root.resolve():
                 raise PsctlError(listed, f"lists {name}, the root itself; list its object folders")
             if not f.is_dir():
-                raise PsctlError(f, "listed in objects.txt but " + ("is a file, not an object folder" if f.exists()
-                                                                    else "missing"))
+                why = ("is a file, not an object folder" if f.exists() else
+                       f"is a broken link (to {os.readlink(f)})" if f.is_symlink() else "missing")
+                raise PsctlError(f, f"listed in objects.txt but {why}")
         return folders
     folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")
                       and p.name != "psctl" and is_capture_folder(p)), key=lambda p: natural_key(p.name))
