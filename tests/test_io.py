@@ -1669,3 +1669,46 @@ def test_an_object_listed_as_a_broken_link_says_so(tmp_path):
     (tmp_path / "root" / "objects.txt").write_text("a\n")
     with pytest.raises(PsctlError, match=r"a: listed in objects.txt but is a broken link \(to .*b\)$"):
         find_objects(tmp_path / "root")
+
+
+def test_a_failed_image_write_on_a_full_disk_says_so(tmp_path, monkeypatch):
+    """The EXR writer says only "File output failed" on a full disk: psctl adds the hint its PNG
+    and .npy messages give, when the folder has less room than the pixels take."""
+    import shutil
+    from collections import namedtuple
+
+    import psctl.io.images as images
+
+    real = images._oiio()
+
+    class FailingOutput:
+        def open(self, *a):
+            return True
+
+        def write_image(self, *a):
+            return False
+
+        def geterror(self):
+            return "File output failed"
+
+        def close(self):
+            return True
+
+    class Oiio:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        class ImageOutput:
+            @staticmethod
+            def create(name):
+                return FailingOutput()
+
+    monkeypatch.setattr(images, "_oiio", lambda: Oiio())
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 20, 10 << 20, 4096))
+    with pytest.raises(PsctlError, match=r"n.exr: cannot write image \(File output failed; a full disk or a quota\?\)$"):
+        write_image(tmp_path / "n.exr", np.zeros((64, 64, 3), np.float32), "float")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(1 << 40, 0, 1 << 40))
+    with pytest.raises(PsctlError, match=r"n.exr: cannot write image \(File output failed\)$"):  # room enough: no guess
+        write_image(tmp_path / "n.exr", np.zeros((64, 64, 3), np.float32), "float")
+    assert not list(tmp_path.iterdir())  # nothing left behind

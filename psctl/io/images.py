@@ -206,10 +206,22 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         # the first of the writer's messages (a PNG's repeats per block), named by the output
         err = _clean((err or out.geterror()).replace(str(tmp), str(path))).split("; ")[0]
         if not ok or err.startswith("Write error"):  # libpng's: a file that lost only its end reads back
-            raise PsctlError(path, f"cannot write image ({err or 'the writer gave no reason'})")
+            raise PsctlError(path, f"cannot write image ({err or 'the writer gave no reason'}{_no_room(tmp, arr)})")
         # with ok, a message may be a failed write() (PNG) or harmless (TIFF's Exif block): the
         # read-back decides
         _check_written(tmp, path, arr.shape, err)
+
+
+def _no_room(tmp: Path, arr: np.ndarray) -> str:
+    """"; a full disk or a quota?" when the folder has less room left than the pixels take: the
+    EXR writer's own message on a full disk is only "File output failed"."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(tmp.parent).free
+    except OSError:
+        return ""
+    return "; a full disk or a quota?" if free < arr.nbytes + (1 << 20) else ""
 
 
 def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: str = "") -> None:
