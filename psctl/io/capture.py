@@ -515,8 +515,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
                 other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
                 hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
                 raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
+        not_images = {n.lower() for n in GT_FILES if not n.lower().endswith(IMAGE_EXTENSIONS)}
         for p in image_paths:  # before any header is read: Normal_gt.mat is no image to open
-            if p.name.lower() in {n.lower() for n in GT_FILES if not n.lower().endswith(IMAGE_EXTENSIONS)}:
+            if p.name.lower() in not_images:
                 raise PsctlError(p, f"is the ground truth's file name but is listed in {list_file.name} as an "
                                     f"input image")
     else:
@@ -539,10 +540,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
         import collections
 
         (common, count), = collections.Counter(sizes).most_common(1)
+        if count == 1:  # no majority: the first image, and the first that differs from it
+            common = sizes[0]
         ref = next(i for i in infos if (i.width, i.height) == common)
         odd = next(i for i in infos if (i.width, i.height) != common)
-        if count == 1:  # no majority: the first two that differ
-            ref, odd = first, next(i for i in infos if (i.width, i.height) != sizes[0])
         others = f"the other {count} images'" if count > 1 else f"{ref.path.name}'s"
         raise PsctlError(odd.path, f"size {size_text(odd)} differs from {others} ({size_text(ref)})")
     n = len(image_paths)
