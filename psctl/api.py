@@ -670,7 +670,8 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
         # psctl's own files from an earlier run there (its list says which), that this run does not write
         # never removed: the files this run reads (an image listed by its path in an output folder)
         given = {os.path.realpath(p) for p in (weights, lcnet, *cap.input_paths) if p is not None}
-        stale = sorted(n for n in read_outputs_list(out_dir, "normals")
+        listed = read_outputs_list(out_dir, "normals")  # read once: for the clean-up and for the note below
+        stale = sorted(n for n in listed
                        if n in all_names and n not in names and (out_dir / n).is_file()
                        and os.path.realpath(out_dir / n) not in given)
         if stale:
@@ -680,7 +681,7 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
                 raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
                                               "or choose another --out")
-        notes += replaced_notes(out_dir, names, "normals")  # not psctl's (or from a psctl without the list)
+        notes += replaced_notes(out_dir, names, "normals", listed)  # not psctl's (or from a psctl without the list)
     return names, light_files, stale, notes
 
 

@@ -7,6 +7,7 @@ The CLI prints ``str(err)`` as a single line and exits with code 2; library user
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import numbers
 import os
@@ -23,16 +24,22 @@ def visible(text: str, newlines: bool = True) -> str:
     return "".join(c if c in keep or not (ord(c) < 32 or 127 <= ord(c) < 160) else f"\\x{ord(c):02x}" for c in text)
 
 
-def console(stderr: bool = False) -> Any:
-    """A Rich console for psctl's messages and summaries: every string it prints has its control
-    characters written out (``visible``)."""
+@functools.cache
+def _console_class() -> type:
+    # made on first use, not at import: rich stays unimported for library users who never print
     from rich.console import Console
 
     class _Console(Console):
         def print(self, *objects: Any, **kwargs: Any) -> None:
             super().print(*(visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
 
-    return _Console(stderr=stderr)
+    return _Console
+
+
+def console(stderr: bool = False) -> Any:
+    """A Rich console for psctl's messages and summaries: every string it prints has its control
+    characters written out (``visible``)."""
+    return _console_class()(stderr=stderr)
 
 
 class PsctlError(ValueError):

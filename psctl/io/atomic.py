@@ -166,10 +166,12 @@ def write_outputs_list(stage: Path, names: Iterable[str], command: str) -> None:
     (Path(stage) / outputs_list(command)).write_text("".join(f"{n}\n" for n in names))
 
 
-def replaced_notes(out_dir: Path, names: Iterable[str], command: str) -> list[str]:
+def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: list[str] | None = None) -> list[str]:
     """A note naming the files of ``names`` already in ``out_dir`` that no earlier ``psctl
-    COMMAND`` run there listed (a user's own ``depth.png``, say): replaced, never silently."""
-    listed = read_outputs_list(out_dir, command)
+    COMMAND`` run there listed (a user's own ``depth.png``, say): replaced, never silently.
+    ``listed``: that run's list when the caller has read it already."""
+    if listed is None:
+        listed = read_outputs_list(out_dir, command)
     foreign = [n for n in names if n not in listed and (Path(out_dir) / n).is_file()]
     if not foreign:
         return []
