@@ -360,6 +360,12 @@ def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):
     assert f"{cat['mae_missing_as_90']:.2f}" in row and f"{r['mean_mae_missing_as_90']:.2f}" in row
     assert "l2 (paper)" in table and " 4.10 " in table  # DiLiGenT's ball, as published
     assert "cat: scoring:" in " ".join(table.split())  # the note under the table names the object
+    # a terminal too narrow for the paper's layout turns the table, the extra row a column of its own
+    narrow = cli("eval", "--root", tmp_path / "root", "-m", "l2", env={"COLUMNS": "40"})
+    assert narrow.returncode == 0, narrow.stderr
+    cat_line = next(line for line in narrow.stdout.splitlines() if line.startswith("│ cat "))
+    assert f"{cat['mae']:.2f}" in cat_line and f"{cat['mae_missing_as_90']:.2f}" in cat_line
+    assert max(len(line) for line in narrow.stdout.splitlines() if line[:1] in "┏┃┡│├└") <= 40
 
 
 def test_eval_light_means_and_paper_lights():

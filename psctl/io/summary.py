@@ -322,7 +322,7 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         con.print(f"  wrote {p}", highlight=False, markup=False)
 
 
-SHORT = {"light direction (°)": "light", "intensity RE": "RE"}  # headers of the narrow layout
+SHORT = {"light direction (°)": "light", "intensity RE": "RE", "scored as the paper": "as the\npaper"}  # headers of the narrow layout
 
 
 def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[str], width: int):
@@ -343,10 +343,14 @@ def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[st
             t.add_row(label, *vals, avg, style=style)
         return t
     def short(label: str) -> str:  # "light direction (°) (LCNet)" -> "light" over "LCNet"
+        label = label.strip()
+        if not label.endswith(")"):  # "scored as the paper": a row of its own, no source
+            return SHORT.get(label, label)
         head, source = label[:label.rindex("(")].strip(), label[label.rindex("(") + 1:-1]
         return f"{SHORT.get(head, head)}\n{source}"
 
-    t = Table(title=title + ("; light: light direction error (degrees); RE: intensity error" if len(rows) > 2 else ""))
+    lights = any(r[0].strip().startswith(tuple(SHORT)[:2]) for r in rows)  # sdps: the light rows' short names
+    t = Table(title=title + ("; light: light direction error (degrees); RE: intensity error" if lights else ""))
     t.add_column("object", overflow="fold", min_width=min(16, max(map(len, names))))
     for label, _, _, style in rows:
         t.add_column(short(label), justify="right", style=style, min_width=5)
