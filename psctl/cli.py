@@ -354,7 +354,7 @@ def normals(
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root).")] = "diligent",
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
-    method: MethodOpt = "auto",
+    method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps; the ensemble's spread maps too) and OUT/eval.json.")] = None,
@@ -375,15 +375,20 @@ def evaluate(
 ) -> None:
     """Run a method over every object of a benchmark and print the paper-style error table."""
     with _user_errors():
-        from psctl.eval import run_benchmark
-        from psctl.io.summary import render_benchmark
+        from psctl.eval import compare_methods, run_benchmark
+        from psctl.io.summary import render_benchmark, render_comparison
 
-        _run(lambda progress: run_benchmark(benchmark, root=root, method=method, n_images=images, seed=seed, out=out,
-                                            progress=progress, weights=weights, device=device, lcnet=lcnet,
-                                            views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
-                                            light_distance=light_distance, downsample=downsample,
-                                            precision=precision, albedo=albedo),
-             json_out, quiet, render_benchmark)
+        # -m a -m b and -m a,b alike; a name given twice runs once
+        methods = list(dict.fromkeys(m.strip().lower() for given in (method or ["auto"]) for m in given.split(",")))
+        options = dict(n_images=images, seed=seed, out=out, weights=weights, device=device, lcnet=lcnet, views=views,
+                       refine=refine, falloff=falloff, roll=roll, encoding=encoding, light_distance=light_distance,
+                       downsample=downsample, precision=precision, albedo=albedo)
+        if len(methods) == 1:
+            _run(lambda progress: run_benchmark(benchmark, root=root, method=methods[0], progress=progress, **options),
+                 json_out, quiet, render_benchmark)
+        else:
+            _run(lambda progress: compare_methods(benchmark, methods, root=root, progress=progress, **options),
+                 json_out, quiet, render_comparison)
 
 
 @app.command(cls=_Command)

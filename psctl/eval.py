@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
 from psctl.errors import PsctlError, check_bool, check_path, check_progress
+
+if TYPE_CHECKING:
+    from psctl.io.atomic import OutputBatch
 
 # Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
 # objects of the DiLiGenT development split (L2: DiLiGenT's own baseline, to two decimals; the
@@ -65,7 +70,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                   encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
-                  precision: str = "float32", albedo: bool = False) -> dict:
+                  precision: str = "float32", albedo: bool = False, batch: "OutputBatch | None" = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
@@ -88,9 +93,11 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     "notes": about the run (with ``out``: object folders of an earlier run left there).
     ``albedo`` (with ``out``): each object's folder also gets its albedo maps, as ``psctl
     normals --albedo`` writes them (every object's method must have lights: not ups-fcn).
+    ``batch`` (with ``out``): stage the files into this ``OutputBatch``, which its owner commits
+    (``compare_methods``: several runs' files appear together), instead of one of its own.
     """
-    from psctl.io.atomic import OutputBatch, check_output_dir
-    from psctl.io.capture import GT_FILES, find_objects, holds_capture, object_name, open_capture, root_notes
+    from psctl.io.atomic import OutputBatch
+    from psctl.io.capture import root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
     from psctl.models import check_downsample, check_precision
@@ -104,50 +111,19 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     albedo = check_bool("albedo", albedo)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
-    if not isinstance(benchmark, str):
-        raise PsctlError(None, f"benchmark must be one of {', '.join(BENCHMARKS)}, not {benchmark!r}")
-    benchmark = benchmark.lower()
-    if benchmark not in BENCHMARKS:
-        raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
-    if root is None:
-        if benchmark != "diligent":
-            raise PsctlError(None, f"--benchmark {benchmark} needs --root DIR")
-        root = default_diligent_root()
-    root = Path(root)
-    folders = find_objects(root)
-    # every object must be scorable before any is run (and before any output is written)
-    for folder in folders:
-        if open_capture(folder, encoding).gt_path is None:
-            raise PsctlError(folder, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
+    benchmark, root, folders, names = _benchmark_objects(benchmark, root, encoding)
     if albedo and out is not None:  # before any object runs, not minutes in
-        from psctl.api import resolve_method, ups_fcn_albedo_message
-
-        for folder in folders:
-            cap = open_capture(folder, encoding)
-            if resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")[0] == "ups-fcn":
-                raise PsctlError(folder if weights is None else weights,
-                                 ups_fcn_albedo_message(method, weights, cap.calibrated))
-    names = [object_name(f) for f in folders]
-    for name in dict.fromkeys(names):
-        same = [f.name for f, n in zip(folders, names) if n == name]
-        if len(same) > 1:  # one column (and one out/<object>/ folder) each
-            raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
+        _check_albedo(folders, method, weights, lcnet, encoding)
     if out is not None:  # an empty one was refused by check_path above
-        if Path(out).resolve() == root.resolve():
-            raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
-        if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
-            raise PsctlError(out, "holds a capture (images, an image list, a mask or ground truth): psctl eval "
-                                  "writes eval.png there; choose another --out")
-        from psctl.io.atomic import check_inputs_kept
-
-        check_inputs_kept(out, ("eval.png", "eval.json"), (("--weights", weights), ("--lcnet", lcnet)))
-        check_output_dir(out)
+        _check_out(out, root, EVAL_FILES, weights, lcnet)
     objects = []
     used = []  # `auto` can resolve differently per object (calibrated or not)
     precisions, used_views, used_k = [], set(), set()  # what each object's run used
     panels = []  # with --out: each object's small picture for eval.png
     # with --out every object's files appear together at the end, or none do
-    with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
+    own = OutputBatch(out) if out is not None and batch is None else contextlib.nullcontext(
+        None if out is None else batch)
+    with own as batch:
         for folder, name in zip(folders, names):
             arrays = {} if out is not None else None
             r = run_normals(folder, method=method, out=None if out is None else Path(out) / name,
@@ -201,6 +177,137 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
 
 
 EVAL_FILES = ("eval.png", "eval.json")
+COMPARE_FILES = ("compare.png", "compare.json")
+
+
+def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathLike | None = None,
+                    out: str | os.PathLike | None = None, progress: ProgressFactory | None = None,
+                    **options: Any) -> dict:
+    """Run several methods over the same benchmark, for one table with a row per method
+    (``psctl eval -m l2 -m ps-fcn -m ps-fcn-n``, the layout of the paper's tables).
+
+    ``methods``: names as ``run_benchmark``'s ``method`` (repeats dropped); ``options``: the
+    other arguments of ``run_benchmark`` (``views``, ``device``, ...), the same for every method;
+    ``weights`` is refused (it names one network's file). Every method is resolved on every
+    object before any runs, so that a missing weights file stops the comparison at once.
+    Returns {"benchmark", "root", "methods", "runs": [``run_benchmark``'s result per method],
+    "notes"}. With ``out``: OUT/<method>/ holds what ``psctl eval -m METHOD --out
+    OUT/<method>`` writes, OUT/compare.png their eval.png one above the other, and
+    OUT/compare.json this result (then with "outputs"); they all appear together, or none does.
+    """
+    from psctl.api import METHODS, NETWORKS, resolve_method
+    from psctl.models.weights import installed_path, no_weights_error
+    from psctl.io.atomic import OutputBatch, outputs_list, replaced_notes, write_outputs_list
+    from psctl.io.capture import open_capture
+
+    if isinstance(methods, str) or not isinstance(methods, Sequence) or not methods:
+        raise PsctlError(None, f"methods must be a list of method names ({', '.join(METHODS)}), not {methods!r}")
+    for m in methods:
+        if not isinstance(m, str) or m.lower() not in METHODS:
+            raise PsctlError(None, f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    methods = list(dict.fromkeys(m.lower() for m in methods))
+    for key in ("method", "batch"):
+        if key in options:
+            raise TypeError(f"compare_methods() got an unexpected keyword argument {key!r}")
+    if options.get("weights") is not None:
+        raise PsctlError(options["weights"], "--weights names one network's file; a comparison runs each method "
+                                             "with its installed weights (run psctl eval once per weights file)")
+    check_path("out", out, optional=True)
+    encoding, lcnet = options.get("encoding", "auto"), options.get("lcnet")
+    benchmark, root, folders, _ = _benchmark_objects(benchmark, root, encoding)
+    caps = [open_capture(f, encoding) for f in folders]
+    for m in methods:  # a missing weights file or light file now, not after the first method's minutes
+        for cap in caps:
+            used, _ = resolve_method(m, cap.calibrated, None, lcnet, cap.path / "light_directions.txt")
+            if used in NETWORKS and installed_path(used) is None:  # resolve_method leaves this to the loading
+                raise no_weights_error(used)
+        if options.get("albedo") and out is not None:
+            _check_albedo(folders, m, None, lcnet, encoding)
+    if out is not None:
+        _check_out(out, root, COMPARE_FILES, None, lcnet)
+        for m in methods:
+            _check_out(Path(out) / m, root, EVAL_FILES, None, lcnet)
+    with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
+        runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
+                              progress=progress, batch=batch, **options) for m in methods]
+        result = {"benchmark": benchmark, "root": os.path.abspath(root), "methods": methods, "runs": runs,
+                  "notes": []}
+        if batch is not None:
+            from psctl.io.images import read_image, write_image
+            from psctl.io.report import stack_sheets, write_json
+
+            # method folders an earlier comparison wrote there, not in this one: left, but said
+            earlier = sorted(d.name for d in Path(out).iterdir() if d.is_dir() and d.name not in methods
+                             and (d / outputs_list("eval")).is_file()) if Path(out).is_dir() else []
+            if earlier:
+                result["notes"].append(f"outputs: {out} also holds {', '.join(earlier)} from an earlier run, not in "
+                                       f"this run's compare.json and compare.png (left as they are)")
+            result["notes"] += replaced_notes(Path(out), COMPARE_FILES, "compare")
+            sheets = [read_image(next(s.path for s in batch.stagings if s.out_dir == Path(out) / m) / "eval.png")[0]
+                      for m in methods]
+            result["outputs"] = {f: os.path.abspath(Path(out) / f) for f in COMPARE_FILES}
+            stage = batch.stage(out).path
+            write_outputs_list(stage, COMPARE_FILES, "compare")
+            write_image(stage / "compare.png", stack_sheets(sheets), "uint8")
+            write_json(stage / "compare.json", result)
+    return result
+
+
+def _benchmark_objects(benchmark: str, root: str | os.PathLike | None,
+                       encoding: str) -> tuple[str, Path, list[Path], list[str]]:
+    """(benchmark, root, object folders, object names) of a benchmark, every object checked to
+    be scorable before any is run (and before any output is written)."""
+    from psctl.io.capture import GT_FILES, find_objects, object_name, open_capture
+
+    if not isinstance(benchmark, str):
+        raise PsctlError(None, f"benchmark must be one of {', '.join(BENCHMARKS)}, not {benchmark!r}")
+    benchmark = benchmark.lower()
+    if benchmark not in BENCHMARKS:
+        raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
+    if root is None:
+        if benchmark != "diligent":
+            raise PsctlError(None, f"--benchmark {benchmark} needs --root DIR")
+        root = default_diligent_root()
+    root = Path(root)
+    folders = find_objects(root)
+    for folder in folders:
+        if open_capture(folder, encoding).gt_path is None:
+            raise PsctlError(folder, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
+    names = [object_name(f) for f in folders]
+    for name in dict.fromkeys(names):
+        same = [f.name for f, n in zip(folders, names) if n == name]
+        if len(same) > 1:  # one column (and one out/<object>/ folder) each
+            raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
+    return benchmark, root, folders, names
+
+
+def _check_albedo(folders: list[Path], method: str, weights: str | os.PathLike | None,
+                  lcnet: str | os.PathLike | None, encoding: str) -> None:
+    """--albedo needs lights: refuse, before any object runs, a method that resolves to ups-fcn."""
+    from psctl.api import resolve_method, ups_fcn_albedo_message
+    from psctl.io.capture import open_capture
+
+    for folder in folders:
+        cap = open_capture(folder, encoding)
+        if resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")[0] == "ups-fcn":
+            raise PsctlError(folder if weights is None else weights,
+                             ups_fcn_albedo_message(method, weights, cap.calibrated))
+
+
+def _check_out(out: str | os.PathLike, root: Path, files: tuple[str, ...], weights: str | os.PathLike | None,
+               lcnet: str | os.PathLike | None) -> None:
+    """Refuse, before any work, an --out that is the root, holds a capture, or would replace a
+    file the run reads with one of ``files`` (written into OUT itself)."""
+    from psctl.io.atomic import check_inputs_kept, check_output_dir
+    from psctl.io.capture import holds_capture
+
+    if Path(out).resolve() == root.resolve():
+        raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
+    if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
+        raise PsctlError(out, f"holds a capture (images, an image list, a mask or ground truth): psctl eval "
+                              f"writes {files[0]} there; choose another --out")
+    check_inputs_kept(out, files, (("--weights", weights), ("--lcnet", lcnet)))
+    check_output_dir(out)
 
 
 def method_label(result: dict) -> str:

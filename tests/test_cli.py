@@ -15,7 +15,7 @@ import pytest
 from psctl.io.images import read_image, write_image
 from psctl.io.normals import read_normal_map
 from psctl.metrics import angular_error
-from tests.conftest import write_capture
+from tests.conftest import weights_in, write_capture
 
 
 def psctl(*args: str, check: bool = False, env: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
@@ -1600,8 +1600,88 @@ def test_eval_takes_every_option_normals_takes():
         return {k: p.default for k, p in inspect.signature(f).parameters.items() if k not in own}
 
     assert options(run_normals, {"path", "arrays", "batch", "formats", "write"}) == \
-        options(run_benchmark, {"benchmark", "root"})
-    assert options(cli.normals, {"path", "fmt"}) == options(cli.evaluate, {"benchmark", "root"})
+        options(run_benchmark, {"benchmark", "root", "batch"})
+    # eval's -m also takes several methods (a comparison); None means auto, as normals' default
+    assert options(cli.normals, {"path", "fmt", "method"}) == options(cli.evaluate, {"benchmark", "root", "method"})
+    assert inspect.signature(cli.normals).parameters["method"].default == "auto"
+    assert inspect.signature(cli.evaluate).parameters["method"].default is None
+
+
+def _two_objects(root: Path) -> Path:
+    for name, seed in (("ballPNG", 1), ("catPNG", 2)):
+        write_capture(root / name, n=6, size=24, seed=seed)
+    return root
+
+
+def test_eval_compares_methods_in_one_table(tmp_path):
+    """-m given more than once (or a comma list): one table, each method's row as its own eval
+    gives it, then the paper's rows once each; with --out each method's folder as its own eval
+    --out writes it, compare.png their eval.png one above the other, and compare.json."""
+    from psctl.eval import run_benchmark
+
+    root = _two_objects(tmp_path / "root")
+    r = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "-m", "L2", "--json", check=True).stdout)
+    assert r["methods"] == ["l2", "ps-fcn"] and [run["method"] for run in r["runs"]] == ["l2", "ps-fcn"]
+    for run in r["runs"]:
+        alone = run_benchmark("diligent", root, method=run["method"])
+        assert [o["mae"] for o in run["objects"]] == pytest.approx([o["mae"] for o in alone["objects"]])
+        assert run["paper_method"] == run["method"]
+    table = psctl("eval", "--root", root, "-m", "l2", "-m", "ps-fcn", check=True).stdout
+    lines = table.splitlines()
+    order = [next(i for i, line in enumerate(lines) if label in line)
+             for label in ("l2 (psctl)", "ps-fcn (psctl)", "l2 (paper)", "ps-fcn (paper)")]
+    assert order == sorted(order)
+    for run in r["runs"]:
+        row = next(line for line in lines if f"{run['method']} (psctl)" in line)
+        assert all(f"{o['mae']:.2f}" in row for o in run["objects"]) and f"{run['mean_mae']:.2f}" in row
+    assert sum("(paper)" in line for line in lines) == 2
+
+    out = tmp_path / "out"
+    w = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
+    assert w["outputs"] == {f: str(out / f) for f in ("compare.png", "compare.json")}
+    assert json.loads((out / "compare.json").read_text()) == w
+    sheets = [read_image(out / m / "eval.png")[0] for m in ("l2", "ps-fcn")]
+    for m, run in zip(("l2", "ps-fcn"), w["runs"]):
+        assert json.loads((out / m / "eval.json").read_text()) == run
+        assert (out / m / "cat" / "normal.png").is_file()
+    both = read_image(out / "compare.png")[0]
+    assert both.shape == (sheets[0].shape[0] + 12 + sheets[1].shape[0], max(s.shape[1] for s in sheets), 3)
+    assert np.array_equal(both[:sheets[0].shape[0], :sheets[0].shape[1]], sheets[0])
+    assert np.array_equal(both[-sheets[1].shape[0]:, :sheets[1].shape[1]], sheets[1])
+
+
+def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
+    """A comparison that cannot finish stops before its first method runs (a typo, --weights, a
+    method without weights), and one that fails in a later method leaves no output at all."""
+    import psctl.eval as ev
+    from psctl.errors import PsctlError
+
+    root = _two_objects(tmp_path / "root")
+    out = tmp_path / "out"
+    calls = []
+    real = ev.run_benchmark
+    monkeypatch.setattr(ev, "run_benchmark", lambda *a, **k: calls.append(k["method"]) or real(*a, **k))
+    with pytest.raises(PsctlError, match="unknown method 'bogus'"):
+        ev.compare_methods("diligent", ["l2", "bogus"], root=root, out=out)
+    with pytest.raises(PsctlError, match="names one network's file"):
+        ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out, weights=tmp_path / "w.pt")
+    with weights_in(tmp_path / "empty"), pytest.raises(PsctlError, match="ps_fcn.pt"):
+        (tmp_path / "empty").mkdir()
+        ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out)
+    assert calls == [] and not out.exists()
+
+    def second_fails(*a, **k):
+        calls.append(k["method"])
+        if len(calls) == 2:
+            raise PsctlError(root / "catPNG", "made to fail")
+        return real(*a, **k)
+
+    monkeypatch.setattr(ev, "run_benchmark", second_fails)
+    with pytest.raises(PsctlError, match="made to fail"):
+        ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out)
+    assert calls == ["l2", "ps-fcn"] and not out.exists()  # l2's finished folder went with the failure
+    proc = psctl("eval", "--root", root, "-m", "l2,", "--out", out)  # an empty name: one line, exit 2
+    assert proc.returncode == 2 and "unknown method ''" in proc.stderr and not out.exists()
 
 
 def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path):

@@ -425,5 +425,8 @@ class OutputBatch:
         finally:
             for s in self.stagings:
                 s.discard(remove_created=not ok)
-            if not ok:
-                remove_empty(self.created)
+            if not ok:  # every folder a staging created, deepest first: a folder of several
+                # stagings (psctl eval -m A -m B: OUT/A holds each object's) goes once all are gone
+                created = {f for s in self.stagings for f in s.created} | set(self.created)
+                for folder in sorted(created, key=lambda f: len(f.parts), reverse=True):
+                    remove_empty([folder])

@@ -152,6 +152,7 @@ def _degree_labels(vmax: float) -> dict[float, str]:
     return {frac: f"{vmax * frac:.0f}°" if frac < 1 else f">{vmax:.0f}°" for frac in (0.0, 1 / 3, 2 / 3, 1.0)}
 
 
+BACKGROUND = 0.12  # dark grey behind the maps and text of the report pictures
 MIN_BAR = 64  # pixels: the shortest colour bar of an error or spread map
 UNSCORED = 0.5  # grey: a mask pixel without a value (no ground truth there), apart from jet's 0 (dark blue)
 
@@ -196,7 +197,7 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     widths = [w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
     if unscored:
         widths.append(2 * s + _key_unscored(None, 0, 0, s))
-    canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), 0.12, np.float32)
+    canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), BACKGROUND, np.float32)
     canvas[top:top + h, :w] = img
     colour_bar(canvas, top, w + 4 * s, bar, bar_w, _degree_labels(vmax), s)
     for i, bm in enumerate(lines):
@@ -318,7 +319,7 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     keyed = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
     H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if keyed else 0)
     W = max(W, 2 * gap + _key_unscored(None, 0, 0, s)) if keyed else W
-    canvas = np.full((H, W, 3), 0.12, np.float32)
+    canvas = np.full((H, W, 3), BACKGROUND, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
     y = gap + line
     for r, h, k_maps in zip(rows, heights, n_maps):
@@ -349,6 +350,19 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     if keyed:
         _key_unscored(canvas, y + gap, gap, s)
     return canvas
+
+
+def stack_sheets(sheets: list[np.ndarray], gap: int = 12) -> np.ndarray:
+    """Pictures ([H, W, 3] in [0, 1]: each method's eval.png) one above the other on eval.png's
+    background, ``gap`` pixels apart, each as wide as the widest (padded on the right).
+    -> [sum H + gaps, max W, 3] float32."""
+    width = max(s.shape[1] for s in sheets)
+    rows = []
+    for i, s in enumerate(sheets):
+        row = np.full((s.shape[0], width, 3), BACKGROUND, np.float32)
+        row[:, :s.shape[1]] = s[..., :3]
+        rows += [row] if i == 0 else [np.full((gap, width, 3), BACKGROUND, np.float32), row]
+    return np.concatenate(rows)
 
 
 def write_json(path: str | os.PathLike, obj: dict) -> None:

@@ -361,15 +361,12 @@ def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[st
     return t
 
 
-def render_benchmark(result: dict) -> None:
-    """The table of ``psctl eval``'s result, one row an object, with the paper's numbers where known."""
-    con = _console()
-    objs = result["objects"]
-    # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal
-    con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
-    # the rows as data: (label, one value per object, their average, style)
+def _benchmark_rows(result: dict) -> list[tuple[str, list[str], str, str]]:
+    """The rows of a ``psctl eval`` result as data: (label, one value per object, their average,
+    style); the paper's rows end in "(paper)"."""
     from psctl.eval import method_label
 
+    objs = result["objects"]
     # what ran, with the settings that change the numbers (views, downsampling, precision)
     rows = [(f"{method_label(result)} (psctl)", [_fmt(o["mae"]) for o in objs], _fmt(result["mean_mae"]), "")]
     paper = result.get("paper") or {}
@@ -400,31 +397,89 @@ def render_benchmark(result: dict) -> None:
                 vals = [paper_l.get(o["name"], {}).get(key) for o in objs]
                 avg = float(np.mean(vals)) if all(v is not None for v in vals) else None
                 rows.append((f"{label} (paper)", [fmt(v) for v in vals], fmt(avg), "dim"))
-    con.print(_benchmark_table(rows, [o["name"] for o in objs], con.width))
+    return rows
+
+
+def _object_notes(con, runs: list[dict]) -> None:
+    """Under the table, the objects' notes that change what it means, one line per note (not per
+    object): how the images were read where not as stored, ground truth that looks like another
+    axis convention, images used other than asked, pixels not scored (the other notes are in
+    --json and --out's reports). Of several runs' (a comparison), each note once."""
+    from psctl.io.capture import READ_NOTES
+
+    shown = (*READ_NOTES, "ground truth:", "images: --", "scoring:")
+    by_note: dict[str, list[str]] = {}
+    for run in runs:
+        for o in run["objects"]:
+            for n in o.get("notes", []):
+                if n.startswith("scoring:") and len(runs) > 1:  # the same pixels for every method
+                    n = n.split("; at 90 degrees")[0] + " (rows 'scored as the paper': at 90 degrees each)"
+                if n.startswith(shown) and o["name"] not in by_note.get(n, []):
+                    by_note.setdefault(n, []).append(o["name"])
+    n_objects = len(runs[0]["objects"])
+    for note, names in by_note.items():
+        who = "every object" if len(names) == n_objects > 1 else ", ".join(names)
+        con.print(escape(f"  {who}: {note}"), highlight=False)
+
+
+def _near_lights_line(con, distance: float | None) -> None:
+    if distance:  # not the paper's model: say so beside its rows
+        con.print(f"near lights: each image divided by the falloff of point lights {distance:g} "
+                  f"pixels from the object (--light-distance); the paper assumed distant lights", highlight=False)
+
+
+def _seconds(secs: float) -> str:
+    return f"{secs:.{2 if secs < 10 else 1}f} s"
+
+
+def render_benchmark(result: dict) -> None:
+    """The table of ``psctl eval``'s result, one row an object, with the paper's numbers where known."""
+    con = _console()
+    objs = result["objects"]
+    # the path on a line of its own: in a table title Rich wraps it mid-word at a narrow terminal
+    con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
+    con.print(_benchmark_table(_benchmark_rows(result), [o["name"] for o in objs], con.width))
     n = {o["n_images"] for o in objs}
-    secs = sum(o["seconds"] for o in objs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
-              f"{secs:.{2 if secs < 10 else 1}f} s", highlight=False)
+              f"{_seconds(sum(o['seconds'] for o in objs))}", highlight=False)
     if result.get("outputs"):  # --out
         spread = ", spread maps" if any("spread" in o for o in objs) else ""
         con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
                          f"and one folder per object"), highlight=False)
     for note in result.get("notes", []):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
-    if result.get("light_distance"):  # not the paper's model: say so beside its rows
-        con.print(f"near lights: each image divided by the falloff of point lights {result['light_distance']:g} "
-                  f"pixels from the object (--light-distance); the paper assumed distant lights", highlight=False)
-    # how the images were read, where not as stored, and ground truth that looks like another axis
-    # convention: both change what the table means (the other notes are in --json and --out's reports)
-    from psctl.io.capture import READ_NOTES
+    _near_lights_line(con, result.get("light_distance"))
+    _object_notes(con, [result])
 
-    # and the images used, where not what --images asked for
-    shown = (*READ_NOTES, "ground truth:", "images: --", "scoring:")
-    by_note: dict[str, list[str]] = {}
-    for o in objs:
-        for n in o.get("notes", []):
-            if n.startswith(shown):
-                by_note.setdefault(n, []).append(o["name"])
-    for note, names in by_note.items():  # one line per note, not one per object
-        who = "every object" if len(names) == len(objs) > 1 else ", ".join(names)
-        con.print(escape(f"  {who}: {note}"), highlight=False)
+
+def render_comparison(result: dict) -> None:
+    """The table of ``psctl eval -m A -m B ...`` (``psctl.eval.compare_methods``): each method's
+    rows in turn, then the paper's rows of those methods, each once."""
+    con = _console()
+    runs = result["runs"]
+    objs = runs[0]["objects"]
+    con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
+    ours, papers = [], {}
+    for run in runs:
+        for row in _benchmark_rows(run):
+            if row[0].endswith("(paper)"):
+                papers.setdefault(row[0], row)  # ensemble's stand-in may be ps-fcn-n's own row
+            else:
+                ours.append(row)
+    con.print(_benchmark_table(ours + list(papers.values()), [o["name"] for o in objs], con.width))
+    n = {o["n_images"] for run in runs for o in run["objects"]}
+    times = ", ".join(f"{run['method']} {_seconds(sum(o['seconds'] for o in run['objects']))}" for run in runs)
+    con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each; "
+              f"{times}", highlight=False)
+    if result.get("outputs"):
+        con.print(escape(f"wrote {result['outputs']['compare.png']} (each method's eval.png, one above the other), "
+                         f"compare.json and one folder per method"), highlight=False)
+    # a run's note once when every run has it (the root's), else under its method's name
+    run_notes = [run.get("notes", []) for run in runs]
+    common = [n for n in run_notes[0] if all(n in other for other in run_notes[1:])]
+    notes = [*result.get("notes", []), *common] + [f"{method}: {n}" for method, own in zip(result["methods"], run_notes)
+                                                    for n in own if n not in common]
+    for note in notes:
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    _near_lights_line(con, runs[0].get("light_distance"))
+    _object_notes(con, runs)
