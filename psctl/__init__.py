@@ -23,6 +23,7 @@ _LAZY = {
     "integrate_normals": "psctl.depth",
     "run_lights": "psctl.lights",
     "run_benchmark": "psctl.eval",
+    "compare_methods": "psctl.eval",
     "run_depth": "psctl.depth",
     "open_capture": "psctl.io.capture",
     "load_images": "psctl.io.capture",
@@ -37,7 +38,7 @@ if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ impo
     from psctl.api import estimate_lights, estimate_normals, run_normals
     from psctl.depth import integrate_normals, run_depth
     from psctl.errors import PsctlError, PsctlWarning
-    from psctl.eval import run_benchmark
+    from psctl.eval import compare_methods, run_benchmark
     from psctl.io.capture import load_images, load_mask, open_capture
     from psctl.lights import run_lights
     from psctl.metrics import angular_error
@@ -50,7 +51,7 @@ def _python_notes(result: Any) -> Any:
     if isinstance(result, dict):
         if isinstance(result.get("notes"), list):
             result["notes"] = [python_wording(n) if isinstance(n, str) else n for n in result["notes"]]
-        for obj in result.get("objects") or []:
+        for obj in [*(result.get("objects") or []), *(result.get("runs") or [])]:  # runs: compare_methods'
             _python_notes(obj)
     return result
 
@@ -89,5 +90,5 @@ def __dir__() -> list[str]:
 
 
 __all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
-           "run_lights", "run_benchmark", "run_depth", "open_capture", "load_images", "load_mask", "angular_error",
-           "PsctlError", "PsctlWarning"]
+           "run_lights", "run_benchmark", "compare_methods", "run_depth", "open_capture", "load_images", "load_mask",
+           "angular_error", "PsctlError", "PsctlWarning"]

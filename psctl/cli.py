@@ -120,7 +120,7 @@ LightsImages = Annotated[Optional[int], typer.Option("--images", "-n", help="Use
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
 OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt, or with --lcnet: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not; ups-fcn where only its weights are installed).")]
-WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights, see docs/models.md). With sdps: its second stage (PS-FCN†, or a PS-FCN or PS-FCN+N file).")]
+WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights: $PSCTL_WEIGHTS, else the checkout's weights/, else ~/.local/share/psctl/weights; docs/models.md). With sdps: its second stage (PS-FCN†, or a PS-FCN or PS-FCN+N file).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda | cuda:N: where the networks run (l2 uses none).")]
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
@@ -199,7 +199,8 @@ def _is_torch_oom(e: RuntimeError) -> bool:
     CUDA: torch.OutOfMemoryError, "CUDA out of memory")."""
     import torch
 
-    return isinstance(e, torch.OutOfMemoryError) or "can't allocate memory" in str(e) or "out of memory" in str(e)
+    oom = getattr(torch, "OutOfMemoryError", None) or torch.cuda.OutOfMemoryError  # torch.OutOfMemoryError: 2.5+
+    return isinstance(e, oom) or "can't allocate memory" in str(e) or "out of memory" in str(e)
 
 
 def _out_of_memory(detail: str) -> str:
@@ -282,8 +283,8 @@ def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], N
             _print_json(report)
         else:
             render(report)
-    except OSError as e:  # stdout to a full disk (`> /dev/full`): the outputs are written; say what failed
-        if e.filename is not None or e.errno not in _NO_ROOM:
+    except OSError as e:  # stdout to a full disk (`> /dev/full`) or closed (`>&-`): the outputs are written
+        if e.filename is not None or e.errno not in (*_NO_ROOM, errno.EBADF):
             raise
         outs = (report.get("outputs") or report.get("out")) if isinstance(report, dict) else None  # synth: "out"
         with contextlib.suppress(OSError):
@@ -293,6 +294,8 @@ def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], N
 
 
 def _print_json(obj: dict) -> None:
+    if sys.stdout is None:  # started with stdout closed (`>&-`): Python then has no sys.stdout
+        raise OSError(errno.EBADF, "standard output is closed")
     sys.stdout.write(json.dumps(obj, indent=2) + "\n")
 
 

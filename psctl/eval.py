@@ -6,15 +6,13 @@ import contextlib
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
 from psctl.errors import PsctlError, check_bool, check_path, check_progress
-
-if TYPE_CHECKING:
-    from psctl.io.atomic import OutputBatch
+from psctl.io.atomic import OutputBatch
 
 # Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
 # objects of the DiLiGenT development split (L2: DiLiGenT's own baseline, to two decimals; the
@@ -70,7 +68,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                   encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
-                  precision: str = "float32", albedo: bool = False, batch: "OutputBatch | None" = None) -> dict:
+                  precision: str = "float32", albedo: bool = False, batch: OutputBatch | None = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
@@ -96,7 +94,6 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     ``batch`` (with ``out``): stage the files into this ``OutputBatch``, which its owner commits
     (``compare_methods``: several runs' files appear together), instead of one of its own.
     """
-    from psctl.io.atomic import OutputBatch
     from psctl.io.capture import root_notes
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
@@ -197,7 +194,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     """
     from psctl.api import METHODS, NETWORKS, resolve_method
     from psctl.models.weights import installed_path, no_weights_error
-    from psctl.io.atomic import OutputBatch, outputs_list, replaced_notes, write_outputs_list
+    from psctl.io.atomic import outputs_list, replaced_notes, write_outputs_list
     from psctl.io.capture import open_capture
 
     if isinstance(methods, str) or not isinstance(methods, Sequence) or not methods:
@@ -264,6 +261,7 @@ def _benchmark_objects(benchmark: str, root: str | os.PathLike | None,
     benchmark = benchmark.lower()
     if benchmark not in BENCHMARKS:
         raise PsctlError(None, f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
+    check_path("root", root, optional=True)
     if root is None:
         if benchmark != "diligent":
             raise PsctlError(None, f"--benchmark {benchmark} needs --root DIR")

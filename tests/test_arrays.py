@@ -75,6 +75,10 @@ def test_options_are_checked_for_l2_too(data):
     ("run_lights(FOLDER, weights=3.0)", "weights must be a path"),
     ("run_benchmark('diligent', root=5)", "root must be a path"),
     ("run_benchmark(5)", "benchmark must be one of"),
+    ("compare_methods('diligent', ['l2', 'ps-fcn'], root=5)", "root must be a path"),
+    ("compare_methods('diligent', 'l2')", "methods must be a list"),
+    ("compare_methods('diligent', ['l2', 3])", "unknown method 3"),
+    ("compare_methods('diligent', ['l2', 'ps-fcn'], out=5)", "out must be a path"),
     ("run_depth(FOLDER, normals=3)", "normals must be a path"),
     ("open_capture(7)", "path must be a path"),
     ("load_network('ps-fcn', 5)", "weights must be a path"),
@@ -85,13 +89,14 @@ def test_path_arguments_of_the_wrong_kind_are_one_error(data, tmp_path, call, ne
     """Python's own TypeError ('expected str, bytes or os.PathLike object') named no argument."""
     from psctl.api import run_normals
     from psctl.depth import run_depth
-    from psctl.eval import run_benchmark
+    from psctl.eval import compare_methods, run_benchmark
     from psctl.io.capture import open_capture
     from psctl.lights import run_lights
     from psctl.models.weights import load_network
 
     images, lights, mask, _ = data
     scope = {"run_normals": run_normals, "run_depth": run_depth, "run_benchmark": run_benchmark,
+             "compare_methods": compare_methods,
              "open_capture": open_capture, "run_lights": run_lights, "load_network": load_network,
              "estimate_lights": estimate_lights, "estimate_normals": estimate_normals,
              "FOLDER": str(tmp_path), "IMAGES": images, "LIGHTS": lights}

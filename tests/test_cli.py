@@ -90,6 +90,39 @@ def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
     (tmp_path / "a-file").write_text("")  # $PSCTL_WEIGHTS naming a file: said so, not "does not exist"
     proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o3", env={"PSCTL_WEIGHTS": str(tmp_path / "a-file")})
     assert proc.returncode == 2 and "which is a file, not a folder" in proc.stderr, proc.stderr
+    # psctl eval's table says it too (the note was only in --json)
+    write_capture(tmp_path / "root" / "aPNG", n=6, size=24)
+    table = psctl("eval", "-b", "folder", "--root", tmp_path / "root", check=True).stdout
+    assert "auto: no trained network weights are installed" in " ".join(table.split())
+
+
+def test_an_installed_wheel_keeps_its_weights_in_the_user_data_folder(capture, tmp_path, monkeypatch):
+    """Run from a checkout, psctl reads weights/ beside its package; installed from a wheel (no
+    pyproject.toml above the package) it reads ~/.local/share/psctl/weights, not a folder named
+    weights in site-packages, and its messages say where the release weights are."""
+    import psctl.paths
+    from psctl.api import run_normals
+    from psctl.errors import PsctlError
+    from psctl.models.weights import weights_dir
+    from psctl.synth.meshes import mesh_dir
+
+    repo = Path(__file__).resolve().parents[1]
+    assert psctl.paths.checkout_root() == repo and weights_dir() == repo / "weights"
+    monkeypatch.setattr(psctl.paths, "checkout_root", lambda: None)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    assert weights_dir() == tmp_path / "data" / "psctl" / "weights"
+    assert mesh_dir() == tmp_path / "data" / "psctl" / "meshes"
+    r = run_normals(capture, write=False)
+    assert r["method"] == "l2" and any("copy the .pt files into" in n for n in r["notes"])
+    with pytest.raises(PsctlError, match="release weights are in the weights/ folder of its source checkout"):
+        run_normals(capture, method="ps-fcn", write=False)
+    weights_dir().mkdir(parents=True)
+    shutil.copy(repo / "weights" / "ps_fcn.pt", weights_dir())
+    assert run_normals(capture, write=False)["method"] == "ps-fcn"
+    with weights_in(tmp_path / "mine"):  # $PSCTL_WEIGHTS still comes first, and then no hint
+        with pytest.raises(PsctlError) as e:
+            run_normals(capture, method="ps-fcn", write=False)
+        assert "copy the .pt files" not in str(e.value)
 
 
 def test_a_listed_image_that_is_not_a_file(capture, tmp_path):
@@ -1461,6 +1494,12 @@ def test_fuzzed_failures_are_one_line(capture, tmp_path, capsys, monkeypatch):
                                "-o", str(tmp_path / "o")], stdout=full, stderr=subprocess.PIPE, text=True)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
     assert "cannot write the report to standard output" in proc.stderr and "files were written" in proc.stderr
+    # stdout closed (`--json >&-`): Python has no sys.stdout then; one line, not an AttributeError
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(capture), "-m", "l2", "--json",
+                           "-o", str(tmp_path / "o2")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                          preexec_fn=lambda: os.close(1))
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "standard output is closed" in proc.stderr and (tmp_path / "o2" / "normal.png").is_file()
     real_write = Path.write_bytes
 
     def full_disk(self, data):  # the disk fills as Normal_gt.mat is written (in memory first since session 50)

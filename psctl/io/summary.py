@@ -403,11 +403,12 @@ def _benchmark_rows(result: dict) -> list[tuple[str, list[str], str, str]]:
 def _object_notes(con, runs: list[dict]) -> None:
     """Under the table, the objects' notes that change what it means, one line per note (not per
     object): how the images were read where not as stored, ground truth that looks like another
-    axis convention, images used other than asked, pixels not scored (the other notes are in
+    axis convention, images used other than asked, pixels not scored, what --method auto chose
+    where it says why (no weights installed: l2) (the other notes are in
     --json and --out's reports). Of several runs' (a comparison), each note once."""
     from psctl.io.capture import READ_NOTES
 
-    shown = (*READ_NOTES, "ground truth:", "images: --", "scoring:")
+    shown = (*READ_NOTES, "ground truth:", "images: --", "scoring:", "auto:")  # auto: what ran, where not asked
     by_note: dict[str, list[str]] = {}
     for run in runs:
         for o in run["objects"]:

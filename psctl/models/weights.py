@@ -76,11 +76,27 @@ class Weights:
 # --- where ------------------------------------------------------------------------------------
 
 def weights_dir() -> Path:
-    """$PSCTL_WEIGHTS if set, else weights/ at the repository root (next to the psctl package)."""
+    """$PSCTL_WEIGHTS if set, else weights/ of the source checkout psctl runs from (next to the
+    psctl package), else (an installed wheel) weights/ in the user's data folder,
+    ~/.local/share/psctl/weights (``psctl.paths``)."""
+    from psctl.paths import checkout_root, user_data_dir
+
     env = os.environ.get(ENV_VAR)
     if env:
         return Path(env).expanduser()
-    return Path(__file__).resolve().parents[2] / "weights"
+    root = checkout_root()
+    return root / "weights" if root is not None else user_data_dir() / "weights"
+
+
+def install_hint() -> str:
+    """For a weights-not-found message of an installed wheel (``pip install .`` copies the package,
+    not the release weights beside it): where to put them. Empty in a checkout or with $PSCTL_WEIGHTS."""
+    from psctl.paths import checkout_root
+
+    if os.environ.get(ENV_VAR) or checkout_root() is not None:
+        return ""
+    return (f"; psctl's release weights are in the weights/ folder of its source checkout: copy the .pt files "
+            f"into {weights_dir()}, or set ${ENV_VAR} to that folder")
 
 
 def weights_where() -> str:
@@ -88,7 +104,7 @@ def weights_where() -> str:
     (a mistyped variable would otherwise look like weights that were never installed)."""
     d = weights_dir()
     if not os.environ.get(ENV_VAR):
-        return str(d)
+        return f"{d}{install_hint()}"
     return f"{d} (${ENV_VAR}" + ("" if d.is_dir() else _not_a_folder(d)) + ")"
 
 
@@ -134,7 +150,7 @@ _TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
 
 def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
     """The error for ``method`` with nothing installed: where it looked, and how to train or pass a file."""
-    where = f"{weights_dir() / file_name(method)}{missing_folder_note()}"
+    where = f"{weights_dir() / file_name(method)}{missing_folder_note()}{install_hint()}"
     if method in _TRAIN_HINTS:
         recipe, official = _TRAIN_HINTS[method]
         return PsctlError(

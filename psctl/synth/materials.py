@@ -89,7 +89,10 @@ def find_merl_file() -> Path:
     if os.environ.get("PSCTL_DATA"):
         candidates.append(Path(os.environ["PSCTL_DATA"]) / "merl" / MERL_FILE)
     candidates.append(PACKAGED_MERL)
-    candidates.append(Path(__file__).resolve().parents[3] / "shared" / "data" / "merl" / MERL_FILE)
+    from psctl.paths import checkout_root
+
+    if checkout_root() is not None:  # psctl's development data sits beside its checkout
+        candidates.append(checkout_root().parent / "shared" / "data" / "merl" / MERL_FILE)
     for c in candidates:
         if c.is_file():
             return c

@@ -35,12 +35,16 @@ TEST_SHAPES = ("sphere", "bunny", "dragon", "armadillo")
 
 def mesh_dir() -> Path:
     """Folder of the OBJ meshes: $PSCTL_MESHES, $PSCTL_DATA/meshes, else ../shared/data/meshes
-    next to the repository. It may not exist (the caller decides whether that is an error)."""
+    next to the source checkout psctl runs from, or (an installed wheel) ~/.local/share/psctl/meshes.
+    It may not exist (the caller decides whether that is an error)."""
     if os.environ.get("PSCTL_MESHES"):
         return Path(os.environ["PSCTL_MESHES"])
     if os.environ.get("PSCTL_DATA"):
         return Path(os.environ["PSCTL_DATA"]) / "meshes"
-    return Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
+    from psctl.paths import checkout_root, user_data_dir
+
+    root = checkout_root()  # psctl's development data sits beside its checkout
+    return root.parent / "shared" / "data" / "meshes" if root is not None else user_data_dir() / "meshes"
 
 
 def find_mesh(name: str, folder: str | os.PathLike | None = None) -> Path:
