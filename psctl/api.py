@@ -12,6 +12,7 @@ import os
 import time
 import sys
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -637,9 +638,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
 def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str], want_albedo: bool, write: bool,
                      out_dir: "Path", weights: str | os.PathLike | None,
-                     lcnet: str | os.PathLike | None) -> tuple[list[str], list[str], list[str], list[str]]:
+                     lcnet: str | os.PathLike | None) -> tuple[list[str], list[str], Callable[[], list[str]], list[str]]:
     """The files a psctl normals run writes into ``out_dir``: (names, light_files: sdps' among
-    them, stale: an earlier run's files there that this one removes, notes). With ``write``,
+    them, stale: () -> an earlier run's files there that this one removes, notes). With ``write``,
     ``out_dir`` is checked here, before any work: no capture's inputs, no file the run reads,
     no folder in the way of an output."""
     from psctl.io.atomic import check_inputs_kept, check_output_dir
@@ -662,20 +663,24 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
     # every file psctl normals may write
     all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(),
                  "report.json")
-    stale: list[str] = []
+    given = {os.path.realpath(p) for p in (weights, lcnet, *cap.input_paths) if p is not None}
+
+    def stale(listed: list[str] | None = None) -> list[str]:
+        # psctl's own files from an earlier run there (its list says which) that this run does not
+        # write; never the files this run reads (an image listed by its path in an output folder).
+        # Asked again at the commit, under the folder's lock: a run that wrote there meanwhile
+        # has its own list by then (two runs into one folder at once, an interruption audit)
+        listed = read_outputs_list(out_dir, "normals") if listed is None else listed
+        return sorted(n for n in listed if n in all_names and n not in names and (out_dir / n).is_file()
+                      and os.path.realpath(out_dir / n) not in given)
+
     if write:
         check_not_capture(out_dir, cap, names)  # normal.png there would be read as ground truth next time
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
-        # psctl's own files from an earlier run there (its list says which), that this run does not write
-        # never removed: the files this run reads (an image listed by its path in an output folder)
-        given = {os.path.realpath(p) for p in (weights, lcnet, *cap.input_paths) if p is not None}
-        listed = read_outputs_list(out_dir, "normals")  # read once: for the clean-up and for the note below
-        stale = sorted(n for n in listed
-                       if n in all_names and n not in names and (out_dir / n).is_file()
-                       and os.path.realpath(out_dir / n) not in given)
-        if stale:
-            notes.append(f"outputs: removed {', '.join(stale)}, left in {out_dir} by an earlier psctl run "
+        listed = read_outputs_list(out_dir, "normals")  # read once here: for the note on removals and the one below
+        if stale(listed):
+            notes.append(f"outputs: removed {', '.join(stale(listed))}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")
         for n in names:  # a folder in the way would fail the run only after its work
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):

@@ -707,6 +707,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     # --- normals and mask ----------------------------------------------------------------------
     mask = _capture_mask(cap)
     got: dict = {}  # the arrays of psctl normals' run here, when the normals are estimated
+    inputs: list = []  # (file, input_stamp): read here, to be unchanged when the outputs are written
     if normals is None:
         for name in NORMAL_FILES:
             if (cap.path / "psctl" / name).is_file():
@@ -715,7 +716,12 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     if normals is not None:
         from psctl.io.normals import read_normal_map
 
+        from psctl.io.atomic import input_stamp
+
         source = Path(normals)
+        # checked again as the outputs are moved into place: a psctl normals into this folder
+        # meanwhile would leave this run's depth beside other normals
+        inputs = [(source, input_stamp(source))]
         nmap = read_normal_map(source)
         if nmap.shape[:2] != (cap.height, cap.width):
             raise PsctlError(source, f"normal map is {nmap.shape[1]}x{nmap.shape[0]} but the capture's images "
@@ -828,7 +834,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "notes": notes,
     }
     if write:
-        _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply, t0)
+        _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply, t0, inputs)
     return report
 
 
@@ -931,14 +937,14 @@ def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
-                   report: dict, binary_ply: bool, t0: float) -> None:
+                   report: dict, binary_ply: bool, t0: float, inputs: list) -> None:
     from psctl.io.atomic import staged_outputs, write_outputs_list
     from psctl.io.images import write_image
     from psctl.io.mesh import write_ply
     from psctl.io.report import write_json
 
     report["outputs"] = {name.replace(".", "_"): os.path.abspath(out_dir / name) for name in OUTPUTS}
-    with staged_outputs(out_dir) as stage:
+    with staged_outputs(out_dir, inputs=inputs) as stage:
         write_outputs_list(stage, OUTPUTS, "depth")
         write_image(stage / "depth.exr", depth.astype(np.float32), "float", kind="data")
         write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")

@@ -10,7 +10,7 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from psctl.errors import PsctlError
@@ -193,6 +193,38 @@ def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: 
                                                 f"output {n}; choose another --out or move the file")
 
 
+def input_stamp(path: str | os.PathLike) -> tuple:
+    """What tells a file apart from one written over it or put in its place: (device, inode,
+    size, modification time in ns); None when it is gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive advisory lock (flock) on ``folder`` for the block: psctl runs committing into
+    the same folder take turns. Where the folder cannot be locked (no fcntl, a file system
+    without flock) the block runs as it is."""
+    try:
+        import fcntl
+
+        fd = os.open(folder, os.O_RDONLY)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:
+            pass
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
 def missing_folders(path: Path) -> list[Path]:
     """``path`` and those of its parents that do not exist yet, deepest first: what creating
     ``path`` creates, and what ``remove_empty`` takes away again after a failed run."""
@@ -218,30 +250,42 @@ class Staging:
 
     ``replaces``: names of files an earlier run left in ``out_dir`` that this run supersedes
     (the caller knows they are psctl's own: ``psctl normals`` keeps a list, OUTPUTS_LIST); those
-    this run does not write are removed when it commits. ``commit`` is all or nothing: a file
-    whose place is taken by a folder stops it before anything moves, and a failure while moving
-    (an OSError, Ctrl-C) puts every file back. Should putting back fail too, the earlier files are
-    left in the staging folder, and the error names it: they are never deleted.
+    this run does not write are removed when it commits. A callable is asked at the commit, under
+    the folder's lock: a run that committed into the folder meanwhile (two psctl runs into one
+    folder at once) has its list read then, not at the start. ``inputs``: files the run read,
+    each with ``input_stamp`` taken when it was read; the commit stops, nothing moved, when one
+    has changed since (``psctl depth`` beside a ``psctl normals`` into the same folder).
+    ``commit`` is all or nothing: a file whose place is taken by a folder stops it before anything
+    moves, and a failure while moving (an OSError, Ctrl-C) puts every file back. Should putting
+    back fail too, the earlier files are left in the staging folder, and the error names it: they
+    are never deleted.
     """
 
-    def __init__(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> None:
+    def __init__(self, out_dir: str | os.PathLike, replaces: Iterable[str] | Callable[[], Iterable[str]] = (),
+                 inputs: Iterable[tuple[Path, tuple]] = ()) -> None:
         self.out_dir = Path(out_dir)
         self.created = missing_folders(self.out_dir)  # removed again (when empty) if the run fails
         ensure_writable_dir(self.out_dir)
         self.path = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=self.out_dir))
-        self.replaces = tuple(replaces)
+        self.replaces = replaces if callable(replaces) else tuple(replaces)
+        self.inputs = tuple(inputs)
         self._moved: list[str] = []  # earlier files set aside by commit (in path / ".replaced")
         self._placed: list[str] = []  # this run's files moved into out_dir by commit
         self.keep = False  # rollback could not restore everything: discard must not delete
 
     def _names(self) -> tuple[list[str], list[str]]:
         new = sorted(f.name for f in self.path.iterdir() if f.name != ".replaced")
-        stale = [n for n in self.replaces if n not in new and (self.out_dir / n).is_file()]
+        replaces = self.replaces() if callable(self.replaces) else self.replaces
+        stale = [n for n in replaces if n not in new and (self.out_dir / n).is_file()]
         return new, stale
 
     def check(self) -> None:
         """Raise (naming the file) when a file cannot take its place: a folder or other non-file
-        stands there."""
+        stands there; or when an input has changed since the run read it."""
+        for path, stamp in self.inputs:
+            if input_stamp(path) != stamp:
+                raise PsctlError(path, "changed while this run read it (another psctl run writing there?); "
+                                       "nothing was written: run again")
         for name in self._names()[0]:
             target = self.out_dir / name
             if os.path.lexists(target) and not (target.is_file() or target.is_symlink()):
@@ -249,6 +293,10 @@ class Staging:
                                          "or choose another --out")
 
     def commit(self) -> None:
+        with folder_lock(self.out_dir):  # one commit at a time into a folder: each sees the other's list
+            self._commit()
+
+    def _commit(self) -> None:
         self.check()
         new, stale = self._names()
         old = self.path / ".replaced"
@@ -340,12 +388,13 @@ def signals_deferred() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Iterator[Path]:
+def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callable[[], Iterable[str]] = (),
+                   inputs: Iterable[tuple[Path, tuple]] = ()) -> Iterator[Path]:
     """Yield a hidden staging folder inside ``out_dir``; when the block succeeds, move every file
     written there into ``out_dir`` (``Staging``). On error nothing appears in ``out_dir`` (and
     ``out_dir`` itself is removed again if this call created it): a run gives all of its files or
     none."""
-    stage = Staging(out_dir, replaces)
+    stage = Staging(out_dir, replaces, inputs)
     try:
         yield stage.path
     except BaseException as e:
@@ -385,7 +434,7 @@ class OutputBatch:
         self.created = missing_folders(self.root)
         self.stagings: list[Staging] = []
 
-    def stage(self, out_dir: str | os.PathLike, replaces: Iterable[str] = ()) -> Staging:
+    def stage(self, out_dir: str | os.PathLike, replaces: Iterable[str] | Callable[[], Iterable[str]] = ()) -> Staging:
         self.stagings.append(Staging(out_dir, replaces))
         return self.stagings[-1]
 
