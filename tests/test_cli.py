@@ -1018,6 +1018,32 @@ def test_two_runs_into_one_folder_at_once_leave_one_runs_outputs(capture, tmp_pa
     assert not any(n.startswith(("depth", "mesh", "shading", ".psctl-depth", ".psctl-staging")) for n in os.listdir(out))
 
 
+def test_a_killed_runs_working_folder_goes_with_the_next_run(capture, tmp_path):
+    """kill -9 leaves a hidden staging folder; the next run into the folder removes it when its
+    process is gone, unless it holds earlier outputs set aside by a commit; folders of running
+    processes, of other machines and of older psctl versions stay."""
+    from psctl.api import run_normals
+    from psctl.io.atomic import _owner
+
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                              text=True).stdout)
+    host = _owner().split("-")[0]
+    out = tmp_path / "out"
+    left = out / f".psctl-staging.{host}-{dead}-a1"
+    left.mkdir(parents=True)
+    (left / "normal.png").write_text("half written")
+    aside = out / f".psctl-staging.{host}-{dead}-b2" / ".replaced"
+    aside.mkdir(parents=True)
+    (aside / "normal.png").write_text("an earlier run's")
+    stay = [out / f".psctl-staging.{host}-{os.getpid()}-c3", out / f".psctl-staging.elsewhere-{dead}-d4",
+            out / ".psctl-staging.e5"]
+    for f in stay:
+        f.mkdir()
+    run_normals(capture, method="l2", out=out)
+    assert not left.exists() and (aside / "normal.png").read_text() == "an earlier run's"
+    assert all(f.is_dir() for f in stay) and (out / "normal.png").is_file()
+
+
 def test_the_output_folder_is_locked_while_files_move_in(tmp_path):
     """folder_lock takes an flock another process sees: two commits into a folder take turns."""
     from psctl.io.atomic import folder_lock

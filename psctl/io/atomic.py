@@ -193,6 +193,47 @@ def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: 
                                                 f"output {n}; choose another --out or move the file")
 
 
+def _owner() -> str:
+    """"host-pid-": whose hidden working folder it is, in its name (``working_folder``)."""
+    import re
+    import socket
+
+    host = re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:32] or "host"
+    return f"{host}-{os.getpid()}-"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # no signal sent: only whether the process exists
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, someone else's
+        return True
+    return True
+
+
+def working_folder(folder: Path, prefix: str) -> Path:
+    """A new hidden folder in ``folder`` (``prefix`` + host-pid-random) for a run's files until
+    they move into place, after removing those that runs killed on this machine left there
+    (``kill -9``, an out-of-memory kill: nothing of theirs ran to clean up; an interruption
+    audit found them piling up). A folder is removed only when its process is gone and it holds
+    no earlier outputs set aside by a commit (``.replaced``, synth's ``.earlier``): those are never
+    deleted. Folders of other machines (a shared disk) and older names are left alone."""
+    import re
+
+    mine = re.compile(re.escape(prefix + _owner().split("-")[0]) + r"-(\d+)-")
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder):
+            m = mine.match(entry.name)
+            if not m or not entry.is_dir(follow_symlinks=False) or _running(int(m.group(1))):
+                continue
+            aside = [Path(entry.path) / n for n in (".replaced", ".earlier")]
+            if any(a.is_dir() and any(a.iterdir()) for a in aside):
+                continue
+            shutil.rmtree(entry.path, ignore_errors=True)
+    return Path(tempfile.mkdtemp(prefix=prefix + _owner(), dir=folder))
+
+
 def input_stamp(path: str | os.PathLike) -> tuple:
     """What tells a file apart from one written over it or put in its place: (device, inode,
     size, modification time in ns); None when it is gone."""
@@ -266,7 +307,7 @@ class Staging:
         self.out_dir = Path(out_dir)
         self.created = missing_folders(self.out_dir)  # removed again (when empty) if the run fails
         ensure_writable_dir(self.out_dir)
-        self.path = Path(tempfile.mkdtemp(prefix=".psctl-staging.", dir=self.out_dir))
+        self.path = working_folder(self.out_dir, ".psctl-staging.")
         self.replaces = replaces if callable(replaces) else tuple(replaces)
         self.inputs = tuple(inputs)
         self._moved: list[str] = []  # earlier files set aside by commit (in path / ".replaced")

@@ -25,7 +25,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -389,7 +388,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
         earlier psctl synth run left in ``out`` and this one replaced).
     """
-    from psctl.io.atomic import check_output_dir, current_umask, ensure_writable_dir, missing_folders, remove_empty
+    from psctl.io.atomic import (check_output_dir, current_umask, ensure_writable_dir, missing_folders, remove_empty,
+                                 working_folder)
 
     t0 = time.perf_counter()
     preset, light_dist, intensities = _lower(preset, light_dist, intensities)
@@ -421,7 +421,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     # The whole set is written into one hidden folder and moved into place at the end: an
     # interrupted run leaves the earlier set as it was (a hidden folder at worst: a kill -9),
     # never some new objects beside old ones or a set that looks complete and is not.
-    stage = Path(tempfile.mkdtemp(prefix=".psctl-synth.", dir=out))
+    stage = working_folder(out, ".psctl-synth.")
     try:
         for i, obj in enumerate(objs):
             key = id(obj.view)
