@@ -1009,7 +1009,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         raise PsctlError(run, f"is a file; {'--resume' if resume else '--out'} takes a run folder")
     state_file = run / "state.json"
     if resume and not state_file.is_file():
-        raise PsctlError(state_file, "no checkpoint to resume (state.json missing)")
+        began = (run / "log.jsonl").is_file()  # a run of ours, stopped (kill -9?) before its first checkpoint
+        raise PsctlError(state_file, "no checkpoint to resume (state.json missing)" + (
+            ": the run stopped before its first checkpoint (train.checkpoint_minutes apart); start it again in a "
+            "new folder, or remove this one" if began else ""))
     if not resume and state_file.is_file():
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
     # a run writes log.jsonl, optim.*.pt, ... there; a folder with only a log.jsonl is a run of

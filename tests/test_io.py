@@ -1712,3 +1712,24 @@ def test_a_failed_image_write_on_a_full_disk_says_so(tmp_path, monkeypatch):
     with pytest.raises(PsctlError, match=r"n.exr: cannot write image \(File output failed\)$"):  # room enough: no guess
         write_image(tmp_path / "n.exr", np.zeros((64, 64, 3), np.float32), "float")
     assert not list(tmp_path.iterdir())  # nothing left behind
+
+
+def test_an_interrupted_image_write_leaves_no_second_line(tmp_path):
+    """Ctrl-C while a PNG is being written: the command line prints one line ('interrupted'),
+    not also libpng's 'No IDATs written into file' from the writer closed half-way (an
+    interruption audit); and nothing is left under the name. In a process of its own: libpng
+    writes to file descriptor 2, which pytest's capture does not stand for."""
+    import subprocess
+    import sys
+
+    script = (
+        "import gc, numpy as np, psctl.io.images as images\n"
+        "from psctl.errors import C_STDERR\n"
+        "C_STDERR['silence'] = True  # as under the command line\n"
+        "def interrupted(a):\n    raise KeyboardInterrupt\n"
+        "images.np.ascontiguousarray = interrupted\n"
+        "try:\n    images.write_image(%r, np.zeros((8, 8, 3), np.float32), 'uint16')\n"
+        "except KeyboardInterrupt:\n    print('interrupted')\n"
+        "gc.collect()\n" % str(tmp_path / "a.png"))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert proc.stdout == "interrupted\n" and proc.stderr == "" and os.listdir(tmp_path) == [], proc.stderr

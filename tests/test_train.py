@@ -504,6 +504,8 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     stopped = tmp_path / "stopped"  # only the log of a run that never checkpointed: started again
     stopped.mkdir()
     (stopped / "log.jsonl").write_text('{"step": 1}\n')
+    with pytest.raises(PsctlError, match="stopped before its first checkpoint"):  # --resume: what to do instead
+        train("ps-fcn", tiny(8), stopped, resume=True, device="cpu")
     assert train("ps-fcn", tiny(8), stopped, device="cpu")["samples"] == 8
     run = tmp_path / "run"
     train("ps-fcn", tiny(8), run, device="cpu")

@@ -200,9 +200,15 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise PsctlError(path, f"cannot write image ({_clean(oiio.geterror())})")
-        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
-        err = out.geterror()
-        ok = out.close() and ok
+        try:
+            ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
+            err = out.geterror()
+            ok = out.close() and ok
+        except BaseException:  # Ctrl-C mid-write: the writer, closed half-way, complains on fd 2
+            with _quiet_stderr():  # (libpng: "No IDATs written into file") beside the one line
+                out.close()
+                del out
+            raise
         # the first of the writer's messages (a PNG's repeats per block), named by the output
         err = _clean((err or out.geterror()).replace(str(tmp), str(path))).split("; ")[0]
         if not ok or err.startswith("Write error"):  # libpng's: a file that lost only its end reads back
