@@ -373,13 +373,19 @@ def evaluate(
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
     albedo: Annotated[bool, _flag("--albedo", help="With --out: each object's albedo maps too, as psctl normals --albedo writes them.")] = False,
+    markdown: Annotated[bool, _flag("--markdown", help="Print the table as Markdown on stdout (for a README or a paper's draft); notes go to stderr.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
     """Run a method over every object of a benchmark and print the paper-style error table."""
     with _user_errors():
         from psctl.eval import compare_methods, run_benchmark
-        from psctl.io.summary import render_benchmark, render_comparison
+        from psctl.io.summary import render_benchmark, render_benchmark_markdown, render_comparison
+
+        if markdown and json_out:
+            from psctl.errors import PsctlError
+
+            raise PsctlError(None, "--markdown and --json each print the result on stdout; choose one")
 
         # -m a -m b and -m a,b alike; a name given twice runs once
         methods = list(dict.fromkeys(m.strip().lower() for given in (method or ["auto"]) for m in given.split(",")))
@@ -388,10 +394,10 @@ def evaluate(
                        downsample=downsample, precision=precision, albedo=albedo)
         if len(methods) == 1:
             _run(lambda progress: run_benchmark(benchmark, root=root, method=methods[0], progress=progress, **options),
-                 json_out, quiet, render_benchmark)
+                 json_out, quiet, render_benchmark_markdown if markdown else render_benchmark)
         else:
             _run(lambda progress: compare_methods(benchmark, methods, root=root, progress=progress, **options),
-                 json_out, quiet, render_comparison)
+                 json_out, quiet, render_benchmark_markdown if markdown else render_comparison)
 
 
 @app.command(cls=_Command)

@@ -393,6 +393,11 @@ def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):
     assert f"{cat['mae_missing_as_90']:.2f}" in row and f"{r['mean_mae_missing_as_90']:.2f}" in row
     assert "l2 (paper)" in table and " 4.10 " in table  # DiLiGenT's ball, as published
     assert "cat: scoring:" in " ".join(table.split())  # the note under the table names the object
+    md = psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--markdown", check=True)
+    assert md.stdout.splitlines()[:2] == ["| method | ball | cat | avg |", "| --- | ---: | ---: | ---: |"]
+    assert f"| l2, scored as the paper | {ball['mae']:.2f} | {cat['mae_missing_as_90']:.2f} | " \
+           f"{r['mean_mae_missing_as_90']:.2f} |" in md.stdout.splitlines()
+    assert "| l2 (paper) | 4.10 | 8.41 |" in md.stdout and "cat: scoring:" in " ".join(md.stderr.split())
     # a terminal too narrow for the paper's layout turns the table, the extra row a column of its own
     narrow = cli("eval", "--root", tmp_path / "root", "-m", "l2", env={"COLUMNS": "40"})
     assert narrow.returncode == 0, narrow.stderr
@@ -1724,7 +1729,8 @@ def test_eval_takes_every_option_normals_takes():
     assert options(run_normals, {"path", "arrays", "batch", "formats", "write"}) == \
         options(run_benchmark, {"benchmark", "root", "batch"})
     # eval's -m also takes several methods (a comparison); None means auto, as normals' default
-    assert options(cli.normals, {"path", "fmt", "method"}) == options(cli.evaluate, {"benchmark", "root", "method"})
+    assert options(cli.normals, {"path", "fmt", "method"}) == \
+        options(cli.evaluate, {"benchmark", "root", "method", "markdown"})
     assert inspect.signature(cli.normals).parameters["method"].default == "auto"
     assert inspect.signature(cli.evaluate).parameters["method"].default is None
 
@@ -1757,6 +1763,11 @@ def test_eval_compares_methods_in_one_table(tmp_path):
         row = next(line for line in lines if f"{run['method']} (psctl)" in line)
         assert all(f"{o['mae']:.2f}" in row for o in run["objects"]) and f"{run['mean_mae']:.2f}" in row
     assert sum("(paper)" in line for line in lines) == 2
+    md = psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--markdown", check=True).stdout.splitlines()
+    assert [line.split(" | ")[0] for line in md[2:]] == ["| l2 (psctl)", "| ps-fcn (psctl)", "| l2 (paper)",
+                                                         "| ps-fcn (paper)"]
+    assert md[3] == "| ps-fcn (psctl) | " + " | ".join(f"{o['mae']:.2f}" for o in r["runs"][1]["objects"]) + \
+        f" | {r['runs'][1]['mean_mae']:.2f} |"
 
     out = tmp_path / "out"
     w = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)

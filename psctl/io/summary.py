@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, visible
 
 if TYPE_CHECKING:
     from psctl.io.capture import Capture
@@ -453,6 +453,54 @@ def render_benchmark(result: dict) -> None:
     _object_notes(con, [result])
 
 
+def _comparison_rows(result: dict) -> list[tuple[str, list[str], str, str]]:
+    """A comparison's rows: each method's in turn, then the paper's rows of those methods, once each."""
+    ours, papers = [], {}
+    for run in result["runs"]:
+        for row in _benchmark_rows(run):
+            if row[0].endswith("(paper)"):
+                papers.setdefault(row[0], row)  # ensemble's stand-in may be ps-fcn-n's own row
+            else:
+                ours.append(row)
+    return ours + list(papers.values())
+
+
+def benchmark_markdown(result: dict) -> str:
+    """The table of a ``psctl eval`` result (one method, or ``compare_methods``' several) as a
+    Markdown table, objects as columns, the average last: ``psctl eval --markdown`` for a
+    README or a paper's draft. Values as the terminal table prints them."""
+    rows = _comparison_rows(result) if "runs" in result else _benchmark_rows(result)
+    names = [o["name"] for o in (result["runs"][0] if "runs" in result else result)["objects"]]
+
+    def cell(text: str) -> str:  # a | or a line break inside a cell would end it
+        return " ".join(visible(text).split()).replace("|", "\\|")
+
+    lines = ["| method | " + " | ".join(cell(n) for n in names) + " | avg |",
+             "| --- |" + " ---: |" * (len(names) + 1)]
+    method = ""
+    for label, vals, avg, _ in rows:
+        if label.startswith("  "):  # a row under its method's (indented in the terminal): named with it
+            label = f"{method}, {label.strip()}"
+        elif label.endswith(" (psctl)"):
+            method = label[:-len(" (psctl)")]
+        lines.append(f"| {cell(label)} | " + " | ".join(vals) + f" | {avg} |")
+    return "\n".join(lines) + "\n"
+
+
+def render_benchmark_markdown(result: dict) -> None:
+    """``psctl eval --markdown``: the table on stdout, the notes on stderr (stdout stays a table)."""
+    import sys
+
+    from psctl.errors import console
+
+    sys.stdout.write(benchmark_markdown(result))
+    runs = result.get("runs") or [result]
+    err = console(stderr=True)
+    for note in dict.fromkeys([*result.get("notes", []), *(n for run in runs for n in run.get("notes", []))]):
+        err.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    _object_notes(err, runs)
+
+
 def render_comparison(result: dict) -> None:
     """The table of ``psctl eval -m A -m B ...`` (``psctl.eval.compare_methods``): each method's
     rows in turn, then the paper's rows of those methods, each once."""
@@ -460,14 +508,7 @@ def render_comparison(result: dict) -> None:
     runs = result["runs"]
     objs = runs[0]["objects"]
     con.print(escape(f"{result['benchmark']}: {result['root']}"), highlight=False, soft_wrap=True)
-    ours, papers = [], {}
-    for run in runs:
-        for row in _benchmark_rows(run):
-            if row[0].endswith("(paper)"):
-                papers.setdefault(row[0], row)  # ensemble's stand-in may be ps-fcn-n's own row
-            else:
-                ours.append(row)
-    con.print(_benchmark_table(ours + list(papers.values()), [o["name"] for o in objs], con.width))
+    con.print(_benchmark_table(_comparison_rows(result), [o["name"] for o in objs], con.width))
     n = {o["n_images"] for run in runs for o in run["objects"]}
     times = ", ".join(f"{run['method']} {_seconds(sum(o['seconds'] for o in run['objects']))}" for run in runs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each; "
