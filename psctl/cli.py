@@ -357,7 +357,7 @@ def normals(
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root).")] = "diligent",
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
-    method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
+    method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", metavar="M[,M...]", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps; the ensemble's spread maps too) and OUT/eval.json.")] = None,
@@ -387,8 +387,9 @@ def evaluate(
 
             raise PsctlError(None, "--markdown and --json each print the result on stdout; choose one")
 
-        # -m a -m b and -m a,b alike; a name given twice runs once
-        methods = list(dict.fromkeys(m.strip().lower() for given in (method or ["auto"]) for m in given.split(",")))
+        from psctl.eval import method_names
+
+        methods = method_names(method or ["auto"])  # -m a -m b and -m a,b alike; a name given twice runs once
         options = dict(n_images=images, seed=seed, out=out, weights=weights, device=device, lcnet=lcnet, views=views,
                        refine=refine, falloff=falloff, roll=roll, encoding=encoding, light_distance=light_distance,
                        downsample=downsample, precision=precision, albedo=albedo)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -177,6 +178,27 @@ EVAL_FILES = ("eval.png", "eval.json")
 COMPARE_FILES = ("compare.png", "compare.json")
 
 
+def method_names(given: Sequence[str]) -> list[str]:
+    """Method names as given (``-m a -m b``, ``-m a,b``; any case, spaces around them) -> each
+    once, lower case, in order; an unknown or empty one is an error."""
+    from psctl.api import METHODS
+
+    names = []
+    for g in given:
+        if not isinstance(g, str):
+            raise PsctlError(None, f"unknown method {g!r}; choose from {', '.join(METHODS)}")
+        names += [m.strip().lower() for m in g.split(",")]
+    for m in names:
+        if m not in METHODS:
+            raise PsctlError(None, f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    return list(dict.fromkeys(names))
+
+
+# what compare_methods passes on to each run_benchmark (the rest it sets itself)
+_RUN_OPTIONS = set(inspect.signature(run_benchmark).parameters) - {"benchmark", "root", "method", "out", "progress",
+                                                                    "batch"}
+
+
 def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathLike | None = None,
                     out: str | os.PathLike | None = None, progress: ProgressFactory | None = None,
                     **options: Any) -> dict:
@@ -199,13 +221,11 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
 
     if isinstance(methods, str) or not isinstance(methods, Sequence) or not methods:
         raise PsctlError(None, f"methods must be a list of method names ({', '.join(METHODS)}), not {methods!r}")
-    for m in methods:
-        if not isinstance(m, str) or m.lower() not in METHODS:
-            raise PsctlError(None, f"unknown method {m!r}; choose from {', '.join(METHODS)}")
-    methods = list(dict.fromkeys(m.lower() for m in methods))
-    for key in ("method", "batch"):
-        if key in options:
+    methods = method_names(methods)
+    for key in options:
+        if key not in _RUN_OPTIONS:
             raise TypeError(f"compare_methods() got an unexpected keyword argument {key!r}")
+    check_path("weights", options.get("weights"), optional=True)
     if options.get("weights") is not None:
         raise PsctlError(options["weights"], "--weights names one network's file; a comparison runs each method "
                                              "with its installed weights (run psctl eval once per weights file)")
@@ -213,11 +233,20 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     encoding, lcnet = options.get("encoding", "auto"), options.get("lcnet")
     benchmark, root, folders, _ = _benchmark_objects(benchmark, root, encoding)
     caps = [open_capture(f, encoding) for f in folders]
-    for m in methods:  # a missing weights file or light file now, not after the first method's minutes
+    ran: dict[tuple, str] = {}  # what each method runs on every object: two names of one run (auto, ensemble) run once
+    notes = []
+    for m in list(methods):  # a missing weights file or light file now, not after the first method's minutes
+        used = []
         for cap in caps:
-            used, _ = resolve_method(m, cap.calibrated, None, lcnet, cap.path / "light_directions.txt")
-            if used in NETWORKS and installed_path(used) is None:  # resolve_method leaves this to the loading
-                raise no_weights_error(used)
+            used.append(resolve_method(m, cap.calibrated, None, lcnet, cap.path / "light_directions.txt")[0])
+            if used[-1] in NETWORKS and installed_path(used[-1]) is None:  # resolve_method leaves this to loading
+                raise no_weights_error(used[-1])
+        if tuple(used) in ran:
+            methods.remove(m)
+            notes.append(f"methods: {m} runs what {ran[tuple(used)]} runs on every object "
+                         f"({', '.join(dict.fromkeys(used))}); compared once")
+            continue
+        ran[tuple(used)] = m
         if options.get("albedo") and out is not None:
             _check_albedo(folders, m, None, lcnet, encoding)
     if out is not None:
@@ -228,7 +257,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
         runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
                               progress=progress, batch=batch, **options) for m in methods]
         result = {"benchmark": benchmark, "root": os.path.abspath(root), "methods": methods, "runs": runs,
-                  "notes": []}
+                  "notes": notes}
         if batch is not None:
             from psctl.io.images import read_image, write_image
             from psctl.io.report import stack_sheets, write_json

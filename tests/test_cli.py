@@ -1028,11 +1028,11 @@ def test_a_killed_runs_working_folder_goes_with_the_next_run(capture, tmp_path):
     process is gone, unless it holds earlier outputs set aside by a commit; folders of running
     processes, of other machines and of older psctl versions stay."""
     from psctl.api import run_normals
-    from psctl.io.atomic import _owner
+    from psctl.io.atomic import _machine
 
     dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                               text=True).stdout)
-    host = _owner().split("-")[0]
+    host = _machine()
     out = tmp_path / "out"
     left = out / f".psctl-staging.{host}-{dead}-a1"
     left.mkdir(parents=True)
@@ -1049,17 +1049,58 @@ def test_a_killed_runs_working_folder_goes_with_the_next_run(capture, tmp_path):
     assert all(f.is_dir() for f in stay) and (out / "normal.png").is_file()
 
 
-def test_the_output_folder_is_locked_while_files_move_in(tmp_path):
-    """folder_lock takes an flock another process sees: two commits into a folder take turns."""
-    from psctl.io.atomic import folder_lock
+def _hold_lock(folder: Path, seconds: float, marker: Path) -> subprocess.Popen:
+    """Another process holding ``folder``'s flock for ``seconds``; it writes ``marker`` just
+    before letting go. Returns once the lock is held."""
+    script = ("import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDONLY); fcntl.flock(fd, fcntl.LOCK_EX)\n"
+              "print('locked', flush=True); time.sleep(float(sys.argv[2])); open(sys.argv[3], 'w').close()")
+    holder = subprocess.Popen([sys.executable, "-c", script, str(folder), str(seconds), str(marker)],
+                              stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
 
-    probe = ("import fcntl, os, sys; fd = os.open(sys.argv[1], os.O_RDONLY)\n"
-             "try:\n    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); print('free')\n"
-             "except BlockingIOError:\n    print('locked')")
-    with folder_lock(tmp_path):
-        inside = subprocess.run([sys.executable, "-c", probe, str(tmp_path)], capture_output=True, text=True).stdout
-    after = subprocess.run([sys.executable, "-c", probe, str(tmp_path)], capture_output=True, text=True).stdout
-    assert (inside.strip(), after.strip()) == ("locked", "free")
+
+def test_outputs_move_in_only_while_the_folder_is_not_locked(capture, tmp_path, monkeypatch, capsys):
+    """Two commits into a folder take turns: a run whose files are ready waits for another
+    process's flock on the folder; a lock held past LOCK_WAIT is none of psctl's (flock OUT cmd
+    around psctl), and the run goes on without it and says so; Ctrl-C stops a run that waits."""
+    import signal
+
+    import psctl.io.atomic as atomic
+    from psctl.api import run_normals
+
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = _hold_lock(out, 2.0, tmp_path / "released")
+    run_normals(capture, method="l2", out=out)
+    assert (tmp_path / "released").exists() and (out / "normal.png").is_file()  # it waited for the lock
+    holder.wait()
+    from psctl.eval import run_benchmark  # psctl eval --out's batch too
+
+    write_capture(tmp_path / "root" / "aPNG", n=6, size=24)
+    (tmp_path / "bench").mkdir()
+    holder = _hold_lock(tmp_path / "bench", 2.0, tmp_path / "released1")
+    run_benchmark("folder", tmp_path / "root", method="l2", out=tmp_path / "bench")
+    assert (tmp_path / "released1").exists() and (tmp_path / "bench" / "eval.png").is_file()
+    holder.wait()
+
+    monkeypatch.setattr(atomic, "LOCK_WAIT", 0.5)
+    holder = _hold_lock(out, 30.0, tmp_path / "released2")
+    try:
+        (out / "normal.png").unlink()
+        run_normals(capture, method="l2", out=out)
+        assert (out / "normal.png").is_file() and not (tmp_path / "released2").exists()
+        assert "still locked after 0.5 s" in capsys.readouterr().err
+        # the command line, waiting (it says so after 2 s), stops on Ctrl-C, and writes nothing
+        (out / "normal.png").unlink()
+        proc = subprocess.Popen([sys.executable, "-m", "psctl.cli", "normals", str(capture), "-m", "l2", "-o", str(out)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert "waiting for" in proc.stderr.readline()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 130 and not (out / "normal.png").exists()
+        assert not [n for n in os.listdir(out) if n.startswith(".psctl-staging")]
+    finally:
+        holder.kill()
 
 
 def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
@@ -1763,6 +1804,12 @@ def test_eval_compares_methods_in_one_table(tmp_path):
         row = next(line for line in lines if f"{run['method']} (psctl)" in line)
         assert all(f"{o['mae']:.2f}" in row for o in run["objects"]) and f"{run['mean_mae']:.2f}" in row
     assert sum("(paper)" in line for line in lines) == 2
+    for columns in ("50", "30"):  # turned (objects as rows), then a line per row: no number cut off
+        narrow = psctl("eval", "--root", root, "-m", "l2,ps-fcn", env={"COLUMNS": columns}, check=True).stdout
+        flat = " ".join(narrow.split())
+        assert all(f"{o['mae']:.2f}" in flat for run in r["runs"] for o in run["objects"])
+        assert all(f"{run['mean_mae']:.2f}" in flat for run in r["runs"])
+        assert max(len(line) for line in narrow.splitlines()[1:]) <= int(columns)
     md = psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--markdown", check=True).stdout.splitlines()
     assert [line.split(" | ")[0] for line in md[2:]] == ["| l2 (psctl)", "| ps-fcn (psctl)", "| l2 (paper)",
                                                          "| ps-fcn (paper)"]
@@ -1777,6 +1824,9 @@ def test_eval_compares_methods_in_one_table(tmp_path):
     for m, run in zip(("l2", "ps-fcn"), w["runs"]):
         assert json.loads((out / m / "eval.json").read_text()) == run
         assert (out / m / "cat" / "normal.png").is_file()
+    # the same comparison again into its folder (compare.png is no input image there)
+    again = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
+    assert [run["mean_mae"] for run in again["runs"]] == [run["mean_mae"] for run in w["runs"]]
     both = read_image(out / "compare.png")[0]
     assert both.shape == (sheets[0].shape[0] + 12 + sheets[1].shape[0], max(s.shape[1] for s in sheets), 3)
     assert np.array_equal(both[:sheets[0].shape[0], :sheets[0].shape[1]], sheets[0])
@@ -1813,6 +1863,13 @@ def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
     with pytest.raises(PsctlError, match="made to fail"):
         ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out)
     assert calls == ["l2", "ps-fcn"] and not out.exists()  # l2's finished folder went with the failure
+    with pytest.raises(TypeError, match=r"compare_methods\(\) got an unexpected keyword argument 'bogus'"):
+        ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, bogus=1)
+    # two names of one run (auto is l2 without weights): run once, and said
+    with weights_in(tmp_path / "empty"):
+        r = ev.compare_methods("diligent", ["l2", "auto"], root=root)
+    assert r["methods"] == ["l2"] and len(r["runs"]) == 2 - 1
+    assert any(n.startswith("methods: auto runs what l2 runs") for n in r["notes"])
     proc = psctl("eval", "--root", root, "-m", "l2,", "--out", out)  # an empty name: one line, exit 2
     assert proc.returncode == 2 and "unknown method ''" in proc.stderr and not out.exists()
 

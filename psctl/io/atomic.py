@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -193,13 +194,18 @@ def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: 
                                                 f"output {n}; choose another --out or move the file")
 
 
-def _owner() -> str:
-    """"host-pid-": whose hidden working folder it is, in its name (``working_folder``)."""
-    import re
+def _machine() -> str:
+    """Which machine and process namespace a working folder's process number belongs to: a short
+    hash of the host name and the PID namespace (containers sharing a host name and a disk have
+    their own process numbers; a review found a container's sweep deleting a live run's folder)."""
+    import hashlib
     import socket
 
-    host = re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:32] or "host"
-    return f"{host}-{os.getpid()}-"
+    try:
+        ns = os.readlink("/proc/self/ns/pid")  # Linux; elsewhere the host name alone
+    except OSError:
+        ns = ""
+    return hashlib.sha256(f"{socket.gethostname()}\0{ns}".encode()).hexdigest()[:10]
 
 
 def _running(pid: int) -> bool:
@@ -207,21 +213,22 @@ def _running(pid: int) -> bool:
         os.kill(pid, 0)  # no signal sent: only whether the process exists
     except ProcessLookupError:
         return False
-    except OSError:  # exists, someone else's
+    except (OSError, OverflowError, ValueError):  # someone else's; or a number no process has: not ours to judge
         return True
     return True
 
 
 def working_folder(folder: Path, prefix: str) -> Path:
-    """A new hidden folder in ``folder`` (``prefix`` + host-pid-random) for a run's files until
-    they move into place, after removing those that runs killed on this machine left there
-    (``kill -9``, an out-of-memory kill: nothing of theirs ran to clean up; an interruption
-    audit found them piling up). A folder is removed only when its process is gone and it holds
-    no earlier outputs set aside by a commit (``.replaced``, synth's ``.earlier``): those are never
-    deleted. Folders of other machines (a shared disk) and older names are left alone."""
+    """A new hidden folder in ``folder`` (``prefix`` + machine-pid-random, ``_machine``) for a
+    run's files until they move into place, after removing those that runs killed on this
+    machine left there (``kill -9``, an out-of-memory kill: nothing of theirs ran to clean up; an
+    interruption audit found them piling up). A folder is removed only when its process is gone
+    and it holds no earlier outputs set aside by a commit (``.replaced``, synth's ``.earlier``):
+    those are never deleted. Folders of other machines or containers (a shared disk) and older
+    names are left alone."""
     import re
 
-    mine = re.compile(re.escape(prefix + _owner().split("-")[0]) + r"-(\d+)-")
+    mine = re.compile(re.escape(prefix + _machine()) + r"-(\d{1,9})-")
     with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
             m = mine.match(entry.name)
@@ -231,10 +238,10 @@ def working_folder(folder: Path, prefix: str) -> Path:
             if any(a.is_dir() and any(a.iterdir()) for a in aside):
                 continue
             shutil.rmtree(entry.path, ignore_errors=True)
-    return Path(tempfile.mkdtemp(prefix=prefix + _owner(), dir=folder))
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{_machine()}-{os.getpid()}-", dir=folder))
 
 
-def input_stamp(path: str | os.PathLike) -> tuple:
+def input_stamp(path: str | os.PathLike) -> tuple | None:
     """What tells a file apart from one written over it or put in its place: (device, inode,
     size, modification time in ns); None when it is gone."""
     try:
@@ -244,11 +251,28 @@ def input_stamp(path: str | os.PathLike) -> tuple:
     return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
+LOCK_WAIT = 30.0  # seconds: a psctl commit holds a folder's lock for moments; longer is someone else's
+
+
 @contextlib.contextmanager
-def folder_lock(folder: Path) -> Iterator[None]:
-    """An exclusive advisory lock (flock) on ``folder`` for the block: psctl runs committing into
-    the same folder take turns. Where the folder cannot be locked (no fcntl, a file system
-    without flock) the block runs as it is."""
+def folder_locks(folders: Iterable[Path]) -> Iterator[None]:
+    """Exclusive advisory locks (flock) on ``folders``, taken in sorted order (two runs locking
+    the same folders cannot wait on each other), for the block: psctl runs moving their files into
+    the same folder take turns. Taken before signals are held, so Ctrl-C still stops a run that
+    waits. After 2 s of waiting a line on stderr says so; after ``LOCK_WAIT`` s (a lock held that
+    long is no psctl commit: ``flock OUT command`` around psctl, say) the run goes on without it
+    and says that too. Where a folder cannot be locked (no fcntl; network file systems may refuse
+    flock) the block runs as it is."""
+    with contextlib.ExitStack() as stack:
+        for folder in sorted(set(map(Path, folders))):
+            stack.enter_context(_folder_lock(folder))
+        yield
+
+
+@contextlib.contextmanager
+def _folder_lock(folder: Path) -> Iterator[None]:
+    import time
+
     try:
         import fcntl
 
@@ -257,13 +281,36 @@ def folder_lock(folder: Path) -> Iterator[None]:
         yield
         return
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX)
-        except OSError:
-            pass
+        start = time.monotonic()
+        told = False
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                waited = time.monotonic() - start
+                if waited > LOCK_WAIT:
+                    _say(f"psctl: {folder} is still locked after {LOCK_WAIT:g} s, which no psctl run takes; "
+                         "moving the outputs in without the lock")
+                    break
+                if waited > 2 and not told:
+                    _say(f"psctl: waiting for {folder}: another process holds its lock (a psctl run moving its "
+                         "outputs in?)")
+                    told = True
+                time.sleep(0.05)
+            except OSError:  # a file system without flock: as without the lock
+                break
         yield
     finally:
         os.close(fd)  # closing releases the lock
+
+
+def _say(line: str) -> None:
+    """A line on stderr from deep inside a run (there is no report to put it in yet)."""
+    from psctl.errors import visible
+
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        print(visible(line, newlines=False), file=sys.stderr, flush=True)
 
 
 def missing_folders(path: Path) -> list[Path]:
@@ -334,10 +381,8 @@ class Staging:
                                          "or choose another --out")
 
     def commit(self) -> None:
-        with folder_lock(self.out_dir):  # one commit at a time into a folder: each sees the other's list
-            self._commit()
-
-    def _commit(self) -> None:
+        """Move the files in (the caller holds ``folder_locks`` on ``out_dir``: one commit at a
+        time into a folder, each seeing the other's list)."""
         self.check()
         new, stale = self._names()
         old = self.path / ".replaced"
@@ -444,13 +489,22 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
         if isinstance(e, PsctlError):
             raise _by_final_name(e, [stage]) from None
         raise
-    with signals_deferred():  # moved and cleaned up in one piece
-        ok = False
-        try:
-            stage.commit()
-            ok = True
-        finally:
-            stage.discard(remove_created=not ok)
+    # the lock first (a wait for it can be stopped: then nothing moved), then moved and cleaned up
+    # in one piece
+    started = False
+    try:
+        with folder_locks([stage.out_dir]), signals_deferred():
+            started, ok = True, False
+            try:
+                stage.commit()
+                ok = True
+            finally:
+                stage.discard(remove_created=not ok)
+    except BaseException:
+        if not started:
+            with signals_deferred():
+                stage.discard()
+        raise
 
 
 def _by_final_name(error: PsctlError, stagings: "list[Staging]") -> PsctlError:
@@ -483,8 +537,18 @@ class OutputBatch:
         return self
 
     def __exit__(self, kind, value, tb) -> None:
-        with signals_deferred():  # committed and cleaned up in one piece
-            self._finish(kind, value)
+        # every folder's lock first (a wait for one can be stopped), then committed and cleaned up
+        # in one piece
+        started = False
+        try:
+            with folder_locks([s.out_dir for s in self.stagings] if kind is None else []), signals_deferred():
+                started = True
+                self._finish(kind, value)
+        except BaseException as e:
+            if not started:  # stopped while waiting for a lock: nothing moved; discarded as after a failure
+                with signals_deferred():
+                    self._finish(type(e), e)
+            raise
 
     def _finish(self, kind, value) -> None:
         ok = False

@@ -40,8 +40,10 @@ MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
 # an image taken with every light off (room light, sensor offset): subtracted from each image
 AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "ambient.jpg", "ambient.jpeg")
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
-# Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's eval.png).
-_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|spread)$", re.I)
+# Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's
+# eval.png and compare.png).
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread)$",
+                         re.I)
 
 Progress = Callable[[int], None]
 

@@ -207,7 +207,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
         except BaseException:  # Ctrl-C mid-write: the writer, closed half-way, complains on fd 2
             with _quiet_stderr():  # (libpng: "No IDATs written into file") beside the one line
                 out.close()
-                del out
+                out = None  # freed here, inside the silence
             raise
         # the first of the writer's messages (a PNG's repeats per block), named by the output
         err = _clean((err or out.geterror()).replace(str(tmp), str(path))).split("; ")[0]

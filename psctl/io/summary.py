@@ -322,12 +322,27 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         con.print(f"  wrote {p}", highlight=False, markup=False)
 
 
-SHORT = {"light direction (°)": "light", "intensity RE": "RE", "scored as the paper": "as the\npaper"}  # headers of the narrow layout
+# headers of the narrow layout
+SHORT = {"light direction (°)": "light", "intensity RE": "RE", "scored as the paper": "as paper"}
+
+
+def _named(rows: list[tuple[str, list[str], str, str]]) -> list[tuple[str, list[str], str, str]]:
+    """Rows whose label stands under its method's (indented: "  scored as the paper") named with
+    it ("l2, scored as the paper"), for layouts where the row does not sit under its method's."""
+    method, named = "", []
+    for label, vals, avg, style in rows:
+        if label.startswith("  "):
+            label = f"{method}, {label.strip()}"
+        elif label.endswith(" (psctl)"):
+            method = label[:-len(" (psctl)")]
+        named.append((label, vals, avg, style))
+    return named
 
 
 def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[str], width: int):
     """The paper's layout, objects as columns, when it fits ``width``; otherwise objects as rows
-    (a folder benchmark of 16 objects at 80 columns): Rich would squeeze columns to nothing."""
+    (a folder benchmark of 16 objects at 80 columns): Rich would squeeze columns to nothing; and
+    when neither fits (a comparison of several methods at 40 columns), each row as a line."""
     from rich.table import Table
 
     title = "mean angular error (degrees)"
@@ -342,18 +357,32 @@ def _benchmark_table(rows: list[tuple[str, list[str], str, str]], names: list[st
         for label, vals, avg, style in rows:
             t.add_row(label, *vals, avg, style=style)
         return t
+    rows = _named(rows)
+
     def short(label: str) -> str:  # "light direction (°) (LCNet)" -> "light" over "LCNet"
-        label = label.strip()
-        if not label.endswith(")"):  # "scored as the paper": a row of its own, no source
+        if ", " in label:  # "l2, scored as the paper" -> "l2" over "as paper"
+            head, rest = label.split(", ", 1)
+            return f"{head}\n{SHORT.get(rest, rest)}"
+        if not label.endswith(")"):
             return SHORT.get(label, label)
         head, source = label[:label.rindex("(")].strip(), label[label.rindex("(") + 1:-1]
         return f"{SHORT.get(head, head)}\n{source}"
 
-    lights = any(r[0].strip().startswith(tuple(SHORT)[:2]) for r in rows)  # sdps: the light rows' short names
+    heads = [short(r[0]) for r in rows]
+    name_w = min(16, max(len("object"), *map(len, names)))
+    narrow = 1 + (name_w + 3) + sum(max(5, *map(len, h.split("\n"))) + 3 for h in heads)
+    lights = any(r[0].startswith(tuple(SHORT)[:2]) for r in rows)  # sdps: the light rows' short names
+    if narrow > width:  # each row a line: every number stays, none cut off
+        from rich.console import Group
+        from rich.text import Text
+
+        return Group(Text(title, justify="center"),
+                     *(Text(f"{label}: " + ", ".join(f"{n} {v}" for n, v in zip(names, vals)) + f", avg {avg}",
+                            style=style) for label, vals, avg, style in rows))
     t = Table(title=title + ("; light: light direction error (degrees); RE: intensity error" if lights else ""))
-    t.add_column("object", overflow="fold", min_width=min(16, max(map(len, names))))
-    for label, _, _, style in rows:
-        t.add_column(short(label), justify="right", style=style, min_width=5)
+    t.add_column("object", overflow="fold", min_width=name_w)
+    for head, (_, _, _, style) in zip(heads, rows):
+        t.add_column(head, justify="right", style=style, min_width=5)
     for i, name in enumerate(names):
         t.add_row(escape(name), *[r[1][i] for r in rows])
     t.add_section()
@@ -477,12 +506,7 @@ def benchmark_markdown(result: dict) -> str:
 
     lines = ["| method | " + " | ".join(cell(n) for n in names) + " | avg |",
              "| --- |" + " ---: |" * (len(names) + 1)]
-    method = ""
-    for label, vals, avg, _ in rows:
-        if label.startswith("  "):  # a row under its method's (indented in the terminal): named with it
-            label = f"{method}, {label.strip()}"
-        elif label.endswith(" (psctl)"):
-            method = label[:-len(" (psctl)")]
+    for label, vals, avg, _ in _named(rows):  # no indentation in Markdown: each row named with its method
         lines.append(f"| {cell(label)} | " + " | ".join(vals) + f" | {avg} |")
     return "\n".join(lines) + "\n"
 

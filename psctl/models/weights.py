@@ -96,7 +96,7 @@ def install_hint() -> str:
     if os.environ.get(ENV_VAR) or checkout_root() is not None:
         return ""
     return (f"; psctl's release weights are in the weights/ folder of its source checkout: copy the .pt files "
-            f"into {weights_dir()}, or set ${ENV_VAR} to that folder")
+            f"into {weights_dir()}, or set ${ENV_VAR} to the checkout's weights/ folder")
 
 
 def weights_where() -> str:
@@ -150,28 +150,27 @@ _TRAIN_HINTS = {"lcnet": ("configs/lcnet.yaml", "LCNet_CVPR2019.pth.tar"),
 
 def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
     """The error for ``method`` with nothing installed: where it looked, and how to train or pass a file."""
-    where = f"{weights_dir() / file_name(method)}{missing_folder_note()}{install_hint()}"
+    # where it looked; then how to point psctl elsewhere (a wheel's hint says it already)
+    where = f"{weights_dir() / file_name(method)}{missing_folder_note()}" + (
+        install_hint() or f"; set ${ENV_VAR} to use another folder")
     if method in _TRAIN_HINTS:
         recipe, official = _TRAIN_HINTS[method]
         return PsctlError(
             None,
-            f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
-            f"folder). Train them with `psctl train {method} --config {recipe} --install` (a GPU is "
-            f"needed, see docs/training.md), or pass a weights file with {flag} FILE: psctl's own "
-            f"or the authors' {official} (docs/uncalibrated.md)",
+            f"no weights are installed for {method} (looked for {where}). Train them with `psctl train {method} "
+            f"--config {recipe} --install` (a GPU is needed, see docs/training.md), or pass a weights file with "
+            f"{flag} FILE: psctl's own or the authors' {official} (docs/uncalibrated.md)",
         )
     if method == "ups-fcn":  # no lights: l2 is no alternative, sdps is
         return PsctlError(
             None,
-            f"no weights are installed for ups-fcn (looked for {where}; set ${ENV_VAR} to use another "
-            f"folder). Pass a weights file with --weights FILE: psctl's own format or the authors' "
-            f"UPS-FCN_B_S_32.pth.tar (docs/models.md), or use --method sdps",
+            f"no weights are installed for ups-fcn (looked for {where}). Pass a weights file with --weights FILE: "
+            f"psctl's own format or the authors' UPS-FCN_B_S_32.pth.tar (docs/models.md), or use --method sdps",
         )
     return PsctlError(
         None,
-        f"no weights are installed for {method} (looked for {where}; set ${ENV_VAR} to use another "
-        f"folder). Pass a weights file with --weights FILE: psctl's own format or the "
-        f"authors' released checkpoint (e.g. PS-FCN_B_S_32.pth.tar for ps-fcn, "
+        f"no weights are installed for {method} (looked for {where}). Pass a weights file with --weights FILE: "
+        f"psctl's own format or the authors' released checkpoint (e.g. PS-FCN_B_S_32.pth.tar for ps-fcn, "
         f"PS-FCN_B_S_32_normalize.pth.tar for ps-fcn-n; see docs/models.md), or use --method l2",
     )
 
