@@ -328,7 +328,7 @@ def _check_out(out: str | os.PathLike, root: Path, files: tuple[str, ...], weigh
     from psctl.io.atomic import check_inputs_kept, check_output_dir
     from psctl.io.capture import holds_capture
 
-    if Path(out).resolve() == root.resolve():
+    if os.path.realpath(out) == os.path.realpath(root):  # realpath: a link loop gets its own message later
         raise PsctlError(out, "is the benchmark root: its folders are inputs; choose another --out")
     if holds_capture(out):  # eval.png and eval.json go into OUT itself, beside someone's images
         raise PsctlError(out, f"holds a capture (images, an image list, a mask or ground truth): psctl eval "

@@ -1044,8 +1044,9 @@ def test_a_killed_runs_working_folder_goes_with_the_next_run(capture, tmp_path):
             out / ".psctl-staging.e5"]
     for f in stay:
         f.mkdir()
-    run_normals(capture, method="l2", out=out)
+    r = run_normals(capture, method="l2", out=out)
     assert not left.exists() and (aside / "normal.png").read_text() == "an earlier run's"
+    assert any(n.startswith(f"outputs: {aside} holds files of an earlier run") for n in r["notes"])  # told where
     assert all(f.is_dir() for f in stay) and (out / "normal.png").is_file()
 
 
@@ -1058,6 +1059,20 @@ def _hold_lock(folder: Path, seconds: float, marker: Path) -> subprocess.Popen:
                               stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
     return holder
+
+
+def test_an_output_folder_that_is_a_link_loop_is_one_line(capture, tmp_path):
+    """--out naming a symbolic link to itself: one line and exit 2 for normals, depth and eval
+    (Path.resolve raised RuntimeError in the capture and root checks)."""
+    loop = tmp_path / "loop"
+    loop.symlink_to("loop")
+    write_capture(tmp_path / "root" / "aPNG", n=6, size=24)
+    psctl("normals", capture, "-m", "l2", "-o", tmp_path / "n", check=True)
+    for args in (("normals", capture, "-m", "l2", "-o", loop), ("normals", capture, "-m", "l2", "-o", loop / "sub"),
+                 ("depth", capture, "--normals", tmp_path / "n" / "normal.exr", "-o", loop),
+                 ("eval", "-b", "folder", "--root", tmp_path / "root", "-m", "l2", "-o", loop)):
+        proc = cli(*args)
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "loop" in proc.stderr, args
 
 
 def test_outputs_move_in_only_while_the_folder_is_not_locked(capture, tmp_path, monkeypatch, capsys):

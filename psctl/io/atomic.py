@@ -170,14 +170,19 @@ def write_outputs_list(stage: Path, names: Iterable[str], command: str) -> None:
 def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: list[str] | None = None) -> list[str]:
     """A note naming the files of ``names`` already in ``out_dir`` that no earlier ``psctl
     COMMAND`` run there listed (a user's own ``depth.png``, say): replaced, never silently.
-    ``listed``: that run's list when the caller has read it already."""
+    ``listed``: that run's list when the caller has read it already. Also a note on earlier
+    outputs that a run killed while moving its files in set aside (``.psctl-staging.*/.replaced``):
+    kept there, never deleted, so the user is told where."""
+    notes = [f"outputs: {d} holds files of an earlier run there, set aside by a run stopped while moving its own "
+             "in (kill -9?); move back what you need and remove that folder"
+             for d in sorted(Path(out_dir).glob(".psctl-staging.*/.replaced")) if d.is_dir() and any(d.iterdir())]
     if listed is None:
         listed = read_outputs_list(out_dir, command)
     foreign = [n for n in names if n not in listed and (Path(out_dir) / n).is_file()]
-    if not foreign:
-        return []
-    return [f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl {command} run there "
-            "had listed"]
+    if foreign:
+        notes.append(f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl {command} run "
+                     "there had listed")
+    return notes
 
 
 def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: Iterable[tuple[str, object]]) -> None:
@@ -290,8 +295,8 @@ def _folder_lock(folder: Path) -> Iterator[None]:
             except BlockingIOError:
                 waited = time.monotonic() - start
                 if waited > LOCK_WAIT:
-                    _say(f"psctl: {folder} is still locked after {LOCK_WAIT:g} s, which no psctl run takes; "
-                         "moving the outputs in without the lock")
+                    _say(f"psctl: {folder} is still locked after {LOCK_WAIT:g} s, longer than any psctl run holds "
+                         "it; moving the outputs in without the lock")
                     break
                 if waited > 2 and not told:
                     _say(f"psctl: waiting for {folder}: another process holds its lock (a psctl run moving its "

@@ -182,7 +182,7 @@ def check_not_capture(out_dir: Path, capture: "Capture", names: Iterable[str] = 
     its files are inputs (psctl lights' files would overwrite its light files, psctl normals'
     normal.png would become its ground truth); and one where an output of ``names`` is one of the
     capture's inputs (an image listed by its path in filenames.txt, named like an output)."""
-    if out_dir.resolve() == capture.path.resolve():
+    if os.path.realpath(out_dir) == os.path.realpath(capture.path):  # realpath: a link loop is no error here
         raise PsctlError(out_dir, "is the capture folder: its files are inputs and are never overwritten; "
                                   "choose another --out (the default is PATH/psctl)")
     if holds_capture(out_dir):
