@@ -679,8 +679,9 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         listed = read_outputs_list(out_dir, "normals")  # read once here: for the note on removals and the one below
-        if stale(listed):
-            notes.append(f"outputs: removed {', '.join(stale(listed))}, left in {out_dir} by an earlier psctl run "
+        removed = stale(listed)
+        if removed:
+            notes.append(f"outputs: removed {', '.join(removed)}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")
         for n in names:  # a folder in the way would fail the run only after its work
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):

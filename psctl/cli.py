@@ -379,15 +379,13 @@ def evaluate(
 ) -> None:
     """Run a method over every object of a benchmark and print the paper-style error table."""
     with _user_errors():
-        from psctl.eval import compare_methods, run_benchmark
+        from psctl.eval import compare_methods, method_names, run_benchmark
         from psctl.io.summary import render_benchmark, render_benchmark_markdown, render_comparison
 
         if markdown and json_out:
             from psctl.errors import PsctlError
 
             raise PsctlError(None, "--markdown and --json each print the result on stdout; choose one")
-
-        from psctl.eval import method_names
 
         methods = method_names(method or ["auto"])  # -m a -m b and -m a,b alike; a name given twice runs once
         options = dict(n_images=images, seed=seed, out=out, weights=weights, device=device, lcnet=lcnet, views=views,

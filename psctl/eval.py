@@ -7,13 +7,16 @@ import inspect
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from psctl.api import OUTPUTS_LIST, ProgressFactory, run_normals
 from psctl.errors import PsctlError, check_bool, check_path, check_progress
 from psctl.io.atomic import OutputBatch
+
+if TYPE_CHECKING:
+    from psctl.io.capture import Capture
 
 # Mean angular error (degrees, all 96 images) published in the PS-FCN TPAMI paper, for the
 # objects of the DiLiGenT development split (L2: DiLiGenT's own baseline, to two decimals; the
@@ -109,9 +112,10 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     albedo = check_bool("albedo", albedo)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
-    benchmark, root, folders, names = _benchmark_objects(benchmark, root, encoding)
+    benchmark, root, caps, names = _benchmark_objects(benchmark, root, encoding)
+    folders = [cap.path for cap in caps]
     if albedo and out is not None:  # before any object runs, not minutes in
-        _check_albedo(folders, method, weights, lcnet, encoding)
+        _check_albedo(caps, method, weights, lcnet)
     if out is not None:  # an empty one was refused by check_path above
         _check_out(out, root, EVAL_FILES, weights, lcnet)
     objects = []
@@ -217,7 +221,6 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     from psctl.api import METHODS, NETWORKS, resolve_method
     from psctl.models.weights import installed_path, no_weights_error
     from psctl.io.atomic import outputs_list, replaced_notes, write_outputs_list
-    from psctl.io.capture import open_capture
 
     if isinstance(methods, str) or not isinstance(methods, Sequence) or not methods:
         raise PsctlError(None, f"methods must be a list of method names ({', '.join(METHODS)}), not {methods!r}")
@@ -231,8 +234,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
                                              "with its installed weights (run psctl eval once per weights file)")
     check_path("out", out, optional=True)
     encoding, lcnet = options.get("encoding", "auto"), options.get("lcnet")
-    benchmark, root, folders, _ = _benchmark_objects(benchmark, root, encoding)
-    caps = [open_capture(f, encoding) for f in folders]
+    benchmark, root, caps, _ = _benchmark_objects(benchmark, root, encoding)
     ran: dict[tuple, str] = {}  # what each method runs on every object: two names of one run (auto, ensemble) run once
     notes = []
     for m in list(methods):  # a missing weights file or light file now, not after the first method's minutes
@@ -248,7 +250,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
             continue
         ran[tuple(used)] = m
         if options.get("albedo") and out is not None:
-            _check_albedo(folders, m, None, lcnet, encoding)
+            _check_albedo(caps, m, None, lcnet)
     if out is not None:
         _check_out(out, root, COMPARE_FILES, None, lcnet)
         for m in methods:
@@ -280,8 +282,8 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
 
 
 def _benchmark_objects(benchmark: str, root: str | os.PathLike | None,
-                       encoding: str) -> tuple[str, Path, list[Path], list[str]]:
-    """(benchmark, root, object folders, object names) of a benchmark, every object checked to
+                       encoding: str) -> tuple[str, Path, list["Capture"], list[str]]:
+    """(benchmark, root, object captures, object names) of a benchmark, every object checked to
     be scorable before any is run (and before any output is written)."""
     from psctl.io.capture import GT_FILES, find_objects, object_name, open_capture
 
@@ -297,27 +299,26 @@ def _benchmark_objects(benchmark: str, root: str | os.PathLike | None,
         root = default_diligent_root()
     root = Path(root)
     folders = find_objects(root)
-    for folder in folders:
-        if open_capture(folder, encoding).gt_path is None:
-            raise PsctlError(folder, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
+    caps = [open_capture(folder, encoding) for folder in folders]
+    for cap in caps:
+        if cap.gt_path is None:
+            raise PsctlError(cap.path, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
     names = [object_name(f) for f in folders]
     for name in dict.fromkeys(names):
         same = [f.name for f, n in zip(folders, names) if n == name]
         if len(same) > 1:  # one column (and one out/<object>/ folder) each
             raise PsctlError(root, f"holds {len(same)} objects named {name} ({', '.join(same)}); rename all but one")
-    return benchmark, root, folders, names
+    return benchmark, root, caps, names
 
 
-def _check_albedo(folders: list[Path], method: str, weights: str | os.PathLike | None,
-                  lcnet: str | os.PathLike | None, encoding: str) -> None:
+def _check_albedo(caps: list["Capture"], method: str, weights: str | os.PathLike | None,
+                  lcnet: str | os.PathLike | None) -> None:
     """--albedo needs lights: refuse, before any object runs, a method that resolves to ups-fcn."""
     from psctl.api import resolve_method, ups_fcn_albedo_message
-    from psctl.io.capture import open_capture
 
-    for folder in folders:
-        cap = open_capture(folder, encoding)
+    for cap in caps:
         if resolve_method(method, cap.calibrated, weights, lcnet, cap.path / "light_directions.txt")[0] == "ups-fcn":
-            raise PsctlError(folder if weights is None else weights,
+            raise PsctlError(cap.path if weights is None else weights,
                              ups_fcn_albedo_message(method, weights, cap.calibrated))
 
 

@@ -233,7 +233,8 @@ def working_folder(folder: Path, prefix: str) -> Path:
     names are left alone."""
     import re
 
-    mine = re.compile(re.escape(prefix + _machine()) + r"-(\d{1,9})-")
+    machine = _machine()
+    mine = re.compile(re.escape(prefix + machine) + r"-(\d{1,9})-")
     with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
             m = mine.match(entry.name)
@@ -243,7 +244,7 @@ def working_folder(folder: Path, prefix: str) -> Path:
             if any(a.is_dir() and any(a.iterdir()) for a in aside):
                 continue
             shutil.rmtree(entry.path, ignore_errors=True)
-    return Path(tempfile.mkdtemp(prefix=f"{prefix}{_machine()}-{os.getpid()}-", dir=folder))
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{machine}-{os.getpid()}-", dir=folder))
 
 
 def input_stamp(path: str | os.PathLike) -> tuple | None:
@@ -444,7 +445,6 @@ def signals_deferred() -> Iterator[None]:
     outputs, a hostile-input audit). Python runs signal handlers in the main thread only: in any
     other thread (and where handlers cannot be set) the block runs as it is."""
     import signal
-    import sys
     import threading
 
     if threading.current_thread() is not threading.main_thread():

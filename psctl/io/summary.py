@@ -520,9 +520,21 @@ def render_benchmark_markdown(result: dict) -> None:
     sys.stdout.write(benchmark_markdown(result))
     runs = result.get("runs") or [result]
     err = console(stderr=True)
-    for note in dict.fromkeys([*result.get("notes", []), *(n for run in runs for n in run.get("notes", []))]):
+    for note in _run_notes(result):
         err.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     _object_notes(err, runs)
+
+
+def _run_notes(result: dict) -> list[str]:
+    """A result's notes about its run(s): a comparison's own, then each run's, once where every
+    run has it (the root's), else under its method's name. One run: its notes as they are."""
+    runs = result.get("runs")
+    if runs is None:
+        return list(result.get("notes", []))
+    run_notes = [run.get("notes", []) for run in runs]
+    common = [n for n in run_notes[0] if all(n in other for other in run_notes[1:])]
+    return [*result.get("notes", []), *common] + [f"{method}: {n}" for method, own in zip(result["methods"], run_notes)
+                                                  for n in own if n not in common]
 
 
 def render_comparison(result: dict) -> None:
@@ -540,12 +552,7 @@ def render_comparison(result: dict) -> None:
     if result.get("outputs"):
         con.print(escape(f"wrote {result['outputs']['compare.png']} (each method's eval.png, one above the other), "
                          f"compare.json and one folder per method"), highlight=False)
-    # a run's note once when every run has it (the root's), else under its method's name
-    run_notes = [run.get("notes", []) for run in runs]
-    common = [n for n in run_notes[0] if all(n in other for other in run_notes[1:])]
-    notes = [*result.get("notes", []), *common] + [f"{method}: {n}" for method, own in zip(result["methods"], run_notes)
-                                                    for n in own if n not in common]
-    for note in notes:
+    for note in _run_notes(result):
         con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
     _near_lights_line(con, runs[0].get("light_distance"))
     _object_notes(con, runs)

@@ -91,8 +91,9 @@ def find_merl_file() -> Path:
     candidates.append(PACKAGED_MERL)
     from psctl.paths import checkout_root
 
-    if checkout_root() is not None:  # psctl's development data sits beside its checkout
-        candidates.append(checkout_root().parent / "shared" / "data" / "merl" / MERL_FILE)
+    root = checkout_root()
+    if root is not None:  # psctl's development data sits beside its checkout
+        candidates.append(root.parent / "shared" / "data" / "merl" / MERL_FILE)
     for c in candidates:
         if c.is_file():
             return c
