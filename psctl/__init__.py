@@ -25,6 +25,8 @@ _LAZY = {
     "run_benchmark": "psctl.eval",
     "compare_methods": "psctl.eval",
     "run_depth": "psctl.depth",
+    "run_calibrate": "psctl.calibrate",
+    "calibrate_lights": "psctl.calibrate",
     "open_capture": "psctl.io.capture",
     "load_images": "psctl.io.capture",
     "load_mask": "psctl.io.capture",
@@ -35,6 +37,7 @@ _LAZY = {
 
 if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ imports on first use
     from psctl.albedo import estimate_albedo
+    from psctl.calibrate import calibrate_lights, run_calibrate
     from psctl.api import estimate_lights, estimate_normals, run_normals
     from psctl.depth import integrate_normals, run_depth
     from psctl.errors import PsctlError, PsctlWarning
@@ -90,5 +93,6 @@ def __dir__() -> list[str]:
 
 
 __all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
-           "run_lights", "run_benchmark", "compare_methods", "run_depth", "open_capture", "load_images", "load_mask",
+           "run_lights", "run_benchmark", "compare_methods", "run_depth",
+           "run_calibrate", "calibrate_lights", "open_capture", "load_images", "load_mask",
            "angular_error", "PsctlError", "PsctlWarning"]

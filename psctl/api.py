@@ -619,14 +619,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"],
                                  label=label)
             if light_files:
-                from psctl.lights import write_light_files, write_lights_plot
+                from psctl.lights import image_list, write_light_files, write_lights_plot
 
                 write_light_files(stage, est.directions, est.intensities, SDPS_FILES)
                 write_lights_plot(stage / SDPS_FILES["lights"], est.directions, est.intensities, cap.lights,
                                   light_stats["light_mae"], cap.name)
                 if SDPS_FILES["light_images"] in light_files:  # one row per image used, in this order
-                    (stage / SDPS_FILES["light_images"]).write_text(
-                        "".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
+                    (stage / SDPS_FILES["light_images"]).write_text(image_list(cap), encoding="utf-8")
             # each file as written (bytes, modification time in ns: kept by the rename), so that a
             # later command can tell this run's files from ones replaced since (psctl depth's colours)
             report["written"] = {n: [st.st_size, st.st_mtime_ns] for n in names if n != "report.json"

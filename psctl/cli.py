@@ -48,6 +48,17 @@ def _eprint(line: str) -> None:
         print(line, file=sys.stderr)
 
 
+def _signal_name(number: int) -> str:
+    """SIGTERM for 15; the number where this platform has no such signal (Windows has no SIGPIPE,
+    which psctl train records when its reader goes away)."""
+    import signal
+
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return "SIGPIPE" if number == 13 else f"signal {number}"
+
+
 def _reader_gone(e: BaseException) -> bool:
     """A write to a pipe whose reader went away (`| head`): BrokenPipeError, or the exit 1 that
     click and Rich raise after catching one."""
@@ -432,6 +443,27 @@ def lights(
 
 
 @app.command(cls=_Command)
+def calibrate(
+    path: Annotated[Path, typer.Argument(help="Folder of images of a sphere, one per light in the object's order; mask.png: the sphere (or --circle).")],
+    sphere: Annotated[str, typer.Option("--sphere", "-s", help="chrome (a mirror ball: directions from its highlights) | matte (a white Lambertian ball: directions and intensities).")],
+    circle: Annotated[Optional[str], typer.Option("--circle", help="The sphere's outline as X,Y,R in pixels (the centre's column and row, the top-left pixel's centre at 0,0; the radius), instead of fitting one to mask.png.")] = None,
+    out: OutDir = None,
+    encoding: EncodingOpt = "auto",
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Calibrate lights with a chrome or matte sphere: light_directions.txt (and, matte, light_intensities.txt), lights.png, sphere.png."""
+    with _user_errors():
+        from psctl.calibrate import check_sphere
+
+        check_sphere(sphere)  # before the folder is read: a typo fails at once
+        from psctl.calibrate import render_calibrate, run_calibrate
+
+        _run(lambda progress: run_calibrate(path, sphere, out=out, circle=circle, progress=progress, encoding=encoding),
+             json_out, quiet, render_calibrate)
+
+
+@app.command(cls=_Command)
 def synth(
     out: Annotated[Path, typer.Argument(help="Output folder: one capture folder per object, plus objects.txt.")],
     preset: Annotated[str, typer.Option("--preset", "-p", help="syntest | dragon-svbrdf | blobby")],
@@ -603,7 +635,7 @@ def train(
         import signal
 
         why = ("--max-minutes" if not st.get("signal") else
-               "Ctrl-C (SIGINT)" if st["signal"] == signal.SIGINT else signal.Signals(st["signal"]).name)
+               "Ctrl-C (SIGINT)" if st["signal"] == signal.SIGINT else _signal_name(st["signal"]))
         state = "finished" if st["finished"] else f"stopped by {why} (continue with --resume {run_dir})"
         what = "light direction error" if method == "lcnet" else "MAE"
         said = (f"best synthetic validation {what} {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"
@@ -633,6 +665,11 @@ def main(prog_name: str | None = None) -> None:
     from psctl.errors import C_STDERR
 
     C_STDERR["silence"] = True  # libpng's own lines would break the one-line errors (not for library callers)
+    for stream in (sys.stdout, sys.stderr):
+        # a console or a redirect in a legacy code page (Windows' cp1252, LANG=C) cannot spell every file
+        # name: written as escapes, not a UnicodeEncodeError after the outputs are written
+        with contextlib.suppress(AttributeError, ValueError):
+            stream.reconfigure(errors="backslashreplace")
     try:
         app(prog_name=prog_name)
     finally:  # main() called in a notebook: later library calls keep their stderr

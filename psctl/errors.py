@@ -224,14 +224,14 @@ PYTHON_ARGS = {
     "--format": "formats", "--out": "out", "--light-distance": "light_distance", "--falloff": "falloff",
     "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
     "--benchmark": "benchmark", "--decode": "decode", "--K": "K", "--downsample": "downsample",
-    "--precision": "precision",
+    "--precision": "precision", "--sphere": "sphere", "--circle": "circle",
 }
 _SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
              "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",
              "`psctl eval`": "psctl.run_benchmark", "--albedo": "albedo=True"}
 # values an option may have in a message: quoted in the Python wording (method='sdps')
 _WORDS = ("auto|l2|ps-fcn-dagger|ps-fcn-n|ps-fcn|ensemble|ups-fcn|sdps|lcnet|cpu|cuda(?::\\d+)?|diligent|folder|"
-          "linear|srgb|shifted|lambertian|soft|argmax|poisson|bilateral|float32|bf16|fp16")
+          "linear|srgb|chrome|matte|shifted|lambertian|soft|argmax|poisson|bilateral|float32|bf16|fp16")
 
 
 def python_wording(text: str) -> str:

@@ -52,7 +52,8 @@ def default_diligent_root() -> Path:
     if os.environ.get("PSCTL_DATA"):
         data = Path(os.environ["PSCTL_DATA"])
         candidates += [data / "DiLiGenT" / "pmsData", data / "diligent" / "pmsData"]
-    candidates.append(Path.home() / ".cache" / "psctl" / "DiLiGenT" / "pmsData")
+    with contextlib.suppress(RuntimeError):  # no home folder (a container's arbitrary user id)
+        candidates.append(Path.home() / ".cache" / "psctl" / "DiLiGenT" / "pmsData")
     for c in candidates:
         if c.is_dir():
             return c

@@ -879,6 +879,19 @@ def light_errors(directions: np.ndarray, intensities: np.ndarray, gt_directions:
 
 # --- files and pictures -----------------------------------------------------------------------
 
+def image_list(cap: "Capture") -> str:
+    """light_images.txt's text: each image's path from the capture folder, with forward slashes
+    (a list written on Windows reads on Linux, and filenames.txt's reader takes it back), or in
+    full where there is no relative path (an image listed on another drive)."""
+    lines = []
+    for p in cap.image_paths:
+        try:
+            lines.append(Path(os.path.relpath(p, cap.path)).as_posix())
+        except ValueError:  # Windows: another drive
+            lines.append(Path(os.path.abspath(p)).as_posix())
+    return "".join(f"{n}\n" for n in lines)
+
+
 def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
                       names: dict[str, str] | None = None) -> dict[str, Path]:
     """light_directions.txt (N x 3) and light_intensities.txt (N x 3, grey) in DiLiGenT's format
@@ -922,14 +935,15 @@ def _segment(canvas: np.ndarray, p0: tuple[float, float], p1: tuple[float, float
     canvas[rows[ok], cols[ok]] = colour
 
 
-def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: np.ndarray | None = None,
+def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_directions: np.ndarray | None = None,
                 title: str | None = None, radius: int = 220, ints_range: tuple[float, float] = (0.2, 2.0)) -> np.ndarray:
     """Estimated (and true) light directions on the unit disk: [H, W, 3] in [0, 1].
 
     Orthographic view of the hemisphere from the camera: a direction (x, y, z) is drawn at
     (x, y), x right, y up (axes labelled +X, +Y); grey circles at 30, 60 and 90 degrees from the
     view axis. Estimates are filled dots coloured by intensity (jet over ``ints_range``, colour
-    bar on the right, labelled); ground truth, when given, is a white ring joined to its
+    bar on the right, labelled), or, with ``intensities`` None (directions only: a chrome
+    sphere's), all orange with no bar; ground truth, when given, is a white ring joined to its
     estimate by a grey line. A legend under the disk says which is which.
     """
     from psctl.io.report import _stamp, colour_bar, jet, text_bitmap
@@ -937,7 +951,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     s = 2  # text scale
     top, pad, bar_w, right, bottom = 20 * s, 12, 10 * s, 44 * s, 14 * s  # top: the title, then the bar's name
     side = 2 * (radius + pad)
-    legend = text_bitmap("ESTIMATE, COLOUR: RELATIVE INTENSITY", s)
+    legend = text_bitmap("ESTIMATE" if intensities is None else "ESTIMATE, COLOUR: RELATIVE INTENSITY", s)
     true = text_bitmap("TRUE", s)
     legend_w = 4 * s + 12 + legend.shape[1] + 6 * s + 16 + true.shape[1]  # with or without its TRUE: one size
     title_w = 4 * s + (text_bitmap(title, s).shape[1] if title else 0)
@@ -963,8 +977,9 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     lo, hi = ints_range
     span = max(hi - lo, 1e-12)  # (a range of one value: one label, every dot in its colour)
-    e = np.asarray(intensities, np.float64).reshape(-1)
-    colours = jet((e - lo) / span)  # clipped to the bar's ends, which then say so (> / <)
+    e = np.ones(len(d)) if intensities is None else np.asarray(intensities, np.float64).reshape(-1)
+    dot = (1.0, 0.6, 0.2)  # the legend's
+    colours = np.tile(dot, (len(d), 1)) if intensities is None else jet((e - lo) / span)  # clipped to the bar's ends
     if gt_directions is not None:
         g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
         for k in range(len(d)):
@@ -979,12 +994,13 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     upper, lower = max(labels), min(labels)  # the bar's ends
     labels[upper] = (">" if (e > hi).any() else "") + labels[upper]
     labels[lower] = ("<" if (e < lo).any() else "") + labels[lower]
-    colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w, labels, s)
-    _stamp(canvas, text_bitmap("INT.", s), top + pad - 9 * s, side + 2 * s)
+    if intensities is not None:
+        colour_bar(canvas, top + pad, side + 4 * s, side - 2 * pad, bar_w, labels, s)
+        _stamp(canvas, text_bitmap("INT.", s), top + pad - 9 * s, side + 2 * s)
     # legend: a dot, then a ring with its line (when there is ground truth)
     y = top + side + 3 * s
     mid = y + 3.5 * s
-    _disk(canvas, mid, 4 * s + 4, 3.5, (1.0, 0.6, 0.2))
+    _disk(canvas, mid, 4 * s + 4, 3.5, dot)
     x = 4 * s + 12
     _stamp(canvas, legend, y, x)
     x += legend.shape[1] + 6 * s
@@ -996,7 +1012,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray, gt_directions: 
     return canvas
 
 
-def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
+def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray | None,
                       gt_directions: np.ndarray | None = None, light_mae: float | None = None,
                       name: str | None = None) -> None:
     """lights.png (8-bit RGB): ``name`` (the object's) and, when known, the mean direction error
@@ -1183,7 +1199,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             write_outputs_list(stage, names, "lights")
             write_light_files(stage, est.directions, est.intensities)
             if subset:
-                (stage / SUBSET_FILE).write_text("".join(f"{os.path.relpath(p, cap.path)}\n" for p in cap.image_paths))
+                (stage / SUBSET_FILE).write_text(image_list(cap), encoding="utf-8")
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
                               errors["light_mae"], cap.name)
             report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)

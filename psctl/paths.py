@@ -22,4 +22,7 @@ def checkout_root() -> Path | None:
 def user_data_dir() -> Path:
     """$XDG_DATA_HOME/psctl, else ~/.local/share/psctl: psctl's folder for a user's files."""
     base = os.environ.get("XDG_DATA_HOME") or "~/.local/share"
-    return Path(base).expanduser() / "psctl"
+    try:
+        return Path(base).expanduser() / "psctl"
+    except RuntimeError:  # no $HOME and no passwd entry (a container run under an arbitrary user id): as
+        return Path(base) / "psctl"  # written, a folder that is not there (messages name it so)

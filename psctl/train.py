@@ -289,7 +289,7 @@ def load_config(path: str | os.PathLike | None) -> dict:
     if not path.is_file():
         raise PsctlError(path, not_a_file(path, "config file is missing"))
     try:
-        raw = yaml.load(path.read_text(), Loader=_unique_key_loader())
+        raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_unique_key_loader())
     except yaml.YAMLError as e:
         raise PsctlError(path, f"not valid YAML ({' '.join(str(e).split())})") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -600,7 +600,7 @@ def _portable(path: str | os.PathLike) -> str:
     run folder copied to another machine (run from the repository root there) still finds it."""
     p = Path(path).resolve()
     try:
-        return str(p.relative_to(Path.cwd().resolve()))
+        return p.relative_to(Path.cwd().resolve()).as_posix()  # a run started on Windows resumes elsewhere
     except ValueError:
         return str(p)
 
@@ -863,7 +863,7 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
     it started with (``config`` may only lengthen it), the same frozen LCNet. Returns (state,
     the recipe to go on with)."""
     try:
-        saved = json.loads(state_file.read_text())
+        saved = json.loads(state_file.read_text(encoding="utf-8"))
         if not isinstance(saved, dict) or "method" not in saved:
             raise ValueError("not a run's state")
     except (OSError, UnicodeDecodeError, ValueError) as e:

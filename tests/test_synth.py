@@ -892,6 +892,30 @@ def test_an_interrupted_synth_run_leaves_the_earlier_set_as_it_was(tmp_path, mon
     monkeypatch.setattr(W.os, "replace", real_replace)
     after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
     assert moves == [out / "blobby_02"] and after == before
+    # putting the earlier set back fails too (a file held open on Windows): its files are kept in the
+    # staging folder's backup, which the error names, never deleted with the staging folder
+    moves.clear()
+
+    def no_way_back(src, dst):
+        if ".earlier" in str(src):
+            raise PermissionError(13, "Permission denied")
+        full_disk(src, dst)
+
+    monkeypatch.setattr(W.os, "replace", no_way_back)
+    with pytest.raises(PsctlError, match="so did putting the earlier one back") as e:
+        W.write_preset(out, "blobby", seed=5, size=24, n_lights=6, k=3)
+    monkeypatch.setattr(W.os, "replace", real_replace)
+    kept = Path(e.value.path)
+    assert kept.name == ".earlier" and kept.parent.parent == out
+    # (each earlier file is set aside before its new one moves in: all three were)
+    assert sorted(p.name for p in kept.iterdir()) == ["blobby_01", "blobby_02", "objects.txt"]
+    assert {p.relative_to(kept): p.read_bytes() for p in sorted(kept.rglob("*")) if p.is_file()} == before
+    for p in kept.iterdir():  # the user moves them back, as the message says
+        shutil.rmtree(out / p.name, ignore_errors=True) if (out / p.name).is_dir() else None
+        real_replace(p, out / p.name)
+    shutil.rmtree(kept.parent)
+    after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert after == before
     # object folders of psctl synth without objects.txt: part of a set, not a benchmark
     (out / "objects.txt").unlink()
     with pytest.raises(PsctlError, match="holds psctl synth objects .* but no objects.txt"):

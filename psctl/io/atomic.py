@@ -141,10 +141,11 @@ def outputs_list(command: str) -> str:
 def read_small_text(path: str | os.PathLike, limit: int = 1 << 20) -> str:
     """A file psctl wrote itself (an output list, a report), read only when it is a regular file
     of at most ``limit`` bytes: a FIFO there would block the read for ever, a link to /dev/zero
-    fill the memory (a hostile-input audit). Else OSError, as for a missing file."""
+    fill the memory (a hostile-input audit). Else OSError, as for a missing file. (Windows has no
+    O_NONBLOCK, and no FIFOs for it to guard against: the type check after opening is enough.)"""
     import stat
 
-    with open(path, "rb", opener=lambda p, flags: os.open(p, flags | os.O_NONBLOCK)) as f:
+    with open(path, "rb", opener=lambda p, flags: os.open(p, flags | getattr(os, "O_NONBLOCK", 0))) as f:
         st = os.fstat(f.fileno())
         if not stat.S_ISREG(st.st_mode):
             raise OSError(f"{path}: not a regular file")
@@ -164,7 +165,7 @@ def read_outputs_list(out_dir: Path, command: str) -> list[str]:
 
 def write_outputs_list(stage: Path, names: Iterable[str], command: str) -> None:
     """Record in ``stage`` (staged with the outputs) the files this ``psctl COMMAND`` run writes."""
-    (Path(stage) / outputs_list(command)).write_text("".join(f"{n}\n" for n in names))
+    (Path(stage) / outputs_list(command)).write_text("".join(f"{n}\n" for n in names), encoding="utf-8")
 
 
 def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: list[str] | None = None) -> list[str]:
@@ -214,6 +215,8 @@ def _machine() -> str:
 
 
 def _running(pid: int) -> bool:
+    if os.name == "nt":  # there os.kill(pid, 0) sends Ctrl-C to the console (CTRL_C_EVENT is 0): no sweep
+        return True
     try:
         os.kill(pid, 0)  # no signal sent: only whether the process exists
     except ProcessLookupError:

@@ -42,7 +42,7 @@ AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "a
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's
 # eval.png and compare.png).
-_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread)$",
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread|sphere)$",
                          re.I)
 
 Progress = Callable[[int], None]
@@ -260,6 +260,9 @@ def _read_list(path: Path, what: str = "images") -> list[str]:
     # (" 003.png" and "003.png" both present: the one listed, not its neighbour)
     names = [ln if ln != ln.strip() and os.path.lexists(path.parent / ln) else ln.strip()
              for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    if os.sep == "/":  # a list written on Windows (imgs\001.png) names imgs/001.png, unless a file has that very name
+        names = [n.replace("\\", "/") if "\\" in n and not os.path.lexists(path.parent / n)
+                 and os.path.lexists(path.parent / n.replace("\\", "/")) else n for n in names]
     if not names:
         raise PsctlError(path, f"lists no {what}")
     return names

@@ -105,7 +105,7 @@ def load_merl(path: str | os.PathLike | None = None, device: str | torch.device 
     """Read the ABC table (see ``find_merl_file`` for where it is looked for)."""
     path = Path(path) if path is not None else find_merl_file()
     try:
-        mats = json.loads(path.read_text())["materials"]
+        mats = json.loads(path.read_text(encoding="utf-8"))["materials"]
         names = tuple(mats)
         rows = [mats[n] for n in names]
         kd = torch.tensor([r["kD"] for r in rows], dtype=torch.float32)

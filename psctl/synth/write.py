@@ -334,6 +334,11 @@ def _check_synth_object(folder: Path) -> None:
                                  "it with the earlier object: move it away, or choose a new or empty folder")
 
 
+class _RollbackFailed(PsctlError):
+    """A failed swap that could not put the earlier set back: its files are left in the backup
+    folder this names, which the caller must not delete."""
+
+
 def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
     """Move the staged ``names`` into ``out``, objects.txt (``listing``) last. What they replace
     goes to a backup inside ``stage`` first; should a move fail (disk full, Ctrl-C), everything
@@ -356,11 +361,19 @@ def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
                 os.replace(stage / name, out / name)
                 new.append(name)
         write_text_atomic(out / "objects.txt", listing)
-    except BaseException:
-        for name in new:
-            os.replace(out / name, stage / name)
-        for name in old:
-            os.replace(backup / name, out / name)
+    except BaseException as e:
+        try:
+            for name in reversed(new):
+                os.replace(out / name, stage / name)
+                new.remove(name)
+            for name in reversed(old):
+                os.replace(backup / name, out / name)
+                old.remove(name)
+        except BaseException as again:  # (an antivirus holding a file on Windows, a full disk): keep them
+            raise _RollbackFailed(backup, f"moving the new set in failed ({type(e).__name__}: {e}), and so did putting "
+                                          f"the earlier one back ({type(again).__name__}: {again}): its files "
+                                          f"{', '.join(old) or '(none)'} are kept here; move them back into {out}"
+                                  ) from None
         raise
 
 
@@ -422,6 +435,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     # interrupted run leaves the earlier set as it was (a hidden folder at worst: a kill -9),
     # never some new objects beside old ones or a set that looks complete and is not.
     stage = working_folder(out, ".psctl-synth.")
+    keep = False
     try:
         for i, obj in enumerate(objs):
             key = id(obj.view)
@@ -455,12 +469,17 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
             write_image(stage / "preview.png", _sheet(sheet_rows), "uint8")
             preview_path = out / "preview.png"
-        _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
-                 "".join(f"{o.name}\n" for o in objs))
+        try:
+            _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
+                     "".join(f"{o.name}\n" for o in objs))
+        except _RollbackFailed:
+            keep = True  # the earlier set's files are in the stage's backup: never deleted
+            raise
         created = []  # the set is in place: the folders are its
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        remove_empty(created)
+        if not keep:
+            shutil.rmtree(stage, ignore_errors=True)
+            remove_empty(created)
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
     # here is psctl synth's), so that the folder holds this set alone
     names = {o.name for o in objs}

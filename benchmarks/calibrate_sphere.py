@@ -1,0 +1,126 @@
+"""Accuracy of psctl calibrate's sphere calibration on rendered spheres (run by hand).
+
+    python benchmarks/calibrate_sphere.py [--quick] [--sweep] [--bits 8|16]
+
+Renders spheres with psctl's own shading (psctl.synth.render.shade) under known lights and
+compares psctl.calibrate.calibrate_lights' directions (and, matte, intensities) with them:
+
+- chrome: GGX mirrors of roughness 0.01-0.05 and MERL's chrome (ABC fit), exposed so that the
+  highlight saturates (peak 4x full scale) or not (0.8x), and a glossy plastic ball (diffuse
+  0.8, GGX roughness 0.1: a highlight over diffuse shading, as DiLiGenT's ball);
+- matte: Lambertian, Lambertian with a faint GGX sheen (specular 0.04, roughness 0.3), and the
+  glossy ball.
+
+Each image is rendered at 4 x 4 samples per pixel and averaged (a sensor integrates over its
+pixels; point samples would miss a mirror's sub-pixel highlight), with sensor noise, clipped and
+rounded to 16 or 8 bits. Spheres of radius 100 and 30 pixels; 40 lights within 60 degrees of
+the view axis, intensities uniform in [0.5, 1.5]; the outline from the rendered mask. ``--sweep``
+also runs the defaults' alternatives (chrome's highlight level and base percentile; matte's lit
+and trim), which chose them (docs/calibration.md). Prints one line per case: mean and largest
+direction error (degrees), intensity RE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+import torch
+
+from psctl.calibrate import DEFAULT_CALIBRATE, calibrate_lights
+from psctl.lights import intensity_error
+from psctl.metrics import light_direction_error
+from psctl.synth.materials import ggx, lambertian, load_merl, merl_materials
+from psctl.synth.render import sensor_noise, shade
+from psctl.synth.shapes import sphere_gbuffer
+
+SS = 4  # samples per pixel side
+
+
+def lights(n: int, gen: torch.Generator, max_zenith: float = 60.0) -> tuple[torch.Tensor, torch.Tensor]:
+    cos_lo = math.cos(math.radians(max_zenith))
+    z = cos_lo + (1 - cos_lo) * torch.rand(n, generator=gen)
+    phi = 2 * math.pi * torch.rand(n, generator=gen)
+    s = (1 - z * z).sqrt()
+    d = torch.stack([s * phi.cos(), s * phi.sin(), z], 1)
+    e = 0.5 + torch.rand(n, generator=gen)
+    return d, e
+
+
+def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch.Tensor, bits: int,
+           exposure: float, gen: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """[N, size, size, 3] images and the [size, size] mask of a sphere of radius_px pixels."""
+    big = size * SS
+    g = sphere_gbuffer(big, radius=2 * radius_px / size)
+    n = g.normals.reshape(1, 3, -1)
+    one = torch.ones(1)
+    if material.startswith("ggx"):  # a mirror: dark diffuse, white specular
+        mat = ggx(torch.full((1, 3), 0.02), torch.ones(1, 3), torch.tensor([float(material[3:])]), metal=torch.ones(1))
+    elif material == "merl-chrome":
+        table = load_merl()
+        mat = merl_materials(table, [table.index("chrome")])
+    elif material == "glossy":  # a shiny plastic ball (DiLiGenT's ball is one): a highlight over diffuse shading
+        mat = ggx(torch.full((1, 3), 0.8), torch.full((1, 3), 0.5), 0.1 * one, ior=1.5 * one)
+    elif material == "lambertian":
+        mat = lambertian(torch.full((1, 3), 0.8))
+    elif material == "sheen":
+        mat = ggx(torch.full((1, 3), 0.8), torch.full((1, 3), 0.04), 0.3 * one, ior=1.5 * one)
+    else:
+        raise ValueError(material)
+    out = []
+    for k in range(len(d)):  # one light at a time: 4 x 4 supersampled views are large
+        img = shade(n, d[None, k:k + 1], mat, intensities=e[None, k:k + 1])[0, 0]  # [3, P]
+        img = img.reshape(3, size, SS, size, SS).mean((2, 4))
+        out.append(img.permute(1, 2, 0))
+    imgs = torch.stack(out)
+    mask = g.mask.reshape(size, SS, size, SS).float().mean((1, 3)) >= 0.5
+    peak = float(imgs.amax()) if material in ("lambertian", "sheen") else float(imgs.flatten(1).amax(1).median())
+    # (the glossy ball, too, exposed for its highlight, as a calibration would be: its diffuse part is
+    # then a quarter of the highlight's height)
+    imgs = sensor_noise(imgs * (exposure / max(peak, 1e-12)), gen)
+    q = float(2**bits - 1)
+    imgs = torch.round(imgs.clamp(0, 1) * q).to(torch.int32).numpy()
+    return imgs.astype(np.uint16 if bits == 16 else np.uint8), mask.numpy()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="the defaults only, radius 100, 16 bits")
+    ap.add_argument("--sweep", action="store_true", help="also the alternatives to the defaults")
+    ap.add_argument("--bits", type=int, choices=(8, 16), help="only this bit depth")
+    args = ap.parse_args()
+    gen = torch.Generator().manual_seed(0)
+    d, e = lights(40, gen)
+    cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
+             ("glossy", 1.0), ("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]
+    sizes = [(256, 100.0)] if args.quick else [(256, 100.0), (96, 30.0)]
+    bit_depths = [args.bits] if args.bits else [16] if args.quick else [16, 8]
+    print(f"defaults: {DEFAULT_CALIBRATE}")
+    for size, r in sizes:
+        for bits in bit_depths:
+            n_glossy = 0
+            for material, exposure in cases:
+                imgs, mask = render(material, size, r, d, e, bits, exposure, gen)
+                # the glossy ball twice: as a mirror's stand-in, then as a matte one's
+                sphere = "matte" if material in ("lambertian", "sheen") or (material, n_glossy) == ("glossy", 1) \
+                    else "chrome"
+                n_glossy += material == "glossy"
+                configs = [{}]
+                if args.sweep:
+                    configs += ([{"highlight": h, "base": b} for b in (0.0, 50.0, 90.0) for h in (0.1, 0.3, 0.5, 0.7)]
+                                if sphere == "chrome"
+                                else [{"lit": v} for v in (0.05, 0.1, 0.2, 0.3)] + [{"trim": v} for v in (2.0, 3.0, 4.0)])
+                for cfg in configs:
+                    res = calibrate_lights(imgs, sphere, mask=mask, config=cfg)
+                    err = light_direction_error(res.directions, d.numpy())
+                    re = "" if res.intensities is None else \
+                        f"  RE {intensity_error(res.intensities.mean(1), e.numpy()):.4f}"
+                    label = ",".join(f"{k}={v}" for k, v in cfg.items()) or "defaults"
+                    print(f"r {r:5.0f}  {bits:2d} bit  {material:12s} x{exposure:<4g} {sphere:6s} {label:14s} "
+                          f"mean {err.mean():.3f}  max {err.max():.3f}{re}  (circle r {res.circle.r:.2f})",
+                          flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,642 @@
+"""Light calibration from a sphere photographed under the object's lights (``psctl calibrate``).
+
+Capture rigs calibrate their lights with a sphere of known shape placed where the object goes:
+
+- **chrome** (a mirror ball): each light shows as one small highlight. Its position on the
+  sphere gives the surface normal n there, and the light's direction is the view direction
+  mirrored about n: l = 2 (n . v) n - v. Directions only: a mirror's highlight is usually
+  saturated, and says nothing reliable about the light's intensity.
+- **matte** (a white or grey ball, as near Lambertian as can be had): each lit pixel obeys
+  I = n . b with b = e * albedo * l, so a least-squares fit over the lit pixels (attached
+  shadows, saturated pixels and highlights trimmed) gives the direction b / |b| and, per colour
+  channel, the relative intensity.
+
+The sphere's outline comes from mask.png (a circle fitted to its edge), from ``circle`` (x, y, r
+in pixels), or, for a matte sphere without either, from the brightest value each pixel takes
+over the images. Pixel coordinates: x is the column and y the row, the top-left pixel's centre
+is (0, 0). The camera is taken as orthographic (view direction (0, 0, 1) at every pixel), as
+psctl's methods take it; docs/calibration.md says what that costs off the optical axis.
+
+Directions are unit vectors with x right, y up and z toward the camera (DiLiGenT's convention).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Iterable
+
+import numpy as np
+
+from psctl.errors import PsctlError, check_bool, check_path, check_progress
+
+if TYPE_CHECKING:
+    from psctl.errors import ProgressFactory
+    from psctl.io.capture import Capture
+
+SPHERES = ("chrome", "matte")
+
+DEFAULT_CALIBRATE = {
+    # share of the radius whose pixels are used: the outermost ones mix sphere and background, and
+    # their steep normals turn a small error in the outline into a large angle
+    "rim": 0.97,
+    # chrome: a highlight is the connected region above this fraction of its brightest value;
+    # its centroid, weighted by how far each pixel is above that level, is the highlight's position
+    # level = base + highlight * (peak - base), base the sphere's ``base``-th percentile (the diffuse
+    # glow of a ball that is glossy rather than a mirror, which would pull a low level's centroid);
+    # 0.5 and 90 of highlight 0.1-0.7 and base 0, 50, 90 had the lowest error summed over
+    # benchmarks/calibrate_sphere.py's mirrors and glossy ball (docs/calibration.md)
+    "highlight": 0.5,
+    "base": 90.0,
+    # matte: pixels whose fitted shading n . l is below ``lit`` times |b| are left out (the shadow's edge,
+    # where the ball's surface is least Lambertian), as are residuals beyond ``trim`` robust
+    # standard deviations (highlights, dust); ``iterations`` rounds of fit and trim (lit 0.2 of
+    # 0.05-0.3 and trim 4 of 2-4, chosen likewise on its matte and glossy balls)
+    "lit": 0.2,
+    "trim": 4.0,
+    "iterations": 5,
+    "min_radius": 8.0,  # pixels: smaller spheres give directions too coarse to be worth writing
+    "min_pixels": 30,  # matte: lit pixels needed to fit a light
+}
+
+OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
+                "lights": "lights.png", "sphere": "sphere.png"}
+REPORT_FILE = "calibration_report.json"
+COMMAND = "calibrate"  # the outputs list's name (psctl.io.atomic.outputs_list)
+
+
+@dataclass(frozen=True)
+class Circle:
+    """The sphere's outline in the image: centre (x column, y row; pixel centres at whole numbers)
+    and radius r in pixels. ``source``: where it came from (mask.png's name, "--circle", "images");
+    ``rms``: the fitted outline's RMS distance from the circle in pixels (None when given)."""
+
+    x: float
+    y: float
+    r: float
+    source: str
+    rms: float | None = None
+
+
+# --- the sphere's outline ----------------------------------------------------------------------
+
+def _edge_points(mask: np.ndarray) -> np.ndarray:
+    """[P, 2] (x, y): midpoints between each pair of 4-neighbour pixels of which one is in the
+    mask and one is not. Where the mask meets the image's border there is no pair, so a sphere cut
+    by the border is fitted to its own outline only."""
+    pts = []
+    for dy, dx in ((0, 1), (1, 0)):
+        a, b = mask[: mask.shape[0] - dy, : mask.shape[1] - dx], mask[dy:, dx:]
+        ys, xs = np.nonzero(a ^ b)
+        pts.append(np.stack([xs + dx / 2, ys + dy / 2], 1))
+    return np.concatenate(pts).astype(np.float64)
+
+
+def _circle_fit(p: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares circle through points [P, 2]: the algebraic fit (x^2 + y^2 + D x + E y + F = 0),
+    then Gauss-Newton on the geometric distances (the algebraic fit is biased on short arcs)."""
+    A = np.c_[p, np.ones(len(p))]
+    D, E, F = np.linalg.lstsq(A, -(p**2).sum(1), rcond=None)[0]
+    cx, cy = -D / 2, -E / 2
+    r = np.sqrt(max(cx * cx + cy * cy - F, 1e-12))
+    for _ in range(10):
+        dx, dy = p[:, 0] - cx, p[:, 1] - cy
+        d = np.maximum(np.hypot(dx, dy), 1e-12)
+        J = np.stack([-dx / d, -dy / d, -np.ones_like(d)], 1)
+        step = np.linalg.lstsq(J, -(d - r), rcond=None)[0]
+        cx, cy, r = cx + step[0], cy + step[1], r + step[2]
+        if np.abs(step).max() < 1e-6:
+            break
+    return float(cx), float(cy), float(abs(r))
+
+
+def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None,
+               config: dict | None = None) -> Circle:
+    """The circle that best fits the outline of ``mask``'s largest connected region.
+
+    Edge points more than max(1.5 px, 3 robust standard deviations) from a first fit are left
+    out and the circle fitted again (a stand or a fingerprint cutting into the outline). A
+    ``PsctlError`` naming ``where`` when the region is too small, or not round: its outline
+    further than max(1 px, 2 % of r) from the circle on average, or under half of it on the circle.
+    """
+    from scipy import ndimage
+
+    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    mask = np.asarray(mask, bool)
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    if n == 0:
+        raise PsctlError(where, "holds no sphere: no pixel is set")
+    if n > 1:  # the largest region: a speck of dust or a label elsewhere in the mask is not the sphere
+        sizes = np.bincount(labels.ravel())[1:]
+        mask = labels == 1 + int(sizes.argmax())
+    mask = ndimage.binary_fill_holes(mask)  # a highlight cut out of a mask drawn by threshold
+    p = _edge_points(mask)
+    if len(p) < 12:
+        raise PsctlError(where, f"the sphere is too small to fit a circle to ({int(mask.sum())} pixels)")
+    cx, cy, r = _circle_fit(p)
+    res = np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r
+    keep = np.abs(res) <= max(1.5, 3 * 1.4826 * float(np.median(np.abs(res))))
+    if keep.sum() >= 12 and not keep.all():
+        cx, cy, r = _circle_fit(p[keep])
+        res = np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r
+        keep = np.abs(res) <= max(1.5, 3 * 1.4826 * float(np.median(np.abs(res[keep]))))
+    rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    if r < cfg["min_radius"]:
+        raise PsctlError(where, f"the sphere is too small: radius {r:.1f} pixels (at least {cfg['min_radius']:g})")
+    if rms > max(1.0, 0.02 * r) or keep.mean() < 0.5:
+        raise PsctlError(where, f"is not round: its outline lies {float(np.sqrt(np.mean(res ** 2))):.1f} pixels from "
+                                f"the best circle (x {cx:.1f}, y {cy:.1f}, r {r:.1f}) on average, "
+                                f"{1 - keep.mean():.0%} of it further than 1.5 pixels; psctl calibrate needs "
+                                "the sphere's own outline (or --circle X,Y,R)")
+    return Circle(cx, cy, r, source, round(rms, 4))
+
+
+def check_circle(circle: "Circle | str | Iterable[float]") -> Circle:
+    """A ``Circle`` from one, from "X,Y,R" (``--circle``) or from three numbers."""
+    if isinstance(circle, Circle):
+        values = [circle.x, circle.y, circle.r]
+    else:
+        try:
+            values = [float(v) for v in (circle.split(",") if isinstance(circle, str) else circle)]
+        except (TypeError, ValueError):
+            values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise PsctlError(None, f"--circle must be X,Y,R (three numbers: the centre's column and row and the radius, "
+                               f"in pixels), not {circle!r}")
+    if values[2] < DEFAULT_CALIBRATE["min_radius"]:
+        raise PsctlError(None, f"--circle's radius must be at least {DEFAULT_CALIBRATE['min_radius']:g} pixels "
+                               f"(got {values[2]:g})")
+    source = circle.source if isinstance(circle, Circle) else "--circle"
+    return Circle(*values, source)
+
+
+def circle_box(circle: Circle, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The rows and columns of the image that the circle covers (one pixel of margin). A
+    ``PsctlError`` when it misses the image."""
+    h, w = shape
+    y0, y1 = max(int(np.floor(circle.y - circle.r)) - 1, 0), min(int(np.ceil(circle.y + circle.r)) + 2, h)
+    x0, x1 = max(int(np.floor(circle.x - circle.r)) - 1, 0), min(int(np.ceil(circle.x + circle.r)) + 2, w)
+    if y1 - y0 < 2 or x1 - x0 < 2:
+        raise PsctlError(None, f"--circle (x {circle.x:g}, y {circle.y:g}, r {circle.r:g}) lies outside the "
+                               f"{w} x {h} images")
+    return slice(y0, y1), slice(x0, x1)
+
+
+def sphere_normals(circle: Circle, box: tuple[slice, slice], rim: float = DEFAULT_CALIBRATE["rim"]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The sphere's normals over ``box`` of the image: ([h, w, 3] float64 unit vectors, x right,
+    y up, z toward the camera; [h, w] bool, the pixels within ``rim`` * r of the centre)."""
+    ys = np.arange(box[0].start, box[0].stop, dtype=np.float64)
+    xs = np.arange(box[1].start, box[1].stop, dtype=np.float64)
+    nx = (xs[None, :] - circle.x) / circle.r
+    ny = -(ys[:, None] - circle.y) / circle.r  # rows grow downward, y up
+    nx, ny = np.broadcast_arrays(nx, ny)
+    rr = nx * nx + ny * ny
+    inside = rr <= rim * rim
+    nz = np.sqrt(np.clip(1.0 - rr, 0.0, None))
+    return np.stack([nx, ny, nz], -1) * inside[..., None], inside
+
+
+# --- one image ---------------------------------------------------------------------------------
+
+def mirror_direction(normal: np.ndarray) -> np.ndarray:
+    """The light direction whose mirror reflection about ``normal`` [3] reaches the camera
+    (orthographic, view (0, 0, 1)): l = 2 (n . v) n - v."""
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    return 2.0 * n[2] * n - np.array([0.0, 0.0, 1.0])
+
+
+def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAULT_CALIBRATE["highlight"],
+                   base: float = DEFAULT_CALIBRATE["base"]) -> dict | None:
+    """The brightest spot inside the sphere: {"x", "y" (sub-pixel, in ``gray``'s pixels), "peak",
+    "pixels" (its size), "spots" (regions above the level: more than one is a second
+    reflection)}; None when the sphere is black. The spot is the connected region above
+    b + ``fraction`` (peak - b), b the ``base``-th percentile of the sphere's values, around the
+    brightest pixel; its position the centroid weighted by each pixel's height above that level."""
+    from scipy import ndimage
+
+    g = np.where(inside, gray, -np.inf)
+    iy, ix = np.unravel_index(int(np.argmax(g)), g.shape)
+    peak = float(g[iy, ix])
+    if not peak > 0:
+        return None
+    b = max(float(np.percentile(gray[inside], base)), 0.0) if base > 0 else 0.0
+    level = b + fraction * (peak - b)
+    labels, spots = ndimage.label(g > level, structure=np.ones((3, 3), bool))
+    spot = labels == labels[iy, ix]
+    w = np.where(spot, gray - level, 0.0)
+    ys, xs = np.nonzero(spot)
+    ww = w[ys, xs]
+    return {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": peak,
+            "pixels": int(spot.sum()), "spots": int(spots)}
+
+
+def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config: dict | None = None
+                ) -> dict | None:
+    """Fit one light to a Lambertian sphere's image: I = max(n . b, 0) per pixel, b = e l.
+
+    ``rgb`` [h, w, 3] linear, ``normals`` [h, w, 3], ``usable`` [h, w] bool (inside the rim, not
+    saturated). The grey values (channel mean) give the direction; each channel's intensity is
+    then its least-squares scale of the fitted shading n . l. Returns {"direction" [3],
+    "intensity" [3], "pixels" (used in the last fit), "rms" (their residual over the mean value)},
+    or None when fewer than ``min_pixels`` are lit."""
+    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    gray = rgb.mean(-1)
+    # first guess, the lit part: above ``lit`` of a bright level that a highlight does not set
+    top = float(np.percentile(gray[usable], 90)) if usable.any() else 0.0
+    sel = usable & (gray > cfg["lit"] * top)
+    b = None
+    for _ in range(int(cfg["iterations"])):
+        if sel.sum() < cfg["min_pixels"]:
+            return None
+        N, g = normals[sel], gray[sel]
+        b = np.linalg.lstsq(N, g, rcond=None)[0]
+        e = float(np.linalg.norm(b))
+        if not e > 0:
+            return None
+        shade = normals @ b
+        res = gray - shade
+        sigma = 1.4826 * float(np.median(np.abs(res[sel]))) + 1e-6 * top
+        new = usable & (shade > cfg["lit"] * e) & (np.abs(res) <= cfg["trim"] * sigma)
+        if np.array_equal(new, sel):
+            break
+        sel = new
+    if b is None or sel.sum() < cfg["min_pixels"]:
+        return None
+    d = b / np.linalg.norm(b)
+    s = normals[sel] @ d
+    ints = (rgb[sel] * s[:, None]).sum(0) / max(float((s * s).sum()), 1e-12)
+    res = gray[sel] - normals[sel] @ b
+    mean = float(gray[sel].mean())
+    return {"direction": d, "intensity": ints, "pixels": int(sel.sum()),
+            "rms": float(np.sqrt(np.mean(res**2)) / mean) if mean > 0 else None}
+
+
+# --- many images ---------------------------------------------------------------------------------
+
+@dataclass
+class SphereLights:
+    """What a calibration found: ``directions`` [N, 3] unit vectors, ``intensities`` [N, 3]
+    (matte; scaled to a mean of 1) or None (chrome), ``circle``, and per image ``images``: for
+    chrome {"highlight": [x, y] in the image's pixels, "peak", "pixels", "spots"}, for matte
+    {"pixels", "rms"}. ``box``: the part of the images read (the circle's), ``brightest`` [h, w]
+    each of its pixels' brightest grey value over the images (sphere.png)."""
+
+    sphere: str
+    circle: Circle
+    directions: np.ndarray
+    intensities: np.ndarray | None
+    images: list[dict]
+    box: tuple[slice, slice]
+    brightest: np.ndarray = field(repr=False)
+
+
+class _Calibrator:
+    """Image by image (the folder reader streams them): each one's light, from the part of the
+    image inside ``box``."""
+
+    def __init__(self, sphere: str, circle: Circle, box: tuple[slice, slice], config: dict):
+        self.sphere, self.circle, self.box, self.cfg = sphere, circle, box, config
+        self.normals, self.inside = sphere_normals(circle, box, config["rim"])
+        if not self.inside.any():
+            raise PsctlError(None, f"the sphere (x {circle.x:.1f}, y {circle.y:.1f}, r {circle.r:.1f}) has no pixel "
+                                   "inside the images")
+        self.directions: list[np.ndarray] = []
+        self.intensities: list[np.ndarray] = []
+        self.images: list[dict] = []
+        self.brightest: np.ndarray | None = None  # per pixel over the images: sphere.png
+
+    def add(self, rgb: np.ndarray, saturated: np.ndarray | None = None, name: Path | str | None = None) -> None:
+        """``rgb`` [h, w, 3] the image inside ``box``; ``saturated`` [h, w] its clipped pixels."""
+        gray = rgb.mean(-1)
+        self.brightest = gray.copy() if self.brightest is None else np.maximum(self.brightest, gray)
+        if not np.isfinite(rgb[self.inside]).all():
+            raise PsctlError(name, "holds NaN or infinite values on the sphere")
+        if self.sphere == "chrome":
+            spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"])
+            if spot is None:
+                raise PsctlError(name, "is black on the sphere: there is no highlight to locate (a light that did "
+                                       "not fire?)")
+            x, y = spot["x"] + self.box[1].start, spot["y"] + self.box[0].start
+            n = np.array([(x - self.circle.x) / self.circle.r, -(y - self.circle.y) / self.circle.r, 0.0])
+            n[2] = np.sqrt(max(1.0 - n[0] ** 2 - n[1] ** 2, 0.0))
+            self.directions.append(mirror_direction(n))
+            self.images.append({"highlight": [round(x, 3), round(y, 3)], "peak": round(spot["peak"], 6),
+                                "pixels": spot["pixels"], "spots": spot["spots"]})
+        else:
+            usable = self.inside if saturated is None else self.inside & ~saturated
+            fit = matte_light(rgb, self.normals, usable, self.cfg)
+            if fit is None:
+                raise PsctlError(name, f"has too few lit pixels on the sphere to fit a light (fewer than "
+                                       f"{self.cfg['min_pixels']} unsaturated ones): a light that did not fire, or "
+                                       "one behind the sphere?")
+            self.directions.append(fit["direction"])
+            self.intensities.append(fit["intensity"])
+            self.images.append({"pixels": fit["pixels"], "rms": None if fit["rms"] is None else round(fit["rms"], 5)})
+
+    def result(self) -> SphereLights:
+        ints = None
+        if self.sphere == "matte":
+            ints = np.array(self.intensities, np.float64)
+            scale = float(ints.mean())
+            ints = ints / scale if scale > 0 else ints
+        return SphereLights(self.sphere, self.circle, np.array(self.directions, np.float64), ints, self.images,
+                            self.box, self.brightest)
+
+
+def check_sphere(sphere: str) -> str:
+    if sphere not in SPHERES:
+        raise PsctlError(None, f"unknown --sphere {sphere!r}; choose chrome (a mirror ball: directions) or matte "
+                               "(a white Lambertian ball: directions and intensities)")
+    return sphere
+
+
+def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = None,
+                     circle: "Circle | str | Iterable[float] | None" = None, config: dict | None = None
+                     ) -> SphereLights:
+    """Light directions (and, for a matte sphere, intensities) from images of a sphere.
+
+    Args:
+        images: [N, H, W, 3] or [N, H, W] linear images of the sphere, one per light, as captured
+            (not divided by any intensities). Values at or above 1.0 count as saturated (matte).
+        sphere: "chrome" or "matte".
+        mask: [H, W] bool, the sphere's pixels (its outline is fitted), or
+        circle: the outline as (x, y, r) in pixels (x the column, y the row, the top-left
+            pixel's centre at (0, 0)). Without either, a matte sphere's outline is found in the
+            images' per-pixel maximum; a chrome sphere's cannot be.
+        config: overrides of DEFAULT_CALIBRATE.
+    Returns:
+        ``SphereLights``: directions [N, 3] (x right, y up, z toward the camera), intensities
+        [N, 3] or None, the circle, per-image details.
+    """
+    from psctl.arrays import as_images, as_mask
+
+    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    check_sphere(sphere)
+    imgs = as_images(images)
+    integer = np.asarray(images).dtype.kind in "iu"  # float images have no top code: nothing is saturated
+    if mask is not None and circle is not None:
+        raise PsctlError(None, "give mask or circle, not both")
+    if circle is not None:
+        c = check_circle(circle)
+    elif mask is not None:
+        c = fit_circle(as_mask(mask, imgs.shape[1:3]), "mask", None, cfg)
+    else:
+        c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg)
+    box = circle_box(c, imgs.shape[1:3])
+    cal = _Calibrator(sphere, c, box, cfg)
+    for k in range(len(imgs)):
+        img = imgs[k][box]
+        cal.add(img, (img >= 1.0).any(-1) if integer else None, f"images[{k}]")
+    return cal.result()
+
+
+def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, config: dict) -> Circle:
+    """A matte sphere's outline from each pixel's brightest value over the images (lit from
+    somewhere by most lights, against a darker background)."""
+    if sphere == "chrome":
+        raise PsctlError(where, "a chrome sphere's outline does not show in its images (only its highlights do): "
+                                "add mask.png (white on the sphere) or pass --circle X,Y,R")
+    top = float(np.percentile(brightest, 99.5))
+    if not top > 0:
+        raise PsctlError(where, "the images are black: no sphere to find")
+    try:
+        return replace(fit_circle(brightest > 0.2 * top, "images", where, config), source="images")
+    except PsctlError as e:
+        raise PsctlError(where, f"found no round sphere in the images' brightest values ({e.message}); add mask.png "
+                                "(white on the sphere) or pass --circle X,Y,R") from None
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike | None = None,
+                  circle: "Circle | str | Iterable[float] | None" = None, write: bool = True,
+                  progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None
+                  ) -> dict:
+    """Calibrate a folder of sphere images (one per light, in the object's order), write the
+    light files, return the report (what ``psctl calibrate --json`` prints).
+
+    The folder is read as ``psctl normals`` reads one (images, filenames.txt, an ambient image
+    subtracted, mask.png for the outline); its own light files, when present, are only compared
+    with (light_mae, intensity_re). Outputs (when ``write``, all or none) in ``out`` (default
+    ``PATH/psctl``): light_directions.txt, light_intensities.txt (matte only; a chrome
+    calibration removes one an earlier calibration there wrote), lights.png (the directions on
+    the unit disk), sphere.png (the brightest value of each pixel over the images, the fitted
+    circle and, for chrome, each highlight) and calibration_report.json.
+
+    Report: object, path, sphere, n_images, circle {x, y, r, source, rms}, light_mae and
+    intensity_re (against the folder's own files, else None), direction_errors (degrees per image,
+    or None), outputs, images (per image: file, direction, intensity, and for chrome highlight
+    [x, y], peak, pixels, spots; for matte pixels, rms), seconds, notes.
+    """
+    from psctl.io.atomic import check_output_dir, output_folder, read_outputs_list, staged_outputs
+    from psctl.io.capture import check_not_capture, capture_notes, iter_images, load_mask, open_capture
+
+    t0 = time.perf_counter()
+    for name, value in (("path", path), ("out", out)):
+        check_path(name, value, optional=name != "path")
+    write = check_bool("write", write)
+    progress = check_progress(progress)
+    check_sphere(sphere)
+    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    given = None if circle is None else check_circle(circle)
+    cap = open_capture(path, encoding)
+    notes = capture_notes(cap)
+    out_dir = output_folder(out, cap.path)
+    if write:
+        check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))
+        check_output_dir(out_dir)
+    # as captured: a calibration measures the intensities, it does not divide by any
+    raw = replace(cap, intensities=np.ones_like(cap.intensities))
+    if given is not None:
+        c = given
+        if cap.mask_path is not None:
+            notes.append(f"sphere: {cap.mask_path.name} is unused: --circle gives the outline")
+    elif cap.mask_path is not None:
+        c = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg)
+    else:
+        if sphere == "chrome":
+            _circle_from_images(np.zeros(1), sphere, cap.path, cfg)  # the error: no outline to find
+        advance = progress(f"{cap.name}: finding the sphere", cap.n_images)
+        brightest = None
+        for img in iter_images(raw):
+            g = img.mean(-1)
+            brightest = g if brightest is None else np.maximum(brightest, g)
+            advance(1)
+        c = _circle_from_images(brightest, sphere, cap.path, cfg)
+        notes.append(f"sphere: outline found in the images (x {c.x:.1f}, y {c.y:.1f}, r {c.r:.1f}); mask.png or "
+                     "--circle X,Y,R would fix it")
+    box = circle_box(c, (cap.height, cap.width))
+    off = float(np.hypot(c.x - (cap.width - 1) / 2, c.y - (cap.height - 1) / 2))
+    if off > 0.1 * np.hypot(cap.width, cap.height):
+        notes.append(f"sphere: its centre is {off:.0f} pixels from the image's centre; psctl takes the camera as "
+                     f"orthographic, which is exact on the optical axis only: through a lens of focal length f "
+                     f"pixels the directions can be off by about atan({off:.0f} / f) (docs/calibration.md)")
+    if c.x - c.r < -0.5 or c.y - c.r < -0.5 or c.x + c.r > cap.width - 0.5 or c.y + c.r > cap.height - 0.5:
+        notes.append("sphere: part of it lies outside the images; only the part inside is used")
+    cal = _Calibrator(sphere, c, box, cfg)
+    clipped: dict[int, np.ndarray] = {}
+    advance = progress(f"{cap.name}: {sphere} sphere", cap.n_images)
+    for k, img in enumerate(iter_images(raw, box, clipped=lambda k, top: clipped.__setitem__(k, top))):
+        cal.add(img, clipped.pop(k, None), cap.image_paths[k])
+        advance(1)
+    res = cal.result()
+    notes += _result_notes(res, cap)
+    report = _report(res, cap, notes)
+    if write:
+        from psctl.io.atomic import replaced_notes, write_outputs_list
+        from psctl.io.report import write_json
+
+        names = [v for k, v in OUTPUT_FILES.items() if k != "light_intensities" or res.intensities is not None]
+        names.append(REPORT_FILE)
+        report["notes"] += replaced_notes(out_dir, names, COMMAND)
+        report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items() if v in names}
+        report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)
+        # a chrome run after a matte one there: the earlier intensities belong to other lights' run
+        with staged_outputs(out_dir, replaces=lambda: read_outputs_list(out_dir, COMMAND)) as stage:
+            write_outputs_list(stage, names, COMMAND)
+            write_sphere_files(stage, res, cap, report)
+            report["seconds"] = round(time.perf_counter() - t0, 3)
+            write_json(stage / REPORT_FILE, report)
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    return report
+
+
+def _result_notes(res: SphereLights, cap: "Capture") -> list[str]:
+    notes = []
+
+    def names(idx: list[int]) -> str:
+        return ", ".join(cap.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+
+    behind = [k for k, d in enumerate(res.directions) if d[2] <= 0]
+    if behind:
+        notes.append(f"lights: {len(behind)} of {cap.n_images} point away from the camera ({names(behind)}): they "
+                     "light the object's far side, which the camera does not see")
+    if res.sphere == "chrome":
+        second = [k for k, i in enumerate(res.images) if i["spots"] > 1]
+        if second:
+            notes.append(f"sphere: {len(second)} of {cap.n_images} images show more than one bright spot on the sphere "
+                         f"({names(second)}): the brightest was taken; a reflection of a lamp or a window? "
+                         "sphere.png shows them")
+        broad = [k for k, i in enumerate(res.images) if i["pixels"] > 0.05 * np.pi * res.circle.r ** 2]
+        if broad:
+            notes.append(f"sphere: {len(broad)} of {cap.n_images} images have a broad highlight (over 5 % of the "
+                         f"sphere; {names(broad)}): is it a mirror? for a matte ball use --sphere matte")
+        notes.append("lights: a chrome sphere gives directions only; light_intensities.txt is not written "
+                     "(a matte sphere, --sphere matte, gives intensities)")
+    else:
+        rough = [k for k, i in enumerate(res.images) if i["rms"] is not None and i["rms"] > 0.1]
+        if rough:
+            notes.append(f"sphere: {len(rough)} of {cap.n_images} images fit a Lambertian sphere poorly (residual over "
+                         f"10 % of the mean value; {names(rough)}): is the ball matte, and the images linear?")
+    return notes
+
+
+def _report(res: SphereLights, cap: "Capture", notes: list[str]) -> dict:
+    from psctl.lights import light_errors
+
+    gt_ints = cap.intensities if cap.intensities_given else None
+    errors = light_errors(res.directions, np.ones(len(res.directions)) if res.intensities is None else
+                          res.intensities.mean(1), cap.lights, gt_ints if res.intensities is not None else None)
+    per = errors["direction_errors"]
+    images = []
+    for k, info in enumerate(res.images):
+        one = {"file": cap.image_paths[k].name, "direction": [round(float(v), 8) for v in res.directions[k]],
+               "intensity": None if res.intensities is None else [round(float(v), 6) for v in res.intensities[k]],
+               **info}
+        if per is not None:
+            one["error"] = round(float(per[k]), 4)
+        images.append(one)
+    return {
+        "object": cap.name,
+        "path": os.path.abspath(cap.path),
+        "sphere": res.sphere,
+        "n_images": cap.n_images,
+        "circle": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(res.circle).items()},
+        "light_mae": errors["light_mae"],
+        "intensity_re": errors["intensity_re"],
+        "direction_errors": None if per is None else [round(float(v), 4) for v in per],
+        "outputs": {},
+        "images": images,
+        "seconds": 0.0,
+        "notes": notes,
+    }
+
+
+# --- files and pictures --------------------------------------------------------------------------
+
+def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slice],
+                   highlights: list[list[float]] | None = None, title: str | None = None,
+                   min_side: int = 360) -> np.ndarray:
+    """[H, W, 3] in [0, 1]: each pixel's brightest value over the images (in the circle's
+    ``box``; gamma 1/2.2, its 99.5th percentile white), enlarged to at least ``min_side``, with the
+    fitted circle in green and each highlight (x, y in image pixels) as a red dot."""
+    from psctl.io.report import _stamp, text_bitmap
+    from psctl.lights import _disk
+
+    top = float(np.percentile(brightest, 99.5)) if brightest.size else 0.0
+    grey = np.clip(brightest / top, 0.0, 1.0) ** (1 / 2.2) if top > 0 else np.zeros_like(brightest)
+    k = max(1, int(np.ceil(min_side / max(grey.shape))))
+    img = np.repeat(np.repeat(grey, k, 0), k, 1)
+    s = 2  # text scale
+    top_px = 11 * s if title else 0
+    canvas = np.full((img.shape[0] + top_px, max(img.shape[1], 4 * s + (text_bitmap(title, s).shape[1] if title else 0)),
+                      3), 0.12, np.float32)
+    canvas[top_px:top_px + img.shape[0], : img.shape[1]] = img[..., None]
+
+    def at(x: float, y: float) -> tuple[float, float]:  # image pixel centre -> canvas (row, col)
+        return top_px + (y - box[0].start + 0.5) * k, (x - box[1].start + 0.5) * k
+
+    cy, cx = at(circle.x, circle.y)
+    _disk(canvas, cy, cx, circle.r * k, (0.2, 0.9, 0.3), ring=max(1.0, k / 2))
+    for x, y in highlights or []:
+        _disk(canvas, *at(x, y), max(2.0, k * 0.6), (1.0, 0.25, 0.2))
+    if title:
+        _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
+    return canvas
+
+
+def write_sphere_files(folder: Path, res: SphereLights, cap: "Capture", report: dict) -> None:
+    """The calibration's files into ``folder`` (a staging folder): light files, lights.png, sphere.png."""
+    from psctl.io.images import write_image
+    from psctl.io.atomic import write_text_atomic
+    from psctl.lights import write_lights_plot
+
+    folder = Path(folder)
+    write_text_atomic(folder / OUTPUT_FILES["light_directions"],
+                      "".join(f"{x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in res.directions))
+    if res.intensities is not None:
+        write_text_atomic(folder / OUTPUT_FILES["light_intensities"],
+                          "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in res.intensities))
+    ints = None if res.intensities is None else res.intensities.mean(1)
+    write_lights_plot(folder / OUTPUT_FILES["lights"], res.directions, ints, cap.lights, report["light_mae"],
+                      cap.name)
+    spots = [i["highlight"] for i in res.images] if res.sphere == "chrome" else None
+    title = f"{cap.name}: {res.sphere.upper()} SPHERE, R {res.circle.r:.1f} PX"
+    write_image(folder / OUTPUT_FILES["sphere"], sphere_picture(res.brightest, res.circle, res.box, spots, title),
+                "uint8")
+
+
+def render_calibrate(r: dict) -> None:
+    """The human-readable summary of ``run_calibrate``'s report (Rich, stdout)."""
+    from psctl.errors import console
+    from psctl.io.summary import escape
+
+    con = console()
+    for note in r.get("notes", []):
+        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    c = r["circle"]
+    line = (f"[bold]{escape(r['object'])}[/]: {r['sphere']} sphere at x {c['x']:.1f}, y {c['y']:.1f}, radius "
+            f"{c['r']:.1f} px ({escape(str(c['source']))}), {r['n_images']} lights, {r['seconds']:.2f} s")
+    if r["light_mae"] is not None:
+        errs = r["direction_errors"]
+        line += (f"\n  against the folder's light files: direction error [bold]{r['light_mae']:.2f}°[/] mean, "
+                 f"{max(errs):.2f}° largest")
+    if r["intensity_re"] is not None:
+        line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
+    con.print(line, highlight=False, soft_wrap=True)
+    for p in r["outputs"].values():
+        con.print(f"  wrote {p}", highlight=False, markup=False)
