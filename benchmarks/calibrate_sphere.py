@@ -1,6 +1,7 @@
 """Accuracy of psctl calibrate's sphere calibration on rendered spheres (run by hand).
 
     python benchmarks/calibrate_sphere.py [--quick] [--sweep] [--bits 8|16]
+    python benchmarks/calibrate_sphere.py --centroids
 
 Renders spheres with psctl's own shading (psctl.synth.render.shade) under known lights and
 compares psctl.calibrate.calibrate_lights' directions (and, matte, intensities) with them:
@@ -16,8 +17,10 @@ pixels; point samples would miss a mirror's sub-pixel highlight), with sensor no
 rounded to 16 or 8 bits. Spheres of radius 100 and 30 pixels; 40 lights within 60 degrees of
 the view axis, intensities uniform in [0.5, 1.5]; the outline from the rendered mask. ``--sweep``
 also runs the defaults' alternatives (chrome's highlight level and base percentile; matte's lit
-and trim), which chose them (docs/calibration.md). Prints one line per case: mean and largest
-direction error (degrees), intensity RE.
+and trim), which chose them (docs/calibration.md). ``--centroids``: the chrome cases and two
+overexposed ones (GGX 0.05 at 40x, the glossy ball at 8x), r = 100 and 30, 16 bits, with each
+of find_highlight's weightings (surface, the default; even; image), and their sums. Prints one
+line per case: mean and largest direction error (degrees), intensity RE.
 """
 
 from __future__ import annotations
@@ -84,14 +87,39 @@ def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch
     return imgs.astype(np.uint16 if bits == 16 else np.uint8), mask.numpy()
 
 
+def centroids(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
+    import psctl.calibrate as C
+
+    cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
+             ("glossy", 1.0), ("ggx0.05", 40.0), ("glossy", 8.0)]
+    found, total = C.find_highlight, {}
+    try:
+        for size, r in [(256, 100.0), (96, 30.0)]:
+            for material, exposure in cases:
+                imgs, mask = render(material, size, r, d, e, 16, exposure, gen)
+                for weighting in ("surface", "even", "image"):
+                    C.find_highlight = lambda *a, _w=weighting, **k: found(*a, **k, weighting=_w)
+                    err = light_direction_error(C.calibrate_lights(imgs, "chrome", mask=mask).directions, d.numpy())
+                    total[weighting] = total.get(weighting, 0.0) + float(err.mean())
+                    print(f"r {r:5.0f}  {material:12s} x{exposure:<4g} {weighting:8s} mean {err.mean():.3f}  "
+                          f"max {err.max():.3f}", flush=True)
+    finally:
+        C.find_highlight = found
+    print("sums of the means: " + ", ".join(f"{k} {v:.2f}" for k, v in total.items()))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the defaults only, radius 100, 16 bits")
     ap.add_argument("--sweep", action="store_true", help="also the alternatives to the defaults")
     ap.add_argument("--bits", type=int, choices=(8, 16), help="only this bit depth")
+    ap.add_argument("--centroids", action="store_true", help="compare find_highlight's weightings instead")
     args = ap.parse_args()
     gen = torch.Generator().manual_seed(0)
     d, e = lights(40, gen)
+    if args.centroids:
+        centroids(d, e, gen)
+        return
     cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
              ("glossy", 1.0), ("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]
     sizes = [(256, 100.0)] if args.quick else [(256, 100.0), (96, 30.0)]

@@ -30,10 +30,10 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
-from psctl.errors import PsctlError, check_bool, check_path, check_progress
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress
+from psctl.hotpixels import HOT_RATIO
 
 if TYPE_CHECKING:
-    from psctl.errors import ProgressFactory
     from psctl.io.capture import Capture
 
 SPHERES = ("chrome", "matte")
@@ -60,6 +60,33 @@ DEFAULT_CALIBRATE = {
     "min_radius": 8.0,  # pixels: smaller spheres give directions too coarse to be worth writing
     "min_pixels": 30,  # matte: lit pixels needed to fit a light
 }
+
+# each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
+_RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
+           "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
+
+
+def check_config(config: dict | None) -> dict:
+    """DEFAULT_CALIBRATE with ``config``'s settings over it; an unknown key, or a value that is
+    not a finite number in its range, is an error naming it."""
+    if config is None:
+        return dict(DEFAULT_CALIBRATE)
+    if not isinstance(config, dict):
+        raise PsctlError(None, f"config must be a dict of settings (DEFAULT_CALIBRATE's keys), not "
+                               f"{type(config).__name__}")
+    unknown = sorted(set(config) - set(DEFAULT_CALIBRATE))
+    if unknown:
+        raise PsctlError(None, f"config: unknown setting {unknown[0]!r}; known: {', '.join(DEFAULT_CALIBRATE)}")
+    for k, v in config.items():
+        lo, hi = _RANGES[k]
+        whole = k in ("iterations", "min_pixels")
+        ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v) \
+            and lo <= v <= hi and (not whole or float(v).is_integer())
+        if not ok:
+            raise PsctlError(None, f"config: {k} must be a {'whole ' if whole else ''}number in [{lo:g}, {hi:g}], "
+                                   f"not {v!r}")
+    return {**DEFAULT_CALIBRATE, **config}
+
 
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png", "sphere": "sphere.png"}
@@ -123,7 +150,7 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
     """
     from scipy import ndimage
 
-    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    cfg = check_config(config)
     mask = np.asarray(mask, bool)
     labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
     if n == 0:
@@ -134,21 +161,26 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
     mask = ndimage.binary_fill_holes(mask)  # a highlight cut out of a mask drawn by threshold
     p = _edge_points(mask)
     if len(p) < 12:
+        if mask.mean() > 0.5:  # (an edge on the image's border is no outline)
+            raise PsctlError(where, "has no outline inside the image (it covers the image, or all but a few pixels "
+                                    "of its edge): mask only the sphere")
         raise PsctlError(where, f"the sphere is too small to fit a circle to ({int(mask.sum())} pixels)")
     cx, cy, r = _circle_fit(p)
     res = np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r
-    keep = np.abs(res) <= max(1.5, 3 * 1.4826 * float(np.median(np.abs(res))))
+    cut = max(1.5, 3 * 1.4826 * float(np.median(np.abs(res))))
+    keep = np.abs(res) <= cut
     if keep.sum() >= 12 and not keep.all():
         cx, cy, r = _circle_fit(p[keep])
         res = np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r
-        keep = np.abs(res) <= max(1.5, 3 * 1.4826 * float(np.median(np.abs(res[keep]))))
+        cut = max(1.5, 3 * 1.4826 * float(np.median(np.abs(res[keep]))))
+        keep = np.abs(res) <= cut
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
     if r < cfg["min_radius"]:
         raise PsctlError(where, f"the sphere is too small: radius {r:.1f} pixels (at least {cfg['min_radius']:g})")
     if rms > max(1.0, 0.02 * r) or keep.mean() < 0.5:
         raise PsctlError(where, f"is not round: its outline lies {float(np.sqrt(np.mean(res ** 2))):.1f} pixels from "
                                 f"the best circle (x {cx:.1f}, y {cy:.1f}, r {r:.1f}) on average, "
-                                f"{1 - keep.mean():.0%} of it further than 1.5 pixels; psctl calibrate needs "
+                                f"{1 - keep.mean():.0%} of it further than {cut:.1f} pixels; psctl calibrate needs "
                                 "the sphere's own outline (or --circle X,Y,R)")
     return Circle(cx, cy, r, source, round(rms, 4))
 
@@ -162,7 +194,7 @@ def check_circle(circle: "Circle | str | Iterable[float]") -> Circle:
             values = [float(v) for v in (circle.split(",") if isinstance(circle, str) else circle)]
         except (TypeError, ValueError):
             values = []
-    if len(values) != 3 or not all(np.isfinite(values)):
+    if len(values) != 3 or not all(np.isfinite(values)) or max(map(abs, values)) > 1e7:
         raise PsctlError(None, f"--circle must be X,Y,R (three numbers: the centre's column and row and the radius, "
                                f"in pixels), not {circle!r}")
     if values[2] < DEFAULT_CALIBRATE["min_radius"]:
@@ -176,6 +208,9 @@ def circle_box(circle: Circle, shape: tuple[int, int]) -> tuple[slice, slice]:
     """The rows and columns of the image that the circle covers (one pixel of margin). A
     ``PsctlError`` when it misses the image."""
     h, w = shape
+    if circle.r > np.hypot(h, w):
+        raise PsctlError(None, f"--circle's radius {circle.r:g} is larger than the {w} x {h} images' diagonal: "
+                               "the sphere must be in the images")
     y0, y1 = max(int(np.floor(circle.y - circle.r)) - 1, 0), min(int(np.ceil(circle.y + circle.r)) + 2, h)
     x0, x1 = max(int(np.floor(circle.x - circle.r)) - 1, 0), min(int(np.ceil(circle.x + circle.r)) + 2, w)
     if y1 - y0 < 2 or x1 - x0 < 2:
@@ -210,28 +245,75 @@ def mirror_direction(normal: np.ndarray) -> np.ndarray:
 
 
 def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAULT_CALIBRATE["highlight"],
-                   base: float = DEFAULT_CALIBRATE["base"]) -> dict | None:
-    """The brightest spot inside the sphere: {"x", "y" (sub-pixel, in ``gray``'s pixels), "peak",
-    "pixels" (its size), "spots" (regions above the level: more than one is a second
-    reflection)}; None when the sphere is black. The spot is the connected region above
-    b + ``fraction`` (peak - b), b the ``base``-th percentile of the sphere's values, around the
-    brightest pixel; its position the centroid weighted by each pixel's height above that level."""
+                   base: float = DEFAULT_CALIBRATE["base"], normals: np.ndarray | None = None,
+                   weighting: str = "surface") -> dict | None:
+    """The highlight inside the sphere: {"x", "y" (sub-pixel, in ``gray``'s pixels), "peak",
+    "pixels" (its size), "spots" (regions above the level: more than one is a second reflection),
+    "rim" (it touches the edge of ``inside``: a light far behind the sphere, whose highlight is
+    partly cut off)}; None when the sphere is black.
+
+    Regions above b + ``fraction`` (peak - b), b the ``base``-th percentile of the sphere's values,
+    are candidates; the one with the most brightness above that level is the highlight, leaving
+    out lone pixels far brighter than their neighbours where there are others (a hot pixel), and
+    its level is then set again from its own peak. A
+    saturated plateau as large as the sphere's top decile (b = peak) is its own level. The
+    position is the centroid weighted by each pixel's height above the level (the plateau's
+    centre when it is flat). With the sphere's ``normals`` [h, w, 3], also "normal": the same
+    weights' mean normal, each pixel counted by the surface it covers (1 / n_z): a broad or
+    clipped highlight is symmetric on the sphere, not in the image, whose centroid it pulls
+    toward the sphere's centre. ``weighting`` "even" leaves out the 1 / n_z, "image" gives the
+    image centroid's normal (benchmarks/calibrate_sphere.py --centroids compares them)."""
     from scipy import ndimage
 
     g = np.where(inside, gray, -np.inf)
-    iy, ix = np.unravel_index(int(np.argmax(g)), g.shape)
-    peak = float(g[iy, ix])
+    peak = float(g.max())
     if not peak > 0:
         return None
     b = max(float(np.percentile(gray[inside], base)), 0.0) if base > 0 else 0.0
-    level = b + fraction * (peak - b)
-    labels, spots = ndimage.label(g > level, structure=np.ones((3, 3), bool))
-    spot = labels == labels[iy, ix]
-    w = np.where(spot, gray - level, 0.0)
+    eight = np.ones((3, 3), bool)
+
+    def regions(level: float) -> tuple[np.ndarray, int]:
+        above = g > level
+        if not above.any():  # the top decile is one flat plateau at the peak
+            above = g >= level
+        return ndimage.label(above, structure=eight)
+
+    labels, spots = regions(b + fraction * (peak - b))
+    # brightness above the level (and, for flat plateaus, their size) decides, among regions that are
+    # not a lone pixel over four times its brightest neighbour (a hot pixel; psctl.hotpixels' ratio)
+    # where there are any: a lens spreads a real highlight over its neighbours
+    index = range(1, spots + 1)
+    mass = ndimage.sum(np.where(labels > 0, g - (b + fraction * (peak - b)) + 1e-9, 0.0), labels, index)
+    size = ndimage.sum(labels > 0, labels, index)
+    lone = np.zeros(spots, bool)
+    for k in np.flatnonzero(size == 1):
+        y, x = (int(v[0]) for v in np.nonzero(labels == k + 1))
+        around = g[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].copy()
+        around[min(y, 1), min(x, 1)] = -np.inf
+        lone[k] = g[y, x] > HOT_RATIO * max(float(around.max()), 0.0)
+    if (~lone).any():
+        mass = np.where(lone, -1.0, mass)
+    best = labels == 1 + int(np.argmax(mass))
+    top = float(g[best].max())  # the highlight's own peak, and its level from it
+    level = b + fraction * (top - b)
+    labels2, _ = regions(level)
+    spot = np.isin(labels2, np.unique(labels2[best & (labels2 > 0)]))
     ys, xs = np.nonzero(spot)
-    ww = w[ys, xs]
-    return {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": peak,
-            "pixels": int(spot.sum()), "spots": int(spots)}
+    ww = gray[ys, xs] - level
+    if not ww.sum() > 0:  # flat: every pixel at the level
+        ww = np.ones_like(ww)
+    edge = spot & ~ndimage.binary_erosion(inside, structure=eight, border_value=0)
+    out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top,
+           "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any())}
+    if normals is not None:
+        n = normals[ys, xs]
+        if weighting == "image":  # the image centroid's normal (n_x, n_y are linear in x, y)
+            nxy = (ww[:, None] * n[:, :2]).sum(0) / ww.sum()
+            mean = np.array([nxy[0], nxy[1], np.sqrt(max(1.0 - float(nxy @ nxy), 0.0))])
+        else:
+            mean = (n * (ww / np.maximum(n[:, 2], 0.05) if weighting == "surface" else ww)[:, None]).sum(0)
+        out["normal"] = mean / max(float(np.linalg.norm(mean)), 1e-12)
+    return out
 
 
 def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config: dict | None = None
@@ -243,7 +325,7 @@ def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config
     then its least-squares scale of the fitted shading n . l. Returns {"direction" [3],
     "intensity" [3], "pixels" (used in the last fit), "rms" (their residual over the mean value)},
     or None when fewer than ``min_pixels`` are lit."""
-    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    cfg = check_config(config)
     gray = rgb.mean(-1)
     # first guess, the lit part: above ``lit`` of a bright level that a highlight does not set
     top = float(np.percentile(gray[usable], 90)) if usable.any() else 0.0
@@ -316,16 +398,17 @@ class _Calibrator:
         if not np.isfinite(rgb[self.inside]).all():
             raise PsctlError(name, "holds NaN or infinite values on the sphere")
         if self.sphere == "chrome":
-            spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"])
+            spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"], self.normals)
             if spot is None:
                 raise PsctlError(name, "is black on the sphere: there is no highlight to locate (a light that did "
                                        "not fire?)")
             x, y = spot["x"] + self.box[1].start, spot["y"] + self.box[0].start
-            n = np.array([(x - self.circle.x) / self.circle.r, -(y - self.circle.y) / self.circle.r, 0.0])
-            n[2] = np.sqrt(max(1.0 - n[0] ** 2 - n[1] ** 2, 0.0))
-            self.directions.append(mirror_direction(n))
+            d = mirror_direction(spot["normal"])
+            if not np.isfinite(d).all():
+                raise PsctlError(name, "gives no direction: its highlight could not be located")
+            self.directions.append(d)
             self.images.append({"highlight": [round(x, 3), round(y, 3)], "peak": round(spot["peak"], 6),
-                                "pixels": spot["pixels"], "spots": spot["spots"]})
+                                "pixels": spot["pixels"], "spots": spot["spots"], "rim": spot["rim"]})
         else:
             usable = self.inside if saturated is None else self.inside & ~saturated
             fit = matte_light(rgb, self.normals, usable, self.cfg)
@@ -361,7 +444,8 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
 
     Args:
         images: [N, H, W, 3] or [N, H, W] linear images of the sphere, one per light, as captured
-            (not divided by any intensities). Values at or above 1.0 count as saturated (matte).
+            (not divided by any intensities). Integer images' top code value counts as
+            saturated (left out of a matte fit); float images have no saturated values.
         sphere: "chrome" or "matte".
         mask: [H, W] bool, the sphere's pixels (its outline is fitted), or
         circle: the outline as (x, y, r) in pixels (x the column, y the row, the top-left
@@ -373,8 +457,9 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
         [N, 3] or None, the circle, per-image details.
     """
     from psctl.arrays import as_images, as_mask
+    from psctl.io.capture import saturated_map
 
-    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    cfg = check_config(config)
     check_sphere(sphere)
     imgs = as_images(images)
     integer = np.asarray(images).dtype.kind in "iu"  # float images have no top code: nothing is saturated
@@ -390,7 +475,7 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     cal = _Calibrator(sphere, c, box, cfg)
     for k in range(len(imgs)):
         img = imgs[k][box]
-        cal.add(img, (img >= 1.0).any(-1) if integer else None, f"images[{k}]")
+        cal.add(img, saturated_map(img) if integer else None, f"images[{k}]")
     return cal.result()
 
 
@@ -433,7 +518,8 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     [x, y], peak, pixels, spots; for matte pixels, rms), seconds, notes.
     """
     from psctl.io.atomic import check_output_dir, output_folder, read_outputs_list, staged_outputs
-    from psctl.io.capture import check_not_capture, capture_notes, iter_images, load_mask, open_capture
+    from psctl.io.capture import (INTENSITIES_FILE, LIGHTS_FILE, check_not_capture, capture_notes, iter_images,
+                                  load_mask, open_capture)
 
     t0 = time.perf_counter()
     for name, value in (("path", path), ("out", out)):
@@ -441,10 +527,18 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     write = check_bool("write", write)
     progress = check_progress(progress)
     check_sphere(sphere)
-    cfg = {**DEFAULT_CALIBRATE, **(config or {})}
+    cfg = check_config(config)
     given = None if circle is None else check_circle(circle)
-    cap = open_capture(path, encoding)
-    notes = capture_notes(cap)
+    try:
+        cap = open_capture(path, encoding)
+        unread = []
+    except PsctlError as e:  # the folder's own light files are only compared with: damaged, they are skipped
+        if e.path is None or Path(e.path).name.lower() not in (LIGHTS_FILE, INTENSITIES_FILE):
+            raise
+        cap = open_capture(path, encoding, light_files=False)
+        unread = [f"light files: {Path(e.path).name} is not read ({e.message}); these lights are not compared "
+                  "with the folder's"]
+    notes = unread + capture_notes(cap)
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))
@@ -470,6 +564,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         notes.append(f"sphere: outline found in the images (x {c.x:.1f}, y {c.y:.1f}, r {c.r:.1f}); mask.png or "
                      "--circle X,Y,R would fix it")
     box = circle_box(c, (cap.height, cap.width))
+    if c.r < 30:
+        notes.append(f"sphere: its radius is {c.r:.1f} pixels: each pixel of error in a highlight's place is "
+                     f"{np.degrees(2 / c.r):.1f} degrees or more of direction; a larger sphere in the images is more "
+                     "accurate (docs/calibration.md)")
     off = float(np.hypot(c.x - (cap.width - 1) / 2, c.y - (cap.height - 1) / 2))
     if off > 0.1 * np.hypot(cap.width, cap.height):
         notes.append(f"sphere: its centre is {off:.0f} pixels from the image's centre; psctl takes the camera as "
@@ -493,6 +591,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         names = [v for k, v in OUTPUT_FILES.items() if k != "light_intensities" or res.intensities is not None]
         names.append(REPORT_FILE)
         report["notes"] += replaced_notes(out_dir, names, COMMAND)
+        ints = out_dir / OUTPUT_FILES["light_intensities"]
+        if res.intensities is None and ints.is_file() and ints.name not in read_outputs_list(out_dir, COMMAND):
+            report["notes"].append(f"outputs: {ints} is not this run's (a chrome sphere gives no intensities) and "
+                                   "belongs to other lights: do not copy it with these directions")
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items() if v in names}
         report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)
         # a chrome run after a matte one there: the earlier intensities belong to other lights' run
@@ -521,6 +623,11 @@ def _result_notes(res: SphereLights, cap: "Capture") -> list[str]:
             notes.append(f"sphere: {len(second)} of {cap.n_images} images show more than one bright spot on the sphere "
                          f"({names(second)}): the brightest was taken; a reflection of a lamp or a window? "
                          "sphere.png shows them")
+        rim = [k for k, i in enumerate(res.images) if i["rim"]]
+        if rim:
+            notes.append(f"sphere: {len(rim)} of {cap.n_images} highlights reach the edge of the sphere's used part "
+                         f"({names(rim)}): lights far behind the sphere, whose highlight is partly cut off; their "
+                         "directions are less accurate")
         broad = [k for k, i in enumerate(res.images) if i["pixels"] > 0.05 * np.pi * res.circle.r ** 2]
         if broad:
             notes.append(f"sphere: {len(broad)} of {cap.n_images} images have a broad highlight (over 5 % of the "
@@ -602,15 +709,10 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
 def write_sphere_files(folder: Path, res: SphereLights, cap: "Capture", report: dict) -> None:
     """The calibration's files into ``folder`` (a staging folder): light files, lights.png, sphere.png."""
     from psctl.io.images import write_image
-    from psctl.io.atomic import write_text_atomic
-    from psctl.lights import write_lights_plot
+    from psctl.lights import write_light_files, write_lights_plot
 
     folder = Path(folder)
-    write_text_atomic(folder / OUTPUT_FILES["light_directions"],
-                      "".join(f"{x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in res.directions))
-    if res.intensities is not None:
-        write_text_atomic(folder / OUTPUT_FILES["light_intensities"],
-                          "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in res.intensities))
+    write_light_files(folder, res.directions, res.intensities)
     ints = None if res.intensities is None else res.intensities.mean(1)
     write_lights_plot(folder / OUTPUT_FILES["lights"], res.directions, ints, cap.lights, report["light_mae"],
                       cap.name)

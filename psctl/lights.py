@@ -892,22 +892,24 @@ def image_list(cap: "Capture") -> str:
     return "".join(f"{n}\n" for n in lines)
 
 
-def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray,
+def write_light_files(folder: str | os.PathLike, directions: np.ndarray, intensities: np.ndarray | None,
                       names: dict[str, str] | None = None) -> dict[str, Path]:
-    """light_directions.txt (N x 3) and light_intensities.txt (N x 3, grey) in DiLiGenT's format
-    (``names``: other file names for the keys "light_directions" and "light_intensities")."""
+    """light_directions.txt (N x 3) and light_intensities.txt (N x 3; one value per image is
+    repeated: grey) in DiLiGenT's format (``names``: other file names for the keys
+    "light_directions" and "light_intensities"); ``intensities`` None: directions only."""
     from psctl.io.atomic import write_text_atomic
 
     names = names or OUTPUT_FILES
     folder = Path(folder)
     d = np.asarray(directions, np.float64)
-    e = np.asarray(intensities, np.float64).reshape(len(d), -1)
-    if e.shape[1] == 1:
-        e = np.repeat(e, 3, 1)
-    paths = {"light_directions": folder / names["light_directions"],
-             "light_intensities": folder / names["light_intensities"]}
+    paths = {"light_directions": folder / names["light_directions"]}
     write_text_atomic(paths["light_directions"], "".join(f"{x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in d))
-    write_text_atomic(paths["light_intensities"], "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in e))
+    if intensities is not None:
+        e = np.asarray(intensities, np.float64).reshape(len(d), -1)
+        if e.shape[1] == 1:
+            e = np.repeat(e, 3, 1)
+        paths["light_intensities"] = folder / names["light_intensities"]
+        write_text_atomic(paths["light_intensities"], "".join(f"{r:.6f} {g:.6f} {b:.6f}\n" for r, g, b in e))
     return paths
 
 

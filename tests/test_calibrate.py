@@ -116,6 +116,23 @@ def test_fit_circle_refuses_what_is_not_a_sphere():
         fit_circle(disk(40, 40, 20, 20, 4.0))
     with pytest.raises(PsctlError, match="no pixel is set"):
         fit_circle(np.zeros((20, 20), bool))
+    with pytest.raises(PsctlError, match="has no outline inside the image"):
+        fit_circle(np.ones((40, 40), bool))
+    line = np.zeros((60, 60), bool)
+    line[20:22, 3:57] = True
+    with pytest.raises(PsctlError, match=r"is not round: .* further than \d+\.\d pixels"):
+        fit_circle(line)
+
+
+def test_config_is_checked():
+    from psctl.calibrate import check_config
+
+    assert check_config({"highlight": 0.3})["highlight"] == 0.3 and check_config(None)["base"] == 90.0
+    for bad, words in (("x", "must be a dict"), ({"hilight": 0.5}, "unknown setting 'hilight'"),
+                       ({"highlight": float("nan")}, "highlight must be a number"), ({"iterations": 2.5}, "whole"),
+                       ({"rim": 2.0}, r"rim must be a number in \[0.1, 1\]"), ({"lit": True}, "lit must be")):
+        with pytest.raises(PsctlError, match=words):
+            check_config(bad)
 
 
 def test_check_circle():
@@ -167,10 +184,52 @@ def test_a_glossy_ball_as_a_mirror():
     spec = sphere_views(lights, 80, cx, cy, r, "chrome", sharpness=0.1) / 3.0
     imgs = to_uint16(0.6 * diffuse + 0.6 * spec)
     m = disk(80, 80, cx, cy, r)
-    assert angular_error(calibrate_lights(imgs, "chrome", mask=m).directions, lights).mean() < 0.25  # 0.11
-    # the level as a share of the peak alone: pulled toward the diffuse peak (0.46)
+    assert angular_error(calibrate_lights(imgs, "chrome", mask=m).directions, lights).mean() < 0.35  # 0.25
+    # the level as a share of the peak alone: pulled toward the diffuse peak (0.87)
     assert angular_error(calibrate_lights(imgs, "chrome", mask=m, config={"base": 0.0}).directions,
-                         lights).mean() > 0.35
+                         lights).mean() > 0.6
+
+
+def test_chrome_with_a_large_saturated_highlight_and_a_hot_pixel():
+    """A highlight clipped over more than a tenth of the sphere sets the 90th percentile to the peak:
+    the plateau is then the highlight (no pixel was above the level, and the whole box was taken:
+    46-59 degrees off, a review found). A hot pixel is brighter than the highlight but one pixel."""
+    lights = hemisphere_lights(8, 40.0, seed=5).astype(np.float64)
+    cx, cy, r = 40.0, 40.0, 30.0
+    m = disk(80, 80, cx, cy, r)
+    wide = to_uint16(sphere_views(lights, 80, cx, cy, r, "chrome", sharpness=0.25) * 3.0)  # clipped widely
+    top = (wide[0].max(-1) == 65535) & m
+    assert top.sum() > 0.1 * m.sum()  # the premise
+    res = calibrate_lights(wide, "chrome", mask=m)
+    assert angular_error(res.directions, lights).max() < 1.0
+    white = wide.copy()
+    white[3] = 65535  # every pixel saturated: the centre, a broad highlight; no NaN, no traceback
+    res = calibrate_lights(white, "chrome", mask=m)
+    assert np.isfinite(res.directions).all() and res.images[3]["pixels"] > 0.9 * m.sum()
+    # a hot pixel in a mirror's image
+    sharp = to_uint16(sphere_views(lights, 80, cx, cy, r, "chrome") * 0.8 / 3.0)
+    clean = calibrate_lights(sharp, "chrome", mask=m)
+    sharp[2, 60, 30] = 65535
+    res = calibrate_lights(sharp, "chrome", mask=m)
+    assert np.allclose(res.directions, clean.directions, atol=1e-3) and res.images[2]["spots"] == 2
+
+
+def test_chrome_highlight_at_the_rim_gets_a_note(tmp_path):
+    """A light far behind the sphere: its highlight is cut by the rim, and its direction is noted."""
+    folder = tmp_path / "behind"
+    write_sphere_folder(folder, "chrome", n=4, size=80)
+    lights = np.array([[0, 0, 1.0], [np.sin(np.radians(155)), 0, np.cos(np.radians(155))], [0.3, 0.2, 0.93],
+                       [-0.2, 0.1, 0.97]])
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    imgs = sphere_views(lights, 80, 80 / 2 - 0.3, 80 / 2 + 0.6, 32.0, "chrome")
+    for k in range(4):
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+    (folder / "light_directions.txt").unlink()
+    (folder / "light_intensities.txt").unlink()
+    r = run_calibrate(folder, "chrome", write=False)
+    assert [i["rim"] for i in r["images"]] == [False, True, False, False]
+    assert any("1 of 4 highlights reach the edge" in n and "002.png" in n for n in r["notes"])
+    assert any("point away from the camera" in n for n in r["notes"])
 
 
 def test_chrome_needs_an_outline_and_a_highlight():
@@ -185,6 +244,11 @@ def test_chrome_needs_an_outline_and_a_highlight():
         calibrate_lights(imgs, "mirror", circle=(32, 32, 24))
     with pytest.raises(PsctlError, match="lies outside"):
         calibrate_lights(imgs, "chrome", circle=(500, 32, 24))
+    for big in ((20, 20, 1e300), (1e308, 1e308, 1e308), (32, 32, 1e6)):  # no OverflowError, no silent garbage
+        with pytest.raises(PsctlError, match="X,Y,R|larger than"):
+            calibrate_lights(imgs, "chrome", circle=big)
+    with pytest.raises(PsctlError, match="diagonal"):
+        calibrate_lights(imgs, "chrome", circle=(25, 26, 1000))
 
 
 # --- matte -------------------------------------------------------------------------------------
@@ -282,6 +346,24 @@ def test_calibrate_chrome_after_matte_removes_the_earlier_intensities(tmp_path):
     r = run_calibrate(tmp_path / "chrome", "chrome", out=out2)
     assert (out2 / "light_intensities.txt").read_text() == "1 1 1\n"
     assert any("replaced lights.png" in n for n in r["notes"])
+    assert any("light_intensities.txt is not this run's" in n for n in r["notes"])  # not to be copied with them
+
+
+def test_damaged_light_files_in_the_sphere_folder_are_skipped(tmp_path):
+    """A recalibration replaces an old rig's files: damaged ones there are not compared with,
+    with a note, instead of stopping the run."""
+    folder = tmp_path / "chrome"
+    write_sphere_folder(folder, "chrome")
+    rows = (folder / "light_directions.txt").read_text().splitlines()
+    (folder / "light_directions.txt").write_text("\n".join(rows[:9]) + "\n")  # 9 rows, 10 images
+    r = run_calibrate(folder, "chrome", write=False)
+    assert r["light_mae"] is None and len(r["images"]) == 10
+    assert any(n.startswith("light files: light_directions.txt is not read (9 light rows but 10 images")
+               for n in r["notes"])
+    (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
+    (folder / "light_intensities.txt").write_text("1 1 1\n" * 3)
+    r = run_calibrate(folder, "chrome", write=False)
+    assert r["light_mae"] is None and any("light_intensities.txt is not read" in n for n in r["notes"])
 
 
 def test_a_sphere_off_the_optical_axis_gets_a_note(tmp_path):
@@ -289,9 +371,10 @@ def test_a_sphere_off_the_optical_axis_gets_a_note(tmp_path):
     r = run_calibrate(tmp_path / "side", "chrome", write=False)
     assert r["light_mae"] < 1.5  # (rendered orthographic: no perspective error here; 0.74 at r = 20)
     assert any("is 29 pixels from the image's centre" in n and "atan(29 / f)" in n for n in r["notes"]), r["notes"]
-    write_sphere_folder(tmp_path / "middle", "chrome", size=96, circle=(50.0, 45.0, 20.0))
+    assert any("its radius is 20.1 pixels" in n and "5.7 degrees" in n for n in r["notes"])  # small: 2 / r
+    write_sphere_folder(tmp_path / "middle", "chrome", size=96, circle=(50.0, 45.0, 36.0))
     r = run_calibrate(tmp_path / "middle", "chrome", write=False)
-    assert not any("image's centre" in n for n in r["notes"])
+    assert not any("image's centre" in n or "its radius" in n for n in r["notes"])
 
 
 def test_calibrate_command_errors_are_one_line(tmp_path):
@@ -347,6 +430,6 @@ def test_calibrate_on_diligent_ball():
     DiLiGenT calibrated with a chrome sphere) to within a degree on average."""
     ball = shared_data("diligent", "pmsData", "ballPNG")
     r = run_calibrate(ball, "chrome", write=False)
-    assert r["light_mae"] < 1.0  # 0.59 measured (2026-11-29)
+    assert r["light_mae"] < 1.0  # 0.60 measured (2026-11-29)
     r = run_calibrate(ball, "matte", write=False)
     assert r["light_mae"] < 1.5 and r["intensity_re"] < 0.03  # 1.06 and 0.017 measured

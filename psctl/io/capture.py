@@ -470,13 +470,15 @@ def _is_benchmark_root(path: Path, entries: list[Path]) -> bool:
     return not _is_capture(path, entries) and any(p.is_dir() and is_capture_folder(p) for p in entries)
 
 
-def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
+def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: bool = True) -> Capture:
     """Validate a capture folder without decoding pixels.
 
     Checks: images exist and share one size, light and intensity rows match the image count and
     are well formed, mask and ground truth (headers) have the image size. ``encoding`` (one of
     ENCODINGS): how the images' values map to radiance, applied when they are read; auto decodes
-    JPEGs from sRGB and reads every other file as linear.
+    JPEGs from sRGB and reads every other file as linear. ``light_files`` False: the folder's light
+    files are not read (an uncalibrated capture; psctl calibrate, which writes new ones, when
+    the old ones are damaged).
     """
     if not isinstance(encoding, str) or encoding.lower() not in ENCODINGS:
         raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
@@ -555,14 +557,15 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto") -> Capture:
     found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
     lights = None
-    lights_path = _first_existing(path, entries, [LIGHTS_FILE], "light direction files")
+    lights_path = _first_existing(path, entries, [LIGHTS_FILE], "light direction files") if light_files else None
     if lights_path is not None:
         lights = read_lights(lights_path)
         if len(lights) != n:
             raise PsctlError(lights_path, f"{len(lights)} light rows but {n} image{'s' * (n != 1)}{found}")
         check_lights_face_camera(lights, lights_path)
     intensities = np.ones((n, 3), np.float32)
-    intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files")
+    intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files") \
+        if light_files else None
     given = intensities_path is not None
     if given:
         intensities = read_intensities(intensities_path)
