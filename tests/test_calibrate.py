@@ -13,7 +13,7 @@ from psctl.errors import PsctlError
 from psctl.io.images import write_image
 from psctl.metrics import angular_error
 from tests.conftest import hemisphere_lights, shared_data
-from tests.test_cli import cli, psctl
+from tests.test_cli import cli
 
 SS = 4  # samples per pixel side: a sensor integrates over each pixel
 
@@ -303,7 +303,7 @@ def test_calibrate_command_writes_light_files(tmp_path):
 
     truth = write_sphere_folder(tmp_path / "matte", "matte")
     out = tmp_path / "out"
-    proc = psctl("calibrate", tmp_path / "matte", "--sphere", "matte", "--out", out, "--json", check=True)
+    proc = cli("calibrate", tmp_path / "matte", "--sphere", "matte", "--out", out, "--json", check=True)
     r = json.loads(proc.stdout)
     assert r["sphere"] == "matte" and r["n_images"] == 10 and r["circle"]["source"] == "mask.png"
     assert r["light_mae"] < 0.3 and r["intensity_re"] < 0.01 and len(r["direction_errors"]) == 10
@@ -324,7 +324,7 @@ def test_calibrate_command_writes_light_files(tmp_path):
     ratio = cap.intensities / truth["intensities"]
     assert np.allclose(ratio / ratio.mean(), 1.0, atol=0.01)
     # the human summary
-    proc = psctl("calibrate", tmp_path / "matte", "--sphere", "matte", "--out", out, check=True)
+    proc = cli("calibrate", tmp_path / "matte", "--sphere", "matte", "--out", out, check=True)
     assert "matte sphere at x" in proc.stdout and "direction error" in proc.stdout
 
 

@@ -44,7 +44,7 @@ def cli(*args: str, env: dict | None = None, check: bool = False) -> subprocess.
 
 def test_normals_writes_outputs_and_json(capture, tmp_path):
     out = tmp_path / "out"
-    proc = psctl("normals", capture, "--method", "l2", "--out", out, "--json", check=True)
+    proc = cli("normals", capture, "--method", "l2", "--out", out, "--json", check=True)
     r = json.loads(proc.stdout)
     for key in ("object", "path", "method", "calibrated", "n_images", "height", "width", "seconds", "outputs",
                 "mae", "median", "within"):
@@ -62,37 +62,37 @@ def test_normals_writes_outputs_and_json(capture, tmp_path):
 
 
 def test_default_output_folder_and_formats(capture):
-    proc = psctl("normals", capture, "-m", "l2", "--format", "png8,npy", "--quiet")
+    proc = cli("normals", capture, "-m", "l2", "--format", "png8,npy", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert sorted(os.listdir(capture / "psctl")) == [".psctl-normals", "error.png", "normal.npy", "normal_8bit.png",
                                                      "report.json"]
     assert "ball" not in proc.stdout and "sphere" in proc.stdout
     # -f given more than once adds up (it kept only the last before)
-    proc = psctl("normals", capture, "-m", "l2", "-f", "png16", "-f", "npy,exr", "-o", capture.parent / "o2", "-q")
+    proc = cli("normals", capture, "-m", "l2", "-f", "png16", "-f", "npy,exr", "-o", capture.parent / "o2", "-q")
     assert proc.returncode == 0, proc.stderr
     assert {"normal.png", "normal.npy", "normal.exr"} <= set(os.listdir(capture.parent / "o2"))
 
 
 def test_images_subset(capture, tmp_path):
-    r = json.loads(psctl("normals", capture, "-m", "l2", "--images", "5", "--seed", "3", "--out", tmp_path / "o",
+    r = json.loads(cli("normals", capture, "-m", "l2", "--images", "5", "--seed", "3", "--out", tmp_path / "o",
                          "--json", check=True).stdout)
     assert r["n_images"] == 5
 
 
 def test_auto_falls_back_to_l2_and_says_so(capture, tmp_path, monkeypatch):
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "no-weights"))  # whatever weights/ holds
-    proc = psctl("normals", capture, "--out", tmp_path / "o", check=True)
+    proc = cli("normals", capture, "--out", tmp_path / "o", check=True)
     assert "l2" in proc.stdout and "auto" in proc.stdout
     # a mistyped $PSCTL_WEIGHTS is named, not mistaken for weights never installed
     assert "$PSCTL_WEIGHTS, which does not exist" in " ".join(proc.stdout.split())
-    proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o2")
+    proc = cli("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o2")
     assert proc.returncode == 2 and "which does not exist" in proc.stderr and len(proc.stderr.splitlines()) == 1
     (tmp_path / "a-file").write_text("")  # $PSCTL_WEIGHTS naming a file: said so, not "does not exist"
-    proc = psctl("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o3", env={"PSCTL_WEIGHTS": str(tmp_path / "a-file")})
+    proc = cli("normals", capture, "-m", "ps-fcn", "--out", tmp_path / "o3", env={"PSCTL_WEIGHTS": str(tmp_path / "a-file")})
     assert proc.returncode == 2 and "which is a file, not a folder" in proc.stderr, proc.stderr
     # psctl eval's table says it too (the note was only in --json)
     write_capture(tmp_path / "root" / "aPNG", n=6, size=24)
-    table = psctl("eval", "-b", "folder", "--root", tmp_path / "root", check=True).stdout
+    table = cli("eval", "-b", "folder", "--root", tmp_path / "root", check=True).stdout
     assert "auto: no trained network weights are installed" in " ".join(table.split())
 
 
@@ -173,26 +173,26 @@ def test_network_methods_without_light_file_name_it(capture, tmp_path):
     for f in capture.iterdir():
         if f.name != "light_directions.txt":
             (tmp_path / "nol" / f.name).write_bytes(f.read_bytes())
-    proc = psctl("normals", tmp_path / "nol", "-m", "ps-fcn", "--out", tmp_path / "o")
+    proc = cli("normals", tmp_path / "nol", "-m", "ps-fcn", "--out", tmp_path / "o")
     assert proc.returncode == 2 and str(tmp_path / "nol" / "light_directions.txt") in proc.stderr
     assert "--method sdps" in proc.stderr and len(proc.stderr.splitlines()) == 1
     from psctl.models.ps_fcn import PSFCN
     from psctl.models.weights import save_weights
 
     w = save_weights(tmp_path / "p.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    proc = psctl("normals", tmp_path / "nol", "-w", w, "--out", tmp_path / "o")  # auto, from the file
+    proc = cli("normals", tmp_path / "nol", "-w", w, "--out", tmp_path / "o")  # auto, from the file
     assert proc.returncode == 2 and str(tmp_path / "nol" / "light_directions.txt") in proc.stderr
     assert "--method sdps" in proc.stderr and not (tmp_path / "o").exists()
 
 
 def test_info(capture):
-    r = json.loads(psctl("info", capture, "--json", check=True).stdout)
+    r = json.loads(cli("info", capture, "--json", check=True).stdout)
     assert r["n_images"] == 12 and r["bit_depth"] == 16 and r["calibrated"] and r["ground_truth"] == "Normal_gt.mat"
     assert 0 < r["mask_coverage"] < 1 and r["notes"] == []
-    assert "sphere" in psctl("info", capture, check=True).stdout
+    assert "sphere" in cli("info", capture, check=True).stdout
     (capture / "mask_obj.png").write_bytes((capture / "mask.png").read_bytes())  # looks like a mask, is not read
-    assert json.loads(psctl("info", capture, "--json", check=True).stdout)["notes"][0].startswith("files: not read: mask_obj.png")
-    assert "note: files: not read: mask_obj.png" in psctl("info", capture, check=True).stdout
+    assert json.loads(cli("info", capture, "--json", check=True).stdout)["notes"][0].startswith("files: not read: mask_obj.png")
+    assert "note: files: not read: mask_obj.png" in cli("info", capture, check=True).stdout
 
 
 def test_info_check_decodes_every_file(tmp_path):
@@ -358,7 +358,7 @@ def test_reports_hold_absolute_paths(capture, tmp_path, monkeypatch):
 def test_eval_on_a_folder_of_objects(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     write_capture(tmp_path / "root" / "bPNG", n=6, seed=2)
-    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--json",
+    r = json.loads(cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--json",
                          check=True).stdout)
     assert [o["name"] for o in r["objects"]] == ["a", "b"]
     assert r["mean_mae"] == pytest.approx(np.mean([o["mae"] for o in r["objects"]]))
@@ -368,7 +368,7 @@ def test_eval_on_a_folder_of_objects(tmp_path):
         one = run_normals(tmp_path / "root" / name, "l2", write=False)
         assert (o["mae"], o["median"]) == pytest.approx((one["mae"], one["median"]))
         assert o["median"] != pytest.approx(o["mae"])
-    table = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    table = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
     assert "avg" in table
 
 
@@ -528,7 +528,7 @@ def test_help_imports_nothing_heavy(argv):
 ])
 def test_command_line_mistake_is_one_line(argv, says):
     """Typer's own parse errors follow the user-error rule too: one line, exit code 2, no box."""
-    proc = psctl(*argv)
+    proc = cli(*argv)
     assert proc.returncode == 2 and proc.stdout == ""
     lines = proc.stderr.splitlines()
     assert len(lines) == 1 and says in lines[0].lower() and "--help" in lines[0], proc.stderr
@@ -657,7 +657,7 @@ def test_bad_input(kind, capture, tmp_path):
     culprit = _break(kind, capture)
     damaged = {p.name: p.read_bytes() if p.is_file() else None for p in capture.iterdir()}
     out = tmp_path / "out"
-    proc = psctl("normals", capture, "--method", "l2", "--out", out)
+    proc = cli("normals", capture, "--method", "l2", "--out", out)
     assert proc.returncode == 2, (kind, proc.stdout, proc.stderr)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, (kind, proc.stderr)
@@ -671,7 +671,7 @@ def test_bad_input(kind, capture, tmp_path):
 def test_output_folder_not_writable(capture, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("a file where a folder should be")
-    proc = psctl("normals", capture, "-m", "l2", "--out", blocker / "out")
+    proc = cli("normals", capture, "-m", "l2", "--out", blocker / "out")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "out" in proc.stderr
     assert blocker.read_text() == "a file where a folder should be"
 
@@ -682,7 +682,7 @@ def test_output_folder_read_only(capture, tmp_path):
     ro.mkdir()
     ro.chmod(0o500)
     try:
-        proc = psctl("normals", capture, "-m", "l2", "--out", ro / "out")
+        proc = cli("normals", capture, "-m", "l2", "--out", ro / "out")
         assert proc.returncode == 2 and "not writable" in proc.stderr
     finally:
         ro.chmod(0o700)
@@ -695,7 +695,7 @@ def test_output_folder_read_only(capture, tmp_path):
     (["info", "{capture}/001.png"], "not a folder"),
 ])
 def test_other_user_errors(args, needle, capture):
-    proc = psctl(*[a.replace("{capture}", str(capture)) for a in args])
+    proc = cli(*[a.replace("{capture}", str(capture)) for a in args])
     assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
@@ -706,7 +706,7 @@ def test_other_user_errors(args, needle, capture):
     (["normals", "{capture}", "-m", "l2", "--device", "gpu"], "unknown --device 'gpu'"),
 ])
 def test_bad_options_before_any_work(args, needle, capture, tmp_path):
-    proc = psctl(*[a.replace("{capture}", str(capture)) for a in args], "--out", tmp_path / "o")
+    proc = cli(*[a.replace("{capture}", str(capture)) for a in args], "--out", tmp_path / "o")
     assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
 
@@ -715,35 +715,35 @@ def test_messages_show_brackets_as_they_are(tmp_path):
     folder = tmp_path / "cap[red]x"
     write_capture(folder)
     (folder / "light_directions.txt").write_text("0 0 1\n")  # one row for 12 images
-    proc = psctl("normals", folder, "-m", "l2")
+    proc = cli("normals", folder, "-m", "l2")
     assert proc.returncode == 2 and "cap[red]x/light_directions.txt" in proc.stderr, proc.stderr
     (folder / "light_directions.txt").unlink()
-    r = psctl("normals", folder, "-m", "l2", "--out", tmp_path / "o")
+    r = cli("normals", folder, "-m", "l2", "--out", tmp_path / "o")
     assert r.returncode == 2 and "cap[red]x" in r.stderr
 
 
 def test_notes_for_an_image_selection_that_does_nothing(capture, tmp_path):
-    r = json.loads(psctl("normals", capture, "-m", "l2", "-n", "100", "--out", tmp_path / "o", "--json",
+    r = json.loads(cli("normals", capture, "-m", "l2", "-n", "100", "--out", tmp_path / "o", "--json",
                          check=True).stdout)
     assert r["n_images"] == 12 and any("all 12 used" in n for n in r["notes"])
-    r = json.loads(psctl("normals", capture, "-m", "l2", "--seed", "3", "--out", tmp_path / "o", "--json",
+    r = json.loads(cli("normals", capture, "-m", "l2", "--seed", "3", "--out", tmp_path / "o", "--json",
                          check=True).stdout)
     assert any("--seed is unused" in n for n in r["notes"])
 
 
 def test_synth_never_writes_into_a_capture_or_other_data(capture, tmp_path):
     before = sorted(os.listdir(capture))
-    proc = psctl("synth", capture, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1")
+    proc = cli("synth", capture, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1")
     assert proc.returncode == 2 and "not a psctl synth folder" in proc.stderr and "Traceback" not in proc.stderr
     assert sorted(os.listdir(capture)) == before
     out = tmp_path / "set"
     for _ in range(2):  # its own folder again is fine
-        psctl("synth", out, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1", check=True)
+        cli("synth", out, "--preset", "blobby", "--size", "16", "--lights", "4", "-k", "1", check=True)
 
 
 def test_uncalibrated_folder_with_l2(capture, tmp_path):
     (capture / "light_directions.txt").unlink()
-    proc = psctl("normals", capture, "-m", "l2", "--out", tmp_path / "o")
+    proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "o")
     assert proc.returncode == 2 and "light_directions.txt" in proc.stderr
 
 
@@ -751,14 +751,14 @@ def test_eval_checks_every_object_before_writing(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
     write_capture(tmp_path / "root" / "bPNG", n=6, seed=2, gt="none")
     out = tmp_path / "out"
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
     assert proc.returncode == 2 and "bPNG" in proc.stderr and "ground truth" in proc.stderr
     assert not out.exists()
 
 
 def test_eval_out_uses_object_names(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
-    psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "out",
+    cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "out",
           "--quiet", check=True)
     assert sorted(os.listdir(tmp_path / "out")) == [".psctl-eval", "a", "eval.json", "eval.png"]
     assert "normal.png" in os.listdir(tmp_path / "out" / "a")
@@ -769,14 +769,14 @@ def test_eval_shows_published_numbers_only_beside_folders_named_as_diligent(tmp_
     not DiLiGenT's catPNG and gets no paper number (it got DiLiGenT's cat's before)."""
     write_capture(tmp_path / "root" / "ballPNG", n=6, seed=0)
     write_capture(tmp_path / "root" / "cat", n=6, seed=1)
-    proc = psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True)
+    proc = cli("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True)
     r = json.loads(proc.stdout)
     assert set(r["paper"]) == {"ball"} and r["paper_method"] == "l2"
     assert any("paper: cat not in folders named as DiLiGenT's (catPNG)" in n for n in r["notes"]), r["notes"]
-    text = psctl("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    text = cli("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
     assert "catPNG" in " ".join(text.split())
     (tmp_path / "root" / "ballPNG").rename(tmp_path / "root" / "ball")
-    r = json.loads(psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
+    r = json.loads(cli("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
     assert r["paper"] == {} and r["paper_method"] is None and any("ball, cat not in" in n for n in r["notes"])
 
 
@@ -820,10 +820,10 @@ def test_eval_out_names_an_earlier_runs_objects(tmp_path):
     write_capture(tmp_path / "r2" / "bPNG", n=6, seed=1)
     write_capture(tmp_path / "r1" / "aPNG", n=6, seed=0)
     out = tmp_path / "out"
-    r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "r2", "-m", "l2", "--out", out,
+    r = json.loads(cli("eval", "--benchmark", "folder", "--root", tmp_path / "r2", "-m", "l2", "--out", out,
                          "--json", "--quiet", check=True).stdout)
     assert r["notes"] == []
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "r1", "-m", "l2", "--out", out, "--quiet",
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "r1", "-m", "l2", "--out", out, "--quiet",
                  check=True)
     assert "also holds b from an earlier run" in " ".join(proc.stdout.split())
     assert json.loads((out / "eval.json").read_text())["notes"][0].startswith("outputs:")
@@ -839,21 +839,21 @@ def test_eval_out_says_on_the_terminal_which_files_of_the_users_it_replaced(tmp_
     (out / "a").mkdir(parents=True)
     (out / "eval.png").write_text("mine")
     (out / "a" / "normal.png").write_text("mine too")
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
     text = " ".join(proc.stdout.split())
     assert f"replaced eval.png in {out}, which no earlier psctl eval run there had listed" in text, text
     assert f"replaced normal.png in {out / 'a'}" in text
-    again = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
+    again = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out, check=True)
     assert "replaced" not in again.stdout
 
 
 def test_eval_out_inside_the_root_runs_twice(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
     for _ in range(2):  # the second time, root/results (eval.png, a/) must not look like an object
-        r = json.loads(psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out",
+        r = json.loads(cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out",
                              tmp_path / "root" / "results", "--json", "--quiet", check=True).stdout)
         assert [o["name"] for o in r["objects"]] == ["a"]
-    r = psctl("normals", tmp_path / "root" / "aPNG", "-m", "l2", "--out", tmp_path / "root" / "results", "--quiet")
+    r = cli("normals", tmp_path / "root" / "aPNG", "-m", "l2", "--out", tmp_path / "root" / "results", "--quiet")
     assert r.returncode == 0, r.stderr  # an eval output folder is no capture
 
 
@@ -863,7 +863,7 @@ def test_eval_out_refuses_a_capture_and_is_atomic_with_the_sheet(tmp_path, monke
 
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=0)
     write_capture(tmp_path / "cap", n=6, seed=1)
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "cap")
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "cap")
     assert proc.returncode == 2 and "holds a capture" in proc.stderr and len(proc.stderr.splitlines()) == 1
     assert not (tmp_path / "cap" / "eval.png").exists() and not (tmp_path / "cap" / "a").exists()
 
@@ -885,13 +885,13 @@ def test_outputs_never_overwrite_inputs(capture):
     write_image(capture / "normal.png", np.zeros((40, 40, 3)), "uint16")  # a user's file named like an output
     (capture / "Normal_gt.mat").unlink()  # so normal.png is this folder's ground truth
     before = (capture / "normal.png").read_bytes()
-    proc = psctl("normals", capture, "-m", "l2", "--out", capture)
+    proc = cli("normals", capture, "-m", "l2", "--out", capture)
     assert proc.returncode == 2 and "capture folder" in proc.stderr and "input" in proc.stderr
     assert (capture / "normal.png").read_bytes() == before
     # and a run on a folder without ground truth never writes a normal.png that the next run
     # would read as its ground truth
     (capture / "normal.png").unlink()
-    proc = psctl("normals", capture, "-m", "l2", "--out", capture)
+    proc = cli("normals", capture, "-m", "l2", "--out", capture)
     assert proc.returncode == 2 and not (capture / "normal.png").exists()
 
 
@@ -909,7 +909,7 @@ def test_failed_write_leaves_no_output_folder(tmp_path):
 def test_a_folder_in_the_way_stops_the_whole_output(capture, tmp_path):
     out = tmp_path / "out"
     (out / "normal.exr").mkdir(parents=True)  # where a file will go
-    proc = psctl("normals", capture, "-m", "l2", "--out", out)
+    proc = cli("normals", capture, "-m", "l2", "--out", out)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "normal.exr" in proc.stderr
     assert sorted(os.listdir(out)) == ["normal.exr"]  # nothing else written, no staging folder left
@@ -1067,7 +1067,7 @@ def test_an_output_folder_that_is_a_link_loop_is_one_line(capture, tmp_path):
     loop = tmp_path / "loop"
     loop.symlink_to("loop")
     write_capture(tmp_path / "root" / "aPNG", n=6, size=24)
-    psctl("normals", capture, "-m", "l2", "-o", tmp_path / "n", check=True)
+    cli("normals", capture, "-m", "l2", "-o", tmp_path / "n", check=True)
     for args in (("normals", capture, "-m", "l2", "-o", loop), ("normals", capture, "-m", "l2", "-o", loop / "sub"),
                  ("depth", capture, "--normals", tmp_path / "n" / "normal.exr", "-o", loop),
                  ("eval", "-b", "folder", "--root", tmp_path / "root", "-m", "l2", "-o", loop)):
@@ -1122,9 +1122,9 @@ def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16,exr,npy", check=True)
+    cli("normals", capture, "-m", "l2", "--out", out, "--format", "png16,exr,npy", check=True)
     (capture / "Normal_gt.mat").unlink()
-    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "png16", "--json",
+    r = json.loads(cli("normals", capture, "-m", "l2", "--out", out, "--format", "png16", "--json",
                          check=True).stdout)
     # no old error map or EXR beside the new normals; the user's file stays; the report is this run's
     assert sorted(os.listdir(out)) == [".psctl-normals", "normal.png", "notes.txt", "report.json"]
@@ -1135,16 +1135,16 @@ def test_a_folder_holds_one_runs_outputs(capture, tmp_path):
     (out / ".psctl-normals").unlink()
     write_image(out / "error.png", np.zeros((4, 4)), "uint8")
     (out / "normal.exr").mkdir()  # in the way: refused before any work, not after it
-    proc = psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr")
+    proc = cli("normals", capture, "-m", "l2", "--out", out, "--format", "exr")
     assert proc.returncode == 2 and "normal.exr: is in the way of an output file" in proc.stderr, proc.stderr
     (out / "normal.exr").rmdir()
-    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
+    r = json.loads(cli("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
                          check=True).stdout)
     assert sorted(os.listdir(out)) == [".psctl-normals", "error.png", "normal.exr", "normal.png", "notes.txt",
                                        "report.json"]
     # a file of the same name that no listed run wrote is replaced with a note, never silently
     assert any("replaced report.json" in n for n in r["notes"]), r["notes"]
-    r = json.loads(psctl("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
+    r = json.loads(cli("normals", capture, "-m", "l2", "--out", out, "--format", "exr", "--json",
                          check=True).stdout)
     assert not any("replaced" in n for n in r["notes"]), r["notes"]  # now listed: psctl's own
 
@@ -1154,7 +1154,7 @@ def test_outputs_never_go_into_another_capture(capture, tmp_path):
     write_capture(other, gt="png")  # its ground truth is Normal_gt.png; a normal.png would count too
     before = sorted(os.listdir(other))
     for cmd in (["normals", capture, "-m", "l2"], ["lights", capture]):
-        proc = psctl(*cmd, "--out", other)
+        proc = cli(*cmd, "--out", other)
         assert proc.returncode == 2 and "holds a capture" in proc.stderr and "Traceback" not in proc.stderr
     assert sorted(os.listdir(other)) == before
 
@@ -1165,18 +1165,18 @@ def test_eval_out_is_all_or_nothing(tmp_path):
     data = (tmp_path / "root" / "cPNG" / "003.png").read_bytes()
     (tmp_path / "root" / "cPNG" / "003.png").write_bytes(data[: len(data) // 2])
     out = tmp_path / "out"
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
     assert proc.returncode == 2 and "003.png" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()  # a and b were done, and are not written either
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", out)
     assert proc.returncode == 2 and sorted(os.listdir(out)) == ["keep.txt"]
 
 
 def test_eval_out_may_not_be_the_root(tmp_path):
     write_capture(tmp_path / "root" / "aPNG", n=6, seed=1)
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "root")
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--out", tmp_path / "root")
     assert proc.returncode == 2 and "benchmark root" in proc.stderr
     assert sorted(os.listdir(tmp_path / "root")) == ["aPNG"]
 
@@ -1184,7 +1184,7 @@ def test_eval_out_may_not_be_the_root(tmp_path):
 def test_eval_refuses_two_objects_of_the_same_name(tmp_path):
     write_capture(tmp_path / "root" / "cat", n=6, seed=1)
     write_capture(tmp_path / "root" / "catPNG", n=6, seed=2)
-    proc = psctl("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2")
+    proc = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2")
     assert proc.returncode == 2 and "cat, catPNG" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -1251,10 +1251,10 @@ def test_ensemble_command_and_auto(capture, tmp_path):
 def test_train_command(tmp_path):
     """The CLI end to end, with and without the progress bar; bad method is a one-line error."""
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
-    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--device", "cpu")
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--device", "cpu")
     assert proc.returncode == 0, proc.stderr
     assert "finished" in proc.stderr and (tmp_path / "run" / "best.pt").is_file()
-    proc = psctl("train", "magic", "--config", cfg, "--out", tmp_path / "run2", "--quiet")
+    proc = cli("train", "magic", "--config", cfg, "--out", tmp_path / "run2", "--quiet")
     assert proc.returncode == 2 and "magic" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -1304,7 +1304,7 @@ def test_train_install_refuses_to_replace_a_release_file(tmp_path):
     assert not (tmp_path / "run").exists() and (wdir / "ps_fcn.pt").read_bytes() == b"release"
     proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--force", "-q", env=env)
     assert proc.returncode == 2 and "--install" in proc.stderr
-    proc = psctl("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "--force", "-q", env=env)
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "run", "--install", "--force", "-q", env=env)
     assert proc.returncode == 0, proc.stderr
     assert (wdir / "ps_fcn.pt").read_bytes() == (tmp_path / "run" / "best.pt").read_bytes()
 
@@ -1318,7 +1318,7 @@ def test_train_average(tmp_path):
     best, other = tmp_path / "best.pt", tmp_path / "other.pt"  # weights files of the method (psctl train's own: test_train.py)
     save_weights(best, PSFCN(), {"method": "ps-fcn", "train_images": 32})
     save_weights(other, PSFCN(), {"method": "ps-fcn", "train_images": 32})
-    proc = psctl("train", "ps-fcn", "--average", best, "--average", other, "--out", tmp_path / "avg")
+    proc = cli("train", "ps-fcn", "--average", best, "--average", other, "--out", tmp_path / "avg")
     assert proc.returncode == 0 and "averaged 2 files" in proc.stderr and "validation" not in proc.stderr, proc.stderr
     proc = cli("train", "ps-fcn", "--average", best, "--average", other, "--config", cfg, "--out", tmp_path / "avg_val")
     assert proc.returncode == 0 and "synthetic validation" in proc.stderr, proc.stderr
@@ -1380,7 +1380,7 @@ def test_paths_the_system_refuses_are_one_line_errors(capture, tmp_path):
     long = "a" * 300
     for args in (["info", tmp_path / long], ["normals", capture, "-m", "l2", "-o", tmp_path / long / "out"],
                  ["normals", tmp_path / long, "-m", "l2"]):
-        proc = psctl(*args)
+        proc = cli(*args)
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
         assert proc.returncode == 2 and len(lines) == 1, (args, proc.stderr)
         assert "Traceback" not in proc.stderr and long in lines[0]
@@ -1804,13 +1804,13 @@ def test_eval_compares_methods_in_one_table(tmp_path):
     from psctl.eval import run_benchmark
 
     root = _two_objects(tmp_path / "root")
-    r = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "-m", "L2", "--json", check=True).stdout)
+    r = json.loads(cli("eval", "--root", root, "-m", "l2,ps-fcn", "-m", "L2", "--json", check=True).stdout)
     assert r["methods"] == ["l2", "ps-fcn"] and [run["method"] for run in r["runs"]] == ["l2", "ps-fcn"]
     for run in r["runs"]:
         alone = run_benchmark("diligent", root, method=run["method"])
         assert [o["mae"] for o in run["objects"]] == pytest.approx([o["mae"] for o in alone["objects"]])
         assert run["paper_method"] == run["method"]
-    table = psctl("eval", "--root", root, "-m", "l2", "-m", "ps-fcn", check=True).stdout
+    table = cli("eval", "--root", root, "-m", "l2", "-m", "ps-fcn", check=True).stdout
     lines = table.splitlines()
     order = [next(i for i, line in enumerate(lines) if label in line)
              for label in ("l2 (psctl)", "ps-fcn (psctl)", "l2 (paper)", "ps-fcn (paper)")]
@@ -1820,19 +1820,19 @@ def test_eval_compares_methods_in_one_table(tmp_path):
         assert all(f"{o['mae']:.2f}" in row for o in run["objects"]) and f"{run['mean_mae']:.2f}" in row
     assert sum("(paper)" in line for line in lines) == 2
     for columns in ("50", "30"):  # turned (objects as rows), then a line per row: no number cut off
-        narrow = psctl("eval", "--root", root, "-m", "l2,ps-fcn", env={"COLUMNS": columns}, check=True).stdout
+        narrow = cli("eval", "--root", root, "-m", "l2,ps-fcn", env={"COLUMNS": columns}, check=True).stdout
         flat = " ".join(narrow.split())
         assert all(f"{o['mae']:.2f}" in flat for run in r["runs"] for o in run["objects"])
         assert all(f"{run['mean_mae']:.2f}" in flat for run in r["runs"])
         assert max(len(line) for line in narrow.splitlines()[1:]) <= int(columns)
-    md = psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--markdown", check=True).stdout.splitlines()
+    md = cli("eval", "--root", root, "-m", "l2,ps-fcn", "--markdown", check=True).stdout.splitlines()
     assert [line.split(" | ")[0] for line in md[2:]] == ["| l2 (psctl)", "| ps-fcn (psctl)", "| l2 (paper)",
                                                          "| ps-fcn (paper)"]
     assert md[3] == "| ps-fcn (psctl) | " + " | ".join(f"{o['mae']:.2f}" for o in r["runs"][1]["objects"]) + \
         f" | {r['runs'][1]['mean_mae']:.2f} |"
 
     out = tmp_path / "out"
-    w = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
+    w = json.loads(cli("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
     assert w["outputs"] == {f: str(out / f) for f in ("compare.png", "compare.json")}
     assert json.loads((out / "compare.json").read_text()) == w
     sheets = [read_image(out / m / "eval.png")[0] for m in ("l2", "ps-fcn")]
@@ -1840,7 +1840,7 @@ def test_eval_compares_methods_in_one_table(tmp_path):
         assert json.loads((out / m / "eval.json").read_text()) == run
         assert (out / m / "cat" / "normal.png").is_file()
     # the same comparison again into its folder (compare.png is no input image there)
-    again = json.loads(psctl("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
+    again = json.loads(cli("eval", "--root", root, "-m", "l2,ps-fcn", "--out", out, "--json", check=True).stdout)
     assert [run["mean_mae"] for run in again["runs"]] == [run["mean_mae"] for run in w["runs"]]
     both = read_image(out / "compare.png")[0]
     assert both.shape == (sheets[0].shape[0] + 12 + sheets[1].shape[0], max(s.shape[1] for s in sheets), 3)
@@ -1885,7 +1885,7 @@ def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
         r = ev.compare_methods("diligent", ["l2", "auto"], root=root)
     assert r["methods"] == ["l2"] and len(r["runs"]) == 2 - 1
     assert any(n.startswith("methods: auto runs what l2 runs") for n in r["notes"])
-    proc = psctl("eval", "--root", root, "-m", "l2,", "--out", out)  # an empty name: one line, exit 2
+    proc = cli("eval", "--root", root, "-m", "l2,", "--out", out)  # an empty name: one line, exit 2
     assert proc.returncode == 2 and "unknown method ''" in proc.stderr and not out.exists()
 
 
@@ -1893,12 +1893,12 @@ def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path)
     """In a log (stderr not a terminal) psctl train opens with a line naming the run; a recipe
     refused at once printed it too, before its error (seen in session 50): now one line."""
     repo = Path(__file__).resolve().parents[1]
-    bad = psctl("train", "ps-fcn", "--config", repo / "configs" / "ps_fcn_n_gpu_stage12.yaml", "--out", tmp_path / "x")
+    bad = cli("train", "ps-fcn", "--config", repo / "configs" / "ps_fcn_n_gpu_stage12.yaml", "--out", tmp_path / "x")
     assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
         "error: config 'method' is 'ps-fcn-n': the recipe is for another network than ps-fcn; train ps-fcn-n with it, "
         "or choose a ps-fcn recipe"]
     assert not (tmp_path / "x").exists()
-    good = psctl("train", "ps-fcn", "--config", repo / "configs" / "tiny.yaml", "--out", tmp_path / "run", "--device", "cpu")
+    good = cli("train", "ps-fcn", "--config", repo / "configs" / "tiny.yaml", "--out", tmp_path / "run", "--device", "cpu")
     assert good.returncode == 0, good.stderr
     assert good.stderr.splitlines()[0].startswith(f"train ps-fcn in {tmp_path / 'run'}: a line every 30 s")
 
@@ -2011,19 +2011,19 @@ def test_escape_sequences_in_names_are_written_out(tmp_path):
     bad = "x\x1b]0;PWNED\x07\x1b[2J\n.png"
     listed = [*[f"{k:03d}.png" for k in range(1, 6)], bad.replace("\n", "")]  # a missing image, so named
     (tmp_path / "c" / "filenames.txt").write_text("\n".join(listed) + "\n")
-    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
+    proc = cli("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
     assert proc.returncode == 2 and "\x1b" not in proc.stderr and "\x07" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "\\x1b]0;PWNED" in proc.stderr, proc.stderr
     (tmp_path / "c" / "filenames.txt").write_text("\n".join([*listed[:5], "006.png"]) + "\n")
-    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / ("o" + bad) / "x")  # a line break too
+    proc = cli("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / ("o" + bad) / "x")  # a line break too
     assert proc.returncode == 0 and "\x1b" not in proc.stderr + proc.stdout, proc.stderr
     (tmp_path / "a\nfile").write_text("")  # --out under a file whose name breaks the line: still one line
-    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "a\nfile" / "x")
+    proc = cli("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "a\nfile" / "x")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "a\\x0afile" in proc.stderr
     # a note naming the folder, and the summary's lines: written out as well
     (tmp_path / "c" / "filenames.txt").unlink()
     os.rename(tmp_path / "c", tmp_path / ("c" + bad.replace("\n", "")))
-    proc = psctl("normals", tmp_path / ("c" + bad.replace("\n", "")), "-m", "l2", "--out", tmp_path / "o2")
+    proc = cli("normals", tmp_path / ("c" + bad.replace("\n", "")), "-m", "l2", "--out", tmp_path / "o2")
     assert proc.returncode == 0, proc.stderr
     assert "\x1b" not in proc.stdout + proc.stderr and "\\x1b]0;PWNED" in proc.stdout
 
@@ -2041,9 +2041,9 @@ def test_values_near_float32s_limit_give_one_line_and_the_right_advice(tmp_path)
     (tmp_path / "c" / names[0]).unlink()
     write_image(tmp_path / "c" / "001.exr", img, "float")
     (tmp_path / "c" / "filenames.txt").write_text("\n".join(["001.exr", *names[1:]]) + "\n")
-    proc = psctl("info", tmp_path / "c", "--check")
+    proc = cli("info", tmp_path / "c", "--check")
     assert proc.returncode == 0 and "Warning" not in proc.stderr and ".. inf" not in proc.stdout, proc.stderr
-    proc = psctl("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
+    proc = cli("normals", tmp_path / "c", "-m", "l2", "--out", tmp_path / "o")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "divided by its light intensity" in proc.stderr and "or light_intensities.txt" in proc.stderr
     # sdps' second stage reads the images divided by LCNet's intensities (here a small estimate)

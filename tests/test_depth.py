@@ -15,6 +15,7 @@ from psctl.depth import depth_mesh, depth_to_points, integrate, integrate_normal
 from psctl.errors import PsctlError
 from psctl.io.mesh import Mesh, read_ply, write_ply
 from tests.conftest import write_capture
+from tests.test_cli import cli
 
 
 # --- analytic surfaces ----------------------------------------------------------------------------
@@ -321,7 +322,7 @@ def read_exr(path) -> np.ndarray:
 
 def test_cli_depth_end_to_end(capture, tmp_path):
     out = tmp_path / "out"
-    proc = psctl("depth", capture, "--out", out, "--json")
+    proc = cli("depth", capture, "--out", out, "--json")
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)
     for key in ("object", "method", "n_pixels", "n_rejected", "seconds", "outputs"):
@@ -349,7 +350,7 @@ def test_cli_depth_end_to_end(capture, tmp_path):
     np.save(tmp_path / "n.npy", write_capture(tmp_path / "again")["normals"])
     (capture / "K.txt").write_text("60 0 20\n0 60 20\n0 0 1\n")
     out2 = tmp_path / "out2"
-    proc = psctl("depth", capture, "--normals", tmp_path / "n.npy", "--method", "bilateral", "--out", out2, "--json")
+    proc = cli("depth", capture, "--normals", tmp_path / "n.npy", "--method", "bilateral", "--out", out2, "--json")
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)
     assert report["projection"] == "perspective" and report["method"] == "bilateral"
@@ -385,7 +386,7 @@ def test_cli_depth_bad_inputs(case, capture, tmp_path):
     elif case == "bad_method":
         args, culprit = ["--method", "magic"], "magic"
     out = tmp_path / "out"
-    _one_line_error(psctl("depth", capture, "--out", out, *args), culprit)
+    _one_line_error(cli("depth", capture, "--out", out, *args), culprit)
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
 
 
@@ -415,7 +416,7 @@ def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):
     normals = write_capture(tmp_path / "again")["normals"].copy()
     normals[18:20, 18:20] = np.nan
     write_image(tmp_path / "n.exr", normals, "float")
-    proc = psctl("depth", capture, "--normals", tmp_path / "n.exr", "--out", tmp_path / "o", "--json")
+    proc = cli("depth", capture, "--normals", tmp_path / "n.exr", "--out", tmp_path / "o", "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["n_rejected"] == 4
 

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -193,20 +190,21 @@ def test_folder_runs_report_the_factor(tmp_path):
     assert r["downsample"] == 2 and r["mae"] is not None
     r = run_normals(folder, method="l2", downsample=2, write=False)
     assert r["downsample"] == 1 and any("downsample: l2" in n for n in r["notes"])
-    env = {**os.environ, "COLUMNS": "200"}
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(folder), "--weights", str(weights),
-                           "--downsample", "0", "--out", str(tmp_path / "o")], capture_output=True, text=True, env=env)
+    from tests.test_cli import cli  # in this process: a subprocess costs seconds of imports per call
+
+    env = {"COLUMNS": "200"}
+    proc = cli("normals", str(folder), "--weights", str(weights),
+               "--downsample", "0", "--out", str(tmp_path / "o"), env=env)
     assert proc.returncode == 2 and "downsample must be a whole number" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "eval", "--benchmark", "folder", "--root", str(tmp_path),
-                           "-m", "ps-fcn-n", "--weights", str(weights), "--device", "cpu", "--downsample", "2",
-                           "--json", "-q"], capture_output=True, text=True, env=env)
+    proc = cli("eval", "--benchmark", "folder", "--root", str(tmp_path),
+               "-m", "ps-fcn-n", "--weights", str(weights), "--device", "cpu", "--downsample", "2",
+               "--json", "-q", env=env)
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["downsample"] == 2 and out["views"] == 1
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(folder), "--weights", str(weights),
-                           "--downsample", "100", "--out", str(tmp_path / "o100")], capture_output=True, text=True,
-                          env=env)
+    proc = cli("normals", str(folder), "--weights", str(weights),
+               "--downsample", "100", "--out", str(tmp_path / "o100"), env=env)
     assert proc.returncode == 2 and "downsample 100 would leave the object 1 px across" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o100").exists()
     # numpy integers are accepted, and eval.json is still written (JSON has no int64)

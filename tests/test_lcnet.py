@@ -29,6 +29,7 @@ from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import file_sha256, load_network, read_weights, save_weights
 from psctl.symmetry import SYMMETRIES, transform_dirs, transform_images, untransform_dirs
 from tests.conftest import random_biases, write_capture, weights_in
+from tests.test_cli import cli
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -389,7 +390,7 @@ def test_weights_round_trip_and_official_checkpoint(tmp_path):
 def test_lights_command(tmp_path, fake_weights):
     data = write_capture(tmp_path / "ballPNG", n=8, size=48)
     out = tmp_path / "out"
-    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", out, "--json",
+    proc = cli("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", out, "--json",
                  "--device", "cpu")
     assert proc.returncode == 0, proc.stderr
     r = json.loads(proc.stdout)
@@ -408,13 +409,13 @@ def test_lights_command(tmp_path, fake_weights):
 
     assert light_direction_error(est, data["lights"]).mean() == pytest.approx(r["light_mae"], abs=1e-5)
     assert r["views"] == 8 and r["decode"] == "soft"
-    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "v3",
+    proc = cli("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "v3",
                  "--views", "3")
     assert proc.returncode == 2 and "views" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "v3").exists()
     # never over the inputs; the capture folder keeps its own light files
     before = (tmp_path / "ballPNG" / "light_directions.txt").read_text()
-    proc = psctl("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "ballPNG")
+    proc = cli("lights", tmp_path / "ballPNG", "--weights", fake_weights / "lcnet.pt", "--out", tmp_path / "ballPNG")
     assert proc.returncode == 2 and "never overwritten" in proc.stderr
     assert (tmp_path / "ballPNG" / "light_directions.txt").read_text() == before
     # a same-named file of the user's is replaced with a note; psctl lights' own, from a run before, silently
@@ -434,17 +435,17 @@ def test_missing_weights_are_one_clear_line(tmp_path, capture):
     for args, needles in ((["lights", capture], ["lcnet", "psctl train lcnet", "docs/training.md"]),
                           (["normals", capture, "--method", "sdps"], ["lcnet.pt", "ps_fcn_dagger.pt", f"{tmp_path / 'none' / 'ps_fcn.pt'} and",
                                                                   "ps_fcn_n.pt", "docs/training.md"])):
-        proc = psctl(*args, env=env)
+        proc = cli(*args, env=env)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
         assert all(n in proc.stderr for n in needles), proc.stderr
     (capture / "light_directions.txt").unlink()  # uncalibrated: auto means sdps
-    proc = psctl("normals", capture, env=env)
+    proc = cli("normals", capture, env=env)
     assert proc.returncode == 2 and "sdps" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     # LCNet alone installed: the error named only PS-FCN† (an audit), though PS-FCN or PS-FCN+N would do
     (tmp_path / "lc").mkdir()
     save_weights(tmp_path / "lc" / "lcnet.pt", lcnet(), {"method": "lcnet", "train_images": 32})
-    proc = psctl("normals", capture, env={"PSCTL_WEIGHTS": str(tmp_path / "lc")})
+    proc = cli("normals", capture, env={"PSCTL_WEIGHTS": str(tmp_path / "lc")})
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert all(f"{tmp_path / 'lc' / n}" in proc.stderr for n in ("ps_fcn_dagger.pt", "ps_fcn.pt", "ps_fcn_n.pt"))
     assert "needs a normals network after LCNet" in proc.stderr and "--weights FILE: psctl's PS-FCN†" in proc.stderr

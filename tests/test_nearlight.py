@@ -11,6 +11,7 @@ from psctl.io.images import write_image
 from psctl.nearlight import NearLights, near_lights
 from tests.conftest import write_capture
 from tests.test_cli import psctl
+from tests.test_cli import cli
 
 
 def _falloff(light: np.ndarray, distance: float, centre: tuple[float, float], shape: tuple[int, int]) -> np.ndarray:
@@ -145,7 +146,7 @@ def test_psctl_lights_refines_on_corrected_images(tmp_path, fake_weights, monkey
 ])
 def test_light_distance_misuse_is_one_line(tmp_path, argv, says):
     write_capture(tmp_path / "obj")
-    proc = psctl("normals", tmp_path / "obj", "--out", tmp_path / "out", *argv)
+    proc = cli("normals", tmp_path / "obj", "--out", tmp_path / "out", *argv)
     assert proc.returncode == 2, proc.stderr
     assert len(proc.stderr.splitlines()) == 1 and says in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -725,10 +723,10 @@ def test_cli_network_methods(tmp_path):
     folder = tmp_path / "spherePNG"
     write_capture(folder, n=6, size=24)
     weights = save_weights(tmp_path / "w.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
-    env = {**os.environ, "COLUMNS": "200", "PSCTL_WEIGHTS": str(tmp_path / "empty")}
+    from tests.test_cli import cli
 
-    def psctl(*args):
-        return subprocess.run([sys.executable, "-m", "psctl.cli", *map(str, args)], capture_output=True, text=True, env=env)
+    def psctl(*args):  # in this process: a subprocess costs seconds of imports per call
+        return cli(*args, env={"COLUMNS": "200", "PSCTL_WEIGHTS": str(tmp_path / "empty")})
 
     proc = psctl("normals", folder, "--method", "ps-fcn", "--out", tmp_path / "o0")
     assert proc.returncode == 2 and "no weights are installed for ps-fcn" in proc.stderr
@@ -766,9 +764,9 @@ def test_views_average_turned_back_normals(normalization="per-channel"):  # +N: 
     """views=8: the unit mean of the network's normals on the 8 turned / mirrored captures,
     each turned back (the reader is asked for the right region of the capture in every view,
     with tiles too)."""
-    images, lights, _ = scene(5, 70, 84)
-    mask = np.zeros((70, 84), bool)
-    mask[6:26, 47:70] = True  # off-centre and small: each view reads a different region of the capture
+    images, lights, _ = scene(5, 44, 52)
+    mask = np.zeros((44, 52), bool)
+    mask[4:17, 29:44] = True  # off-centre and small: each view reads a different region of the capture
     net = model(double=True)
     acc = 0
     for sym in SYMMETRIES:

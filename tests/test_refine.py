@@ -11,6 +11,7 @@ from psctl.errors import PsctlError
 from psctl.lights import DEFAULT_REFINE, LightEstimate, refine_estimate, refine_lights, sample_observations
 from psctl.metrics import light_direction_error
 from tests.conftest import hemisphere_lights, sphere, write_capture, weights_in
+from tests.test_cli import cli
 from tests.test_lcnet import psctl
 
 
@@ -468,15 +469,15 @@ def test_roll_option_reaches_sdps_lights_and_eval(tmp_path, fake_weights, stand_
 
     with pytest.raises(PsctlError, match="roll must be True, False or None"):
         estimate_lights(data["images"], data["mask"], device="cpu", roll="no")
-    # the CLI flags reach the reports (real networks with fake weights, in a subprocess: the
-    # default is on, so --no-roll is what shows that a flag got through; --roll, the default,
-    # once, to show that it parses: each subprocess costs seconds of imports)
+    # the CLI flags reach the reports (in this process, with the stand-in networks: the default is
+    # on, so --no-roll is what shows that a flag got through; --roll, the default, once, to show
+    # that it parses)
     env = {"PSCTL_WEIGHTS": str(fake_weights)}
     for cmd, key in ((["eval", "--benchmark", "folder", "--root", tmp_path, "-m", "sdps"], "eval"),
                      (["normals", tmp_path / "aPNG", "-m", "sdps", "--out", tmp_path / "n"], "normals"),
                      (["lights", tmp_path / "aPNG", "--out", tmp_path / "l"], "lights")):
         for flag in (("--roll", "--no-roll") if key == "eval" else ("--no-roll",)):
-            proc = psctl(*cmd, flag, "--json", "-q", env=env)
+            proc = cli(*cmd, flag, "--json", "-q", env=env)
             assert proc.returncode == 0, proc.stderr
             out = json.loads(proc.stdout)
             refined = out["objects"][0]["lights_refined"] if key == "eval" else out["lights_refined"]

@@ -946,42 +946,36 @@ def test_written_lambertian_sphere_gives_l2_its_normals_back(tmp_path):
 
 
 def test_cli_synth(tmp_path):
-    import os
-    import subprocess
-    import sys
+    from tests.test_cli import cli  # in this process: a subprocess costs seconds of imports per call
 
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "o"), "--preset", "blobby",
-                           "--size", "24", "--lights", "6", "--materials", "1", "--json"],
-                          capture_output=True, text=True, env=env)
+    proc = cli("synth", tmp_path / "o", "--preset", "blobby",
+               "--size", "24", "--lights", "6", "--materials", "1", "--json")
     assert proc.returncode == 0, proc.stderr
     r = json.loads(proc.stdout)
     assert r["objects"] == ["blobby_01"] and (tmp_path / "o" / "objects.txt").is_file()
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "o"), "--preset", "nope"],
-                          capture_output=True, text=True)
+    proc = cli("synth", tmp_path / "o", "--preset", "nope")
     assert proc.returncode == 2 and "unknown preset" in proc.stderr and "Traceback" not in proc.stderr
     # --light-dist: DiLiGenT-like lights (zenith <= 45 degrees), recorded in synth.json
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "d"), "--preset", "blobby",
-                           "--size", "24", "--lights", "40", "--materials", "1", "--light-dist", "diligent", "--json"],
-                          capture_output=True, text=True, env=env)
+    proc = cli("synth", tmp_path / "d", "--preset", "blobby",
+               "--size", "24", "--lights", "40", "--materials", "1", "--light-dist", "diligent", "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["light_dist"] == "diligent"
     z = np.loadtxt(tmp_path / "d" / "blobby_01" / "light_directions.txt")[:, 2]
     assert z.min() >= np.cos(np.radians(45)) - 1e-6 and z.max() > 0.97
     assert json.loads((tmp_path / "d" / "blobby_01" / "synth.json").read_text())["light_dist"] == "diligent"
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "e"), "--preset", "blobby",
-                           "--light-dist", "ring"], capture_output=True, text=True)
+    proc = cli("synth", tmp_path / "e", "--preset", "blobby",
+               "--light-dist", "ring")
     assert proc.returncode == 2 and "unknown light distribution 'ring'" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "e").exists()
     # interreflections: recorded in synth.json; a bad albedo is a one-line error and writes nothing
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "i"), "--preset", "blobby",
-                           "--size", "24", "--lights", "6", "--materials", "1", "--interreflections", "2",
-                           "--ir-albedo", "0.5", "--json"], capture_output=True, text=True, env=env)
+    proc = cli("synth", tmp_path / "i", "--preset", "blobby",
+               "--size", "24", "--lights", "6", "--materials", "1", "--interreflections", "2",
+               "--ir-albedo", "0.5", "--json")
     assert proc.returncode == 0, proc.stderr
     meta = json.loads((tmp_path / "i" / "blobby_01" / "synth.json").read_text())
     assert meta["interreflections"] == 2 and meta["ir_albedo"] == 0.5
-    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "synth", str(tmp_path / "j"), "--preset", "blobby",
-                           "--interreflections", "1", "--ir-albedo", "1.5"], capture_output=True, text=True, env=env)
+    proc = cli("synth", tmp_path / "j", "--preset", "blobby",
+               "--interreflections", "1", "--ir-albedo", "1.5")
     assert proc.returncode == 2 and "--ir-albedo must be in [0, 1)" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "j").exists()
 

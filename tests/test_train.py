@@ -159,12 +159,12 @@ def test_a_progress_that_cannot_report_stops_the_run_at_a_checkpoint(tmp_path):
     st = train("ps-fcn", tiny(16), tmp_path / "truthy", device="cpu", progress=lambda rec: True)
     assert st["finished"] and st["signal"] is None
     calls = []
-    st = train("ps-fcn", merge(tiny(480), {"train": {"log_every": 2}}), tmp_path / "run", device="cpu",
+    st = train("ps-fcn", merge(tiny(64), {"train": {"log_every": 2}}), tmp_path / "run", device="cpu",
                progress=lambda rec: calls.append(rec) or STOP)
     assert len(calls) == 1 and st["signal"] == signal.SIGPIPE and not st["finished"]
     assert st["samples"] == calls[0]["samples"] == 8 and (tmp_path / "run" / "state.json").is_file()
     st = train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu", progress=lambda rec: None)
-    assert st["finished"] and st["samples"] == 480 and st["signal"] is None
+    assert st["finished"] and st["samples"] == 64 and st["signal"] is None
 
 def test_resume_continues_exactly(tmp_path):
     """24 + 24 samples with a stop in between == 48 samples in one go."""
