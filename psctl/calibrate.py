@@ -42,12 +42,11 @@ DEFAULT_CALIBRATE = {
     # share of the radius whose pixels are used: the outermost ones mix sphere and background, and
     # their steep normals turn a small error in the outline into a large angle
     "rim": 0.97,
-    # chrome: a highlight is the connected region above this fraction of its brightest value;
-    # its centroid, weighted by how far each pixel is above that level, is the highlight's position
-    # level = base + highlight * (peak - base), base the sphere's ``base``-th percentile (the diffuse
-    # glow of a ball that is glossy rather than a mirror, which would pull a low level's centroid);
-    # 0.5 and 90 of highlight 0.1-0.7 and base 0, 50, 90 had the lowest error summed over
-    # benchmarks/calibrate_sphere.py's mirrors and glossy ball (docs/calibration.md)
+    # chrome: a highlight is a connected region above the level b + highlight * (peak - b), b the
+    # sphere's ``base``-th percentile (the diffuse glow of a ball that is glossy rather than a
+    # mirror, which would pull a lower level's centroid; find_highlight). 0.5 and 90 of highlight
+    # 0.1-0.7 and base 0, 50, 90 had the lowest error summed over benchmarks/calibrate_sphere.py's
+    # mirrors and glossy ball (docs/calibration.md)
     "highlight": 0.5,
     "base": 90.0,
     # matte: pixels whose fitted shading n . l is below ``lit`` times |b| are left out (the shadow's edge,
@@ -92,6 +91,9 @@ OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities":
                 "lights": "lights.png", "sphere": "sphere.png"}
 REPORT_FILE = "calibration_report.json"
 COMMAND = "calibrate"  # the outputs list's name (psctl.io.atomic.outputs_list)
+# without a mask or --circle, the images decoded to find a matte sphere are kept, up to this many
+# MB, for the pass that fits the lights (psctl.io.capture.DecodeMemo) instead of decoded again
+MEMO_MB = 256
 
 
 @dataclass(frozen=True)
@@ -278,16 +280,18 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
             above = g >= level
         return ndimage.label(above, structure=eight)
 
-    labels, spots = regions(b + fraction * (peak - b))
+    first = b + fraction * (peak - b)
+    labels, spots = regions(first)
     # brightness above the level (and, for flat plateaus, their size) decides, among regions that are
     # not a lone pixel over four times its brightest neighbour (a hot pixel; psctl.hotpixels' ratio)
     # where there are any: a lens spreads a real highlight over its neighbours
-    index = range(1, spots + 1)
-    mass = ndimage.sum(np.where(labels > 0, g - (b + fraction * (peak - b)) + 1e-9, 0.0), labels, index)
+    index = np.arange(1, spots + 1)
+    mass = ndimage.sum(np.where(labels > 0, g - first + 1e-9, 0.0), labels, index)
     size = ndimage.sum(labels > 0, labels, index)
     lone = np.zeros(spots, bool)
+    where = ndimage.maximum_position(g, labels, index)
     for k in np.flatnonzero(size == 1):
-        y, x = (int(v[0]) for v in np.nonzero(labels == k + 1))
+        y, x = (int(v) for v in where[k])
         around = g[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].copy()
         around[min(y, 1), min(x, 1)] = -np.inf
         lone[k] = g[y, x] > HOT_RATIO * max(float(around.max()), 0.0)
@@ -479,12 +483,16 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     return cal.result()
 
 
+def _no_chrome_outline(where: Path | None) -> PsctlError:
+    return PsctlError(where, "a chrome sphere's outline does not show in its images (only its highlights do): "
+                             "add mask.png (white on the sphere) or pass --circle X,Y,R")
+
+
 def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, config: dict) -> Circle:
     """A matte sphere's outline from each pixel's brightest value over the images (lit from
     somewhere by most lights, against a darker background)."""
     if sphere == "chrome":
-        raise PsctlError(where, "a chrome sphere's outline does not show in its images (only its highlights do): "
-                                "add mask.png (white on the sphere) or pass --circle X,Y,R")
+        raise _no_chrome_outline(where)
     top = float(np.percentile(brightest, 99.5))
     if not top > 0:
         raise PsctlError(where, "the images are black: no sphere to find")
@@ -518,8 +526,8 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     [x, y], peak, pixels, spots; for matte pixels, rms), seconds, notes.
     """
     from psctl.io.atomic import check_output_dir, output_folder, read_outputs_list, staged_outputs
-    from psctl.io.capture import (INTENSITIES_FILE, LIGHTS_FILE, check_not_capture, capture_notes, iter_images,
-                                  load_mask, open_capture)
+    from psctl.io.capture import (INTENSITIES_FILE, LIGHTS_FILE, DecodeMemo, check_not_capture, capture_notes,
+                                  iter_images, load_mask, open_capture)
 
     t0 = time.perf_counter()
     for name, value in (("path", path), ("out", out)):
@@ -545,6 +553,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         check_output_dir(out_dir)
     # as captured: a calibration measures the intensities, it does not divide by any
     raw = replace(cap, intensities=np.ones_like(cap.intensities))
+    memo = None
     if given is not None:
         c = given
         if cap.mask_path is not None:
@@ -553,10 +562,11 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         c = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg)
     else:
         if sphere == "chrome":
-            _circle_from_images(np.zeros(1), sphere, cap.path, cfg)  # the error: no outline to find
+            raise _no_chrome_outline(cap.path)
         advance = progress(f"{cap.name}: finding the sphere", cap.n_images)
+        memo = DecodeMemo(MEMO_MB << 20)  # the second pass takes its crops from these, where they fit
         brightest = None
-        for img in iter_images(raw):
+        for img in iter_images(raw, (slice(0, cap.height), slice(0, cap.width)), memo=memo):
             g = img.mean(-1)
             brightest = g if brightest is None else np.maximum(brightest, g)
             advance(1)
@@ -578,7 +588,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     cal = _Calibrator(sphere, c, box, cfg)
     clipped: dict[int, np.ndarray] = {}
     advance = progress(f"{cap.name}: {sphere} sphere", cap.n_images)
-    for k, img in enumerate(iter_images(raw, box, clipped=lambda k, top: clipped.__setitem__(k, top))):
+    for k, img in enumerate(iter_images(raw, box, clipped=lambda k, top: clipped.__setitem__(k, top), memo=memo)):
         cal.add(img, clipped.pop(k, None), cap.image_paths[k])
         advance(1)
     res = cal.result()
@@ -689,9 +699,10 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     k = max(1, int(np.ceil(min_side / max(grey.shape))))
     img = np.repeat(np.repeat(grey, k, 0), k, 1)
     s = 2  # text scale
+    label = text_bitmap(title, s) if title else None
     top_px = 11 * s if title else 0
-    canvas = np.full((img.shape[0] + top_px, max(img.shape[1], 4 * s + (text_bitmap(title, s).shape[1] if title else 0)),
-                      3), 0.12, np.float32)
+    canvas = np.full((img.shape[0] + top_px, max(img.shape[1], 4 * s + (label.shape[1] if title else 0)), 3), 0.12,
+                     np.float32)
     canvas[top_px:top_px + img.shape[0], : img.shape[1]] = img[..., None]
 
     def at(x: float, y: float) -> tuple[float, float]:  # image pixel centre -> canvas (row, col)
@@ -701,8 +712,8 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     _disk(canvas, cy, cx, circle.r * k, (0.2, 0.9, 0.3), ring=max(1.0, k / 2))
     for x, y in highlights or []:
         _disk(canvas, *at(x, y), max(2.0, k * 0.6), (1.0, 0.25, 0.2))
-    if title:
-        _stamp(canvas, text_bitmap(title, s), 2 * s, 2 * s)
+    if label is not None:
+        _stamp(canvas, label, 2 * s, 2 * s)
     return canvas
 
 
