@@ -454,10 +454,7 @@ def calibrate(
 ) -> None:
     """Calibrate lights with a chrome or matte sphere: light_directions.txt (and, matte, light_intensities.txt), lights.png, sphere.png."""
     with _user_errors():
-        from psctl.calibrate import check_sphere
-
-        check_sphere(sphere)  # before the folder is read: a typo fails at once
-        from psctl.calibrate import render_calibrate, run_calibrate
+        from psctl.calibrate import render_calibrate, run_calibrate  # (run_calibrate checks --sphere first)
 
         _run(lambda progress: run_calibrate(path, sphere, out=out, circle=circle, progress=progress, encoding=encoding),
              json_out, quiet, render_calibrate)
