@@ -52,8 +52,9 @@ def lights(n: int, gen: torch.Generator, max_zenith: float = 60.0) -> tuple[torc
 
 
 def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch.Tensor, bits: int,
-           exposure: float, gen: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """[N, size, size, 3] images and the [size, size] mask of a sphere of radius_px pixels."""
+           exposure: float, gen: torch.Generator, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """[N, size, size, 3] images and the [size, size] mask of a sphere of radius_px pixels;
+    ``offset`` (of full scale) is added to every pixel before quantizing (a black level)."""
     big = size * SS
     g = sphere_gbuffer(big, radius=2 * radius_px / size)
     n = g.normals.reshape(1, 3, -1)
@@ -81,7 +82,7 @@ def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch
     peak = float(imgs.amax()) if material in ("lambertian", "sheen") else float(imgs.flatten(1).amax(1).median())
     # (the glossy ball, too, exposed for its highlight, as a calibration would be: its diffuse part is
     # then a quarter of the highlight's height)
-    imgs = sensor_noise(imgs * (exposure / max(peak, 1e-12)), gen)
+    imgs = sensor_noise(imgs * (exposure / max(peak, 1e-12)), gen) + offset
     q = float(2**bits - 1)
     imgs = torch.round(imgs.clamp(0, 1) * q).to(torch.int32).numpy()
     return imgs.astype(np.uint16 if bits == 16 else np.uint8), mask.numpy()
@@ -108,17 +109,42 @@ def centroids(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
     print("sums of the means: " + ", ".join(f"{k} {v:.2f}" for k, v in total.items()))
 
 
+def offsets(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
+    """Matte balls with a black level left in the images: the fit with and without its constant."""
+    total = {}
+    for size, r in [(256, 100.0), (96, 30.0)]:
+        for bits in (16, 8):
+            for material, exposure in [("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]:
+                for off in (0.0, 0.01, 0.02, 0.05):
+                    imgs, mask = render(material, size, r, d, e, bits, exposure, gen, offset=off)
+                    for flag in (False, True):
+                        res = calibrate_lights(imgs, "matte", mask=mask, config={"offset": flag})
+                        err = light_direction_error(res.directions, d.numpy())
+                        re = intensity_error(res.intensities.mean(1), e.numpy())
+                        key = (flag, off)
+                        total[key] = total.get(key, 0.0) + float(err.mean())
+                        print(f"r {r:5.0f}  {bits:2d} bit  {material:10s} offset {off:<5g} fit offset {flag!s:5s}  "
+                              f"mean {err.mean():.3f}  max {err.max():.3f}  RE {re:.4f}", flush=True)
+    for (flag, off), v in sorted(total.items()):
+        print(f"fit offset {flag!s:5s}, offset {off:<5g}: sum of the means {v:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the defaults only, radius 100, 16 bits")
     ap.add_argument("--sweep", action="store_true", help="also the alternatives to the defaults")
     ap.add_argument("--bits", type=int, choices=(8, 16), help="only this bit depth")
     ap.add_argument("--centroids", action="store_true", help="compare find_highlight's weightings instead")
+    ap.add_argument("--offsets", action="store_true", help="matte balls with a black level: the fit with and "
+                    "without its constant term (config offset) instead")
     args = ap.parse_args()
     gen = torch.Generator().manual_seed(0)
     d, e = lights(40, gen)
     if args.centroids:
         centroids(d, e, gen)
+        return
+    if args.offsets:
+        offsets(d, e, gen)
         return
     cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
              ("glossy", 1.0), ("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]

@@ -56,6 +56,9 @@ DEFAULT_CALIBRATE = {
     "lit": 0.2,
     "trim": 4.0,
     "iterations": 5,
+    # matte: fit a constant per image too (I = n . b + c): an offset the images keep (a black level,
+    # room light, no ambient.png) otherwise tilts the fitted light (docs/calibration.md, "Offset")
+    "offset": False,
     "min_radius": 8.0,  # pixels: smaller spheres give directions too coarse to be worth writing
     "min_pixels": 30,  # matte: lit pixels needed to fit a light
 }
@@ -63,6 +66,7 @@ DEFAULT_CALIBRATE = {
 # each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
+_FLAGS = ("offset",)  # settings that are true or false
 
 
 def check_config(config: dict | None) -> dict:
@@ -77,6 +81,10 @@ def check_config(config: dict | None) -> dict:
     if unknown:
         raise PsctlError(None, f"config: unknown setting {unknown[0]!r}; known: {', '.join(DEFAULT_CALIBRATE)}")
     for k, v in config.items():
+        if k in _FLAGS:
+            if not isinstance(v, (bool, np.bool_)):
+                raise PsctlError(None, f"config: {k} must be true or false, not {v!r}")
+            continue
         lo, hi = _RANGES[k]
         whole = k in ("iterations", "min_pixels")
         ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v) \
@@ -90,6 +98,12 @@ def check_config(config: dict | None) -> dict:
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png", "sphere": "sphere.png"}
 REPORT_FILE = "calibration_report.json"
+# matte, without ``offset``: the median image's constant (over its lit mean) above which a note
+# says the images keep an offset. On benchmarks/calibrate_sphere.py's balls (r = 100 px, 8 bits) a
+# black level of 0.01 of full scale (0.5-0.6 degrees of error) gave medians of 0.009-0.021, and
+# none 0.003-0.014 below zero; DiLiGenT's glossy ball, whose shading falls off faster than a
+# cosine, gives -0.13 (docs/calibration.md, "Offset")
+OFFSET_NOTE = 0.02
 COMMAND = "calibrate"  # the outputs list's name (psctl.io.atomic.outputs_list)
 # without a mask or --circle, the images decoded to find a matte sphere are kept, up to this many
 # MB, for the pass that fits the lights (psctl.io.capture.DecodeMemo) instead of decoded again
@@ -322,29 +336,37 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
 
 def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config: dict | None = None
                 ) -> dict | None:
-    """Fit one light to a Lambertian sphere's image: I = max(n . b, 0) per pixel, b = e l.
+    """Fit one light to a Lambertian sphere's image: I = max(n . b, 0) per pixel, b = e l (with
+    config ``offset``: I = n . b + c on the lit pixels, c a constant of the image).
 
     ``rgb`` [h, w, 3] linear, ``normals`` [h, w, 3], ``usable`` [h, w] bool (inside the rim, not
     saturated). The grey values (channel mean) give the direction; each channel's intensity is
-    then its least-squares scale of the fitted shading n . l. Returns {"direction" [3],
-    "intensity" [3], "pixels" (used in the last fit), "rms" (their residual over the mean value)},
-    or None when fewer than ``min_pixels`` are lit."""
+    then its least-squares scale of the fitted shading n . l (with its own constant, with
+    ``offset``). Returns {"direction" [3], "intensity" [3], "pixels" (used in the last fit), "rms"
+    (their residual over their mean value), "offset" (c over that mean; without ``offset``, the c
+    a fit with it would give on the same pixels: a check)}, or None when fewer than
+    ``min_pixels`` are lit."""
     cfg = check_config(config)
+    offset = bool(cfg["offset"])
     gray = rgb.mean(-1)
     # first guess, the lit part: above ``lit`` of a bright level that a highlight does not set
     top = float(np.percentile(gray[usable], 90)) if usable.any() else 0.0
     sel = usable & (gray > cfg["lit"] * top)
-    b = None
+    b, c = None, 0.0
     for _ in range(int(cfg["iterations"])):
         if sel.sum() < cfg["min_pixels"]:
             return None
         N, g = normals[sel], gray[sel]
-        b = np.linalg.lstsq(N, g, rcond=None)[0]
+        if offset:
+            sol = np.linalg.lstsq(np.concatenate([N, np.ones((len(N), 1))], 1), g, rcond=None)[0]
+            b, c = sol[:3], float(sol[3])
+        else:
+            b = np.linalg.lstsq(N, g, rcond=None)[0]
         e = float(np.linalg.norm(b))
         if not e > 0:
             return None
         shade = normals @ b
-        res = gray - shade
+        res = gray - shade - c
         sigma = 1.4826 * float(np.median(np.abs(res[sel]))) + 1e-6 * top
         new = usable & (shade > cfg["lit"] * e) & (np.abs(res) <= cfg["trim"] * sigma)
         if np.array_equal(new, sel):
@@ -354,11 +376,20 @@ def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config
         return None
     d = b / np.linalg.norm(b)
     s = normals[sel] @ d
-    ints = (rgb[sel] * s[:, None]).sum(0) / max(float((s * s).sum()), 1e-12)
-    res = gray[sel] - normals[sel] @ b
+    if offset:  # each channel: I_c = k_c s + o_c
+        A = np.stack([s, np.ones_like(s)], 1)
+        ints = np.linalg.lstsq(A, rgb[sel], rcond=None)[0][0]
+    else:
+        ints = (rgb[sel] * s[:, None]).sum(0) / max(float((s * s).sum()), 1e-12)
+    res = gray[sel] - normals[sel] @ b - c
     mean = float(gray[sel].mean())
+    if not offset:  # what a constant would have taken, on the same pixels: the note on offsets
+        sol = np.linalg.lstsq(np.concatenate([normals[sel], np.ones((int(sel.sum()), 1))], 1), gray[sel],
+                              rcond=None)[0]
+        c = float(sol[3])
     return {"direction": d, "intensity": ints, "pixels": int(sel.sum()),
-            "rms": float(np.sqrt(np.mean(res**2)) / mean) if mean > 0 else None}
+            "rms": float(np.sqrt(np.mean(res**2)) / mean) if mean > 0 else None,
+            "offset": c / mean if mean > 0 else None}
 
 
 # --- many images ---------------------------------------------------------------------------------
@@ -422,7 +453,8 @@ class _Calibrator:
                                        "one behind the sphere?")
             self.directions.append(fit["direction"])
             self.intensities.append(fit["intensity"])
-            self.images.append({"pixels": fit["pixels"], "rms": None if fit["rms"] is None else round(fit["rms"], 5)})
+            self.images.append({"pixels": fit["pixels"], "rms": None if fit["rms"] is None else round(fit["rms"], 5),
+                                "offset": None if fit["offset"] is None else round(fit["offset"], 5)})
 
     def result(self) -> SphereLights:
         ints = None
@@ -507,8 +539,8 @@ def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, 
 
 def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike | None = None,
                   circle: "Circle | str | Iterable[float] | None" = None, write: bool = True,
-                  progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None
-                  ) -> dict:
+                  progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None,
+                  offset: bool = False) -> dict:
     """Calibrate a folder of sphere images (one per light, in the object's order), write the
     light files, return the report (what ``psctl calibrate --json`` prints).
 
@@ -536,6 +568,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     progress = check_progress(progress)
     check_sphere(sphere)
     cfg = check_config(config)
+    if check_bool("offset", offset):
+        if sphere != "matte":
+            raise PsctlError(None, "--offset is for a matte sphere (a chrome sphere's highlights need no constant)")
+        cfg["offset"] = True
     given = None if circle is None else check_circle(circle)
     try:
         cap = open_capture(path, encoding)
@@ -592,7 +628,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         cal.add(img, clipped.pop(k, None), cap.image_paths[k])
         advance(1)
     res = cal.result()
-    notes += _result_notes(res, cap)
+    notes += _result_notes(res, cap, bool(cfg["offset"]))
     report = _report(res, cap, notes)
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
@@ -617,7 +653,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     return report
 
 
-def _result_notes(res: SphereLights, cap: "Capture") -> list[str]:
+def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False) -> list[str]:
     notes = []
 
     def names(idx: list[int]) -> str:
@@ -649,6 +685,13 @@ def _result_notes(res: SphereLights, cap: "Capture") -> list[str]:
         if rough:
             notes.append(f"sphere: {len(rough)} of {cap.n_images} images fit a Lambertian sphere poorly (residual over "
                          f"10 % of the mean value; {names(rough)}): is the ball matte, and the images linear?")
+        offsets = [i["offset"] for i in res.images if i.get("offset") is not None]
+        level = float(np.median(offsets)) if offsets else 0.0
+        if not offset_fitted and level > OFFSET_NOTE:
+            notes.append(f"sphere: the images seem to keep an offset (a constant of {100 * level:.1f} % of the lit "
+                         "sphere's mean value, in the median image): a black level or room light? It tilts the "
+                         "fitted lights; take ambient.png with every light off, or use --offset "
+                         "(docs/calibration.md, 'Offset')")
     return notes
 
 

@@ -447,6 +447,7 @@ def calibrate(
     path: Annotated[Path, typer.Argument(help="Folder of images of a sphere, one per light in the object's order; mask.png: the sphere (or --circle).")],
     sphere: Annotated[str, typer.Option("--sphere", "-s", help="chrome (a mirror ball: directions from its highlights) | matte (a white Lambertian ball: directions and intensities).")],
     circle: Annotated[Optional[str], typer.Option("--circle", help="The sphere's outline as X,Y,R in pixels (the centre's column and row, the top-left pixel's centre at 0,0; the radius), instead of fitting one to mask.png.")] = None,
+    offset: Annotated[bool, _flag("--offset/--no-offset", help="matte: fit a constant per image as well (I = n . l e + c): for images that keep a black level or room light and have no ambient.png (docs/calibration.md, 'Offset').")] = False,
     out: OutDir = None,
     encoding: EncodingOpt = "auto",
     json_out: Json = False,
@@ -456,7 +457,8 @@ def calibrate(
     with _user_errors():
         from psctl.calibrate import render_calibrate, run_calibrate  # (run_calibrate checks --sphere first)
 
-        _run(lambda progress: run_calibrate(path, sphere, out=out, circle=circle, progress=progress, encoding=encoding),
+        _run(lambda progress: run_calibrate(path, sphere, out=out, circle=circle, progress=progress, encoding=encoding,
+                                                   offset=offset),
              json_out, quiet, render_calibrate)
 
 

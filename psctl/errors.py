@@ -224,7 +224,7 @@ PYTHON_ARGS = {
     "--format": "formats", "--out": "out", "--light-distance": "light_distance", "--falloff": "falloff",
     "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
     "--benchmark": "benchmark", "--decode": "decode", "--K": "K", "--downsample": "downsample",
-    "--precision": "precision", "--sphere": "sphere", "--circle": "circle",
+    "--precision": "precision", "--sphere": "sphere", "--circle": "circle", "--offset": "offset",
 }
 _SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
              "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",

@@ -130,7 +130,8 @@ def test_config_is_checked():
     assert check_config({"highlight": 0.3})["highlight"] == 0.3 and check_config(None)["base"] == 90.0
     for bad, words in (("x", "must be a dict"), ({"hilight": 0.5}, "unknown setting 'hilight'"),
                        ({"highlight": float("nan")}, "highlight must be a number"), ({"iterations": 2.5}, "whole"),
-                       ({"rim": 2.0}, r"rim must be a number in \[0.1, 1\]"), ({"lit": True}, "lit must be")):
+                       ({"rim": 2.0}, r"rim must be a number in \[0.1, 1\]"), ({"lit": True}, "lit must be"),
+                       ({"offset": 1}, "offset must be true or false")):
         with pytest.raises(PsctlError, match=words):
             check_config(bad)
 
@@ -286,6 +287,41 @@ def test_matte_leaves_out_saturated_pixels_and_highlights():
     glossy = to_uint16(0.8 * matte + 0.1 * sphere_views(lights, 80, cx, cy, r, "chrome", sharpness=0.08))
     res = calibrate_lights(glossy, "matte", mask=m)
     assert angular_error(res.directions, lights).max() < 0.5
+
+
+def test_matte_offset_is_fitted_or_noted(tmp_path):
+    """A black level left in the images tilts the Lambertian fit; --offset fits a constant per
+    image, and without it the note says so (the check fit's constant, over OFFSET_NOTE)."""
+    from psctl.calibrate import OFFSET_NOTE
+
+    lights = hemisphere_lights(12, 60.0, seed=4).astype(np.float64)
+    cx, cy, r = 40.0, 40.0, 30.0
+    views = sphere_views(lights, 80, cx, cy, r, "matte") / 1.2
+    m = disk(80, 80, cx, cy, r)
+    plain = calibrate_lights(to_uint16(views), "matte", mask=m)
+    raised = to_uint16(views + 0.03)
+    biased = calibrate_lights(raised, "matte", mask=m)
+    fitted = calibrate_lights(raised, "matte", mask=m, config={"offset": True})
+    assert angular_error(plain.directions, lights).mean() < 0.2
+    assert angular_error(biased.directions, lights).mean() > 1.0
+    assert angular_error(fitted.directions, lights).mean() < 0.3
+    assert max(abs(i["offset"]) for i in plain.images) < OFFSET_NOTE
+    fitted_level = np.median([i["offset"] for i in fitted.images])
+    assert np.median([i["offset"] for i in biased.images]) > OFFSET_NOTE and fitted_level > OFFSET_NOTE
+    # the command: the note without --offset, none with it; --offset is for matte spheres only
+    folder = tmp_path / "raised"
+    folder.mkdir()
+    for k in range(len(lights)):
+        write_image(folder / f"{k + 1:03d}.png", raised[k] / 65535.0, "uint16")
+    write_image(folder / "mask.png", m.astype(np.float32), "uint8")
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--json", "--out", tmp_path / "a", check=True).stdout)
+    assert any("keep an offset" in n for n in r["notes"]) and r["images"][0]["offset"] > OFFSET_NOTE
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--offset", "--json", "--out", tmp_path / "b",
+                       check=True).stdout)
+    assert not any("offset" in n for n in r["notes"]) and r["light_mae"] is None
+    assert angular_error(np.loadtxt(tmp_path / "b" / "light_directions.txt"), lights).mean() < 0.3
+    bad = cli("calibrate", folder, "-s", "chrome", "--offset")
+    assert bad.returncode == 2 and "--offset is for a matte sphere" in bad.stderr
 
 
 def test_matte_refuses_an_unlit_image():
