@@ -779,11 +779,10 @@ def write_sphere_files(folder: Path, res: SphereLights, cap: "Capture", report: 
 def render_calibrate(r: dict) -> None:
     """The human-readable summary of ``run_calibrate``'s report (Rich, stdout)."""
     from psctl.errors import console
-    from psctl.io.summary import escape
+    from psctl.io.summary import escape, print_notes, print_written
 
     con = console()
-    for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, r.get("notes", []))
     c = r["circle"]
     line = (f"[bold]{escape(r['object'])}[/]: {r['sphere']} sphere at x {c['x']:.1f}, y {c['y']:.1f}, radius "
             f"{c['r']:.1f} px ({escape(str(c['source']))}), {r['n_images']} lights, {r['seconds']:.2f} s")
@@ -794,5 +793,4 @@ def render_calibrate(r: dict) -> None:
     if r["intensity_re"] is not None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
     con.print(line, highlight=False, soft_wrap=True)
-    for p in r["outputs"].values():
-        con.print(f"  wrote {p}", highlight=False, markup=False)
+    print_written(con, r["outputs"])

@@ -958,14 +958,12 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
 def render_depth(r: dict, quiet: bool = False) -> None:
     """Print a ``run_depth`` report for people (Rich, stdout)."""
     from psctl.errors import console
-    from psctl.io.summary import escape
+    from psctl.io.summary import escape, print_notes, print_written
 
     con = console()
-    for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, r.get("notes", []))
     con.print(f"[bold]{escape(r['object'])}[/]: {r['method']} ({r['projection']}), {r['n_pixels']} pixels, "
               f"{r['n_vertices']} vertices, {r['n_faces']} triangles, {r['seconds']:.2f} s", highlight=False,
               soft_wrap=True)
     if not quiet:
-        for p in r["outputs"].values():
-            con.print(f"  wrote {p}", highlight=False, markup=False)
+        print_written(con, r["outputs"])

@@ -1226,11 +1226,10 @@ def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weight
 def render_lights(r: dict) -> None:
     """The human-readable summary of ``run_lights``'s report (Rich, stdout)."""
     from psctl.errors import console
-    from psctl.io.summary import escape
+    from psctl.io.summary import escape, print_notes, print_written
 
     con = console()
-    for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, r.get("notes", []))
     line = f"[bold]{escape(r['object'])}[/]: LCNet ({r['decode']}), {r['n_images']} images, {r['seconds']:.2f} s"
     if r.get("lights_refined") and r["lights_refined"]["weight"] > 0:
         line += f", {r['lights_refined']['weight']:.0%} refined against the normals"  # as the note says
@@ -1241,5 +1240,4 @@ def render_lights(r: dict) -> None:
     if r["intensity_re"] is not None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
     con.print(line, highlight=False, soft_wrap=True)
-    for p in r["outputs"].values():
-        con.print(f"  wrote {p}", highlight=False, markup=False)
+    print_written(con, r["outputs"])

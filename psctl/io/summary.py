@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -188,6 +188,18 @@ def _console():
     return console()
 
 
+def print_notes(con, notes: Iterable[str], prefix: str = "") -> None:
+    """Each note on its own line(s), marked "note:" in yellow (``prefix``: an object's name, say)."""
+    for note in notes:
+        con.print(f"[yellow]note:[/] {escape(prefix + note)}", highlight=False, soft_wrap=True)
+
+
+def print_written(con, outputs: dict) -> None:
+    """One "wrote PATH" line per output file, in the report's order."""
+    for p in outputs.values():
+        con.print(f"  wrote {p}", highlight=False, markup=False)
+
+
 def render_info(report: dict) -> None:
     """The human-readable summary of ``psctl info``'s report (Rich, stdout)."""
     from rich.table import Table
@@ -221,12 +233,10 @@ def render_info(report: dict) -> None:
             con.print(f"check: every file decoded, none damaged; median: the median over images of the mean "
                       f"linear value over the object; saturated: images with over {SATURATED_SHARE:.0%} of the object "
                       f"at the top code value", highlight=False, soft_wrap=True)
-        for note in report.get("notes", []):
-            con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+        print_notes(con, report.get("notes", []))
         for o in report["objects"]:  # what psctl eval would say of each (encoding and ambient are columns)
             notes = [n for n in o.get("notes", []) if not n.startswith(("ambient:", "encoding:"))]
-            for note in notes + (o["check"]["notes"] if checked else []):
-                con.print(f"[yellow]note:[/] {escape(o['object'])}: {escape(note)}", highlight=False, soft_wrap=True)
+            print_notes(con, notes + (o["check"]["notes"] if checked else []), f"{o['object']}: ")
         return
     r = report
     con.print(escape(f"{r['object']}  ({r['path']})"), highlight=False, soft_wrap=True)
@@ -281,8 +291,7 @@ def _render_check(con, c: dict) -> None:
         con.print(f"saturated: at most {max(sat):.2%} of the object in any image", highlight=False, soft_wrap=True)
     elif sat:
         con.print("saturated: no pixel of the object at the top code value", highlight=False, soft_wrap=True)
-    for note in c["notes"]:
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, c["notes"])
 
 
 def _fmt(x: float | None) -> str:
@@ -292,8 +301,7 @@ def _fmt(x: float | None) -> str:
 def render_normals(r: dict, quiet: bool = False) -> None:
     """The human-readable summary of ``run_normals``'s report (Rich, stdout); notes only when ``quiet``."""
     con = _console()
-    for note in r.get("notes", []):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, r.get("notes", []))
     from psctl.eval import method_label
 
     # the method with the settings that change the normals (views, downsampling, precision)
@@ -318,8 +326,7 @@ def render_normals(r: dict, quiet: bool = False) -> None:
         if pngs:  # the pictures' white, to read their values back
             line += f"; {' and '.join(pngs)} white at {alb['png_scale']:.3g}"
     con.print(line, highlight=False, soft_wrap=True)
-    for key, p in r["outputs"].items():
-        con.print(f"  wrote {p}", highlight=False, markup=False)
+    print_written(con, r["outputs"])
 
 
 # headers of the narrow layout
@@ -476,8 +483,7 @@ def render_benchmark(result: dict) -> None:
         spread = ", spread maps" if any("spread" in o for o in objs) else ""
         con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
                          f"and one folder per object"), highlight=False)
-    for note in result.get("notes", []):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, result.get("notes", []))
     _near_lights_line(con, result.get("light_distance"))
     _object_notes(con, [result])
 
@@ -520,8 +526,7 @@ def render_benchmark_markdown(result: dict) -> None:
     sys.stdout.write(benchmark_markdown(result))
     runs = result.get("runs") or [result]
     err = console(stderr=True)
-    for note in _run_notes(result):
-        err.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(err, _run_notes(result))
     _object_notes(err, runs)
 
 
@@ -552,7 +557,6 @@ def render_comparison(result: dict) -> None:
     if result.get("outputs"):
         con.print(escape(f"wrote {result['outputs']['compare.png']} (each method's eval.png, one above the other), "
                          f"compare.json and one folder per method"), highlight=False)
-    for note in _run_notes(result):
-        con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, _run_notes(result))
     _near_lights_line(con, runs[0].get("light_distance"))
     _object_notes(con, runs)
