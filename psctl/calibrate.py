@@ -99,10 +99,10 @@ OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities":
                 "lights": "lights.png", "sphere": "sphere.png"}
 REPORT_FILE = "calibration_report.json"
 # matte, without ``offset``: the median image's constant (over its lit mean) above which a note
-# says the images keep an offset. On benchmarks/calibrate_sphere.py's balls (r = 100 px, 8 bits) a
-# black level of 0.01 of full scale (0.5-0.6 degrees of error) gave medians of 0.009-0.021, and
-# none 0.003-0.014 below zero; DiLiGenT's glossy ball, whose shading falls off faster than a
-# cosine, gives -0.13 (docs/calibration.md, "Offset")
+# says the images keep an offset. On benchmarks/calibrate_sphere.py's balls (8 bits) no black level
+# gave medians of -0.003 to -0.018, one of 0.02 of full scale (about 1.1 degrees of error) 0.023 to
+# 0.045; DiLiGenT's glossy ball, whose shading falls off faster than a cosine, gives -0.13
+# (docs/calibration.md, "Offset")
 OFFSET_NOTE = 0.02
 COMMAND = "calibrate"  # the outputs list's name (psctl.io.atomic.outputs_list)
 # without a mask or --circle, the images decoded to find a matte sphere are kept, up to this many
