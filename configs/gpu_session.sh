@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
 # Fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
+# (Session 54 ran the defaults below, stages 12 and 12b: point RUNS and INITS at the next stage first;
+# docs/training.md, "The next session with a GPU".)
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
 # (RUNS below, method:recipe:run folder) default to session 40's plan for a session with 15
