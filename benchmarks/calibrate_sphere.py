@@ -2,6 +2,7 @@
 
     python benchmarks/calibrate_sphere.py [--quick] [--sweep] [--bits 8|16]
     python benchmarks/calibrate_sphere.py --centroids
+    python benchmarks/calibrate_sphere.py --offsets      (matte balls with a black level: config offset)
 
 Renders spheres with psctl's own shading (psctl.synth.render.shade) under known lights and
 compares psctl.calibrate.calibrate_lights' directions (and, matte, intensities) with them:

@@ -349,6 +349,10 @@ def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config
     cfg = check_config(config)
     offset = bool(cfg["offset"])
     gray = rgb.mean(-1)
+
+    def with_constant(n: np.ndarray) -> np.ndarray:  # [P, 3] -> [P, 4]: the normals and a column of ones
+        return np.concatenate([n, np.ones((len(n), 1))], 1)
+
     # first guess, the lit part: above ``lit`` of a bright level that a highlight does not set
     top = float(np.percentile(gray[usable], 90)) if usable.any() else 0.0
     sel = usable & (gray > cfg["lit"] * top)
@@ -358,7 +362,7 @@ def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config
             return None
         N, g = normals[sel], gray[sel]
         if offset:
-            sol = np.linalg.lstsq(np.concatenate([N, np.ones((len(N), 1))], 1), g, rcond=None)[0]
+            sol = np.linalg.lstsq(with_constant(N), g, rcond=None)[0]
             b, c = sol[:3], float(sol[3])
         else:
             b = np.linalg.lstsq(N, g, rcond=None)[0]
@@ -384,9 +388,7 @@ def matte_light(rgb: np.ndarray, normals: np.ndarray, usable: np.ndarray, config
     res = gray[sel] - normals[sel] @ b - c
     mean = float(gray[sel].mean())
     if not offset:  # what a constant would have taken, on the same pixels: the note on offsets
-        sol = np.linalg.lstsq(np.concatenate([normals[sel], np.ones((int(sel.sum()), 1))], 1), gray[sel],
-                              rcond=None)[0]
-        c = float(sol[3])
+        c = float(np.linalg.lstsq(with_constant(normals[sel]), gray[sel], rcond=None)[0][3])
     return {"direction": d, "intensity": ints, "pixels": int(sel.sum()),
             "rms": float(np.sqrt(np.mean(res**2)) / mean) if mean > 0 else None,
             "offset": c / mean if mean > 0 else None}

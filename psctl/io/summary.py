@@ -265,9 +265,7 @@ def render_info(report: dict) -> None:
         decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
     con.print(t)
-    for note in r.get("notes", []):
-        if not note.startswith(("ambient:", "encoding:")):  # those two are rows above
-            con.print(f"[yellow]note:[/] {escape(note)}", highlight=False, soft_wrap=True)
+    print_notes(con, [n for n in r.get("notes", []) if not n.startswith(("ambient:", "encoding:"))])  # rows above
     if "check" in r:
         _render_check(con, r["check"])
         return
