@@ -155,6 +155,14 @@ def _circle_fit(p: np.ndarray) -> tuple[float, float, float]:
     return float(cx), float(cy), float(abs(r))
 
 
+def _check_offset(cfg: dict, sphere: str) -> None:
+    """A constant is fitted on matte spheres only: asked for on a chrome one (by --offset or the
+    config), it is an error rather than silently unused."""
+    if cfg["offset"] and sphere != "matte":
+        raise PsctlError(None, "--offset (config offset) is for a matte sphere (a chrome sphere's highlights need no "
+                               "constant)")
+
+
 def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None,
                config: dict | None = None) -> Circle:
     """The circle that best fits the outline of ``mask``'s largest connected region.
@@ -499,6 +507,7 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
 
     cfg = check_config(config)
     check_sphere(sphere)
+    _check_offset(cfg, sphere)
     imgs = as_images(images)
     integer = np.asarray(images).dtype.kind in "iu"  # float images have no top code: nothing is saturated
     if mask is not None and circle is not None:
@@ -571,9 +580,8 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     check_sphere(sphere)
     cfg = check_config(config)
     if check_bool("offset", offset):
-        if sphere != "matte":
-            raise PsctlError(None, "--offset is for a matte sphere (a chrome sphere's highlights need no constant)")
         cfg["offset"] = True
+    _check_offset(cfg, sphere)
     given = None if circle is None else check_circle(circle)
     try:
         cap = open_capture(path, encoding)

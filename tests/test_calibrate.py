@@ -321,7 +321,9 @@ def test_matte_offset_is_fitted_or_noted(tmp_path):
     assert not any("offset" in n for n in r["notes"]) and r["light_mae"] is None
     assert angular_error(np.loadtxt(tmp_path / "b" / "light_directions.txt"), lights).mean() < 0.3
     bad = cli("calibrate", folder, "-s", "chrome", "--offset")
-    assert bad.returncode == 2 and "--offset is for a matte sphere" in bad.stderr
+    assert bad.returncode == 2 and "--offset (config offset) is for a matte sphere" in bad.stderr
+    with pytest.raises(PsctlError, match="is for a matte sphere"):  # by the config too, not silently unused
+        calibrate_lights(raised, "chrome", mask=m, config={"offset": True})
 
 
 def test_matte_refuses_an_unlit_image():
