@@ -8,6 +8,8 @@ For every object of every set, runs PS-FCN and PS-FCN+N (the installed weights, 
 --weights-b) and scores each, and their per-pixel average renormalised to unit length (mean
 angular error in degrees, the pixels ``psctl eval`` scores). Prints one JSON object: per set the
 per-object MAE of a, b and the average, and the means rounded as the rule rounds them (0.01).
+Each network's normals are kept in .cache/ensemble_normals (keyed by the weights' and the
+inputs' bytes), so a later check against the same partner computes only the new file's.
 Sets are folders under .cache (made by benchmarks/eval_weights.py) or any benchmark root.
 
 Decision rule, fixed on 2026-11-27 (session 34) before this script was first run: the average
@@ -41,6 +43,41 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 
+CACHE = REPO / ".cache" / "ensemble_normals"
+
+
+def cached_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, method: str, weights: str | None,
+                   views: int, use_cache: bool = True):
+    """array_normals, kept in .cache/ensemble_normals/ under a key of everything that decides the
+    answer: the weights file's bytes (the installed one when None), the method, the views and
+    the inputs' bytes. A rule is judged many times against the same installed partner, whose
+    half of the work is then read back (session 55; it halved the 45-minute check)."""
+    import hashlib
+
+    from psctl.infer import InferResult, array_normals
+    from psctl.models.weights import installed_path
+
+    path = Path(weights) if weights else installed_path(method)
+    h = hashlib.sha256()
+    h.update(Path(path).read_bytes() if path is not None else b"none")
+    h.update(f"{method}|{views}".encode())
+    for a in (images, lights, mask):
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype}{a.shape}".encode())
+        h.update(a.tobytes())
+    file = CACHE / f"{h.hexdigest()[:32]}.npz"
+    if use_cache and file.is_file():
+        with np.load(file) as z:
+            return InferResult(z["normals"], z["dark"], {"cached": file.name})
+    res = array_normals(images, lights, mask, method, weights, {"device": "cpu", "views": views})
+    if use_cache:
+        CACHE.mkdir(parents=True, exist_ok=True)
+        tmp = file.with_suffix(".tmp.npz")
+        np.savez(tmp, normals=res.normals, dark=res.dark)
+        tmp.replace(file)
+    return res
+
+
 def score(normals: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> float:
     from psctl.metrics import angular_error
 
@@ -66,7 +103,7 @@ def sdps_arm(sets: list[str], arm: str) -> dict:
 
 
 def main() -> None:
-    from psctl.infer import array_normals, ensemble_normals
+    from psctl.infer import ensemble_normals
     from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, object_name, open_capture
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -81,6 +118,8 @@ def main() -> None:
     ap.add_argument("--sdps", choices=("a", "avg"), help="the second rule: sdps on --sets with PS-FCN (a) or the "
                     "average (avg) as its second stage, instead of the calibrated comparison")
     ap.add_argument("--out")
+    ap.add_argument("--no-cache", action="store_true", help="compute every network's normals again rather than "
+                    "read them from .cache/ensemble_normals")
     args = ap.parse_args()
     if args.sdps:
         text = json.dumps(sdps_arm(args.sets, args.sdps), indent=1)
@@ -106,8 +145,7 @@ def main() -> None:
                 images = capture_8bit(images, mask, 0.02, floor=True)
             res = {}
             for key, method, weights in (("a", args.method_a, args.weights_a), ("b", args.method_b, args.weights_b)):
-                res[key] = array_normals(images, cap.lights, mask, method, weights,
-                                         {"device": "cpu", "views": args.views})
+                res[key] = cached_normals(images, cap.lights, mask, method, weights, args.views, not args.no_cache)
             out = {k: r.normals.astype(np.float64) for k, r in res.items()}
             avg = ensemble_normals([res["a"], res["b"]]).normals  # what --method ensemble gives
             # (since session 42; before, an inline float64 copy of the same unit mean)
