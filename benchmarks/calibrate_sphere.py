@@ -3,6 +3,7 @@
     python benchmarks/calibrate_sphere.py [--quick] [--sweep] [--bits 8|16]
     python benchmarks/calibrate_sphere.py --centroids
     python benchmarks/calibrate_sphere.py --offsets      (matte balls with a black level: config offset)
+    python benchmarks/calibrate_sphere.py --perspective  (spheres off a pinhole camera's axis: --focal)
 
 Renders spheres with psctl's own shading (psctl.synth.render.shade) under known lights and
 compares psctl.calibrate.calibrate_lights' directions (and, matte, intensities) with them:
@@ -59,6 +60,17 @@ def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch
     big = size * SS
     g = sphere_gbuffer(big, radius=2 * radius_px / size)
     n = g.normals.reshape(1, 3, -1)
+    mat = material_of(material)
+    out = []
+    for k in range(len(d)):  # one light at a time: 4 x 4 supersampled views are large
+        img = shade(n, d[None, k:k + 1], mat, intensities=e[None, k:k + 1])[0, 0]  # [3, P]
+        img = img.reshape(3, size, SS, size, SS).mean((2, 4))
+        out.append(img.permute(1, 2, 0))
+    mask = g.mask.reshape(size, SS, size, SS).float().mean((1, 3)) >= 0.5
+    return expose(torch.stack(out), mask, material, bits, exposure, gen, offset)
+
+
+def material_of(material: str):
     one = torch.ones(1)
     if material.startswith("ggx"):  # a mirror: dark diffuse, white specular
         mat = ggx(torch.full((1, 3), 0.02), torch.ones(1, 3), torch.tensor([float(material[3:])]), metal=torch.ones(1))
@@ -73,13 +85,12 @@ def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch
         mat = ggx(torch.full((1, 3), 0.8), torch.full((1, 3), 0.04), 0.3 * one, ior=1.5 * one)
     else:
         raise ValueError(material)
-    out = []
-    for k in range(len(d)):  # one light at a time: 4 x 4 supersampled views are large
-        img = shade(n, d[None, k:k + 1], mat, intensities=e[None, k:k + 1])[0, 0]  # [3, P]
-        img = img.reshape(3, size, SS, size, SS).mean((2, 4))
-        out.append(img.permute(1, 2, 0))
-    imgs = torch.stack(out)
-    mask = g.mask.reshape(size, SS, size, SS).float().mean((1, 3)) >= 0.5
+    return mat
+
+
+def expose(imgs: torch.Tensor, mask: torch.Tensor, material: str, bits: int, exposure: float,
+           gen: torch.Generator, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Rendered [N, H, W, 3] radiance to integer images: exposed, sensor noise, quantized."""
     peak = float(imgs.amax()) if material in ("lambertian", "sheen") else float(imgs.flatten(1).amax(1).median())
     # (the glossy ball, too, exposed for its highlight, as a calibration would be: its diffuse part is
     # then a quarter of the highlight's height)
@@ -87,6 +98,65 @@ def render(material: str, size: int, radius_px: float, d: torch.Tensor, e: torch
     q = float(2**bits - 1)
     imgs = torch.round(imgs.clamp(0, 1) * q).to(torch.int32).numpy()
     return imgs.astype(np.uint16 if bits == 16 else np.uint8), mask.numpy()
+
+
+def render_pinhole(material: str, size: int, radius_px: float, focal: float, off_axis: float, d: torch.Tensor,
+                   e: torch.Tensor, bits: int, exposure: float, gen: torch.Generator
+                   ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """render()'s sphere through a pinhole camera of ``focal`` pixels, its centre seen
+    ``off_axis`` pixels right of and half as far above the principal point: a size x size crop
+    around it (the principal point, returned, lies outside the crop when off_axis is large). Each
+    pixel is shaded in a frame turned so that its own view is psctl's (0, 0, 1)."""
+    from psctl.synth.shapes import sphere_pinhole
+
+    at = np.array([off_axis, off_axis / 2])
+    z = -focal / radius_px  # a unit sphere radius_px pixels across, nearly
+    centre = (at[0] / focal * -z, at[1] / focal * -z, z)
+    principal = ((size - 1) / 2 - at[0], (size - 1) / 2 + at[1])  # so that the sphere lies in the crop's middle
+    big = size * SS
+    n, v, m = sphere_pinhole(big, big, focal * SS, centre,
+                             principal=((principal[0] + 0.5) * SS - 0.5, (principal[1] + 0.5) * SS - 0.5))
+    n, v = n.reshape(3, -1).float(), v.reshape(3, -1).float()
+    # the rotation taking v to z about k = v x z (Rodrigues): R x = c x + s (k x x) + (k . x)(1 - c) k
+    c = v[2]
+    k = torch.stack([v[1], -v[0], torch.zeros_like(c)])
+    s = k.norm(dim=0)
+    k = k / s.clamp_min(1e-12)
+
+    def turn(x: torch.Tensor) -> torch.Tensor:  # [3, P] (or [3] for all pixels) -> [3, P]
+        x = x.reshape(3, -1).expand(3, n.shape[1]) if x.dim() == 1 else x
+        return c * x + s * torch.cross(k, x, dim=0) + (k * x).sum(0) * (1 - c) * k
+
+    nt = turn(n) * m.reshape(1, -1)
+    mat = material_of(material)
+    out = []
+    for j in range(len(d)):
+        img = shade(nt[None], turn(d[j])[None, None], mat, intensities=e[None, j:j + 1])[0, 0]
+        out.append(img.reshape(3, size, SS, size, SS).mean((2, 4)).permute(1, 2, 0))
+    mask = m.reshape(size, SS, size, SS).float().mean((1, 3)) >= 0.5
+    imgs, mask = expose(torch.stack(out), mask, material, bits, exposure, gen)
+    return imgs, mask, principal
+
+
+def perspective(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
+    """Spheres off the optical axis of a pinhole camera: the orthographic model and --focal."""
+    total: dict[str, float] = {}
+    for focal in (1000.0, 3000.0):
+        for off in (0.0, 200.0, 500.0):
+            for size, r in [(256, 100.0), (96, 30.0)]:
+                for material, exposure, sphere in [("ggx0.02", 4.0, "chrome"), ("glossy", 1.0, "chrome"),
+                                                   ("lambertian", 0.9, "matte"), ("sheen", 0.9, "matte")]:
+                    imgs, mask, principal = render_pinhole(material, size, r, focal, off, d, e, 16, exposure, gen)
+                    line = []
+                    for label, cfg in (("ortho", {}), ("focal", {"focal": focal, "principal": principal})):
+                        err = light_direction_error(calibrate_lights(imgs, sphere, mask=mask, config=cfg).directions,
+                                                    d.numpy())
+                        total[label] = total.get(label, 0.0) + float(err.mean())
+                        line.append(f"{label} {err.mean():6.3f} ({err.max():6.3f})")
+                    angle = math.degrees(math.atan(math.hypot(off, off / 2) / focal))
+                    print(f"f {focal:5.0f}  off-axis {off:3.0f} px ({angle:4.1f} deg)  r {r:4.0f}  {material:10s} "
+                          f"{sphere:6s} " + "  ".join(line), flush=True)
+    print("sums of the means: " + ", ".join(f"{k} {v:.2f}" for k, v in total.items()))
 
 
 def centroids(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
@@ -136,6 +206,8 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true", help="also the alternatives to the defaults")
     ap.add_argument("--bits", type=int, choices=(8, 16), help="only this bit depth")
     ap.add_argument("--centroids", action="store_true", help="compare find_highlight's weightings instead")
+    ap.add_argument("--perspective", action="store_true", help="spheres off a pinhole camera's axis: the "
+                    "orthographic model and --focal (config focal, principal) instead")
     ap.add_argument("--offsets", action="store_true", help="matte balls with a black level: the fit with and "
                     "without its constant term (config offset) instead")
     args = ap.parse_args()
@@ -146,6 +218,9 @@ def main() -> None:
         return
     if args.offsets:
         offsets(d, e, gen)
+        return
+    if args.perspective:
+        perspective(d, e, gen)
         return
     cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
              ("glossy", 1.0), ("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]

@@ -59,6 +59,12 @@ DEFAULT_CALIBRATE = {
     # matte: fit a constant per image too (I = n . b + c): an offset the images keep (a black level,
     # room light, no ambient.png) otherwise tilts the fitted light (docs/calibration.md, "Offset")
     "offset": False,
+    # the camera: None, orthographic (the view (0, 0, 1) everywhere, as psctl's normal estimators
+    # take it); else a pinhole of this focal length in pixels, whose principal point is
+    # ``principal`` ([x, y] in pixels; None: the image's centre). An off-axis sphere then sees the
+    # camera, and a mirror its lights, from its own angle (docs/calibration.md, "Perspective")
+    "focal": None,
+    "principal": None,
     "min_radius": 8.0,  # pixels: smaller spheres give directions too coarse to be worth writing
     "min_pixels": 30,  # matte: lit pixels needed to fit a light
 }
@@ -67,6 +73,7 @@ DEFAULT_CALIBRATE = {
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
 _FLAGS = ("offset",)  # settings that are true or false
+_CAMERA = ("focal", "principal")  # None, or checked by _check_camera
 
 
 def check_config(config: dict | None) -> dict:
@@ -81,6 +88,9 @@ def check_config(config: dict | None) -> dict:
     if unknown:
         raise PsctlError(None, f"config: unknown setting {unknown[0]!r}; known: {', '.join(DEFAULT_CALIBRATE)}")
     for k, v in config.items():
+        if k in _CAMERA:
+            _check_camera(k, v)
+            continue
         if k in _FLAGS:
             if not isinstance(v, (bool, np.bool_)):
                 raise PsctlError(None, f"config: {k} must be true or false, not {v!r}")
@@ -121,6 +131,9 @@ class Circle:
     r: float
     source: str
     rms: float | None = None
+    # [P, 2] (x, y): the outline points the circle was fitted to (its inliers), where it came from
+    # an outline: through a pinhole the sphere's outline is an ellipse, and its cone is fitted to them
+    outline: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 # --- the sphere's outline ----------------------------------------------------------------------
@@ -153,6 +166,38 @@ def _circle_fit(p: np.ndarray) -> tuple[float, float, float]:
         if np.abs(step).max() < 1e-6:
             break
     return float(cx), float(cy), float(abs(r))
+
+
+def _check_camera(key: str, value: object) -> None:
+    if value is None:
+        return
+    if key == "focal":
+        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+            and np.isfinite(value) and 1.0 <= value <= 1e7
+        if not ok:
+            raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]), not "
+                                   f"{value!r}")
+        return
+    try:
+        xy = [float(v) for v in (value.split(",") if isinstance(value, str) else value)]  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        xy = []
+    if len(xy) != 2 or not all(np.isfinite(xy)) or max(map(abs, xy)) > 1e7:
+        raise PsctlError(None, f"principal must be the principal point as X,Y in pixels (two numbers), not {value!r}")
+
+
+def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, float] | None:
+    """(focal, principal x, principal y) in pixels from a checked config, or None (orthographic)."""
+    if cfg["focal"] is None:
+        if cfg["principal"] is not None:
+            raise PsctlError(None, "--principal needs --focal (the camera's focal length in pixels)")
+        return None
+    p = cfg["principal"]
+    if p is None:
+        px, py = (shape[1] - 1) / 2, (shape[0] - 1) / 2
+    else:
+        px, py = (float(v) for v in (p.split(",") if isinstance(p, str) else p))
+    return float(cfg["focal"]), px, py
 
 
 def _check_offset(cfg: dict, sphere: str) -> None:
@@ -206,7 +251,7 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
                                 f"the best circle (x {cx:.1f}, y {cy:.1f}, r {r:.1f}) on average, "
                                 f"{1 - keep.mean():.0%} of it further than {cut:.1f} pixels; psctl calibrate needs "
                                 "the sphere's own outline (or --circle X,Y,R)")
-    return Circle(cx, cy, r, source, round(rms, 4))
+    return Circle(cx, cy, r, source, round(rms, 4), p[keep])
 
 
 def check_circle(circle: "Circle | str | Iterable[float]") -> Circle:
@@ -258,19 +303,62 @@ def sphere_normals(circle: Circle, box: tuple[slice, slice], rim: float = DEFAUL
     return np.stack([nx, ny, nz], -1) * inside[..., None], inside
 
 
+def pinhole_cone(circle: Circle, camera: tuple[float, float, float]) -> tuple[np.ndarray, float]:
+    """The cone of rays that graze the sphere, through a pinhole camera (focal, principal x,
+    principal y; pixels): (its axis [3], unit, from the camera toward the sphere's centre; its
+    half-angle in radians). Every outline ray d meets the axis a at the half-angle, d . a = cos,
+    so w = a / cos solves d . w = 1 over the outline's points (least squares): the circle's own
+    outline points where it was fitted to one (an off-axis sphere's outline is an ellipse), else
+    points on the circle."""
+    f, px, py = camera
+    p = circle.outline
+    if p is None or len(p) < 12:
+        t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+        p = np.stack([circle.x + circle.r * np.cos(t), circle.y + circle.r * np.sin(t)], 1)
+    d = np.stack([p[:, 0] - px, -(p[:, 1] - py), np.full(len(p), -f)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = np.linalg.lstsq(d, np.ones(len(d)), rcond=None)[0]
+    return w / np.linalg.norm(w), float(np.arccos(min(1.0 / np.linalg.norm(w), 1.0)))
+
+
+def sphere_pinhole_geometry(circle: Circle, box: tuple[slice, slice], camera: tuple[float, float, float],
+                            rim: float = DEFAULT_CALIBRATE["rim"]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``sphere_normals`` through a pinhole camera (focal, principal x, principal y; pixels): ([h,
+    w, 3] normals, [h, w] bool, [h, w, 3] unit views from each surface point toward the camera).
+
+    A unit sphere on ``pinhole_cone``'s axis at 1 / sin(half-angle) fills the cone; each pixel's
+    ray meets it at its normal. ``rim``: pixels whose normal is within asin(rim) of their view (as
+    rim * r from the centre is, orthographically)."""
+    f, px, py = camera
+    axis, half = pinhole_cone(circle, camera)
+    centre = axis / max(np.sin(half), 1e-9)
+    ys = np.arange(box[0].start, box[0].stop, dtype=np.float64)
+    xs = np.arange(box[1].start, box[1].stop, dtype=np.float64)
+    d = np.stack(np.broadcast_arrays(xs[None, :] - px, -(ys[:, None] - py), -f), -1).astype(np.float64)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)  # [h, w, 3] unit rays from the camera
+    b = d @ centre
+    disc = b * b - centre @ centre + 1.0
+    n = (b - np.sqrt(np.clip(disc, 0.0, None)))[..., None] * d - centre
+    view = -d
+    inside = (disc > 0) & ((n * view).sum(-1) >= np.sqrt(max(1.0 - rim * rim, 0.0)))
+    return n * inside[..., None], inside, view
+
+
 # --- one image ---------------------------------------------------------------------------------
 
-def mirror_direction(normal: np.ndarray) -> np.ndarray:
-    """The light direction whose mirror reflection about ``normal`` [3] reaches the camera
-    (orthographic, view (0, 0, 1)): l = 2 (n . v) n - v."""
+def mirror_direction(normal: np.ndarray, view: np.ndarray | None = None) -> np.ndarray:
+    """The light direction whose mirror reflection about ``normal`` [3] reaches the camera along
+    ``view`` [3] (from the surface toward the camera; None: orthographic, (0, 0, 1)):
+    l = 2 (n . v) n - v."""
     n = np.asarray(normal, np.float64)
     n = n / np.linalg.norm(n)
-    return 2.0 * n[2] * n - np.array([0.0, 0.0, 1.0])
+    v = np.array([0.0, 0.0, 1.0]) if view is None else np.asarray(view, np.float64) / np.linalg.norm(view)
+    return 2.0 * float(n @ v) * n - v
 
 
 def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAULT_CALIBRATE["highlight"],
                    base: float = DEFAULT_CALIBRATE["base"], normals: np.ndarray | None = None,
-                   weighting: str = "surface") -> dict | None:
+                   weighting: str = "surface", views: np.ndarray | None = None) -> dict | None:
     """The highlight inside the sphere: {"x", "y" (sub-pixel, in ``gray``'s pixels), "peak",
     "pixels" (its size), "spots" (regions above the level: more than one is a second reflection),
     "rim" (it touches the edge of ``inside``: a light far behind the sphere, whose highlight is
@@ -286,7 +374,9 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
     weights' mean normal, each pixel counted by the surface it covers (1 / n_z): a broad or
     clipped highlight is symmetric on the sphere, not in the image, whose centroid it pulls
     toward the sphere's centre. ``weighting`` "even" leaves out the 1 / n_z, "image" gives the
-    image centroid's normal (benchmarks/calibrate_sphere.py --centroids compares them)."""
+    image centroid's normal (benchmarks/calibrate_sphere.py --centroids compares them). With
+    ``views`` [h, w, 3] (a pinhole camera: ``sphere_pinhole_geometry``), n . v takes n_z's place
+    and "view" is the same weights' mean view."""
     from scipy import ndimage
 
     g = np.where(inside, gray, -np.inf)
@@ -333,11 +423,20 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
            "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any())}
     if normals is not None:
         n = normals[ys, xs]
+        if views is not None:
+            if weighting == "image":
+                raise ValueError("find_highlight: weighting 'image' is for an orthographic camera (views=None)")
+            v = views[ys, xs]
+            cos = (n * v).sum(-1)
+            mv = (v * ww[:, None]).sum(0)
+            out["view"] = mv / max(float(np.linalg.norm(mv)), 1e-12)
+        else:
+            cos = n[:, 2]
         if weighting == "image":  # the image centroid's normal (n_x, n_y are linear in x, y)
             nxy = (ww[:, None] * n[:, :2]).sum(0) / ww.sum()
             mean = np.array([nxy[0], nxy[1], np.sqrt(max(1.0 - float(nxy @ nxy), 0.0))])
         else:
-            mean = (n * (ww / np.maximum(n[:, 2], 0.05) if weighting == "surface" else ww)[:, None]).sum(0)
+            mean = (n * (ww / np.maximum(cos, 0.05) if weighting == "surface" else ww)[:, None]).sum(0)
         out["normal"] = mean / max(float(np.linalg.norm(mean)), 1e-12)
     return out
 
@@ -419,15 +518,21 @@ class SphereLights:
     images: list[dict]
     box: tuple[slice, slice]
     brightest: np.ndarray = field(repr=False)
+    camera: tuple[float, float, float] | None = None  # (focal, principal x, principal y), or orthographic
 
 
 class _Calibrator:
     """Image by image (the folder reader streams them): each one's light, from the part of the
     image inside ``box``."""
 
-    def __init__(self, sphere: str, circle: Circle, box: tuple[slice, slice], config: dict):
-        self.sphere, self.circle, self.box, self.cfg = sphere, circle, box, config
-        self.normals, self.inside = sphere_normals(circle, box, config["rim"])
+    def __init__(self, sphere: str, circle: Circle, box: tuple[slice, slice], config: dict,
+                 camera: tuple[float, float, float] | None = None):
+        self.sphere, self.circle, self.box, self.cfg, self.camera = sphere, circle, box, config, camera
+        self.views = None
+        if camera is None:
+            self.normals, self.inside = sphere_normals(circle, box, config["rim"])
+        else:
+            self.normals, self.inside, self.views = sphere_pinhole_geometry(circle, box, camera, config["rim"])
         if not self.inside.any():
             raise PsctlError(None, f"the sphere (x {circle.x:.1f}, y {circle.y:.1f}, r {circle.r:.1f}) has no pixel "
                                    "inside the images")
@@ -443,12 +548,13 @@ class _Calibrator:
         if not np.isfinite(rgb[self.inside]).all():
             raise PsctlError(name, "holds NaN or infinite values on the sphere")
         if self.sphere == "chrome":
-            spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"], self.normals)
+            spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"], self.normals,
+                                  views=self.views)
             if spot is None:
                 raise PsctlError(name, "is black on the sphere: there is no highlight to locate (a light that did "
                                        "not fire?)")
             x, y = spot["x"] + self.box[1].start, spot["y"] + self.box[0].start
-            d = mirror_direction(spot["normal"])
+            d = mirror_direction(spot["normal"], spot.get("view"))
             if not np.isfinite(d).all():
                 raise PsctlError(name, "gives no direction: its highlight could not be located")
             self.directions.append(d)
@@ -473,7 +579,7 @@ class _Calibrator:
             scale = float(ints.mean())
             ints = ints / scale if scale > 0 else ints
         return SphereLights(self.sphere, self.circle, np.array(self.directions, np.float64), ints, self.images,
-                            self.box, self.brightest)
+                            self.box, self.brightest, self.camera)
 
 
 def check_sphere(sphere: str) -> str:
@@ -518,12 +624,21 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
         c = fit_circle(as_mask(mask, imgs.shape[1:3]), "mask", None, cfg)
     else:
         c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg)
-    box = circle_box(c, imgs.shape[1:3])
-    cal = _Calibrator(sphere, c, box, cfg)
+    camera = camera_config(cfg, imgs.shape[1:3])
+    box = _sphere_box(c, imgs.shape[1:3], camera)
+    cal = _Calibrator(sphere, c, box, cfg, camera)
     for k in range(len(imgs)):
         img = imgs[k][box]
         cal.add(img, saturated_map(img) if integer else None, f"images[{k}]")
     return cal.result()
+
+
+def _sphere_box(c: Circle, shape: tuple[int, int], camera: tuple[float, float, float] | None
+                ) -> tuple[slice, slice]:
+    """circle_box; through a pinhole, a fifth larger: an off-axis sphere's outline is an ellipse
+    longer than the fitted circle along the line to the principal point."""
+    box = circle_box(c, shape)
+    return box if camera is None else circle_box(Circle(c.x, c.y, 1.2 * c.r, c.source), shape)
 
 
 def _no_chrome_outline(where: Path | None) -> PsctlError:
@@ -551,7 +666,8 @@ def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, 
 def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike | None = None,
                   circle: "Circle | str | Iterable[float] | None" = None, write: bool = True,
                   progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None,
-                  offset: bool = False) -> dict:
+                  offset: bool = False, focal: float | None = None,
+                  principal: "str | Iterable[float] | None" = None) -> dict:
     """Calibrate a folder of sphere images (one per light, in the object's order), write the
     light files, return the report (what ``psctl calibrate --json`` prints).
 
@@ -582,6 +698,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     if check_bool("offset", offset):
         cfg["offset"] = True
     _check_offset(cfg, sphere)
+    for key, value in (("focal", focal), ("principal", principal)):  # --focal, --principal over the config
+        if value is not None:
+            _check_camera(key, value)
+            cfg[key] = value
     given = None if circle is None else check_circle(circle)
     try:
         cap = open_capture(path, encoding)
@@ -593,6 +713,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         unread = [f"light files: {Path(e.path).name} is not read ({e.message}); these lights are not compared "
                   "with the folder's"]
     notes = unread + capture_notes(cap)
+    camera = camera_config(cfg, (cap.height, cap.width))
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))
@@ -619,19 +740,20 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         c = _circle_from_images(brightest, sphere, cap.path, cfg)
         notes.append(f"sphere: outline found in the images (x {c.x:.1f}, y {c.y:.1f}, r {c.r:.1f}); mask.png or "
                      "--circle X,Y,R would fix it")
-    box = circle_box(c, (cap.height, cap.width))
+    box = _sphere_box(c, (cap.height, cap.width), camera)
     if c.r < 30:
         notes.append(f"sphere: its radius is {c.r:.1f} pixels: each pixel of error in a highlight's place is "
                      f"{np.degrees(2 / c.r):.1f} degrees or more of direction; a larger sphere in the images is more "
                      "accurate (docs/calibration.md)")
     off = float(np.hypot(c.x - (cap.width - 1) / 2, c.y - (cap.height - 1) / 2))
-    if off > 0.1 * np.hypot(cap.width, cap.height):
+    if camera is None and off > 0.1 * np.hypot(cap.width, cap.height):
         notes.append(f"sphere: its centre is {off:.0f} pixels from the image's centre; psctl takes the camera as "
                      f"orthographic, which is exact on the optical axis only: through a lens of focal length f "
-                     f"pixels the directions can be off by about atan({off:.0f} / f) (docs/calibration.md)")
+                     f"pixels the directions can be off by about atan({off:.0f} / f); --focal F models the lens "
+                     "(docs/calibration.md, 'Perspective')")
     if c.x - c.r < -0.5 or c.y - c.r < -0.5 or c.x + c.r > cap.width - 0.5 or c.y + c.r > cap.height - 0.5:
         notes.append("sphere: part of it lies outside the images; only the part inside is used")
-    cal = _Calibrator(sphere, c, box, cfg)
+    cal = _Calibrator(sphere, c, box, cfg, camera)
     clipped: dict[int, np.ndarray] = {}
     advance = progress(f"{cap.name}: {sphere} sphere", cap.n_images)
     for k, img in enumerate(iter_images(raw, box, clipped=lambda k, top: clipped.__setitem__(k, top), memo=memo)):
@@ -725,7 +847,10 @@ def _report(res: SphereLights, cap: "Capture", notes: list[str]) -> dict:
         "path": os.path.abspath(cap.path),
         "sphere": res.sphere,
         "n_images": cap.n_images,
-        "circle": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(res.circle).items()},
+        "circle": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(res.circle).items()
+                   if k != "outline"},
+        "camera": None if res.camera is None else {"focal": res.camera[0],
+                                                   "principal": [round(res.camera[1], 4), round(res.camera[2], 4)]},
         "light_mae": errors["light_mae"],
         "intensity_re": errors["intensity_re"],
         "direction_errors": None if per is None else [round(float(v), 4) for v in per],

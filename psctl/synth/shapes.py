@@ -89,6 +89,33 @@ def sphere_gbuffer(size: int, radius: float = 0.9, device: torch.device | str = 
     return GBuffer(n[None], depth[None, None], mask[None, None], ["sphere"])
 
 
+def sphere_pinhole(width: int, height: int, focal: float, centre: tuple[float, float, float], radius: float = 1.0,
+                   principal: tuple[float, float] | None = None, device: torch.device | str = "cpu"
+                   ) -> tuple[Tensor, Tensor, Tensor]:
+    """A sphere seen through a pinhole camera at the origin (focal length ``focal`` pixels, the
+    principal point at ``principal`` (x, y) pixels, default the image's centre; x right, y up, z
+    toward the camera, so the scene lies at z < 0): ray-traced per pixel centre, in float64.
+
+    Returns normals [3, H, W] (0 off the sphere), views [3, H, W] (unit, from each pixel's surface
+    point toward the camera) and mask [H, W] bool. For calibration renders where the sphere is
+    off the optical axis (benchmarks/calibrate_sphere.py --perspective, tests/test_calibrate.py).
+    """
+    f64 = dict(dtype=torch.float64, device=device)
+    px, py = ((width - 1) / 2, (height - 1) / 2) if principal is None else principal
+    xs = torch.arange(width, **f64) - px
+    ys = py - torch.arange(height, **f64)
+    d = torch.stack([xs[None, :].expand(height, width), ys[:, None].expand(height, width),
+                     torch.full((height, width), -float(focal), **f64)])
+    d = d / d.norm(dim=0, keepdim=True)  # [3, H, W] unit rays from the camera
+    c = torch.tensor(centre, **f64)[:, None, None]
+    b = (d * c).sum(0)
+    disc = b * b - (c * c).sum(0) + radius * radius
+    mask = disc > 0
+    t = b - disc.clamp_min(0).sqrt()  # the nearer intersection
+    n = (t * d - c) / radius * mask
+    return n, -d, mask
+
+
 # --------------------------------------------------------------------------------------------
 # Blobby SDF shapes
 # --------------------------------------------------------------------------------------------
