@@ -209,13 +209,16 @@ def _check_offset(cfg: dict, sphere: str) -> None:
 
 
 def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None,
-               config: dict | None = None) -> Circle:
+               config: dict | None = None, camera: tuple[float, float, float] | None = None) -> Circle:
     """The circle that best fits the outline of ``mask``'s largest connected region.
 
     Edge points more than max(1.5 px, 3 robust standard deviations) from a first fit are left
     out and the circle fitted again (a stand or a fingerprint cutting into the outline). A
     ``PsctlError`` naming ``where`` when the region is too small, or not round: its outline
     further than max(1 px, 2 % of r) from the circle on average, or under half of it on the circle.
+    With ``camera`` (focal, principal x, principal y: a pinhole), an off-axis sphere's outline is
+    an ellipse: the distances, the trimming and the roundness are then the outline rays' from the
+    sphere's cone (``pinhole_cone``), in pixels at the circle's scale.
     """
     from scipy import ndimage
 
@@ -243,6 +246,11 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
         res = np.hypot(p[:, 0] - cx, p[:, 1] - cy) - r
         cut = max(1.5, 3 * 1.4826 * float(np.median(np.abs(res[keep]))))
         keep = np.abs(res) <= cut
+    if camera is not None:
+        for _ in range(2):  # the cone on the circle's inliers, then on its own
+            res = _cone_residuals(p, p[keep], camera, r)
+            cut = max(1.5, 3 * 1.4826 * float(np.median(np.abs(res[keep]))))
+            keep = np.abs(res) <= cut
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
     if r < cfg["min_radius"]:
         raise PsctlError(where, f"the sphere is too small: radius {r:.1f} pixels (at least {cfg['min_radius']:g})")
@@ -303,22 +311,38 @@ def sphere_normals(circle: Circle, box: tuple[slice, slice], rim: float = DEFAUL
     return np.stack([nx, ny, nz], -1) * inside[..., None], inside
 
 
+def _rays(p: np.ndarray, camera: tuple[float, float, float]) -> np.ndarray:
+    """[P, 2] image points (x, y) -> [P, 3] unit rays from a pinhole camera into the scene."""
+    f, px, py = camera
+    d = np.stack([p[:, 0] - px, -(p[:, 1] - py), np.full(len(p), -f)], 1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _cone(p: np.ndarray, camera: tuple[float, float, float]) -> tuple[np.ndarray, float]:
+    # every outline ray d meets the axis a at the half-angle: d . a = cos, so w = a / cos solves
+    # d . w = 1 (least squares over the points)
+    w = np.linalg.lstsq(_rays(p, camera), np.ones(len(p)), rcond=None)[0]
+    return w / np.linalg.norm(w), float(np.arccos(min(1.0 / np.linalg.norm(w), 1.0)))
+
+
+def _cone_residuals(p: np.ndarray, fit_to: np.ndarray, camera: tuple[float, float, float], r: float) -> np.ndarray:
+    """Each point's ray's angle from the cone fitted to ``fit_to``, less its half-angle, in pixels
+    at the circle's scale (r over the half-angle)."""
+    axis, half = _cone(fit_to, camera)
+    angle = np.arccos(np.clip(_rays(p, camera) @ axis, -1.0, 1.0))
+    return (angle - half) * r / max(half, 1e-12)
+
+
 def pinhole_cone(circle: Circle, camera: tuple[float, float, float]) -> tuple[np.ndarray, float]:
     """The cone of rays that graze the sphere, through a pinhole camera (focal, principal x,
     principal y; pixels): (its axis [3], unit, from the camera toward the sphere's centre; its
-    half-angle in radians). Every outline ray d meets the axis a at the half-angle, d . a = cos,
-    so w = a / cos solves d . w = 1 over the outline's points (least squares): the circle's own
-    outline points where it was fitted to one (an off-axis sphere's outline is an ellipse), else
-    points on the circle."""
-    f, px, py = camera
+    half-angle in radians), fitted to the circle's outline points where it was fitted to an
+    outline (an off-axis sphere's outline is an ellipse), else to points on the circle."""
     p = circle.outline
     if p is None or len(p) < 12:
         t = np.linspace(0, 2 * np.pi, 720, endpoint=False)
         p = np.stack([circle.x + circle.r * np.cos(t), circle.y + circle.r * np.sin(t)], 1)
-    d = np.stack([p[:, 0] - px, -(p[:, 1] - py), np.full(len(p), -f)], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    w = np.linalg.lstsq(d, np.ones(len(d)), rcond=None)[0]
-    return w / np.linalg.norm(w), float(np.arccos(min(1.0 / np.linalg.norm(w), 1.0)))
+    return _cone(p, camera)
 
 
 def sphere_pinhole_geometry(circle: Circle, box: tuple[slice, slice], camera: tuple[float, float, float],
@@ -616,15 +640,15 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     _check_offset(cfg, sphere)
     imgs = as_images(images)
     integer = np.asarray(images).dtype.kind in "iu"  # float images have no top code: nothing is saturated
+    camera = camera_config(cfg, imgs.shape[1:3])
     if mask is not None and circle is not None:
         raise PsctlError(None, "give mask or circle, not both")
     if circle is not None:
         c = check_circle(circle)
     elif mask is not None:
-        c = fit_circle(as_mask(mask, imgs.shape[1:3]), "mask", None, cfg)
+        c = fit_circle(as_mask(mask, imgs.shape[1:3]), "mask", None, cfg, camera)
     else:
-        c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg)
-    camera = camera_config(cfg, imgs.shape[1:3])
+        c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg, camera)
     box = _sphere_box(c, imgs.shape[1:3], camera)
     cal = _Calibrator(sphere, c, box, cfg, camera)
     for k in range(len(imgs)):
@@ -646,7 +670,8 @@ def _no_chrome_outline(where: Path | None) -> PsctlError:
                              "add mask.png (white on the sphere) or pass --circle X,Y,R")
 
 
-def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, config: dict) -> Circle:
+def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, config: dict,
+                        camera: tuple[float, float, float] | None = None) -> Circle:
     """A matte sphere's outline from each pixel's brightest value over the images (lit from
     somewhere by most lights, against a darker background)."""
     if sphere == "chrome":
@@ -655,7 +680,7 @@ def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, 
     if not top > 0:
         raise PsctlError(where, "the images are black: no sphere to find")
     try:
-        return replace(fit_circle(brightest > 0.2 * top, "images", where, config), source="images")
+        return replace(fit_circle(brightest > 0.2 * top, "images", where, config, camera), source="images")
     except PsctlError as e:
         raise PsctlError(where, f"found no round sphere in the images' brightest values ({e.message}); add mask.png "
                                 "(white on the sphere) or pass --circle X,Y,R") from None
@@ -726,7 +751,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         if cap.mask_path is not None:
             notes.append(f"sphere: {cap.mask_path.name} is unused: --circle gives the outline")
     elif cap.mask_path is not None:
-        c = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg)
+        c = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg, camera)
     else:
         if sphere == "chrome":
             raise _no_chrome_outline(cap.path)
@@ -737,7 +762,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
             g = img.mean(-1)
             brightest = g if brightest is None else np.maximum(brightest, g)
             advance(1)
-        c = _circle_from_images(brightest, sphere, cap.path, cfg)
+        c = _circle_from_images(brightest, sphere, cap.path, cfg, camera)
         notes.append(f"sphere: outline found in the images (x {c.x:.1f}, y {c.y:.1f}, r {c.r:.1f}); mask.png or "
                      "--circle X,Y,R would fix it")
     box = _sphere_box(c, (cap.height, cap.width), camera)

@@ -464,6 +464,13 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     # a focal length far longer than the scene: the orthographic answer
     far = calibrate_lights(matte, "matte", mask=m, config={"focal": 1e7}).directions
     assert angular_error(far, calibrate_lights(matte, "matte", mask=m).directions).max() < 0.05
+    # 29 degrees off the axis the outline is an ellipse that no circle fits; the cone does
+    from psctl.synth.shapes import sphere_pinhole
+
+    ellipse = sphere_pinhole(256, 256, 1000.0, (5.0, 2.5, -10.0), principal=(-372.5, 377.5))[2].numpy()
+    with pytest.raises(PsctlError, match="is not round"):
+        fit_circle(ellipse)
+    assert fit_circle(ellipse, camera=(1000.0, -372.5, 377.5)).rms < 0.5
     # the command: --focal (and --principal) in the report, no off-axis note; errors are one line
     folder = tmp_path / "side"
     folder.mkdir()
