@@ -3,7 +3,7 @@
     python benchmarks/calibrate_sphere.py [--quick] [--sweep] [--bits 8|16]
     python benchmarks/calibrate_sphere.py --centroids
     python benchmarks/calibrate_sphere.py --offsets      (matte balls with a black level: config offset)
-    python benchmarks/calibrate_sphere.py --perspective  (spheres off a pinhole camera's axis: --focal)
+    python benchmarks/calibrate_sphere.py --perspective [--focal-error]  (spheres off a pinhole camera's axis: --focal)
 
 Renders spheres with psctl's own shading (psctl.synth.render.shade) under known lights and
 compares psctl.calibrate.calibrate_lights' directions (and, matte, intensities) with them:
@@ -139,28 +139,34 @@ def render_pinhole(material: str, size: int, radius_px: float, focal: float, off
     return imgs, mask, principal
 
 
-def perspective(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator) -> None:
-    """Spheres off the optical axis of a pinhole camera: the orthographic model and --focal."""
+def perspective(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator, focal_error: bool = False) -> None:
+    """Spheres off the optical axis of a pinhole camera: the orthographic model and --focal
+    (``focal_error``: four of the cases with the focal length given 10 % short and long)."""
     total: dict[str, float] = {}
-    for focal in (1000.0, 3000.0):
-        for off in (0.0, 200.0, 500.0):
-            for size, r in [(256, 100.0), (96, 30.0)]:
-                for material, exposure, sphere in [("ggx0.02", 4.0, "chrome"), ("glossy", 1.0, "chrome"),
-                                                   ("lambertian", 0.9, "matte"), ("sheen", 0.9, "matte")]:
-                    imgs, mask, principal = render_pinhole(material, size, r, focal, off, d, e, 16, exposure, gen)
-                    line = []
-                    for label, cfg in (("ortho", {}), ("focal", {"focal": focal, "principal": principal})):
-                        try:
-                            res = calibrate_lights(imgs, sphere, mask=mask, config=cfg)
-                        except PsctlError as err:  # an outline no circle fits, orthographically
-                            line.append(f"{label} refused ({err.message.split(':')[0]})")
-                            continue
-                        err = light_direction_error(res.directions, d.numpy())
-                        total[label] = total.get(label, 0.0) + float(err.mean())
-                        line.append(f"{label} {err.mean():6.3f} ({err.max():6.3f})")
-                    angle = math.degrees(math.atan(math.hypot(off, off / 2) / focal))
-                    print(f"f {focal:5.0f}  off-axis {off:3.0f} px ({angle:4.1f} deg)  r {r:4.0f}  {material:10s} "
-                          f"{sphere:6s} " + "  ".join(line), flush=True)
+    cases = [(f, off, size, r, m) for f in (1000.0, 3000.0) for off in (0.0, 200.0, 500.0)
+             for size, r in [(256, 100.0), (96, 30.0)]
+             for m in [("ggx0.02", 4.0, "chrome"), ("glossy", 1.0, "chrome"), ("lambertian", 0.9, "matte"),
+                       ("sheen", 0.9, "matte")]]
+    if focal_error:
+        cases = [c for c in cases if c[1] > 0 and c[3] == 100.0 and c[4][0] in ("ggx0.02", "lambertian")]
+    for focal, off, size, r, (material, exposure, sphere) in cases:
+        imgs, mask, principal = render_pinhole(material, size, r, focal, off, d, e, 16, exposure, gen)
+        line = []
+        configs = [("ortho", {}), ("focal", {"focal": focal, "principal": principal})]
+        if focal_error:
+            configs = [(f"focal x{k}", {"focal": k * focal, "principal": principal}) for k in (0.9, 1, 1.1)]
+        for label, cfg in configs:
+            try:
+                res = calibrate_lights(imgs, sphere, mask=mask, config=cfg)
+            except PsctlError as err:  # an outline no circle fits, orthographically
+                line.append(f"{label} refused ({err.message.split(':')[0]})")
+                continue
+            err = light_direction_error(res.directions, d.numpy())
+            total[label] = total.get(label, 0.0) + float(err.mean())
+            line.append(f"{label} {err.mean():6.3f} ({err.max():6.3f})")
+        angle = math.degrees(math.atan(math.hypot(off, off / 2) / focal))
+        print(f"f {focal:5.0f}  off-axis {off:3.0f} px ({angle:4.1f} deg)  r {r:4.0f}  {material:10s} "
+              f"{sphere:6s} " + "  ".join(line), flush=True)
     print("sums of the means (over the cases each calibrated): " + ", ".join(f"{k} {v:.2f}" for k, v in total.items()))
 
 
@@ -213,6 +219,8 @@ def main() -> None:
     ap.add_argument("--centroids", action="store_true", help="compare find_highlight's weightings instead")
     ap.add_argument("--perspective", action="store_true", help="spheres off a pinhole camera's axis: the "
                     "orthographic model and --focal (config focal, principal) instead")
+    ap.add_argument("--focal-error", action="store_true", help="with --perspective: four cases with the focal "
+                    "length 10 %% short and long")
     ap.add_argument("--offsets", action="store_true", help="matte balls with a black level: the fit with and "
                     "without its constant term (config offset) instead")
     args = ap.parse_args()
@@ -225,7 +233,7 @@ def main() -> None:
         offsets(d, e, gen)
         return
     if args.perspective:
-        perspective(d, e, gen)
+        perspective(d, e, gen, args.focal_error)
         return
     cases = [("ggx0.01", 4.0), ("ggx0.02", 4.0), ("ggx0.05", 4.0), ("ggx0.02", 0.8), ("merl-chrome", 4.0),
              ("glossy", 1.0), ("lambertian", 0.9), ("sheen", 0.9), ("glossy", 1.0)]
