@@ -141,7 +141,8 @@ def render_pinhole(material: str, size: int, radius_px: float, focal: float, off
 
 def perspective(d: torch.Tensor, e: torch.Tensor, gen: torch.Generator, focal_error: bool = False) -> None:
     """Spheres off the optical axis of a pinhole camera: the orthographic model and --focal
-    (``focal_error``: four of the cases with the focal length given 10 % short and long)."""
+    (``focal_error``: eight of the cases, r = 100, off the axis, the mirror and the Lambertian ball,
+    with the focal length given 10 % short and long)."""
     total: dict[str, float] = {}
     cases = [(f, off, size, r, m) for f in (1000.0, 3000.0) for off in (0.0, 200.0, 500.0)
              for size, r in [(256, 100.0), (96, 30.0)]
@@ -219,7 +220,7 @@ def main() -> None:
     ap.add_argument("--centroids", action="store_true", help="compare find_highlight's weightings instead")
     ap.add_argument("--perspective", action="store_true", help="spheres off a pinhole camera's axis: the "
                     "orthographic model and --focal (config focal, principal) instead")
-    ap.add_argument("--focal-error", action="store_true", help="with --perspective: four cases with the focal "
+    ap.add_argument("--focal-error", action="store_true", help="with --perspective: eight cases with the focal "
                     "length 10 %% short and long")
     ap.add_argument("--offsets", action="store_true", help="matte balls with a black level: the fit with and "
                     "without its constant term (config offset) instead")

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
-from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress
+from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress
 from psctl.hotpixels import HOT_RATIO
 
 if TYPE_CHECKING:
@@ -89,20 +89,19 @@ def check_config(config: dict | None) -> dict:
         raise PsctlError(None, f"config: unknown setting {unknown[0]!r}; known: {', '.join(DEFAULT_CALIBRATE)}")
     for k, v in config.items():
         if k in _CAMERA:
-            _check_camera(k, v)
-            continue
+            continue  # checked, and parsed, below
         if k in _FLAGS:
             if not isinstance(v, (bool, np.bool_)):
                 raise PsctlError(None, f"config: {k} must be true or false, not {v!r}")
             continue
         lo, hi = _RANGES[k]
         whole = k in ("iterations", "min_pixels")
-        ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v) \
-            and lo <= v <= hi and (not whole or float(v).is_integer())
+        f = _number(v)
+        ok = f is not None and lo <= f <= hi and (not whole or f.is_integer())
         if not ok:
             raise PsctlError(None, f"config: {k} must be a {'whole ' if whole else ''}number in [{lo:g}, {hi:g}], "
-                                   f"not {v!r}")
-    return {**DEFAULT_CALIBRATE, **config}
+                                   f"not {_short(v)}")
+    return {**DEFAULT_CALIBRATE, **config, **{k: _check_camera(k, config[k]) for k in _CAMERA if k in config}}
 
 
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
@@ -168,22 +167,35 @@ def _circle_fit(p: np.ndarray) -> tuple[float, float, float]:
     return float(cx), float(cy), float(abs(r))
 
 
-def _check_camera(key: str, value: object) -> None:
+def _number(v: object) -> float | None:
+    """A finite float from a real number (not a bool), or None (10**400 included)."""
+    if not isinstance(v, (int, float, np.integer, np.floating)) or isinstance(v, (bool, np.bool_)):
+        return None
+    try:
+        f = float(v)
+    except OverflowError:
+        return None
+    return f if np.isfinite(f) else None
+
+
+def _check_camera(key: str, value: object) -> "float | tuple[float, float] | None":
+    """The checked value of config ``focal`` (a float) or ``principal`` (x, y), or None."""
     if value is None:
-        return
+        return None
     if key == "focal":
-        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
-            and np.isfinite(value) and 1.0 <= value <= 1e7
-        if not ok:
+        f = _number(value)
+        if f is None or not 1.0 <= f <= 1e7:
             raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]), not "
-                                   f"{value!r}")
-        return
+                                   f"{_short(value)}")
+        return f
     try:
         xy = [float(v) for v in (value.split(",") if isinstance(value, str) else value)]  # type: ignore[union-attr]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         xy = []
     if len(xy) != 2 or not all(np.isfinite(xy)) or max(map(abs, xy)) > 1e7:
-        raise PsctlError(None, f"principal must be the principal point as X,Y in pixels (two numbers), not {value!r}")
+        raise PsctlError(None, f"principal must be the principal point as X,Y in pixels (two numbers), not "
+                               f"{_short(value)}")
+    return xy[0], xy[1]
 
 
 def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, float] | None:
@@ -193,11 +205,8 @@ def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, floa
             raise PsctlError(None, "--principal needs --focal (the camera's focal length in pixels)")
         return None
     p = cfg["principal"]
-    if p is None:
-        px, py = (shape[1] - 1) / 2, (shape[0] - 1) / 2
-    else:
-        px, py = (float(v) for v in (p.split(",") if isinstance(p, str) else p))
-    return float(cfg["focal"]), px, py
+    px, py = ((shape[1] - 1) / 2, (shape[0] - 1) / 2) if p is None else p  # (checked: a pair of floats)
+    return float(cfg["focal"]), float(px), float(py)
 
 
 def _check_offset(cfg: dict, sphere: str) -> None:
@@ -255,10 +264,12 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
     if r < cfg["min_radius"]:
         raise PsctlError(where, f"the sphere is too small: radius {r:.1f} pixels (at least {cfg['min_radius']:g})")
     if rms > max(1.0, 0.02 * r) or keep.mean() < 0.5:
+        model = (f"the best circle (x {cx:.1f}, y {cy:.1f}, r {r:.1f})" if camera is None else
+                 f"the best sphere's outline through the pinhole of --focal {camera[0]:g} and principal point "
+                 f"{camera[1]:g},{camera[2]:g} (are they the images'?)")
         raise PsctlError(where, f"is not round: its outline lies {float(np.sqrt(np.mean(res ** 2))):.1f} pixels from "
-                                f"the best circle (x {cx:.1f}, y {cy:.1f}, r {r:.1f}) on average, "
-                                f"{1 - keep.mean():.0%} of it further than {cut:.1f} pixels; psctl calibrate needs "
-                                "the sphere's own outline (or --circle X,Y,R)")
+                                f"{model} on average, {1 - keep.mean():.0%} of it further than {cut:.1f} pixels; "
+                                "psctl calibrate needs the sphere's own outline (or --circle X,Y,R)")
     return Circle(cx, cy, r, source, round(rms, 4), p[keep])
 
 
@@ -364,6 +375,15 @@ def sphere_pinhole_geometry(circle: Circle, box: tuple[slice, slice], camera: tu
     disc = b * b - centre @ centre + 1.0
     n = (b - np.sqrt(np.clip(disc, 0.0, None)))[..., None] * d - centre
     view = -d
+    # the sphere through this camera must cover about the circle's pixels: a focal length or a
+    # principal point far from the images' own would otherwise give wrong directions silently
+    disk = (xs[None, :] - circle.x) ** 2 + (ys[:, None] - circle.y) ** 2 <= circle.r**2
+    ratio = float((disc > 0).sum()) / max(int(disk.sum()), 1)
+    if not 0.8 <= ratio <= 1.25:
+        raise PsctlError(None, f"a sphere with this outline, seen through --focal {f:g} with the principal point at "
+                               f"{px:g},{py:g}, would cover {ratio:.0%} of the outline's pixels: are the focal length "
+                               "(in the images' pixels) and the principal point the images'? (docs/calibration.md, "
+                               "'Perspective')")
     inside = (disc > 0) & ((n * view).sum(-1) >= np.sqrt(max(1.0 - rim * rim, 0.0)))
     return n * inside[..., None], inside, view
 
@@ -659,10 +679,13 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
 
 def _sphere_box(c: Circle, shape: tuple[int, int], camera: tuple[float, float, float] | None
                 ) -> tuple[slice, slice]:
-    """circle_box; through a pinhole, a fifth larger: an off-axis sphere's outline is an ellipse
-    longer than the fitted circle along the line to the principal point."""
-    box = circle_box(c, shape)
-    return box if camera is None else circle_box(Circle(c.x, c.y, 1.2 * c.r, c.source), shape)
+    """circle_box; through a pinhole, larger by 1.1 / cos(the angle off the axis): an off-axis
+    sphere's outline is an ellipse longer than the fitted circle toward the principal point."""
+    if camera is None:
+        return circle_box(c, shape)
+    f, px, py = camera
+    grow = 1.1 * np.hypot(f, np.hypot(c.x - px, c.y - py)) / f
+    return circle_box(Circle(c.x, c.y, min(grow * c.r, float(np.hypot(*shape))), c.source), shape)
 
 
 def _no_chrome_outline(where: Path | None) -> PsctlError:
@@ -725,8 +748,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     _check_offset(cfg, sphere)
     for key, value in (("focal", focal), ("principal", principal)):  # --focal, --principal over the config
         if value is not None:
-            _check_camera(key, value)
-            cfg[key] = value
+            cfg[key] = _check_camera(key, value)
     given = None if circle is None else check_circle(circle)
     try:
         cap = open_capture(path, encoding)

@@ -471,6 +471,15 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     with pytest.raises(PsctlError, match="is not round"):
         fit_circle(ellipse)
     assert fit_circle(ellipse, camera=(1000.0, -372.5, 377.5)).rms < 0.5
+    # a focal length or principal point that is not the images' is an error, not wrong directions
+    with pytest.raises(PsctlError, match="pinhole of --focal 1 and principal point 99.5,74.5"):
+        calibrate_lights(matte, "matte", mask=m, config={"focal": 1.0})
+    with pytest.raises(PsctlError, match=r"would cover 1\d\d% of the outline's pixels"):
+        calibrate_lights(matte, "matte", circle=(c.x, c.y, c.r), config={"focal": 260.0, "principal": (1e4, 1e4)})
+    with pytest.raises(PsctlError, match="focal must be"):
+        calibrate_lights(matte, "matte", mask=m, config={"focal": 10**400})
+    assert calibrate_lights(matte, "matte", mask=m, config={"focal": 260.0, "principal": iter([99.5, 74.5])}).camera \
+        == (260.0, 99.5, 74.5)
     # the command: --focal (and --principal) in the report, no off-axis note; errors are one line
     folder = tmp_path / "side"
     folder.mkdir()
