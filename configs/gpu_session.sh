@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # Fine-tuning runs side by side on one GPU, in device calls of under 10 minutes (the device tool).
-# (Session 54 ran the defaults below, stages 12 and 12b: point RUNS and INITS at the next stage first;
-# docs/training.md, "The next session with a GPU".)
+# (The defaults: stages 13 and 13b, written in session 55 from GPU stage 12, installed then; session 54
+# ran stages 12 and 12b; docs/training.md, "The next session with a GPU".)
 #   bash configs/gpu_session.sh MINUTES [PLAN_SECONDS] [final]
 # From the repository root on the GPU machine (torch with CUDA; no OpenImageIO needed). The runs
-# (RUNS below, method:recipe:run folder) default to session 40's plan for a session with 15
+# (RUNS below, method:recipe:run folder) default to session 55's plan for a session with 15
 # minutes of device time, one call on a fresh machine:
 #   bash configs/gpu_session.sh 7 330 final        (device tool: carry [".cache/gpu/meshes"], timeout_s 590)
-# which trains configs/ps_fcn_n_gpu_stage12.yaml and configs/ps_fcn_n_gpu_stage12b.yaml side by
-# side (both from the installed PS-FCN+N, copied to .cache/gpu/ps_fcn_n_gpu11.pt when missing).
+# which trains configs/ps_fcn_n_gpu_stage13.yaml and configs/ps_fcn_n_gpu_stage13b.yaml side by
+# side (both from the installed PS-FCN+N, copied to .cache/gpu/ps_fcn_n_gpu12.pt when missing).
+# Session 54 ran it with session 40's plan, stages 12 and 12b (from .cache/gpu/ps_fcn_n_gpu11.pt).
 # Session 39 ran this command with session 33's plan, configs/ps_fcn_n_gpu_stage11.yaml and
 # configs/ps_fcn_gpu_stage15_ir.yaml, on an H200 (380 s, rates 699 and 578 samples/s; start files
 # .cache/gpu/ps_fcn_n_gpu10.pt and ps_fcn_avg14.pt = commit 4c60081's weights/ps_fcn_n.pt and
@@ -46,7 +47,7 @@ MIN=${1:?minutes}; PLAN=${2:-1200}; FINAL=${3:-}
 FIRST=${FIRST:-0.6}; DEADLINE=${DEADLINE:-530}
 OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT" runs .cache/gpu
 export PYTHONUNBUFFERED=1 PSCTL_MESHES=$PWD/.cache/gpu/meshes OMP_NUM_THREADS=4
-RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage12.yaml:g_ps_fcn_n12 ps-fcn-n:configs/ps_fcn_n_gpu_stage12b.yaml:g_ps_fcn_n12b"}
+RUNS=${RUNS:-"ps-fcn-n:configs/ps_fcn_n_gpu_stage13.yaml:g_ps_fcn_n13 ps-fcn-n:configs/ps_fcn_n_gpu_stage13b.yaml:g_ps_fcn_n13b"}
 PSCTL='import sys; from psctl.cli import main; sys.argv[0] = "psctl"; main()'
 psctl() { python3 -c "$PSCTL" "$@"; }
 
@@ -54,7 +55,7 @@ psctl() { python3 -c "$PSCTL" "$@"; }
 # (session 14: ps_fcn_stage7.pt, ps_fcn_n_stage5.pt, lcnet_stage5.pt, from commit 0d58380/31049bb;
 # session 17: ps_fcn_stage10.pt, ps_fcn_n_stage6.pt, lcnet_gpu6.pt; session 26: ps_fcn_n_miscal.pt,
 # ps_fcn_stage12.pt)
-INITS=${INITS:-"ps_fcn_n_gpu11.pt:weights/ps_fcn_n.pt"}
+INITS=${INITS:-"ps_fcn_n_gpu12.pt:weights/ps_fcn_n.pt"}
 for i in $INITS; do [ -f .cache/gpu/${i%%:*} ] || cp ${i#*:} .cache/gpu/${i%%:*}; done
 sha256sum .cache/gpu/*.pt .cache/gpu/meshes/* > "$OUT/inputs.sha256"
 
