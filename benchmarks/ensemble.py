@@ -31,6 +31,7 @@ rounded to 0.01. The dev split is reported only.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -46,6 +47,12 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 CACHE = REPO / ".cache" / "ensemble_normals"
 
 
+@functools.lru_cache(maxsize=None)
+def _file_bytes(path: Path | None) -> bytes:
+    """The weights file's bytes (part of the key), read once per run, not once per object."""
+    return path.read_bytes() if path is not None else b"none"
+
+
 def cached_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, method: str, weights: str | None,
                    views: int, use_cache: bool = True):
     """array_normals, kept in .cache/ensemble_normals/ under a key of everything that decides the
@@ -59,7 +66,7 @@ def cached_normals(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, met
 
     path = Path(weights) if weights else installed_path(method)
     h = hashlib.sha256()
-    h.update(Path(path).read_bytes() if path is not None else b"none")
+    h.update(_file_bytes(path))
     h.update(f"{method}|{views}".encode())
     for a in (images, lights, mask):
         a = np.ascontiguousarray(a)

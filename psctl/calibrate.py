@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
-from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress
+from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, is_number
 from psctl.hotpixels import HOT_RATIO
 
 if TYPE_CHECKING:
@@ -96,8 +96,7 @@ def check_config(config: dict | None) -> dict:
             continue
         lo, hi = _RANGES[k]
         whole = k in ("iterations", "min_pixels")
-        f = _number(v)
-        ok = f is not None and lo <= f <= hi and (not whole or f.is_integer())
+        ok = is_number(v) and lo <= float(v) <= hi and (not whole or float(v).is_integer())
         if not ok:
             raise PsctlError(None, f"config: {k} must be a {'whole ' if whole else ''}number in [{lo:g}, {hi:g}], "
                                    f"not {_short(v)}")
@@ -167,27 +166,15 @@ def _circle_fit(p: np.ndarray) -> tuple[float, float, float]:
     return float(cx), float(cy), float(abs(r))
 
 
-def _number(v: object) -> float | None:
-    """A finite float from a real number (not a bool), or None (10**400 included)."""
-    if not isinstance(v, (int, float, np.integer, np.floating)) or isinstance(v, (bool, np.bool_)):
-        return None
-    try:
-        f = float(v)
-    except OverflowError:
-        return None
-    return f if np.isfinite(f) else None
-
-
 def _check_camera(key: str, value: object) -> "float | tuple[float, float] | None":
     """The checked value of config ``focal`` (a float) or ``principal`` (x, y), or None."""
     if value is None:
         return None
     if key == "focal":
-        f = _number(value)
-        if f is None or not 1.0 <= f <= 1e7:
+        if not is_number(value) or not 1.0 <= float(value) <= 1e7:
             raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]), not "
                                    f"{_short(value)}")
-        return f
+        return float(value)
     try:
         xy = [float(v) for v in (value.split(",") if isinstance(value, str) else value)]  # type: ignore[union-attr]
     except (TypeError, ValueError, OverflowError):
@@ -369,8 +356,8 @@ def sphere_pinhole_geometry(circle: Circle, box: tuple[slice, slice], camera: tu
     centre = axis / max(np.sin(half), 1e-9)
     ys = np.arange(box[0].start, box[0].stop, dtype=np.float64)
     xs = np.arange(box[1].start, box[1].stop, dtype=np.float64)
-    d = np.stack(np.broadcast_arrays(xs[None, :] - px, -(ys[:, None] - py), -f), -1).astype(np.float64)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)  # [h, w, 3] unit rays from the camera
+    grid = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None]), -1)  # [h, w, 2] (x, y)
+    d = _rays(grid.reshape(-1, 2), camera).reshape(*grid.shape[:2], 3)  # unit rays from the camera
     b = d @ centre
     disc = b * b - centre @ centre + 1.0
     n = (b - np.sqrt(np.clip(disc, 0.0, None)))[..., None] * d - centre
@@ -420,7 +407,7 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
     toward the sphere's centre. ``weighting`` "even" leaves out the 1 / n_z, "image" gives the
     image centroid's normal (benchmarks/calibrate_sphere.py --centroids compares them). With
     ``views`` [h, w, 3] (a pinhole camera: ``sphere_pinhole_geometry``), n . v takes n_z's place
-    and "view" is the same weights' mean view."""
+    and "view" is the mean of its pixels' views weighted by their height above the level."""
     from scipy import ndimage
 
     g = np.where(inside, gray, -np.inf)
