@@ -22,11 +22,12 @@ Directions are unit vectors with x right, y up and z toward the camera (DiLiGenT
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
@@ -62,7 +63,8 @@ DEFAULT_CALIBRATE = {
     # the camera: None, orthographic (the view (0, 0, 1) everywhere, as psctl's normal estimators
     # take it); else a pinhole of this focal length in pixels, whose principal point is
     # ``principal`` ([x, y] in pixels; None: the image's centre). An off-axis sphere then sees the
-    # camera, and a mirror its lights, from its own angle (docs/calibration.md, "Perspective")
+    # camera, and a mirror its lights, from its own angle (docs/calibration.md, "Perspective");
+    # focal "exif": the images' EXIF headers give it (psctl.io.images.exif_focal)
     "focal": None,
     "principal": None,
     "min_radius": 8.0,  # pixels: smaller spheres give directions too coarse to be worth writing
@@ -74,6 +76,7 @@ _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "l
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
 _FLAGS = ("offset",)  # settings that are true or false
 _CAMERA = ("focal", "principal")  # None, or checked by _check_camera
+EXIF = "exif"  # focal: the images' EXIF headers say it
 
 
 def check_config(config: dict | None) -> dict:
@@ -171,9 +174,14 @@ def _check_camera(key: str, value: object) -> "float | tuple[float, float] | Non
     if value is None:
         return None
     if key == "focal":
+        if isinstance(value, str):
+            if value.strip().lower() == EXIF:
+                return EXIF
+            with contextlib.suppress(ValueError):
+                value = float(value)  # the command line's text
         if not is_number(value) or not 1.0 <= float(value) <= 1e7:
-            raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]), not "
-                                   f"{_short(value)}")
+            raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]) or "
+                                   f"'exif' (read from the images), not {_short(value)}")
         return float(value)
     try:
         xy = [float(v) for v in (value.split(",") if isinstance(value, str) else value)]  # type: ignore[union-attr]
@@ -191,9 +199,27 @@ def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, floa
         if cfg["principal"] is not None:
             raise PsctlError(None, "--principal needs --focal (the camera's focal length in pixels)")
         return None
+    if cfg["focal"] == EXIF:
+        raise PsctlError(None, "focal 'exif' reads the images' files (run_calibrate, psctl calibrate); with arrays "
+                               "give the focal length in pixels")
     p = cfg["principal"]
     px, py = ((shape[1] - 1) / 2, (shape[0] - 1) / 2) if p is None else p  # (checked: a pair of floats)
     return float(cfg["focal"]), float(px), float(py)
+
+
+def exif_camera_focal(paths: Sequence[Path]) -> tuple[float, str]:
+    """The focal length in pixels that every image's EXIF gives (``psctl.io.images.exif_focal``),
+    and how the first image's was found; images whose focal lengths differ by over 1 % (a zoom
+    turned between shots) are an error naming the first that differs."""
+    from psctl.io.images import exif_focal
+
+    f0, how = exif_focal(paths[0])
+    for p in paths[1:]:
+        f, _ = exif_focal(p)
+        if abs(f - f0) > 0.01 * f0:
+            raise PsctlError(p, f"its EXIF focal length is {f:.0f} pixels, {paths[0].name}'s {f0:.0f}: one camera "
+                                "setting is needed for all the images (was the lens zoomed?); give --focal F")
+    return f0, how
 
 
 def _check_offset(cfg: dict, sphere: str) -> None:
@@ -701,7 +727,7 @@ def _circle_from_images(brightest: np.ndarray, sphere: str, where: Path | None, 
 def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike | None = None,
                   circle: "Circle | str | Iterable[float] | None" = None, write: bool = True,
                   progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None,
-                  offset: bool = False, focal: float | None = None,
+                  offset: bool = False, focal: "float | str | None" = None,
                   principal: "str | Iterable[float] | None" = None) -> dict:
     """Calibrate a folder of sphere images (one per light, in the object's order), write the
     light files, return the report (what ``psctl calibrate --json`` prints).
@@ -714,7 +740,11 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     the unit disk), sphere.png (the brightest value of each pixel over the images, the fitted
     circle and, for chrome, each highlight) and calibration_report.json.
 
-    Report: object, path, sphere, n_images, circle {x, y, r, source, rms}, light_mae and
+    ``focal`` (pixels, or "exif": the images' EXIF headers) and ``principal`` model a pinhole
+    camera (docs/calibration.md, "Perspective").
+
+    Report: object, path, sphere, n_images, circle {x, y, r, source, rms}, camera {focal,
+    principal, from} (None: orthographic), light_mae and
     intensity_re (against the folder's own files, else None), direction_errors (degrees per image,
     or None), outputs, images (per image: file, direction, intensity, and for chrome highlight
     [x, y], peak, pixels, spots; for matte pixels, rms), seconds, notes.
@@ -747,6 +777,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         unread = [f"light files: {Path(e.path).name} is not read ({e.message}); these lights are not compared "
                   "with the folder's"]
     notes = unread + capture_notes(cap)
+    focal_from = None
+    if cfg["focal"] == EXIF:
+        cfg["focal"], focal_from = exif_camera_focal(cap.image_paths)
+        notes.append(f"camera: focal length {cfg['focal']:.0f} pixels, from the images' EXIF ({focal_from})")
     camera = camera_config(cfg, (cap.height, cap.width))
     out_dir = output_folder(out, cap.path)
     if write:
@@ -781,9 +815,16 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
                      "accurate (docs/calibration.md)")
     off = float(np.hypot(c.x - (cap.width - 1) / 2, c.y - (cap.height - 1) / 2))
     if camera is None and off > 0.1 * np.hypot(cap.width, cap.height):
+        from psctl.io.images import exif_focal
+
+        try:
+            f, _ = exif_focal(cap.image_paths[0])
+            by = (f"about {np.degrees(np.arctan(off / f)):.1f} degrees (atan({off:.0f} / {f:.0f}), the focal length "
+                  f"in pixels that the images' EXIF gives); --focal exif models the lens")
+        except PsctlError:
+            by = f"about atan({off:.0f} / f) through a lens of focal length f pixels; --focal F models the lens"
         notes.append(f"sphere: its centre is {off:.0f} pixels from the image's centre; psctl takes the camera as "
-                     f"orthographic, which is exact on the optical axis only: through a lens of focal length f "
-                     f"pixels the directions can be off by about atan({off:.0f} / f); --focal F models the lens "
+                     f"orthographic, which is exact on the optical axis only: the directions can be off by {by} "
                      "(docs/calibration.md, 'Perspective')")
     if c.x - c.r < -0.5 or c.y - c.r < -0.5 or c.x + c.r > cap.width - 0.5 or c.y + c.r > cap.height - 0.5:
         notes.append("sphere: part of it lies outside the images; only the part inside is used")
@@ -796,6 +837,8 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     res = cal.result()
     notes += _result_notes(res, cap, bool(cfg["offset"]))
     report = _report(res, cap, notes)
+    if report["camera"] is not None:
+        report["camera"]["from"] = "--focal" if focal_from is None else f"EXIF: {focal_from}"
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
         from psctl.io.report import write_json

@@ -448,7 +448,7 @@ def calibrate(
     sphere: Annotated[str, typer.Option("--sphere", "-s", help="chrome (a mirror ball: directions from its highlights) | matte (a white Lambertian ball: directions and intensities).")],
     circle: Annotated[Optional[str], typer.Option("--circle", help="The sphere's outline as X,Y,R in pixels (the centre's column and row, the top-left pixel's centre at 0,0; the radius), instead of fitting one to mask.png.")] = None,
     offset: Annotated[bool, _flag("--offset/--no-offset", help="matte: fit a constant per image as well (I = n . l e + c): for images that keep a black level or room light and have no ambient.png (docs/calibration.md, 'Offset').")] = False,
-    focal: Annotated[Optional[float], typer.Option("--focal", help="The camera's focal length in pixels: a pinhole camera instead of an orthographic one, for a sphere away from the image's centre (docs/calibration.md, 'Perspective').")] = None,
+    focal: Annotated[Optional[str], typer.Option("--focal", help="The camera's focal length in pixels, or 'exif' to read it from the images: a pinhole camera instead of an orthographic one, for a sphere away from the image's centre (docs/calibration.md, 'Perspective').")] = None,
     principal: Annotated[Optional[str], typer.Option("--principal", help="With --focal: the principal point as X,Y in pixels (default: the image's centre).")] = None,
     out: OutDir = None,
     encoding: EncodingOpt = "auto",

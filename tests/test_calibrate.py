@@ -490,7 +490,8 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     assert r["camera"] is None and any("--focal F models the lens" in n for n in r["notes"]) and r["light_mae"] is None
     r = json.loads(cli("calibrate", folder, "-s", "matte", "--focal", "260", "--principal", "99.5,74.5", "--json",
                        "--out", tmp_path / "f", check=True).stdout)
-    assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5]} and not any("--focal" in n for n in r["notes"])
+    assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": "--focal"}
+    assert not any("--focal" in n for n in r["notes"])
     assert angular_error(np.loadtxt(tmp_path / "f" / "light_directions.txt"), lights).mean() < 0.1
     for args, words in ((["--focal", "-5"], "focal must be the camera's focal length in pixels"),
                         (["--principal", "1,2"], "--principal needs --focal"),
@@ -556,3 +557,81 @@ def test_calibrate_on_diligent_ball():
     assert r["light_mae"] < 1.0  # 0.60 measured (2026-11-29)
     r = run_calibrate(ball, "matte", write=False)
     assert r["light_mae"] < 1.5 and r["intensity_re"] < 0.03  # 1.06 and 0.017 measured
+
+
+def write_exif(path, pixels: np.ndarray, **exif: float) -> None:
+    """A 16-bit image with these EXIF tags (FocalLength=26 -> Exif:FocalLength), as a camera writes them."""
+    import OpenImageIO as oiio
+
+    h, w = pixels.shape[:2]
+    spec = oiio.ImageSpec(w, h, pixels.shape[2] if pixels.ndim == 3 else 1, "uint16")
+    for k, v in exif.items():
+        spec.attribute(f"Exif:{k}", v)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.round(pixels * 65535).astype(np.uint16)), oiio.geterror()
+    out.close()
+
+
+def test_focal_from_exif(tmp_path):
+    """--focal exif: the focal length in pixels from a camera's EXIF (FocalLength on the sensor's
+    FocalPlaneXResolution, else the 35 mm equivalent over the frame's diagonal), scaled with a
+    resized image; a cropped image, a zoom between shots or no EXIF is a one-line error."""
+    from psctl.io.images import exif_focal
+
+    tiny = np.zeros((30, 40, 3), np.float32)
+    write_exif(tmp_path / "plane.png", tiny, FocalLength=26.0, FocalPlaneXResolution=100.0, FocalPlaneResolutionUnit=3)
+    # 40 px over 10 px/mm is a 4 mm sensor: 26 mm x 10 px/mm
+    f, how = exif_focal(tmp_path / "plane.png")
+    assert f == pytest.approx(260.0) and how == "26 mm on a sensor 4 mm wide"
+    # a 35 mm-equivalent only (a phone): the frame's diagonal is 43.27 mm's
+    write_exif(tmp_path / "phone.jpg", tiny, FocalLengthIn35mmFilm=28)
+    assert exif_focal(tmp_path / "phone.jpg")[0] == pytest.approx(28 * 50 / np.hypot(36, 24))
+    # saved at 80 x 60 and resized to 40 x 30 since: half the focal length in these pixels
+    write_exif(tmp_path / "half.tif", tiny, FocalLength=26.0, FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3,
+               PixelXDimension=80, PixelYDimension=60)
+    f, how = exif_focal(tmp_path / "half.tif")
+    assert f == pytest.approx(260.0) and "scaled by 0.5 from the 80 x 60 pixels saved" in how
+    # an implausible sensor (0.2 mm wide) falls back on the 35 mm equivalent
+    write_exif(tmp_path / "odd.png", tiny, FocalLength=26.0, FocalPlaneXResolution=2000.0, FocalPlaneResolutionUnit=3,
+               FocalLengthIn35mmFilm=28)
+    assert exif_focal(tmp_path / "odd.png")[1] == "28 mm 35 mm-equivalent"
+    for name, tags, words in (("crop.png", {"FocalLength": 26.0, "FocalLengthIn35mmFilm": 28, "PixelXDimension": 80,
+                                             "PixelYDimension": 80}, "cropped.*give --focal 73 "),
+                              ("none.png", {"FocalLength": 26.0}, "no focal length")):
+        write_exif(tmp_path / name, tiny, **tags)
+        with pytest.raises(PsctlError, match=words) as e:
+            exif_focal(tmp_path / name)
+        assert str(e.value.path) == str(tmp_path / name)
+    # the command, on a sphere 16 degrees off the axis of a camera whose EXIF says f = 260 px
+    lights = hemisphere_lights(6, 60.0, seed=5).astype(np.float64)
+    matte, m = pinhole_views(lights, "matte")
+    folder = tmp_path / "side"
+    folder.mkdir()
+    for k in range(len(lights)):
+        write_exif(folder / f"{k + 1:03d}.png", matte[k], FocalLength=13.0, FocalPlaneXResolution=508.0,
+                   FocalPlaneResolutionUnit=2)  # 20 px/mm on a 10 mm sensor
+    write_image(folder / "mask.png", m.astype(np.float32), "uint8")
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--json", "--out", tmp_path / "o", check=True).stdout)
+    assert r["camera"] is None
+    assert any("--focal exif models the lens" in n and "about 16.1 degrees" in n for n in r["notes"]), r["notes"]
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--focal", "EXIF", "--json", "--out", tmp_path / "e",
+                       check=True).stdout)
+    assert r["camera"]["focal"] == pytest.approx(260.0) and r["camera"]["principal"] == [99.5, 74.5]
+    assert r["camera"]["from"] == "EXIF: 13 mm on a sensor 10 mm wide"
+    assert any("focal length 260 pixels, from the images' EXIF" in n for n in r["notes"])
+    assert angular_error(np.loadtxt(tmp_path / "e" / "light_directions.txt"), lights).mean() < 0.1
+    # a zoom turned for one image; no EXIF at all
+    write_exif(folder / "004.png", matte[3], FocalLength=15.0, FocalPlaneXResolution=508.0, FocalPlaneResolutionUnit=2)
+    for fix, words in ((None, "004.png: its EXIF focal length is 300 pixels, 001.png's 260"),
+                       (lambda k: write_image(folder / f"{k + 1:03d}.png", matte[k], "uint16"),
+                        "001.png: its EXIF header has no focal length")):
+        if fix is not None:
+            for k in range(len(lights)):
+                fix(k)
+        bad = cli("calibrate", folder, "-s", "matte", "--focal", "exif", "--out", tmp_path / "x")
+        assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert not (tmp_path / "x").exists()
+    with pytest.raises(PsctlError, match="focal 'exif' reads the images' files"):
+        calibrate_lights(matte, "matte", mask=m, config={"focal": "exif"})
+    with pytest.raises(PsctlError, match="or 'exif'"):
+        calibrate_lights(matte, "matte", mask=m, config={"focal": "exit"})

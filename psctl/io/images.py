@@ -97,6 +97,73 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         inp.close()
 
 
+# EXIF FocalPlaneResolutionUnit -> millimetres: 2 inch, 3 centimetre (the standard's two); 4
+# millimetre and 5 micrometre are written by some cameras
+_FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))  # what FocalLengthIn35mmFilm is relative to
+
+
+def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
+    """The camera's focal length in this image's pixels, from its EXIF header, and how it was found.
+
+    From ``FocalLength`` (mm) times ``FocalPlaneXResolution`` (pixels per unit of the sensor) where
+    both are present and give a sensor 1-100 mm wide; else from ``FocalLengthIn35mmFilm`` over the
+    frame's diagonal (a 35 mm frame's is 43.27 mm). EXIF describes the frame as the camera saved it
+    (``PixelXDimension`` x ``PixelYDimension``): an image resized since, at the same aspect, has its
+    focal length scaled with it; a cropped one (another aspect) raises, since its principal point
+    is no longer the image's centre. Raises PsctlError naming the file when the header lacks these.
+
+    EXIF's numbers are rounded (whole millimetres, often) and FocalLength is the lens at infinity
+    focus: expect a few percent; docs/calibration.md ("Perspective") measures what 10 % costs.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    image_info(path)  # a missing or unreadable file: its own error
+    with _quiet_stderr():
+        inp = oiio.ImageInput.open(_oiio_name(path))
+    if inp is None:
+        raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+    try:
+        spec = inp.spec()
+        w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
+
+        def number(name: str) -> float:
+            v = spec.getattribute(name)
+            try:
+                v = float(v[0] if isinstance(v, (tuple, list)) else v)
+            except (TypeError, ValueError, IndexError):
+                return 0.0
+            return v if np.isfinite(v) and v > 0 else 0.0
+
+        mm, res, f35 = number("Exif:FocalLength"), number("Exif:FocalPlaneXResolution"), \
+            number("Exif:FocalLengthIn35mmFilm")
+        unit = _FOCAL_PLANE_UNIT_MM.get(int(number("Exif:FocalPlaneResolutionUnit")) or 2)
+        w0, h0 = number("Exif:PixelXDimension"), number("Exif:PixelYDimension")
+    finally:
+        inp.close()
+    w0, h0 = (w0, h0) if w0 and h0 else (float(w), float(h))
+    px_per_mm = res / unit if res and unit else 0.0
+    if mm and px_per_mm and 1.0 <= w0 / px_per_mm <= 100.0:
+        f, how = mm * px_per_mm, f"{mm:g} mm on a sensor {w0 / px_per_mm:.4g} mm wide"
+    elif f35:
+        f, how = f35 * float(np.hypot(w0, h0)) / FULL_FRAME_DIAGONAL_MM, f"{f35:g} mm 35 mm-equivalent"
+    else:
+        raise PsctlError(path, "its EXIF header has no focal length (FocalLength with FocalPlaneXResolution, or "
+                               "FocalLengthIn35mmFilm); give --focal F in pixels")
+    scale = w / w0
+    if abs(h / h0 - scale) > 0.01 * scale:
+        raise PsctlError(path, f"its EXIF says the camera saved {w0:.0f} x {h0:.0f} pixels, but it has {w} x {h}: "
+                               f"cropped, so the lens' centre in it is unknown; if it was not resized too, give "
+                               f"--focal {f:.0f} (the EXIF's, in pixels) and --principal X,Y")
+    if scale != 1.0:
+        how += f", scaled by {scale:.4g} from the {w0:.0f} x {h0:.0f} pixels saved"
+    f *= scale
+    if not 1.0 <= f <= 1e7:
+        raise PsctlError(path, f"its EXIF gives a focal length of {f:.4g} pixels ({how}), which cannot be right; "
+                               "give --focal F in pixels")
+    return float(f), how
+
+
 def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 [H, W, C] plus its header info.
 
