@@ -611,6 +611,9 @@ def test_focal_from_exif(tmp_path):
         write_exif(folder / f"{k + 1:03d}.png", matte[k], FocalLength=13.0, FocalPlaneXResolution=508.0,
                    FocalPlaneResolutionUnit=2)  # 20 px/mm on a 10 mm sensor
     write_image(folder / "mask.png", m.astype(np.float32), "uint8")
+    r = json.loads(cli("info", folder, "--json", check=True).stdout)
+    assert r["camera"] == {"focal": 260.0, "from": "EXIF: 13 mm on a sensor 10 mm wide"}
+    assert "focal length 260 pixels (EXIF: 13 mm" in cli("info", folder, check=True).stdout
     r = json.loads(cli("calibrate", folder, "-s", "matte", "--json", "--out", tmp_path / "o", check=True).stdout)
     assert r["camera"] is None
     assert any("--focal exif models the lens" in n and "about 16.1 degrees" in n for n in r["notes"]), r["notes"]

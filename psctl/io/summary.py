@@ -147,12 +147,24 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
+        # the first image's EXIF focal length in pixels, for psctl calibrate --focal exif; else None
+        "camera": _exif_camera(cap.image_paths[0]),
         "notes": capture_notes(cap),  # what normals, lights and depth will say about how they read it
     }
     if check:
         bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
         report["check"] = check_pixels(cap, mask, bar)
     return report
+
+
+def _exif_camera(path: Path) -> dict | None:
+    from psctl.io.images import exif_focal
+
+    try:
+        f, how = exif_focal(path)
+    except PsctlError:  # no EXIF focal length (most captures), or a cropped image's
+        return None
+    return {"focal": round(f, 3), "from": f"EXIF: {how}"}
 
 
 def describe(path: str | os.PathLike, encoding: str = "auto", check: bool = False,
@@ -261,6 +273,9 @@ def render_info(report: dict) -> None:
               f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
     t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
+    if r.get("camera"):
+        t.add_row("camera", escape(f"focal length {r['camera']['focal']:,.0f} pixels ({r['camera']['from']}; "
+                                   "psctl calibrate --focal exif uses it)"))
     if r.get("ambient"):
         decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
