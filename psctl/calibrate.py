@@ -838,7 +838,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     notes += _result_notes(res, cap, bool(cfg["offset"]))
     report = _report(res, cap, notes)
     if report["camera"] is not None:
-        report["camera"]["from"] = "--focal" if focal_from is None else f"EXIF: {focal_from}"
+        report["camera"]["from"] = "given" if focal_from is None else f"EXIF: {focal_from}"
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
         from psctl.io.report import write_json

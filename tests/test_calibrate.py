@@ -490,7 +490,7 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     assert r["camera"] is None and any("--focal F models the lens" in n for n in r["notes"]) and r["light_mae"] is None
     r = json.loads(cli("calibrate", folder, "-s", "matte", "--focal", "260", "--principal", "99.5,74.5", "--json",
                        "--out", tmp_path / "f", check=True).stdout)
-    assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": "--focal"}
+    assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": "given"}
     assert not any("--focal" in n for n in r["notes"])
     assert angular_error(np.loadtxt(tmp_path / "f" / "light_directions.txt"), lights).mean() < 0.1
     for args, words in ((["--focal", "-5"], "focal must be the camera's focal length in pixels"),
@@ -595,6 +595,21 @@ def test_focal_from_exif(tmp_path):
     write_exif(tmp_path / "odd.png", tiny, FocalLength=26.0, FocalPlaneXResolution=2000.0, FocalPlaneResolutionUnit=3,
                FocalLengthIn35mmFilm=28)
     assert exif_focal(tmp_path / "odd.png")[1] == "28 mm 35 mm-equivalent"
+    # both ways: they agree within 10 % (26 mm on a 4 mm sensor, 28 x 50 / 43.27 = 32 px: no), else the 35 mm one
+    write_exif(tmp_path / "both.png", tiny, FocalLength=26.0, FocalPlaneXResolution=100.0, FocalPlaneResolutionUnit=3,
+               FocalLengthIn35mmFilm=28)
+    f, how = exif_focal(tmp_path / "both.png")
+    assert f == pytest.approx(28 * 50 / np.hypot(36, 24)) and how.endswith("(FocalLength over its FocalPlaneXResolution gives 8.04 times that: not used)")
+    write_exif(tmp_path / "agree.png", tiny, FocalLength=26.0, FocalPlaneXResolution=100.0, FocalPlaneResolutionUnit=3,
+               FocalLengthIn35mmFilm=229)  # 265 px: 2 % from 260
+    assert exif_focal(tmp_path / "agree.png") == (pytest.approx(260.0), "26 mm on a sensor 4 mm wide")
+    # a digital zoom of 2 doubles the lens's focal length; pixels turned since, the tags not: still a resize
+    write_exif(tmp_path / "zoom.png", tiny, FocalLength=26.0, FocalPlaneXResolution=100.0, FocalPlaneResolutionUnit=3,
+               DigitalZoomRatio=2.0)
+    assert exif_focal(tmp_path / "zoom.png")[0] == pytest.approx(520.0)
+    write_exif(tmp_path / "turned.png", np.zeros((40, 30, 3), np.float32), FocalLength=26.0,
+               FocalPlaneXResolution=200.0, FocalPlaneResolutionUnit=3, PixelXDimension=80, PixelYDimension=60)
+    assert exif_focal(tmp_path / "turned.png")[0] == pytest.approx(260.0)
     for name, tags, words in (("crop.png", {"FocalLength": 26.0, "FocalLengthIn35mmFilm": 28, "PixelXDimension": 80,
                                              "PixelYDimension": 80}, "cropped.*give --focal 73 "),
                               ("none.png", {"FocalLength": 26.0}, "no focal length")):

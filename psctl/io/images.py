@@ -106,15 +106,20 @@ FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))  # what FocalLengthIn35mmFi
 def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
     """The camera's focal length in this image's pixels, from its EXIF header, and how it was found.
 
-    From ``FocalLength`` (mm) times ``FocalPlaneXResolution`` (pixels per unit of the sensor) where
-    both are present and give a sensor 1-100 mm wide; else from ``FocalLengthIn35mmFilm`` over the
-    frame's diagonal (a 35 mm frame's is 43.27 mm). EXIF describes the frame as the camera saved it
-    (``PixelXDimension`` x ``PixelYDimension``): an image resized since, at the same aspect, has its
-    focal length scaled with it; a cropped one (another aspect) raises, since its principal point
-    is no longer the image's centre. Raises PsctlError naming the file when the header lacks these.
+    Two ways, as cameras write them: ``FocalLength`` (mm) times ``FocalPlaneXResolution`` (pixels
+    per inch or cm of the sensor), and ``FocalLengthIn35mmFilm`` over the frame's diagonal (a
+    35 mm frame's is 43.27 mm). The first is the more precise but some cameras write a focal
+    plane resolution that is not the saved image's (a full-frame Canon's that gives a 23.7 mm
+    sensor): where both are there and differ by over 10 %, the 35 mm equivalent is taken, and the
+    first is used alone only when it gives a sensor 1-100 mm wide. ``DigitalZoomRatio`` above 1
+    multiplies ``FocalLength`` (the lens's, not the crop's). EXIF describes the frame as the camera
+    saved it (``PixelXDimension`` x ``PixelYDimension``, else the image's size): an image resized
+    since, at the same aspect (or turned by a quarter), has its focal length scaled with it; a
+    cropped one (another aspect) raises, since its principal point is no longer the image's
+    centre. Raises PsctlError naming the file when the header lacks these.
 
-    EXIF's numbers are rounded (whole millimetres, often) and FocalLength is the lens at infinity
-    focus: expect a few percent; docs/calibration.md ("Perspective") measures what 10 % costs.
+    EXIF's numbers are rounded (whole millimetres, often) and nominal: expect a few percent;
+    docs/calibration.md ("Perspective") measures what 10 % costs.
     """
     oiio = _oiio()
     path = Path(path)
@@ -127,29 +132,43 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
         spec = inp.spec()
         w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
 
-        def number(name: str) -> float:
+        def number(name: str, lo: float = 0.0, hi: float = np.inf) -> float:
+            """The tag as a float in (lo, hi], else 0 (missing, text, out of range)."""
             v = spec.getattribute(name)
             try:
                 v = float(v[0] if isinstance(v, (tuple, list)) else v)
-            except (TypeError, ValueError, IndexError):
+            except (TypeError, ValueError, IndexError, OverflowError):
                 return 0.0
-            return v if np.isfinite(v) and v > 0 else 0.0
+            return v if np.isfinite(v) and lo < v <= hi else 0.0
 
-        mm, res, f35 = number("Exif:FocalLength"), number("Exif:FocalPlaneXResolution"), \
-            number("Exif:FocalLengthIn35mmFilm")
-        unit = _FOCAL_PLANE_UNIT_MM.get(int(number("Exif:FocalPlaneResolutionUnit")) or 2)
-        w0, h0 = number("Exif:PixelXDimension"), number("Exif:PixelYDimension")
+        mm, f35 = number("Exif:FocalLength", 0.5, 5000.0), number("Exif:FocalLengthIn35mmFilm", 1.0, 5000.0)
+        res, unit_tag = number("Exif:FocalPlaneXResolution"), int(number("Exif:FocalPlaneResolutionUnit", 0, 9))
+        zoom = max(1.0, number("Exif:DigitalZoomRatio", 0.0, 100.0))
+        w0, h0 = number("Exif:PixelXDimension", 0, 1e6), number("Exif:PixelYDimension", 0, 1e6)
     finally:
         inp.close()
     w0, h0 = (w0, h0) if w0 and h0 else (float(w), float(h))
-    px_per_mm = res / unit if res and unit else 0.0
-    if mm and px_per_mm and 1.0 <= w0 / px_per_mm <= 100.0:
-        f, how = mm * px_per_mm, f"{mm:g} mm on a sensor {w0 / px_per_mm:.4g} mm wide"
-    elif f35:
-        f, how = f35 * float(np.hypot(w0, h0)) / FULL_FRAME_DIAGONAL_MM, f"{f35:g} mm 35 mm-equivalent"
+    unit = _FOCAL_PLANE_UNIT_MM.get(unit_tag or 2)  # the standard's default unit is the inch
+    plane = diag = None  # (focal in pixels of the saved frame, how)
+    if mm and res and unit and 1.0 <= w0 * unit / res <= 100.0:
+        px_per_mm = res / unit
+        plane = (mm * zoom * px_per_mm, f"{mm:g} mm{f' x {zoom:g} digital zoom' if zoom > 1 else ''} on a sensor "
+                                        f"{w0 / px_per_mm:.4g} mm wide")
+    if f35:
+        diag = (f35 * float(np.hypot(w0, h0)) / FULL_FRAME_DIAGONAL_MM, f"{f35:g} mm 35 mm-equivalent")
+    if plane and diag and abs(plane[0] / diag[0] - 1) > 0.1:
+        f, how = diag[0], (f"{diag[1]} (FocalLength over its FocalPlaneXResolution gives "
+                                 f"{plane[0] / diag[0]:.3g} times that: not used)")
+    elif plane or diag:
+        f, how = plane or diag  # type: ignore[misc]
+    elif mm and res and not unit:
+        raise PsctlError(path, f"its EXIF FocalPlaneResolutionUnit ({unit_tag}) is neither inch nor cm, and it has no "
+                               "FocalLengthIn35mmFilm; give --focal F in pixels")
     else:
         raise PsctlError(path, "its EXIF header has no focal length (FocalLength with FocalPlaneXResolution, or "
                                "FocalLengthIn35mmFilm); give --focal F in pixels")
+    if abs((h / w) / (h0 / w0) - 1) > 0.01 and abs((h / w) / (w0 / h0) - 1) <= 0.01:
+        w0, h0 = h0, w0  # the pixels were turned a quarter since, and the tags left as they were
     scale = w / w0
     if abs(h / h0 - scale) > 0.01 * scale:
         raise PsctlError(path, f"its EXIF says the camera saved {w0:.0f} x {h0:.0f} pixels, but it has {w} x {h}: "
