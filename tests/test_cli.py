@@ -324,18 +324,22 @@ def test_termination_while_writing_leaves_nothing(capture, tmp_path, monkeypatch
         signal.raise_signal(sig)  # the handler raises here, mid-way through the outputs
 
     monkeypatch.setattr(psctl.io.report, "write_error_map", killed)
-    before = signal.getsignal(sig)
-    proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "a" / "b" / "out")
-    assert proc.returncode == 128 + sig
-    assert proc.stderr.strip() == ("interrupted" if signame == "SIGINT" else "terminated")
-    assert not (tmp_path / "a").exists() and signal.getsignal(sig) == before  # handler restored
-    if signame == "SIGHUP":  # under nohup SIGHUP is ignored, and psctl leaves it so: the run completes
-        signal.signal(sig, signal.SIG_IGN)
-        try:
+    inherited = signal.getsignal(sig)
+    # a test run started under nohup, or as a background job (SIGINT ignored), inherits ignored
+    # signals, which psctl rightly leaves ignored: the first part wants a terminal's defaults
+    before = signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+    signal.signal(sig, before)
+    try:
+        proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "a" / "b" / "out")
+        assert proc.returncode == 128 + sig
+        assert proc.stderr.strip() == ("interrupted" if signame == "SIGINT" else "terminated")
+        assert not (tmp_path / "a").exists() and signal.getsignal(sig) == before  # handler restored
+        if signame == "SIGHUP":  # under nohup SIGHUP is ignored, and psctl leaves it so: the run completes
+            signal.signal(sig, signal.SIG_IGN)
             proc = cli("normals", capture, "-m", "l2", "--out", tmp_path / "a" / "b" / "out")
-        finally:
-            signal.signal(sig, before)
-        assert proc.returncode == 0 and (tmp_path / "a" / "b" / "out" / "error.png").is_file()
+            assert proc.returncode == 0 and (tmp_path / "a" / "b" / "out" / "error.png").is_file()
+    finally:
+        signal.signal(sig, inherited)
 
 
 def test_reports_hold_absolute_paths(capture, tmp_path, monkeypatch):
@@ -1109,7 +1113,9 @@ def test_outputs_move_in_only_while_the_folder_is_not_locked(capture, tmp_path, 
         # the command line, waiting (it says so after 2 s), stops on Ctrl-C, and writes nothing
         (out / "normal.png").unlink()
         proc = subprocess.Popen([sys.executable, "-m", "psctl.cli", "normals", str(capture), "-m", "l2", "-o", str(out)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                # a terminal's Ctrl-C, also when this test run is a background job
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         assert "waiting for" in proc.stderr.readline()
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=20) == 130 and not (out / "normal.png").exists()
