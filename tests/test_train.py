@@ -1117,8 +1117,13 @@ def test_a_callers_own_signal_handler_hears_of_the_signal_that_stopped_the_run(t
     finally:
         signal.signal(signal.SIGTERM, mine)
     sent.clear()  # Ctrl-C with Python's default handler: no KeyboardInterrupt after the run's own stop
-    st = train("ps-fcn", tiny(96), tmp_path / "run", resume=True, device="cpu",
-               progress=lambda rec: sent or sent.append(os.kill(os.getpid(), signal.SIGINT)))
+    # (set here: a test run started as a background job inherits SIGINT ignored, and train leaves it so)
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        st = train("ps-fcn", tiny(96), tmp_path / "run", resume=True, device="cpu",
+                   progress=lambda rec: sent or sent.append(os.kill(os.getpid(), signal.SIGINT)))
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     assert st["signal"] == signal.SIGINT
 
 
