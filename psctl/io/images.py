@@ -123,7 +123,8 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
     """
     oiio = _oiio()
     path = Path(path)
-    image_info(path)  # a missing or unreadable file: its own error
+    if not path.is_file():  # (no image_info: the header is read once, below)
+        raise PsctlError(path, not_a_file(path, "image file is missing"))
     with _quiet_stderr():
         inp = oiio.ImageInput.open(_oiio_name(path))
     if inp is None:
