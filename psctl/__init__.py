@@ -27,6 +27,7 @@ _LAZY = {
     "run_depth": "psctl.depth",
     "run_calibrate": "psctl.calibrate",
     "calibrate_lights": "psctl.calibrate",
+    "run_undistort": "psctl.undistort",
     "open_capture": "psctl.io.capture",
     "load_images": "psctl.io.capture",
     "load_mask": "psctl.io.capture",
@@ -43,6 +44,7 @@ if TYPE_CHECKING:  # for type checkers and editors; at run time __getattr__ impo
     from psctl.errors import PsctlError, PsctlWarning
     from psctl.eval import compare_methods, run_benchmark
     from psctl.io.capture import load_images, load_mask, open_capture
+    from psctl.undistort import run_undistort
     from psctl.lights import run_lights
     from psctl.metrics import angular_error
 
@@ -92,7 +94,7 @@ def __dir__() -> list[str]:
     return sorted({*globals(), *_LAZY})
 
 
-__all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals",
+__all__ = ["__version__", "estimate_normals", "estimate_lights", "estimate_albedo", "run_normals", "integrate_normals", "run_undistort",
            "run_lights", "run_benchmark", "compare_methods", "run_depth",
            "run_calibrate", "calibrate_lights", "open_capture", "load_images", "load_mask",
            "angular_error", "PsctlError", "PsctlWarning"]

@@ -465,6 +465,23 @@ def calibrate(
 
 
 @app.command(cls=_Command)
+def undistort(
+    path: Annotated[Path, typer.Argument(help="Capture folder whose photos were taken through a lens with distortion.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="New folder for the undistorted capture (images, mask.png, light files, K.txt).")],
+    K: Annotated[Path, typer.Option("--K", help="3x3 camera intrinsics in pixels (as psctl depth reads them; OpenCV's camera matrix).")],
+    distortion: Annotated[str, typer.Option("--distortion", "-d", help="OpenCV's distortion coefficients k1,k2,p1,p2[,k3[,k4,k5,k6]].")],
+    json_out: Json = False,
+    quiet: Quiet = False,
+) -> None:
+    """Undo lens distortion: write the capture as a pinhole camera would have taken it (docs/calibration.md, 'Lens distortion')."""
+    with _user_errors():
+        from psctl.undistort import render_undistort, run_undistort
+
+        _run(lambda progress: run_undistort(path, out, K, distortion, progress=progress), json_out, quiet,
+             render_undistort)
+
+
+@app.command(cls=_Command)
 def synth(
     out: Annotated[Path, typer.Argument(help="Output folder: one capture folder per object, plus objects.txt.")],
     preset: Annotated[str, typer.Option("--preset", "-p", help="syntest | dragon-svbrdf | blobby")],

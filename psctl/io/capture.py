@@ -42,7 +42,7 @@ AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "a
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's
 # eval.png and compare.png).
-_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread|sphere)$",
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread|sphere|undistort)$",
                          re.I)
 
 Progress = Callable[[int], None]

@@ -279,6 +279,9 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     spec = oiio.ImageSpec(w, h, c, fmt)
     if COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
+    if path.suffix.lower() in (".jpg", ".jpeg"):  # psctl undistort's copies: as little loss as JPEG allows
+        spec.attribute("Compression", "jpeg:100")
+        spec.attribute("jpeg:subsampling", "4:4:4")
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
         spec.attribute("DateTime", "")  # no write time in the header: the same run gives the same bytes

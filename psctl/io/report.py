@@ -177,11 +177,11 @@ def _key_unscored(canvas: np.ndarray | None, y: int, x: int, s: int) -> int:
 
 
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
-                  title: str | None = None) -> np.ndarray:
+                  title: str | None = None, labels: dict[float, str] | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
     dark background (grey: NaN, a mask pixel without ground truth, keyed under the map when
     there is any), a colour bar with tick labels on the right, ``title`` on top (one line per
-    "\\n")."""
+    "\\n"). ``labels``: the colour bar's (fraction of vmax -> text; default degrees)."""
     img = heat(error, mask, vmax)
     unscored = bool((np.isnan(np.asarray(error, np.float32)) & np.asarray(mask, bool)).any())
     # a small map is shown k times larger (whole pixels) and the colour bar is at least MIN_BAR tall,
@@ -199,7 +199,7 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
         widths.append(2 * s + _key_unscored(None, 0, 0, s))
     canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), BACKGROUND, np.float32)
     canvas[top:top + h, :w] = img
-    colour_bar(canvas, top, w + 4 * s, bar, bar_w, _degree_labels(vmax), s)
+    colour_bar(canvas, top, w + 4 * s, bar, bar_w, labels or _degree_labels(vmax), s)
     for i, bm in enumerate(lines):
         if bm is not None:
             _stamp(canvas, bm, 2 * s + i * line, 2 * s)

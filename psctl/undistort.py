@@ -1,0 +1,374 @@
+"""Lens distortion: ``psctl undistort`` writes a capture folder as a pinhole camera would have
+seen it, so that what assumes a pinhole (``psctl calibrate --focal``, ``psctl depth --K``, point
+lights) holds for photos through a real lens.
+
+The model is OpenCV's (the numbers ``cv2.calibrateCamera`` prints): a point at normalised
+coordinates (x, y) = ((u - cx) / fx, (v - cy) / fy) of the pinhole image is seen at
+
+    r2 = x^2 + y^2,  radial = (1 + k1 r2 + k2 r2^2 + k3 r2^3) / (1 + k4 r2 + k5 r2^2 + k6 r2^3)
+    xd = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    yd = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+
+in the photo, at pixel (fx xd + cx, fy yd + cy). Undistorting needs only this forward map: each
+output pixel reads the photo there (bilinear between the four nearest pixels). The output keeps
+the photo's K and size (as OpenCV's ``undistort`` does by default): a barrel lens' photo (k1 < 0)
+loses its rim, which lies outside the pinhole's frame; through a pincushion lens (k1 > 0) the
+output's corners have no source in the photo and are left out of the written mask.
+
+    >>> from psctl.undistort import undistort_map, remap
+    >>> m = undistort_map(K, [-0.12, 0.03, 0, 0], (h, w))      # where each output pixel reads
+    >>> out = remap(photo, m)                                 # [h, w, C] float
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from psctl.errors import ProgressFactory, PsctlError, check_path, check_progress
+
+if TYPE_CHECKING:
+    from psctl.io.capture import Capture
+
+COMMAND = "undistort"
+REPORT_FILE = "undistort_report.json"
+PICTURE_FILE = "undistort.png"  # the shift of every pixel (psctl.io.capture's _NOT_IMAGES skips it)
+K_FILE = "K.txt"  # psctl depth reads PATH/K.txt by default
+MASK_FILE = "mask.png"
+GT_FILE = "Normal_gt.exr"  # float, NaN where there is none (psctl reads it after .mat and .png)
+N_COEFFS = (4, 5, 8)  # k1 k2 p1 p2 [k3 [k4 k5 k6]], OpenCV's order
+COEFF_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike | None = None) -> np.ndarray:
+    """OpenCV's coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]] as float64 [8] (missing ones 0);
+    text is comma- or space-separated numbers."""
+    if isinstance(coeffs, str):
+        parts = coeffs.replace(",", " ").split()
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise PsctlError(where, f"--distortion must be 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
+                                    f"not {coeffs!r}") from None
+    else:
+        try:
+            values = [float(v) for v in np.asarray(coeffs, dtype=np.float64).ravel()]
+        except (TypeError, ValueError):
+            raise PsctlError(where, "distortion must be 4, 5 or 8 numbers (k1, k2, p1, p2[, k3[, k4, k5, k6]])") from None
+    if len(values) not in N_COEFFS:
+        raise PsctlError(where, f"--distortion needs 4, 5 or 8 numbers (OpenCV's k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
+                                f"got {len(values)}")
+    if not np.isfinite(values).all():
+        raise PsctlError(where, "--distortion contains NaN or infinite values")
+    if max(abs(v) for v in values) > 1e6:
+        raise PsctlError(where, "--distortion has a coefficient above 1e6: OpenCV's coefficients are for "
+                                "normalised coordinates (pixels / focal length), not pixels")
+    out = np.zeros(8)
+    out[:len(values)] = values
+    return out
+
+
+def distort_points(x: np.ndarray, y: np.ndarray, coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised pinhole coordinates -> where the lens puts them (xd, yd), and the rational
+    model's denominator (a point where it is <= 0 has no image)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = (float(c) for c in coeffs)
+    r2 = x * x + y * y
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / np.where(den > 0, den, 1.0)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd, den
+
+
+def _fold_radius(coeffs: np.ndarray, r_max: float) -> float:
+    """The smallest radius (normalised) at which the radial map r -> r radial(r^2) stops growing:
+    beyond it the lens model folds back (two pinhole radii to one photo radius) and says nothing
+    true. inf when it grows up to ``r_max``."""
+    r = np.linspace(0.0, r_max * 1.001 + 1e-9, 20001)
+    rd, _, den = distort_points(r, np.zeros_like(r), np.r_[coeffs[:2], 0, 0, coeffs[4:]])
+    bad = (np.diff(rd) <= 0) | (den[1:] <= 0)
+    return float(r[1:][bad][0]) if bad.any() else float("inf")
+
+
+@dataclass(frozen=True)
+class UndistortMap:
+    """Where each output pixel reads the photo: ``x``, ``y`` float64 [H, W] (pixel centres at
+    integer coordinates, OpenCV's convention) and ``valid`` bool [H, W] (inside the photo and
+    inside the lens model's fold radius)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    valid: np.ndarray
+    folded: int  # output pixels beyond the fold radius (left out of ``valid``)
+
+
+def undistort_map(K: np.ndarray, coeffs: "np.ndarray | Iterable[float] | str", shape: tuple[int, int],
+                  src_shape: tuple[int, int] | None = None) -> UndistortMap:
+    """The map of an undistorted image of ``shape`` (H, W) taken with pinhole ``K`` from a photo of
+    ``src_shape`` (default the same) through a lens with OpenCV's ``coeffs``."""
+    from psctl.depth import check_intrinsics
+
+    K = check_intrinsics(K)
+    coeffs = check_distortion(coeffs)
+    h, w = shape
+    sh, sw = src_shape or shape
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    x, y = (u - cx) / fx, (v - cy) / fy
+    xd, yd, den = distort_points(x, y, coeffs)
+    xs, ys = fx * xd + cx, fy * yd + cy
+    r = np.sqrt(x * x + y * y)
+    fold = _fold_radius(coeffs, float(r.max()) if r.size else 0.0)
+    beyond = (r >= fold) | (den <= 0)
+    inside = (xs >= -0.5) & (xs <= sw - 0.5) & (ys >= -0.5) & (ys <= sh - 0.5)
+    return UndistortMap(xs, ys, inside & ~beyond, int(beyond.sum()))
+
+
+def remap(image: np.ndarray, m: UndistortMap, fill: float = 0.0) -> np.ndarray:
+    """Bilinear resampling of ``image`` [h, w] or [h, w, C] at ``m``'s positions -> [H, W(, C)]
+    float32; ``fill`` where ``m.valid`` is False. Positions within half a pixel of the border read
+    the border pixel (the photo's pixels cover their whole square)."""
+    img = np.asarray(image, dtype=np.float32)
+    flat = img.reshape(img.shape[0] * img.shape[1], -1)
+    sh, sw = img.shape[:2]
+    xs = np.clip(m.x, 0, sw - 1)
+    ys = np.clip(m.y, 0, sh - 1)
+    x0 = np.minimum(np.floor(xs).astype(np.int64), max(sw - 2, 0))
+    y0 = np.minimum(np.floor(ys).astype(np.int64), max(sh - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, sw - 1), np.minimum(y0 + 1, sh - 1)
+    ax, ay = (xs - x0)[..., None], (ys - y0)[..., None]
+    out = ((flat[y0 * sw + x0] * (1 - ax) + flat[y0 * sw + x1] * ax) * (1 - ay)
+           + (flat[y1 * sw + x0] * (1 - ax) + flat[y1 * sw + x1] * ax) * ay)
+    out = np.where(m.valid[..., None], out, np.float32(fill)).astype(np.float32)
+    return out.reshape(*m.x.shape, *img.shape[2:])
+
+
+def _write_dtype(dtype: str, bits: int, suffix: str) -> str:
+    """write_image's dtype for an output like its input: same bit depth, float stays float."""
+    if dtype in ("half",):
+        return "half"
+    if dtype in ("float", "double"):
+        return "float"
+    if suffix in (".exr",):
+        return "float"
+    return "uint8" if bits <= 8 else "uint16"
+
+
+def _list_file(cap: "Capture") -> Path | None:
+    from psctl.io.capture import LIST_FILES, _first_existing
+
+    return _first_existing(cap.path, list(cap.path.iterdir()), LIST_FILES, "image lists")
+
+
+def _check_capture(cap: "Capture") -> None:
+    """What psctl undistort cannot write as it read it: a one-line error before any work."""
+    from psctl.io.capture import JPEG
+
+    for k, p in enumerate(cap.image_paths):
+        if p.parent.resolve() != cap.path.resolve():
+            raise PsctlError(p, "is listed with a folder in its name; psctl undistort writes every image beside "
+                                "the others in --out: list (or move) the images in the capture folder itself")
+        if cap.jpeg and cap.jpeg[k] and p.suffix.lower() not in JPEG:
+            raise PsctlError(p, "holds JPEG data under another extension; rename it .jpg (it would be written in "
+                                "its name's format and then read as linear)")
+    if cap.ambient_path is not None and cap.ambient_jpeg and cap.ambient_path.suffix.lower() not in JPEG:
+        raise PsctlError(cap.ambient_path, "holds JPEG data under another extension; rename it .jpg")
+
+
+def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.PathLike | np.ndarray",
+                  distortion: "str | Iterable[float]", progress: "ProgressFactory | None" = None) -> dict:
+    """Write the capture at ``path`` into ``out`` as a pinhole camera ``K`` would have taken it,
+    undoing a lens with OpenCV's ``distortion`` coefficients; return the report (what ``psctl
+    undistort --json`` prints).
+
+    ``out`` (required; never the capture folder nor another capture) gets, all or none: every
+    image and the ambient image under its own name, format and bit depth (the stored values
+    resampled bilinearly, upright as psctl reads them, without their EXIF block); mask.png (the
+    folder's mask resampled, without the pixels that have no source in the photo; written only
+    when there is a mask or such pixels); Normal_gt.exr (ground truth resampled and renormalised,
+    NaN where any neighbour had none); the image list and light files copied as they are; K.txt
+    (the pinhole camera: ``K``); undistort.png (how far each pixel moved) and
+    undistort_report.json.
+
+    Report: object, path, camera {K, distortion {k1 .. k6}}, size [W, H], n_images, valid_fraction (output
+    pixels with a source in the photo), folded (pixels beyond the lens model's fold radius),
+    shift {max, mean} (pixels, over the valid ones), mask {pixels, from}, outputs, seconds, notes.
+    """
+    from psctl.depth import check_intrinsics, read_intrinsics
+    from psctl.io.atomic import (check_inputs_kept, check_output_dir, read_outputs_list, replaced_notes, staged_outputs,
+                                 write_bytes_atomic, write_outputs_list)
+    from psctl.io.capture import check_not_capture, load_ground_truth, load_mask, open_capture
+    from psctl.io.images import read_image, write_image
+    from psctl.io.report import write_json
+
+    t0 = time.perf_counter()
+    check_path("path", path)
+    check_path("out", out)
+    if not os.fspath(out).strip():
+        raise PsctlError(None, "--out is empty; name a new folder for the undistorted capture")
+    progress = check_progress(progress)
+    if isinstance(K, (str, os.PathLike)):
+        K_path: Path | None = Path(K)
+        K = read_intrinsics(K)
+    else:
+        K_path = None
+        K = check_intrinsics(K)
+    coeffs = check_distortion(distortion)
+    cap = open_capture(path, light_files=False)  # light files are copied, not read: any rows are kept
+    _check_capture(cap)
+    out_dir = Path(out)
+    list_file = _list_file(cap)
+    from psctl.io.capture import INTENSITIES_FILE, LIGHTS_FILE, _first_existing
+
+    # the list and light files by the names the folder has them under (any case), as psctl reads them
+    entries = list(cap.path.iterdir())
+    copies = sorted({p for p in (list_file, _first_existing(cap.path, entries, [LIGHTS_FILE], "light direction files"),
+                                 _first_existing(cap.path, entries, [INTENSITIES_FILE], "light intensity files"))
+                     if p is not None}, key=lambda p: p.name)
+    images = [*cap.image_paths, *([cap.ambient_path] if cap.ambient_path is not None else [])]
+    names = [p.name for p in images] + [p.name for p in copies]
+    written = (*names, K_FILE, MASK_FILE, GT_FILE, PICTURE_FILE, REPORT_FILE)
+    own = set(read_outputs_list(out_dir, COMMAND))
+    if own and os.path.realpath(out_dir) != os.path.realpath(cap.path) and all(
+            e.name in own or e.name.startswith(".") or not e.is_file() for e in out_dir.iterdir()):
+        pass  # an earlier psctl undistort's folder, nothing else in it (a psctl/ output folder aside): replaced
+    else:
+        check_not_capture(out_dir, cap, written)
+    check_inputs_kept(out_dir, written, [("--K", K_path)])
+    check_output_dir(out_dir)
+
+    m = undistort_map(K, coeffs, (cap.height, cap.width))
+    shift = np.hypot(m.x - np.arange(cap.width)[None, :], m.y - np.arange(cap.height)[:, None])
+    notes: list[str] = []
+    if not m.valid.any():
+        raise PsctlError(K_path, "with these intrinsics and --distortion no output pixel has a source in the "
+                                 "photos: are fx, fy, cx and cy in this image's pixels?")
+    # the mask: the folder's, resampled, and never where the photo has nothing
+    mask = m.valid
+    mask_from = "the pixels with a source in the photos"
+    if cap.mask_path is not None:
+        mask = (remap(load_mask(cap).astype(np.float32), m) >= 0.5) & m.valid
+        mask_from = f"{cap.mask_path.name}, resampled"
+        if not mask.any():
+            raise PsctlError(cap.mask_path, "no pixel of the mask keeps a source in the photos after undistortion: "
+                                            "are the intrinsics and --distortion this camera's?")
+    write_mask = cap.mask_path is not None or not m.valid.all()
+    gt = load_ground_truth(cap)
+    turned = [p.name for p, o in zip(cap.image_paths, cap.orientations) if o != 1]
+    if turned:
+        notes.append(f"images: {len(turned)} of {cap.n_images} carry an EXIF orientation ({turned[0]}...); they are "
+                     "undistorted upright, as psctl reads them (and as OpenCV's imread gives them to a calibration), "
+                     "and written upright")
+    if any(pg > 1 for pg in cap.pages):
+        notes.append("images: a multi-page TIFF's first page only is written (the one psctl reads)")
+    if m.folded:
+        notes.append(f"lens: {m.folded} output pixels lie beyond the radius where the distortion model folds back "
+                     "(beyond its calibrated field); they are left out of the mask")
+    if not m.valid.all():
+        notes.append(f"{(~m.valid).sum()} of {m.valid.size} output pixels ({100 * (~m.valid).mean():.1f} %) have no "
+                     "source in the photos (the corners, through a pincushion lens): black, and outside mask.png")
+    if cap.unread:
+        notes.append(f"not carried over: {', '.join(cap.unread)} (psctl does not read them)")
+    if gt is not None and cap.gt_path is not None and cap.gt_path.name != GT_FILE:
+        notes.append(f"ground truth: {cap.gt_path.name} is written as {GT_FILE} (float, NaN where there is none)")
+    outputs_names = [*names, K_FILE, PICTURE_FILE, REPORT_FILE]
+    if write_mask:
+        outputs_names.append(MASK_FILE)
+    if gt is not None:
+        outputs_names.append(GT_FILE)
+    if len(set(n.lower() for n in outputs_names)) != len(outputs_names):
+        clash = next(n for n in outputs_names if [o.lower() for o in outputs_names].count(n.lower()) > 1)
+        raise PsctlError(cap.path / clash, "is named like another file psctl undistort writes; rename it")
+    notes += replaced_notes(out_dir, outputs_names, COMMAND)
+    valid_shift = shift[m.valid]
+    report = {
+        "object": cap.name,
+        "path": os.path.abspath(cap.path),
+        "camera": {"K": [[round(float(v), 6) for v in row] for row in K],
+                   "distortion": dict(zip(COEFF_NAMES, (float(c) for c in coeffs)))},
+        "size": [cap.width, cap.height],
+        "n_images": cap.n_images,
+        "valid_fraction": round(float(m.valid.mean()), 6),
+        "folded": m.folded,
+        "shift": {"max": round(float(valid_shift.max()), 3), "mean": round(float(valid_shift.mean()), 3)},
+        "mask": {"pixels": int(mask.sum()) if write_mask else None, "from": mask_from if write_mask else None},
+        "outputs": {},
+        "seconds": 0.0,
+        "notes": notes,
+    }
+    report["outputs"] = {"folder": os.path.abspath(out_dir),
+                         **{k: os.path.abspath(out_dir / v) for k, v in (("K", K_FILE), ("picture", PICTURE_FILE),
+                                                                          ("report", REPORT_FILE))}}
+    if write_mask:
+        report["outputs"]["mask"] = os.path.abspath(out_dir / MASK_FILE)
+    if gt is not None:
+        report["outputs"]["ground_truth"] = os.path.abspath(out_dir / GT_FILE)
+
+    advance = progress(f"{cap.name}: undistorting", len(images))
+    with staged_outputs(out_dir, replaces=lambda: read_outputs_list(out_dir, COMMAND)) as stage:
+        for p in images:
+            pixels, info = read_image(p)
+            write_image(stage / p.name, remap(pixels, m), _write_dtype(info.dtype, info.bits, p.suffix.lower()),
+                        kind="data")
+            advance(1)
+        for p in copies:
+            write_bytes_atomic(stage / p.name, p.read_bytes())
+        write_bytes_atomic(stage / K_FILE, "".join(" ".join(f"{float(v):.10g}" for v in row) + "\n"
+                                                   for row in K).encode())
+        if write_mask:
+            write_image(stage / MASK_FILE, mask.astype(np.float32), "uint8", kind="data")
+        if gt is not None:
+            write_image(stage / GT_FILE, undistort_normals(gt, m), "float", kind="data")
+        write_image(stage / PICTURE_FILE, shift_picture(shift, m.valid, cap.name), "uint8")
+        write_outputs_list(stage, outputs_names, COMMAND)
+        report["seconds"] = round(time.perf_counter() - t0, 3)
+        write_json(stage / REPORT_FILE, report)
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    return report
+
+
+def undistort_normals(normals: np.ndarray, m: UndistortMap) -> np.ndarray:
+    """[h, w, 3] unit normals (zero: none) -> [H, W, 3] float32, interpolated and renormalised; NaN
+    where any of the four neighbours had no normal or there is no source."""
+    n = np.asarray(normals, np.float32)
+    has = (np.abs(n).sum(-1) > 0).astype(np.float32)
+    full = remap(has, m) >= 1 - 1e-6
+    v = remap(n, m)
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    ok = full & m.valid & (norm[..., 0] > 1e-6)
+    return np.where(ok[..., None], v / np.maximum(norm, 1e-6), np.nan).astype(np.float32)
+
+
+def shift_picture(shift: np.ndarray, valid: np.ndarray, name: str) -> np.ndarray:
+    """How far each output pixel's source lies from it (pixels), as a heat map with its scale."""
+    from psctl.io.report import error_heatmap
+
+    top = float(shift[valid].max()) if valid.any() else 0.0
+    vmax = max(1.0, float(np.ceil(top)))
+    labels = {f: f"{vmax * f:.1f} PX" if vmax < 10 else f"{vmax * f:.0f} PX" for f in (0.0, 1 / 3, 2 / 3, 1.0)}
+    return error_heatmap(shift, valid, vmax, f"{name}: LENS SHIFT\nMAX {top:.1f} PX", labels=labels)
+
+
+def render_undistort(r: dict) -> None:
+    """The human-readable summary of ``run_undistort``'s report (Rich, stdout)."""
+    from psctl.errors import console
+    from psctl.io.summary import escape, print_notes, print_written
+
+    con = console()
+    print_notes(con, r.get("notes", []))
+    w, h = r["size"]
+    con.print(f"[bold]{escape(r['object'])}[/]: {r['n_images']} images of {w}x{h} undistorted, pixels moved "
+              f"up to [bold]{r['shift']['max']:.1f}[/] (mean {r['shift']['mean']:.2f}), "
+              f"{100 * r['valid_fraction']:.1f} % with a source in the photos, {r['seconds']:.2f} s",
+              highlight=False, soft_wrap=True)
+    print_written(con, {k: v for k, v in r["outputs"].items() if k != "folder"})
+
+
+__all__: Sequence[str] = ("check_distortion", "distort_points", "undistort_map", "remap", "run_undistort",
+                          "undistort_normals", "UndistortMap")

@@ -1,0 +1,223 @@
+"""psctl undistort: OpenCV's lens model, the bilinear remap, and the capture folder it writes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from psctl.errors import PsctlError
+from psctl.io.capture import open_capture
+from psctl.io.images import image_info, read_image, write_image
+from psctl.io.normals import write_normal_map
+from psctl.undistort import check_distortion, remap, undistort_map
+from tests.conftest import hemisphere_lights, sphere
+from tests.test_cli import cli
+
+K1 = np.array([[100.0, 0, 50], [0, 200.0, 40], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("coeffs, pixel, expected", [
+    # worked by hand from the model in psctl/undistort.py's docstring (OpenCV's):
+    # (70, 40): x 0.2, y 0, r2 0.04, radial 1.004016; xd = 0.2008032 + p2 (r2 + 2 x^2) = +0.00024,
+    # yd = p1 r2 = 0.00012
+    ([0.1, 0.01, 0.003, 0.002], (70, 40), (70.10432, 40.024)),
+    # (50, 80): x 0, y 0.2: xd = p2 r2 = 0.00008, yd = 0.2008032 + p1 (r2 + 2 y^2) = +0.00036
+    ([0.1, 0.01, 0.003, 0.002], (50, 80), (50.008, 80.23264)),
+    # (60, 60): x = y = 0.1, r2 0.02, radial 1.002004; xd = 0.1002004 + 2 p1 x y + p2 (r2 + 2 x^2)
+    # = + 0.00006 + 0.00008, yd = 0.1002004 + p1 (r2 + 2 y^2) + 2 p2 x y = + 0.00012 + 0.00004
+    ([0.1, 0.01, 0.003, 0.002], (60, 60), (60.03404, 60.07208)),
+    # k3 alone: radial 1 + r2^3 = 1.000064
+    ([0, 0, 0, 0, 1.0], (70, 40), (70.00128, 40.0)),
+    # rational: radial 1.004016 / (1 + k4 r2) = 1.004016 / 1.02
+    ([0.1, 0.01, 0, 0, 0, 0.5, 0, 0], (70, 40), (50 + 100 * 0.2 * 1.004016 / 1.02, 40.0)),
+])
+def test_undistort_map_is_opencvs_model(coeffs, pixel, expected):
+    m = undistort_map(K1, coeffs, (81, 101))
+    u, v = pixel
+    assert m.x[v, u] == pytest.approx(expected[0], abs=1e-9)
+    assert m.y[v, u] == pytest.approx(expected[1], abs=1e-9)
+    assert m.valid[v, u] and m.folded == 0
+
+
+def test_zero_distortion_is_the_identity_and_a_fold_is_left_out():
+    m = undistort_map(K1, "0,0,0,0", (81, 101))
+    assert np.abs(m.x - np.arange(101)).max() < 1e-9 and np.abs(m.y - np.arange(81)[:, None]).max() < 1e-9
+    assert m.valid.all()
+    # k1 = -0.5: r -> r - r^3 / 2 grows up to r = sqrt(2/3) = 0.8165 only, then folds back
+    K = np.array([[50.0, 0, 50], [0, 50.0, 50], [0, 0, 1]])
+    m = undistort_map(K, [-0.5, 0, 0, 0], (101, 101))
+    assert m.x[50, 90] == pytest.approx(50 + 50 * (0.8 - 0.5 * 0.8 ** 3)) and m.valid[50, 90]  # r 0.8
+    assert m.x[50, 95] == pytest.approx(50 + 50 * (0.9 - 0.5 * 0.9 ** 3))  # r 0.9: inside the photo ...
+    assert not m.valid[50, 95]  # ... but beyond the fold
+    r = np.hypot(np.arange(101) - 50.0, np.arange(101)[:, None] - 50.0) / 50
+    assert m.folded == int((r >= np.sqrt(2 / 3)).sum()) and not m.valid[r >= 0.8166].any()
+
+
+def test_remap_is_bilinear():
+    h, w = 40, 48
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
+    ramp = np.stack([3 * cols + 5 * rows, cols - rows], -1)  # bilinear interpolation is exact on a ramp
+    K = np.array([[40.0, 0, 23.5], [0, 40.0, 19.5], [0, 0, 1]])
+    m = undistort_map(K, [0.2, 0.05, 0.001, -0.002], (h, w))
+    out = remap(ramp, m, fill=-1)
+    inner = m.valid & (m.x >= 0) & (m.x <= w - 1) & (m.y >= 0) & (m.y <= h - 1)
+    assert inner.sum() > 0.7 * h * w and not m.valid.all()  # pincushion: the corners read outside
+    np.testing.assert_allclose(out[inner, 0], (3 * m.x + 5 * m.y)[inner], atol=1e-3)
+    np.testing.assert_allclose(out[inner, 1], (m.x - m.y)[inner], atol=1e-3)
+    assert (out[~m.valid] == -1).all()
+    edge = m.valid & ~inner  # within half a pixel of the border: the border pixel's value
+    np.testing.assert_allclose(out[edge, 1], (np.clip(m.x, 0, w - 1) - np.clip(m.y, 0, h - 1))[edge], atol=1e-3)
+    assert remap(ramp[..., 0], m).shape == (h, w)  # [h, w] in, [H, W] out
+
+
+def test_check_distortion():
+    assert check_distortion("0.1, -0.2 0.001,0").tolist() == [0.1, -0.2, 0.001, 0, 0, 0, 0, 0]
+    assert check_distortion([1, 2, 3, 4, 5, 6, 7, 8]).tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
+    for bad, words in (("1,2,3", "got 3"), ("a,b,c,d", "4, 5 or 8 numbers"), ("nan,0,0,0", "NaN"),
+                       ([0, 0, 0, 0, 0, 0], "got 6"), ("1e7,0,0,0", "normalised coordinates")):
+        with pytest.raises(PsctlError, match=words):
+            check_distortion(bad)
+
+
+def _digest(folder):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def _capture(folder, h=40, w=48):
+    """Three 16-bit images, an 8-bit ambient image, mask, encoded ground truth, light files."""
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    n, mask = sphere(max(h, w))
+    n, mask = n[:h, :w], mask[:h, :w]
+    names = ["b.png", "a.png", "c.png"]
+    for name in names:
+        write_image(folder / name, rng.random((h, w, 3)).astype(np.float32), "uint16")
+    write_image(folder / "ambient.png", 0.05 * rng.random((h, w, 3)).astype(np.float32), "uint8")
+    write_image(folder / "mask.png", mask.astype(np.float32), "uint8")
+    write_normal_map(folder / "Normal_gt.png", n, mask, "png16")
+    (folder / "filenames.txt").write_text("".join(f"{s}\n" for s in names))
+    np.savetxt(folder / "light_directions.txt", hemisphere_lights(3), fmt="%.6f")
+    (folder / "light_intensities.txt").write_text("1 1 1\n0.5 0.5 0.5\n2 2 2\n")
+    return mask
+
+
+def test_undistort_writes_a_pinhole_capture(tmp_path):
+    mask = _capture(tmp_path / "obj")
+    before = _digest(tmp_path / "obj")
+    (tmp_path / "K.txt").write_text("40 0 23.5\n0 40 19.5\n0 0 1\n")
+    # no distortion: every file as it was (pixels, bit depths, light files byte for byte)
+    r = cli("undistort", tmp_path / "obj", "--out", tmp_path / "same", "--K", tmp_path / "K.txt",
+            "--distortion", "0,0,0,0", "--json", check=True)
+    rep = json.loads(r.stdout)
+    assert rep["valid_fraction"] == 1 and rep["shift"]["max"] < 1e-6 and rep["n_images"] == 3
+    for name in ("a.png", "b.png", "c.png", "ambient.png", "mask.png"):
+        a, ia = read_image(tmp_path / "obj" / name)
+        b, ib = read_image(tmp_path / "same" / name)
+        assert ia.bits == ib.bits and np.array_equal(a, b), name
+    for name in ("filenames.txt", "light_directions.txt", "light_intensities.txt"):
+        assert (tmp_path / "same" / name).read_bytes() == (tmp_path / "obj" / name).read_bytes()
+    out_cap, in_cap = open_capture(tmp_path / "same"), open_capture(tmp_path / "obj")
+    assert [p.name for p in out_cap.image_paths] == ["b.png", "a.png", "c.png"]  # undistort.png is no input
+    assert np.array_equal(out_cap.lights, in_cap.lights) and out_cap.gt_path.name == "Normal_gt.exr"
+    from psctl.depth import read_intrinsics
+    from psctl.io.capture import load_ground_truth
+
+    assert np.array_equal(read_intrinsics(tmp_path / "same" / "K.txt"), read_intrinsics(tmp_path / "K.txt"))
+    gt_in, gt_out = load_ground_truth(in_cap), load_ground_truth(out_cap)
+    assert np.abs(gt_in - gt_out).max() < 1e-5
+
+    # a pincushion lens: each image is the remap of its photo, the corners leave the mask
+    coeffs = [0.3, 0.08, 0.002, -0.001, -0.01]
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "K.txt", "-d",
+            ",".join(map(str, coeffs)), "--json", check=True)
+    rep = json.loads(r.stdout)
+    m = undistort_map(read_intrinsics(tmp_path / "K.txt"), coeffs, (40, 48))
+    assert rep["valid_fraction"] == pytest.approx(m.valid.mean(), abs=1e-6) and 0.5 < m.valid.mean() < 1
+    assert rep["shift"]["max"] > 3 and rep["camera"]["distortion"]["k3"] == -0.01
+    photo, _ = read_image(tmp_path / "obj" / "a.png")
+    got, info = read_image(tmp_path / "und" / "a.png")
+    assert info.bits == 16
+    diff = np.abs(got - remap(photo, m)) * 65535  # rounded to 16 bits (float32 in the test, float64 there)
+    assert diff.max() <= 0.5 + 1e-3 and (diff[~m.valid] == 0).all()
+    written = open_capture(tmp_path / "und")
+    from psctl.io.capture import load_mask
+
+    new_mask = load_mask(written)
+    assert not new_mask[~m.valid].any() and new_mask[0, 0] == 0
+    assert np.array_equal(new_mask, (remap(mask.astype(np.float32), m) >= 0.5) & m.valid)
+    gt = read_image(tmp_path / "und" / "Normal_gt.exr", allow_nonfinite=True)[0]
+    assert np.isnan(gt[~m.valid]).all()
+    ok = np.isfinite(gt).all(-1)
+    assert ok.sum() > 0.5 * mask.sum() and np.allclose(np.linalg.norm(gt[ok], axis=-1), 1, atol=1e-5)
+    defined = np.linalg.norm(gt_in, axis=-1) > 0  # a normal only where all four neighbours have one
+    assert not ok[remap(defined.astype(np.float32), m) < 1 - 1e-6].any()
+    assert ok.sum() == (remap(defined.astype(np.float32), m) >= 1 - 1e-6).sum()
+    assert image_info(tmp_path / "und" / "undistort.png").channels == 3
+    assert sorted(rep["outputs"]) == ["K", "folder", "ground_truth", "mask", "picture", "report"]
+    assert _digest(tmp_path / "obj") == before  # inputs untouched
+    # again into its own folder: replaced quietly
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "K.txt", "-d",
+            ",".join(map(str, coeffs)), "--json", check=True)
+    assert not any("replaced" in n for n in json.loads(r.stdout)["notes"])
+
+
+def test_undistort_keeps_jpegs_and_writes_a_mask_for_the_corners(tmp_path):
+    folder = tmp_path / "jpg"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    smooth = np.kron(rng.random((6, 8, 3)), np.ones((8, 8, 1))).astype(np.float32)  # 48 x 64
+    for k in range(2):
+        write_image(folder / f"{k}.jpg", smooth * (0.5 + 0.5 * k), "uint8")
+    (tmp_path / "K.txt").write_text("50 0 31.5\n0 50 23.5\n0 0 1\n")
+    r = cli("undistort", folder, "-o", tmp_path / "out", "--K", tmp_path / "K.txt", "-d", "0,0,0,0", "--json",
+            check=True)
+    rep = json.loads(r.stdout)
+    assert rep["mask"]["pixels"] is None and not (tmp_path / "out" / "mask.png").exists()  # no mask, none needed
+    a, _ = read_image(folder / "1.jpg")
+    b, info = read_image(tmp_path / "out" / "1.jpg")
+    assert info.format == "jpeg" and np.abs(a - b).max() < 2 / 255  # re-encoded (quality 100, 4:4:4)
+    r = cli("undistort", folder, "-o", tmp_path / "pincushion", "--K", tmp_path / "K.txt", "-d", "0.4,0,0,0",
+            "--json", check=True)
+    rep = json.loads(r.stdout)
+    assert rep["mask"]["pixels"] < 48 * 64 and (tmp_path / "pincushion" / "mask.png").is_file()
+    assert any("have no source" in n for n in rep["notes"])
+
+
+def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
+    _capture(tmp_path / "obj")
+    K = tmp_path / "K.txt"
+    K.write_text("40 0 23.5\n0 40 19.5\n0 0 1\n")
+    far = tmp_path / "far.txt"
+    far.write_text("40 0 5000\n0 40 5000\n0 0 1\n")
+    (tmp_path / "other").mkdir()
+    write_image(tmp_path / "other" / "x.png", np.zeros((4, 4, 3), np.float32), "uint8")
+    d = ["-d", "0,0,0,0"]
+    cases = [
+        (["--K", K, "-d", "1,2,3"], "got 3"),
+        (["--K", K, "-d", "a,b,c,d"], "4, 5 or 8 numbers"),
+        (["--K", K, "-d", "nan,0,0,0"], "NaN"),
+        (["--K", tmp_path / "none.txt", *d], "intrinsics file is missing"),
+        (["--K", far, "-d", "0.1,0,0,0"], "no output pixel has a source"),
+    ]
+    for args, words in cases:
+        r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", *args)
+        assert r.returncode == 2, (args, r.stdout, r.stderr)
+        assert words in r.stderr and len(r.stderr.strip().splitlines()) == 1, (args, r.stderr)
+        assert not (tmp_path / "new").exists()
+    for out, words in ((tmp_path / "obj", "is the capture folder"), (tmp_path / "other", "holds a capture")):
+        r = cli("undistort", tmp_path / "obj", "-o", out, "--K", K, *d)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    # --K read from the folder it would be written into
+    cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", K, *d, check=True)
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "und" / "K.txt", *d)
+    assert r.returncode == 2 and "is the --K file this run reads" in r.stderr
+    # images listed in a subfolder cannot be written beside the others as listed
+    (tmp_path / "obj" / "sub").mkdir()
+    (tmp_path / "obj" / "a.png").rename(tmp_path / "obj" / "sub" / "a.png")
+    (tmp_path / "obj" / "filenames.txt").write_text("b.png\nsub/a.png\nc.png\n")
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", "--K", K, *d)
+    assert r.returncode == 2 and "a.png" in r.stderr and "listed with a folder" in r.stderr
+    assert not (tmp_path / "new").exists()
