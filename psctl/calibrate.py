@@ -207,6 +207,23 @@ def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, floa
     return float(cfg["focal"]), float(px), float(py)
 
 
+def camera_from_K(K: "str | os.PathLike | np.ndarray") -> tuple[float, tuple[float, float], str]:
+    """(focal, (cx, cy), where from) of a 3 x 3 camera matrix (a file or an array) whose pixels are
+    square: the sphere's pinhole has one focal length."""
+    from psctl.depth import check_intrinsics, read_intrinsics
+
+    check_path("K", K)
+    path = Path(K) if isinstance(K, (str, os.PathLike)) else None
+    M = read_intrinsics(path) if path is not None else check_intrinsics(K)
+    fx, fy = float(M[0, 0]), float(M[1, 1])
+    if abs(fx - fy) > 0.005 * max(fx, fy):
+        raise PsctlError(path, f"fx {fx:g} and fy {fy:g} differ by over 0.5 %: psctl calibrate's pinhole has square "
+                               "pixels; resample the images to square pixels first")
+    if max(fx, fy) > 1e7:
+        raise PsctlError(path, f"focal length {max(fx, fy):g} pixels is above 1e7; leave out --K (orthographic)")
+    return (fx + fy) / 2, (float(M[0, 2]), float(M[1, 2])), f"K: {path}" if path is not None else "K"
+
+
 def exif_camera_focal(paths: Sequence[Path]) -> tuple[float, str]:
     """The focal length in pixels that every image's EXIF gives (``psctl.io.images.exif_focal``),
     and how the first image's was found; images whose focal lengths differ by over 1 % (a zoom
@@ -728,7 +745,8 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
                   circle: "Circle | str | Iterable[float] | None" = None, write: bool = True,
                   progress: "ProgressFactory | None" = None, encoding: str = "auto", config: dict | None = None,
                   offset: bool = False, focal: "float | str | None" = None,
-                  principal: "str | Iterable[float] | None" = None) -> dict:
+                  principal: "str | Iterable[float] | None" = None,
+                  K: "str | os.PathLike | np.ndarray | None" = None) -> dict:
     """Calibrate a folder of sphere images (one per light, in the object's order), write the
     light files, return the report (what ``psctl calibrate --json`` prints).
 
@@ -741,7 +759,9 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     circle and, for chrome, each highlight) and calibration_report.json.
 
     ``focal`` (pixels, or "exif": the images' EXIF headers) and ``principal`` model a pinhole
-    camera (docs/calibration.md, "Perspective").
+    camera (docs/calibration.md, "Perspective"); or ``K``, a 3 x 3 camera matrix (a file as
+    ``psctl depth --K`` reads, such as the K.txt psctl undistort writes, or an array) with square
+    pixels (fx and fy within 0.5 %: their mean is the focal length, (cx, cy) the principal point).
 
     Report: object, path, sphere, n_images, circle {x, y, r, source, rms}, camera {focal,
     principal, from} (None: orthographic), light_mae and
@@ -766,6 +786,12 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     for key, value in (("focal", focal), ("principal", principal)):  # --focal, --principal over the config
         if value is not None:
             cfg[key] = _check_camera(key, value)
+    K_from = None
+    if K is not None:
+        if focal is not None or principal is not None:
+            raise PsctlError(None, "--K gives the focal length and the principal point: leave out --focal and "
+                                   "--principal")
+        cfg["focal"], cfg["principal"], K_from = camera_from_K(K)
     given = None if circle is None else check_circle(circle)
     try:
         cap = open_capture(path, encoding)
@@ -782,6 +808,9 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         cfg["focal"], focal_from = exif_camera_focal(cap.image_paths)
         notes.append(f"camera: focal length {cfg['focal']:.0f} pixels, from the images' EXIF ({focal_from})")
     camera = camera_config(cfg, (cap.height, cap.width))
+    if camera is None and (cap.path / "K.txt").is_file():  # psctl undistort's output, or psctl depth's input
+        notes.append(f"camera: {cap.path / 'K.txt'} is not read by psctl calibrate, which takes the camera as "
+                     f"orthographic unless told: --K {cap.path / 'K.txt'} models that pinhole")
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))
@@ -838,7 +867,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     notes += _result_notes(res, cap, bool(cfg["offset"]))
     report = _report(res, cap, notes)
     if report["camera"] is not None:
-        report["camera"]["from"] = "given" if focal_from is None else f"EXIF: {focal_from}"
+        report["camera"]["from"] = K_from or ("given" if focal_from is None else f"EXIF: {focal_from}")
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
         from psctl.io.report import write_json

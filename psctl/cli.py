@@ -450,6 +450,7 @@ def calibrate(
     offset: Annotated[bool, _flag("--offset/--no-offset", help="matte: fit a constant per image as well (I = n . l e + c): for images that keep a black level or room light and have no ambient.png (docs/calibration.md, 'Offset').")] = False,
     focal: Annotated[Optional[str], typer.Option("--focal", help="The camera's focal length in pixels, or 'exif' to read it from the images: a pinhole camera instead of an orthographic one, for a sphere away from the image's centre (docs/calibration.md, 'Perspective').")] = None,
     principal: Annotated[Optional[str], typer.Option("--principal", help="With --focal: the principal point as X,Y in pixels (default: the image's centre).")] = None,
+    K: Annotated[Optional[Path], typer.Option("--K", help="Instead of --focal and --principal: a 3x3 camera matrix file (as psctl depth reads; the K.txt psctl undistort writes).")] = None,
     out: OutDir = None,
     encoding: EncodingOpt = "auto",
     json_out: Json = False,
@@ -460,7 +461,7 @@ def calibrate(
         from psctl.calibrate import render_calibrate, run_calibrate  # (run_calibrate checks --sphere first)
 
         _run(lambda progress: run_calibrate(path, sphere, out=out, circle=circle, progress=progress, encoding=encoding,
-                                                   offset=offset, focal=focal, principal=principal),
+                                                   offset=offset, focal=focal, principal=principal, K=K),
              json_out, quiet, render_calibrate)
 
 

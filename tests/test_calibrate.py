@@ -499,6 +499,22 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
         bad = cli("calibrate", folder, "-s", "matte", *args, "--out", tmp_path / "x")
         assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert not (tmp_path / "x").exists()
+    # --K: the camera matrix psctl undistort writes (and psctl depth reads) gives the same pinhole
+    (folder / "K.txt").write_text("260.4 0 99.5\n0 259.6 74.5\n0 0 1\n")
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--json", "--out", tmp_path / "o", check=True).stdout)
+    assert any(f"--K {folder / 'K.txt'} models that pinhole" in n for n in r["notes"])  # there, but not read
+    r = json.loads(cli("calibrate", folder, "-s", "matte", "--K", folder / "K.txt", "--json", "--out", tmp_path / "k",
+                       check=True).stdout)
+    assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": f"K: {folder / 'K.txt'}"}
+    assert np.array_equal(np.loadtxt(tmp_path / "k" / "light_directions.txt"),
+                          np.loadtxt(tmp_path / "f" / "light_directions.txt"))
+    (tmp_path / "oblong.txt").write_text("260 0 99.5\n0 250 74.5\n0 0 1\n")
+    for args, words in ((["--K", folder / "K.txt", "--focal", "260"], "leave out --focal and --principal"),
+                        (["--K", tmp_path / "oblong.txt"], "differ by over 0.5 %"),
+                        (["--K", tmp_path / "none.txt"], "intrinsics file is missing")):
+        bad = cli("calibrate", folder, "-s", "matte", *args, "--out", tmp_path / "x")
+        assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert not (tmp_path / "x").exists()
 
 
 def test_calibrate_command_errors_are_one_line(tmp_path):
