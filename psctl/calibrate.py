@@ -769,6 +769,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     or None), outputs, images (per image: file, direction, intensity, and for chrome highlight
     [x, y], peak, pixels, spots; for matte pixels, rms), seconds, notes.
     """
+    from psctl.depth import find_intrinsics
     from psctl.io.atomic import check_output_dir, output_folder, read_outputs_list, staged_outputs
     from psctl.io.capture import (INTENSITIES_FILE, LIGHTS_FILE, DecodeMemo, check_not_capture, capture_notes,
                                   iter_images, load_mask, open_capture)
@@ -808,9 +809,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         cfg["focal"], focal_from = exif_camera_focal(cap.image_paths)
         notes.append(f"camera: focal length {cfg['focal']:.0f} pixels, from the images' EXIF ({focal_from})")
     camera = camera_config(cfg, (cap.height, cap.width))
-    if camera is None and (cap.path / "K.txt").is_file():  # psctl undistort's output, or psctl depth's input
-        notes.append(f"camera: {cap.path / 'K.txt'} is not read by psctl calibrate, which takes the camera as "
-                     f"orthographic unless told: --K {cap.path / 'K.txt'} models that pinhole")
+    k_file = find_intrinsics(cap.path) if camera is None else None  # psctl undistort's output, psctl depth's input
+    if k_file is not None:
+        notes.append(f"camera: {k_file} is not read by psctl calibrate, which takes the camera as orthographic "
+                     f"unless told: --K {k_file} models that pinhole")
     out_dir = output_folder(out, cap.path)
     if write:
         check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))

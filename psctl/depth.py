@@ -295,6 +295,14 @@ def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np
     return K
 
 
+def find_intrinsics(folder: str | os.PathLike) -> Path | None:
+    """The folder's K.txt, in any case as the other files of a capture (k.txt, K.TXT), or None."""
+    from psctl.io.capture import _first_existing
+
+    folder = Path(folder)
+    return _first_existing(folder, list(folder.iterdir()), (K_FILE,), "intrinsics files")
+
+
 def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
     """K.txt: three rows of three numbers (whitespace or commas, '#' comments)."""
     from psctl.io.capture import read_matrix
@@ -694,10 +702,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     # --- intrinsics ----------------------------------------------------------------------------
     k_source = None
-    if K is None:  # K.txt in any case, as the other files of a capture (k.txt, K.TXT)
-        from psctl.io.capture import _first_existing
-
-        K = _first_existing(cap.path, list(cap.path.iterdir()), (K_FILE,), "intrinsics files")
+    if K is None:
+        K = find_intrinsics(cap.path)
     if isinstance(K, (str, os.PathLike)):
         k_source = os.path.abspath(K)  # report paths are absolute (docs/formats.md)
         K = read_intrinsics(K)

@@ -128,6 +128,14 @@ def test_undistort_writes_a_pinhole_capture(tmp_path):
     assert np.array_equal(read_intrinsics(tmp_path / "same" / "K.txt"), read_intrinsics(tmp_path / "K.txt"))
     gt_in, gt_out = load_ground_truth(in_cap), load_ground_truth(out_cap)
     assert np.abs(gt_in - gt_out).max() < 1e-5
+    # psctl info shows the K.txt that psctl depth will read (and one it cannot)
+    info = json.loads(cli("info", tmp_path / "same", "--json", check=True).stdout)
+    assert info["intrinsics"] == {"file": "K.txt", "fx": 40.0, "fy": 40.0, "cx": 23.5, "cy": 19.5}
+    assert json.loads(cli("info", tmp_path / "obj", "--json", check=True).stdout)["intrinsics"] is None
+    (tmp_path / "same" / "K.txt").write_text("40 0 23.5\n0 40 19.5\n")
+    info = json.loads(cli("info", tmp_path / "same", "--json", check=True).stdout)
+    assert "expected 3 rows" in info["intrinsics"]["error"]
+    assert "cannot be read" in cli("info", tmp_path / "same", check=True).stdout
 
     # a pincushion lens: each image is the remap of its photo, the corners leave the mask
     coeffs = [0.3, 0.08, 0.002, -0.001, -0.01]

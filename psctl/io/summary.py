@@ -149,12 +149,27 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "last_image": cap.image_paths[-1].name,
         # the first image's EXIF focal length in pixels, for psctl calibrate --focal exif; else None
         "camera": _exif_camera(cap.image_paths[0]),
+        # the folder's K.txt (psctl depth's pinhole; psctl calibrate --K), or None
+        "intrinsics": _intrinsics(cap.path),
         "notes": capture_notes(cap),  # what normals, lights and depth will say about how they read it
     }
     if check:
         bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
         report["check"] = check_pixels(cap, mask, bar)
     return report
+
+
+def _intrinsics(folder: Path) -> dict | None:
+    from psctl.depth import find_intrinsics, read_intrinsics
+
+    try:
+        path = find_intrinsics(folder)
+        if path is None:
+            return None
+        K = read_intrinsics(path)
+    except PsctlError as e:  # psctl depth will stop on it: said here, not refused
+        return {"file": Path(e.path).name if e.path else "K.txt", "error": e.message}
+    return {"file": path.name, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
 
 
 def _exif_camera(path: Path) -> dict | None:
@@ -276,6 +291,12 @@ def render_info(report: dict) -> None:
     if r.get("camera"):
         t.add_row("camera", escape(f"focal length {r['camera']['focal']:,.0f} pixels ({r['camera']['from']}; "
                                    "psctl calibrate --focal exif uses it)"))
+    k = r.get("intrinsics")
+    if k and "error" in k:
+        t.add_row("intrinsics", escape(f"{k['file']}: cannot be read ({k['error']}); psctl depth stops on it"))
+    elif k:
+        t.add_row("intrinsics", escape(f"{k['file']}: fx {k['fx']:g}, fy {k['fy']:g}, principal point {k['cx']:g}, "
+                                       f"{k['cy']:g} (psctl depth's pinhole camera; psctl calibrate --K)"))
     if r.get("ambient"):
         decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
