@@ -47,7 +47,7 @@ def photograph(imgs: np.ndarray, mask: np.ndarray, K: np.ndarray, coeffs: list[f
     px, py, _ = distort_points(x, y, c)
     assert max(np.abs(px - xd).max(), np.abs(py - yd).max()) * f < 1e-4, "inversion did not converge"
     xs, ys = f * x + cx, f * y + cy
-    m = UndistortMap(xs, ys, (xs >= 0) & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1), 0)
+    m = UndistortMap(xs, ys, (xs >= 0) & (xs <= w - 1) & (ys >= 0) & (ys <= h - 1), 0, (h, w))
     photo = np.stack([np.round(remap(img.astype(np.float32), m)).astype(imgs.dtype) for img in imgs])
     return photo, (remap(mask.astype(np.float32), m) >= 0.5) & m.valid
 

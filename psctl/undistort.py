@@ -49,9 +49,18 @@ COEFF_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike | None = None) -> np.ndarray:
     """OpenCV's coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]] as float64 [8] (missing ones 0);
     text is comma- or space-separated numbers."""
+    if coeffs is None:
+        raise PsctlError(where, "--distortion is required: 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]])")
     if isinstance(coeffs, str):
-        parts = coeffs.replace(",", " ").split()
+        # commas and/or spaces, brackets allowed (numpy prints OpenCV's as [[k1 k2 p1 p2 k3]]); an
+        # empty field (1,,2) would shift every later coefficient
+        import re
+
+        text = re.sub(r"[\[\]()]", " ", coeffs).strip()
+        parts = re.split(r"\s*,\s*|\s+", text)
         try:
+            if "" in parts:
+                raise ValueError
             values = [float(p) for p in parts]
         except ValueError:
             raise PsctlError(where, f"--distortion must be 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
@@ -106,6 +115,7 @@ class UndistortMap:
     y: np.ndarray
     valid: np.ndarray
     folded: int  # output pixels beyond the fold radius (left out of ``valid``)
+    src_shape: tuple[int, int]  # the photo's (H, W)
 
 
 def undistort_map(K: np.ndarray, coeffs: "np.ndarray | Iterable[float] | str", shape: tuple[int, int],
@@ -127,7 +137,7 @@ def undistort_map(K: np.ndarray, coeffs: "np.ndarray | Iterable[float] | str", s
     fold = _fold_radius(coeffs, float(r.max()) if r.size else 0.0)
     beyond = (r >= fold) | (den <= 0)
     inside = (xs >= -0.5) & (xs <= sw - 0.5) & (ys >= -0.5) & (ys <= sh - 0.5)
-    return UndistortMap(xs, ys, inside & ~beyond, int(beyond.sum()))
+    return UndistortMap(xs, ys, inside & ~beyond, int(beyond.sum()), (int(sh), int(sw)))
 
 
 def remap(image: np.ndarray, m: UndistortMap, fill: float = 0.0) -> np.ndarray:
@@ -135,6 +145,9 @@ def remap(image: np.ndarray, m: UndistortMap, fill: float = 0.0) -> np.ndarray:
     float32; ``fill`` where ``m.valid`` is False. Positions within half a pixel of the border read
     the border pixel (the photo's pixels cover their whole square)."""
     img = np.asarray(image, dtype=np.float32)
+    if img.ndim not in (2, 3) or img.shape[:2] != tuple(m.src_shape):
+        raise PsctlError(None, f"image of shape {img.shape} does not fit this map, made for photos of "
+                               f"{m.src_shape[1]}x{m.src_shape[0]} ([H, W] or [H, W, C])")
     flat = img.reshape(img.shape[0] * img.shape[1], -1)
     sh, sw = img.shape[:2]
     xs = np.clip(m.x, 0, sw - 1)
@@ -155,7 +168,7 @@ def _write_dtype(dtype: str, bits: int, suffix: str) -> str:
         return "half"
     if dtype in ("float", "double"):
         return "float"
-    if suffix in (".exr",):
+    if suffix in (".exr",) or (bits > 16 and suffix in (".tif", ".tiff")):  # uint32 TIFF: float keeps it
         return "float"
     return "uint8" if bits <= 8 else "uint16"
 
@@ -166,19 +179,27 @@ def _list_file(cap: "Capture") -> Path | None:
     return _first_existing(cap.path, list(cap.path.iterdir()), LIST_FILES, "image lists")
 
 
-def _check_capture(cap: "Capture") -> None:
-    """What psctl undistort cannot write as it read it: a one-line error before any work."""
-    from psctl.io.capture import JPEG
+# what each extension is written as (OpenImageIO picks the format by the name)
+_EXT_FORMAT = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
 
-    for k, p in enumerate(cap.image_paths):
-        if p.parent.resolve() != cap.path.resolve():
-            raise PsctlError(p, "is listed with a folder in its name; psctl undistort writes every image beside "
-                                "the others in --out: list (or move) the images in the capture folder itself")
-        if cap.jpeg and cap.jpeg[k] and p.suffix.lower() not in JPEG:
-            raise PsctlError(p, "holds JPEG data under another extension; rename it .jpg (it would be written in "
-                                "its name's format and then read as linear)")
-    if cap.ambient_path is not None and cap.ambient_jpeg and cap.ambient_path.suffix.lower() not in JPEG:
-        raise PsctlError(cap.ambient_path, "holds JPEG data under another extension; rename it .jpg")
+
+def _check_capture(cap: "Capture", images: list[Path]) -> bool:
+    """What psctl undistort cannot write as it read it: a one-line error before any work. Returns
+    whether the image list names every image bare (else it is written again with bare names)."""
+    from psctl.io.images import image_info
+
+    for p in images:
+        fmt = image_info(p).format
+        want = _EXT_FORMAT.get(p.suffix.lower())
+        if want is not None and fmt and fmt != want:
+            raise PsctlError(p, f"holds {fmt} data under a {p.suffix} name; it would be written as {want}: rename it")
+    seen: dict[str, Path] = {}
+    for p in cap.image_paths:
+        if p.name.lower() in seen:
+            raise PsctlError(p, f"has the name of {seen[p.name.lower()]}, listed before it: psctl undistort writes "
+                                "every image beside the others in --out")
+        seen[p.name.lower()] = p
+    return all(p.parent == cap.path for p in cap.image_paths)
 
 
 def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.PathLike | np.ndarray",
@@ -187,12 +208,14 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     undoing a lens with OpenCV's ``distortion`` coefficients; return the report (what ``psctl
     undistort --json`` prints).
 
-    ``out`` (required; never the capture folder nor another capture) gets, all or none: every
+    ``out`` (required; never the capture folder nor another capture; an earlier psctl undistort
+    output is replaced) gets, all or none: every
     image and the ambient image under its own name, format and bit depth (the stored values
     resampled bilinearly, upright as psctl reads them, without their EXIF block); mask.png (the
     folder's mask resampled, without the pixels that have no source in the photo; written only
-    when there is a mask or such pixels); Normal_gt.exr (ground truth resampled and renormalised,
-    NaN where any neighbour had none); the image list and light files copied as they are; K.txt
+    when there is a mask or such pixels); Normal_gt.exr (ground truth resampled from the neighbours
+    that have a normal and renormalised, NaN where none has); the light files copied as they are,
+    the image list too (written again with bare names when it named images in other folders); K.txt
     (the pinhole camera: ``K``); undistort.png (how far each pixel moved) and
     undistort_report.json.
 
@@ -220,32 +243,40 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
         K_path = None
         K = check_intrinsics(K)
     coeffs = check_distortion(distortion)
-    cap = open_capture(path, light_files=False)  # light files are copied, not read: any rows are kept
-    _check_capture(cap)
+    cap = open_capture(path)  # light files checked as psctl normals reads them: the output must read back
+    images = [*cap.image_paths, *([cap.ambient_path] if cap.ambient_path is not None else [])]
+    bare = _check_capture(cap, images)
     out_dir = Path(out)
     list_file = _list_file(cap)
-    from psctl.io.capture import INTENSITIES_FILE, LIGHTS_FILE, _first_existing
-
-    # the list and light files by the names the folder has them under (any case), as psctl reads them
-    entries = list(cap.path.iterdir())
-    copies = sorted({p for p in (list_file, _first_existing(cap.path, entries, [LIGHTS_FILE], "light direction files"),
-                                 _first_existing(cap.path, entries, [INTENSITIES_FILE], "light intensity files"))
-                     if p is not None}, key=lambda p: p.name)
-    images = [*cap.image_paths, *([cap.ambient_path] if cap.ambient_path is not None else [])]
-    names = [p.name for p in images] + [p.name for p in copies]
+    copies = [p for p in (cap.lights_path, cap.intensities_path) if p is not None]
+    names = [p.name for p in images] + [p.name for p in copies] + ([list_file.name] if list_file is not None else [])
     written = (*names, K_FILE, MASK_FILE, GT_FILE, PICTURE_FILE, REPORT_FILE)
+    notes: list[str] = []
     own = set(read_outputs_list(out_dir, COMMAND))
-    if own and os.path.realpath(out_dir) != os.path.realpath(cap.path) and all(
-            e.name in own or e.name.startswith(".") or not e.is_file() for e in out_dir.iterdir()):
-        pass  # an earlier psctl undistort's folder, nothing else in it (a psctl/ output folder aside): replaced
+    if own and os.path.realpath(out_dir) != os.path.realpath(cap.path):
+        # an earlier psctl undistort's folder: replaced, unless it holds someone's capture files
+        # besides (files added since that are not a capture's, such as light files, may stay)
+        from psctl.io.capture import AMBIENT_FILES, GT_FILES, LIST_FILES, MASK_FILES, _image_files
+
+        foreign = [e for e in out_dir.iterdir() if e.is_file() and e.name not in own and not e.name.startswith(".")]
+        named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, *GT_FILES, *AMBIENT_FILES)}
+        if _image_files(foreign) or any(e.name.lower() in named for e in foreign):
+            check_not_capture(out_dir, cap, written)
+        if (out_dir / "psctl").is_dir():
+            notes.append(f"outputs: {out_dir / 'psctl'} holds results computed from the earlier undistorted images; "
+                         "run them again")
     else:
         check_not_capture(out_dir, cap, written)
+    # never over a file this run reads (an image linked from an earlier output, say)
+    inputs = {os.path.realpath(p) for p in (*cap.input_paths, *copies, *([list_file] if list_file else []))}
+    clash = [n for n in written if os.path.realpath(out_dir / n) in inputs]
+    if clash:
+        raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
     check_inputs_kept(out_dir, written, [("--K", K_path)])
     check_output_dir(out_dir)
 
     m = undistort_map(K, coeffs, (cap.height, cap.width))
     shift = np.hypot(m.x - np.arange(cap.width)[None, :], m.y - np.arange(cap.height)[:, None])
-    notes: list[str] = []
     if not m.valid.any():
         raise PsctlError(K_path, "with these intrinsics and --distortion no output pixel has a source in the "
                                  "photos: are fx, fy, cx and cy in this image's pixels?")
@@ -270,9 +301,17 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     if m.folded:
         notes.append(f"lens: {m.folded} output pixels lie beyond the radius where the distortion model folds back "
                      "(beyond its calibrated field); they are left out of the mask")
-    if not m.valid.all():
-        notes.append(f"{(~m.valid).sum()} of {m.valid.size} output pixels ({100 * (~m.valid).mean():.1f} %) have no "
-                     "source in the photos (the corners, through a pincushion lens): black, and outside mask.png")
+    outside = int((~m.valid).sum()) - m.folded
+    if outside:
+        notes.append(f"{outside} of {m.valid.size} output pixels ({100 * outside / m.valid.size:.1f} %) have no "
+                     "source in the photos (they fall outside the photos' frame): black, and outside mask.png")
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (0 <= cx <= cap.width - 1 and 0 <= cy <= cap.height - 1):
+        notes.append(f"K's principal point {cx:g}, {cy:g} lies outside these {cap.width}x{cap.height} images: is K "
+                     "for this image size? (a cropped image's K has the crop's offset subtracted)")
+    if not bare:
+        notes.append(f"{list_file.name} lists images outside the folder's top level ({next(str(p) for p in cap.image_paths if p.parent != cap.path)}"
+                     "...): they are written beside each other, and the list again with their bare names")
     if cap.unread:
         notes.append(f"not carried over: {', '.join(cap.unread)} (psctl does not read them)")
     if gt is not None and cap.gt_path is not None and cap.gt_path.name != GT_FILE:
@@ -319,6 +358,9 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
             advance(1)
         for p in copies:
             write_bytes_atomic(stage / p.name, p.read_bytes())
+        if list_file is not None:
+            write_bytes_atomic(stage / list_file.name, list_file.read_bytes() if bare else
+                               "".join(f"{p.name}\n" for p in cap.image_paths).encode("utf-8"))
         write_bytes_atomic(stage / K_FILE, "".join(" ".join(f"{float(v):.10g}" for v in row) + "\n"
                                                    for row in K).encode())
         if write_mask:
@@ -334,14 +376,14 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
 
 
 def undistort_normals(normals: np.ndarray, m: UndistortMap) -> np.ndarray:
-    """[h, w, 3] unit normals (zero: none) -> [H, W, 3] float32, interpolated and renormalised; NaN
-    where any of the four neighbours had no normal or there is no source."""
+    """[h, w, 3] unit normals (zero: none) -> [H, W, 3] float32: the bilinear mean of the four
+    neighbours that have a normal, renormalised (so that the resampled mask's rim keeps one); NaN
+    where none has one or there is no source."""
     n = np.asarray(normals, np.float32)
     has = (np.abs(n).sum(-1) > 0).astype(np.float32)
-    full = remap(has, m) >= 1 - 1e-6
-    v = remap(n, m)
+    v = remap(n * has[..., None], m)  # the zero vectors add nothing; renormalising divides out the weights
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    ok = full & m.valid & (norm[..., 0] > 1e-6)
+    ok = (remap(has, m) > 1e-6) & m.valid & (norm[..., 0] > 1e-6)
     return np.where(ok[..., None], v / np.maximum(norm, 1e-6), np.nan).astype(np.float32)
 
 

@@ -71,12 +71,17 @@ def test_remap_is_bilinear():
     edge = m.valid & ~inner  # within half a pixel of the border: the border pixel's value
     np.testing.assert_allclose(out[edge, 1], (np.clip(m.x, 0, w - 1) - np.clip(m.y, 0, h - 1))[edge], atol=1e-3)
     assert remap(ramp[..., 0], m).shape == (h, w)  # [h, w] in, [H, W] out
+    for bad in (np.zeros(5), ramp[:-1]):
+        with pytest.raises(PsctlError, match="does not fit this map"):
+            remap(bad, m)
 
 
 def test_check_distortion():
     assert check_distortion("0.1, -0.2 0.001,0").tolist() == [0.1, -0.2, 0.001, 0, 0, 0, 0, 0]
+    assert check_distortion("[[-2.8e-01  9.0e-02  1.2e-03 -7.0e-04 -1.5e-02]]").tolist() == \
+        [-0.28, 0.09, 0.0012, -0.0007, -0.015, 0, 0, 0]  # as numpy prints OpenCV's
     assert check_distortion([1, 2, 3, 4, 5, 6, 7, 8]).tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
-    for bad, words in (("1,2,3", "got 3"), ("a,b,c,d", "4, 5 or 8 numbers"), ("nan,0,0,0", "NaN"),
+    for bad, words in (("1,2,3", "got 3"), ("1,,2,3,4", "4, 5 or 8 numbers"), (None, "is required"), ("a,b,c,d", "4, 5 or 8 numbers"), ("nan,0,0,0", "NaN"),
                        ([0, 0, 0, 0, 0, 0], "got 6"), ("1e7,0,0,0", "normalised coordinates")):
         with pytest.raises(PsctlError, match=words):
             check_distortion(bad)
@@ -160,9 +165,12 @@ def test_undistort_writes_a_pinhole_capture(tmp_path):
     assert np.isnan(gt[~m.valid]).all()
     ok = np.isfinite(gt).all(-1)
     assert ok.sum() > 0.5 * mask.sum() and np.allclose(np.linalg.norm(gt[ok], axis=-1), 1, atol=1e-5)
-    defined = np.linalg.norm(gt_in, axis=-1) > 0  # a normal only where all four neighbours have one
-    assert not ok[remap(defined.astype(np.float32), m) < 1 - 1e-6].any()
-    assert ok.sum() == (remap(defined.astype(np.float32), m) >= 1 - 1e-6).sum()
+    defined = np.linalg.norm(gt_in, axis=-1) > 0  # a normal wherever a neighbour has one: the mask's rim too
+    assert np.array_equal(ok, (remap(defined.astype(np.float32), m) > 0) & m.valid)
+    assert not (new_mask & ~ok).any()
+    inner = (remap(defined.astype(np.float32), m) >= 1 - 1e-6) & m.valid  # all four: plain bilinear
+    want = remap(gt_in, m)[inner]
+    np.testing.assert_allclose(gt[inner], want / np.linalg.norm(want, axis=-1, keepdims=True), atol=1e-5)
     assert image_info(tmp_path / "und" / "undistort.png").channels == 3
     assert sorted(rep["outputs"]) == ["K", "folder", "ground_truth", "mask", "picture", "report"]
     assert _digest(tmp_path / "obj") == before  # inputs untouched
@@ -170,6 +178,38 @@ def test_undistort_writes_a_pinhole_capture(tmp_path):
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "K.txt", "-d",
             ",".join(map(str, coeffs)), "--json", check=True)
     assert not any("replaced" in n for n in json.loads(r.stdout)["notes"])
+    # light files added to it since (the docs' workflow) do not make it someone's capture
+    (tmp_path / "und" / "extra_light_directions.txt").write_text("0 0 1\n")
+    cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "K.txt", "-d", "0.1,0,0,0",
+        check=True)
+    assert (tmp_path / "und" / "extra_light_directions.txt").is_file()
+
+
+def test_undistort_keeps_alpha_and_rewrites_a_list_with_folders(tmp_path):
+    folder = tmp_path / "rgba"
+    (folder / "sub").mkdir(parents=True)
+    rng = np.random.default_rng(2)
+    rgba = rng.random((24, 32, 4)).astype(np.float32)
+    rgba[..., 3] = np.where(rng.random((24, 32)) < 0.5, 0.5, 1.0)
+    write_image(folder / "sub" / "a.png", rgba, "uint16")
+    write_image(tmp_path / "b.png", rgba[..., ::-1], "uint16")  # listed by an absolute path
+    (folder / "filenames.txt").write_text(f"sub/a.png\n{tmp_path / 'b.png'}\n")
+    (tmp_path / "K.txt").write_text("30 0 15.5\n0 30 11.5\n0 0 1\n")
+    r = cli("undistort", folder, "-o", tmp_path / "out", "--K", tmp_path / "K.txt", "-d", "0,0,0,0", "--json",
+            check=True)
+    assert any("written beside each other" in n for n in json.loads(r.stdout)["notes"])
+    assert (tmp_path / "out" / "filenames.txt").read_text() == "a.png\nb.png\n"
+    written = open_capture(tmp_path / "out")
+    assert [p.parent for p in written.image_paths] == [tmp_path / "out"] * 2  # not the photos any more
+    for name, want in (("a.png", rgba), ("b.png", rgba[..., ::-1])):  # colour not divided by alpha
+        got, info = read_image(tmp_path / "out" / name)
+        assert info.channels == 4 and np.abs(got - want).max() <= 0.5 / 65535 + 1e-7, name
+    # two images of one name cannot be written beside each other
+    write_image(folder / "a.png", rgba, "uint16")
+    (folder / "filenames.txt").write_text("sub/a.png\na.png\n")
+    r = cli("undistort", folder, "-o", tmp_path / "new", "--K", tmp_path / "K.txt", "-d", "0,0,0,0")
+    assert r.returncode == 2 and "has the name of" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "new").exists()
 
 
 def test_undistort_keeps_jpegs_and_writes_a_mask_for_the_corners(tmp_path):
@@ -205,6 +245,7 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     d = ["-d", "0,0,0,0"]
     cases = [
         (["--K", K, "-d", "1,2,3"], "got 3"),
+        (["--K", K, "-d", "-0.1,,0.001,0"], "4, 5 or 8 numbers"),
         (["--K", K, "-d", "a,b,c,d"], "4, 5 or 8 numbers"),
         (["--K", K, "-d", "nan,0,0,0"], "NaN"),
         (["--K", tmp_path / "none.txt", *d], "intrinsics file is missing"),
@@ -222,10 +263,20 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", K, *d, check=True)
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "und" / "K.txt", *d)
     assert r.returncode == 2 and "is the --K file this run reads" in r.stderr
-    # images listed in a subfolder cannot be written beside the others as listed
-    (tmp_path / "obj" / "sub").mkdir()
-    (tmp_path / "obj" / "a.png").rename(tmp_path / "obj" / "sub" / "a.png")
-    (tmp_path / "obj" / "filenames.txt").write_text("b.png\nsub/a.png\nc.png\n")
+    # a capture whose images are an earlier output's (linked): never written over
+    (tmp_path / "linked").mkdir()
+    for name in ("a.png", "b.png", "c.png"):
+        (tmp_path / "linked" / name).symlink_to(tmp_path / "und" / name)
+    r = cli("undistort", tmp_path / "linked", "-o", tmp_path / "und", "--K", K, "-d", "0.3,0,0,0")
+    assert r.returncode == 2 and "is an input of this capture" in r.stderr
+    # what the output could not read back: a light file that does not match the images, data
+    # under another format's name
+    (tmp_path / "obj" / "light_intensities.txt").write_text("1 1 1\n")
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", "--K", K, *d)
-    assert r.returncode == 2 and "a.png" in r.stderr and "listed with a folder" in r.stderr
+    assert r.returncode == 2 and "light_intensities.txt" in r.stderr and "1 intensity rows but 3 images" in r.stderr
+    (tmp_path / "obj" / "light_intensities.txt").unlink()
+    (tmp_path / "obj" / "a.png").rename(tmp_path / "obj" / "a.tif")
+    (tmp_path / "obj" / "filenames.txt").write_text("b.png\na.tif\nc.png\n")
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", "--K", K, *d)
+    assert r.returncode == 2 and "a.tif" in r.stderr and "holds png data under a .tif name" in r.stderr
     assert not (tmp_path / "new").exists()

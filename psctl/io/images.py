@@ -279,6 +279,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     spec = oiio.ImageSpec(w, h, c, fmt)
     if COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
+    if c in (2, 4):  # colour as given, not divided by alpha as PNG's writer would (read_image reads it so)
+        spec.attribute("oiio:UnassociatedAlpha", 1)
     if path.suffix.lower() in (".jpg", ".jpeg"):  # psctl undistort's copies: as little loss as JPEG allows
         spec.attribute("Compression", "jpeg:100")
         spec.attribute("jpeg:subsampling", "4:4:4")
