@@ -83,6 +83,66 @@ def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike |
     return out
 
 
+# the names OpenCV's samples and common calibration scripts store the two under (any case)
+_K_KEYS = ("camera_matrix", "cameramatrix", "k", "mtx", "intrinsics", "intrinsic_matrix")
+_DIST_KEYS = ("distortion_coefficients", "dist_coeffs", "distcoeffs", "d", "dist", "distortion")
+
+
+def read_camera(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(K [3, 3], coefficients [8]) from a calibration file as OpenCV's ``cv2.FileStorage`` writes
+    it (YAML, with its ``%YAML`` line and ``!!opencv-matrix`` nodes, or JSON) or as plain YAML /
+    JSON with a 3 x 3 list and a list of 4, 5 or 8 numbers, under names such as camera_matrix
+    (K, mtx) and distortion_coefficients (D, dist_coeffs)."""
+    import json
+
+    import yaml
+
+    from psctl.depth import check_intrinsics
+    from psctl.errors import not_a_file
+    from psctl.io.atomic import read_small_text
+
+    path = Path(check_path("camera", path))
+    if not path.is_file():
+        raise PsctlError(path, not_a_file(path, "camera file is missing"))
+    try:
+        text = read_small_text(path)
+    except (OSError, UnicodeDecodeError) as e:
+        raise PsctlError(path, f"cannot read the camera file ({getattr(e, 'strerror', None) or e})") from None
+    if text.lstrip().startswith("<"):
+        raise PsctlError(path, "is XML; psctl reads OpenCV's YAML or JSON calibration files: save it as .yml or .json")
+
+    class _Loader(yaml.SafeLoader):
+        pass
+
+    _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+    body = "\n".join(line for line in text.splitlines() if not line.startswith("%YAML"))  # OpenCV: %YAML:1.0 or 1.2
+    try:
+        data = json.loads(text) if text.lstrip().startswith("{") else yaml.load(body, Loader=_Loader)
+    except (ValueError, yaml.YAMLError) as e:
+        raise PsctlError(path, f"is not valid YAML or JSON ({' '.join(str(e).split())[:160]})") from None
+    if not isinstance(data, dict):
+        raise PsctlError(path, "holds no named values; expected camera_matrix and distortion_coefficients")
+    keys = {str(k).lower(): v for k, v in data.items()}
+
+    def find(names: Sequence[str], what: str):
+        for n in names:
+            if n in keys:
+                v = keys[n]
+                if isinstance(v, dict) and "data" in v:  # an opencv-matrix node (YAML tag or JSON type_id)
+                    v = v["data"]
+                try:
+                    return np.asarray(v, dtype=np.float64).ravel()
+                except (TypeError, ValueError):
+                    raise PsctlError(path, f"{n} is not a list of numbers") from None
+        raise PsctlError(path, f"has no {what} (looked for {', '.join(names)})")
+
+    K = find(_K_KEYS, "camera matrix")
+    if K.size != 9:
+        raise PsctlError(path, f"the camera matrix has {K.size} numbers, expected 9 (3 x 3)")
+    return check_intrinsics(K.reshape(3, 3), path), check_distortion(find(_DIST_KEYS, "distortion coefficients"),
+                                                                     path)
+
+
 def distort_points(x: np.ndarray, y: np.ndarray, coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised pinhole coordinates -> where the lens puts them (xd, yd), and the rational
     model's denominator (a point where it is <= 0 has no image)."""
@@ -202,11 +262,12 @@ def _check_capture(cap: "Capture", images: list[Path]) -> bool:
     return all(p.parent == cap.path for p in cap.image_paths)
 
 
-def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.PathLike | np.ndarray",
-                  distortion: "str | Iterable[float]", progress: "ProgressFactory | None" = None) -> dict:
+def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.PathLike | np.ndarray | None" = None,
+                  distortion: "str | Iterable[float] | None" = None, progress: "ProgressFactory | None" = None,
+                  camera: str | os.PathLike | None = None) -> dict:
     """Write the capture at ``path`` into ``out`` as a pinhole camera ``K`` would have taken it,
-    undoing a lens with OpenCV's ``distortion`` coefficients; return the report (what ``psctl
-    undistort --json`` prints).
+    undoing a lens with OpenCV's ``distortion`` coefficients (or ``camera``: a calibration file
+    with both, ``read_camera``); return the report (what ``psctl undistort --json`` prints).
 
     ``out`` (required; never the capture folder nor another capture; an earlier psctl undistort
     output is replaced) gets, all or none: every
@@ -236,13 +297,23 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     if not os.fspath(out).strip():
         raise PsctlError(None, "--out is empty; name a new folder for the undistorted capture")
     progress = check_progress(progress)
-    if isinstance(K, (str, os.PathLike)):
-        K_path: Path | None = Path(K)
-        K = read_intrinsics(K)
+    if camera is not None:
+        if K is not None or distortion is not None:
+            raise PsctlError(None, "--camera gives the camera matrix and the distortion: leave out --K and "
+                                   "--distortion")
+        K_path: Path | None = Path(check_path("camera", camera))
+        K, coeffs = read_camera(camera)
     else:
-        K_path = None
-        K = check_intrinsics(K)
-    coeffs = check_distortion(distortion)
+        if K is None:
+            raise PsctlError(None, "give the camera: --K FILE and --distortion k1,k2,p1,p2[,k3], or --camera FILE "
+                                   "(OpenCV's calibration file)")
+        if isinstance(K, (str, os.PathLike)):
+            K_path = Path(K)
+            K = read_intrinsics(K)
+        else:
+            K_path = None
+            K = check_intrinsics(K)
+        coeffs = check_distortion(distortion)
     cap = open_capture(path)  # light files checked as psctl normals reads them: the output must read back
     images = [*cap.image_paths, *([cap.ambient_path] if cap.ambient_path is not None else [])]
     bare = _check_capture(cap, images)
@@ -272,7 +343,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     clash = [n for n in written if os.path.realpath(out_dir / n) in inputs]
     if clash:
         raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
-    check_inputs_kept(out_dir, written, [("--K", K_path)])
+    check_inputs_kept(out_dir, written, [("--camera" if camera is not None else "--K", K_path)])
     check_output_dir(out_dir)
 
     m = undistort_map(K, coeffs, (cap.height, cap.width))
@@ -412,5 +483,5 @@ def render_undistort(r: dict) -> None:
     print_written(con, {k: v for k, v in r["outputs"].items() if k != "folder"})
 
 
-__all__: Sequence[str] = ("check_distortion", "distort_points", "undistort_map", "remap", "run_undistort",
+__all__: Sequence[str] = ("read_camera", "check_distortion", "distort_points", "undistort_map", "remap", "run_undistort",
                           "undistort_normals", "UndistortMap")

@@ -12,7 +12,7 @@ from psctl.errors import PsctlError
 from psctl.io.capture import open_capture
 from psctl.io.images import image_info, read_image, write_image
 from psctl.io.normals import write_normal_map
-from psctl.undistort import check_distortion, remap, undistort_map
+from psctl.undistort import check_distortion, read_camera, remap, undistort_map
 from tests.conftest import hemisphere_lights, sphere
 from tests.test_cli import cli
 
@@ -279,4 +279,80 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     (tmp_path / "obj" / "filenames.txt").write_text("b.png\na.tif\nc.png\n")
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", "--K", K, *d)
     assert r.returncode == 2 and "a.tif" in r.stderr and "holds png data under a .tif name" in r.stderr
+    assert not (tmp_path / "new").exists()
+
+
+# as OpenCV 5.0's cv2.FileStorage writes them (camera_matrix, distortion_coefficients), verbatim
+OPENCV_YAML = """%YAML 1.2
+---
+image_width: 640
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 812.5, 0., 319.5, 0., 810.25, 241., 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 1
+   cols: 5
+   dt: d
+   data: [ -0.28000000000000003, 0.089999999999999997,
+       0.0011999999999999999, -0.00069999999999999999,
+       -0.014999999999999999 ]
+avg_reprojection_error: 0.20999999999999999
+"""
+OPENCV_JSON = """{
+    "image_width": 640,
+    "camera_matrix": {
+        "type_id": "opencv-matrix",
+        "rows": 3,
+        "cols": 3,
+        "dt": "d",
+        "data": [ 812.5, 0.0, 319.5, 0.0, 810.25, 241.0, 0.0, 0.0, 1.0 ]
+    },
+    "distortion_coefficients": {
+        "type_id": "opencv-matrix",
+        "rows": 1,
+        "cols": 5,
+        "dt": "d",
+        "data": [ -0.28000000000000003, 0.089999999999999997,
+            0.0011999999999999999, -0.00069999999999999999,
+            -0.014999999999999999 ]
+    },
+    "avg_reprojection_error": 0.20999999999999999
+}
+"""
+
+
+def test_read_camera_takes_opencvs_calibration_files(tmp_path):
+    K = [[812.5, 0, 319.5], [0, 810.25, 241.0], [0, 0, 1]]
+    d = [-0.28, 0.09, 0.0012, -0.0007, -0.015, 0, 0, 0]
+    files = {"cv.yml": OPENCV_YAML, "cv1.yml": OPENCV_YAML.replace("%YAML 1.2", "%YAML:1.0"),  # older OpenCV
+             "cv.json": OPENCV_JSON, "plain.yaml": "K: [[812.5, 0, 319.5], [0, 810.25, 241], [0, 0, 1]]\n"
+             "D: [-0.28, 0.09, 0.0012, -0.0007, -0.015]\n"}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        got_K, got_d = read_camera(tmp_path / name)
+        np.testing.assert_allclose(got_K, K)
+        np.testing.assert_allclose(got_d, d, atol=1e-15)
+    bad = {"nodist.yml": ("K: [[1, 0, 1], [0, 1, 1], [0, 0, 1]]\n", "has no distortion coefficients"),
+           "k6.yml": ("K: [1, 0, 1, 0, 1, 1]\nD: [0, 0, 0, 0]\n", "has 6 numbers"),
+           "cv.xml": ("<?xml version=\"1.0\"?>\n<opencv_storage/>\n", "is XML"),
+           "broken.yml": ("K: [1, 2\n", "is not valid YAML or JSON"),
+           "list.yml": ("- 1\n- 2\n", "holds no named values")}
+    for name, (text, words) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(PsctlError, match=words) as e:
+            read_camera(tmp_path / name)
+        assert str(e.value.path) == str(tmp_path / name)
+    # the command: --camera instead of --K and --distortion; one of the two is needed
+    _capture(tmp_path / "obj")
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "out", "--camera", tmp_path / "cv.yml", "--json",
+            check=True)
+    rep = json.loads(r.stdout)
+    assert rep["camera"]["K"] == K and rep["camera"]["distortion"]["k3"] == pytest.approx(-0.015)
+    assert any("principal point 319.5, 241 lies outside these 48x40 images" in n for n in rep["notes"])
+    for args, words in ((["--camera", tmp_path / "cv.yml", "-d", "0,0,0,0"], "leave out --K and --distortion"),
+                        ([], "give the camera"), (["--camera", tmp_path / "cv.xml"], "is XML")):
+        r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", *args)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "new").exists()
