@@ -12,7 +12,7 @@ from psctl.errors import PsctlError
 from psctl.io.capture import open_capture
 from psctl.io.images import image_info, read_image, write_image
 from psctl.io.normals import write_normal_map
-from psctl.undistort import check_distortion, read_camera, remap, undistort_map
+from psctl.undistort import check_distortion, read_camera, remap, shift_picture, undistort_map
 from tests.conftest import hemisphere_lights, sphere
 from tests.test_cli import cli
 
@@ -356,3 +356,14 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
         r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", *args)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "new").exists()
+
+
+def test_shift_picture_has_room_for_its_labels():
+    from psctl.io.report import BACKGROUND
+
+    K = np.array([[1000.0, 0, 305.5], [0, 1000.0, 255.5], [0, 0, 1]])
+    for coeffs in ([-0.1, 0.02, 0, 0], [0.5, 0, 0, 0]):  # labels "7.0 PX" and "51 PX"
+        m = undistort_map(K, coeffs, (512, 612))
+        shift = np.hypot(m.x - np.arange(612), m.y - np.arange(512)[:, None])
+        pic = shift_picture(shift, m.valid, "ball")
+        assert np.allclose(pic[:, -2:], BACKGROUND)  # nothing cut off at the right edge

@@ -192,14 +192,17 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     s = max(2, min(h, w) // 200)  # text 14 px tall at least: legible at 100 % on DiLiGenT-sized maps
     lines = [text_bitmap(t, s) if t else None for t in title.split("\n")] if title else []
     line = 9 * s
-    top, bar_w, right = len(lines) * line + 3 * s, 10 * s, 44 * s
+    labels = labels or _degree_labels(vmax)
+    # room right of the map for the bar (at 4 s, 10 s wide) and its labels (2 s beyond it)
+    top, bar_w = len(lines) * line + 3 * s, 10 * s
+    right = max(44 * s, 18 * s + max(text_bitmap(t, s).shape[1] for t in labels.values()))
     bar = max(h, MIN_BAR)
     widths = [w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
     if unscored:
         widths.append(2 * s + _key_unscored(None, 0, 0, s))
     canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), BACKGROUND, np.float32)
     canvas[top:top + h, :w] = img
-    colour_bar(canvas, top, w + 4 * s, bar, bar_w, labels or _degree_labels(vmax), s)
+    colour_bar(canvas, top, w + 4 * s, bar, bar_w, labels, s)
     for i, bm in enumerate(lines):
         if bm is not None:
             _stamp(canvas, bm, 2 * s + i * line, 2 * s)
