@@ -212,8 +212,7 @@ def camera_from_K(K: "str | os.PathLike | np.ndarray") -> tuple[float, tuple[flo
     square: the sphere's pinhole has one focal length."""
     from psctl.depth import check_intrinsics, read_intrinsics
 
-    check_path("K", K)
-    path = Path(K) if isinstance(K, (str, os.PathLike)) else None
+    path = Path(check_path("K", K)) if isinstance(K, (str, os.PathLike)) else None  # else an array
     M = read_intrinsics(path) if path is not None else check_intrinsics(K)
     fx, fy = float(M[0, 0]), float(M[1, 1])
     if abs(fx - fy) > 0.005 * max(fx, fy):
@@ -221,7 +220,7 @@ def camera_from_K(K: "str | os.PathLike | np.ndarray") -> tuple[float, tuple[flo
                                "pixels; resample the images to square pixels first")
     if max(fx, fy) > 1e7:
         raise PsctlError(path, f"focal length {max(fx, fy):g} pixels is above 1e7; leave out --K (orthographic)")
-    return (fx + fy) / 2, (float(M[0, 2]), float(M[1, 2])), f"K: {path}" if path is not None else "K"
+    return (fx + fy) / 2, (float(M[0, 2]), float(M[1, 2])), f"K: {os.path.abspath(path)}" if path is not None else "K"
 
 
 def exif_camera_focal(paths: Sequence[Path]) -> tuple[float, str]:
@@ -809,8 +808,11 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         cfg["focal"], focal_from = exif_camera_focal(cap.image_paths)
         notes.append(f"camera: focal length {cfg['focal']:.0f} pixels, from the images' EXIF ({focal_from})")
     camera = camera_config(cfg, (cap.height, cap.width))
-    k_file = find_intrinsics(cap.path) if camera is None else None  # psctl undistort's output, psctl depth's input
-    if k_file is not None:
+    k_file = None
+    if camera is None:
+        with contextlib.suppress(PsctlError):  # only for a note: two of them, or a folder of that name, are depth's business
+            k_file = find_intrinsics(cap.path)  # psctl undistort's output, psctl depth's input
+    if k_file is not None and k_file.is_file():
         notes.append(f"camera: {k_file} is not read by psctl calibrate, which takes the camera as orthographic "
                      f"unless told: --K {k_file} models that pinhole")
     out_dir = output_folder(out, cap.path)

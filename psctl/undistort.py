@@ -70,6 +70,9 @@ def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike |
             values = [float(v) for v in np.asarray(coeffs, dtype=np.float64).ravel()]
         except (TypeError, ValueError):
             raise PsctlError(where, "distortion must be 4, 5 or 8 numbers (k1, k2, p1, p2[, k3[, k4, k5, k6]])") from None
+    if len(values) in (12, 14):
+        raise PsctlError(where, f"{len(values)} distortion coefficients: OpenCV's thin-prism (s1-s4) and tilt "
+                                "(tauX, tauY) terms are not supported; psctl takes 4, 5 or 8 (k1,k2,p1,p2[,k3[,k4,k5,k6]])")
     if len(values) not in N_COEFFS:
         raise PsctlError(where, f"--distortion needs 4, 5 or 8 numbers (OpenCV's k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
                                 f"got {len(values)}")
@@ -86,6 +89,8 @@ def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike |
 # the names OpenCV's samples and common calibration scripts store the two under (any case)
 _K_KEYS = ("camera_matrix", "cameramatrix", "k", "mtx", "intrinsics", "intrinsic_matrix")
 _DIST_KEYS = ("distortion_coefficients", "dist_coeffs", "distcoeffs", "d", "dist", "distortion")
+# distortion_model values (ROS camera_info and others) that name this model; fisheye ones are refused
+_PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "radtan", "radial-tangential", "radial_tangential", "opencv")
 
 
 def read_camera(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -114,15 +119,32 @@ def read_camera(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     class _Loader(yaml.SafeLoader):
         pass
 
-    _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+    def _opencv(loader, suffix, node):  # !!opencv-matrix, !!opencv-nd-matrix, ...: their fields as they are
+        if isinstance(node, yaml.MappingNode):
+            return loader.construct_mapping(node, deep=True)
+        return loader.construct_sequence(node, deep=True) if isinstance(node, yaml.SequenceNode) \
+            else loader.construct_scalar(node)
+
+    _Loader.add_multi_constructor("tag:yaml.org,2002:opencv-", _opencv)
     body = "\n".join(line for line in text.splitlines() if not line.startswith("%YAML"))  # OpenCV: %YAML:1.0 or 1.2
     try:
-        data = json.loads(text) if text.lstrip().startswith("{") else yaml.load(body, Loader=_Loader)
+        try:
+            data = json.loads(text)
+        except ValueError:  # YAML (a flow mapping {K: ...} too)
+            data = yaml.load(body, Loader=_Loader)
     except (ValueError, yaml.YAMLError) as e:
         raise PsctlError(path, f"is not valid YAML or JSON ({' '.join(str(e).split())[:160]})") from None
     if not isinstance(data, dict):
         raise PsctlError(path, "holds no named values; expected camera_matrix and distortion_coefficients")
     keys = {str(k).lower(): v for k, v in data.items()}
+    spelt = {str(k).lower(): str(k) for k in data}
+    # a fisheye (equidistant) calibration has 4 coefficients too, of another model
+    model = str(keys.get("distortion_model", "plumb_bob")).strip().lower()
+    if keys.get("fisheye_model") not in (None, 0, False, "0") or model not in _PINHOLE_MODELS:
+        why = f"distortion_model {model}" if model not in _PINHOLE_MODELS else f"fisheye_model {keys['fisheye_model']}"
+        raise PsctlError(path, f"is a calibration of another lens model ({why}: a fisheye's?); psctl undistort takes "
+                               "OpenCV's standard model (k1, k2, p1, p2[, k3[, k4, k5, k6]]: plumb_bob, "
+                               "rational_polynomial)")
 
     def find(names: Sequence[str], what: str):
         for n in names:
@@ -133,7 +155,7 @@ def read_camera(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                 try:
                     return np.asarray(v, dtype=np.float64).ravel()
                 except (TypeError, ValueError):
-                    raise PsctlError(path, f"{n} is not a list of numbers") from None
+                    raise PsctlError(path, f"{spelt[n]} is not a list of numbers") from None
         raise PsctlError(path, f"has no {what} (looked for {', '.join(names)})")
 
     K = find(_K_KEYS, "camera matrix")
@@ -340,7 +362,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
         check_not_capture(out_dir, cap, written)
     # never over a file this run reads (an image linked from an earlier output, say)
     inputs = {os.path.realpath(p) for p in (*cap.input_paths, *copies, *([list_file] if list_file else []))}
-    clash = [n for n in written if os.path.realpath(out_dir / n) in inputs]
+    clash = [n for n in (*written, *sorted(own)) if os.path.realpath(out_dir / n) in inputs]  # own: replaced
     if clash:
         raise PsctlError(out_dir / clash[0], "is an input of this capture; choose another --out")
     check_inputs_kept(out_dir, written, [("--camera" if camera is not None else "--K", K_path)])

@@ -506,6 +506,10 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     r = json.loads(cli("calibrate", folder, "-s", "matte", "--K", folder / "K.txt", "--json", "--out", tmp_path / "k",
                        check=True).stdout)
     assert r["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": f"K: {folder / 'K.txt'}"}
+    from psctl.calibrate import run_calibrate
+
+    arr = run_calibrate(folder, "matte", K=np.array([[260.0, 0, 99.5], [0, 260.0, 74.5], [0, 0, 1]]), write=False)
+    assert arr["camera"] == {"focal": 260.0, "principal": [99.5, 74.5], "from": "K"}
     assert np.array_equal(np.loadtxt(tmp_path / "k" / "light_directions.txt"),
                           np.loadtxt(tmp_path / "f" / "light_directions.txt"))
     (tmp_path / "oblong.txt").write_text("260 0 99.5\n0 250 74.5\n0 0 1\n")

@@ -263,12 +263,15 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", K, *d, check=True)
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "und" / "K.txt", *d)
     assert r.returncode == 2 and "is the --K file this run reads" in r.stderr
-    # a capture whose images are an earlier output's (linked): never written over
-    (tmp_path / "linked").mkdir()
-    for name in ("a.png", "b.png", "c.png"):
-        (tmp_path / "linked" / name).symlink_to(tmp_path / "und" / name)
-    r = cli("undistort", tmp_path / "linked", "-o", tmp_path / "und", "--K", K, "-d", "0.3,0,0,0")
-    assert r.returncode == 2 and "is an input of this capture" in r.stderr
+    # a capture whose images are an earlier output's (linked): never written over, nor removed as
+    # that output's stale files (under other names here)
+    for folder, prefix in (("linked", ""), ("renamed", "x")):
+        (tmp_path / folder).mkdir()
+        for name in ("a.png", "b.png", "c.png"):
+            (tmp_path / folder / (prefix + name)).symlink_to(tmp_path / "und" / name)
+        r = cli("undistort", tmp_path / folder, "-o", tmp_path / "und", "--K", K, "-d", "0.3,0,0,0")
+        assert r.returncode == 2 and "is an input of this capture" in r.stderr, (folder, r.stderr)
+        assert all((tmp_path / "und" / n).is_file() for n in ("a.png", "b.png", "c.png"))
     # what the output could not read back: a light file that does not match the images, data
     # under another format's name
     (tmp_path / "obj" / "light_intensities.txt").write_text("1 1 1\n")
@@ -326,7 +329,10 @@ OPENCV_JSON = """{
 def test_read_camera_takes_opencvs_calibration_files(tmp_path):
     K = [[812.5, 0, 319.5], [0, 810.25, 241.0], [0, 0, 1]]
     d = [-0.28, 0.09, 0.0012, -0.0007, -0.015, 0, 0, 0]
-    files = {"cv.yml": OPENCV_YAML, "cv1.yml": OPENCV_YAML.replace("%YAML 1.2", "%YAML:1.0"),  # older OpenCV
+    nd = "points: !!opencv-nd-matrix\n   sizes: [ 2, 1, 2 ]\n   dt: f\n   data: [ 1., 2., 3., 4. ]\n"
+    files = {"cv.yml": OPENCV_YAML, "nd.yml": OPENCV_YAML + nd,  # other OpenCV nodes beside
+             "flow.yaml": "{K: [812.5, 0, 319.5, 0, 810.25, 241, 0, 0, 1], D: [-0.28, 0.09, 0.0012, -0.0007, -0.015],"
+                          " distortion_model: plumb_bob}\n", "cv1.yml": OPENCV_YAML.replace("%YAML 1.2", "%YAML:1.0"),  # older OpenCV
              "cv.json": OPENCV_JSON, "plain.yaml": "K: [[812.5, 0, 319.5], [0, 810.25, 241], [0, 0, 1]]\n"
              "D: [-0.28, 0.09, 0.0012, -0.0007, -0.015]\n"}
     for name, text in files.items():
@@ -338,7 +344,13 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
            "k6.yml": ("K: [1, 0, 1, 0, 1, 1]\nD: [0, 0, 0, 0]\n", "has 6 numbers"),
            "cv.xml": ("<?xml version=\"1.0\"?>\n<opencv_storage/>\n", "is XML"),
            "broken.yml": ("K: [1, 2\n", "is not valid YAML or JSON"),
-           "list.yml": ("- 1\n- 2\n", "holds no named values")}
+           "list.yml": ("- 1\n- 2\n", "holds no named values"),
+           "fisheye.yml": (OPENCV_YAML.replace("image_width: 640", "fisheye_model: 1"), "fisheye_model 1"),
+           "ros.yaml": ("distortion_model: equidistant\nK: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nD: [0, 0, 0, 0]\n",
+                        "distortion_model equidistant"),
+           "tilt.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nD: [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]\n",
+                        "tilt"),
+           "nan.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nDist: [.Nan, 0, 0, 0]\n", "Dist is not a list of numbers")}
     for name, (text, words) in bad.items():
         (tmp_path / name).write_text(text)
         with pytest.raises(PsctlError, match=words) as e:

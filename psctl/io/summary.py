@@ -168,7 +168,7 @@ def _intrinsics(folder: Path) -> dict | None:
             return None
         K = read_intrinsics(path)
     except PsctlError as e:  # psctl depth will stop on it: said here, not refused
-        return {"file": Path(e.path).name if e.path else "K.txt", "error": e.message}
+        return {"file": Path(e.path).name if e.path and Path(e.path) != folder else "K.txt", "error": e.message}
     return {"file": path.name, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
 
 
@@ -295,8 +295,10 @@ def render_info(report: dict) -> None:
     if k and "error" in k:
         t.add_row("intrinsics", escape(f"{k['file']}: cannot be read ({k['error']}); psctl depth stops on it"))
     elif k:
+        square = abs(k["fx"] - k["fy"]) <= 0.005 * max(k["fx"], k["fy"])  # what psctl calibrate --K takes
         t.add_row("intrinsics", escape(f"{k['file']}: fx {k['fx']:g}, fy {k['fy']:g}, principal point {k['cx']:g}, "
-                                       f"{k['cy']:g} (psctl depth's pinhole camera; psctl calibrate --K)"))
+                                       f"{k['cy']:g} (psctl depth's pinhole camera"
+                                       + ("; psctl calibrate --K)" if square else ")")))
     if r.get("ambient"):
         decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
