@@ -207,6 +207,9 @@ def camera_config(cfg: dict, shape: tuple[int, int]) -> tuple[float, float, floa
     return float(cfg["focal"]), float(px), float(py)
 
 
+SQUARE_PIXELS = 0.005  # --K: fx and fy may differ by this fraction (their mean is the one focal length)
+
+
 def camera_from_K(K: "str | os.PathLike | np.ndarray") -> tuple[float, tuple[float, float], str]:
     """(focal, (cx, cy), where from) of a 3 x 3 camera matrix (a file or an array) whose pixels are
     square: the sphere's pinhole has one focal length."""
@@ -215,7 +218,7 @@ def camera_from_K(K: "str | os.PathLike | np.ndarray") -> tuple[float, tuple[flo
     path = Path(check_path("K", K)) if isinstance(K, (str, os.PathLike)) else None  # else an array
     M = read_intrinsics(path) if path is not None else check_intrinsics(K)
     fx, fy = float(M[0, 0]), float(M[1, 1])
-    if abs(fx - fy) > 0.005 * max(fx, fy):
+    if abs(fx - fy) > SQUARE_PIXELS * max(fx, fy):
         raise PsctlError(path, f"fx {fx:g} and fy {fy:g} differ by over 0.5 %: psctl calibrate's pinhole has square "
                                "pixels; resample the images to square pixels first")
     if max(fx, fy) > 1e7:

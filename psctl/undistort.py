@@ -49,6 +49,7 @@ COEFF_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike | None = None) -> np.ndarray:
     """OpenCV's coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]] as float64 [8] (missing ones 0);
     text is comma- or space-separated numbers."""
+    what = "--distortion" if where is None else "the distortion coefficients"
     if coeffs is None:
         raise PsctlError(where, "--distortion is required: 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]])")
     if isinstance(coeffs, str):
@@ -63,7 +64,7 @@ def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike |
                 raise ValueError
             values = [float(p) for p in parts]
         except ValueError:
-            raise PsctlError(where, f"--distortion must be 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
+            raise PsctlError(where, f"{what} must be 4, 5 or 8 numbers (k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
                                     f"not {coeffs!r}") from None
     else:
         try:
@@ -74,13 +75,13 @@ def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike |
         raise PsctlError(where, f"{len(values)} distortion coefficients: OpenCV's thin-prism (s1-s4) and tilt "
                                 "(tauX, tauY) terms are not supported; psctl takes 4, 5 or 8 (k1,k2,p1,p2[,k3[,k4,k5,k6]])")
     if len(values) not in N_COEFFS:
-        raise PsctlError(where, f"--distortion needs 4, 5 or 8 numbers (OpenCV's k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
+        raise PsctlError(where, f"{what} needs 4, 5 or 8 numbers (OpenCV's k1,k2,p1,p2[,k3[,k4,k5,k6]]), "
                                 f"got {len(values)}")
     if not np.isfinite(values).all():
-        raise PsctlError(where, "--distortion contains NaN or infinite values")
+        raise PsctlError(where, f"{what} {'contain' if where else 'contains'} NaN or infinite values")
     if max(abs(v) for v in values) > 1e6:
-        raise PsctlError(where, "--distortion has a coefficient above 1e6: OpenCV's coefficients are for "
-                                "normalised coordinates (pixels / focal length), not pixels")
+        raise PsctlError(where, f"{what} {'have' if where else 'has'} a coefficient above 1e6: OpenCV's "
+                                "coefficients are for normalised coordinates (pixels / focal length), not pixels")
     out = np.zeros(8)
     out[:len(values)] = values
     return out
@@ -255,12 +256,6 @@ def _write_dtype(dtype: str, bits: int, suffix: str) -> str:
     return "uint8" if bits <= 8 else "uint16"
 
 
-def _list_file(cap: "Capture") -> Path | None:
-    from psctl.io.capture import LIST_FILES, _first_existing
-
-    return _first_existing(cap.path, list(cap.path.iterdir()), LIST_FILES, "image lists")
-
-
 # what each extension is written as (OpenImageIO picks the format by the name)
 _EXT_FORMAT = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
 
@@ -309,7 +304,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     from psctl.depth import check_intrinsics, read_intrinsics
     from psctl.io.atomic import (check_inputs_kept, check_output_dir, read_outputs_list, replaced_notes, staged_outputs,
                                  write_bytes_atomic, write_outputs_list)
-    from psctl.io.capture import check_not_capture, load_ground_truth, load_mask, open_capture
+    from psctl.io.capture import check_not_capture, holds_capture, load_ground_truth, load_mask, open_capture
     from psctl.io.images import read_image, write_image
     from psctl.io.report import write_json
 
@@ -340,7 +335,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     images = [*cap.image_paths, *([cap.ambient_path] if cap.ambient_path is not None else [])]
     bare = _check_capture(cap, images)
     out_dir = Path(out)
-    list_file = _list_file(cap)
+    list_file = cap.list_path
     copies = [p for p in (cap.lights_path, cap.intensities_path) if p is not None]
     names = [p.name for p in images] + [p.name for p in copies] + ([list_file.name] if list_file is not None else [])
     written = (*names, K_FILE, MASK_FILE, GT_FILE, PICTURE_FILE, REPORT_FILE)
@@ -349,11 +344,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     if own and os.path.realpath(out_dir) != os.path.realpath(cap.path):
         # an earlier psctl undistort's folder: replaced, unless it holds someone's capture files
         # besides (files added since that are not a capture's, such as light files, may stay)
-        from psctl.io.capture import AMBIENT_FILES, GT_FILES, LIST_FILES, MASK_FILES, _image_files
-
-        foreign = [e for e in out_dir.iterdir() if e.is_file() and e.name not in own and not e.name.startswith(".")]
-        named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, *GT_FILES, *AMBIENT_FILES)}
-        if _image_files(foreign) or any(e.name.lower() in named for e in foreign):
+        if holds_capture(out_dir, ignore=own):
             check_not_capture(out_dir, cap, written)
         if (out_dir / "psctl").is_dir():
             notes.append(f"outputs: {out_dir / 'psctl'} holds results computed from the earlier undistorted images; "
@@ -415,8 +406,8 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     if gt is not None:
         outputs_names.append(GT_FILE)
     if len(set(n.lower() for n in outputs_names)) != len(outputs_names):
-        clash = next(n for n in outputs_names if [o.lower() for o in outputs_names].count(n.lower()) > 1)
-        raise PsctlError(cap.path / clash, "is named like another file psctl undistort writes; rename it")
+        twice = next(n for n in outputs_names if [o.lower() for o in outputs_names].count(n.lower()) > 1)
+        raise PsctlError(cap.path / twice, "is named like another file psctl undistort writes; rename it")
     notes += replaced_notes(out_dir, outputs_names, COMMAND)
     valid_shift = shift[m.valid]
     report = {

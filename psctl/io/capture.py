@@ -76,6 +76,7 @@ class Capture:
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
+    list_path: Path | None = None  # the image list (filenames.txt or names.txt), when the folder has one
     near: NearLights | None = None  # point lights: iter_images divides out their falloff (psctl.nearlight)
 
     @property
@@ -162,18 +163,19 @@ def _image_files(entries: list[Path]) -> list[Path]:
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def holds_capture(path: str | os.PathLike) -> bool:
+def holds_capture(path: str | os.PathLike, ignore: Iterable[str] = ()) -> bool:
     """Whether ``path`` holds someone's capture (images other than psctl's outputs, an image list,
     a mask, an ambient image or ground truth): never an output folder, where psctl's files would overwrite its
     inputs or be read as its ground truth. Light files alone do not count (psctl lights writes
-    them)."""
+    them). ``ignore``: names of files that are psctl's own there (an earlier psctl undistort's)."""
     path = Path(path)
     if not path.is_dir():
         return False
     named = {n.lower() for n in (*LIST_FILES, *MASK_FILES, "Normal_gt.mat", "Normal_gt.png", "Normal_gt.exr",
                                  *AMBIENT_FILES)}
     # any case, as open_capture matches them (_first_existing)
-    entries = list(path.iterdir())
+    ignore = set(ignore)
+    entries = [p for p in path.iterdir() if p.name not in ignore]
     return any(p.name.lower() in named for p in entries) or bool(_image_files(entries))
 
 
@@ -613,6 +615,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         pages=tuple(i.pages for i in infos), lights_path=lights_path, intensities_path=intensities_path,
+        list_path=list_file,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )

@@ -295,7 +295,9 @@ def render_info(report: dict) -> None:
     if k and "error" in k:
         t.add_row("intrinsics", escape(f"{k['file']}: cannot be read ({k['error']}); psctl depth stops on it"))
     elif k:
-        square = abs(k["fx"] - k["fy"]) <= 0.005 * max(k["fx"], k["fy"])  # what psctl calibrate --K takes
+        from psctl.calibrate import SQUARE_PIXELS
+
+        square = abs(k["fx"] - k["fy"]) <= SQUARE_PIXELS * max(k["fx"], k["fy"])  # what psctl calibrate --K takes
         t.add_row("intrinsics", escape(f"{k['file']}: fx {k['fx']:g}, fy {k['fy']:g}, principal point {k['cx']:g}, "
                                        f"{k['cy']:g} (psctl depth's pinhole camera"
                                        + ("; psctl calibrate --K)" if square else ")")))
