@@ -284,6 +284,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     if path.suffix.lower() in (".jpg", ".jpeg"):  # psctl undistort's copies: as little loss as JPEG allows
         spec.attribute("Compression", "jpeg:100")
         spec.attribute("jpeg:subsampling", "4:4:4")
+    if path.suffix.lower() == ".png":  # zlib level 4, not OpenImageIO's 6: a 16-bit photo (psctl undistort's,
+        spec.attribute("png:compressionLevel", 4)  # synth's) writes 2.8x faster, 6 % larger; maps alike
     if path.suffix.lower() == ".exr":
         spec.attribute("compression", "zip")
         spec.attribute("DateTime", "")  # no write time in the header: the same run gives the same bytes
