@@ -813,6 +813,35 @@ def test_weights_with_nan_are_refused(tmp_path):
         read_weights(tmp_path / "authors.pth.tar")
 
 
+def test_loading_weights_builds_no_throwaway_network(tmp_path):
+    """Loading a weights file makes each tensor once, from the file: no random initialisation and no
+    meta-tensor allocation, which import torch._dynamo and sympy (2.7 s of a psctl normals run on
+    the 2-core VM, session 58). In a fresh interpreter, since this one may have imported them."""
+    import subprocess
+    import sys
+
+    from psctl.models.lcnet import LCNet
+
+    save_weights(tmp_path / "p.pt", model(), {"method": "ps-fcn-n", "train_images": 32})
+    lc = LCNet().eval()
+    save_weights(tmp_path / "l.pt", lc.half(), {"method": "lcnet", "train_images": 32})  # stored in float16
+    code = (
+        "import sys, torch\n"
+        "from psctl.models.weights import load_network, read_weights\n"
+        "torch.manual_seed(0); before = torch.rand(3)\n"
+        "torch.manual_seed(0)\n"
+        "for method, f in (('ps-fcn-n', 'p.pt'), ('lcnet', 'l.pt')):\n"
+        "    net, _, w = load_network(method, sys.argv[1] + '/' + f)\n"
+        "    for k, t in net.state_dict().items():\n"
+        "        assert t.dtype == torch.float32 and torch.equal(t, w.state_dict[k].float()), k\n"
+        "        assert t.untyped_storage().data_ptr() != w.state_dict[k].untyped_storage().data_ptr(), k\n"
+        "assert torch.equal(torch.rand(3), before), 'the global generator moved'\n"
+        "print(sorted(m for m in ('torch._dynamo', 'sympy') if m in sys.modules))\n")
+    p = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]"
+
+
 def test_folder_and_in_memory_paths_agree(tmp_path):
     """capture_normals (images streamed from disk, divided by their intensities) and array_normals
     on load_images of the same folder give the same normals (an analysis once seemed to disagree:

@@ -108,8 +108,8 @@ class LCNet(nn.Module):
             raise ValueError(f"size must be in [1, {MAX_SIZE}], got {c['size']}")
         self.featExtractor = FeatExtractor(4 if c["in_mask"] else 3, c["slope"])
         self.classifier = Classifier(c["dirs_cls"], c["ints_cls"], c["slope"])
-        for m in self.modules():  # the authors' initialisation
-            if isinstance(m, nn.Conv2d):
+        for m in self.modules():  # the authors' initialisation (not on the meta device: see PSFCN)
+            if isinstance(m, nn.Conv2d) and not m.weight.is_meta:
                 nn.init.kaiming_normal_(m.weight)
                 nn.init.zeros_(m.bias)
 

@@ -383,16 +383,22 @@ def build_network(weights: Weights, method: str,
                   device: "str | torch.device" = "cpu") -> tuple["PSFCN | LCNet", dict]:
     """The network with ``weights`` loaded (eval mode), and how to run it (see ``for_method``).
 
-    The layers are made on the meta device (shapes, no values), given empty memory, then the
-    file's values: building them on the CPU drew throwaway initial weights from torch's global
+    The layers are made on the meta device (shapes, no values), then given fresh memory holding
+    the file's values: building them on the CPU drew throwaway initial weights from torch's global
     generator, which shifted a caller's seeded stream (and saving and restoring it instead would
     replay numbers to the caller's other threads). Copied into fresh memory, not assigned: the
     file's own tensors gave LCNet outputs 1e-5 apart (the same values, other allocations)."""
     run = for_method(weights, method)
     model, name = _network(weights, method, run)
     check_state_dict(weights.path, weights.state_dict, model, name)
-    model = model.to_empty(device="cpu")
-    model.load_state_dict(weights.state_dict, strict=True)  # an LCNet stored in float16 is cast to its float32
+    import torch
+
+    # fresh CPU memory per tensor (not Module.to_empty: its empty_like of meta tensors imports torch's
+    # meta registrations and sympy, 0.9 s of every run); copy_ casts an LCNet stored in float16
+    with torch.no_grad():
+        fresh = {k: torch.empty(t.shape, dtype=t.dtype).copy_(weights.state_dict[k])
+                 for k, t in model.state_dict().items()}
+    model.load_state_dict(fresh, strict=True, assign=True)
     return model.to(device).eval(), run
 
 
