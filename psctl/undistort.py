@@ -260,6 +260,9 @@ def _write_dtype(dtype: str, bits: int, suffix: str) -> str:
     return "uint8" if bits <= 8 else "uint16"
 
 
+# files a file manager leaves in any folder it shows: an --out holding only these counts as empty
+_SYSTEM_FILES = (".DS_Store", "Thumbs.db", "desktop.ini")
+
 # what each extension is written as (OpenImageIO picks the format by the name)
 _EXT_FORMAT = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "openexr"}
 
@@ -308,7 +311,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     from psctl.depth import check_intrinsics, read_intrinsics
     from psctl.io.atomic import (check_inputs_kept, check_output_dir, read_outputs_list, replaced_notes, staged_outputs,
                                  write_bytes_atomic, write_outputs_list)
-    from psctl.io.capture import check_not_capture, holds_capture, load_ground_truth, load_mask, open_capture
+    from psctl.io.capture import GT_FILES, check_not_capture, holds_capture, load_ground_truth, load_mask, open_capture
     from psctl.io.images import read_image, write_image
     from psctl.io.report import write_json
 
@@ -349,12 +352,26 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
         # an earlier psctl undistort's folder: replaced, unless it holds someone's capture files
         # besides (files added since that are not a capture's, such as light files, may stay)
         if holds_capture(out_dir, ignore=own):
-            check_not_capture(out_dir, cap, written)
+            check_not_capture(out_dir, cap, written, default_out=None)
+        gt_names = {g.lower() for g in GT_FILES}
+        stray = sorted(p.name for p in out_dir.iterdir() if p.name.lower() in gt_names and p.name not in own)
+        if stray:  # psctl normals' normal.png, say: read before Normal_gt.exr, it would score the new capture
+            raise PsctlError(out_dir / stray[0], "was not written by psctl undistort and would be read as the "
+                                                 "undistorted capture's ground truth: move it away or choose "
+                                                 "another --out")
         if (out_dir / "psctl").is_dir():
             notes.append(f"outputs: {out_dir / 'psctl'} holds results computed from the earlier undistorted images; "
                          "run them again")
     else:
-        check_not_capture(out_dir, cap, written)
+        check_not_capture(out_dir, cap, written, default_out=None)
+        # a new or empty folder only (as the docs say): other files would join the capture, and a
+        # normal.png (psctl normals' output) would be read as its ground truth
+        others = sorted((p.name for p in out_dir.iterdir()
+                         if not p.name.startswith(".psctl-staging.") and p.name not in _SYSTEM_FILES),
+                        key=lambda n: (n.startswith("."), n)) if out_dir.is_dir() else []
+        if others:
+            raise PsctlError(out_dir, f"is not empty ({others[0]}{' ...' if len(others) > 1 else ''}) and is not "
+                                      "an earlier psctl undistort output: name a new or empty folder")
     # never over a file this run reads (an image linked from an earlier output, say)
     inputs = {os.path.realpath(p) for p in (*cap.input_paths, *copies, *([list_file] if list_file else []))}
     clash = [n for n in (*written, *sorted(own)) if os.path.realpath(out_dir / n) in inputs]  # own: replaced

@@ -259,6 +259,23 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     for out, words in ((tmp_path / "obj", "is the capture folder"), (tmp_path / "other", "holds a capture")):
         r = cli("undistort", tmp_path / "obj", "-o", out, "--K", K, *d)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "default" not in r.stderr  # --out has none here
+    # only a new or empty folder, or an earlier undistort output: a psctl normals output's
+    # normal.png would be read as the new capture's ground truth, other files would join it
+    cli("normals", tmp_path / "obj", "-m", "l2", "-o", tmp_path / "est", check=True)
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "notes.txt").write_text("x")
+    for out, words in (("est", "is not empty (error.png ...)"), ("notes", "is not empty (notes.txt)")):
+        before = _digest(tmp_path / out)
+        r = cli("undistort", tmp_path / "obj", "-o", tmp_path / out, "--K", K, *d)
+        assert r.returncode == 2 and words in r.stderr and "not an earlier psctl undistort output" in r.stderr, r.stderr
+        assert _digest(tmp_path / out) == before
+    (tmp_path / "finder").mkdir()
+    (tmp_path / "finder" / ".DS_Store").write_bytes(b"\0")  # empty as far as the user can see
+    cli("undistort", tmp_path / "obj", "-o", tmp_path / "finder", "--K", K, *d, check=True)
+    (tmp_path / "finder" / "normal.png").write_bytes((tmp_path / "est" / "normal.png").read_bytes())
+    r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "finder", "--K", K, *d)
+    assert r.returncode == 2 and "finder/normal.png: was not written by psctl undistort" in r.stderr, r.stderr
     # --K read from the folder it would be written into
     cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", K, *d, check=True)
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "und", "--K", tmp_path / "und" / "K.txt", *d)

@@ -179,14 +179,16 @@ def holds_capture(path: str | os.PathLike, ignore: Iterable[str] = ()) -> bool:
     return any(p.name.lower() in named for p in entries) or bool(_image_files(entries))
 
 
-def check_not_capture(out_dir: Path, capture: "Capture", names: Iterable[str] = ()) -> None:
+def check_not_capture(out_dir: Path, capture: "Capture", names: Iterable[str] = (),
+                      default_out: str | None = "PATH/psctl") -> None:
     """Refuse an output folder that is ``capture``'s own folder or holds a capture (``holds_capture``):
     its files are inputs (psctl lights' files would overwrite its light files, psctl normals'
     normal.png would become its ground truth); and one where an output of ``names`` is one of the
-    capture's inputs (an image listed by its path in filenames.txt, named like an output)."""
+    capture's inputs (an image listed by its path in filenames.txt, named like an output).
+    ``default_out``: the command's default --out, for the message (None: it has none)."""
     if os.path.realpath(out_dir) == os.path.realpath(capture.path):  # realpath: a link loop is no error here
         raise PsctlError(out_dir, "is the capture folder: its files are inputs and are never overwritten; "
-                                  "choose another --out (the default is PATH/psctl)")
+                                  "choose another --out" + (f" (the default is {default_out})" if default_out else ""))
     if holds_capture(out_dir):
         raise PsctlError(out_dir, "holds a capture (images, a mask, an ambient image or ground truth), whose files are inputs; "
                                   "choose another --out")
