@@ -26,19 +26,25 @@ from psctl.errors import PsctlError
 
 # Grey = ITU-R BT.601 luma, as MATLAB's rgb2gray (the DiLiGenT baseline code's convention).
 GREY = np.array([0.2989, 0.5870, 0.1140], np.float32)
-# a pixel whose brightest observation is at most this share of the brightest pixel's carries no
+# a pixel whose brightest observation is at most this share of the bright pixels' carries no
 # information: relative, so that a capture's units (its intensity file, a float image's range) do
-# not decide which pixels count (an absolute 1e-6 did, session 38)
+# not decide which pixels count (an absolute 1e-6 did, session 38). "The bright pixels'": the 99th
+# percentile of the pixels' peaks (the higher value), not the brightest one's, so that one hot
+# pixel (a cosmic-ray hit in a float image, 1e6 times the rest) does not make every other dark
 DARK = 1e-6
+DARK_QUANTILE = 0.99
 DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)  # what a dark pixel gets: facing the camera
 
 
 def dark_pixels(peak: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
-    """Pixels whose brightest observation ``peak`` [P] is at most DARK of the brightest one's (all,
-    when every pixel is 0), and with ``b`` [P, 3] (least squares' normal times albedo) those whose
-    solution is (relatively) zero."""
+    """Pixels whose brightest observation ``peak`` [P] is at most DARK of the bright pixels' (the
+    DARK_QUANTILE quantile of ``peak``, its higher value; all, when every pixel is 0), and with
+    ``b`` [P, 3] (least squares' normal times albedo) those whose solution is (relatively) zero."""
     def tiny(v: np.ndarray, share: float) -> np.ndarray:
-        return v <= share * (float(v.max()) if v.size else 0.0)
+        if not v.size:
+            return np.zeros(0, bool)
+        ref = float(np.quantile(v, DARK_QUANTILE, method="higher"))
+        return v <= share * (ref if ref > 0 else float(v.max()))
 
     dark = tiny(np.asarray(peak, np.float64), DARK)
     return dark if b is None else dark | tiny(np.linalg.norm(b, axis=1), 1e-12)

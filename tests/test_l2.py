@@ -69,6 +69,15 @@ def test_dark_pixels_get_a_defined_normal_and_are_counted(capture, tmp_path):
 
     peak = np.array([1.0, DARK, DARK * 1.001, 0.0])
     assert dark_pixels(peak).tolist() == [False, True, False, True]
+    # ... the bright pixels' (their 99th percentile), not one hot pixel's: a float image with one
+    # value a billion times the rest (a cosmic-ray hit) made every other pixel dark, (0, 0, 1)
+    hot = render_lambertian(n, m, lights)
+    hot[3, 16, 16] = 1e9
+    res, clean = l2_normals(hot, lights, m), l2_normals(render_lambertian(n, m, lights), lights, m)
+    assert not res.dark.any()
+    others = m.copy()
+    others[16, 16] = False
+    assert np.abs(res.normals[others] - clean.normals[others]).max() < 1e-5
 
 
 def test_l2_needs_three_images_and_non_coplanar_lights():
