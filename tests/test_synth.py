@@ -1364,3 +1364,24 @@ def test_the_same_seed_writes_the_same_bytes(tmp_path, monkeypatch):
     mat = next(tmp_path.glob("a/*/Normal_gt.mat"))
     n = scipy.io.loadmat(mat)["Normal_gt"]
     assert n.shape == (24, 24, 3) and np.array_equal(load_variable(mat, "Normal_gt"), n)
+
+
+def test_a_failed_synth_write_is_named_in_the_set_not_in_its_staging_folder(tmp_path, monkeypatch):
+    """A full disk while writing: the message names out/OBJECT/FILE, not the hidden staging folder
+    that is gone when the user reads it (a QA helper's finding, session 58)."""
+    import psctl.synth.write as W
+
+    real = W.write_object
+
+    def full_disk(folder, obj, images):
+        if obj.name == "blobby_02":
+            raise PsctlError(folder / "Normal_gt.mat", f"cannot write {folder / 'Normal_gt.mat'} (no space left on device)")
+        real(folder, obj, images)
+
+    monkeypatch.setattr(W, "write_object", full_disk)
+    out = tmp_path / "o"
+    with pytest.raises(PsctlError) as e:
+        W.write_preset(out, "blobby", seed=0, size=24, n_lights=6, k=2)
+    assert e.value.path == str(out / "blobby_02" / "Normal_gt.mat")
+    assert ".psctl-synth." not in str(e.value) and str(out / "blobby_02" / "Normal_gt.mat") in e.value.message
+    assert not out.exists()

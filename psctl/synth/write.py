@@ -476,6 +476,16 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             keep = True  # the earlier set's files are in the stage's backup: never deleted
             raise
         created = []  # the set is in place: the folders are its
+    except _RollbackFailed:
+        raise  # it names the kept backup in the stage, which is where the files are
+    except PsctlError as e:  # a write that failed (a full disk): named in the set, not in the stage,
+        if e.path is None:   # which is gone when the user reads the message
+            raise
+        try:
+            rel = Path(e.path).relative_to(stage)
+        except ValueError:
+            raise e from None
+        raise PsctlError(out / rel, e.message.replace(str(stage), str(out))) from None
     finally:
         if not keep:
             shutil.rmtree(stage, ignore_errors=True)
