@@ -240,6 +240,9 @@ def _user_errors() -> Iterator[None]:
             raise
         # the system refused a path (too long, permission denied, disk full, ...): the user's to fix
         what = e.strerror.lower() if e.strerror else (str(e) or type(e).__name__)
+        folder = _unsearchable(e.filename) if e.errno == errno.EACCES else None
+        if folder is not None:  # not the file's fault: psctl may only have been looking for it
+            _fail(f"{folder}: permission denied (the folder cannot be searched, so no file in it can be opened)")
         _fail(f"{e.filename}: {what}" + (f" ({e.filename2})" if e.filename2 else ""))
     except MemoryError as e:  # numpy's _ArrayMemoryError too: a capture too large for this machine's memory
         _fail(_out_of_memory(str(e)))
@@ -255,6 +258,23 @@ def _user_errors() -> Iterator[None]:
         with contextlib.suppress(OSError):
             _stderr().print("interrupted")
         raise typer.Exit(130) from None
+
+
+def _unsearchable(filename: "str | bytes | int") -> str | None:
+    """The outermost folder on the way to ``filename`` that this process may not search (no x
+    permission), or None. Python's Path.is_file() raises on such a path, so a probe for an optional
+    file (objects.txt) inside a capture folder without x would be blamed otherwise."""
+    import os
+
+    if not isinstance(filename, str):
+        return None
+    found, d = None, os.path.dirname(filename)
+    while d and not os.access(d, os.X_OK):
+        found, up = d, os.path.dirname(d)
+        if up == d:
+            break
+        d = up
+    return found
 
 
 def _stderr_is_terminal() -> bool:

@@ -2062,3 +2062,27 @@ def test_values_near_float32s_limit_give_one_line_and_the_right_advice(tmp_path)
     with pytest.raises(PsctlError, match=r"divided by its estimated light intensity \(0.25\) its values pass "
                                          r"float32's range; rescale the images$"):
         list(iter_images(lit_capture(cap, est)))
+
+
+def test_a_folder_that_cannot_be_searched_is_named(tmp_path, monkeypatch, capsys):
+    """Path.is_file() raises EACCES for a probe (objects.txt) inside a folder without x permission:
+    the message names that folder, not the file psctl was only looking for (a QA helper's
+    finding, session 58: "nox/objects.txt: permission denied" for a capture folder of mode 644)."""
+    import errno
+
+    import typer
+
+    from psctl.cli import _user_errors
+
+    blocked = str(tmp_path / "nox")
+    monkeypatch.setattr(os, "access", lambda p, mode, **k: not os.fspath(p).startswith(blocked))
+    with pytest.raises(typer.Exit) as e, _user_errors():
+        raise PermissionError(errno.EACCES, "Permission denied", os.path.join(blocked, "sub", "objects.txt"))
+    err = capsys.readouterr().err
+    assert e.value.exit_code == 2 and len(err.strip().splitlines()) == 1
+    assert f"{blocked}: permission denied (the folder cannot be searched" in err  # the outermost one
+    # a file that is itself unreadable, in a folder that can be searched, is named as before
+    with pytest.raises(typer.Exit), _user_errors():
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "a.png"))
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'a.png'}: permission denied" in err and "searched" not in err
