@@ -276,3 +276,27 @@ def test_other_variables_are_checked_but_not_kept(tmp_path):
     assert shapes == {"junk": (5_000_000, 1), "Normal_gt": (20, 30, 3)}
     assert peak < 12 << 20, peak  # a few blocks of 1 MB, not the 40 MB array
     assert load_variable(path, "junk").shape == (5_000_000, 1)  # asked for, it is read whole
+
+
+def test_ground_truth_beyond_float32_is_still_directions(tmp_path):
+    """Normal_gt.mat of finite doubles too large for float32 (1e300 times the unit normals) scores
+    as the unit normals do; an infinite value is still refused, by its pixel (a QA helper found
+    the first refused as "infinite values", session 58)."""
+    from psctl.api import run_normals
+    from psctl.errors import PsctlError
+    from tests.conftest import write_capture
+
+    data = write_capture(tmp_path / "c", n=6)
+    for f in (tmp_path / "c").glob("Normal_gt.*"):
+        f.unlink()
+    gt = np.where(data["mask"][..., None], data["normals"], 0.0).astype(np.float64)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt})
+    unit = run_normals(tmp_path / "c", "l2", write=False)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt * 1e300})
+    huge = run_normals(tmp_path / "c", "l2", write=False)
+    assert huge["n_evaluated_pixels"] == unit["n_evaluated_pixels"] > 0
+    assert abs(huge["mae"] - unit["mae"]) < 1e-6
+    gt[3, 4] = [np.inf, 0.0, 1.0]
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": gt})
+    with pytest.raises(PsctlError, match=r"infinite values \(first at row 3, column 4\)"):
+        run_normals(tmp_path / "c", "l2", write=False)

@@ -721,6 +721,14 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                                 "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                                 "Normal_gt.png an encoded image")
+        if raw.dtype.kind == "f" and raw.ndim == 3 and raw.size:
+            # finite vectors beyond float32's range are directions like any others: scaled down
+            # here, in their own precision, rather than cast to inf and refused as infinite
+            with np.errstate(invalid="ignore", over="ignore"):
+                big = np.abs(raw).max(axis=-1, keepdims=True)
+                huge = np.isfinite(big) & (big > 1e30)
+                if huge.any():
+                    raw = np.where(huge, raw / np.where(huge, big, 1.0), raw)
         with np.errstate(over="ignore"):  # beyond float32: inf, refused below
             gt = raw.astype(np.float32)
         gt = np.where(np.isnan(gt).any(axis=-1, keepdims=True), 0.0, gt) if gt.ndim == 3 else gt  # NaN: no normal
