@@ -722,6 +722,14 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     (cap / "light_directions.txt").write_bytes(b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR\xff\xfe")
     with pytest.raises(PsctlError, match=r"light_directions.txt: is not UTF-8 text \(binary data"):
         read_matrix(cap / "light_directions.txt", (3,), "light directions")
+    # rows of allowed but different widths: the first odd line is named, as every other row error is
+    (cap / "light_intensities.txt").write_text("# R G B or one value\n1 1 1\n\n1 1 1\n0.5\n1 1 1\n")
+    with pytest.raises(PsctlError, match=r"light_intensities.txt: line 5: 1 value, but line 2 has 3"):
+        read_matrix(cap / "light_intensities.txt", (1, 3), "light intensities")
+    lines: list[int] = []
+    (cap / "light_intensities.txt").write_text("# R G B\n1 1 1\n\n2 2 2\n")
+    assert read_matrix(cap / "light_intensities.txt", (1, 3), "light intensities", lines).shape == (2, 3)
+    assert lines == [2, 4]
     (cap / "filenames.txt").write_text("\n".join([*names, "Normal_gt.png"]) + "\n")
     write_image(cap / "Normal_gt.png", np.zeros((16, 16, 3)), "uint16")
     np.savetxt(cap / "light_directions.txt", np.vstack([data["lights"], [[0, 0, 1]]]))

@@ -283,6 +283,7 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
     """
     text = _read_utf8(path, what)
     rows: list[list[float]] = []
+    row_lines: list[int] = []
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -299,12 +300,16 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
         if not np.all(np.isfinite(values)):
             raise PsctlError(path, f"line {lineno}: NaN or infinite value")
         rows.append(values)
-        if lines is not None:
-            lines.append(lineno)
+        row_lines.append(lineno)
     if not rows:
         raise PsctlError(path, f"{what} file is empty")
-    if len({len(r) for r in rows}) > 1:
-        raise PsctlError(path, "rows have different numbers of values")
+    odd = next((k for k, r in enumerate(rows) if len(r) != len(rows[0])), None)
+    if odd is not None:
+        n = len(rows[odd])
+        raise PsctlError(path, f"line {row_lines[odd]}: {n} value{'s' if n != 1 else ''}, but line {row_lines[0]} "
+                               f"has {len(rows[0])}: rows have different numbers of values")
+    if lines is not None:
+        lines.extend(row_lines)
     return np.asarray(rows, dtype=np.float64)
 
 
