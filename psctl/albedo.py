@@ -283,7 +283,7 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         [H, W, 3] float32 albedo: per channel, the median of image / (n . l) over the counted
         images; 0 outside the mask and where no light reaches the normal.
     """
-    from psctl.arrays import as_images, as_lights, as_mask, plain
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, plain
 
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # [N, H, W, 3]
     lights = as_lights(lights, images.shape[0])
@@ -291,16 +291,21 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         raise PsctlError(None, "lights: the albedo needs light directions")
     mask = as_mask(mask, images.shape[1:3])
     mask = np.ones(images.shape[1:3], bool) if mask is None else mask
-    try:
-        normals = np.asarray(plain(normals), np.float32)
-    except (TypeError, ValueError):
-        raise PsctlError(None, "normals must be a numeric [H, W, 3] array") from None
+    check_not_black(images, mask)  # as estimate_normals: an all-zero map would look like an answer
+    raw = np.asarray(plain(normals))
+    if raw.dtype.kind not in "fi":  # unsigned: an encoded map's pixels ((n + 1) / 2), not vectors
+        raise PsctlError(None, f"normals must be real numbers (unit vectors), got dtype {raw.dtype}"
+                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
+                                  if raw.dtype.kind in "ub" else ""))
+    normals = raw.astype(np.float32)
     if normals.shape != (*images.shape[1:3], 3):
         raise PsctlError(None, f"normals must be [H, W, 3] = {[*images.shape[1:3], 3]} (the images' size), "
                                f"got {list(normals.shape)}")
     if not np.isfinite(normals).all():
         raise PsctlError(None, "normals contain NaN or infinite values")
     try:
+        if isinstance(min_shading, (str, bytes, bool, np.bool_)):  # "0.1" or True is a mistake, not a number
+            raise TypeError
         min_shading = float(min_shading)
     except (TypeError, ValueError):
         raise PsctlError(None, f"min_shading must be a number in (0, 1], not {min_shading!r}") from None

@@ -122,7 +122,7 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
         raise PsctlError(None, f"lights row {bad[0] + 1}: NaN or infinite value")
     unit, bad = unit_rows(arr)
     if bad.size:
-        raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction")
+        raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction (shorter than 1e-6)")
     check_lights_face_camera(unit, None)
     return unit
 
@@ -137,13 +137,18 @@ def check_lights_face_camera(unit: np.ndarray, path: str | os.PathLike | None) -
 
 def unit_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Finite rows [N, 3] -> (the rows normalised, float32; the indices of rows shorter than 1e-6,
-    which have no direction). Rows are first scaled to a largest |value| of 1, so that 1e300 0 0
-    does not overflow; light_directions.txt and the array API share this."""
+    or than 1e-6 of the longest row where that is shorter than 1, which have no direction: 0 1e-7 0
+    beside 1 0 0 is a zero written with noise, while rows all scaled alike by 1e-7 are directions
+    like any others). Rows are first scaled to a largest |value| of 1, so that 1e300 0 0 does not
+    overflow; light_directions.txt and the array API share this."""
     rows = np.asarray(rows, np.float64)
     scale = np.abs(rows).max(axis=1)
     unit = rows / np.where(scale > 0, scale, 1.0)[:, None]
     length = np.linalg.norm(unit, axis=1)  # 1 to sqrt(3) for a nonzero row
-    bad = np.flatnonzero(scale < 1e-6 / np.maximum(length, 1.0))
+    with np.errstate(over="ignore"):  # a row near 1e308 is long: inf compares as such
+        full = scale * length
+    floor = 1e-6 * min(1.0, float(full.max()) if full.size else 0.0)
+    bad = np.flatnonzero((scale == 0) | (full < floor))
     return (unit / np.where(length > 0, length, 1.0)[:, None]).astype(np.float32), bad
 
 

@@ -144,7 +144,8 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
     """Depth map from a normal map.
 
     Args:
-        normals: [H, W, 3] normals, x right / y up / z toward the camera (need not be unit).
+        normals: [H, W, 3] normals, x right / y up / z toward the camera (need not be unit: any
+            length; 0, or shorter than 1e-8 (than 1e-8 of the longest where that is below 1), is no normal).
         mask: [H, W] bool, the pixels to integrate (default: every pixel with a nonzero normal).
         method: "poisson" (least squares) or "bilateral" (keeps depth discontinuities).
         K: [3, 3] camera intrinsics for a perspective camera; None for orthographic.
@@ -193,9 +194,16 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
 
     # --- per-pixel terms: gradient = t / s along columns (u) and rows (v) ------------------------
     n = normals.astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        length = np.linalg.norm(n, axis=-1)
-        finite = np.isfinite(n).all(axis=-1) & (length > 1e-8)
+    # any length (need not be unit): each pixel scaled to a largest |value| of 1 before its norm, so
+    # that 1e300 does not overflow; "no normal" is 0, or shorter than 1e-8 (of the longest normal
+    # where that is below 1: a map scaled by 1e-9 as a whole is normals like any others)
+    with np.errstate(invalid="ignore", over="ignore"):
+        big = np.abs(n).max(axis=-1)
+        finite = np.isfinite(n).all(axis=-1) & (big > 0)
+        n = np.where(finite[..., None], n / np.where(finite, big, 1.0)[..., None], 0.0)
+        length = np.linalg.norm(n, axis=-1)  # 1 to sqrt(3) where finite
+        full = np.where(finite, big * length, 0.0)
+    finite &= full > 1e-8 * min(1.0, float(full.max()) if full.size else 0.0)
     n = np.where(finite[..., None], n / np.where(finite, length, 1.0)[..., None], 0.0)
     nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
     if K is None:

@@ -35,6 +35,8 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
                                "the same shape [..., 3]")
     if mask is not None:  # [...] of the maps' shape: numbers read as in mask files, not as indices
         m = np.asarray(plain(mask))
+        if m.shape == (*normals.shape[:-1], 1):  # [H, W, 1], as the other array functions take it
+            m = m[..., 0]
         if m.shape != normals.shape[:-1]:
             raise PsctlError(None, f"angular_error: mask must be {list(normals.shape[:-1])}, got {list(m.shape)}")
         m = as_mask(m.reshape(1, -1), (1, m.size), allow_empty=True).reshape(m.shape)

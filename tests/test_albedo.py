@@ -159,6 +159,16 @@ def test_estimate_albedo_checks_its_arrays():
         psctl.estimate_albedo(images, lights, normals, mask, min_shading=0)
     with pytest.raises(psctl.PsctlError, match="light directions"):
         psctl.estimate_albedo(images, None, normals, mask)
+    # as estimate_normals and angular_error (a QA helper's findings): an encoded map's pixels, black
+    # images, a number given as text
+    encoded = np.round((normals + 1) / 2 * 255).astype(np.uint8)
+    with pytest.raises(psctl.PsctlError, match=r"got dtype uint8 \(decode a PNG's pixels first"):
+        psctl.estimate_albedo(images, lights, encoded, mask)
+    with pytest.raises(psctl.PsctlError, match="all images are black inside the mask"):
+        psctl.estimate_albedo(np.zeros_like(images), lights, normals, mask)
+    for bad_number in ("0.1", True):
+        with pytest.raises(psctl.PsctlError, match="min_shading must be a number"):
+            psctl.estimate_albedo(images, lights, normals, mask, min_shading=bad_number)
     # grey images and a normal map read back from 8 bits (not unit length) work
     grey = images[..., 1]
     got = psctl.estimate_albedo(grey, lights, normals * 0.98, mask)

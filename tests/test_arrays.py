@@ -48,6 +48,19 @@ def test_bad_arrays_are_one_error(data, change, needle):
             estimate_normals(i, L, m, method="l2")
 
 
+def test_light_rows_scaled_alike_are_directions(data):
+    """Rows all 1e-7 long are directions like any others (they were refused as zero-length, the
+    absolute floor being 1e-6; a QA helper's finding); one row 1e-7 long beside unit rows is still
+    a zero written with noise."""
+    images, lights, mask, _ = data
+    ref = estimate_normals(images, lights, mask, method="l2")
+    np.testing.assert_allclose(estimate_normals(images, lights * 1e-7, mask, method="l2"), ref, atol=1e-5)
+    odd = lights.copy()
+    odd[4] *= 1e-7
+    with pytest.raises(PsctlError, match="lights row 5: zero-length"):
+        estimate_normals(images, odd, mask, method="l2")
+
+
 def test_options_are_checked_for_l2_too(data):
     images, lights, mask, _ = data
     with pytest.raises(PsctlError, match="unknown --device 'gpu'"):
@@ -136,7 +149,8 @@ def test_angular_error_checks_its_inputs():
     normals, mask = sphere(16)
     other = normals[::-1].copy()
     ref = angular_error(normals, other, mask)
-    for m in (mask.astype(int), mask.astype(np.uint8) * 255, mask.astype(float)):  # numbers, not indices
+    for m in (mask.astype(int), mask.astype(np.uint8) * 255, mask.astype(float),  # numbers, not indices
+              mask[..., None]):  # [H, W, 1], as integrate_normals and estimate_normals take it
         assert np.array_equal(angular_error(normals, other, m), ref)
     assert angular_error(normals, other, np.zeros_like(mask)).size == 0  # an empty selection: no error values
     for args, needle in (((normals, other[:8]), "same shape"), ((normals, other[:1]), "same shape"),

@@ -260,6 +260,25 @@ def test_rejected_normals_are_counted_not_fatal():
     assert res.valid.sum() == mask.sum() - 4
 
 
+def test_normals_of_any_length_integrate_alike():
+    """Normals need not be unit: a map scaled as a whole by 1e-9 or 1e300 (float64) integrates as
+    the unit map does (both were refused as "NaN or zero", a QA helper's finding); one pixel
+    1e-12 as long as the rest is still "no normal"."""
+    import warnings
+
+    normals, mask, _ = surface("sphere", 32)
+    normals = normals.astype(np.float64)
+    ref = integrate(normals, mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for scale in (1e-9, 1e300, 1e-300):
+            res = integrate(normals * scale, mask)
+            assert res.n_rejected == 0 and np.allclose(res.depth[mask], ref.depth[mask], atol=1e-9), scale
+    tiny = normals.copy()
+    tiny[12, 10] *= 1e-12
+    assert integrate(tiny, mask).n_rejected_nan == 1
+
+
 def test_grazing_normals_count_as_the_grazing_limit():
     """A plane at 88 degrees (slope 33 px per px) integrates as slope nx / grazing_nz: 10 with the
     default 0.1 (rims are unreliable), 33 when the limit is below its nz."""

@@ -324,7 +324,7 @@ def read_lights(path: Path) -> np.ndarray:
     lines: list[int] = []
     unit, bad = unit_rows(read_matrix(path, (3,), "light directions", lines))
     if bad.size:
-        raise PsctlError(path, f"{_where(lines, bad[0])}: zero-length light direction")
+        raise PsctlError(path, f"{_where(lines, bad[0])}: zero-length light direction (shorter than 1e-6)")
     return unit
 
 
