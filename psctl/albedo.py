@@ -292,7 +292,10 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
     mask = as_mask(mask, images.shape[1:3])
     mask = np.ones(images.shape[1:3], bool) if mask is None else mask
     check_not_black(images, mask)  # as estimate_normals: an all-zero map would look like an answer
-    raw = np.asarray(plain(normals))
+    try:
+        raw = np.asarray(plain(normals))
+    except (TypeError, ValueError):  # ragged lists
+        raise PsctlError(None, "normals must be a numeric [H, W, 3] array") from None
     if raw.dtype.kind not in "fi":  # unsigned: an encoded map's pixels ((n + 1) / 2), not vectors
         raise PsctlError(None, f"normals must be real numbers (unit vectors), got dtype {raw.dtype}"
                                + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"

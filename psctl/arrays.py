@@ -135,21 +135,31 @@ def check_lights_face_camera(unit: np.ndarray, path: str | os.PathLike | None) -
                                "wants z toward the camera (x right, y up): negate the z column if yours points away")
 
 
+def unit_vectors(v: np.ndarray, floor: float, within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """[..., 3] vectors -> (unit vectors, float64, 0 where there is none; [...] bool, which have a
+    direction). One has none where it is not finite, is 0, or is not longer than ``floor`` (than
+    ``floor`` times the longest finite vector, among ``within`` [...] when given, where that is
+    shorter than 1: a set scaled as a whole by 1e-9 keeps its directions, one 1e-9 vector among
+    unit ones is a zero written with noise). Each vector is scaled to a largest |value| of 1 before
+    its norm, so that neither 1e300 nor 1e-300 overflows or underflows. Light rows, normal maps to
+    integrate and ground truth share this."""
+    v = np.asarray(v, np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        big = np.abs(v).max(axis=-1)
+        ok = np.isfinite(v).all(axis=-1) & (big > 0)
+        u = np.where(ok[..., None], v / np.where(ok, big, 1.0)[..., None], 0.0)
+        length = np.linalg.norm(u, axis=-1)  # 1 to sqrt(3) where ok
+        full = np.where(ok, big * length, 0.0)  # inf for a vector near 1e308: long, as it is
+    among = full if within is None else full[np.asarray(within, bool)]
+    ok &= full > floor * min(1.0, float(among.max()) if among.size else 0.0)
+    return np.where(ok[..., None], u / np.where(ok, length, 1.0)[..., None], 0.0), ok
+
+
 def unit_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Finite rows [N, 3] -> (the rows normalised, float32; the indices of rows shorter than 1e-6,
-    or than 1e-6 of the longest row where that is shorter than 1, which have no direction: 0 1e-7 0
-    beside 1 0 0 is a zero written with noise, while rows all scaled alike by 1e-7 are directions
-    like any others). Rows are first scaled to a largest |value| of 1, so that 1e300 0 0 does not
-    overflow; light_directions.txt and the array API share this."""
-    rows = np.asarray(rows, np.float64)
-    scale = np.abs(rows).max(axis=1)
-    unit = rows / np.where(scale > 0, scale, 1.0)[:, None]
-    length = np.linalg.norm(unit, axis=1)  # 1 to sqrt(3) for a nonzero row
-    with np.errstate(over="ignore"):  # a row near 1e308 is long: inf compares as such
-        full = scale * length
-    floor = 1e-6 * min(1.0, float(full.max()) if full.size else 0.0)
-    bad = np.flatnonzero((scale == 0) | (full < floor))
-    return (unit / np.where(length > 0, length, 1.0)[:, None]).astype(np.float32), bad
+    """Finite rows [N, 3] -> (the rows normalised, float32; the indices of rows with no direction:
+    ``unit_vectors`` with the floor 1e-6). light_directions.txt and the array API share this."""
+    unit, ok = unit_vectors(rows, 1e-6)
+    return unit.astype(np.float32), np.flatnonzero(~ok)
 
 
 def check_not_black(images: np.ndarray, mask: np.ndarray | None) -> None:

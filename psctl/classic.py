@@ -38,13 +38,13 @@ DEFAULT_NORMAL = np.array([0.0, 0.0, 1.0], np.float32)  # what a dark pixel gets
 
 def dark_pixels(peak: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
     """Pixels whose brightest observation ``peak`` [P] is at most DARK of the bright pixels' (the
-    DARK_QUANTILE quantile of ``peak``, its higher value; all, when every pixel is 0), and with
+    DARK_QUANTILE quantile, its higher value, of the peaks above 0: with 100 or fewer of those, the
+    brightest; all, when every pixel is 0), and with
     ``b`` [P, 3] (least squares' normal times albedo) those whose solution is (relatively) zero."""
     def tiny(v: np.ndarray, share: float) -> np.ndarray:
-        if not v.size:
-            return np.zeros(0, bool)
-        ref = float(np.quantile(v, DARK_QUANTILE, method="higher"))
-        return v <= share * (ref if ref > 0 else float(v.max()))
+        lit = v[v > 0]  # of the pixels with any light: a small object on a black frame has most at 0
+        ref = float(np.quantile(lit, DARK_QUANTILE, method="higher")) if lit.size else 0.0
+        return v <= share * ref
 
     dark = tiny(np.asarray(peak, np.float64), DARK)
     return dark if b is None else dark | tiny(np.linalg.norm(b, axis=1), 1e-12)

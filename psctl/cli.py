@@ -488,7 +488,7 @@ def calibrate(
 @app.command(cls=_Command)
 def undistort(
     path: Annotated[Path, typer.Argument(help="Capture folder whose photos were taken through a lens with distortion.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="New folder for the undistorted capture (images, mask.png, light files, K.txt).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="New or empty folder (or an earlier undistort output, replaced) for the undistorted capture (images, mask.png, light files, K.txt).")],
     K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics in pixels (as psctl depth reads them; OpenCV's camera matrix).")] = None,
     distortion: Annotated[Optional[str], typer.Option("--distortion", "-d", help="OpenCV's distortion coefficients k1,k2,p1,p2[,k3[,k4,k5,k6]].")] = None,
     camera: Annotated[Optional[Path], typer.Option("--camera", help="Instead of --K and --distortion: OpenCV's calibration file (cv2.FileStorage YAML or JSON: camera_matrix, distortion_coefficients).")] = None,

@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.arrays import as_mask, plain
+from psctl.arrays import as_mask, plain, unit_vectors
 from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
 
@@ -193,18 +193,9 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     K = None if K is None else check_intrinsics(K)
 
     # --- per-pixel terms: gradient = t / s along columns (u) and rows (v) ------------------------
-    n = normals.astype(np.float64)
-    # any length (need not be unit): each pixel scaled to a largest |value| of 1 before its norm, so
-    # that 1e300 does not overflow; "no normal" is 0, or shorter than 1e-8 (of the longest normal
-    # where that is below 1: a map scaled by 1e-9 as a whole is normals like any others)
-    with np.errstate(invalid="ignore", over="ignore"):
-        big = np.abs(n).max(axis=-1)
-        finite = np.isfinite(n).all(axis=-1) & (big > 0)
-        n = np.where(finite[..., None], n / np.where(finite, big, 1.0)[..., None], 0.0)
-        length = np.linalg.norm(n, axis=-1)  # 1 to sqrt(3) where finite
-        full = np.where(finite, big * length, 0.0)
-    finite &= full > 1e-8 * min(1.0, float(full.max()) if full.size else 0.0)
-    n = np.where(finite[..., None], n / np.where(finite, length, 1.0)[..., None], 0.0)
+    # any length (need not be unit); "no normal" is 0, or shorter than 1e-8 (than 1e-8 of the longest
+    # in the mask where that is below 1: a map scaled by 1e-9 as a whole is normals like any others)
+    n, finite = unit_vectors(normals, 1e-8, within=mask)
     nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
     if K is None:
         facing = nz  # the normal's component toward the (orthographic) camera
@@ -809,10 +800,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             mean_image[box] += img / cap.n_images
             advance(1)
     colors = display_colors(mean_image, valid)
-    n64 = nmap.astype(np.float64)  # float32's norm of normals scaled by 1e30 would overflow
-    with np.errstate(invalid="ignore"):
-        unit = np.where(valid[..., None], n64 / np.maximum(np.linalg.norm(n64, axis=-1, keepdims=True), 1e-12),
-                        0.0).astype(np.float32)
+    # normals of any length, as integrate took them (1e30 or 1e-13 times unit: unit in the mesh)
+    unit = np.where(valid[..., None], unit_vectors(nmap, 0.0)[0], 0.0).astype(np.float32)
     mesh = depth_mesh(res.depth, K, unit, colors, res.cut)
     recomputed = normals_from_points(depth_to_points(res.depth, K))
     shading = np.nan_to_num(shade(recomputed), nan=0.0)

@@ -293,8 +293,9 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     undoing a lens with OpenCV's ``distortion`` coefficients (or ``camera``: a calibration file
     with both, ``read_camera``); return the report (what ``psctl undistort --json`` prints).
 
-    ``out`` (required; never the capture folder nor another capture; an earlier psctl undistort
-    output is replaced) gets, all or none: every
+    ``out`` (required: a new or empty folder, a file manager's .DS_Store and the like aside, or an
+    earlier psctl undistort output, which is replaced; never the capture folder nor another
+    capture) gets, all or none: every
     image and the ambient image under its own name, format and bit depth (the stored values
     resampled bilinearly, upright as psctl reads them, without their EXIF block); mask.png (the
     folder's mask resampled, without the pixels that have no source in the photo; written only

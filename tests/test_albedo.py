@@ -164,6 +164,8 @@ def test_estimate_albedo_checks_its_arrays():
     encoded = np.round((normals + 1) / 2 * 255).astype(np.uint8)
     with pytest.raises(psctl.PsctlError, match=r"got dtype uint8 \(decode a PNG's pixels first"):
         psctl.estimate_albedo(images, lights, encoded, mask)
+    with pytest.raises(psctl.PsctlError, match=r"normals must be a numeric \[H, W, 3\] array"):  # ragged
+        psctl.estimate_albedo(images, lights, [[[0, 0, 1]] * 3, [[0, 0, 1]] * 2], mask)
     with pytest.raises(psctl.PsctlError, match="all images are black inside the mask"):
         psctl.estimate_albedo(np.zeros_like(images), lights, normals, mask)
     for bad_number in ("0.1", True):

@@ -277,6 +277,9 @@ def test_normals_of_any_length_integrate_alike():
     tiny = normals.copy()
     tiny[12, 10] *= 1e-12
     assert integrate(tiny, mask).n_rejected_nan == 1
+    # the floor is relative to the normals in the mask, not to those outside it
+    outside = np.where(mask[..., None], normals * 1e-9, [0.0, 0.0, 1.0])
+    assert integrate(outside, mask).n_rejected == 0
 
 
 def test_grazing_normals_count_as_the_grazing_limit():
@@ -483,12 +486,13 @@ def test_depth_estimates_the_normals_psctl_normals_gives(tmp_path, monkeypatch):
     assert r["normals"] == "estimated (psctl normals --method auto: l2)"
     assert [n for n in ref["notes"] if n not in r["notes"]] == []  # its notes too (auto fell back to l2)
     monkeypatch.setattr(D, "integrate", real)
-    np.save(tmp_path / "n.npy", got["normals"] * np.float32(1e30))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no overflow on the way
-        r = D.run_depth(tmp_path / "cap", normals=tmp_path / "n.npy", out=tmp_path / "o")
-    mesh = read_ply(tmp_path / "o" / "mesh.ply")
-    np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=-1), 1.0, atol=1e-5)
+    for k, scale in enumerate((1e30, 1e-13)):  # the mesh's normals unit either way (1e-13 gave 0.1 long)
+        np.save(tmp_path / "n.npy", got["normals"] * np.float32(scale))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no overflow on the way
+            r = D.run_depth(tmp_path / "cap", normals=tmp_path / "n.npy", out=tmp_path / f"o{k}")
+        mesh = read_ply(tmp_path / f"o{k}" / "mesh.ply")
+        np.testing.assert_allclose(np.linalg.norm(mesh.normals, axis=-1), 1.0, atol=1e-5)
 
 
 def test_depth_to_points_perspective_projects_back_to_its_pixels():

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.arrays import check_lights_face_camera, unit_rows
+from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_int, check_path
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.io.matfile import load_variable, variable_shapes
@@ -726,16 +726,9 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
             raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                                 "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                                 "Normal_gt.png an encoded image")
-        if raw.dtype.kind == "f" and raw.ndim == 3 and raw.size:
-            # finite vectors beyond float32's range are directions like any others: scaled down
-            # here, in their own precision, rather than cast to inf and refused as infinite
-            with np.errstate(invalid="ignore", over="ignore"):
-                big = np.abs(raw).max(axis=-1, keepdims=True)
-                huge = np.isfinite(big) & (big > 1e30)
-                if huge.any():
-                    raw = np.where(huge, raw / np.where(huge, big, 1.0), raw)
-        with np.errstate(over="ignore"):  # beyond float32: inf, refused below
-            gt = raw.astype(np.float32)
+        # float64, not float32: vectors beyond float32's range (1e300) or below it (1e-300) are
+        # directions like any others, normalised below
+        gt = raw.astype(np.float64)
         gt = np.where(np.isnan(gt).any(axis=-1, keepdims=True), 0.0, gt) if gt.ndim == 3 else gt  # NaN: no normal
         if gt.ndim != 3 or gt.shape[2] != 3:
             raise PsctlError(p, f"Normal_gt has shape {gt.shape}, expected H x W x 3")
@@ -756,9 +749,8 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
         bad = np.argwhere(~np.isfinite(gt))[0]  # NaN, a pixel without ground truth, was made 0 above
         raise PsctlError(p, f"ground truth contains infinite values (first at row {bad[0]}, column {bad[1]}); "
                             f"NaN marks a pixel without ground truth")
-    gt = gt.astype(np.float64)  # float32 squares overflow past ~1e19: a map of huge vectors is still directions
-    norm = np.linalg.norm(gt, axis=-1, keepdims=True)
-    return np.where(norm > 1e-6, gt / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    # any length: "no normal" is 0, or shorter than 1e-6 (than 1e-6 of the longest where that is below 1)
+    return unit_vectors(gt, 1e-6)[0].astype(np.float32)
 
 
 def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[slice, slice]:
