@@ -613,6 +613,12 @@ def train(
             raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
         # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
         cfg = load_config(config) if config is not None or resume is None else None
+        if cfg is not None and config is not None:  # the recipe against the network, named by its file
+            from psctl.errors import naming
+            from psctl.train import check_method_recipe
+
+            with naming(config):
+                check_method_recipe(method, cfg)
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
         con = _stderr()
         from rich.markup import escape

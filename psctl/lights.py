@@ -1185,6 +1185,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         {"lcnet": weights if weights is not None else installed_path("lcnet")}
     report["provenance"] = provenance(used, est.info["device"], started)
     report["notes"] += provenance_notes(report["provenance"])
+    if subset:  # an --images subset: which images and the seed, as psctl normals reports them
+        report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
+        report["seed"] = seed
     if write:
         from psctl.io.atomic import replaced_notes, write_outputs_list
         from psctl.io.report import write_json

@@ -220,6 +220,30 @@ def check_sizes(method: str, config: dict) -> None:
                                    f"layers), not {size}")
 
 
+def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
+    """What a checked recipe must hold for ``method``, before any run folder exists (``psctl
+    train`` names the recipe's file in these errors): its ``method`` label and PS-FCN's multiples
+    of 4 (``check_sizes``), data.windows only for PS-FCN†, wrong listed lights only for the
+    calibrated networks, and (``stream``: psctl's synth stream) the stream's options with the
+    training crop and the validation size."""
+    check_sizes(method, config)
+    if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
+        raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
+                               f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
+    val_data = {**config["data"], **(config["val"].get("data") or {})}
+    for key, what in (("intensity_error", "intensities"), ("direction_error", "directions")):
+        if (config["data"].get(key) or val_data.get(key)) and method not in ("ps-fcn", "ps-fcn-n"):
+            # only the calibrated networks are told the listed lights: LCNet learns them (its labels
+            # would be wrong), UPS-FCN never sees them and PS-FCN† gets LCNet's estimates
+            raise PsctlError(None, f"config 'data.{key}' (wrong listed {what}) is for calibrated training "
+                                   f"(ps-fcn, ps-fcn-n), not {method}")
+    if stream:  # bad stream options fail here, before the run folder exists
+        from psctl.synth.stream import make_config
+
+        make_config(config["data"], crop=config["train"]["crop"])
+        make_config(val_data, crop=config["val"]["size"])
+
+
 def memory_needed(config: dict, device: torch.device) -> float:
     """Bytes of host memory a run holds at least: the validation set (its stream batches and
     their network inputs side by side while it is made, float32), the validation stream's
@@ -1028,22 +1052,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if config is None:
         config = load_config(None)
     config = check_recipe(config)  # a recipe given as a dict, not through load_config
-    check_sizes(method, config)
-    if config["data"].get("windows") is not None and method != "ps-fcn-dagger":
-        raise PsctlError(None, f"config 'data.windows' is for ps-fcn-dagger (PS-FCN† trains on windows of the "
-                               f"view its LCNet sees); {method} trains on the stream's crops (train.crop)")
-    val_data = {**config["data"], **(config["val"].get("data") or {})}
-    for key, what in (("intensity_error", "intensities"), ("direction_error", "directions")):
-        if (config["data"].get(key) or val_data.get(key)) and method not in ("ps-fcn", "ps-fcn-n"):
-            # only the calibrated networks are told the listed lights: LCNet learns them (its labels
-            # would be wrong), UPS-FCN never sees them and PS-FCN† gets LCNet's estimates
-            raise PsctlError(None, f"config 'data.{key}' (wrong listed {what}) is for calibrated training "
-                                   f"(ps-fcn, ps-fcn-n), not {method}")
-    if make_stream is synth_stream:  # bad stream options fail here, before the run folder exists
-        from psctl.synth.stream import make_config
-
-        make_config(config["data"])
-        make_config(val_data)
+    check_method_recipe(method, config, stream=make_stream is synth_stream)
+    if make_stream is synth_stream:
         check_memory(config, dev)
     t = config["train"]
 

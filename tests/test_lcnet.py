@@ -829,8 +829,16 @@ def test_lights_subset_lists_its_images(tmp_path, fake_weights):
         run_lights(tmp_path / "cap", write=False, weights=fake_weights / "lcnet.pt", arrays=[])
     assert (out / "light_images.txt").read_text().split() == [names[i] for i in select_images(10, 3, 0)]
     assert r["outputs"]["light_images"] == str(out / "light_images.txt")
+    # the report says which images and the seed, as psctl normals' does (a QA helper's note)
+    assert r["images_used"] == [names[i] for i in select_images(10, 3, 0)] and r["seed"] is None
+    saved = json.loads((out / "lights_report.json").read_text())
+    assert saved["images_used"] == r["images_used"] and saved["seed"] is None
     assert any("seed 0" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
+    r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", n_images=3, seed=5,
+                   refine=False, views=1)
+    assert r["seed"] == 5 and r["images_used"] == [names[i] for i in select_images(10, 3, 5)]
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", refine=False, views=1)
+    assert "images_used" not in r and "seed" not in r
     assert not (out / "light_images.txt").exists() and "light_images" not in r["outputs"]
     assert any("removed light_images.txt" in n for n in r["notes"])
 

@@ -839,6 +839,21 @@ def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
     cfg["val"]["size"] = 30
     with pytest.raises(PsctlError, match="val.size' must be a multiple of 4"):  # --average --config measures on val
         average_weights([tmp_path / "a.pt", tmp_path / "b.pt"], tmp_path / "avg", cfg)
+    # psctl train names the recipe's file in these errors, as in its other recipe errors (a QA
+    # helper's finding); a crop larger than the views says when the scale was left unset
+    from tests.test_cli import cli
+
+    tiny_text = (REPO / "configs" / "tiny.yaml").read_text()
+    assert "crop: 16," in tiny_text
+    for name, text, words in (("crop18.yaml", tiny_text.replace("crop: 16,", "crop: 18,"),
+                               "config 'train.crop' must be a multiple of 4"),
+                              ("other.yaml", "method: lcnet\n" + tiny_text, "config 'method' is 'lcnet'"),
+                              ("big.yaml", tiny_text.replace("crop: 16,", "crop: 4096,"), "need 0 < crop <= size")):
+        (tmp_path / name).write_text(text)
+        r = cli("train", "ps-fcn", "--config", tmp_path / name, "--out", tmp_path / "r", "-q")
+        assert r.returncode == 2 and f"{tmp_path / name}: {words}" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "r").exists()
+    assert "(crop 4096, size 64, scale unset, so (crop, size);" in r.stderr
 
 
 def test_a_tampered_run_is_one_error_on_resume(tmp_path):

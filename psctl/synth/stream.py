@@ -316,12 +316,14 @@ def make_config(config: dict | None = None, **overrides: Any) -> dict:
     _check_options(cfg)
     if cfg["crop"] is None:
         cfg["crop"] = cfg["size"]
-    if cfg["scale"] is None:
+    unset = cfg["scale"] is None
+    if unset:
         cfg["scale"] = (cfg["crop"], cfg["size"])
     lo, hi = cfg["scale"]
     if not (0 < cfg["crop"] <= cfg["size"] and cfg["crop"] <= lo <= hi):
+        scale = "unset, so (crop, size)" if unset else str(tuple(cfg["scale"]))
         raise PsctlError(None, f"need 0 < crop <= size and crop <= scale lo <= hi (crop {cfg['crop']}, "
-                               f"size {cfg['size']}, scale {cfg['scale']}; in a recipe: crop is train.crop or "
+                               f"size {cfg['size']}, scale {scale}; in a recipe: crop is train.crop or "
                                f"val.size, size data.size, scale data.scale or val.data.scale)")
     if cfg["scale_law"] not in SCALE_LAWS:
         raise PsctlError(None, f"synth stream option 'scale_law': must be one of {', '.join(SCALE_LAWS)}, got {cfg['scale_law']!r}")
