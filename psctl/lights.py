@@ -966,9 +966,6 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
     _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
     grey = (0.6, 0.6, 0.6)
-    for zenith in (30.0, 60.0):  # each ring's angle from the view axis, where it crosses the lower-left diagonal
-        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
-        _stamp(canvas, text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s, grey)
     _stamp(canvas, text_bitmap("+Y", s), int(cy - radius) + 2 * s, int(cx) + 3 * s, grey)
     label = text_bitmap("+X", s)
     _stamp(canvas, label, int(cy) + 3 * s, int(cx + radius) - label.shape[1] - 2 * s, grey)
@@ -990,6 +987,15 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
             _disk(canvas, *at(g[k]), 5.0, 1.0, ring=1.5)
     for k in range(len(d)):
         _disk(canvas, *at(d[k]), 3.5, colours[k])
+    # each ring's angle from the view axis, where it crosses the lower-left diagonal: drawn last, in a
+    # dark outline, since DiLiGenT's lights cover the 30-degree label (a QA helper found it unreadable)
+    for zenith in (30.0, 60.0):
+        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
+        bm, y, x = text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s
+        for dy in (-s, 0, s):
+            for dx in (-s, 0, s):
+                _stamp(canvas, bm, y + dy, x + dx, (0.05, 0.05, 0.05))
+        _stamp(canvas, bm, y, x, grey)
     # colour bar: high intensities on top, its name above it
     ticks = [lo, *(v for v in (0.5, 1.0, 1.5) if lo < v < hi), hi]  # 1.0, the nominal intensity, among them
     labels = {(v - lo) / span: f"{v:.1f}" for v in ticks}

@@ -1022,7 +1022,7 @@ def test_error_map_draws_the_errors(tmp_path):
     err[30:, 20:30] = np.nan
     write_error_map(tmp_path / "e.png", err, mask, 12.5, 10.0)
     pic, info = read_image(tmp_path / "e.png")
-    k = 2  # a map under MIN_BAR (64) pixels tall is drawn in whole k x k blocks: 80 x 100 here
+    k = 3  # a map under LABELLED_BAR (96) pixels tall is drawn in whole k x k blocks: 120 x 150 here
     assert info.dtype == "uint8" and pic.shape[1] > 50 * k  # room for the bar
     top = 24  # one title line of 9 * s px and 3 * s px more, at text scale s = 2
     big = pic[top:top + 40 * k, :50 * k]
@@ -1112,12 +1112,16 @@ def test_an_image_at_or_below_zero_over_the_object_counts_as_black(tmp_path):
 
 
 def test_small_error_maps_are_drawn_large_enough_to_read(tmp_path):
-    from psctl.io.report import MIN_BAR, error_heatmap
+    from psctl.io.report import LABELLED_BAR, error_heatmap
 
-    for h, w in ((1, 1), (24, 24), (8, 512)):
+    for h, w in ((1, 1), (24, 24), (8, 512), (64, 64)):
         pic = error_heatmap(np.full((h, w), 10.0, np.float32), np.ones((h, w), bool), title="MAE 10.00")
-        assert pic.shape[0] >= MIN_BAR + 12  # the bar (and its four labels) at least MIN_BAR tall, under the title
+        assert pic.shape[0] >= LABELLED_BAR + 12  # the bar (and its labels) at least that tall, under the title
         assert pic.shape[1] <= 2048 + 88  # the bar and its labels at text scale 2
+        # the four labels a clear line apart (on a 64 px capture ">45" touched "30": a QA finding)
+        # (each label's leftmost match: "0°" is also found inside "30°")
+        rows = sorted(min(_text_at(pic, t, 2), key=lambda yx: yx[1])[0] for t in ("0°", "15°", "30°", ">45°"))
+        assert all(b - a >= 14 + 7 for a, b in zip(rows, rows[1:])), (h, w, rows)
 
 
 

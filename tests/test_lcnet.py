@@ -353,6 +353,15 @@ def test_light_files_and_plot(tmp_path):
         bm = text_bitmap(label, 2)
         assert any(np.array_equal(grey[y:y + bm.shape[0], x:x + bm.shape[1]] & bm, bm)
                    for y in range(grey.shape[0] - bm.shape[0]) for x in range(grey.shape[1] - bm.shape[1])), label
+    # ... whole even under a rig like DiLiGenT's, whose lights covered the 30-degree label (a QA finding)
+    gx, gy = np.meshgrid(np.linspace(-0.5, 0.5, 12), np.linspace(-0.45, 0.45, 8))
+    rig = np.stack([gx.ravel(), gy.ravel(), np.ones(96)], 1)
+    rig /= np.linalg.norm(rig, axis=1, keepdims=True)
+    busy = lights_plot(rig, np.ones(96), rig, radius=100)
+    grey = (np.abs(busy - 0.6) < 1e-6).all(-1)
+    bm = text_bitmap("30°", 2)
+    assert any(np.array_equal(grey[y:y + bm.shape[0], x:x + bm.shape[1]] & bm, bm)
+               for y in range(grey.shape[0] - bm.shape[0]) for x in range(grey.shape[1] - bm.shape[1]))
 
 
 # --- weights files ----------------------------------------------------------------------------

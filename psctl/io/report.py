@@ -153,7 +153,10 @@ def _degree_labels(vmax: float) -> dict[float, str]:
 
 
 BACKGROUND = 0.12  # dark grey behind the maps and text of the report pictures
-MIN_BAR = 64  # pixels: the shortest colour bar of an error or spread map
+MIN_BAR = 64  # pixels: the shortest colour bar of a benchmark sheet's maps
+# the shortest colour bar of error.png and spread.png: four labels 14 px tall about 32 px apart
+# (at 64 px they touched, ">45" on "30": a QA helper's finding on a 64 px capture)
+LABELLED_BAR = 96
 UNSCORED = 0.5  # grey: a mask pixel without a value (no ground truth there), apart from jet's 0 (dark blue)
 
 
@@ -184,9 +187,9 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     "\\n"). ``labels``: the colour bar's (fraction of vmax -> text; default degrees)."""
     img = heat(error, mask, vmax)
     unscored = bool((np.isnan(np.asarray(error, np.float32)) & np.asarray(mask, bool)).any())
-    # a small map is shown k times larger (whole pixels) and the colour bar is at least MIN_BAR tall,
-    # so that its four labels do not run into each other (a 24 x 24 capture)
-    k = max(1, min(-(-MIN_BAR // max(img.shape[0], 1)), 2048 // max(img.shape[1], 1)))
+    # a small map is shown k times larger (whole pixels) and the colour bar is at least LABELLED_BAR
+    # tall, so that its four labels do not run into each other (a 24 x 24 capture)
+    k = max(1, min(-(-LABELLED_BAR // max(img.shape[0], 1)), 2048 // max(img.shape[1], 1)))
     img = img.repeat(k, axis=0).repeat(k, axis=1)
     h, w = img.shape[:2]
     s = max(2, min(h, w) // 200)  # text 14 px tall at least: legible at 100 % on DiLiGenT-sized maps
@@ -196,7 +199,7 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     # room right of the map for the bar (at 4 s, 10 s wide) and its labels (2 s beyond it)
     top, bar_w = len(lines) * line + 3 * s, 10 * s
     right = max(44 * s, 18 * s + max(text_bitmap(t, s).shape[1] for t in labels.values()))
-    bar = max(h, MIN_BAR)
+    bar = max(h, LABELLED_BAR)
     widths = [w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
     if unscored:
         widths.append(2 * s + _key_unscored(None, 0, 0, s))
