@@ -1901,8 +1901,8 @@ def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path)
     repo = Path(__file__).resolve().parents[1]
     bad = cli("train", "ps-fcn", "--config", repo / "configs" / "ps_fcn_n_gpu_stage12.yaml", "--out", tmp_path / "x")
     assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
-        "error: config 'method' is 'ps-fcn-n': the recipe is for another network than ps-fcn; train ps-fcn-n with it, "
-        "or choose a ps-fcn recipe"]
+        f"error: {repo / 'configs' / 'ps_fcn_n_gpu_stage12.yaml'}: config 'method' is 'ps-fcn-n': the recipe is for "
+        "another network than ps-fcn; train ps-fcn-n with it, or choose a ps-fcn recipe"]
     assert not (tmp_path / "x").exists()
     good = cli("train", "ps-fcn", "--config", repo / "configs" / "tiny.yaml", "--out", tmp_path / "run", "--device", "cpu")
     assert good.returncode == 0, good.stderr
