@@ -283,7 +283,7 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         [H, W, 3] float32 albedo: per channel, the median of image / (n . l) over the counted
         images; 0 outside the mask and where no light reaches the normal.
     """
-    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, plain
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, check_vector_dtype, plain
 
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # [N, H, W, 3]
     lights = as_lights(lights, images.shape[0])
@@ -296,10 +296,7 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         raw = np.asarray(plain(normals))
     except (TypeError, ValueError):  # ragged lists
         raise PsctlError(None, "normals must be a numeric [H, W, 3] array") from None
-    if raw.dtype.kind not in "fi":  # unsigned: an encoded map's pixels ((n + 1) / 2), not vectors
-        raise PsctlError(None, f"normals must be real numbers (unit vectors), got dtype {raw.dtype}"
-                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
-                                  if raw.dtype.kind in "ub" else ""))
+    check_vector_dtype(raw, "normals must be real numbers (unit vectors)")
     normals = raw.astype(np.float32)
     if normals.shape != (*images.shape[1:3], 3):
         raise PsctlError(None, f"normals must be [H, W, 3] = {[*images.shape[1:3], 3]} (the images' size), "

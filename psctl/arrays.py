@@ -135,6 +135,16 @@ def check_lights_face_camera(unit: np.ndarray, path: str | os.PathLike | None) -
                                "wants z toward the camera (x right, y up): negate the z column if yours points away")
 
 
+def check_vector_dtype(a: np.ndarray, what: str) -> None:
+    """A PsctlError, "``what``, got dtype ...", unless ``a`` holds real numbers (floats or signed
+    integers): unsigned integers (and bools) are an encoded map's pixels ((n + 1) / 2), which would
+    be taken as vectors all in one octant, so the message says how to decode them."""
+    if a.dtype.kind not in "fi":
+        raise PsctlError(None, f"{what}, got dtype {a.dtype}"
+                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
+                                  if a.dtype.kind in "ub" else ""))
+
+
 def unit_vectors(v: np.ndarray, floor: float, within: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """[..., 3] vectors -> (unit vectors, float64, 0 where there is none; [...] bool, which have a
     direction). One has none where it is not finite, is 0, or is not longer than ``floor`` (than

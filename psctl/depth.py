@@ -56,7 +56,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.arrays import as_mask, plain, unit_vectors
+from psctl.arrays import as_mask, check_vector_dtype, plain, unit_vectors
 from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
 
@@ -172,10 +172,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     normals = np.asarray(plain(normals))
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise PsctlError(None, f"normals must be [H, W, 3], got shape {normals.shape}")
-    if normals.dtype.kind not in "fi":  # unsigned: an encoded image's pixels ((n + 1) / 2), not vectors
-        raise PsctlError(None, f"normals must be unit vectors of real numbers, got dtype {normals.dtype}"
-                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
-                                  if normals.dtype.kind in "ub" else ""))
+    check_vector_dtype(normals, "normals must be unit vectors of real numbers")
     h, w = normals.shape[:2]
     if mask is None:
         mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)

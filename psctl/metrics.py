@@ -16,17 +16,13 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     length; both are normalised. Other shapes or dtypes (unsigned integers: an encoded map's
     pixels) are a ``PsctlError``.
     """
-    from psctl.arrays import as_mask, plain
+    from psctl.arrays import as_mask, check_vector_dtype, plain
     from psctl.errors import PsctlError
 
     arrays = []
     for name, a in (("normals", normals), ("gt", gt)):
         a = np.asarray(plain(a))
-        if a.dtype.kind not in "if":  # text, objects, complex: nothing to measure
-            # unsigned: an encoded normal map's pixels ((n + 1) / 2), which would measure as vectors
-            hint = (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
-                    if a.dtype.kind in "ub" else "")
-            raise PsctlError(None, f"angular_error: {name} must be real numbers, got dtype {a.dtype}{hint}")
+        check_vector_dtype(a, f"angular_error: {name} must be real numbers")  # text, objects, complex, pixels
         arrays.append(a)
     normals, gt = arrays
     if normals.shape != gt.shape or normals.ndim < 1 or normals.shape[-1] != 3:

@@ -495,7 +495,7 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
         with signals_deferred():  # removed in one piece
             stage.discard()
         if isinstance(e, PsctlError):
-            raise _by_final_name(e, [stage]) from None
+            raise by_final_name(e, [(stage.path, stage.out_dir)]) from None
         raise
     # the lock first (a wait for it can be stopped: then nothing moved), then moved and cleaned up
     # in one piece
@@ -515,14 +515,15 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
         raise
 
 
-def _by_final_name(error: PsctlError, stagings: "list[Staging]") -> PsctlError:
+def by_final_name(error: PsctlError, stagings: "Iterable[tuple[Path, Path]]") -> PsctlError:
     """``error`` naming the output (out/normal.png) instead of its staged copy
-    (out/.psctl-staging.x/normal.png), which is gone when the user reads the message."""
+    (out/.psctl-staging.x/normal.png), which is gone when the user reads the message;
+    ``stagings``: (staging folder, output folder) pairs. ``error`` itself where it names neither."""
     if error.path is not None:
-        for s in stagings:
+        for stage, out_dir in stagings:
             with contextlib.suppress(ValueError):
-                return PsctlError(s.out_dir / Path(error.path).relative_to(s.path),
-                                  error.message.replace(str(s.path), str(s.out_dir)))
+                return PsctlError(out_dir / Path(error.path).relative_to(stage),
+                                  error.message.replace(str(stage), str(out_dir)))
     return error
 
 
@@ -562,7 +563,7 @@ class OutputBatch:
         ok = False
         try:
             if isinstance(value, PsctlError):
-                renamed = _by_final_name(value, self.stagings)
+                renamed = by_final_name(value, [(s.path, s.out_dir) for s in self.stagings])
                 if renamed is not value:
                     raise renamed from None
             if kind is None:

@@ -401,8 +401,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
         earlier psctl synth run left in ``out`` and this one replaced).
     """
-    from psctl.io.atomic import (check_output_dir, current_umask, ensure_writable_dir, missing_folders, remove_empty,
-                                 working_folder)
+    from psctl.io.atomic import (by_final_name, check_output_dir, current_umask, ensure_writable_dir, missing_folders,
+                                 remove_empty, working_folder)
 
     t0 = time.perf_counter()
     preset, light_dist, intensities = _lower(preset, light_dist, intensities)
@@ -478,14 +478,11 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         created = []  # the set is in place: the folders are its
     except _RollbackFailed:
         raise  # it names the kept backup in the stage, which is where the files are
-    except PsctlError as e:  # a write that failed (a full disk): named in the set, not in the stage,
-        if e.path is None:   # which is gone when the user reads the message
+    except PsctlError as e:  # a write that failed (a full disk): named in the set, not in the stage
+        renamed = by_final_name(e, [(stage, out)])
+        if renamed is e:
             raise
-        try:
-            rel = Path(e.path).relative_to(stage)
-        except ValueError:
-            raise e from None
-        raise PsctlError(out / rel, e.message.replace(str(stage), str(out))) from None
+        raise renamed from None
     finally:
         if not keep:
             shutil.rmtree(stage, ignore_errors=True)
