@@ -976,12 +976,17 @@ def _report(res: SphereLights, cap: "Capture", notes: list[str]) -> dict:
 
 # --- files and pictures --------------------------------------------------------------------------
 
+SPHERE_OUTLINE, HIGHLIGHT_DOT = (0.2, 0.9, 0.3), (1.0, 0.25, 0.2)  # sphere.png's marks and their key
+OUTLINE_KEY, HIGHLIGHT_KEY = "FITTED OUTLINE", "HIGHLIGHT"
+
+
 def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slice],
                    highlights: list[list[float]] | None = None, title: str | None = None,
                    min_side: int = 360) -> np.ndarray:
     """[H, W, 3] in [0, 1]: each pixel's brightest value over the images (in the circle's
     ``box``; gamma 1/2.2, its 99.5th percentile white), enlarged to at least ``min_side``, with the
-    fitted circle in green and each highlight (x, y in image pixels) as a red dot."""
+    fitted circle in green and each highlight (x, y in image pixels) as a red dot; a key under
+    the picture names both (the highlights' only when there are any: chrome)."""
     from psctl.io.report import _stamp, text_bitmap
     from psctl.lights import _disk
 
@@ -992,17 +997,29 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     s = 2  # text scale
     label = text_bitmap(title, s) if title else None
     top_px = 11 * s if title else 0
-    canvas = np.full((img.shape[0] + top_px, max(img.shape[1], 4 * s + (label.shape[1] if title else 0)), 3), 0.12,
+    key = [(SPHERE_OUTLINE, text_bitmap(OUTLINE_KEY, s))]
+    if highlights:
+        key.append((HIGHLIGHT_DOT, text_bitmap(HIGHLIGHT_KEY, s)))
+    key_w = sum(9 * s + bm.shape[1] + 8 * s for _, bm in key)
+    canvas = np.full((top_px + img.shape[0] + 11 * s,
+                      max(img.shape[1], 4 * s + (label.shape[1] if title else 0), 2 * s + key_w), 3), 0.12,
                      np.float32)
     canvas[top_px:top_px + img.shape[0], : img.shape[1]] = img[..., None]
+    x = 2 * s
+    for colour, bm in key:  # a swatch, its words, then the next
+        y = top_px + img.shape[0] + 2 * s
+        canvas[y:y + 7 * s, x:x + 7 * s] = colour
+        _stamp(canvas, bm, y, x + 9 * s)
+        x += 9 * s + bm.shape[1] + 8 * s
 
     def at(x: float, y: float) -> tuple[float, float]:  # image pixel centre -> canvas (row, col)
         return top_px + (y - box[0].start + 0.5) * k, (x - box[1].start + 0.5) * k
 
     cy, cx = at(circle.x, circle.y)
-    _disk(canvas, cy, cx, circle.r * k, (0.2, 0.9, 0.3), ring=max(1.0, k / 2))
+    ring = canvas[top_px:top_px + img.shape[0]]  # the outline is cut where it leaves the picture, not drawn on the key
+    _disk(ring, cy - top_px, cx, circle.r * k, SPHERE_OUTLINE, ring=max(1.0, k / 2))
     for x, y in highlights or []:
-        _disk(canvas, *at(x, y), max(2.0, k * 0.6), (1.0, 0.25, 0.2))
+        _disk(canvas, *at(x, y), max(2.0, k * 0.6), HIGHLIGHT_DOT)
     if label is not None:
         _stamp(canvas, label, 2 * s, 2 * s)
     return canvas

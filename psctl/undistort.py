@@ -498,9 +498,26 @@ def shift_picture(shift: np.ndarray, valid: np.ndarray, name: str) -> np.ndarray
     from psctl.io.report import error_heatmap
 
     top = float(shift[valid].max()) if valid.any() else 0.0
-    vmax = max(1.0, float(np.ceil(top)))
-    labels = {f: f"{vmax * f:.1f} PX" if vmax < 10 else f"{vmax * f:.0f} PX" for f in (0.0, 1 / 3, 2 / 3, 1.0)}
+    vmax, step = nice_scale(top)
+    n = int(round(vmax / step))
+    labels = {i / n: f"{round(i * step, 6):g} PX" for i in range(n + 1)}
     return error_heatmap(shift, valid, vmax, f"{name}: LENS SHIFT\nMAX {top:.1f} PX", labels=labels)
+
+
+def nice_scale(top: float, ticks: int = 4) -> tuple[float, float]:
+    """(vmax, step): the smallest step of 1, 2, 2.5 or 5 times a power of ten that reaches ``top``
+    (at least 1: a scale of 0 to 1 pixel for a lens that barely distorts) in at most ``ticks``
+    steps, and vmax = that many steps. Ticks on round values (0, 1, 2, 3, 4 PX), not on thirds of
+    the largest shift (1.3, 2.7 PX)."""
+    top = max(float(top), 1.0)
+    exponent = int(np.floor(np.log10(top / ticks)))
+    for e in (exponent, exponent + 1):
+        for m in (1.0, 2.0, 2.5, 5.0):
+            step = m * 10.0 ** e
+            n = int(np.ceil(top / step - 1e-9))
+            if n <= ticks:
+                return round(n * step, 9), step
+    return 10.0 ** (exponent + 2), 10.0 ** (exponent + 2)  # not reached: 10^(e+1) * ticks >= top
 
 
 def render_undistort(r: dict) -> None:

@@ -336,6 +336,30 @@ def test_matte_refuses_an_unlit_image():
 
 # --- the command ---------------------------------------------------------------------------------
 
+def test_sphere_picture_keys_its_marks():
+    """sphere.png names its marks under the picture (a QA helper's finding: a green circle and red
+    dots, unexplained): the outline always, the highlights only when there are any (chrome)."""
+    from psctl.calibrate import HIGHLIGHT_DOT, HIGHLIGHT_KEY, OUTLINE_KEY, SPHERE_OUTLINE, sphere_picture
+    from tests.test_io import _text_at
+
+    brightest = np.zeros((40, 40), np.float32)
+    brightest[18:22, 18:22] = 1.0
+    # a sphere cut by the images' bottom edge: its outline must not run on into the key
+    circle, box = Circle(20.0, 30.0, 15.0, "--circle"), (slice(0, 40), slice(0, 40))
+    chrome = sphere_picture(brightest, circle, box, [[20.0, 20.0]], title="CHROME")
+    matte = sphere_picture(brightest, circle, box, None, title="MATTE")
+    for pic, keys in ((chrome, (OUTLINE_KEY, HIGHLIGHT_KEY)), (matte, (OUTLINE_KEY,))):
+        k = 9  # 40 px enlarged to at least 360
+        below = 22 + 40 * k  # the title band, then the picture
+        assert pic.shape[0] > below
+        for key, colour in zip(keys, (SPHERE_OUTLINE, HIGHLIGHT_DOT)):
+            (y, x), = _text_at(pic, key, 2)
+            assert y >= below and np.allclose(pic[y + 4, x - 10], colour)  # its swatch, just left of it
+        assert bool(_text_at(pic, HIGHLIGHT_KEY, 2)) == (pic is chrome)
+        green = np.isclose(pic, SPHERE_OUTLINE).all(-1)
+        assert green[:below].any() and not green[below:, 20:].any()  # in the key: its swatch alone
+
+
 def test_calibrate_command_writes_light_files(tmp_path):
     from psctl.io.capture import open_capture
 

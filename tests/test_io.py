@@ -1025,7 +1025,9 @@ def test_error_map_draws_the_errors(tmp_path):
     k = 3  # a map under LABELLED_BAR (96) pixels tall is drawn in whole k x k blocks: 120 x 150 here
     assert info.dtype == "uint8" and pic.shape[1] > 50 * k  # room for the bar
     top = 24  # one title line of 9 * s px and 3 * s px more, at text scale s = 2
-    big = pic[top:top + 40 * k, :50 * k]
+    left = 4  # 2 * s: the map's left edge in line with the title's, off the picture's
+    assert (pic[top:top + 40 * k, :left] == pic[0, 0]).all()  # the background
+    big = pic[top:top + 40 * k, left:left + 50 * k]
     body = big[::k, ::k]
     assert (big[1::k, 1::k] == body).all()  # whole blocks
     scored = mask & ~np.isnan(err)
@@ -1117,7 +1119,7 @@ def test_small_error_maps_are_drawn_large_enough_to_read(tmp_path):
     for h, w in ((1, 1), (24, 24), (8, 512), (64, 64)):
         pic = error_heatmap(np.full((h, w), 10.0, np.float32), np.ones((h, w), bool), title="MAE 10.00")
         assert pic.shape[0] >= LABELLED_BAR + 12  # the bar (and its labels) at least that tall, under the title
-        assert pic.shape[1] <= 2048 + 88  # the bar and its labels at text scale 2
+        assert pic.shape[1] <= 4 + 2048 + 88  # a 4 px margin, the map, the bar and its labels at text scale 2
         # the four labels a clear line apart (on a 64 px capture ">45" touched "30": a QA finding)
         # (each label's leftmost match: "0°" is also found inside "30°")
         rows = sorted(min(_text_at(pic, t, 2), key=lambda yx: yx[1])[0] for t in ("0°", "15°", "30°", ">45°"))

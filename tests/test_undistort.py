@@ -387,11 +387,32 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
     assert not (tmp_path / "new").exists()
 
 
+def test_shift_picture_ticks_fall_on_round_values():
+    """undistort.png's colour bar is labelled at round shifts (0, 2, 4, 6, 8 PX for a lens that shifts up to 6.1 px),
+    not at thirds of the largest (a QA helper's finding: 1.3 and 2.7 PX)."""
+    from psctl.undistort import nice_scale
+    from tests.test_io import _text_at
+
+    for top, want in ((0.0, (1.0, 0.25)), (1.0, (1.0, 0.25)), (1.3, (1.5, 0.5)), (3.2, (4.0, 1.0)),
+                      (4.01, (6.0, 2.0)), (7.0, (8.0, 2.0)), (9.3, (10.0, 2.5)), (51.0, (60.0, 20.0)),
+                      (1234.0, (1500.0, 500.0))):
+        vmax, step = nice_scale(top)
+        assert (vmax, step) == want and vmax >= top and vmax / step <= 4
+    K = np.array([[1000.0, 0, 305.5], [0, 1000.0, 255.5], [0, 0, 1]])
+    m = undistort_map(K, [-0.1, 0.02, 0, 0], (512, 612))
+    shift = np.hypot(m.x - np.arange(612), m.y - np.arange(512)[:, None])
+    assert 6 < shift[m.valid].max() < 8
+    pic = shift_picture(shift, m.valid, "ball")
+    rows = [_text_at(pic, f"{v} PX", 2) for v in (8, 6, 4, 2, 0)]
+    assert all(len(r) == 1 for r in rows) and [r[0][0] for r in rows] == sorted(r[0][0] for r in rows)
+    assert not _text_at(pic, "2.7 PX", 2) and not _text_at(pic, "7.0 PX", 2)
+
+
 def test_shift_picture_has_room_for_its_labels():
     from psctl.io.report import BACKGROUND
 
     K = np.array([[1000.0, 0, 305.5], [0, 1000.0, 255.5], [0, 0, 1]])
-    for coeffs in ([-0.1, 0.02, 0, 0], [0.5, 0, 0, 0]):  # labels "7.0 PX" and "51 PX"
+    for coeffs in ([-0.1, 0.02, 0, 0], [0.5, 0, 0, 0]):  # top labels "8 PX" and "60 PX"
         m = undistort_map(K, coeffs, (512, 612))
         shift = np.hypot(m.x - np.arange(612), m.y - np.arange(512)[:, None])
         pic = shift_picture(shift, m.valid, "ball")

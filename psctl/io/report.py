@@ -182,9 +182,10 @@ def _key_unscored(canvas: np.ndarray | None, y: int, x: int, s: int) -> int:
 def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
                   title: str | None = None, labels: dict[float, str] | None = None) -> np.ndarray:
     """Angular-error picture [H', W', 3] in [0, 1]: the map in jet over 0..vmax degrees on a
-    dark background (grey: NaN, a mask pixel without ground truth, keyed under the map when
-    there is any), a colour bar with tick labels on the right, ``title`` on top (one line per
-    "\\n"). ``labels``: the colour bar's (fraction of vmax -> text; default degrees)."""
+    dark background, its left edge in line with the title (grey: NaN, a mask pixel without
+    ground truth, keyed under the map when there is any), a colour bar with tick labels on the
+    right, ``title`` on top (one line per "\\n"). ``labels``: the colour bar's (fraction of
+    vmax -> text; default degrees)."""
     img = heat(error, mask, vmax)
     unscored = bool((np.isnan(np.asarray(error, np.float32)) & np.asarray(mask, bool)).any())
     # a small map is shown k times larger (whole pixels) and the colour bar is at least LABELLED_BAR
@@ -200,12 +201,13 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     top, bar_w = len(lines) * line + 3 * s, 10 * s
     right = max(44 * s, 18 * s + max(text_bitmap(t, s).shape[1] for t in labels.values()))
     bar = max(h, LABELLED_BAR)
-    widths = [w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
+    left = 2 * s  # the map off the picture's edge, in line with the title
+    widths = [left + w + right, 1, *(4 * s + bm.shape[1] for bm in lines if bm is not None)]
     if unscored:
         widths.append(2 * s + _key_unscored(None, 0, 0, s))
     canvas = np.full((top + bar + 4 * s + (line if unscored else 0), max(widths), 3), BACKGROUND, np.float32)
-    canvas[top:top + h, :w] = img
-    colour_bar(canvas, top, w + 4 * s, bar, bar_w, labels, s)
+    canvas[top:top + h, left:left + w] = img
+    colour_bar(canvas, top, left + w + 4 * s, bar, bar_w, labels, s)
     for i, bm in enumerate(lines):
         if bm is not None:
             _stamp(canvas, bm, 2 * s + i * line, 2 * s)
