@@ -943,8 +943,8 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
 
     Orthographic view of the hemisphere from the camera: a direction (x, y, z) is drawn at
     (x, y), x right, y up (axes labelled +X, +Y); grey circles at 30, 60 and 90 degrees from the
-    view axis. Estimates are filled dots coloured by intensity (jet over ``ints_range``, colour
-    bar on the right, labelled), or, with ``intensities`` None (directions only: a chrome
+    view axis. Estimates are filled dots coloured by intensity divided by the intensities' mean
+    (jet over ``ints_range``, colour bar on the right, labelled), or, with ``intensities`` None (directions only: a chrome
     sphere's), all orange with no bar; ground truth, when given, is a white ring joined to its
     estimate by a grey line. A legend under the disk says which is which.
     """
@@ -953,7 +953,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     s = 2  # text scale
     top, pad, bar_w, right, bottom = 20 * s, 12, 10 * s, 44 * s, 14 * s  # top: the title, then the bar's name
     side = 2 * (radius + pad)
-    legend = text_bitmap("ESTIMATE" if intensities is None else "ESTIMATE, COLOUR: RELATIVE INTENSITY", s)
+    legend = text_bitmap("ESTIMATE" if intensities is None else "ESTIMATE, COLOUR: INTENSITY / MEAN", s)
     true = text_bitmap("TRUE", s)
     legend_w = 4 * s + 12 + legend.shape[1] + 6 * s + 16 + true.shape[1]  # with or without its TRUE: one size
     title_w = 4 * s + (text_bitmap(title, s).shape[1] if title else 0)
@@ -977,6 +977,8 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     lo, hi = ints_range
     span = max(hi - lo, 1e-12)  # (a range of one value: one label, every dot in its colour)
     e = np.ones(len(d)) if intensities is None else np.asarray(intensities, np.float64).reshape(-1)
+    if e.size and np.isfinite(e).all() and e.mean() > 0:
+        e = e / e.mean()  # only relative intensities mean anything (LCNet's have no scale): colour them about 1
     dot = (1.0, 0.6, 0.2)  # the legend's
     colours = np.tile(dot, (len(d), 1)) if intensities is None else jet((e - lo) / span)  # clipped to the bar's ends
     if gt_directions is not None:

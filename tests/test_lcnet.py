@@ -347,6 +347,15 @@ def test_light_files_and_plot(tmp_path):
     assert _text_at(without, "1.0", 2) and _text_at(without, "2.0", 2) and not _text_at(without, ">2.0", 2)
     clipped = lights_plot(d, np.array([0.1, 1.0, 2.5]), radius=100)
     assert _text_at(clipped, ">2.0", 2) and _text_at(clipped, "<0.2", 2)
+    # coloured relative to the intensities' mean (LCNet's scale is arbitrary): three times brighter
+    # lights look the same, and one of the mean intensity is drawn in the bar's 1.0 colour
+    assert np.array_equal(lights_plot(d, 3 * e, radius=100), without)
+    from psctl.io.report import jet
+
+    one = lights_plot(d[:1], np.array([4.0]), radius=100)
+    centre = (int(round(40 + 112 - d[0, 1] * 100)), int(round(112 + d[0, 0] * 100)))
+    np.testing.assert_allclose(one[centre], jet(np.array((1.0 - 0.2) / 1.8)), atol=1e-6)
+    assert _text_at(without, "ESTIMATE, COLOUR: INTENSITY / MEAN", 2)
     # the rings are labelled with their angle from the view axis (grey ink)
     grey = (np.abs(without - 0.6) < 1e-6).all(-1)
     for label in ("30°", "60°"):

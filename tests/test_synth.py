@@ -799,8 +799,9 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     from tests.test_io import _text_at
 
     sheet = read_image(rep["preview"])[0]
-    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT", 1) == [(2, 2)]
-    assert [y for y, _ in _text_at(sheet, "BLOBBY_01", 1)] == [14] and [y for y, _ in _text_at(sheet, "BLOBBY_02", 1)] == [14 + 42 + 2]
+    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT", 2) == [(2, 2)]  # text 14 px tall (scale 2)
+    # a 20 px header, a 2 px gap, then each row: its 18 px name band, 32 px of tiles and a 2 px gap
+    assert [y for y, _ in _text_at(sheet, "BLOBBY_01", 2)] == [24] and [y for y, _ in _text_at(sheet, "BLOBBY_02", 2)] == [24 + 50 + 2]
     assert [p.name for p in find_objects(out)] == rep["objects"]
     objs = preset_objects("blobby", seed=2, size=32, n_lights=8, k=2)
     for folder, obj in zip(find_objects(out), objs):
@@ -1303,7 +1304,7 @@ def test_contact_sheet_tiles_stay_small_for_large_renders():
     obj = preset_objects("blobby", seed=0, size=260, n_lights=8, k=1)[0]
     row = _sheet_row(torch.rand(8, 3, 260, 260), obj)
     tile = -(-260 // 3)  # every 3rd pixel: 87 <= SHEET_TILE
-    assert tile <= SHEET_TILE and row.shape == (10 + tile, (SHEET_IMAGES + 1) * tile + 2 * SHEET_IMAGES, 3)
+    assert tile <= SHEET_TILE and row.shape == (18 + tile, (SHEET_IMAGES + 1) * tile + 2 * SHEET_IMAGES, 3)
 
 
 def test_contact_sheet_of_small_renders_keeps_its_text_whole(tmp_path):
@@ -1315,8 +1316,8 @@ def test_contact_sheet_of_small_renders_keeps_its_text_whole(tmp_path):
 
     rep = write_preset(tmp_path / "s", "blobby", seed=2, size=16, n_lights=8, k=2, preview=True)
     sheet = read_image(rep["preview"])[0]
-    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT | NORMALS", 1) == [(2, 2)]
-    assert _text_at(sheet, "BLOBBY_02", 1)
+    assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT | NORMALS", 2) == [(2, 2)]
+    assert _text_at(sheet, "BLOBBY_02", 2)
 
 
 def test_synth_refuses_more_objects_than_memory_holds():

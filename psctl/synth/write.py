@@ -509,6 +509,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
 SHEET_IMAGES = 6  # images per object on the contact sheet
 SHEET_ROWS = 24  # objects on the contact sheet at most (evenly spread over the set)
+SHEET_TEXT = 2  # text scale: 14 px letters, legible at 100 % (at 1, 7 px: a QA helper's finding)
 SHEET_TILE = 128  # pixels: tiles of larger renders are shown every k-th pixel, so the sheet stays viewable
 
 
@@ -530,10 +531,10 @@ def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
     for t in tiles:
         row += [t.astype(np.float32), gap]
     row = np.concatenate(row[:-1], 1)
-    name = text_bitmap(obj.name)  # its name: rows are a sample of a large set
+    name = text_bitmap(obj.name, SHEET_TEXT)  # its name: rows are a sample of a large set
     if name.shape[1] + 4 > row.shape[1]:  # small tiles: the row grows to its name
         row = np.pad(row, ((0, 0), (0, name.shape[1] + 4 - row.shape[1]), (0, 0)), constant_values=0.12)
-    label = np.full((10, row.shape[1], 3), 0.12, np.float32)
+    label = np.full((9 * SHEET_TEXT, row.shape[1], 3), 0.12, np.float32)
     _stamp(label, name, 2, 2)
     return np.concatenate([label, row], 0)
 
@@ -542,10 +543,10 @@ def _sheet(rows: list[np.ndarray]) -> np.ndarray:
     """The rows under a header saying what the columns are."""
     from psctl.io.report import _stamp, text_bitmap
 
-    text = text_bitmap(f"{SHEET_IMAGES} IMAGES, LIGHT LEFT TO RIGHT | NORMALS")
+    text = text_bitmap(f"{SHEET_IMAGES} IMAGES, LIGHT LEFT TO RIGHT | NORMALS", SHEET_TEXT)
     width = max(text.shape[1] + 4, *(r.shape[1] for r in rows))  # rows grown to their names, or to the header
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=0.12) for r in rows]
-    header = np.full((12, width, 3), 0.12, np.float32)
+    header = np.full((9 * SHEET_TEXT + 2, width, 3), 0.12, np.float32)
     _stamp(header, text, 2, 2)
     gap = np.full((2, width, 3), 0.25, np.float32)
     out = [header]
