@@ -694,14 +694,21 @@ def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: Progress
                 memo: "DecodeMemo | None") -> tuple[np.ndarray, np.ndarray, list[str]]:
     """l2 on a capture folder, streamed image by image: (normals [H, W, 3], dark [H, W], notes)."""
     from psctl.classic import L2Accumulator
+    from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
     from psctl.io.capture import ImageCheck, iter_images
 
     acc = L2Accumulator(mask[box])
     advance = progress(f"{cap.name}: reading + l2", cap.n_images)
     check = ImageCheck(cap)  # black images, negative values: notes
+    hot: dict[int, int] = {}
     for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo)):
-        acc.add(img, cap.lights[k])
         check.see(k, img[mask[box]])
+        # as the networks do: a hot value gives its own pixel a normal toward that image's light (66
+        # degrees off in test_l2's sphere) and an albedo thousands of times the rest
+        img, count = clamp_hot_pixels(img, mask[box])
+        if count:
+            hot[k] = count
+        acc.add(img, cap.lights[k])
         advance(1)
     res = acc.solve()
     if res.dark[mask[box]].all():  # as the network methods: nothing to estimate from
@@ -710,7 +717,7 @@ def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: Progress
     normals[box] = res.normals
     dark = np.zeros(mask.shape, bool)
     dark[box] = res.dark
-    return normals, dark, check.notes()
+    return normals, dark, check.notes() + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths])
 
 
 @dataclass

@@ -9,7 +9,7 @@ from psctl.api import estimate_normals, run_normals
 from psctl.classic import l2_normals
 from psctl.errors import PsctlError
 from psctl.metrics import angular_error, summarize
-from tests.conftest import hemisphere_lights, render_lambertian, shared_data, sphere
+from tests.conftest import hemisphere_lights, render_lambertian, shared_data, sphere, write_capture
 
 
 def lit_everywhere(normals, mask, lights):
@@ -242,3 +242,35 @@ def test_l2_normals_are_unit_at_any_float_scale():
         got = estimate_normals(images * np.float32(scale), lights, m, method="l2")
         assert np.allclose(np.linalg.norm(got[m], axis=-1), 1, atol=1e-5)
         assert angular_error(got, ref, m).max() < 0.01
+
+
+def test_l2_on_a_capture_clamps_a_hot_pixel_and_says_so(tmp_path):
+    """psctl normals -m l2 clamps isolated hot pixels as the networks do (it did not: session 58's
+    open item): one hot value gave its pixel a normal toward that image's light, without a word.
+    The note names the file."""
+    from psctl.api import run_normals
+    from psctl.io.images import read_image, write_image
+
+    for name, value in (("clean", None), ("hot", 1e4)):
+        folder = tmp_path / name
+        arrays = write_capture(folder, n=8, size=32, intensities=False)
+        names = []
+        for k, img in enumerate(arrays["images"]):
+            if k == 5 and value:
+                img = img.copy()
+                img[16, 10, :] = value
+            names.append(f"{k + 1:03d}.exr")
+            write_image(folder / names[-1], img, "float")
+            (folder / f"{k + 1:03d}.png").unlink()
+        (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    runs = {name: run_normals(tmp_path / name, method="l2", out=tmp_path / f"{name}_out", formats=["exr"])
+            for name in ("clean", "hot")}
+    assert not any("hot pixel" in n for n in runs["clean"]["notes"])
+    assert any("hot pixel" in n and "(006.exr)" in n for n in runs["hot"]["notes"]), runs["hot"]["notes"]
+    clean, hot = (read_image(tmp_path / f"{name}_out" / "normal.exr")[0] for name in ("clean", "hot"))
+    # the clamped value is its neighbours' brightest: that pixel's normal moves a degree or so, no more
+    angle = np.degrees(np.arccos(np.clip((clean[16, 10] * hot[16, 10]).sum(), -1, 1)))
+    assert angle < 3.0, angle
+    mask = arrays["mask"].copy()
+    mask[16, 10] = False
+    np.testing.assert_allclose(hot[mask], clean[mask], atol=1e-6)  # and no other pixel moves
