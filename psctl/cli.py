@@ -120,6 +120,7 @@ app = typer.Typer(
     name="psctl",
     help="Photometric stereo: surface normals (and lights, depth) from images under varying light.",
     no_args_is_help=True,
+    context_settings={"help_option_names": ["-h", "--help"]},  # -h as most command-line tools take it
     add_completion=False,
     pretty_exceptions_enable=False,
 )

@@ -510,7 +510,8 @@ def test_diligent_is_found_in_lower_case_too(tmp_path, monkeypatch):
     assert default_diligent_root().samefile(tmp_path / "diligent" / "pmsData")  # case-blind file systems too
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["normals", "--help"], ["eval", "--help"], ["train", "--help"]])
+@pytest.mark.parametrize("argv", [["--help"], ["normals", "--help"], ["eval", "--help"], ["train", "--help"],
+                                  ["-h"], ["lights", "-h"]])  # -h as well, as most tools take it
 def test_help_imports_nothing_heavy(argv):
     """`psctl --help` must stay instant: no torch, OpenImageIO or scipy behind it."""
     code = ("import sys\nfrom psctl.cli import main\nsys.argv = ['psctl'] + sys.argv[1:]\n"
@@ -2086,3 +2087,27 @@ def test_a_folder_that_cannot_be_searched_is_named(tmp_path, monkeypatch, capsys
         raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "a.png"))
     err = capsys.readouterr().err
     assert f"{tmp_path / 'a.png'}: permission denied" in err and "searched" not in err
+
+
+def test_readme_lists_every_short_option():
+    """README's 'Short options' line names each short option with its long one, all of them, and
+    no command uses a short name for another long option (-n is --images everywhere)."""
+    import re
+
+    import typer.main
+
+    from psctl.cli import app
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = readme[readme.index("Short options,"):].split("\n\n")[0]
+    listed = dict(re.findall(r"`(-[a-z])` `(--[a-z-]+)`", line))
+    group = typer.main.get_command(app)
+    used: dict[str, set[str]] = {"-h": {"--help"}}
+    for name, command in group.commands.items():
+        for param in command.params:
+            opts = [*getattr(param, "opts", []), *getattr(param, "secondary_opts", [])]
+            longs = [o for o in opts if o.startswith("--")]
+            for short in (o for o in opts if re.fullmatch(r"-[a-zA-Z]", o)):
+                used.setdefault(short, set()).update(longs)
+    assert all(len(longs) == 1 for longs in used.values()), used
+    assert {k: v.pop() for k, v in used.items()} == listed
