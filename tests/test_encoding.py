@@ -106,6 +106,33 @@ def test_jpeg_data_under_another_name_is_decoded_by_its_content(tmp_path):
     assert r["encoding"] == "mixed" and r["srgb_images"] == 11
 
 
+def test_other_data_under_a_jpeg_name_is_read_as_its_content(tmp_path):
+    """The reverse (a QA helper's finding): 16-bit PNGs renamed .jpg were decoded from sRGB by
+    their name (13.06 degrees instead of 0.89); their content decides, and a note says so."""
+    png = tmp_path / "png"
+    write_capture(png, n=12, size=40, intensities=False)
+    folder = tmp_path / "named"
+    folder.mkdir()
+    names = []
+    for p in sorted(png.iterdir()):
+        if p.name[:3].isdigit():
+            names.append(p.stem + ".jpg")
+            (folder / names[-1]).write_bytes(p.read_bytes())
+        elif p.name != "filenames.txt":
+            (folder / p.name).write_bytes(p.read_bytes())
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    write_image(folder / "ambient.jpg.png", np.full((40, 40, 3), 0.01, np.float32), "uint16")
+    (folder / "ambient.jpg.png").rename(folder / "ambient.jpg")  # an ambient image too
+    cap = open_capture(folder)
+    assert cap.srgb_images == 0 and not cap.is_srgb(cap.ambient_path)
+    assert open_capture(folder, "srgb").srgb_images == 12  # on request, as before
+    notes = [n for n in run_normals(folder, method="l2", write=False)["notes"] if n.startswith("encoding")]
+    assert notes == ["encoding: 001.jpg, 002.jpg, 003.jpg ...: named JPEG but not JPEG data, read as linear as "
+                     "their content's format is (--encoding srgb decodes them)"], notes
+    (folder / "ambient.jpg").unlink()
+    assert run_normals(folder, method="l2", write=False)["mae"] == run_normals(png, method="l2", write=False)["mae"]
+
+
 def test_srgb_on_request_for_other_files(tmp_path):
     """A 16-bit PNG capture stored sRGB-encoded: right with --encoding srgb, wrong as read."""
     folder = tmp_path / "srgbPNG"

@@ -751,6 +751,16 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
         write_image(other / f"lights_{k}.png", np.zeros((8, 8, 3)), "uint8")
     with pytest.raises(PsctlError, match="no images found .*lights_0.png.* are taken for a mask, normals or outputs"):
         open_capture(other)
+    # images in a format psctl does not look for (a QA helper's .bmp folder): named, and how to read them
+    for k in range(3):
+        (other / f"lights_{k}.png").unlink()
+        (other / f"{k + 1:03d}.bmp").write_bytes(b"BM")
+    write_image(other / "mask.png", np.ones((8, 8)), "uint8")
+    np.savetxt(other / "light_directions.txt", data["lights"][:3])
+    with pytest.raises(PsctlError, match=r"no images found \(.*\); mask.png is taken for a mask, normals or outputs "
+                                         r"by name; 001.bmp, 002.bmp, 003.bmp are not read unless listed: list the "
+                                         r"images in filenames.txt$"):
+        open_capture(other)
     with pytest.raises(PsctlError, match=r"mask is empty .*uint16 masks are divided by 65535"):
         as_mask(np.full((4, 4), 255, np.uint16), (4, 4))
 
@@ -1177,8 +1187,19 @@ def test_a_0_1_mask_file_says_so(tmp_path):
     and the message says why instead of only 'no foreground pixel'."""
     data = write_capture(tmp_path / "cap", n=4, size=16)
     write_image(tmp_path / "cap" / "mask.png", data["mask"].astype(np.float32) / 255, "uint8")
-    with pytest.raises(PsctlError, match=r"mask.png: mask is empty.* 0/1 mask\? save it as 0/255"):
+    with pytest.raises(PsctlError, match=r"mask.png: mask is empty.*brightest is 1 of 255; a 0/1 mask\? save the "
+                                         r"object as 255 \(0/255\)"):
         load_mask(open_capture(tmp_path / "cap"))
+    # a 16-bit file holding 0/255 (a QA helper's finding: the hint said 'save it as 0/255')
+    write_image(tmp_path / "cap" / "mask.png", data["mask"].astype(np.float32) * 255 / 65535, "uint16")
+    with pytest.raises(PsctlError, match=r"brightest is 255 of 65535; save the object as 65535 \(or the mask as "
+                                         r"8-bit 0/255\)\)$"):
+        load_mask(open_capture(tmp_path / "cap"))
+    write_image(tmp_path / "cap" / "mask.exr", data["mask"].astype(np.float32) * 0.25, "float")
+    (tmp_path / "cap" / "mask.png").unlink()
+    with pytest.raises(PsctlError, match=r"mask.exr: .*brightest is 0.25; save the object as 1.0\)$"):
+        load_mask(open_capture(tmp_path / "cap"))
+    (tmp_path / "cap" / "mask.exr").unlink()
     write_image(tmp_path / "cap" / "mask.png", np.zeros((16, 16)), "uint8")
     with pytest.raises(PsctlError, match=r"mask is empty \(no foreground pixel\)"):
         load_mask(open_capture(tmp_path / "cap"))
@@ -1747,3 +1768,105 @@ def test_an_interrupted_image_write_leaves_no_second_line(tmp_path):
         "gc.collect()\n" % str(tmp_path / "a.png"))
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
     assert proc.stdout == "interrupted\n" and proc.stderr == "" and os.listdir(tmp_path) == [], proc.stderr
+
+
+def _write_exr(path, pixels: np.ndarray, names=None, origin=(0, 0), frame=None) -> None:
+    """A float EXR with named channels and a data window at ``origin`` in a ``frame`` (w, h)."""
+    import OpenImageIO as oiio
+
+    h, w, c = pixels.shape
+    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
+    if names:
+        spec.channelnames = tuple(names)
+    spec.x, spec.y = origin
+    spec.full_x = spec.full_y = 0
+    spec.full_width, spec.full_height = frame or (w, h)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(pixels, np.float32))
+    out.close()
+
+
+def test_pick_channels_by_name():
+    from psctl.io.images import pick_channels
+
+    assert pick_channels(["R", "G", "B"]) == ((), "", ("",))  # as stored
+    assert pick_channels(["R", "G", "B", "A", "Z"]) == ((0, 1, 2, 3), "", ("",))
+    assert pick_channels(["A", "B", "G", "R"]) == ((3, 2, 1, 0), "", ("",))  # EXR's alphabetical order
+    assert pick_channels(["Y", "A"]) == ((), "", ("",)) and pick_channels(["X", "Y", "Z"]) == ((), "", ())
+    blender = ["Albedo.R", "Albedo.G", "Albedo.B", "Combined.R", "Combined.G", "Combined.B", "Combined.A"]
+    assert pick_channels(blender) == ((3, 4, 5, 6), "Combined", ("Albedo", "Combined"))
+    assert pick_channels(["Albedo.R", "Albedo.G", "Albedo.B", "R", "G", "B"]) == ((3, 4, 5), "", ("Albedo", ""))
+    assert pick_channels(["depth.Z", "diffuse.R", "diffuse.G", "diffuse.B"]) == ((1, 2, 3), "diffuse", ("diffuse",))
+    with pytest.raises(ValueError, match="2 layers with colour .diffuse, specular. and none named Combined or Beauty"):
+        pick_channels(["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"])
+
+
+def test_exr_layers_and_data_windows_are_read_as_a_viewer_shows_them(tmp_path):
+    """QA helper's findings: a Blender multilayer EXR (Albedo.* sorts before Combined.*) was read
+    as its albedo pass, 41 degrees off; an EXR whose data window is cropped (oiiotool --trim) or
+    shifted within its frame was read from the top-left corner, 27 degrees off or refused for
+    its size. Now: the picture's layer, placed in the frame, with a note."""
+    from psctl.api import run_normals
+
+    arrays = write_capture(tmp_path / "png", n=8, size=32, intensities=False)
+    imgs = arrays["images"]
+    ys, xs = np.nonzero(imgs.max(0).max(-1) > 0)
+    box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+    assert (box[0].start, box[1].start) != (0, 0)
+    for kind in ("plain", "layers", "window"):
+        folder = tmp_path / kind
+        folder.mkdir()
+        names = []
+        for k, img in enumerate(imgs):
+            names.append(f"{k + 1:03d}.exr")
+            if kind == "plain":
+                _write_exr(folder / names[-1], img)
+            elif kind == "layers":  # Blender's: the albedo pass sorts first
+                albedo = np.broadcast_to([0.7, 0.6, 0.5], img.shape)
+                _write_exr(folder / names[-1], np.concatenate([albedo, img, np.ones_like(img[..., :1])], -1),
+                           ["Albedo.R", "Albedo.G", "Albedo.B", "Combined.R", "Combined.G", "Combined.B", "Combined.A"])
+            else:  # the lit part only, at its place in the 32 x 32 frame
+                _write_exr(folder / names[-1], img[box], origin=(box[1].start, box[0].start), frame=(32, 32))
+        for extra in ("light_directions.txt", "mask.png", "Normal_gt.mat"):
+            (folder / extra).write_bytes((tmp_path / "png" / extra).read_bytes())
+        (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    pixels, info = read_image(tmp_path / "layers" / "001.exr")
+    assert info.layer == "Combined" and info.channels == 4 and pixels.shape == (32, 32, 4)
+    np.testing.assert_array_equal(pixels[..., :3], imgs[0])
+    pixels, info = read_image(tmp_path / "window" / "001.exr")
+    assert (info.width, info.height) == (32, 32) and info.window is not None
+    np.testing.assert_array_equal(pixels, imgs[0])  # the crop held every lit pixel: the frame again
+    runs = {kind: run_normals(tmp_path / kind, method="l2", write=False) for kind in ("plain", "layers", "window")}
+    assert runs["layers"]["mae"] == runs["window"]["mae"] == runs["plain"]["mae"] < 2.0
+    assert not [n for n in runs["plain"]["notes"] if n.startswith("images")]
+    assert "001.exr, 002.exr, 003.exr ... hold several layers; psctl reads the Combined layer's colour channels" in \
+        " ".join(runs["layers"]["notes"])
+    assert any("data window other than their 32x32 frame" in n for n in runs["window"]["notes"])
+    # two colour layers, neither the main one: refused, naming the file
+    _write_exr(tmp_path / "layers" / "001.exr", np.concatenate([imgs[0], imgs[0]], -1),
+               ["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"])
+    with pytest.raises(PsctlError, match=r"001\.exr.*2 layers with colour \(diffuse, specular\)"):
+        run_normals(tmp_path / "layers", method="l2", write=False)
+
+
+def test_listed_names_match_files_in_another_unicode_form(tmp_path):
+    """A capture zipped on a Mac keeps its file names decomposed (NFD: 'e' + combining accent); an
+    image list typed elsewhere has them composed (NFC). The same text: the files are found (a QA
+    helper's finding: 'listed in filenames.txt but missing' beside a file that looks the same)."""
+    import unicodedata
+
+    folder = tmp_path / "cap"
+    write_capture(folder, n=4, size=16)
+    listed = []
+    for k in range(4):
+        nfc = unicodedata.normalize("NFC", f"café_{k + 1:03d}.png")
+        (folder / f"{k + 1:03d}.png").rename(folder / unicodedata.normalize("NFD", nfc))
+        listed.append(nfc)
+    (folder / "filenames.txt").write_text("\n".join(listed) + "\n", encoding="utf-8")
+    assert not (folder / listed[0]).exists()  # different bytes on this file system
+    cap = open_capture(folder)
+    assert [p.name for p in cap.image_paths] == [unicodedata.normalize("NFD", n) for n in listed]
+    assert load_images(cap).shape == (4, 16, 16, 3)
+    (folder / cap.image_paths[0].name).unlink()  # and a file really missing is still an error
+    with pytest.raises(PsctlError, match="café_001.png: listed in filenames.txt but missing"):
+        open_capture(folder)

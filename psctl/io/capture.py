@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+import unicodedata
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -72,6 +73,8 @@ class Capture:
     channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
     jpeg: tuple[bool, ...] = ()  # each image is JPEG data, by its content (whatever its name)
     pages: tuple[int, ...] = ()  # each image file's subimages (a TIFF stack: psctl reads the first)
+    layers: tuple[str, ...] = ()  # each image's layer read, of several ("Combined"; "": one or none)
+    windowed: tuple[bool, ...] = ()  # each image's stored pixels are a window of its frame (an EXR's)
     ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
@@ -89,13 +92,15 @@ class Capture:
 
     def is_srgb(self, k: int | Path) -> bool:
         """Whether image ``k`` (an index, or a file such as the ambient image) is decoded from
-        sRGB to linear (``encoding``: srgb, or auto and a JPEG, by name or by content)."""
+        sRGB to linear (``encoding``: srgb, or auto and JPEG data: by content where the header was
+        read, whatever the name, so that a 16-bit PNG named .jpg stays linear; else by name)."""
         if self.encoding != "auto":
             return self.encoding == "srgb"
         if isinstance(k, (int, np.integer)):
-            path = self.image_paths[int(k)]
-            return path.suffix.lower() in JPEG or (bool(self.jpeg) and self.jpeg[int(k)])
-        return k.suffix.lower() in JPEG or (k == self.ambient_path and self.ambient_jpeg)
+            return self.jpeg[int(k)] if self.jpeg else self.image_paths[int(k)].suffix.lower() in JPEG
+        if self.ambient_path is not None and k == self.ambient_path:
+            return self.ambient_jpeg
+        return k.suffix.lower() in JPEG
 
     @property
     def turned(self) -> int:
@@ -123,6 +128,8 @@ class Capture:
             channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
             jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
             pages=tuple(self.pages[i] for i in idx) if self.pages else (),
+            layers=tuple(self.layers[i] for i in idx) if self.layers else (),
+            windowed=tuple(self.windowed[i] for i in idx) if self.windowed else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -519,7 +526,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
 
     list_file = _first_existing(path, entries, LIST_FILES, "image lists")
     if list_file is not None:
-        image_paths = [path / n for n in _read_list(list_file)]
+        image_paths = [_same_name(path / n) for n in _read_list(list_file)]
         for p in image_paths:
             if p.is_dir():
                 raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
@@ -539,9 +546,16 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     else:
         image_paths = _image_files(entries)
         if not image_paths:
-            left_out = sorted(p.name for p in entries if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
-            hint = (f"; {', '.join(left_out[:3])}{' ...' if len(left_out) > 3 else ''} are taken for a mask, normals "
-                    f"or outputs by their names: list the images in filenames.txt") if left_out else ""
+            def some(names: list[str]) -> str:
+                return f"{', '.join(names[:3])}{' ...' if len(names) > 3 else ''} {'is' if len(names) == 1 else 'are'}"
+
+            files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
+            left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
+            # images of other formats (.bmp, .webp): OpenImageIO may read them, once listed
+            other = [n for n in files if not n.lower().endswith((*IMAGE_EXTENSIONS, *_NOT_IMAGE_SUFFIXES))]
+            said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
+                [f"{some(other)} not read unless listed"] if other else [])
+            hint = f"; {'; '.join(said)}: list the images in {LIST_FILES[0]}" if said else ""
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
     ambient_path = _first_existing(path, entries, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
@@ -621,7 +635,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
-        pages=tuple(i.pages for i in infos), lights_path=lights_path, intensities_path=intensities_path,
+        pages=tuple(i.pages for i in infos), layers=tuple(i.layer for i in infos),
+        windowed=tuple(i.window is not None for i in infos), lights_path=lights_path, intensities_path=intensities_path,
         list_path=list_file,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
@@ -676,12 +691,28 @@ def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
     raise PsctlError(None, f"expected a Capture (psctl.io.capture.open_capture) or a folder, not {type(capture).__name__}")
 
 
+# files a capture folder holds that are no images (light files, ground truth, reports, notes)
+_NOT_IMAGE_SUFFIXES = (".txt", ".mat", ".json", ".jsonl", ".md", ".yml", ".yaml", ".npy", ".npz", ".csv", ".log",
+                       ".pt", ".ply", ".obj", ".zip")
+
+
+def _same_name(p: Path) -> Path:
+    """``p``, or the one file beside it whose name is the same text in another Unicode form: macOS
+    stores "café" decomposed (e + combining accent, NFD), an image list typed elsewhere composed
+    (NFC), and the two are different bytes on Linux (a QA helper's capture zipped on a Mac)."""
+    if os.path.lexists(p) or p.name.isascii() or not p.parent.is_dir():
+        return p
+    want = unicodedata.normalize("NFC", p.name)
+    same = [q for q in p.parent.iterdir() if unicodedata.normalize("NFC", q.name) == want]
+    return same[0] if len(same) == 1 else p
+
+
 def load_mask(capture: Capture | str | os.PathLike) -> np.ndarray:
     """bool [H, W]; the whole image when the folder has no mask. An empty mask is an error."""
     capture = as_capture(capture)
     if capture.mask_path is None:
         return np.ones((capture.height, capture.width), bool)
-    pixels, _ = read_image(capture.mask_path)
+    pixels, info = read_image(capture.mask_path)
     mask = to_rgb(pixels).max(axis=-1) > 0.5  # any colour channel
     if pixels.shape[-1] in (2, 4):
         alpha = pixels[..., -1] > 0.5
@@ -690,8 +721,16 @@ def load_mask(capture: Capture | str | os.PathLike) -> np.ndarray:
     if not mask.any():
         top = float(to_rgb(pixels).max())
         if 0 < top <= 0.5:  # numpy's astype(uint8) of a bool mask: 0 and 1 out of 255, all below the 0.5 cut
+            if info.dtype.startswith(("uint", "int")):  # in the file's own numbers, the fix for its depth
+                full = 2 ** info.bits - 1
+                value = int(round(top * full))
+                hint = ("a 0/1 mask? " if value == 1 else "") + f"save the object as {full}" + (
+                    " (or the mask as 8-bit 0/255)" if full != 255 else " (0/255)")
+                brightest = f"{value} of {full}"
+            else:
+                brightest, hint = f"{top:.3g}", "save the object as 1.0"
             raise PsctlError(capture.mask_path, f"mask is empty: no pixel is above half of full scale (the "
-                                                f"brightest is {top:.3g} of it; a 0/1 mask? save it as 0/255)")
+                                                f"brightest is {brightest}; {hint})")
         raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel" + (
             ": no white pixel is opaque in its alpha channel)" if top > 0.5 else ")"))
     return mask
@@ -1054,6 +1093,18 @@ def capture_notes(capture: Capture) -> list[str]:
     if stacks:  # a TIFF stack of the whole capture in one file would otherwise pass as one image
         named = ", ".join(f"{n} holds {k} pages" for n, k in stacks[:3]) + (" ..." if len(stacks) > 3 else "")
         notes.append(f"images: {named}; psctl reads one image per file, its first page")
+    def some(names: list[str]) -> str:
+        return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
+
+    layered = [(p.name, layer) for p, layer in zip(capture.image_paths, capture.layers) if layer]
+    if layered:  # which of a multilayer EXR's layers is the picture was decided by name: say so
+        read = sorted({layer for _, layer in layered})
+        notes.append(f"images: {some([n for n, _ in layered])} hold several layers; psctl reads the "
+                     f"{' / '.join(read)} layer's colour channels")
+    windowed = [p.name for p, w in zip(capture.image_paths, capture.windowed) if w]
+    if windowed:
+        notes.append(f"images: {some(windowed)} store their pixels in a data window other than their "
+                     f"{capture.width}x{capture.height} frame (an EXR cropped or shifted); placed in the frame, 0 outside")
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
                      f"orientation tag, as photo viewers show them (the mask and lights refer to that frame)")
@@ -1072,6 +1123,14 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
+    if capture.encoding == "auto":  # (a JPEG name over other data: read as its content says, and said so)
+        misnamed = [p.name for k, p in enumerate(capture.image_paths)
+                    if p.suffix.lower() in JPEG and not capture.is_srgb(k)]
+        if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and not capture.ambient_jpeg:
+            misnamed.append(capture.ambient_path.name)
+        if misnamed:
+            notes.append(f"encoding: {', '.join(misnamed[:3])}{' ...' if len(misnamed) > 3 else ''}: named JPEG but "
+                         f"not JPEG data, read as linear as their content's format is (--encoding srgb decodes them)")
     n = capture.srgb_images
     if not n:
         return notes

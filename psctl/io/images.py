@@ -44,6 +44,51 @@ class ImageInfo:
     orientation: int = 1  # the EXIF Orientation tag (1-8); width and height are the upright image's
     pages: int = 1  # subimages in the file (a multi-page TIFF); psctl reads the first
     format: str = ""  # what the file holds, by its content (OpenImageIO's name: png, jpeg, tiff, openexr)
+    # the stored channels read, in order (empty: all, as stored), when the file's names say which
+    # are the picture: an EXR's R, G, B (and A) before its other channels, or one layer's of several
+    pick: tuple[int, ...] = ()
+    layer: str = ""  # the layer read ("Combined") when the file holds several named ones
+    # (x, y, width, height) of the stored pixels within the frame a viewer shows (the display
+    # window: width x height above), when they differ (an EXR's data window); None: the same
+    window: tuple[int, int, int, int] | None = None
+
+
+# The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
+# AOVs: beauty); one layer with colour channels, or the unnamed one, needs no name
+MAIN_LAYERS = ("combined", "beauty", "rgba")
+
+
+def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], str, tuple[str, ...]]:
+    """Which stored channels are the picture, by their names: (indices in R, G, B[, A] or Y[, A]
+    order; empty: read as stored), the layer's name ("" for unprefixed channels) and the names of
+    the layers that hold colour. A layer holds colour when it has R, G and B, or Y alone (with A).
+    Raises ValueError when several do and none is the unprefixed one or named as MAIN_LAYERS."""
+    layers: dict[str, dict[str, int]] = {}
+    for i, name in enumerate(names):
+        layer, _, chan = name.rpartition(".")
+        layers.setdefault(layer, {}).setdefault(chan.upper(), i)
+    colour = {}
+    for layer, chans in layers.items():
+        if {"R", "G", "B"} <= set(chans):
+            colour[layer] = [chans[c] for c in ("R", "G", "B", "A") if c in chans]
+        elif set(chans) in ({"Y"}, {"Y", "A"}):
+            colour[layer] = [chans[c] for c in ("Y", "A") if c in chans]
+    if not colour:
+        return (), "", ()
+    found = tuple(colour)
+    if "" in colour:
+        layer = ""
+    elif len(colour) == 1:
+        layer = found[0]
+    else:
+        main = [name for name in found if name.lower() in MAIN_LAYERS]
+        if len(main) != 1:
+            raise ValueError(f"holds {len(found)} layers with colour ({', '.join(found)}) and none named "
+                             f"{' or '.join(m.capitalize() for m in MAIN_LAYERS[:2])}: psctl cannot tell which is the "
+                             f"picture; export it alone (or as unnamed R, G, B channels)")
+        layer = main[0]
+    pick = tuple(colour[layer])
+    return (() if pick == tuple(range(len(names))) else pick), layer, found
 
 
 # EXIF orientation -> how to turn the stored pixels [H, W, C] upright, as a photo viewer shows
@@ -88,11 +133,22 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
         orientation = spec.get_int_attribute("Orientation", 1)
         orientation = orientation if orientation in _UPRIGHT else 1
-        w, h = (spec.height, spec.width) if orientation >= 5 else (spec.width, spec.height)
+        try:
+            pick, layer, layers = pick_channels(list(spec.channelnames))
+        except ValueError as e:
+            raise PsctlError(path, str(e)) from None
+        # the frame a viewer shows: an EXR may store a smaller (a crop to the lit pixels) or shifted
+        # data window within it, which must not shift the pixels against the mask and each other
+        fw, fh = (spec.full_width, spec.full_height) if spec.full_width > 0 and spec.full_height > 0 else (
+            spec.width, spec.height)
+        window = (spec.x - spec.full_x, spec.y - spec.full_y, spec.width, spec.height)
+        window = None if window == (0, 0, fw, fh) else window
+        w, h = (fh, fw) if orientation >= 5 else (fw, fh)
         pages = 1
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
-        return ImageInfo(path, w, h, spec.nchannels, dtype, int(bits), orientation, pages, inp.format_name())
+        return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
+                         inp.format_name(), pick, layer if len(layers) > 1 else "", window)
     finally:
         inp.close()
 
@@ -206,14 +262,26 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
             raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
         try:
             # OpenImageIO converts integer samples to float by dividing by the type's maximum.
-            pixels = inp.read_image(0, 0, 0, info.channels, "float")
+            stored_channels = inp.spec().nchannels
+            pixels = inp.read_image(0, 0, 0, stored_channels, "float")
             err = inp.geterror()
         finally:
             inp.close()
     if pixels is None or err:
         raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
-    stored = (info.width, info.height) if info.orientation >= 5 else (info.height, info.width)
-    pixels = upright(np.asarray(pixels, dtype=np.float32).reshape(*stored, info.channels), info.orientation)
+    frame = (info.width, info.height) if info.orientation >= 5 else (info.height, info.width)
+    if info.window is None:
+        pixels = np.asarray(pixels, dtype=np.float32).reshape(*frame, stored_channels)
+    else:  # the data window placed in the frame; outside it, 0 (as EXR viewers show it)
+        x, y, w, h = info.window
+        data = np.asarray(pixels, dtype=np.float32).reshape(h, w, stored_channels)
+        pixels = np.zeros((*frame, stored_channels), np.float32)
+        y0, x0, y1, x1 = max(y, 0), max(x, 0), min(y + h, frame[0]), min(x + w, frame[1])
+        if y1 > y0 and x1 > x0:
+            pixels[y0:y1, x0:x1] = data[y0 - y:y1 - y, x0 - x:x1 - x]
+    if info.pick:
+        pixels = pixels[..., list(info.pick)]
+    pixels = upright(np.ascontiguousarray(pixels), info.orientation)
     # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
     # OpenImageIO already rescales them to the container's full range.
     if not allow_nonfinite and not np.isfinite(pixels).all():

@@ -210,7 +210,9 @@ class Prefetch:
                     raise OSError("the helper did not start")
             line = self._line()
             status = json.loads(line) if line else None
-            info = ImageInfo(self.paths[k], **status["info"])
+            # (JSON gave the header's tuples, pick and window, back as lists)
+            info = ImageInfo(self.paths[k], **{n: tuple(v) if isinstance(v, list) else v
+                                               for n, v in status["info"].items()})
             stamp = tuple(int(v) for v in status["stamp"])
         except (OSError, ValueError, TypeError, KeyError):  # no line, or not one this process wrote
             info = None
