@@ -23,7 +23,8 @@ neighbouring pixels: for pixel i and each of its (up to four) 4-neighbours j,
 where t_i / s_i is the slope that the normal at i predicts: s = nz, t = -nx along columns and
 +ny along rows (perspective: s = f times the normal's component toward the camera along the
 ray). Scaling by s keeps the residuals bounded where the surface is steep; nz is clamped at
-``grazing_nz`` (slopes beyond ~84 degrees count as 84 degrees: rim normals are unreliable).
+``grazing_nz`` (slopes are computed with nz raised to at least 0.1, so none exceeds 10, ~84
+degrees: rim normals are unreliable).
 Each image edge (i, j) then carries c = sum of w s^2 and b = sum of w s t over its two
 one-sided terms, and the normal equations are a weighted graph Laplacian L z = rhs, solved by
 conjugate gradients with a small smoothed-aggregation multigrid preconditioner (scipy has no
@@ -822,8 +823,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "iterations": res.iterations,
         "n_torn_edges": 0 if res.cut is None else int(res.cut.sum()),
         "cg_iterations": res.cg_iterations,
-        "z_min": round(float(z.min()), 6),
-        "z_max": round(float(z.max()), 6),
+        # unrounded (depth.exr's float32 values): depth.png maps back through them, and in a perspective
+        # run z is about 1 with a relief of 1e-4, where 6 decimals were 77 of the PNG's grey levels
+        "z_min": float(z.min()),
+        "z_max": float(z.max()),
         "z_units": "pixels" if K is None else "geometric-mean distance of each region",
         "colors": colors_source,
         "n_vertices": int(len(mesh.vertices)),
@@ -928,11 +931,14 @@ def _capture_mask(cap) -> np.ndarray | None:
 
 
 def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """[H, W] z -> [H, W, 2] grey + alpha in [0, 1]: nearest point white, farthest black,
-    transparent where there is no depth."""
+    """[H, W] z -> [H, W, 2] grey + alpha in [0, 1]: nearest point white, farthest black (a flat
+    surface, every point the nearest: white), transparent where there is no depth."""
     z = depth[valid]
     lo, hi = float(z.min()), float(z.max())
-    grey = np.where(valid, (np.nan_to_num(depth, nan=lo) - lo) / max(hi - lo, 1e-12), 0.0)
+    if hi > lo:
+        grey = np.where(valid, (np.nan_to_num(depth, nan=lo) - lo) / (hi - lo), 0.0)
+    else:
+        grey = valid.astype(np.float64)
     return np.stack([grey, valid.astype(np.float32)], axis=-1).astype(np.float32)
 
 

@@ -160,6 +160,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                 result["notes"].append(
                     f"outputs: {out} also holds {', '.join(earlier[:5])}{' ...' if len(earlier) > 5 else ''} from an "
                     f"earlier run, not in this run's eval.json and eval.png (left as they are)")
+            result["notes"] += _other_run_notes(Path(out), "eval")
         if batch is not None:
             from psctl.io.atomic import replaced_notes, write_outputs_list
 
@@ -180,6 +181,26 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
 
 
 EVAL_FILES = ("eval.png", "eval.json")
+
+
+def _other_run_notes(out: Path, kind: str) -> list[str]:
+    """A note when ``out`` holds what the other kind of run wrote there before (``kind`` "eval": an
+    earlier comparison's compare.json, compare.png and method folders; "compare": an earlier
+    single-method eval's eval.json, eval.png and object folders): left as they are, but said, as
+    an earlier run of the same kind's leftovers are (a QA helper's finding)."""
+    from psctl.io.atomic import outputs_list
+
+    other, files, folder_list = (("compare", COMPARE_FILES, outputs_list("eval")) if kind == "eval"
+                                 else ("eval", EVAL_FILES, OUTPUTS_LIST))
+    if not out.is_dir() or not (out / outputs_list(other)).is_file():
+        return []
+    held = [f for f in files if (out / f).is_file()]
+    held += sorted(d.name + "/" for d in out.iterdir() if d.is_dir() and (d / folder_list).is_file())
+    if not held:
+        return []
+    what = "comparison's (several methods)" if other == "compare" else "single-method eval's"
+    return [f"outputs: {out} also holds an earlier {what} {', '.join(held[:6])}{' ...' if len(held) > 6 else ''} "
+            f"(left as they are)"]
 COMPARE_FILES = ("compare.png", "compare.json")
 
 
@@ -271,6 +292,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
             if earlier:
                 result["notes"].append(f"outputs: {out} also holds {', '.join(earlier)} from an earlier run, not in "
                                        f"this run's compare.json and compare.png (left as they are)")
+            result["notes"] += _other_run_notes(Path(out), "compare")
             result["notes"] += replaced_notes(Path(out), COMPARE_FILES, "compare")
             sheets = [read_image(next(s.path for s in batch.stagings if s.out_dir == Path(out) / m) / "eval.png")[0]
                       for m in methods]

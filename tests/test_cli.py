@@ -1855,6 +1855,29 @@ def test_eval_compares_methods_in_one_table(tmp_path):
     assert np.array_equal(both[-sheets[1].shape[0]:, :sheets[1].shape[1]], sheets[1])
 
 
+def test_eval_and_a_comparison_into_one_folder_say_what_the_other_left(tmp_path):
+    """A single-method eval into a folder where a comparison wrote (or the reverse) leaves the
+    other's files, as an earlier run's object folders are left, and says so (a QA helper's
+    finding: it was silent)."""
+    from psctl.eval import compare_methods, run_benchmark
+
+    root = _two_objects(tmp_path / "root")
+    out = tmp_path / "out"
+    compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out)
+    r = run_benchmark("diligent", root, method="l2", out=out)
+    said = [n for n in r["notes"] if "earlier comparison" in n]
+    assert said == [f"outputs: {out} also holds an earlier comparison's (several methods) compare.png, "
+                    f"compare.json, l2/, ps-fcn/ (left as they are)"], r["notes"]
+    assert (out / "compare.json").is_file() and (out / "eval.json").is_file()
+    again = compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out)
+    said = [n for n in again["notes"] if "earlier single-method" in n]
+    assert said == [f"outputs: {out} also holds an earlier single-method eval's eval.png, eval.json, ball/, "
+                    f"cat/ (left as they are)"], again["notes"]
+    fresh = tmp_path / "fresh"  # each kind alone, or again over its own: no such note
+    assert not [n for n in run_benchmark("diligent", root, method="l2", out=fresh)["notes"] if "earlier" in n]
+    assert not [n for n in run_benchmark("diligent", root, method="l2", out=fresh)["notes"] if "earlier" in n]
+
+
 def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
     """A comparison that cannot finish stops before its first method runs (a typo, --weights, a
     method without weights), and one that fails in a later method leaves no output at all."""

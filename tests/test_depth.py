@@ -550,6 +550,41 @@ def test_display_colours_and_the_depth_preview_follow_their_conventions():
     valid = np.isfinite(z)
     prev = depth_preview(z, valid)
     assert prev[0, :, 0].tolist() == [0.0, 1.0, 0.0] and prev[0, :, 1].tolist() == [1.0, 1.0, 0.0]
+    flat = depth_preview(np.array([[2.0, 2.0, np.nan]], np.float32), valid)  # every point the nearest: white
+    assert flat[0, :, 0].tolist() == [1.0, 1.0, 0.0] and flat[0, :, 1].tolist() == [1.0, 1.0, 0.0]
+
+
+def test_the_report_maps_depth_png_back_to_depth_exr(tmp_path):
+    """z_min and z_max are depth.exr's own values, unrounded: in a perspective run z is about 1 with
+    a relief of 1e-4, and the 6 decimals they had were up to 77 of depth.png's 65,535 grey levels (a
+    QA helper's finding). Mapped back, depth.png is depth.exr within half a level."""
+    import json
+
+    from psctl.depth import run_depth
+    from psctl.io.images import read_image, write_image
+
+    h, w = 48, 64
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 2e-4 * np.sin(u / 9.0) * np.cos(v / 7.0)  # a shallow relief (orthographic slopes of ~2e-5)
+    n = np.stack([-np.gradient(z, axis=1), np.gradient(z, axis=0), np.ones_like(z)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    folder = tmp_path / "obj"
+    write_capture(folder, n=3, size=8)  # any capture: the normals come from --normals
+    for p in folder.iterdir():
+        p.unlink()
+    for k in range(3):
+        write_image(folder / f"{k + 1:03d}.png", np.full((h, w, 3), 0.5, np.float32), "uint16")
+    np.savetxt(folder / "K.txt", [[500.0, 0, 31.5], [0, 500.0, 23.5], [0, 0, 1]])
+    np.save(tmp_path / "n.npy", n.astype(np.float32))
+    r = run_depth(folder, normals=tmp_path / "n.npy", out=tmp_path / "d")
+    rep = json.loads((tmp_path / "d" / "depth_report.json").read_text())
+    exr = read_image(tmp_path / "d" / "depth.exr", allow_nonfinite=True)[0][..., 0]
+    png = read_image(tmp_path / "d" / "depth.png")[0][..., 0]
+    ok = np.isfinite(exr)
+    assert rep["z_min"] == float(exr[ok].min()) and rep["z_max"] == float(exr[ok].max()) and r["z_min"] == rep["z_min"]
+    back = rep["z_min"] + png * (rep["z_max"] - rep["z_min"])
+    step = (rep["z_max"] - rep["z_min"]) / 65535
+    assert np.abs(back[ok] - exr[ok]).max() <= 0.5 * step + 1e-12
 
 
 def test_a_float_map_holding_png_encoding_gets_a_note(tmp_path):
