@@ -72,6 +72,7 @@ DEFAULT_CALIBRATE = {
 }
 
 # each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
+DARK_LIGHT = 0.02  # an image whose highlight or intensity is under this share of the median's: no light
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
 _FLAGS = ("offset",)  # settings that are true or false
@@ -434,11 +435,15 @@ def mirror_direction(normal: np.ndarray, view: np.ndarray | None = None) -> np.n
 
 def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAULT_CALIBRATE["highlight"],
                    base: float = DEFAULT_CALIBRATE["base"], normals: np.ndarray | None = None,
-                   weighting: str = "surface", views: np.ndarray | None = None) -> dict | None:
+                   weighting: str = "surface", views: np.ndarray | None = None,
+                   frame: np.ndarray | None = None) -> dict | None:
     """The highlight inside the sphere: {"x", "y" (sub-pixel, in ``gray``'s pixels), "peak",
     "pixels" (its size), "spots" (regions above the level: more than one is a second reflection),
-    "rim" (it touches the edge of ``inside``: a light far behind the sphere, whose highlight is
-    partly cut off)}; None when the sphere is black.
+    "rim" (it touches the edge of ``inside`` within the image: a light far behind the sphere,
+    whose highlight is partly cut off), "frame" (it touches ``frame`` [h, w] bool, the pixels on
+    the image's own edge where the sphere goes on beyond it: cut off by the image),
+    "frame_peak" (its brightest pixel is there: its centre is likely outside the image)}; None
+    when the sphere is black.
 
     Regions above b + ``fraction`` (peak - b), b the ``base``-th percentile of the sphere's values,
     are candidates; the one with the most brightness above that level is the highlight, leaving
@@ -494,9 +499,12 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
     ww = gray[ys, xs] - level
     if not ww.sum() > 0:  # flat: every pixel at the level
         ww = np.ones_like(ww)
-    edge = spot & ~ndimage.binary_erosion(inside, structure=eight, border_value=0)
+    cut = np.zeros_like(spot) if frame is None else spot & frame
+    edge = spot & ~ndimage.binary_erosion(inside, structure=eight, border_value=0) & ~cut
+    on_frame = cut & (g >= top)
     out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top,
-           "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any())}
+           "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any()), "frame": bool(cut.any()),
+           "frame_peak": bool(on_frame.any())}
     if normals is not None:
         n = normals[ys, xs]
         if views is not None:
@@ -602,8 +610,23 @@ class _Calibrator:
     image inside ``box``."""
 
     def __init__(self, sphere: str, circle: Circle, box: tuple[slice, slice], config: dict,
-                 camera: tuple[float, float, float] | None = None):
+                 camera: tuple[float, float, float] | None = None, shape: tuple[int, int] | None = None):
         self.sphere, self.circle, self.box, self.cfg, self.camera = sphere, circle, box, config, camera
+        h, w = box[0].stop - box[0].start, box[1].stop - box[1].start
+        # the box's pixels on the image's own edge, where the sphere goes on beyond the image
+        # (``shape``: the images' [H, W]; the box is cut to them): a highlight there is cut off
+        self.frame = np.zeros((h, w), bool)
+        if shape is not None:
+            r = circle.r
+            if box[0].start == 0 and circle.y - r < -0.5:
+                self.frame[0] = True
+            if box[0].stop == shape[0] and circle.y + r > shape[0] - 0.5:
+                self.frame[-1] = True
+            if box[1].start == 0 and circle.x - r < -0.5:
+                self.frame[:, 0] = True
+            if box[1].stop == shape[1] and circle.x + r > shape[1] - 0.5:
+                self.frame[:, -1] = True
+        self.names: list = []  # each image's name (a file, or "images[k]"), for what result() refuses
         self.views = None
         if camera is None:
             self.normals, self.inside = sphere_normals(circle, box, config["rim"])
@@ -620,22 +643,27 @@ class _Calibrator:
     def add(self, rgb: np.ndarray, saturated: np.ndarray | None = None, name: Path | str | None = None) -> None:
         """``rgb`` [h, w, 3] the image inside ``box``; ``saturated`` [h, w] its clipped pixels."""
         gray = rgb.mean(-1)
+        self.names.append(name)
         self.brightest = gray.copy() if self.brightest is None else np.maximum(self.brightest, gray)
         if not np.isfinite(rgb[self.inside]).all():
             raise PsctlError(name, "holds NaN or infinite values on the sphere")
         if self.sphere == "chrome":
             spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"], self.normals,
-                                  views=self.views)
+                                  views=self.views, frame=self.frame)
             if spot is None:
                 raise PsctlError(name, "is black on the sphere: there is no highlight to locate (a light that did "
                                        "not fire?)")
+            if spot["frame_peak"]:  # its brightest pixel on the image's edge: the rest of it lies beyond
+                raise PsctlError(name, "has its highlight at the image's edge, where the sphere goes on beyond the "
+                                       "image: its centre cannot be located (frame the whole sphere)")
             x, y = spot["x"] + self.box[1].start, spot["y"] + self.box[0].start
             d = mirror_direction(spot["normal"], spot.get("view"))
             if not np.isfinite(d).all():
                 raise PsctlError(name, "gives no direction: its highlight could not be located")
             self.directions.append(d)
             self.images.append({"highlight": [round(x, 3), round(y, 3)], "peak": round(spot["peak"], 6),
-                                "pixels": spot["pixels"], "spots": spot["spots"], "rim": spot["rim"]})
+                                "pixels": spot["pixels"], "spots": spot["spots"], "rim": spot["rim"],
+                                "frame": spot["frame"]})
         else:
             usable = self.inside if saturated is None else self.inside & ~saturated
             fit = matte_light(rgb, self.normals, usable, self.cfg)
@@ -649,6 +677,19 @@ class _Calibrator:
                                 "offset": None if fit["offset"] is None else round(fit["offset"], 5)})
 
     def result(self) -> SphereLights:
+        # a light that did not fire leaves sensor noise, not black: its highlight (or fitted
+        # intensity) a small share of the others' (a QA helper's noise image gave a direction 130
+        # degrees off, written without a word)
+        level = np.array([i["peak"] for i in self.images] if self.sphere == "chrome" else
+                         [float(np.mean(e)) for e in self.intensities], np.float64)
+        ref = float(np.median(level)) if len(level) else 0.0
+        dark = np.flatnonzero(level < DARK_LIGHT * ref)
+        if len(dark):
+            k = int(dark[0])
+            what = "its highlight peaks at" if self.sphere == "chrome" else "its fitted intensity is"
+            more = f" ({len(dark) - 1} more image{'s' * (len(dark) > 2)} too)" if len(dark) > 1 else ""
+            raise PsctlError(self.names[k], f"is dark on the sphere: {what} {100 * level[k] / ref:.2g} % of the "
+                                            f"median image's (a light that did not fire?){more}")
         ints = None
         if self.sphere == "matte":
             ints = np.array(self.intensities, np.float64)
@@ -702,7 +743,7 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     else:
         c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg, camera)
     box = _sphere_box(c, imgs.shape[1:3], camera)
-    cal = _Calibrator(sphere, c, box, cfg, camera)
+    cal = _Calibrator(sphere, c, box, cfg, camera, imgs.shape[1:3])
     for k in range(len(imgs)):
         img = imgs[k][box]
         cal.add(img, saturated_map(img) if integer else None, f"images[{k}]")
@@ -864,7 +905,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
                      "(docs/calibration.md, 'Perspective')")
     if c.x - c.r < -0.5 or c.y - c.r < -0.5 or c.x + c.r > cap.width - 0.5 or c.y + c.r > cap.height - 0.5:
         notes.append("sphere: part of it lies outside the images; only the part inside is used")
-    cal = _Calibrator(sphere, c, box, cfg, camera)
+    cal = _Calibrator(sphere, c, box, cfg, camera, (cap.height, cap.width))
     clipped: dict[int, np.ndarray] = {}
     advance = progress(f"{cap.name}: {sphere} sphere", cap.n_images)
     for k, img in enumerate(iter_images(raw, box, clipped=lambda k, top: clipped.__setitem__(k, top), memo=memo)):
@@ -914,6 +955,11 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
             notes.append(f"sphere: {len(second)} of {cap.n_images} images show more than one bright spot on the sphere "
                          f"({names(second)}): the brightest was taken; a reflection of a lamp or a window? "
                          "sphere.png shows them")
+        cut = [k for k, i in enumerate(res.images) if i.get("frame")]
+        if cut:
+            notes.append(f"sphere: {len(cut)} of {cap.n_images} highlights reach the image's edge, where the sphere "
+                         f"goes on beyond the image ({names(cut)}): partly cut off, their directions are less "
+                         "accurate; frame the whole sphere")
         rim = [k for k, i in enumerate(res.images) if i["rim"]]
         if rim:
             notes.append(f"sphere: {len(rim)} of {cap.n_images} highlights reach the edge of the sphere's used part "
@@ -945,7 +991,7 @@ def _report(res: SphereLights, cap: "Capture", notes: list[str]) -> dict:
 
     gt_ints = cap.intensities if cap.intensities_given else None
     errors = light_errors(res.directions, np.ones(len(res.directions)) if res.intensities is None else
-                          res.intensities.mean(1), cap.lights, gt_ints if res.intensities is not None else None)
+                          res.intensities, cap.lights, gt_ints if res.intensities is not None else None)
     per = errors["direction_errors"]
     images = []
     for k, info in enumerate(res.images):

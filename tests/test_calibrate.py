@@ -233,6 +233,87 @@ def test_chrome_highlight_at_the_rim_gets_a_note(tmp_path):
     assert any("point away from the camera" in n for n in r["notes"])
 
 
+def test_a_highlight_cut_by_the_image_edge_is_refused_or_noted(tmp_path):
+    """A sphere cut by the image's left edge (QA helper's rig): a highlight whose brightest pixel
+    is on that edge lies partly beyond the image, and its centroid there was taken as the light
+    (14.7 degrees off, noted as 'a light far behind the sphere'): now an error naming the file. One
+    that only reaches the edge gets a note of its own, not the rim's."""
+    from psctl.calibrate import DEFAULT_CALIBRATE
+
+    def at(zenith, azimuth):
+        z, a = np.radians(zenith), np.radians(azimuth)
+        return [np.sin(z) * np.cos(a), np.sin(z) * np.sin(a), np.cos(z)]
+
+    folder = tmp_path / "cut"
+    folder.mkdir()
+    lights = np.array([at(20, 0), at(30, 90), at(40, 180), at(25, 300)])
+    imgs = sphere_views(lights, 80, 8.0, 40.0, 36.0, "chrome")
+    for k in range(4):
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+    write_image(folder / "mask.png", disk(80, 80, 8.0, 40.0, 36.0).astype(np.float32), "uint8")
+    with pytest.raises(PsctlError, match=r"003.png: has its highlight at the image's edge, where the sphere goes on "
+                                         r"beyond the image"):
+        run_calibrate(folder, "chrome", write=False)
+    # without that light, the others' highlights are inside: right, and no edge note
+    lights[2] = at(15, 150)
+    imgs = sphere_views(lights, 80, 8.0, 40.0, 36.0, "chrome")
+    write_image(folder / "003.png", np.clip(imgs[2], 0, 1), "uint16")
+    np.savetxt(folder / "light_directions.txt", lights)
+    r = run_calibrate(folder, "chrome", write=False)
+    assert r["light_mae"] < 1.0 and not any(i["frame"] for i in r["images"])
+    assert not any("image's edge" in n for n in r["notes"])
+    # find_highlight itself: a spot reaching the frame is "frame" (not "rim"); its peak there, "frame_peak"
+    from psctl.calibrate import find_highlight
+
+    g = np.zeros((20, 20))
+    g[8:12, 0:3] = [0.9, 1.0, 0.5]  # brightest one pixel in from the edge
+    inside, frame = np.ones((20, 20), bool), np.zeros((20, 20), bool)
+    frame[:, 0] = True
+    spot = find_highlight(g, inside, DEFAULT_CALIBRATE["highlight"], DEFAULT_CALIBRATE["base"], frame=frame)
+    assert spot["frame"] and not spot["frame_peak"] and not spot["rim"]
+    g[8:12, 0] = 2.0
+    assert find_highlight(g, inside, DEFAULT_CALIBRATE["highlight"], DEFAULT_CALIBRATE["base"], frame=frame)["frame_peak"]
+
+
+@pytest.mark.parametrize("kind", ["chrome", "matte"])
+def test_a_light_that_did_not_fire_is_an_error_though_not_black(tmp_path, kind):
+    """Sensor noise (0.2 % of full scale) where a light did not fire: its 'highlight' was taken
+    (130 degrees off) or a matte fit gave 0.2 % intensity (34 degrees off), written without a word
+    (a QA helper's finding). Now one line naming the image."""
+    folder = tmp_path / kind
+    write_sphere_folder(folder, kind, n=12, size=64)
+    rng = np.random.default_rng(0)
+    write_image(folder / "005.png", (rng.uniform(0, 0.002, (64, 64, 1)) * np.ones(3)).astype(np.float32), "uint16")
+    with pytest.raises(PsctlError, match=r"005.png: is dark on the sphere: its (highlight peaks at|fitted intensity "
+                                         r"is) 0.\d+ % of the median image's \(a light that did not fire\?\)$"):
+        run_calibrate(folder, kind, write=False)
+
+
+def test_matte_intensities_are_scored_per_channel(tmp_path):
+    """A matte sphere measures each light's colour; its intensity_re scored their grey mean against
+    the true RGB (0.037 for files right to 0.0006: a QA helper's finding). One scale per channel."""
+    folder = tmp_path / "m"
+    write_sphere_folder(folder, "matte", n=12, size=64)
+    rng = np.random.default_rng(3)
+    truth = np.loadtxt(folder / "light_intensities.txt") * rng.uniform(0.9, 1.1, (12, 3))  # each light its colour
+    lights = np.loadtxt(folder / "light_directions.txt")
+    imgs = sphere_views(lights, 64, 64 / 2 - 0.3, 64 / 2 + 0.6, 64 * 0.4, "matte", truth)
+    for k in range(12):
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+    np.savetxt(folder / "light_intensities.txt", truth)
+    r = run_calibrate(folder, "matte", write=False)
+    assert r["intensity_re"] < 0.005, r["intensity_re"]
+    from psctl.lights import intensity_error
+
+    got = np.array([i["intensity"] for i in r["images"]])
+    assert intensity_error(got.mean(1), truth) > 0.02  # the grey score it had
+    # LCNet's grey estimates are scored as before (the authors' way): one s after each true channel / row 1
+    grey = got.mean(1)
+    t = truth / truth[:1]
+    s = (np.repeat(grey[:, None], 3, 1) * t).sum() / (np.repeat(grey[:, None], 3, 1) ** 2).sum()
+    assert intensity_error(grey, truth) == pytest.approx(np.mean(np.abs(s * grey[:, None] - t) / t))
+
+
 def test_chrome_needs_an_outline_and_a_highlight():
     lights = hemisphere_lights(3, 40.0).astype(np.float64)
     imgs = to_uint16(sphere_views(lights, 64, 32, 32, 24, "chrome"))
