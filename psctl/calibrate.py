@@ -181,7 +181,7 @@ def _check_camera(key: str, value: object) -> "float | tuple[float, float] | Non
             with contextlib.suppress(ValueError):
                 value = float(value)  # the command line's text
         if not is_number(value) or not 1.0 <= float(value) <= 1e7:
-            raise PsctlError(None, f"focal must be the camera's focal length in pixels (a number in [1, 1e7]) or "
+            raise PsctlError(None, f"--focal must be the camera's focal length in pixels (a number in [1, 1e7]) or "
                                    f"'exif' (read from the images), not {_short(value)}")
         return float(value)
     try:
@@ -869,7 +869,16 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     if given is not None:
         c = given
         if cap.mask_path is not None:
-            notes.append(f"sphere: {cap.mask_path.name} is unused: --circle gives the outline")
+            said = f"sphere: {cap.mask_path.name} is unused: --circle gives the outline"
+            try:  # a --circle a few pixels off turns every light (5 px: 10-15 degrees, a QA helper's rig)
+                m = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg, camera)
+                apart = max(float(np.hypot(m.x - c.x, m.y - c.y)), abs(m.r - c.r))
+                if apart > max(1.0, 0.02 * c.r):
+                    said += (f", and its outline (x {m.x:.1f}, y {m.y:.1f}, r {m.r:.1f}) is {apart:.1f} pixels off "
+                             f"--circle's: is --circle right?")
+            except PsctlError:
+                pass
+            notes.append(said)
     elif cap.mask_path is not None:
         c = fit_circle(load_mask(cap), cap.mask_path.name, cap.mask_path, cfg, camera)
     else:
@@ -886,7 +895,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         notes.append(f"sphere: outline found in the images (x {c.x:.1f}, y {c.y:.1f}, r {c.r:.1f}); mask.png or "
                      "--circle X,Y,R would fix it")
     box = _sphere_box(c, (cap.height, cap.width), camera)
-    if c.r < 30:
+    if c.r < 30 and sphere == "chrome":
         notes.append(f"sphere: its radius is {c.r:.1f} pixels: each pixel of error in a highlight's place is "
                      f"{np.degrees(2 / c.r):.1f} degrees or more of direction; a larger sphere in the images is more "
                      "accurate (docs/calibration.md)")
@@ -933,9 +942,10 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         with staged_outputs(out_dir, replaces=lambda: read_outputs_list(out_dir, COMMAND)) as stage:
             write_outputs_list(stage, names, COMMAND)
             write_sphere_files(stage, res, cap, report)
-            report["seconds"] = round(time.perf_counter() - t0, 3)
+            report["seconds"] = round(time.perf_counter() - t0, 3)  # calibration_report.json and the return agree
             write_json(stage / REPORT_FILE, report)
-    report["seconds"] = round(time.perf_counter() - t0, 3)
+    else:
+        report["seconds"] = round(time.perf_counter() - t0, 3)
     return report
 
 

@@ -652,6 +652,21 @@ def test_calibrate_command_errors_are_one_line(tmp_path):
     assert r.returncode == 2 and "mask.png" in r.stderr and "is not round" in r.stderr
 
 
+def test_a_circle_off_the_mask_gets_a_note(tmp_path):
+    """--circle replaces mask.png's outline; one 5 px off turned every light 10-15 degrees without a
+    word (a QA helper's finding). With mask.png there, the two are compared and a note says how far
+    apart they are; a --circle that agrees gets only the 'unused' note."""
+    truth = write_sphere_folder(tmp_path / "c", "chrome", n=8, size=64)
+    cx, cy, r = truth["circle"]
+    near = run_calibrate(tmp_path / "c", "chrome", circle=(cx, cy, r), write=False)
+    said = [n for n in near["notes"] if "mask.png is unused" in n]
+    assert said == ["sphere: mask.png is unused: --circle gives the outline"], near["notes"]
+    off = run_calibrate(tmp_path / "c", "chrome", circle=(cx + 5, cy, r), write=False)
+    said = [n for n in off["notes"] if "mask.png is unused" in n]
+    assert len(said) == 1 and "is 5.0 pixels off --circle's: is --circle right?" in said[0], off["notes"]
+    assert off["light_mae"] > near["light_mae"] + 5
+
+
 def test_calibrate_python_wording(tmp_path):
     import psctl as ps
 

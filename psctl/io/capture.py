@@ -584,7 +584,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     if lights_path is not None:
         lights = read_lights(lights_path)
         if len(lights) != n:
-            raise PsctlError(lights_path, f"{len(lights)} light rows but {n} image{'s' * (n != 1)}{found}")
+            raise PsctlError(lights_path, f"{len(lights)} light row{'s' * (len(lights) != 1)} but {n} "
+                                          f"image{'s' * (n != 1)}{found}")
         check_lights_face_camera(lights, lights_path)
     intensities = np.ones((n, 3), np.float32)
     intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files") \
@@ -593,7 +594,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     if given:
         intensities = read_intensities(intensities_path)
         if len(intensities) != n:
-            raise PsctlError(intensities_path, f"{len(intensities)} intensity rows but {n} image{'s' * (n != 1)}{found}")
+            raise PsctlError(intensities_path, f"{len(intensities)} intensity row{'s' * (len(intensities) != 1)} but "
+                                               f"{n} image{'s' * (n != 1)}{found}")
 
     mask_path = _first_existing(path, entries, MASK_FILES, "masks")
     if mask_path is not None:
