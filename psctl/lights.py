@@ -466,7 +466,8 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     replaces the lights passed in.
 
     Args:
-        observations: [N, P] grey values as captured (not divided by any intensity).
+        observations: [N, P] grey values as captured (not divided by any intensity); NaN where
+            one is not to be used (saturated).
         normals: [P, 3] unit normals of the same pixels (e.g. PS-FCN's from the lights below).
         directions: [N, 3] unit light directions to start from (LCNet's).
         intensities: [N] their intensities.
@@ -487,9 +488,15 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     if cfg["falloff"] not in FALLOFFS:
         raise ValueError(f"falloff must be one of {FALLOFFS}, not {cfg['falloff']!r}")
     keep = Refinement(d0.astype(np.float32), e0.astype(np.float32), float("inf"), 0.0, "too few pixels")
-    ok = np.isfinite(o).all(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
+    # NaN: an observation not to use (a saturated one: its true value is unknown, and taking the top
+    # code for it pulls the light toward the clipped highlight); a pixel keeps its other observations
+    seen = np.isfinite(o)
+    ok = seen.any(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
     if not ok.all():
-        o, n = o[:, ok], n[ok]
+        o, n, seen = o[:, ok], n[ok], seen[:, ok]
+    gaps = not seen.all()
+    if gaps:
+        o = np.where(seen, o, np.float32(0.0))
     if n.shape[0] < 50 or not (np.all(e0 > 0) and np.isfinite(d0).all()):
         return keep
     from psctl.classic import lights_problem
@@ -508,6 +515,8 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
         lit = sh > cfg["margin"] * np.linalg.norm(s, axis=1)[None]
         sh += b[None]
         lit &= sh > 0
+        if gaps:
+            lit &= seen[:, px].T  # an observation left out counts as not lit: in no sum below
         return sh, lit
 
     def albedo(s: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -827,7 +836,14 @@ def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, nor
     raw = replace(capture, lights=est.directions, intensities=np.ones_like(capture.intensities))
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-        yield from iter_images(raw.subset(range(start, raw.n_images)), box, memo=memo)
+        top: dict[int, np.ndarray] = {}  # each integer image's pixels at its top code (saturated)
+        for k, img in enumerate(iter_images(raw.subset(range(start, raw.n_images)), box, memo=memo,
+                                            clipped=top.__setitem__)):
+            sat = top.pop(k, None)
+            if sat is not None and sat.any():  # left out of the fit (refine_lights: NaN)
+                img = img.copy()
+                img[sat] = np.nan
+            yield img
 
     return refine_estimate(est, reader, capture.n_images, mask, normals, config, method=method, progress=progress,
                            label=f"{capture.name}: reading for the light fit")

@@ -817,3 +817,54 @@ def test_lcnet_reading_the_second_stages_box_gives_what_reading_its_own_crop_doe
             capture_lights(cap, mask, weights, cfg, **kw)
         errors.append(str(e.value))
     assert errors[0] == errors[1] and "subtracting it leaves 005.png black" in errors[0]
+
+
+def test_saturated_observations_left_out_of_the_fit():
+    """NaN marks an observation not to use (refine_capture: a pixel at its integer file's top code).
+    Clipped values taken as they are pull the lights; left out, the fit is as on the unclipped
+    observations of the other pixels (a QA helper: 51 % saturated took sdps' lights 3.2 -> 6.5 deg)."""
+    obs, nrm, lights, ints = scene()
+    start = rotate_randomly(lights, 8.0, seed=1)
+    top = np.quantile(obs[obs > 0], 0.7)  # 30 % of the lit observations clipped
+    clipped = np.minimum(obs, top)
+    marked = np.where(obs >= top, np.nan, obs).astype(np.float32)
+    whole = light_direction_error(refine_lights(obs, nrm, start, ints).directions, lights).mean()  # 0.65
+    as_is = light_direction_error(refine_lights(clipped, nrm, start, ints).directions, lights).mean()  # 6.05
+    left_out = refine_lights(marked, nrm, start, ints)  # 0.84
+    assert left_out.weight == 1.0 and light_direction_error(left_out.directions, lights).mean() < whole + 0.3
+    assert as_is > whole + 3.0
+    # NaN only where nothing is clipped: the same answer as without (no observation lost)
+    np.testing.assert_array_equal(refine_lights(obs, nrm, start, ints).directions,
+                                  refine_lights(np.where(obs > 10 * obs.max(), np.nan, obs), nrm, start, ints).directions)
+    # a pixel with no usable observation at all is left out, not a NaN answer
+    marked[:, :5] = np.nan
+    assert np.isfinite(refine_lights(marked, nrm, start, ints).directions).all()
+
+
+def test_refine_capture_marks_the_saturated_observations(tmp_path, monkeypatch):
+    """refine_capture hands refine_lights NaN exactly where an integer image is at its top code
+    (in any channel), and the other observations as read."""
+    import psctl.lights as pl
+    from psctl.io.capture import load_images, load_mask, open_capture
+    from psctl.io.images import write_image
+
+    arrays = write_capture(tmp_path / "c", n=8, size=32, bits=8, intensities=False)
+    for k, img in enumerate(arrays["images"]):
+        write_image(tmp_path / "c" / f"{k + 1:03d}.png", np.clip(img * 2.5, 0, 1), "uint8")  # clipped
+    cap = open_capture(tmp_path / "c")
+    mask = load_mask(cap)
+    seen = {}
+
+    def spy(obs, nrm, d, e, config=None):
+        seen["obs"] = obs
+        return pl.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
+
+    monkeypatch.setattr(pl, "refine_lights", spy)
+    est = LightEstimate(arrays["lights"].astype(np.float32), np.ones(8, np.float32), {})
+    pl.refine_capture(cap, mask, est, arrays["normals"])
+    imgs = load_images(cap)[:, mask]  # [N, P, 3], as read (intensities 1)
+    top = (imgs >= 1.0).any(-1)
+    assert 0.05 < top.mean() < 0.95
+    obs = seen["obs"]
+    assert obs.shape == top.shape and np.array_equal(np.isnan(obs), top)
+    np.testing.assert_allclose(obs[~top], imgs.mean(-1)[~top], rtol=1e-6)
