@@ -524,6 +524,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method == "sdps":
         sd = _sdps_normals(cap, mask, near, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
         est, normals, dark, light_stats = sd.lights, sd.normals, sd.dark, sd.light_stats
+        if cap.mask_path is None:
+            from psctl.lights import NO_MASK_NOTE
+
+            notes.append(NO_MASK_NOTE)
         notes += sd.notes
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals

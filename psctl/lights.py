@@ -1059,6 +1059,12 @@ def write_lights_plot(path: str | os.PathLike, directions: np.ndarray, intensiti
 
 # --- the command ------------------------------------------------------------------------------
 
+# LCNet's input has a mask channel, and the light fit reads the mask's pixels: without one both take
+# the background for the object (a QA helper's finding: no word was said)
+NO_MASK_NOTE = ("mask: none (no mask.png): LCNet and the light fit take the whole frame for the object; a mask "
+                "of the object makes the lights more accurate (examples/bumpy_sphere: 6.19 degrees without, "
+                "2.45 with)")
+
 def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "soft",
                n_images: int | None = None, seed: int | None = None, write: bool = True,
@@ -1143,6 +1149,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                           (("--weights", weights), ("--normals-weights", normals_weights)))
         check_output_dir(out_dir)
     mask = load_mask(cap)
+    if cap.mask_path is None:
+        picked.append(NO_MASK_NOTE)
     near = None
     if light_distance is not None:
         from psctl.models.weights import installed_path
