@@ -293,7 +293,7 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
     # under another format's name
     (tmp_path / "obj" / "light_intensities.txt").write_text("1 1 1\n")
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", "--K", K, *d)
-    assert r.returncode == 2 and "light_intensities.txt" in r.stderr and "1 intensity rows but 3 images" in r.stderr
+    assert r.returncode == 2 and "light_intensities.txt" in r.stderr and "1 intensity row but 3 images" in r.stderr
     (tmp_path / "obj" / "light_intensities.txt").unlink()
     (tmp_path / "obj" / "a.png").rename(tmp_path / "obj" / "a.tif")
     (tmp_path / "obj" / "filenames.txt").write_text("b.png\na.tif\nc.png\n")
