@@ -130,6 +130,16 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     return method, None
 
 
+def _saturated(images) -> np.ndarray | None:
+    """[N, H, W] bool: integer images' values at their type's top code (saturated; the light fit
+    leaves them out, as it does a capture folder's), or None for float images, which cannot tell."""
+    raw = np.asarray(images) if not isinstance(images, np.ndarray) else images
+    if raw.dtype.kind not in "iu" or raw.ndim < 3:
+        return None
+    top = raw >= np.iinfo(raw.dtype).max
+    return top.any(-1) if raw.ndim == 4 else top
+
+
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
                     refine: bool = True, falloff: str | None = None,
@@ -176,6 +186,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
     # the refinement's normals network; checked before any work (not where none will run)
     net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refines else None}
+    saturated = _saturated(images)
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
@@ -190,7 +201,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         warnings.warn(f"estimate_lights: {', '.join(f'{k}={given[k]!r}' for k in unused)} unused ({why})",
                       PsctlWarning, stacklevel=level)
     if refines:
-        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg)
+        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg, saturated)
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
 
@@ -253,6 +264,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     views = check_views(views)
     downsample = check_downsample(downsample)
     net_cfg = {"device": device, "views": views, "downsample": downsample}
+    saturated = _saturated(images) if lights is None and method == "sdps" else None
     images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)
     mask = as_mask(mask, images.shape[1:3])
     lights = as_lights(lights, images.shape[0])
@@ -294,7 +306,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         second = sdps_second_stage(weights)[0]
         est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
-        source = array_source(images, mask, second, weights, net_cfg)
+        source = array_source(images, mask, second, weights, net_cfg, saturated)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
@@ -709,7 +721,8 @@ def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: Progress
         check.see(k, img[mask[box]])
         # as the networks do: a hot value gives its own pixel a normal toward that image's light (66
         # degrees off in test_l2's sphere) and an albedo thousands of times the rest
-        img, count = clamp_hot_pixels(img, mask[box])
+        inside = mask[box]
+        img, count = clamp_hot_pixels(img * inside[..., None], inside)  # masked first, as the networks'
         if count:
             hot[k] = count
         acc.add(img, cap.lights[k])

@@ -442,8 +442,8 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
     "rim" (it touches the edge of ``inside`` within the image: a light far behind the sphere,
     whose highlight is partly cut off), "frame" (it touches ``frame`` [h, w] bool, the pixels on
     the image's own edge where the sphere goes on beyond it: cut off by the image),
-    "frame_peak" (its brightest pixel is there: its centre is likely outside the image)}; None
-    when the sphere is black.
+    "frame_peak" (its brightest pixel is there, or, a clipped plateau, less than half of it shows:
+    its centre is likely outside the image)}; None when the sphere is black.
 
     Regions above b + ``fraction`` (peak - b), b the ``base``-th percentile of the sphere's values,
     are candidates; the one with the most brightness above that level is the highlight, leaving
@@ -501,10 +501,19 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
         ww = np.ones_like(ww)
     cut = np.zeros_like(spot) if frame is None else spot & frame
     edge = spot & ~ndimage.binary_erosion(inside, structure=eight, border_value=0) & ~cut
-    on_frame = cut & (g >= top)
+    peak_px = spot & (g >= top)
+    frame_peak = bool((cut & peak_px).any())
+    if frame_peak and peak_px.sum() > 1:
+        # a clipped plateau reaching the edge: its centre lies beyond it only when less than half of
+        # it shows (a disc cut through its centre is half as deep as it is wide)
+        py, px = np.nonzero(peak_px)
+        tall, wide = int(np.ptp(py)) + 1, int(np.ptp(px)) + 1
+        sides = ((frame[0].all() and peak_px[0].any()) or (frame[-1].all() and peak_px[-1].any()),
+                 (frame[:, 0].all() and peak_px[:, 0].any()) or (frame[:, -1].all() and peak_px[:, -1].any()))
+        frame_peak = (sides[0] and tall < wide / 2) or (sides[1] and wide < tall / 2)
     out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top,
            "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any()), "frame": bool(cut.any()),
-           "frame_peak": bool(on_frame.any())}
+           "frame_peak": bool(frame_peak)}
     if normals is not None:
         n = normals[ys, xs]
         if views is not None:

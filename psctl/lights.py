@@ -850,13 +850,18 @@ def refine_capture(capture: "Capture", mask: np.ndarray, est: LightEstimate, nor
 
 
 def refine_arrays(images: np.ndarray, mask: np.ndarray | None, est: LightEstimate, normals: np.ndarray,
-                  method: str = "PS-FCN", config: dict | None = None) -> LightEstimate:
-    """``refine_estimate`` on in-memory images [N, H, W, 3] as captured."""
+                  method: str = "PS-FCN", config: dict | None = None,
+                  saturated: np.ndarray | None = None) -> LightEstimate:
+    """``refine_estimate`` on in-memory images [N, H, W, 3] as captured; ``saturated`` [N, H, W]
+    bool, the observations to leave out (as ``refine_capture`` leaves out a file's top code)."""
     m = np.ones(images.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k in range(start, len(images)):
-            yield images[k][box]
+            img = images[k][box]
+            if saturated is not None and saturated[k][box].any():
+                img = np.where(saturated[k][box][..., None], np.float32(np.nan), img).astype(np.float32)
+            yield img
 
     return refine_estimate(est, reader, len(images), m, normals, config, method=method)
 

@@ -152,10 +152,11 @@ class Source:
 
 
 def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weights: str | os.PathLike | None = None,
-                 config: dict | None = None) -> Source:
+                 config: dict | None = None, saturated: np.ndarray | None = None) -> Source:
     """In-memory images [N, H, W, 3] float32 as captured; ``method`` (one of SDPS_SECOND, or
     "ensemble": the installed PS-FCN and PS-FCN+N averaged) and ``weights`` (None: installed) the
-    second stage, ``config`` its run options (device, views)."""
+    second stage, ``config`` its run options (device, views); ``saturated`` [N, H, W] bool: the
+    observations the light fit leaves out (integer images' top code)."""
     from psctl.infer import array_normals
     from psctl.lights import refine_arrays
 
@@ -164,7 +165,7 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
                              config)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
-        return refine_arrays(images, mask, est, n, SHOWN[method], fit)
+        return refine_arrays(images, mask, est, n, SHOWN[method], fit, saturated)
 
     return Source(normals, refine, mask)
 

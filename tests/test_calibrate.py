@@ -273,6 +273,16 @@ def test_a_highlight_cut_by_the_image_edge_is_refused_or_noted(tmp_path):
     assert spot["frame"] and not spot["frame_peak"] and not spot["rim"]
     g[8:12, 0] = 2.0
     assert find_highlight(g, inside, DEFAULT_CALIBRATE["highlight"], DEFAULT_CALIBRATE["base"], frame=frame)["frame_peak"]
+    # a clipped (flat-topped) highlight reaching the edge: an error only when less than half of its
+    # plateau shows (its centre beyond the edge), a note otherwise (a review finding: every clipped
+    # one touching the edge was an error)
+    yy, xx = np.mgrid[0:40, 0:40]
+    inside, frame = np.ones((40, 40), bool), np.zeros((40, 40), bool)
+    frame[0] = True
+    for cy, beyond in ((3, False), (1, False), (-1, True), (-2, True)):
+        g = np.clip(3 * np.exp(-((yy - cy) ** 2 + (xx - 20) ** 2) / 32.0), 0, 1)
+        spot = find_highlight(g, inside, DEFAULT_CALIBRATE["highlight"], DEFAULT_CALIBRATE["base"], frame=frame)
+        assert spot["frame"] and spot["frame_peak"] == beyond, cy
 
 
 @pytest.mark.parametrize("kind", ["chrome", "matte"])

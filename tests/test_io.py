@@ -757,6 +757,8 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
         (other / f"{k + 1:03d}.bmp").write_bytes(b"BM")
     write_image(other / "mask.png", np.ones((8, 8)), "uint8")
     np.savetxt(other / "light_directions.txt", data["lights"][:3])
+    (other / "README").write_text("my capture")  # no image: not named among them (review finding)
+    (other / "Thumbs.db").write_bytes(b"")
     with pytest.raises(PsctlError, match=r"no images found \(.*\); mask.png is taken for a mask, normals or outputs "
                                          r"by name; 001.bmp, 002.bmp, 003.bmp are not read unless listed: list the "
                                          r"images in filenames.txt$"):
@@ -1795,6 +1797,8 @@ def test_pick_channels_by_name():
     assert pick_channels(["Y", "A"]) == ((), "", ("",)) and pick_channels(["X", "Y", "Z"]) == ((), "", ())
     blender = ["Albedo.R", "Albedo.G", "Albedo.B", "Combined.R", "Combined.G", "Combined.B", "Combined.A"]
     assert pick_channels(blender) == ((3, 4, 5, 6), "Combined", ("Albedo", "Combined"))
+    nested = [f"ViewLayer.{n}" for n in blender]  # Blender's own names: the view layer, then the pass
+    assert pick_channels(nested)[:2] == ((3, 4, 5, 6), "ViewLayer.Combined")
     assert pick_channels(["Albedo.R", "Albedo.G", "Albedo.B", "R", "G", "B"]) == ((3, 4, 5), "", ("Albedo", ""))
     assert pick_channels(["depth.Z", "diffuse.R", "diffuse.G", "diffuse.B"]) == ((1, 2, 3), "diffuse", ("diffuse",))
     with pytest.raises(ValueError, match="2 layers with colour .diffuse, specular. and none named Combined or Beauty"):

@@ -883,3 +883,29 @@ def test_lights_and_sdps_without_a_mask_say_so(tmp_path, fake_weights, monkeypat
     for path, said in ((tmp_path / "aPNG", False), (tmp_path / "bPNG", True)):
         assert (NO_MASK_NOTE in run_lights(path, write=False, device="cpu", refine=False)["notes"]) == said
     assert NO_MASK_NOTE in run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", refine=False)["notes"]
+
+
+def test_integer_arrays_leave_their_top_code_out_of_the_fit(monkeypatch):
+    """estimate_lights / estimate_normals(sdps) given uint8 or uint16 arrays mark the top code as a
+    capture folder's reader does (a review finding: only the folder path did)."""
+    import psctl.lights as pl
+    from psctl.api import _saturated
+
+    rng = np.random.default_rng(0)
+    raw = rng.integers(0, 256, (4, 6, 5, 3)).astype(np.uint8)
+    top = _saturated(raw)
+    assert top is not None and np.array_equal(top, (raw == 255).any(-1)) and _saturated(raw / 255.0) is None
+    assert np.array_equal(_saturated(raw.astype(np.uint16) * 257), top)  # uint16: 65535
+    seen = {}
+
+    def spy(obs, nrm, d, e, config=None):
+        seen["obs"] = obs
+        return pl.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
+
+    monkeypatch.setattr(pl, "refine_lights", spy)
+    images = raw.astype(np.float32) / 255
+    normals = np.zeros((6, 5, 3), np.float32)
+    normals[..., 2] = 1
+    est = LightEstimate(np.tile(np.float32([0, 0, 1]), (4, 1)), np.ones(4, np.float32), {})
+    pl.refine_arrays(images, None, est, normals, saturated=top)
+    assert np.array_equal(np.isnan(seen["obs"]), top.reshape(4, -1))

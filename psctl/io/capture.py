@@ -552,7 +552,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
             files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
             left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
             # images of other formats (.bmp, .webp): OpenImageIO may read them, once listed
-            other = [n for n in files if not n.lower().endswith((*IMAGE_EXTENSIONS, *_NOT_IMAGE_SUFFIXES))]
+            other = [n for n in files if n.lower().endswith(_OTHER_IMAGE_SUFFIXES)]
             said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
                 [f"{some(other)} not read unless listed"] if other else [])
             hint = f"; {'; '.join(said)}: list the images in {LIST_FILES[0]}" if said else ""
@@ -693,9 +693,10 @@ def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
     raise PsctlError(None, f"expected a Capture (psctl.io.capture.open_capture) or a folder, not {type(capture).__name__}")
 
 
-# files a capture folder holds that are no images (light files, ground truth, reports, notes)
-_NOT_IMAGE_SUFFIXES = (".txt", ".mat", ".json", ".jsonl", ".md", ".yml", ".yaml", ".npy", ".npz", ".csv", ".log",
-                       ".pt", ".ply", ".obj", ".zip")
+# image formats psctl does not look for by itself, that OpenImageIO may read once listed
+_OTHER_IMAGE_SUFFIXES = (".bmp", ".webp", ".gif", ".tga", ".hdr", ".dpx", ".jp2", ".j2k", ".heic", ".heif", ".psd",
+                         ".pgm", ".ppm", ".pnm", ".pbm", ".sgi", ".rgb", ".iff", ".dds", ".ico", ".dng", ".cr2",
+                         ".nef", ".arw", ".raw", ".fits", ".cin", ".sxr")
 
 
 def _same_name(p: Path) -> Path:

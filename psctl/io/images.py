@@ -81,7 +81,8 @@ def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], 
     elif len(colour) == 1:
         layer = found[0]
     else:
-        main = [name for name in found if name.lower() in MAIN_LAYERS]
+        # by the layer's own name, the last part: Blender writes "ViewLayer.Combined.R"
+        main = [name for name in found if name.rpartition(".")[2].lower() in MAIN_LAYERS]
         if len(main) != 1:
             raise ValueError(f"holds {len(found)} layers with colour ({', '.join(found)}) and none named "
                              f"{' or '.join(m.capitalize() for m in MAIN_LAYERS[:2])}: psctl cannot tell which is the "
