@@ -329,7 +329,7 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     # the caller's shading model reaches the fit (mutation review, session 39: dropping it went unseen)
     fits = []
     real = psctl.lights.refine_arrays
-    monkeypatch.setattr(psctl.lights, "refine_arrays", lambda *a: fits.append(a[-1]) or real(*a))
+    monkeypatch.setattr(psctl.lights, "refine_arrays", lambda *a: fits.append(a[5]) or real(*a))  # (.., config, saturated)
     with weights_in(fake_weights):
         estimate_normals(images, None, mask, method="sdps", device="cpu", falloff="lambertian")
     assert fits and all(f is not None and f["falloff"] == "lambertian" for f in fits)
