@@ -547,7 +547,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         image_paths = _image_files(entries)
         if not image_paths:
             def some(names: list[str]) -> str:
-                return f"{', '.join(names[:3])}{' ...' if len(names) > 3 else ''} {'is' if len(names) == 1 else 'are'}"
+                return f"{_few(names)} {'is' if len(names) == 1 else 'are'}"
 
             files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
             left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
@@ -697,6 +697,11 @@ def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
 _OTHER_IMAGE_SUFFIXES = (".bmp", ".webp", ".gif", ".tga", ".hdr", ".dpx", ".jp2", ".j2k", ".heic", ".heif", ".psd",
                          ".pgm", ".ppm", ".pnm", ".pbm", ".sgi", ".rgb", ".iff", ".dds", ".ico", ".dng", ".cr2",
                          ".nef", ".arw", ".raw", ".fits", ".cin", ".sxr")
+
+
+def _few(names: Sequence[str]) -> str:
+    """The first three names, then " ..." when there are more: how notes and errors list files."""
+    return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
 
 
 def _same_name(p: Path) -> Path:
@@ -1096,17 +1101,14 @@ def capture_notes(capture: Capture) -> list[str]:
     if stacks:  # a TIFF stack of the whole capture in one file would otherwise pass as one image
         named = ", ".join(f"{n} holds {k} pages" for n, k in stacks[:3]) + (" ..." if len(stacks) > 3 else "")
         notes.append(f"images: {named}; psctl reads one image per file, its first page")
-    def some(names: list[str]) -> str:
-        return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
-
     layered = [(p.name, layer) for p, layer in zip(capture.image_paths, capture.layers) if layer]
     if layered:  # which of a multilayer EXR's layers is the picture was decided by name: say so
         read = sorted({layer for _, layer in layered})
-        notes.append(f"images: {some([n for n, _ in layered])} hold several layers; psctl reads the "
+        notes.append(f"images: {_few([n for n, _ in layered])} hold several layers; psctl reads the "
                      f"{' / '.join(read)} layer's colour channels")
     windowed = [p.name for p, w in zip(capture.image_paths, capture.windowed) if w]
     if windowed:
-        notes.append(f"images: {some(windowed)} store their pixels in a data window other than their "
+        notes.append(f"images: {_few(windowed)} store their pixels in a data window other than their "
                      f"{capture.width}x{capture.height} frame (an EXR cropped or shifted); placed in the frame, 0 outside")
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
@@ -1132,7 +1134,7 @@ def capture_notes(capture: Capture) -> list[str]:
         if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and not capture.ambient_jpeg:
             misnamed.append(capture.ambient_path.name)
         if misnamed:
-            notes.append(f"encoding: {', '.join(misnamed[:3])}{' ...' if len(misnamed) > 3 else ''}: named JPEG but "
+            notes.append(f"encoding: {_few(misnamed)}: named JPEG but "
                          f"not JPEG data, read as linear as their content's format is (--encoding srgb decodes them)")
     n = capture.srgb_images
     if not n:
