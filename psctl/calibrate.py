@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
-from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, is_number
+from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, few, is_number
 from psctl.hotpixels import HOT_RATIO
 
 if TYPE_CHECKING:
@@ -962,7 +962,7 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
     notes = []
 
     def names(idx: list[int]) -> str:
-        return ", ".join(cap.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+        return few([cap.image_paths[i].name for i in idx])
 
     behind = [k for k, d in enumerate(res.directions) if d[2] <= 0]
     if behind:
@@ -1065,7 +1065,7 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     key = [(SPHERE_OUTLINE, text_bitmap(OUTLINE_KEY, s))]
     if highlights:
         key.append((HIGHLIGHT_DOT, text_bitmap(HIGHLIGHT_KEY, s)))
-    key_w = sum(9 * s + bm.shape[1] + 8 * s for _, bm in key)
+    key_w = sum(11 * s + bm.shape[1] + 8 * s for _, bm in key)
     canvas = np.full((top_px + img.shape[0] + 11 * s,
                       max(img.shape[1], 4 * s + (label.shape[1] if title else 0), 2 * s + key_w), 3), 0.12,
                      np.float32)
@@ -1074,8 +1074,8 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     for colour, bm in key:  # a swatch, its words, then the next
         y = top_px + img.shape[0] + 2 * s
         canvas[y:y + 7 * s, x:x + 7 * s] = colour
-        _stamp(canvas, bm, y, x + 9 * s)
-        x += 9 * s + bm.shape[1] + 8 * s
+        _stamp(canvas, bm, y, x + 11 * s)  # 4 s of space: the words read as the swatch's
+        x += 11 * s + bm.shape[1] + 8 * s
 
     def at(x: float, y: float) -> tuple[float, float]:  # image pixel centre -> canvas (row, col)
         return top_px + (y - box[0].start + 0.5) * k, (x - box[1].start + 0.5) * k

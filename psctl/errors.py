@@ -11,7 +11,7 @@ import functools
 import math
 import numbers
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 
@@ -77,6 +77,12 @@ def naming(path: str | os.PathLike) -> Iterator[None]:
         if e.path is not None:
             raise
         raise PsctlError(path, e.message) from None
+
+
+def few(names: Sequence[str], n: int = 3) -> str:
+    """The first ``n`` names, then " ..." when there are more: how notes and errors list files."""
+    names = list(names)
+    return ", ".join(names[:n]) + (" ..." if len(names) > n else "")
 
 
 def is_number(value: Any) -> bool:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psctl.errors import few
+
 HOT_LEVEL = 300.0  # a candidate is above this many times the image's mean inside the mask
 HOT_RATIO = 4.0  # and above this many times the brightest of its 8 neighbours (same channel)
 
@@ -79,7 +81,7 @@ def hot_pixel_notes(info: dict, names: list[str]) -> list[str]:
     if not hot:
         return []
     idx = sorted(hot)
-    listed = ", ".join(names[i] for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+    listed = few([names[i] for i in idx])
     return [f"images: {sum(hot.values())} isolated hot pixel value(s) in {len(idx)} image(s) ({listed}) set to "
             f"their neighbours' level (over {HOT_LEVEL:g} times the image's mean and {HOT_RATIO:g} times every "
             "neighbour: a sensor's hot pixel?)"]

@@ -446,6 +446,7 @@ def test_sphere_picture_keys_its_marks():
         for key, colour in zip(keys, (SPHERE_OUTLINE, HIGHLIGHT_DOT)):
             (y, x), = _text_at(pic, key, 2)
             assert y >= below and np.allclose(pic[y + 4, x - 10], colour)  # its swatch, just left of it
+            assert np.allclose(pic[y + 4, x - 6:x], 0.12)  # with space between (were 4 px apart)
         assert bool(_text_at(pic, HIGHLIGHT_KEY, 2)) == (pic is chrome)
         green = np.isclose(pic, SPHERE_OUTLINE).all(-1)
         assert green[:below].any() and not green[below:, 20:].any()  # in the key: its swatch alone

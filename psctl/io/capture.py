@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
-from psctl.errors import PsctlError, check_int, check_path
+from psctl.errors import PsctlError, check_int, check_path, few
 from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
@@ -221,11 +221,11 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
     pattern = [re.sub(r"\d+", "#", p.name.lower()) for p in paths]
     common = collections.Counter(pattern).most_common(1)[0][0]
     odd = [p.name for p, k in zip(paths, pattern) if k != common]
-    named = f"; not named like the others: {', '.join(odd[:3])}{' ...' if len(odd) > 3 else ''}" if odd else ""
+    named = f"; not named like the others: {few(odd)}" if odd else ""
     skipped = sorted(p.name + (" (a broken link)" if p.is_symlink() and not p.exists() else "")
                      for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
     if skipped:
-        named += f"; not files, so not read: {', '.join(skipped[:3])}{' ...' if len(skipped) > 3 else ''}"
+        named += f"; not files, so not read: {few(skipped)}"
     # a capture whose images are named like psctl's outputs or masks (depth_001.png) loses them
     known = {n.lower() for n in (*MASK_FILES, *AMBIENT_FILES, *GT_FILES)}  # read as what they are
     unnamed = sorted((p.name for p in entries if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
@@ -233,7 +233,7 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
                      key=natural_key)
     if unnamed:
         named += (f"; left out for their names (hidden files, or names psctl gives its outputs): {len(unnamed)}, "
-                  f"{', '.join(unnamed[:3])}{' ...' if len(unnamed) > 3 else ''}")
+                  f"{few(unnamed)}")
     return f" (every image file in the folder counts{named}; list the images in filenames.txt to choose them)"
 
 
@@ -468,7 +468,7 @@ def root_notes(root: str | os.PathLike) -> list[str]:
         empty = sorted((p.name for p in entries if p.is_dir() and not p.name.startswith(".") and p.name != "psctl"
                         and looks_meant(p)), key=natural_key)
         if empty:
-            notes.append(f"objects: skipped {', '.join(empty[:3])}{' ...' if len(empty) > 3 else ''}: "
+            notes.append(f"objects: skipped {few(empty)}: "
                          f"{'holds' if len(empty) == 1 else 'each holds'} capture files (lights, mask or ground "
                          f"truth) but no image")
     return notes
@@ -520,7 +520,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         if len(objects) == 1:
             raise PsctlError(path, f"is a benchmark root with one object folder, not a capture: pass {objects[0]}, or "
                                    f"use `psctl eval`")
-        names = ", ".join(o.name for o in objects[:3]) + (", ..." if len(objects) > 3 else "")
+        names = few([o.name for o in objects])
         raise PsctlError(path, f"holds {len(objects) or 'several'} object folders (a benchmark root"
                                f"{': ' + names if names else ''}); pass one object folder, or use `psctl eval`")
 
@@ -547,7 +547,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         image_paths = _image_files(entries)
         if not image_paths:
             def some(names: list[str]) -> str:
-                return f"{_few(names)} {'is' if len(names) == 1 else 'are'}"
+                return f"{few(names)} {'is' if len(names) == 1 else 'are'}"
 
             files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
             left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
@@ -697,11 +697,6 @@ def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
 _OTHER_IMAGE_SUFFIXES = (".bmp", ".webp", ".gif", ".tga", ".hdr", ".dpx", ".jp2", ".j2k", ".heic", ".heif", ".psd",
                          ".pgm", ".ppm", ".pnm", ".pbm", ".sgi", ".rgb", ".iff", ".dds", ".ico", ".dng", ".cr2",
                          ".nef", ".arw", ".raw", ".fits", ".cin", ".sxr")
-
-
-def _few(names: Sequence[str]) -> str:
-    """The first three names, then " ..." when there are more: how notes and errors list files."""
-    return ", ".join(names[:3]) + (" ..." if len(names) > 3 else "")
 
 
 def _same_name(p: Path) -> Path:
@@ -1046,12 +1041,12 @@ class ImageCheck:
         notes = []
         black = sorted(self.seen - self.lit)  # a light that did not fire looks like a shadow everywhere
         if black:
-            names = ", ".join(self.capture.image_paths[i].name for i in black[:3]) + (" ..." if len(black) > 3 else "")
+            names = few([self.capture.image_paths[i].name for i in black])
             notes.append(f"images: {len(black)} of {self.capture.n_images} black over the object ({names}): a light "
                          f"that did not fire? They count as shadow everywhere; leave them out with filenames.txt")
         if self.negative:
             idx = sorted(self.negative)
-            names = ", ".join(self.capture.image_paths[i].name for i in idx[:3]) + (" ..." if len(idx) > 3 else "")
+            names = few([self.capture.image_paths[i].name for i in idx])
             notes.append(f"images: {len(idx)} of {self.capture.n_images} have negative values over the object "
                          f"({names}): taken as stored (noise about a subtracted black level?)")
         share = {k: c[0] / c[1] for k, c in self.clipped.items() if c[1]}
@@ -1099,16 +1094,16 @@ def capture_notes(capture: Capture) -> list[str]:
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
     stacks = [(p.name, k) for p, k in zip(capture.image_paths, capture.pages) if k > 1]
     if stacks:  # a TIFF stack of the whole capture in one file would otherwise pass as one image
-        named = ", ".join(f"{n} holds {k} pages" for n, k in stacks[:3]) + (" ..." if len(stacks) > 3 else "")
+        named = few([f"{n} holds {k} pages" for n, k in stacks])
         notes.append(f"images: {named}; psctl reads one image per file, its first page")
     layered = [(p.name, layer) for p, layer in zip(capture.image_paths, capture.layers) if layer]
     if layered:  # which of a multilayer EXR's layers is the picture was decided by name: say so
         read = sorted({layer for _, layer in layered})
-        notes.append(f"images: {_few([n for n, _ in layered])} hold several layers; psctl reads the "
+        notes.append(f"images: {few([n for n, _ in layered])} hold several layers; psctl reads the "
                      f"{' / '.join(read)} layer's colour channels")
     windowed = [p.name for p, w in zip(capture.image_paths, capture.windowed) if w]
     if windowed:
-        notes.append(f"images: {_few(windowed)} store their pixels in a data window other than their "
+        notes.append(f"images: {few(windowed)} store their pixels in a data window other than their "
                      f"{capture.width}x{capture.height} frame (an EXR cropped or shifted); placed in the frame, 0 outside")
     if capture.turned:
         notes.append(f"orientation: {capture.turned} of {capture.n_images} images turned upright by their EXIF "
@@ -1134,7 +1129,7 @@ def capture_notes(capture: Capture) -> list[str]:
         if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and not capture.ambient_jpeg:
             misnamed.append(capture.ambient_path.name)
         if misnamed:
-            notes.append(f"encoding: {_few(misnamed)}: named JPEG but "
+            notes.append(f"encoding: {few(misnamed)}: named JPEG but "
                          f"not JPEG data, read as linear as their content's format is (--encoding srgb decodes them)")
     n = capture.srgb_images
     if not n:
@@ -1144,7 +1139,7 @@ def capture_notes(capture: Capture) -> list[str]:
         return notes + [f"encoding: {which} decoded from sRGB to linear (--encoding srgb)"]
     named = [p.name for k, p in enumerate(capture.image_paths) if capture.is_srgb(k) and p.suffix.lower() not in JPEG]
     if named:  # JPEG data under another name (a renamed file, an export that kept the wrong extension)
-        which += f" ({', '.join(named[:3])}{' ...' if len(named) > 3 else ''}: JPEG data, by their content)"
+        which += f" ({few(named)}: JPEG data, by their content)"
     return notes + [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
                     f"(--encoding linear reads them as stored)"]
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, visible
+from psctl.errors import PsctlError, few, visible
 
 if TYPE_CHECKING:
     from psctl.io.capture import Capture
@@ -321,7 +321,7 @@ def _render_check(con, c: dict) -> None:
     sat = [r["saturated"] for r in c["images"] if r["saturated"] is not None]
     if c["saturated_images"]:
         worst = max(c["images"], key=lambda r: r["saturated"] or 0.0)
-        names = ", ".join(c["saturated_images"][:3]) + (" ..." if len(c["saturated_images"]) > 3 else "")
+        names = few(c["saturated_images"])
         con.print(escape(f"saturated: {len(c['saturated_images'])} of {len(c['images'])} images have over "
                          f"{SATURATED_SHARE:.0%} of the object at the top code value ({names}; most: {worst['image']}, "
                          f"{worst['saturated']:.1%})"), highlight=False, soft_wrap=True)

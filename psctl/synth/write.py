@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from psctl.errors import ProgressFactory, PsctlError
+from psctl.errors import ProgressFactory, PsctlError, few
 from psctl.synth import DEFAULT_K, check_preset, physical_memory
 from psctl.synth import lights as L
 from psctl.synth import materials as M
@@ -329,7 +329,7 @@ def _check_synth_object(folder: Path) -> None:
     other = sorted(e.name + ("/" if e.is_dir() else "") for e in folder.iterdir()
                    if not e.name.startswith(".") and e.name not in OBJECT_FILES and e.name not in listed)
     if other:
-        shown = ", ".join(other[:3]) + (" ..." if len(other) > 3 else "")
+        shown = few(other)
         raise PsctlError(folder, f"holds {shown}, which psctl synth did not write; a new set here would delete "
                                  "it with the earlier object: move it away, or choose a new or empty folder")
 
