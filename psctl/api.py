@@ -540,7 +540,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             from psctl.lights import NO_MASK_NOTE
 
             notes.append(NO_MASK_NOTE)
-        notes += sd.notes
+        from psctl.lights import one_sided_notes
+
+        notes += sd.notes + one_sided_notes(est.directions)
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
