@@ -12,7 +12,7 @@ import os
 import time
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -190,6 +190,11 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
+    if mask is None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
+        from psctl.lights import NO_MASK_WHY
+
+        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+        warnings.warn(f"estimate_lights: mask=None: {NO_MASK_WHY}", PsctlWarning, stacklevel=level)
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
     given = {"falloff": falloff, "roll": roll, "precision": precision}
     unused = [k for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
@@ -291,6 +296,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
+    if method == "sdps" and mask is None:  # as estimate_lights
+        from psctl.lights import NO_MASK_WHY
+
+        warnings.warn(f"sdps: mask=None: {NO_MASK_WHY}", PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
     unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
     if unused:
@@ -310,17 +319,37 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
+        from psctl.hotpixels import HOT_PIXEL_WORDS
         from psctl.infer import array_normals
 
-        normals = array_normals(images, lights, mask, method, weights, net_cfg).normals
+        res = array_normals(images, lights, mask, method, weights, net_cfg)
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
-        return normals
+        for note in res.notes:  # values changed: a warning, as l2's below
+            if HOT_PIXEL_WORDS in note:
+                warnings.warn(f"{method}: {note}", PsctlWarning, stacklevel=level)
+        return res.normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")
     from psctl.classic import l2_normals
+    from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 
-    return l2_normals(images, lights, mask).normals
+    # as a folder's l2 and the networks: an isolated hot value set to its neighbours' level (a QA
+    # helper's finding: on arrays it turned its pixel 42 degrees, where the folder's run gave 0.01)
+    inside = np.ones(images.shape[1:3], bool) if mask is None else mask
+    hot: dict[int, int] = {}
+
+    def clamped() -> Iterator[np.ndarray]:
+        for k, img in enumerate(images):
+            img, count = clamp_hot_pixels(img * inside[..., None], inside)  # masked first, as a folder's
+            if count:
+                hot[k] = count
+            yield img
+
+    normals = l2_normals(clamped(), lights, mask).normals
+    for note in hot_pixel_notes({"hot_pixels": hot}, [f"image {k + 1}" for k in range(len(images))]):
+        warnings.warn(f"l2: {note}", PsctlWarning, stacklevel=level)
+    return normals
 
 
 def ups_fcn_albedo_message(asked: str, weights: str | os.PathLike | None, calibrated: bool) -> str:

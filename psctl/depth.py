@@ -58,7 +58,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import as_mask, check_vector_dtype, plain, unit_vectors
-from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, like_default, not_a_file
+from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
 
 if TYPE_CHECKING:
@@ -176,9 +176,11 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     check_vector_dtype(normals, "normals must be unit vectors of real numbers")
     h, w = normals.shape[:2]
     if mask is None:
-        mask = ~(normals == 0).all(axis=-1)  # NaN != 0: NaN pixels stay in (and get rejected)
+        # without a mask, a pixel with no normal (zero, or NaN as many tools write the background) is
+        # background: a NaN background was counted as thousands of rejected "mask pixels" (a QA helper)
+        mask = ~np.isnan(normals).any(axis=-1) & ~(normals == 0).all(axis=-1)  # infinite ones stay (rejected)
         if not mask.any():
-            raise PsctlError(None, "the mask is empty (no foreground pixel)")
+            raise PsctlError(None, "the normal map has no normal (every pixel is zero or NaN) and there is no mask")
     else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
         if isinstance(mask, (str, bytes, os.PathLike)):
             as_mask(mask, (h, w))  # raises: a mask is an array here; as_mask says how to read a file
@@ -269,6 +271,9 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
 
 def check_intrinsics(K: np.ndarray, path: str | os.PathLike | None = None) -> np.ndarray:
     """Validate a 3 x 3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels)."""
+    if isinstance(K, (str, bytes, os.PathLike)) and path is None:  # run_depth reads files; arrays here
+        raise PsctlError(None, f"K must be a 3 x 3 array here, not a file name ({_short(K)}): read the file with "
+                               f"psctl.depth.read_intrinsics(PATH)")
     try:
         raw = np.asarray(plain(K))
         if raw.dtype.kind not in "iuf":  # complex would lose its imaginary part with a warning

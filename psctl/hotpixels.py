@@ -21,6 +21,7 @@ from psctl.errors import few
 
 HOT_LEVEL = 300.0  # a candidate is above this many times the image's mean inside the mask
 HOT_RATIO = 4.0  # and above this many times the brightest of its 8 neighbours (same channel)
+HOT_PIXEL_WORDS = "isolated hot pixel value(s)"  # in every hot-pixel note (the array API warns on them)
 
 
 def clamp_hot_pixels(img: np.ndarray, mask: np.ndarray | None = None, level: float = HOT_LEVEL,
@@ -82,6 +83,6 @@ def hot_pixel_notes(info: dict, names: list[str]) -> list[str]:
         return []
     idx = sorted(hot)
     listed = few([names[i] for i in idx])
-    return [f"images: {sum(hot.values())} isolated hot pixel value(s) in {len(idx)} image(s) ({listed}) set to "
+    return [f"images: {sum(hot.values())} {HOT_PIXEL_WORDS} in {len(idx)} image(s) ({listed}) set to "
             f"their neighbours' level (over {HOT_LEVEL:g} times the image's mean and {HOT_RATIO:g} times every "
             "neighbour: a sensor's hot pixel?)"]

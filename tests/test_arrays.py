@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from psctl.api import estimate_lights, estimate_normals
-from psctl.errors import PsctlError
+from psctl.errors import PsctlError, PsctlWarning
 from tests.conftest import hemisphere_lights, render_lambertian, sphere
 
 
@@ -218,6 +218,8 @@ def test_depth_config_is_checked():
         with pytest.raises(PsctlError, match=needle):
             integrate_normals(bad, mask)
     with pytest.raises(PsctlError, match="real 3 x 3 matrix"):
+        integrate_normals(normals, mask, K=[["a"] * 3] * 3)
+    with pytest.raises(PsctlError, match="not a file name"):  # a string is a file name (test_depth)
         integrate_normals(normals, mask, K="abc")
     flat = np.zeros((8, 8, 3), int) + [0, 0, 1]  # signed integers that are unit vectors are vectors
     assert np.allclose(integrate_normals(flat, None), 0.0)
@@ -632,3 +634,69 @@ def test_a_weights_file_modified_during_the_run_is_flagged(tmp_path, fake_weight
                    progress=touching(lc))
     assert r["provenance"]["weights"]["lcnet"]["modified_during_run"] is True
     assert any(n.startswith(f"weights: {lc}") for n in r["notes"])
+
+
+@pytest.mark.parametrize("given_mask", [True, False])
+def test_l2_on_arrays_clamps_a_hot_pixel_as_on_a_folder(data, given_mask):
+    """estimate_normals(method="l2") left an isolated hot value in (a QA helper's finding: its
+    pixel 42 degrees off, silently, where the same images as a folder gave 0.01 and a note): now
+    set to its neighbours' level, with a warning naming the image."""
+    import warnings
+
+    from psctl.metrics import angular_error
+
+    images, lights, mask, normals = data
+    clean = estimate_normals(images, lights, mask, method="l2")
+    y, x = np.argwhere(mask & (normals[..., 2] > 0.9))[0]
+    hot = images.copy()
+    hot[3, y, x] = 1000.0
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        out = estimate_normals(hot, lights, mask if given_mask else None, method="l2")
+    assert angular_error(out[y:y + 1, x:x + 1], clean[y:y + 1, x:x + 1]).max() < 3  # unclamped: 40 and more
+    said = [str(w.message) for w in got if issubclass(w.category, PsctlWarning)]
+    assert said == ["l2: images: 3 isolated hot pixel value(s) in 1 image(s) (image 4) set to their neighbours' "
+                    "level (over 300 times the image's mean and 4 times every neighbour: a sensor's hot pixel?)"]
+    with warnings.catch_warnings(record=True) as got:  # the clean images: no warning, the same normals
+        warnings.simplefilter("always")
+        np.testing.assert_array_equal(estimate_normals(images, lights, mask, method="l2"), clean)
+    assert not [w for w in got if issubclass(w.category, PsctlWarning)]
+
+
+def test_lights_and_sdps_on_arrays_warn_without_a_mask(data, fake_weights):
+    """A folder without mask.png is noted for psctl lights and sdps (lights.NO_MASK_NOTE); the
+    array API said nothing for mask=None (a QA helper: 1.75 -> 19.78 degrees on a sphere filling a
+    quarter of a black frame). Now a warning, and none with a mask."""
+    import warnings
+
+    from psctl.lights import NO_MASK_WHY
+    from tests.conftest import weights_in
+
+    images, _, mask, _ = data
+    with weights_in(fake_weights), warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        estimate_lights(images, None, device="cpu", views=1, refine=False)
+        estimate_normals(images, None, None, method="sdps", device="cpu", refine=False)
+        estimate_lights(images, mask, device="cpu", views=1, refine=False)
+        estimate_normals(images, None, mask, method="sdps", device="cpu", refine=False)
+    assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
+        f"estimate_lights: mask=None: {NO_MASK_WHY}", f"sdps: mask=None: {NO_MASK_WHY}"]
+    assert {w.filename for w in got if issubclass(w.category, PsctlWarning)} == {__file__}
+
+
+def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):
+    """The networks on arrays clamped hot values with a note no one saw (estimate_normals returns
+    the normals alone): now a warning, as l2's."""
+    import warnings
+
+    images, lights, mask, normals = data
+    y, x = np.argwhere(mask & (normals[..., 2] > 0.9))[0]
+    hot = images.copy()
+    hot[3, y, x] = 1000.0
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        estimate_normals(hot, lights, mask, method="ps-fcn", weights=_ps_fcn_file(tmp_path), device="cpu")
+        estimate_normals(images, lights, mask, method="ps-fcn", weights=_ps_fcn_file(tmp_path), device="cpu")
+    assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
+        "ps-fcn: images: 3 isolated hot pixel value(s) in 1 image(s) (image 4) set to their neighbours' level (over "
+        "300 times the image's mean and 4 times every neighbour: a sensor's hot pixel?)"]

@@ -14,7 +14,7 @@ import pytest
 from psctl.depth import depth_mesh, depth_to_points, integrate, integrate_normals, normals_from_points
 from psctl.errors import PsctlError
 from psctl.io.mesh import Mesh, read_ply, write_ply
-from tests.conftest import write_capture
+from tests.conftest import sphere, write_capture
 from tests.test_cli import cli
 
 
@@ -605,3 +605,32 @@ def test_a_float_map_holding_png_encoding_gets_a_note(tmp_path):
         write_normal_map(tmp_path / f, n, m, fmt)
         notes = run_depth(tmp_path / "cap", normals=tmp_path / f, write=False)["notes"]
         assert not any("is negative" in x for x in notes), notes
+
+
+def test_depth_without_a_mask_takes_a_nan_background_as_background(tmp_path):
+    """A normal map with NaN outside the object (as many tools write it) and no mask: the NaN
+    pixels are background, not thousands of rejected 'mask pixels' with a note saying so (a QA
+    helper's finding; the depth itself was right). A NaN inside a given mask is still rejected,
+    and a map of nothing but NaN is one clear error."""
+    from psctl.depth import integrate
+
+    normals, mask = sphere(24, 0.8)
+    nan_bg = np.where(mask[..., None], normals, np.nan).astype(np.float32)
+    zero_bg = np.where(mask[..., None], normals, 0.0).astype(np.float32)
+    a, b = integrate(nan_bg, None), integrate(zero_bg, None)
+    assert a.n_rejected_nan == b.n_rejected_nan == 0 and a.n_mask == b.n_mask == int(mask.sum())
+    np.testing.assert_array_equal(np.isnan(a.depth), np.isnan(b.depth))
+    np.testing.assert_allclose(a.depth[mask], b.depth[mask], rtol=0, atol=1e-6)
+    assert integrate(nan_bg, np.ones_like(mask)).n_rejected_nan == int((~mask).sum())  # a mask says they are in
+    with pytest.raises(PsctlError, match="has no normal .every pixel is zero or NaN. and there is no mask"):
+        integrate(np.full_like(nan_bg, np.nan), None)
+
+
+def test_integrate_normals_given_a_file_name_for_k_says_how_to_read_it(tmp_path):
+    """K is an array for integrate_normals (psctl depth reads K.txt): a file name got 'intrinsics
+    must be a real 3 x 3 matrix of numbers' (a QA helper); now the error names the reader."""
+    normals, mask = sphere(16)
+    for k in ("obj/K.txt", tmp_path / "K.txt"):
+        with pytest.raises(PsctlError, match=r"^K must be a 3 x 3 array here, not a file name .*"
+                                             r"psctl\.depth\.read_intrinsics\(PATH\)$"):
+            integrate_normals(normals, mask, K=k)
