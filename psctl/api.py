@@ -325,6 +325,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         res = array_normals(images, lights, mask, method, weights, net_cfg)
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
+        if mask is None:  # as run_normals notes a folder without mask.png
+            from psctl.infer import NO_MASK_NETWORKS_WHY
+
+            warnings.warn(f"{method}: mask=None: {NO_MASK_NETWORKS_WHY}", PsctlWarning, stacklevel=level)
         for note in res.notes:  # values changed: a warning, as l2's below
             if HOT_PIXEL_WORDS in note:
                 warnings.warn(f"{method}: {note}", PsctlWarning, stacklevel=level)
@@ -579,6 +583,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         normals, dark, spread = net.normals, net.dark, net.spread
         notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
                               if method == "ensemble" else [])
+        if cap.mask_path is None:
+            from psctl.infer import NO_MASK_NETWORKS_WHY
+
+            notes.append("mask: none (no mask.png): " + NO_MASK_NETWORKS_WHY)
     else:
         normals, dark, l2_notes = _l2_normals(cap, mask, box, progress, memo)
         notes += l2_notes

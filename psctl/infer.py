@@ -796,6 +796,13 @@ class ReadMemo:
 
 # The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic
 # test sets the average of the release files beat either alone (benchmarks/ensemble.py, docs/usage.md).
+# Without a mask the networks take the whole frame for the object (QA helpers' findings: nothing
+# was said). Measured in session 60: `psctl eval` on the dev split's five folders with mask.png
+# left out (the same pixels scored)
+NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the background beside it included (and "
+                        "PS-FCN sets its brightness from the whole frame's mean); a mask of the object makes the "
+                        "normals more accurate (the DiLiGenT dev split without its masks: the ensemble 6.17 degrees "
+                        "against 5.66 with them, PS-FCN+N 6.00 against 5.59, PS-FCN 6.68 against 6.01)")
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
 
 

@@ -700,3 +700,32 @@ def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):
     assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
         "ps-fcn: images: 3 isolated hot pixel value(s) in 1 image(s) (image 4) set to their neighbours' level (over "
         "300 times the image's mean and 4 times every neighbour: a sensor's hot pixel?)"]
+
+
+def test_networks_say_when_they_run_without_a_mask(data, tmp_path):
+    """Without a mask the networks read the background as part of the object (the dev split
+    without its masks: the ensemble 6.17 against 5.66): psctl normals notes a folder without
+    mask.png and the array API warns on mask=None, for each network method; l2 and runs with a
+    mask say nothing."""
+    import warnings
+
+    from psctl.api import run_normals
+    from psctl.infer import NO_MASK_NETWORKS_WHY
+    from tests.conftest import write_capture
+
+    images, lights, mask, _ = data
+    w = _ps_fcn_file(tmp_path)
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        estimate_normals(images, lights, None, method="ps-fcn", weights=w, device="cpu")
+        estimate_normals(images, lights, mask, method="ps-fcn", weights=w, device="cpu")
+        estimate_normals(images, lights, None, method="l2")
+    assert [str(x.message) for x in got if issubclass(x.category, PsctlWarning)] == [
+        f"ps-fcn: mask=None: {NO_MASK_NETWORKS_WHY}"]
+    note = "mask: none (no mask.png): " + NO_MASK_NETWORKS_WHY
+    write_capture(tmp_path / "with", n=6, size=24)
+    write_capture(tmp_path / "without", n=6, size=24, mask=False)
+    for folder, method, said in (("with", "ps-fcn", False), ("without", "ps-fcn", True), ("without", "l2", False)):
+        r = run_normals(tmp_path / folder, method=method, weights=w if method != "l2" else None, write=False,
+                        device="cpu")
+        assert (note in r["notes"]) == said, (folder, method)

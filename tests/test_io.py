@@ -1342,8 +1342,9 @@ def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
         estimate_normals(imgs[:2], None, method="ups-fcn", weights=tmp_path / "u.pt", device="cpu")
     assert got[0].filename == __file__
     with warnings.catch_warnings():
-        warnings.simplefilter("error", PsctlWarning)
-        estimate_normals(imgs, None, method="ups-fcn", weights=tmp_path / "u.pt", device="cpu")
+        warnings.simplefilter("error", PsctlWarning)  # (a mask: mask=None is a warning of its own)
+        estimate_normals(imgs, None, np.ones((16, 16), bool), method="ups-fcn", weights=tmp_path / "u.pt",
+                         device="cpu")
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a file size limit (RLIMIT_FSIZE) stands in for a full disk")
