@@ -1339,8 +1339,9 @@ def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
 
     imgs = np.random.default_rng(0).uniform(0.1, 0.9, (3, 16, 16, 3)).astype(np.float32)
     with pytest.warns(PsctlWarning, match="^images: only 2, which leaves the normals undetermined; ups-fcn") as got:
-        estimate_normals(imgs[:2], None, method="ups-fcn", weights=tmp_path / "u.pt", device="cpu")
-    assert got[0].filename == __file__
+        estimate_normals(imgs[:2], None, np.ones((16, 16), bool), method="ups-fcn", weights=tmp_path / "u.pt",
+                         device="cpu")
+    assert len(got) == 1 and got[0].filename == __file__
     with warnings.catch_warnings():
         warnings.simplefilter("error", PsctlWarning)  # (a mask: mask=None is a warning of its own)
         estimate_normals(imgs, None, np.ones((16, 16), bool), method="ups-fcn", weights=tmp_path / "u.pt",
