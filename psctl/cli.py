@@ -598,10 +598,10 @@ def train(
                                               "its validation on the recipe's set")
             recipe = load_config(config) if config is not None else None
             if quiet or recipe is None:
-                path = average_weights(average, out, recipe, device, method=method)
+                path = average_weights(average, out, recipe, device, method=method, recipe_name=config)
             else:  # building the validation set takes minutes on a CPU
                 with _stderr().status("averaging, then measuring on the recipe's validation set"):
-                    path = average_weights(average, out, recipe, device, method=method)
+                    path = average_weights(average, out, recipe, device, method=method, recipe_name=config)
             if not quiet:
                 metrics = read_weights(path).metadata["metrics"]
                 said = "".join(f"; synthetic validation {v:.4f}" for v in metrics.values())

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from psctl.errors import PsctlError, like_default, not_a_file
+from psctl.errors import PsctlError, like_default, naming, not_a_file
 from psctl.models.weights import file_sha256, save_torch
 from psctl.synth.stream import MAX_SEED
 
@@ -210,6 +210,13 @@ def check_sizes(method: str, config: dict) -> None:
     if label is not None:
         raise PsctlError(None, f"config 'method' is {label!r}: the recipe is for another network than {method}; "
                                f"train {label} with it, or choose a {method} recipe")
+    norm = config.get("normalization")
+    # the weights' loader refuses these (psctl.models.weights): refused here, before the run, not at
+    # its first save with the run folder removed (a QA helper's finding)
+    fixed = {"ps-fcn": "none", "lcnet": "none"}.get(method)
+    if norm is not None and ((fixed is not None and norm != fixed) or (method == "ps-fcn-n" and norm == "none")):
+        raise PsctlError(None, f"config 'normalization' is {norm!r}, which {method} cannot train with (ps-fcn-n "
+                               f"needs +N, ps-fcn and lcnet have none); leave it out (null) for the method's own")
     if method == "lcnet":  # LCNet resizes every view to its input size
         return
     from psctl.models import STRIDE
@@ -948,9 +955,12 @@ def _restore_checkpoint(run: Path, st: dict, method: str, model: torch.nn.Module
     # (Adam's own count: a resume with fresh moments, "optim_files": [], starts it again at 0)
     steps = _adam_steps(optim)
     if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
-        raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {min(steps):,}, state.json "
-                                                     f"at step {st['optim_step']:,}: not this checkpoint's; the "
-                                                     f"run cannot continue exactly")
+        at = " and ".join(f"{k:,}" for k in sorted(steps))
+        torn = " (parts of two checkpoints: a hard kill while one was written?)" if len(steps) > 1 else ""
+        raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {at}{torn}, state.json at step "
+                                                     f"{st['optim_step']:,}: not this checkpoint's; the run cannot "
+                                                     f"continue exactly (\"optim_files\": [] in state.json continues "
+                                                     f"with fresh Adam moments, not exactly)")
     if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
         best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
         if best.method != method:
@@ -1234,7 +1244,8 @@ AVERAGE_SAME = ("method", "architecture", "normalization", "train_images", "inpu
 
 
 def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, config: dict | None = None,
-                    device: str = "cpu", method: str | None = None) -> Path:
+                    device: str = "cpu", method: str | None = None,
+                    recipe_name: str | os.PathLike | None = None) -> Path:
     """Write the uniform parameter average of trained weight files as ``out_dir/best.pt``.
 
     Averaging fine-tuned descendants of one state (a "model soup"; SWA averages along one run)
@@ -1324,8 +1335,15 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         from psctl.infer import pick_device
 
         method, dev = first.metadata["method"], pick_device(device)
-        config = check_recipe(_full_recipe(config))
-        check_sizes(method, config)
+        with naming(recipe_name) if recipe_name is not None else contextlib.nullcontext():  # as training's
+            config = check_recipe(_full_recipe(config))
+            check_sizes(method, config)
+            norm = first.metadata.get("normalization") or "none"
+            if config["normalization"] not in (None, norm):  # it would be measured with other inputs
+                raise PsctlError(None, f"config 'normalization' is {config['normalization']!r} but the averaged "
+                                       f"files were trained with {norm!r}; measure them on a recipe with "
+                                       f"normalization {norm!r} or null")
+            config["normalization"] = norm  # the files' inputs, whatever the method's default
         amp = lambda: torch.autocast(dev.type, enabled=False)  # noqa: E731 (float32)
         # PS-FCN† is measured on the lights of the LCNet its members were trained with (AVERAGE_SAME
         # makes them agree), not the recipe's or the installed one

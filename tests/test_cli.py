@@ -2134,3 +2134,19 @@ def test_readme_lists_every_short_option():
                 used.setdefault(short, set()).update(longs)
     assert all(len(longs) == 1 for longs in used.values()), used
     assert {k: v.pop() for k, v in used.items()} == listed
+
+
+def test_info_check_refuses_ground_truth_that_psctl_normals_refuses(tmp_path):
+    """A Normal_gt.mat of nothing but NaN passed `psctl info --check` ('none damaged') and then
+    stopped psctl normals (a QA helper's finding): --check now gives normals' one line."""
+    import scipy.io
+
+    folder = tmp_path / "nan"
+    write_capture(folder, n=4)
+    gt = folder / "Normal_gt.mat"
+    assert gt.is_file()
+    scipy.io.savemat(gt, {"Normal_gt": np.full((40, 40, 3), np.nan)})
+    for args in (("info", folder, "--check"), ("normals", folder, "-m", "l2", "-o", tmp_path / "o")):
+        proc = cli(*args)
+        assert proc.returncode == 2 and proc.stderr.strip() == \
+            f"error: {gt}: ground truth has no valid normal inside the mask", (args, proc.stderr)

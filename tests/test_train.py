@@ -856,6 +856,44 @@ def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
     assert "(crop 4096, size 64, scale unset, so (crop, size);" in r.stderr
 
 
+def test_a_normalization_the_method_cannot_train_with_is_refused_before_the_run(tmp_path):
+    """A ps-fcn recipe with normalization: per-channel (or ps-fcn-n with none) trained, then died at
+    its first save with the run folder removed (the weights' loader refuses such files; a QA
+    helper's finding): refused before the run folder exists now, naming the recipe's file. And
+    --average --config measured the averaged files with the recipe's normalization, not theirs
+    (the same file scored 8.36 or 11.22): a recipe that disagrees is refused, naming its file."""
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+    from psctl.train import average_weights, check_sizes
+    from tests.test_cli import cli
+
+    for method, norm in (("ps-fcn", "per-channel"), ("ps-fcn", "per-pixel"), ("ps-fcn-n", "none"), ("lcnet", "per-pixel")):
+        cfg = {**tiny(), "normalization": norm}
+        with pytest.raises(PsctlError, match=f"config 'normalization' is '{norm}', which {method} cannot train"):
+            train(method, cfg, tmp_path / "r")
+        assert not (tmp_path / "r").exists()
+    for method, norm in (("ps-fcn", "none"), ("ps-fcn-n", "per-pixel"), ("ups-fcn", "per-channel"),
+                         ("ps-fcn-dagger", "none"), ("ps-fcn", None)):
+        check_sizes(method, {**tiny(), "normalization": norm})  # allowed
+    tiny_text = (REPO / "configs" / "tiny.yaml").read_text()
+    (tmp_path / "pc.yaml").write_text(tiny_text + "normalization: per-channel\n")
+    r = cli("train", "ps-fcn", "--config", tmp_path / "pc.yaml", "--out", tmp_path / "r", "-q")
+    assert r.returncode == 2 and f"{tmp_path / 'pc.yaml'}: config 'normalization' is 'per-channel'" in r.stderr, r.stderr
+    assert not (tmp_path / "r").exists()
+    # --average: ups-fcn files trained without +N, measured on a recipe asking for it
+    for name in ("a.pt", "b.pt"):
+        save_weights(tmp_path / name, PSFCN({"lights": False}), {"method": "ups-fcn", "train_images": 8,
+                                                       "normalization": "none"})
+    with pytest.raises(PsctlError, match="config 'normalization' is 'per-channel' but the averaged files were "
+                                         "trained with 'none'"):
+        average_weights([tmp_path / "a.pt", tmp_path / "b.pt"], tmp_path / "avg", {**tiny(), "normalization": "per-channel"})
+    r = cli("train", "ups-fcn", "--average", tmp_path / "a.pt", "--average", tmp_path / "b.pt", "--out",
+            tmp_path / "avg2", "--config", tmp_path / "pc.yaml", "-q")
+    assert r.returncode == 2 and f"{tmp_path / 'pc.yaml'}: config 'normalization' is 'per-channel' but" in r.stderr, \
+        r.stderr
+    assert not (tmp_path / "avg2").exists()
+
+
 def test_a_tampered_run_is_one_error_on_resume(tmp_path):
     """A review's fuzzing: an optimiser part copied over another (half of Adam's state lost, the
     run went on without a word), a state.json value of the wrong kind (a TypeError), and
@@ -1150,3 +1188,31 @@ def test_a_partial_recipe_from_python_is_merged_with_the_defaults(tmp_path):
     assert st["samples"] == 8 and st["config"]["model"] == {"fuse": "max"}
     with pytest.raises(PsctlError, match="config must be a recipe .* not a str"):
         train("ps-fcn", "configs/tiny.yaml", tmp_path / "other", device="cpu")
+
+
+def test_a_checkpoint_torn_by_a_hard_kill_is_named_as_such_on_resume(tmp_path):
+    """A SIGKILL while a checkpoint's parts are written leaves optimiser parts of two checkpoints
+    (a QA helper, 3 of 3 times with checkpoint_minutes 0): the error said 'step 1, state.json at step
+    1' (the smaller of the two) and no way on. Now it gives both steps, says what likely happened,
+    and names the inexact way to continue."""
+    import json as _json
+    import shutil
+
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    later = tmp_path / "later"
+    shutil.copytree(run, later)
+    train("ps-fcn", tiny(16), later, resume=True, device="cpu")
+    st = _json.loads((run / "state.json").read_text())
+    part = st["optim_files"][0]
+    shutil.copy(later / part, run / part)  # one part of the later checkpoint, the rest of the earlier
+    step, step2 = st["optim_step"], _json.loads((later / "state.json").read_text())["optim_step"]
+    assert step2 > step
+    with pytest.raises(PsctlError, match=rf"{part}: holds the optimiser at step {step} and {step2} \(parts of two "
+                                         rf"checkpoints: a hard kill while one was written\?\), state.json at step "
+                                         rf"{step}: .*\"optim_files\": \[\] in state.json continues"):
+        train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    st["optim_files"] = []  # the way out it names: fresh Adam moments
+    (run / "state.json").write_text(_json.dumps(st))
+    train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+    assert _json.loads((run / "state.json").read_text())["samples"] == 16

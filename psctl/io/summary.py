@@ -96,7 +96,9 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         raise blacked_out
     if not check.lit:  # as psctl normals: nothing to estimate from
         raise PsctlError(cap.path, "all images are black inside the mask")
-    load_ground_truth(cap)
+    gt = load_ground_truth(cap)
+    if gt is not None and not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():  # as psctl normals refuses it
+        raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
     means = [r["mean"] for r in per_image]
     over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
     return {
