@@ -176,6 +176,9 @@ def check_recipe(config: dict) -> dict:
     betas = config["train"]["betas"]
     if not all(0 <= b < 1 for b in betas):
         raise PsctlError(None, f"config 'train.betas' must be two numbers in [0, 1) (Adam's decay rates), not {betas!r}")
+    if config["val"]["seed"] == config["train"]["seed"]:  # the stream's seed: the same draws (a QA helper)
+        raise PsctlError(None, f"config 'val.seed' equals 'train.seed' ({config['train']['seed']}): the validation "
+                               f"set would be drawn as the first training samples; give it a seed of its own")
     from psctl.models.ps_fcn import NORMALIZATIONS
 
     if config["normalization"] is not None and config["normalization"] not in NORMALIZATIONS:

@@ -938,6 +938,16 @@ def test_lcnet_class_settings_are_checked(lcnet, needle):
         check_recipe(merge(DEFAULT_CONFIG, {"lcnet": lcnet}))
 
 
+def test_a_validation_seed_equal_to_the_training_seed_is_refused(tmp_path):
+    """val.seed = train.seed drew the validation set as the first training samples, without a
+    word (a QA helper's finding: the same images and normals): refused before the run."""
+    cfg = merge(tiny(), {"val": {"seed": 7}, "train": {"seed": 7}})
+    with pytest.raises(PsctlError, match=r"config 'val.seed' equals 'train.seed' \(7\): the validation set would "
+                                         r"be drawn as the first training samples"):
+        train("ps-fcn", cfg, tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
 def test_weights_paths_in_a_recipe_are_named_when_wrong():
     """train.init: 5 said 'weights must be a path ... not 5', naming neither file nor key."""
     from psctl.train import DEFAULT_CONFIG, check_recipe
