@@ -825,8 +825,9 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
     from psctl.models.weights import read_weights
 
     if not Path(path).is_file():  # the recipes' starts are git-ignored .cache files their comments say how to make
-        raise PsctlError(path, "not found: the recipe's train.init (the weights to start from); make it as the "
-                               "recipe's comment says, or set train.init to another weights file")
+        what = not_a_file(path, "not found", "is a folder, not a weights file")  # a folder is not 'not found'
+        raise PsctlError(path, f"{what}: the recipe's train.init (the weights to start from); make it as the "
+                               f"recipe's comment says, or set train.init to another weights file")
     w = read_weights(path)
     arch, own = dict(w.metadata.get("architecture", {})), dict(model.config)
     state = {k: v.float() for k, v in w.state_dict.items()}

@@ -1120,6 +1120,10 @@ def test_a_resume_that_would_end_before_the_samples_seen_and_a_missing_start_are
     with pytest.raises(PsctlError, match=r"gone.pt: not found: the recipe's train.init"):
         train("ps-fcn", merge(tiny(8), {"train": {"init": str(tmp_path / "gone.pt")}}), tmp_path / "new", device="cpu")
     assert not (tmp_path / "new").exists()
+    (tmp_path / "adir").mkdir()  # a folder is said as such (it said 'not found'; a QA helper)
+    with pytest.raises(PsctlError, match=r"adir: is a folder, not a weights file: the recipe's train.init"):
+        train("ps-fcn", merge(tiny(8), {"train": {"init": str(tmp_path / "adir")}}), tmp_path / "new", device="cpu")
+    assert not (tmp_path / "new").exists()
 
 
 def test_resume_checks_hold_after_a_fresh_moments_resume_an_edited_log_and_a_finished_run(tmp_path):
