@@ -340,12 +340,11 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
     # as a folder's l2 and the networks: an isolated hot value set to its neighbours' level (a QA
     # helper's finding: on arrays it turned its pixel 42 degrees, where the folder's run gave 0.01)
-    inside = np.ones(images.shape[1:3], bool) if mask is None else mask
     hot: dict[int, int] = {}
 
     def clamped() -> Iterator[np.ndarray]:
-        for k, img in enumerate(images):
-            img, count = clamp_hot_pixels(img * inside[..., None], inside)  # masked first, as a folder's
+        for k, img in enumerate(images):  # masked first, as a folder's
+            img, count = clamp_hot_pixels(img if mask is None else img * mask[..., None], mask)
             if count:
                 hot[k] = count
             yield img
@@ -569,13 +568,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method == "sdps":
         sd = _sdps_normals(cap, mask, near, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
         est, normals, dark, light_stats = sd.lights, sd.normals, sd.dark, sd.light_stats
-        if cap.mask_path is None:
-            from psctl.lights import NO_MASK_NOTE
+        from psctl.lights import NO_MASK_NOTE, one_sided_notes
 
-            notes.append(NO_MASK_NOTE)
-        from psctl.lights import one_sided_notes
-
-        notes += sd.notes + one_sided_notes(est.directions)
+        notes += ([NO_MASK_NOTE] if cap.mask_path is None else []) + sd.notes + one_sided_notes(est.directions)
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 

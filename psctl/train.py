@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from psctl.errors import PsctlError, like_default, naming, not_a_file
-from psctl.models.weights import file_sha256, save_torch
+from psctl.models.weights import file_sha256, normalization_allowed, save_torch
 from psctl.synth.stream import MAX_SEED
 
 if TYPE_CHECKING:
@@ -214,10 +214,9 @@ def check_sizes(method: str, config: dict) -> None:
         raise PsctlError(None, f"config 'method' is {label!r}: the recipe is for another network than {method}; "
                                f"train {label} with it, or choose a {method} recipe")
     norm = config.get("normalization")
-    # the weights' loader refuses these (psctl.models.weights): refused here, before the run, not at
-    # its first save with the run folder removed (a QA helper's finding)
-    fixed = {"ps-fcn": "none", "lcnet": "none"}.get(method)
-    if norm is not None and ((fixed is not None and norm != fixed) or (method == "ps-fcn-n" and norm == "none")):
+    # the weights' loader refuses these: refused here, before the run, not at its first save with
+    # the run folder removed (a QA helper's finding)
+    if norm is not None and not normalization_allowed(method, norm):
         raise PsctlError(None, f"config 'normalization' is {norm!r}, which {method} cannot train with (ps-fcn-n "
                                f"needs +N, ps-fcn and lcnet have none); leave it out (null) for the method's own")
     if method == "lcnet":  # LCNet resizes every view to its input size

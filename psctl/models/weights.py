@@ -269,6 +269,15 @@ def check_finite(state: dict, path: Path | None) -> None:
             raise PsctlError(path, f"{k} has {bad:,} NaN or infinite values (of {v.numel():,}): not usable weights")
 
 
+def normalization_allowed(method: str, norm: str) -> bool:
+    """Whether ``method``'s weights may take inputs normalised by ``norm``: LCNet and PS-FCN have no
+    +N, PS-FCN+N needs it (the two differ only by it); UPS-FCN and PS-FCN† may be trained with or
+    without it. The loader below and psctl train's recipe check share this rule."""
+    if method not in NETWORK_METHODS:  # lcnet
+        return norm == "none"
+    return method not in ("ps-fcn", "ps-fcn-n") or (method == "ps-fcn-n") == (norm != "none")
+
+
 def _check_metadata(meta: dict, path: Path | None) -> None:
     from psctl.models.ps_fcn import NORMALIZATIONS
 
@@ -287,13 +296,12 @@ def _check_metadata(meta: dict, path: Path | None) -> None:
     if im is not None and (isinstance(im, bool) or not isinstance(im, (int, float)) or not math.isfinite(im) or im <= 0):
         raise PsctlError(path, f"metadata 'input_mean' must be a positive number, got {im!r}")
     if method not in NETWORK_METHODS:  # lcnet: no lights input, no +N
-        if norm != "none":
+        if not normalization_allowed(method, norm):
             raise PsctlError(path, f"metadata says {method} with normalization {norm!r}; it has none")
         return
     if bool(meta["architecture"].get("lights", True)) != NETWORK_METHODS[method]["lights"]:
         raise PsctlError(path, f"metadata says {method} but the architecture's 'lights' is {meta['architecture'].get('lights')}")
-    # ps-fcn and ps-fcn-n differ only by +N; UPS-FCN and PS-FCN† may be trained with or without it
-    if (method == "ps-fcn-n") != (norm != "none") and method in ("ps-fcn", "ps-fcn-n"):
+    if not normalization_allowed(method, norm):
         raise PsctlError(path, f"metadata says {method} with normalization {norm!r}: ps-fcn-n needs +N, ps-fcn has none")
 
 
