@@ -77,7 +77,8 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
   for r in $RUNS; do
     IFS=: read -r m c name <<< "$r"
     restore $name
-    if [ -f runs/$name/state.json ]; then a=(--resume runs/$name); else
+    # (checkpoint.json: a first checkpoint killed after its commit; --resume finishes it)
+    if [ -f runs/$name/state.json ] || [ -f runs/$name/checkpoint.json ]; then a=(--resume runs/$name); else
       # a run that failed before its first checkpoint keeps its validated best.pt (psctl train
       # then refuses the folder): set it aside, with its log, and start the run again
       [ -f runs/$name/best.pt ] && mv runs/$name runs/$name.early-$SECONDS
@@ -146,6 +147,8 @@ left=$(python3 -c "print(round(max(0.5, min($left, ($DEADLINE - $SECONDS - 45) /
 echo "training $left more minutes ($SECONDS s since the start)"
 launch $left; rc=$?
 for r in $RUNS; do tail -n 3 runs/${r##*:}.out; done
+# a run SIGKILLed (timeout -k) inside a checkpoint's commit: carry it out, so the files packed are one checkpoint's
+for r in $RUNS; do [ -d runs/${r##*:} ] && python3 -c 'import sys; from pathlib import Path; from psctl.train import finish_checkpoint; finish_checkpoint(Path(sys.argv[1]))' runs/${r##*:}; done
 files="model.pt state.json stream.pt log.jsonl"
 [ -n "$FINAL" ] && files="best.pt $files"  # the Adam state only with OPTIM=1: two runs with it pass the 64 MiB the device tool returns (session 33)
 [ -n "$FINAL" ] && [ "${OPTIM:-0}" = 1 ] && files="$files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"

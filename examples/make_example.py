@@ -3,9 +3,10 @@
 A sphere with smooth bumps and dents, a two-tone albedo, Lambertian + Blinn-Phong specular
 reflectance with attached shadows (no cast shadows), 24 lights spread like DiLiGenT's (within
 about 50 degrees of the view direction), coloured per-light intensities, 16-bit PNG images,
-mask.png and Normal_gt.mat / Normal_gt.png. Deterministic on one machine: running it again rewrites
-the same files (on another CPU the ground truth's float64 values may differ in their last bits,
-about 1e-15, which changes Normal_gt.mat's compressed bytes; the PNGs came out the same).
+mask.png and Normal_gt.mat / Normal_gt.png. Deterministic: running it again writes the same pixels
+(on another CPU the ground truth's float64 values may differ in their last bits, about 1e-15). The
+files' bytes need not match the committed ones: PNG and .mat compression depends on the zlib and
+OpenImageIO builds (session 61's regeneration: every PNG pixel-identical, the bytes not).
 
     python examples/make_example.py [--out examples/bumpy_sphere] [--size 128]
 """

@@ -273,9 +273,10 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
 
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images divided by their light
-            intensities, as ``psctl.estimate_normals`` takes them.
+            intensities, as ``psctl.estimate_normals`` takes them (integer arrays are divided by
+            their type's maximum, as there).
         lights: [N, 3] light directions (normalised here).
-        normals: [H, W, 3] unit normals (any method's; 0 where there is none).
+        normals: [H, W, 3] unit normals (any method's; 0 or NaN where there is none).
         mask: [H, W] bool or numbers (above 0.5 is the object); None: every pixel.
         min_shading: the smallest n . l an image counts with (where no image reaches it, those
             with at least half the pixel's best n . l count).
@@ -301,8 +302,10 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
     if normals.shape != (*images.shape[1:3], 3):
         raise PsctlError(None, f"normals must be [H, W, 3] = {[*images.shape[1:3], 3]} (the images' size), "
                                f"got {list(normals.shape)}")
-    if not np.isfinite(normals).all():
-        raise PsctlError(None, "normals contain NaN or infinite values")
+    if np.isinf(normals).any():
+        raise PsctlError(None, "normals contain infinite values")
+    # NaN marks "no normal" (read_normal_map's, as integrate_normals takes it): no albedo there
+    normals = np.where(np.isnan(normals).any(axis=-1, keepdims=True), np.float32(0.0), normals)
     try:
         if isinstance(min_shading, (str, bytes, bool, np.bool_)):  # "0.1" or True is a mistake, not a number
             raise TypeError

@@ -521,6 +521,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     views, downsample = check_views(views), check_downsample(downsample)
     notes += [unused_note(k, why, precision) for k, why in
               unused_options(method, refine, views, downsample, precision, falloff, roll)]
+    if method == "l2" and check_device_name(device).startswith("cuda"):
+        notes.append(f"device: l2 solves with NumPy on the CPU; --device {device} unused")
     if method == "l2":  # what l2 does whatever was asked (the notes above say so)
         views, downsample, precision = 1, 1, "float32"
     # bf16 this CPU would emulate: refused here, before any work

@@ -628,9 +628,11 @@ def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarr
                 colors=None if colors is None else colors[valid])
 
 
-def display_colors(mean_image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Linear mean image [H, W, 3] -> uint8 display colours (99.5th percentile to white, gamma 2.2)."""
-    scale = float(np.percentile(mean_image[valid].max(axis=-1), 99.5)) if valid.any() else 1.0
+def display_colors(mean_image: np.ndarray, valid: np.ndarray, scale: float | None = None) -> np.ndarray:
+    """Linear mean image [H, W, 3] -> uint8 display colours (``scale`` to white, default the
+    99.5th percentile of the brightest channel over ``valid``; gamma 2.2)."""
+    if scale is None:
+        scale = float(np.percentile(mean_image[valid].max(axis=-1), 99.5)) if valid.any() else 1.0
     rgb = np.clip(mean_image / max(scale, 1e-12), 0.0, 1.0) ** (1 / 2.2)
     return np.round(rgb * 255).astype(np.uint8)
 
@@ -786,10 +788,18 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     # the mesh's colours: the albedo the same psctl normals run wrote beside its normal map (the
     # surface's own colour), else the images' mean (shading and all)
     albedo = None if normals is None else albedo_beside(Path(normals), (cap.height, cap.width), notes)
+    # an albedo's white is albedo.png's (albedo_png_scale), whichever file it came from: a PNG's
+    # values are already over that white and clipped there, and taking the 99.5th percentile of
+    # the clipped values made its colours up to 19 steps of 255 brighter than the EXR's (a QA helper)
+    from psctl.albedo import albedo_png_scale
+
+    white = None
     if albedo is not None:
         colors_source, mean_image = os.path.abspath(albedo[0]), albedo[1]
+        white = 1.0 if albedo[0].suffix.lower() == ".png" else albedo_png_scale(mean_image, valid)
     elif normals is None and got.get("albedo") is not None:  # estimated here with the normals
         colors_source, mean_image = "albedo (estimated with the normals)", got["albedo"]
+        white = albedo_png_scale(mean_image, valid)
         black = int((valid & (mean_image == 0).all(axis=-1)).sum())
         if black:
             notes.append(f"colours: {black} vertices have no albedo (dark in every image, or no light in front "
@@ -802,7 +812,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         for img in iter_images(cap, box):
             mean_image[box] += img / cap.n_images
             advance(1)
-    colors = display_colors(mean_image, valid)
+    colors = display_colors(mean_image, valid, white)
     # normals of any length, as integrate took them (1e30 or 1e-13 times unit: unit in the mesh)
     unit = np.where(valid[..., None], unit_vectors(nmap, 0.0)[0], 0.0).astype(np.float32)
     mesh = depth_mesh(res.depth, K, unit, colors, res.cut)

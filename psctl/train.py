@@ -415,6 +415,11 @@ def _no_half_run(run: Path) -> Iterator[Any]:
         yield log
     except BaseException:
         log.close()
+        if (run / JOURNAL).exists():  # committed: --resume finishes it
+            raise
+        for p in run.glob(STAGED + "*"):  # a checkpoint that failed before its journal
+            with contextlib.suppress(OSError):
+                p.unlink()
         if not (run / "state.json").exists():
             for p in [run / "model.pt", run / "stream.pt", *run.glob("optim.*.pt")]:
                 with contextlib.suppress(OSError):
@@ -490,10 +495,9 @@ class _Stop:
             signal.raise_signal(self.signal)
 
 
-def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] | tuple = ()) -> list[str]:
-    """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file);
-    ``previous`` (the parts the run's state listed) not written again are removed, and no
-    other file."""
+def save_optimizer(run: Path, optim: torch.optim.Optimizer, stage: str = "") -> list[str]:
+    """Adam state in parts of at most OPTIM_PART_BYTES (each part a weights_only-loadable file),
+    written as ``run / (stage + name)``; returns the names (``optim.0.pt``, ...)."""
     from psctl.io.atomic import atomic_path
 
     sd = optim.state_dict()
@@ -509,13 +513,73 @@ def save_optimizer(run: Path, optim: torch.optim.Optimizer, previous: list[str] 
     names = []
     for i, part in enumerate(parts):
         name = f"optim.{i}.pt"
-        with atomic_path(run / name) as tmp:
+        with atomic_path(run / (stage + name)) as tmp:
             save_torch({"state": part, "param_groups": sd["param_groups"] if i == 0 else []}, tmp)
         names.append(name)
-    for stale in previous:
-        if stale not in names and _OPTIM_PART.fullmatch(stale):
-            (run / stale).unlink(missing_ok=True)
     return names
+
+
+# A checkpoint is several files (model.pt, stream.pt, optim.*.pt, state.json); each is written
+# under its staged name (STAGED + name), then one journal write commits them as a set: a hard
+# kill anywhere leaves the previous checkpoint whole, or a journal that --resume completes.
+JOURNAL = "checkpoint.json"
+STAGED = ".next."
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def commit_checkpoint(run: Path, files: list[str], state: dict, remove: list[str] | tuple = ()) -> None:
+    """Commit a checkpoint whose ``files`` are staged in ``run`` (``STAGED + name``): write the
+    journal (the files, ``state`` for state.json, and the earlier optimiser parts ``remove``),
+    then carry it out (``finish_checkpoint``)."""
+    from psctl.io.atomic import write_text_atomic
+
+    for name in files:  # on disk before the journal says they are there (a lost machine, not just a kill)
+        _fsync(run / (STAGED + name))
+    write_text_atomic(run / JOURNAL, json.dumps({"files": files, "state": state, "remove": list(remove)}, indent=1))
+    _fsync(run / JOURNAL)
+    finish_checkpoint(run)
+
+
+def finish_checkpoint(run: Path) -> bool:
+    """Carry out ``run``'s journal, if it has one: move the staged files into place, write
+    state.json, remove the optimiser parts the checkpoint no longer lists, then the journal.
+    Each step can be done again, so a kill half-way leaves a journal this finishes. Without a
+    journal, staged files (a checkpoint killed before its journal) are removed. Returns whether
+    there was a journal."""
+    from psctl.io.atomic import write_text_atomic
+
+    journal = run / JOURNAL
+    if not journal.is_file():
+        for p in run.glob(STAGED + "*"):
+            with contextlib.suppress(OSError):
+                p.unlink()
+        return False
+    try:
+        j = json.loads(journal.read_text(encoding="utf-8"))
+        files, state, remove = j["files"], j["state"], j["remove"]
+        if not (isinstance(files, list) and isinstance(state, dict) and isinstance(remove, list)
+                and all(isinstance(n, str) and "/" not in n and "\\" not in n for n in files + remove)):
+            raise ValueError("not a checkpoint journal")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+        raise PsctlError(journal, f"is not a readable checkpoint journal ({e}); the checkpoint it commits cannot be "
+                                  f"finished (removing it resumes the checkpoint before)") from None
+    for name in files:
+        staged = run / (STAGED + name)
+        if staged.exists():  # else moved already, by the run this journal outlived
+            os.replace(staged, run / name)
+    write_text_atomic(run / "state.json", json.dumps(state, indent=1))
+    for stale in remove:
+        if stale not in files and _OPTIM_PART.fullmatch(stale):
+            (run / stale).unlink(missing_ok=True)
+    journal.unlink()
+    return True
 
 
 def _load_part(path: Path) -> Any:
@@ -959,7 +1023,8 @@ def _restore_checkpoint(run: Path, st: dict, method: str, model: torch.nn.Module
     steps = _adam_steps(optim)
     if steps and st.get("optim_step") is not None and steps != {st["optim_step"]}:
         at = " and ".join(f"{k:,}" for k in sorted(steps))
-        torn = " (parts of two checkpoints: a hard kill while one was written?)" if len(steps) > 1 else ""
+        # (a hard kill no longer tears a checkpoint (commit_checkpoint); a folder put together by hand can)
+        torn = " (parts of two checkpoints)" if len(steps) > 1 else ""
         raise PsctlError(run / st["optim_files"][0], f"holds the optimiser at step {at}{torn}, state.json at step "
                                                      f"{st['optim_step']:,}: not this checkpoint's; the run cannot "
                                                      f"continue exactly (\"optim_files\": [] in state.json continues "
@@ -1032,6 +1097,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     on a CPU ``keep_freed_memory`` keeps the heap at its peak size afterwards.
     """
     from psctl.infer import pick_device
+    from psctl.io.atomic import atomic_path
     from psctl.models.weights import save_weights
 
     method = check_method(method)
@@ -1045,15 +1111,21 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if run.exists() and not run.is_dir():
         raise PsctlError(run, f"is a file; {'--resume' if resume else '--out'} takes a run folder")
     state_file = run / "state.json"
+    if resume and run.is_dir():
+        finish_checkpoint(run)  # one a hard kill left committed but not carried out (or only staged)
     if resume and not state_file.is_file():
         began = (run / "log.jsonl").is_file()  # a run of ours, stopped (kill -9?) before its first checkpoint
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)" + (
             ": the run stopped before its first checkpoint (train.checkpoint_minutes apart); start it again in a "
             "new folder, or remove this one" if began else ""))
-    if not resume and state_file.is_file():
+    if not resume and (state_file.is_file() or (run / JOURNAL).is_file()):
         raise PsctlError(run, "already holds a run; pass --resume to continue it or choose another --out")
     # a run writes log.jsonl, optim.*.pt, ... there; a folder with only a log.jsonl is a run of
-    # ours that stopped before its first checkpoint (configs/gpu_session.sh starts it again)
+    # ours that stopped before its first checkpoint (configs/gpu_session.sh starts it again),
+    # perhaps killed while it was staged (its staged files go)
+    if not resume and run.is_dir() and not (run / JOURNAL).exists() and all(
+            p.name == "log.jsonl" or p.name.startswith(STAGED) for p in run.iterdir()):
+        finish_checkpoint(run)
     if not resume and run.is_dir() and [p.name for p in run.iterdir()] not in ([], ["log.jsonl"]):
         if sorted(p.name for p in run.iterdir()) == ["best.pt", "log.jsonl"]:  # kept by _no_half_run
             raise PsctlError(run, "holds the best.pt of a run that failed before its first checkpoint (nothing to "
@@ -1134,22 +1206,22 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 "metrics": metrics, **({"data_notes": data_notes} if data_notes else {})}
 
     def checkpoint() -> None:
-        from psctl.io.atomic import atomic_path
-
-        st["optim_files"] = save_optimizer(run, optim, st.get("optim_files") or ())
+        previous = st.get("optim_files") or []
+        files = save_optimizer(run, optim, STAGED)
+        st["optim_files"] = list(files)
         st["optim_step"] = max(_adam_steps(optim), default=None)
         if hasattr(stream, "state_dict"):
-            with atomic_path(run / "stream.pt") as tmp:
+            with atomic_path(run / (STAGED + "stream.pt")) as tmp:
                 save_torch({"samples": st["samples"], "stream": stream.state_dict()}, tmp)
+            files.append("stream.pt")
         # model.pt's own validation (at this very sample count), not the run's best so far
         own = st["val"][-1][1] if st["val"] and st["val"][-1][0] == st["samples"] else None
-        save_weights(run / "model.pt", model, metadata({metric: own}))
-        from psctl.io.atomic import write_text_atomic
-
+        save_weights(run / (STAGED + "model.pt"), model, metadata({metric: own}))
+        files.append("model.pt")
         log.flush()
         st["log_bytes"] = os.fstat(log.fileno()).st_size  # a resume after a hard kill drops what was logged after this
         st["loss_avg"] = loss_avg
-        write_text_atomic(state_file, json.dumps(st, indent=1))
+        commit_checkpoint(run, files, st, previous)
 
     t_call = time.perf_counter()
     t_start = t_ckpt = t_call

@@ -312,7 +312,8 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     from psctl.depth import check_intrinsics, read_intrinsics
     from psctl.io.atomic import (check_inputs_kept, check_output_dir, read_outputs_list, replaced_notes, staged_outputs,
                                  write_bytes_atomic, write_outputs_list)
-    from psctl.io.capture import GT_FILES, check_not_capture, holds_capture, load_ground_truth, load_mask, open_capture
+    from psctl.io.capture import (GT_FILES, INTENSITIES_FILE, LIGHTS_FILE, check_not_capture, holds_capture,
+                                  load_ground_truth, load_mask, open_capture, read_matrix)
     from psctl.io.images import read_image, write_image
     from psctl.io.report import write_json
 
@@ -360,6 +361,17 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
             raise PsctlError(out_dir / stray[0], "was not written by psctl undistort and would be read as the "
                                                  "undistorted capture's ground truth: move it away or choose "
                                                  "another --out")
+        for name, widths in ((LIGHTS_FILE, (3,)), (INTENSITIES_FILE, (3, 1))):
+            kept = out_dir / name
+            if name in written or name in own or not kept.is_file():
+                continue
+            # a light file added since (kept, as the docs say) must fit the new capture, or the folder
+            # written would not read back (a QA helper: 3 rows kept for 6 new images, exit 0)
+            rows = len(read_matrix(kept, widths, "light intensities" if name == INTENSITIES_FILE else "light directions"))
+            if rows != cap.n_images:
+                raise PsctlError(kept, f"was added to the earlier output and stays, but has {rows} rows for the "
+                                       f"{cap.n_images} images written now (psctl normals would refuse the folder): "
+                                       "remove it or choose another --out")
         if (out_dir / "psctl").is_dir():
             notes.append(f"outputs: {out_dir / 'psctl'} holds results computed from the earlier undistorted images; "
                          "run them again")

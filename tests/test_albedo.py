@@ -151,9 +151,17 @@ def test_estimate_albedo_checks_its_arrays():
     normals, mask, lights, albedo, images = _textured(size=12, n=6)
     with pytest.raises(psctl.PsctlError, match=r"normals must be \[H, W, 3\]"):
         psctl.estimate_albedo(images, lights, normals[:5], mask)
+    # NaN is "no normal" (read_normal_map's, as integrate_normals takes it; it was refused, a QA
+    # helper): no albedo there, as for 0; infinity is an error
     bad = normals.copy()
     bad[3, 3, 0] = np.nan
-    with pytest.raises(psctl.PsctlError, match="NaN"):
+    zero = normals.copy()
+    zero[3, 3] = 0
+    got = psctl.estimate_albedo(images, lights, bad, mask)
+    assert mask[3, 3] and (got[3, 3] == 0).all()
+    np.testing.assert_array_equal(got, psctl.estimate_albedo(images, lights, zero, mask))
+    bad[3, 3, 0] = np.inf
+    with pytest.raises(psctl.PsctlError, match="normals contain infinite values"):
         psctl.estimate_albedo(images, lights, bad, mask)
     with pytest.raises(psctl.PsctlError, match="min_shading"):
         psctl.estimate_albedo(images, lights, normals, mask, min_shading=0)
@@ -313,6 +321,33 @@ def test_depth_colours_the_mesh_by_the_albedo_written_with_the_normals(tmp_path)
     r = psctl.run_depth(folder, write=False)
     assert r["colors"] == "mean image"
     assert any(n.startswith("colours:") and "albedo.exr" in n for n in r["notes"])
+
+
+def test_mesh_colours_from_albedo_png_and_exr_agree(tmp_path):
+    """albedo.png holds the albedo over its white (albedo_png_scale) and clipped there; the mesh
+    took the 99.5th percentile of those clipped values as its white, so colours from the PNG came
+    out up to 19 steps of 255 brighter than from the EXR (a QA helper, session 61). Both now use
+    albedo.png's white. The texture: a few pixels bright in red only, which set the brightest
+    channel's percentile far above albedo.png's white."""
+    import psctl
+    from psctl.io.images import write_image
+    from psctl.io.mesh import read_ply
+
+    folder = tmp_path / "tex"
+    arrays = write_capture(folder, n=12, size=32, intensities=False)
+    rng = np.random.default_rng(5)
+    tex = rng.uniform(0.3, 0.6, (32, 32, 3)).astype(np.float32)
+    tex[rng.random((32, 32)) < 0.03, 0] = 1.5
+    shading = np.clip(np.einsum("hwc,nc->nhw", arrays["normals"], arrays["lights"]), 0, None) * arrays["mask"]
+    for k in range(12):
+        write_image(folder / f"{k + 1:03d}.png", tex * shading[k][..., None] / 1.6, "uint16")
+    colours = []
+    for fmt in ("exr", "png16"):
+        psctl.run_normals(folder, method="l2", albedo=True, formats=(fmt,))
+        r = psctl.run_depth(folder, out=tmp_path / fmt)
+        assert r["colors"].endswith("albedo." + fmt[:3])
+        colours.append(read_ply(tmp_path / fmt / "mesh.ply").colors.astype(int))
+    assert np.abs(colours[0] - colours[1]).max() <= 1
 
 
 def test_counted_images_follow_the_documented_rule():

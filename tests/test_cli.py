@@ -1559,6 +1559,15 @@ def test_precision_flag_errors_are_one_line(capture, tmp_path):
     r = json.loads(cli("normals", capture, "-m", "l2", "--precision", "bf16", "--out", tmp_path / "l2", "--json",
                        check=True).stdout)
     assert r["precision"] == "float32" and any("unused" in n for n in r["notes"])
+    # --device cuda with l2: a note too (it was taken without a word; a QA helper), and a bad name lists cuda:K
+    from psctl.api import run_normals
+    from psctl.errors import PsctlError
+
+    r = run_normals(capture, method="l2", device="cuda", write=False)
+    assert "device: l2 solves with NumPy on the CPU; --device cuda unused" in r["notes"]
+    assert not any("device" in n for n in run_normals(capture, method="l2", device="cpu", write=False)["notes"])
+    with pytest.raises(PsctlError, match=r"unknown --device 'gpu'; choose from auto, cpu, cuda or cuda:K"):
+        run_normals(capture, method="l2", device="gpu", write=False)
 
 
 def test_inputs_in_the_output_folder_under_an_output_name_are_refused(capture, tmp_path):

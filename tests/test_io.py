@@ -1620,6 +1620,28 @@ def test_an_encoded_normal_map_saved_as_normal_gt_mat_is_refused(tmp_path):
     np.testing.assert_array_equal(load_ground_truth(open_capture(tmp_path / "c"))[..., 2], 1)
 
 
+def test_info_reads_normal_gt_mat_whole_and_notes_what_normals_refuses(tmp_path):
+    """psctl info (headers only) passed an HDF5 Normal_gt.mat and one of uint8 codes that psctl
+    normals refuses (a QA helper, session 61; the README says the .mat is read whole to check
+    it). They are notes (lights and depth read no ground truth); --check stops on them."""
+    import scipy.io
+
+    from psctl.io.summary import describe_capture
+
+    arrays = write_capture(tmp_path / "c", n=4, size=24)
+    assert describe_capture(tmp_path / "c")["notes"] == []  # a good ground truth: no note
+    codes = np.round((arrays["normals"] + 1) / 2 * 255).astype(np.uint8)
+    scipy.io.savemat(tmp_path / "c" / "Normal_gt.mat", {"Normal_gt": codes})
+    notes = describe_capture(tmp_path / "c")["notes"]
+    assert len(notes) == 1 and notes[0].startswith("Normal_gt.mat: Normal_gt holds whole numbers") and \
+        notes[0].endswith("(psctl normals and eval stop on it)"), notes
+    with pytest.raises(PsctlError, match="Normal_gt holds whole numbers"):
+        describe_capture(tmp_path / "c", check=True)
+    (tmp_path / "c" / "Normal_gt.mat").write_bytes(b"MATLAB 7.3 MAT-file".ljust(116) + bytes(8) + b"\x00\x02IM" +
+                                                   bytes(512))
+    assert any("MATLAB 7.3 (HDF5) file" in n for n in describe_capture(tmp_path / "c")["notes"])
+
+
 def test_held_signals_skip_ignored_ones_and_reach_the_handler(tmp_path):
     """With SIGHUP ignored (nohup), a SIGHUP then a SIGTERM while outputs move into place: the
     SIGTERM still reaches its handler (a review: the ignored one was taken as the signal to pass
@@ -1876,3 +1898,19 @@ def test_listed_names_match_files_in_another_unicode_form(tmp_path):
     (folder / cap.image_paths[0].name).unlink()  # and a file really missing is still an error
     with pytest.raises(PsctlError, match="café_001.png: listed in filenames.txt but missing"):
         open_capture(folder)
+
+
+def test_psctls_own_pictures_are_not_read_as_images(tmp_path):
+    """psctl synth --preview writes preview.png at the root: every later run noted it as an image
+    of the root not read, and copied into an object folder it was read as one of its images (a QA
+    helper, session 61). Likewise psctl's other pictures."""
+    from psctl.io.capture import root_notes
+
+    write_capture(tmp_path / "root" / "a", n=4, size=16)
+    (tmp_path / "root" / "objects.txt").write_text("a\n")
+    for name in ("preview.png", "undistort.png", "eval.png", "sphere.png"):
+        write_image(tmp_path / "root" / name, np.zeros((16, 16, 3), np.float32), "uint8")
+        write_image(tmp_path / "root" / "a" / name, np.zeros((16, 16, 3), np.float32), "uint8")
+    assert root_notes(tmp_path / "root") == []
+    (tmp_path / "root" / "a" / "filenames.txt").unlink()  # the images found by their names
+    assert open_capture(tmp_path / "root" / "a").n_images == 4

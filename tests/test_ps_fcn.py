@@ -141,6 +141,11 @@ def test_official_ups_fcn_checkpoint(tmp_path):
     build_network(w, "ups-fcn")
     with pytest.raises(PsctlError, match="takes no lights"):
         build_network(w, "ps-fcn")
+    # auto with it: UPS-FCN, without advice to pass --method ps-fcn-n, which takes lights (a QA helper)
+    from psctl.api import resolve_method
+
+    method, note = resolve_method("auto", False, weights=path)
+    assert method == "ups-fcn" and note.endswith("running it as ups-fcn, without +N"), note
 
 
 @pytest.mark.parametrize("change, expected", [

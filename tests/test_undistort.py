@@ -417,3 +417,24 @@ def test_shift_picture_has_room_for_its_labels():
         shift = np.hypot(m.x - np.arange(612), m.y - np.arange(512)[:, None])
         pic = shift_picture(shift, m.valid, "ball")
         assert np.allclose(pic[:, -2:], BACKGROUND)  # nothing cut off at the right edge
+
+
+def test_a_light_file_added_to_an_earlier_output_must_fit_the_new_capture(tmp_path):
+    """A light file added to an undistort output stays when the folder is written again; one that
+    no longer fits the new images left a folder psctl normals refused, with exit 0 and no word (a
+    QA helper, session 61). Now the run is refused, naming it, and nothing changes."""
+    from psctl.undistort import run_undistort
+
+    _capture(tmp_path / "obj")
+    (tmp_path / "obj" / "light_intensities.txt").unlink()
+    K = np.array([[50.0, 0, 23.5], [0, 50.0, 19.5], [0, 0, 1]])
+    run_undistort(tmp_path / "obj", tmp_path / "und", K=K, distortion=(-0.1, 0, 0, 0))
+    (tmp_path / "und" / "light_intensities.txt").write_text("1 1 1\n2 2 2\n")
+    before = _digest(tmp_path / "und")
+    with pytest.raises(PsctlError, match=r"und/light_intensities.txt: was added to the earlier output and stays, but "
+                                         r"has 2 rows for the 3 images written now"):
+        run_undistort(tmp_path / "obj", tmp_path / "und", K=K, distortion=(-0.2, 0, 0, 0))
+    assert _digest(tmp_path / "und") == before
+    (tmp_path / "und" / "light_intensities.txt").write_text("1 1 1\n2 2 2\n3 3 3\n")  # one that fits stays
+    run_undistort(tmp_path / "obj", tmp_path / "und", K=K, distortion=(-0.2, 0, 0, 0))
+    assert open_capture(tmp_path / "und").intensities[2, 0] == 3

@@ -42,8 +42,8 @@ MASK_FILES = ("mask.png", "mask.tif", "mask.tiff", "mask.exr")
 AMBIENT_FILES = ("ambient.png", "ambient.tif", "ambient.tiff", "ambient.exr", "ambient.jpg", "ambient.jpeg")
 GT_FILES = ("Normal_gt.mat", "Normal_gt.png", "normal.png", "Normal_gt.exr", "normal.exr")
 # Files in a capture folder that are never input images (psctl normals' outputs; psctl eval --out's
-# eval.png and compare.png).
-_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread|sphere|undistort)$",
+# eval.png and compare.png; psctl synth --preview's preview.png).
+_NOT_IMAGES = re.compile(r"^((mask|normal|normal_gt|error|depth|shading|lights|albedo)([._-].*)?|ambient|eval|compare|spread|sphere|undistort|preview)$",
                          re.I)
 
 Progress = Callable[[int], None]
@@ -649,7 +649,8 @@ def _check_mat_header(p: Path, ref: ImageInfo) -> None:
     """Normal_gt.mat's variable list (names and shapes): what load_ground_truth would refuse
     later, said when the folder is opened (psctl info too). psctl's reader of plain files first
     (it decodes the values to know a file whole, and importing scipy.io costs more); scipy, which
-    reads only the headers, for the rest."""
+    reads only the headers, for the rest. The values' problems (an HDF5 file, an image's codes)
+    stop only what reads the ground truth (psctl info notes them: describe_capture)."""
     shapes = variable_shapes(p)
     if shapes is None:
         import scipy.io
@@ -667,6 +668,35 @@ def _check_mat_header(p: Path, ref: ImageInfo) -> None:
         raise PsctlError(p, f"Normal_gt has shape {shape}, expected H x W x 3")
     if shape[:2] != (ref.height, ref.width):
         raise PsctlError(p, f"size {shape[1]}x{shape[0]} differs from the images ({ref.width}x{ref.height})")
+
+
+def _mat_ground_truth(p: Path) -> np.ndarray:
+    """Normal_gt.mat's ``Normal_gt``, as stored, checked to hold real numbers that are not an
+    encoded image's codes. psctl's reader of plain files first, scipy for the rest."""
+    raw = load_variable(p, "Normal_gt")  # None: not a plain file (or no such variable): scipy says why
+    if raw is None:
+        import scipy.io
+
+        try:
+            # Normal_gt alone: scipy skips the other variables unread (a huge one would fill the memory)
+            mat = scipy.io.loadmat(str(p), variable_names=["Normal_gt"])
+        except NotImplementedError:  # scipy's advice (h5py) is for its own users
+            raise PsctlError(p, "is a MATLAB 7.3 (HDF5) file, which psctl does not read: save it with "
+                                "save(..., '-v7') or as Normal_gt.png (docs/formats.md)") from None
+        except Exception as e:  # scipy raises several types for bad/unsupported files
+            raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
+        if "Normal_gt" not in mat:
+            raise PsctlError(p, "has no variable 'Normal_gt'")
+        raw = np.asarray(mat["Normal_gt"])
+    if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
+        raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
+    # whole numbers beyond 1: an image's codes ((n + 1) / 2 * 255), not vectors, which would be
+    # scored as directions all in one octant (MATLAB stores a double array of -1, 0 and 1 as integers)
+    if raw.dtype.kind == "u" and raw.size and int(raw.max()) > 1:
+        raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
+                            "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
+                            "Normal_gt.png an encoded image")
+    return raw
 
 
 def _check_size(info: ImageInfo, ref: ImageInfo) -> None:
@@ -745,29 +775,7 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
     if p is None:
         return None
     if p.suffix.lower() == ".mat":
-        raw = load_variable(p, "Normal_gt")  # None: not a plain file (or no such variable): scipy says why
-        if raw is None:
-            import scipy.io
-
-            try:
-                # Normal_gt alone: scipy skips the other variables unread (a huge one would fill the memory)
-                mat = scipy.io.loadmat(str(p), variable_names=["Normal_gt"])
-            except NotImplementedError:  # scipy's advice (h5py) is for its own users
-                raise PsctlError(p, "is a MATLAB 7.3 (HDF5) file, which psctl does not read: save it with "
-                                    "save(..., '-v7') or as Normal_gt.png (docs/formats.md)") from None
-            except Exception as e:  # scipy raises several types for bad/unsupported files
-                raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
-            if "Normal_gt" not in mat:
-                raise PsctlError(p, "has no variable 'Normal_gt'")
-            raw = np.asarray(mat["Normal_gt"])
-        if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
-            raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
-        # whole numbers beyond 1: an image's codes ((n + 1) / 2 * 255), not vectors, which would be
-        # scored as directions all in one octant (MATLAB stores a double array of -1, 0 and 1 as integers)
-        if raw.dtype.kind == "u" and raw.size and int(raw.max()) > 1:
-            raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
-                                "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
-                                "Normal_gt.png an encoded image")
+        raw = _mat_ground_truth(p)
         # float64, not float32: vectors beyond float32's range (1e300) or below it (1e-300) are
         # directions like any others, normalised below
         gt = raw.astype(np.float64)

@@ -153,12 +153,27 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "camera": _exif_camera(cap.image_paths[0]),
         # the folder's K.txt (psctl depth's pinhole; psctl calibrate --K), or None
         "intrinsics": _intrinsics(cap.path),
-        "notes": capture_notes(cap),  # what normals, lights and depth will say about how they read it
+        "notes": capture_notes(cap) + _mat_gt_notes(cap),  # what normals, lights and depth will say about how they read it
     }
     if check:
         bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
         report["check"] = check_pixels(cap, mask, bar)
     return report
+
+
+def _mat_gt_notes(cap: "Capture") -> list[str]:
+    """Normal_gt.mat read whole (open_capture read its variable list): what psctl normals would
+    refuse in its values (an HDF5 file, an image's codes) is a note here, as lights and depth
+    read no ground truth; --check stops on it as psctl normals does."""
+    from psctl.io.capture import load_ground_truth
+
+    if cap.gt_path is None or cap.gt_path.suffix.lower() != ".mat":
+        return []
+    try:
+        load_ground_truth(cap)
+    except PsctlError as e:
+        return [f"{cap.gt_path.name}: {e.message} (psctl normals and eval stop on it)"]
+    return []
 
 
 def _intrinsics(folder: Path) -> dict | None:

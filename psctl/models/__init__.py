@@ -83,7 +83,7 @@ def check_device_name(name: str | None) -> str:
     name = (name or "auto").lower()
     if name in ("auto", "cpu", "cuda") or (name.startswith("cuda:") and name[5:].isdigit()):
         return name
-    raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda")
+    raise PsctlError(None, f"unknown --device {name!r}; choose from auto, cpu, cuda or cuda:K (K: the GPU's index)")
 
 
 __all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", "check_device_name", "check_precision",

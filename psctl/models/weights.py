@@ -366,9 +366,11 @@ def method_of(path: str | os.PathLike) -> tuple[str, str | None]:
     w = read_weights(path)
     if not w.official or w.kind == "lcnet":
         return w.method, None
-    method = "ps-fcn" if w.lights else "ups-fcn"
-    return method, (f"{Path(path).name}: the authors' checkpoints do not record +N; running it as {method} "
-                    f"(pass --method ps-fcn-n for a +N checkpoint such as PS-FCN_B_S_32_normalize.pth.tar)")
+    if not w.lights:  # --method ps-fcn-n takes lights: no advice that cannot work for a 3-channel file
+        return "ups-fcn", (f"{Path(path).name}: the authors' checkpoints do not record +N; running it as ups-fcn, "
+                           f"without +N")
+    return "ps-fcn", (f"{Path(path).name}: the authors' checkpoints do not record +N; running it as ps-fcn "
+                      f"(pass --method ps-fcn-n for a +N checkpoint such as PS-FCN_B_S_32_normalize.pth.tar)")
 
 
 def check_state_dict(path: Path | None, state_dict: dict, model: "torch.nn.Module", name: str = "PS-FCN") -> None:
