@@ -365,7 +365,7 @@ def normals(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
-    albedo: Annotated[bool, _flag("--albedo", help="Also the albedo map in each --format (albedo.png: an sRGB picture; albedo.exr, albedo.npy: linear): per channel the median of image / (n . l) over the images that light each pixel well, from the normals and the lights (sdps: as estimated); one more pass over the images.")] = False,
+    albedo: Annotated[bool, _flag("--albedo", help="Also the albedo map in each --format (albedo.png, albedo_8bit.png with png8: sRGB pictures; albedo.exr, albedo.npy: linear): per channel the median of image / (n . l) over the images that light each pixel well, from the normals and the lights (sdps: as estimated); one more pass over the images.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:

@@ -158,6 +158,9 @@ def not_a_file(path: str | os.PathLike, missing: str, folder: str | None = None)
     except OSError:
         return missing
     if stat.S_ISDIR(mode):
+        if folder is None and missing.endswith(" is missing"):  # "camera file is missing": "is a folder, not a camera file"
+            thing = missing[:-len(" is missing")]
+            folder = f"is a folder, not {'an' if thing[:1] in 'aeiou' else 'a'} {thing}"
         return folder or f"is a folder; {missing}"
     kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
     return f"is {kind}, not a regular file"

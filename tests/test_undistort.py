@@ -54,6 +54,13 @@ def test_zero_distortion_is_the_identity_and_a_fold_is_left_out():
     assert not m.valid[50, 95]  # ... but beyond the fold
     r = np.hypot(np.arange(101) - 50.0, np.arange(101)[:, None] - 50.0) / 50
     assert m.folded == int((r >= np.sqrt(2 / 3)).sum()) and not m.valid[r >= 0.8166].any()
+    # tangential terms fold the map too (p1 = p2 = 0.5; the radial check saw nothing, a QA
+    # helper): left out wherever the map's Jacobian is not positive, checked here by hand
+    K = np.array([[50.0, 0, 15.5], [0, 50.0, 15.5], [0, 0, 1]])
+    m = undistort_map(K, [0, 0, 0.5, 0.5], (32, 32))
+    jx, jy = np.gradient(m.x, axis=1), np.gradient(m.y, axis=0)  # a pixel-step estimate of the determinant
+    det = jx * jy - np.gradient(m.x, axis=0) * np.gradient(m.y, axis=1)
+    assert m.folded > 100 and not m.valid[det < -0.05].any() and m.valid[det > 0.05].any()
 
 
 def test_remap_is_bilinear():
@@ -306,6 +313,7 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
 OPENCV_YAML = """%YAML 1.2
 ---
 image_width: 640
+image_height: 480
 camera_matrix: !!opencv-matrix
    rows: 3
    cols: 3
@@ -367,12 +375,17 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
                         "distortion_model equidistant"),
            "tilt.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nD: [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]\n",
                         "tilt"),
-           "nan.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nDist: [.Nan, 0, 0, 0]\n", "Dist is not a list of numbers")}
+           "nan.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nDist: [.Nan, 0, 0, 0]\n", "Dist is not a list of numbers"),
+           # two names for K with different values (the first was taken without a word, a QA helper)
+           "twice.yml": ("camera_matrix: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nK: [2, 0, 1, 0, 2, 1, 0, 0, 1]\nD: [0, 0, 0, 0]\n",
+                         "gives the camera matrix twice, as camera_matrix and K, with different values")}
     for name, (text, words) in bad.items():
         (tmp_path / name).write_text(text)
         with pytest.raises(PsctlError, match=words) as e:
             read_camera(tmp_path / name)
         assert str(e.value.path) == str(tmp_path / name)
+    with pytest.raises(PsctlError, match="is a folder, not a camera file$"):  # it said "is a folder; camera file is missing"
+        read_camera(tmp_path)
     # the command: --camera instead of --K and --distortion; one of the two is needed
     _capture(tmp_path / "obj")
     r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "out", "--camera", tmp_path / "cv.yml", "--json",
@@ -380,6 +393,9 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
     rep = json.loads(r.stdout)
     assert rep["camera"]["K"] == K and rep["camera"]["distortion"]["k3"] == pytest.approx(-0.015)
     assert any("principal point 319.5, 241 lies outside these 48x40 images" in n for n in rep["notes"])
+    # the size it was calibrated at (image_width, image_height: 640x480) is not these images' (a QA helper)
+    assert any("cv.yml was calibrated on 640x480 images (image_width, image_height), these are 48x40" in n
+               for n in rep["notes"])
     for args, words in ((["--camera", tmp_path / "cv.yml", "-d", "0,0,0,0"], "leave out --K and --distortion"),
                         ([], "give the camera"), (["--camera", tmp_path / "cv.xml"], "is XML")):
         r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", *args)
@@ -438,3 +454,19 @@ def test_a_light_file_added_to_an_earlier_output_must_fit_the_new_capture(tmp_pa
     (tmp_path / "und" / "light_intensities.txt").write_text("1 1 1\n2 2 2\n3 3 3\n")  # one that fits stays
     run_undistort(tmp_path / "obj", tmp_path / "und", K=K, distortion=(-0.2, 0, 0, 0))
     assert open_capture(tmp_path / "und").intensities[2, 0] == 3
+
+
+def test_undistort_keeps_a_linear_colour_tag(tmp_path):
+    """psctl synth's PNGs are tagged linear; undistort wrote them untagged, and viewers showed them
+    as sRGB (a QA helper, session 61). A linear file stays linear; an untagged one stays untagged."""
+    from psctl.undistort import run_undistort
+
+    _capture(tmp_path / "obj")
+    img = read_image(tmp_path / "obj" / "a.png")[0]
+    write_image(tmp_path / "obj" / "a.png", img, "uint16", kind="linear")
+    assert "lin" in image_info(tmp_path / "obj" / "a.png").color_space.lower()
+    K = np.array([[50.0, 0, 23.5], [0, 50.0, 19.5], [0, 0, 1]])
+    run_undistort(tmp_path / "obj", tmp_path / "und", K=K, distortion=(0, 0, 0, 0))
+    assert "lin" in image_info(tmp_path / "und" / "a.png").color_space.lower()
+    assert "lin" not in image_info(tmp_path / "und" / "b.png").color_space.lower()
+    np.testing.assert_array_equal(read_image(tmp_path / "und" / "a.png")[0], img)  # the identity, to the bit

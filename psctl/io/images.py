@@ -51,6 +51,7 @@ class ImageInfo:
     # (x, y, width, height) of the stored pixels within the frame a viewer shows (the display
     # window: width x height above), when they differ (an EXR's data window); None: the same
     window: tuple[int, int, int, int] | None = None
+    color_space: str = ""  # OpenImageIO's oiio:ColorSpace for the file (its tag, or its format's default)
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
@@ -145,11 +146,12 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         window = (spec.x - spec.full_x, spec.y - spec.full_y, spec.width, spec.height)
         window = None if window == (0, 0, fw, fh) else window
         w, h = (fh, fw) if orientation >= 5 else (fw, fh)
+        color_space = spec.get_string_attribute("oiio:ColorSpace", "")
         pages = 1
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
-                         inp.format_name(), pick, layer if len(layers) > 1 else "", window)
+                         inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space)
     finally:
         inp.close()
 

@@ -311,8 +311,8 @@ def _check_synth_root(out: Path) -> None:
             if not entry.is_symlink():  # a link is only unlinked, never emptied: what it holds is safe
                 _check_synth_object(entry)
             continue
-        raise PsctlError(out, f"is not empty and not a psctl synth folder ({entry.name} is there); "
-                              "choose a new or empty folder")
+        raise PsctlError(out, f"is not empty and not a psctl synth folder ({entry.name} is there, which psctl synth "
+                              "did not write); choose a new or empty folder, or move it away")
 
 
 OBJECT_FILES = ("filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png", "Normal_gt.mat",
@@ -399,7 +399,8 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "interreflections",
         "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
-        earlier psctl synth run left in ``out`` and this one replaced).
+        earlier psctl synth run left in ``out`` that this set does not have; same-named object
+        folders are replaced and not listed).
     """
     from psctl.io.atomic import (by_final_name, check_output_dir, current_umask, ensure_writable_dir, missing_folders,
                                  remove_empty, working_folder)
