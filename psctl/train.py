@@ -526,6 +526,11 @@ JOURNAL = "checkpoint.json"
 STAGED = ".next."
 
 
+# atomic_path's temporary names (".NAME.XXXXXXXX.tmp.pt", "..next.NAME.XXXXXXXX.tmp.pt") that a
+# kill left in a run folder: only psctl writes such names there
+_TEMP = re.compile(r"\..+\.[A-Za-z0-9_]{8}\.tmp\.(pt|json)")
+
+
 def _fsync(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
@@ -536,25 +541,39 @@ def _fsync(path: Path) -> None:
 
 def commit_checkpoint(run: Path, files: list[str], state: dict, remove: list[str] | tuple = ()) -> None:
     """Commit a checkpoint whose ``files`` are staged in ``run`` (``STAGED + name``): write the
-    journal (the files, ``state`` for state.json, and the earlier optimiser parts ``remove``),
-    then carry it out (``finish_checkpoint``)."""
+    journal (each file's sha256, ``state`` for state.json, and the earlier optimiser parts
+    ``remove``), then carry it out (``finish_checkpoint``)."""
     from psctl.io.atomic import write_text_atomic
 
+    digests = {}
     for name in files:  # on disk before the journal says they are there (a lost machine, not just a kill)
         _fsync(run / (STAGED + name))
-    write_text_atomic(run / JOURNAL, json.dumps({"files": files, "state": state, "remove": list(remove)}, indent=1))
+        digests[name] = file_sha256(run / (STAGED + name))
+    write_text_atomic(run / JOURNAL, json.dumps({"files": digests, "state": state, "remove": list(remove)}, indent=1))
     _fsync(run / JOURNAL)
-    finish_checkpoint(run)
+    _fsync(run)  # the journal's name too
+    try:
+        finish_checkpoint(run)
+    except (OSError, PsctlError) as e:  # a full disk at state.json, say: the checkpoint is committed, not carried out
+        why = e.message if isinstance(e, PsctlError) else (e.strerror or str(e))
+        raise PsctlError(run / JOURNAL, f"the checkpoint is committed but not carried out ({why}); --resume "
+                                        "finishes it") from None
 
 
 def finish_checkpoint(run: Path) -> bool:
     """Carry out ``run``'s journal, if it has one: move the staged files into place, write
     state.json, remove the optimiser parts the checkpoint no longer lists, then the journal.
-    Each step can be done again, so a kill half-way leaves a journal this finishes. Without a
-    journal, staged files (a checkpoint killed before its journal) are removed. Returns whether
-    there was a journal."""
+    Each step can be done again, so a kill half-way leaves a journal this finishes; each file is
+    checked against the journal's sha256 first (a copy that dropped the hidden staged files must
+    not get the journal's state.json beside the earlier checkpoint's files). Without a journal,
+    staged files (a checkpoint killed before its journal) are removed; temporary files a kill
+    left are removed either way. Returns whether there was a journal."""
     from psctl.io.atomic import write_text_atomic
 
+    for p in run.iterdir() if run.is_dir() else ():
+        if _TEMP.fullmatch(p.name):
+            with contextlib.suppress(OSError):
+                p.unlink()
     journal = run / JOURNAL
     if not journal.is_file():
         for p in run.glob(STAGED + "*"):
@@ -564,17 +583,31 @@ def finish_checkpoint(run: Path) -> bool:
     try:
         j = json.loads(journal.read_text(encoding="utf-8"))
         files, state, remove = j["files"], j["state"], j["remove"]
-        if not (isinstance(files, list) and isinstance(state, dict) and isinstance(remove, list)
-                and all(isinstance(n, str) and "/" not in n and "\\" not in n for n in files + remove)):
+        if not (isinstance(files, dict) and isinstance(state, dict) and isinstance(remove, list)
+                and all(isinstance(n, str) and "/" not in n and "\\" not in n for n in [*files, *remove])
+                and all(isinstance(d, str) for d in files.values())):
             raise ValueError("not a checkpoint journal")
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
         raise PsctlError(journal, f"is not a readable checkpoint journal ({e}); the checkpoint it commits cannot be "
                                   f"finished (removing it resumes the checkpoint before)") from None
+    for name, digest in files.items():
+        staged, final = run / (STAGED + name), run / name
+        if staged.exists():
+            ok = file_sha256(staged) == digest
+        else:  # moved already, by the run this journal outlived, or never copied here
+            ok = final.is_file() and file_sha256(final) == digest
+        if not ok:
+            raise PsctlError(journal, f"commits a checkpoint whose {name} is {'damaged' if staged.exists() else 'missing'}"
+                                      f" ({STAGED + name} not as written; a copy without the hidden files?): the "
+                                      f"checkpoint cannot be finished (removing {JOURNAL} and the {STAGED}* files "
+                                      f"resumes the one before, if its files are whole)")
     for name in files:
         staged = run / (STAGED + name)
-        if staged.exists():  # else moved already, by the run this journal outlived
+        if staged.exists():
             os.replace(staged, run / name)
     write_text_atomic(run / "state.json", json.dumps(state, indent=1))
+    _fsync(run / "state.json")  # before the journal that could write it again goes
+    _fsync(run)
     for stale in remove:
         if stale not in files and _OPTIM_PART.fullmatch(stale):
             (run / stale).unlink(missing_ok=True)
@@ -1124,7 +1157,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     # ours that stopped before its first checkpoint (configs/gpu_session.sh starts it again),
     # perhaps killed while it was staged (its staged files go)
     if not resume and run.is_dir() and not (run / JOURNAL).exists() and all(
-            p.name == "log.jsonl" or p.name.startswith(STAGED) for p in run.iterdir()):
+            p.name in ("log.jsonl", "best.pt") or p.name.startswith(STAGED) or _TEMP.fullmatch(p.name)
+            for p in run.iterdir()):
         finish_checkpoint(run)
     if not resume and run.is_dir() and [p.name for p in run.iterdir()] not in ([], ["log.jsonl"]):
         if sorted(p.name for p in run.iterdir()) == ["best.pt", "log.jsonl"]:  # kept by _no_half_run
@@ -1205,11 +1239,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 "precision": f"{str(amp_dtype).removeprefix('torch.')} autocast" if use_amp else "float32",
                 "metrics": metrics, **({"data_notes": data_notes} if data_notes else {})}
 
-    def checkpoint() -> None:
-        previous = st.get("optim_files") or []
+    def stage() -> list[str]:
         files = save_optimizer(run, optim, STAGED)
-        st["optim_files"] = list(files)
-        st["optim_step"] = max(_adam_steps(optim), default=None)
         if hasattr(stream, "state_dict"):
             with atomic_path(run / (STAGED + "stream.pt")) as tmp:
                 save_torch({"samples": st["samples"], "stream": stream.state_dict()}, tmp)
@@ -1217,7 +1248,19 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         # model.pt's own validation (at this very sample count), not the run's best so far
         own = st["val"][-1][1] if st["val"] and st["val"][-1][0] == st["samples"] else None
         save_weights(run / (STAGED + "model.pt"), model, metadata({metric: own}))
-        files.append("model.pt")
+        return files + ["model.pt"]
+
+    def checkpoint() -> None:
+        previous = st.get("optim_files") or []
+        try:
+            files = stage()
+        except PsctlError as e:  # a full disk: the file by its own name (its staged one is removed)
+            name = Path(e.path).name if e.path else ""
+            if not name.startswith(STAGED):
+                raise
+            raise PsctlError(run / name[len(STAGED):], e.message) from None
+        st["optim_files"] = [n for n in files if _OPTIM_PART.fullmatch(n)]
+        st["optim_step"] = max(_adam_steps(optim), default=None)
         log.flush()
         st["log_bytes"] = os.fstat(log.fileno()).st_size  # a resume after a hard kill drops what was logged after this
         st["loss_avg"] = loss_avg

@@ -21,10 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def tiny(samples: int = 48) -> dict:
-    """configs/tiny.yaml with a smaller pool and smaller validation images: the shapes' rendering
-    was most of each tiny run's time (about half of this file's, 2 cores)."""
     cfg = load_config(REPO / "configs" / "tiny.yaml")
-    return merge(cfg, {"train": {"samples": samples}, "data": {"size": 32, "pool": 2}, "val": {"size": 16}})
+    return merge(cfg, {"train": {"samples": samples}})
 
 
 def test_tiny_recipe_trains_and_loss_goes_down(tmp_path):
@@ -855,7 +853,7 @@ def test_recipe_sizes_and_method_are_checked_before_the_run(tmp_path):
         r = cli("train", "ps-fcn", "--config", tmp_path / name, "--out", tmp_path / "r", "-q")
         assert r.returncode == 2 and f"{tmp_path / name}: {words}" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "r").exists()
-    assert "(crop 4096, size 64, scale unset, so (crop, size);" in r.stderr
+    assert "(crop 4096, size 32, scale unset, so (crop, size);" in r.stderr
 
 
 def test_a_normalization_the_method_cannot_train_with_is_refused_before_the_run(tmp_path):
@@ -1258,11 +1256,18 @@ def test_a_kill_anywhere_in_a_checkpoint_leaves_a_run_that_resumes_exactly(tmp_p
         if not (run / "checkpoint.json").exists():  # killed before the commit: as a hard kill leaves it
             (run / ".next.model.pt").write_bytes(b"half")
             (run / ".next.optim.0.pt").write_bytes(b"half")
+        (run / "..next.optim.1.ab_cd123.tmp.pt").write_bytes(b"half")  # atomic_path's, killed while it wrote
+        copy = kill_at == journal + 2 and (run / "checkpoint.json").exists()
+        if copy:  # a copy that drops hidden files (cp DIR/*) keeps the journal and not what it commits
+            shutil.copytree(run, tmp_path / "copy", ignore=lambda d, names: [n for n in names if n.startswith(".")])
+            with pytest.raises(PsctlError, match=r"checkpoint.json: commits a checkpoint whose \S+ is missing .*a "
+                                                 r"copy without the hidden files\?"):
+                train("ps-fcn", cfg, tmp_path / "copy", resume=True, device="cpu")
         calls.clear()
         kill_at_now, kill_at = kill_at, 0
         st = train("ps-fcn", cfg, run, resume=True, device="cpu")
         kill_at = kill_at_now
-        assert st["samples"] == 16 and not list(run.glob(".next.*")) and not (run / "checkpoint.json").exists()
+        assert st["samples"] == 16 and not list(run.glob(".*")) and not (run / "checkpoint.json").exists()
         got = read_weights(run / "model.pt").state_dict
         diff = max((want[k] - got[k]).abs().max().item() for k in want)
         assert diff < 1e-5, (kill_at, names[kill_at - 1], diff)
@@ -1276,13 +1281,29 @@ def test_a_kill_anywhere_in_a_checkpoint_leaves_a_run_that_resumes_exactly(tmp_p
         train("ps-fcn", cfg, run, resume=True, device="cpu")
     with pytest.raises(PsctlError, match="already holds a run"):
         train("ps-fcn", cfg, run, device="cpu")
-    # a first checkpoint killed while staged: the folder (its log and staged files) starts again
+    # a first checkpoint killed while staged: the folder (its log, staged and temporary files) starts again
     run = tmp_path / "first"
     run.mkdir()
     (run / "log.jsonl").write_text('{"step": 2}\n')
     (run / ".next.model.pt").write_bytes(b"half")
+    (run / "..next.optim.0.ybamlrlu.tmp.pt").write_bytes(b"")
     assert train("ps-fcn", small(8), run, device="cpu")["samples"] == 8
-    assert not list(run.glob(".next.*"))
+    assert not list(run.glob(".*"))
+    # a full disk while staging names the file, not its staged name (a reviewer)
+    import psctl.models.weights as weights
+
+    real_save = weights.save_weights
+
+    def full_disk(path, *a, **k):
+        if Path(path).name == ".next.model.pt":
+            raise PsctlError(path, "cannot write (no space left on device)")
+        return real_save(path, *a, **k)
+
+    monkeypatch.setattr(weights, "save_weights", full_disk)
+    with pytest.raises(PsctlError, match=r"first/model.pt: cannot write \(no space left on device\)"):
+        train("ps-fcn", small(16), run, resume=True, device="cpu")
+    monkeypatch.undo()
+    assert not list(run.glob(".*")) and train("ps-fcn", small(16), run, resume=True, device="cpu")["samples"] == 16
 
 
 def test_a_checkpoint_torn_by_a_hard_kill_is_named_as_such_on_resume(tmp_path):
