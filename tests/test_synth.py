@@ -833,6 +833,22 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
     again = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
     assert sorted(p.name for p in out.iterdir()) == ["blobby_01", "linked", "objects.txt"]
     assert again["removed"] == ["blobby_02", "preview.png"] and (tmp_path / "other" / "x" / "synth.json").is_file()
+    assert again["notes"] == []
+    # an earlier file that cannot be deleted (chattr +i) left the working folder with no word (a
+    # QA helper); rmtree here deletes nothing, as there
+    import psctl.synth.write as W
+
+    real = shutil.rmtree
+    W.shutil.rmtree = lambda path, ignore_errors=False: None
+    try:
+        stuck = write_preset(out, "blobby", seed=2, size=32, n_lights=8, k=1)
+    finally:
+        W.shutil.rmtree = real
+    hidden = [p for p in out.iterdir() if p.name.startswith(".psctl-synth.")]
+    assert len(hidden) == 1 and stuck["notes"] == [f"outputs: {hidden[0]} could not be removed (it holds the earlier "
+                                                   "set's files that could not be deleted): the new set is in place; "
+                                                   "remove that folder by hand"]
+    real(hidden[0])
     with pytest.raises(PsctlError, match="unknown preset"):
         write_preset(out, "teapot")
 

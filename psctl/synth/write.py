@@ -398,7 +398,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             light directions (``render_object``; psctl normals --light-distance undoes the falloff).
     Returns:
         {"out", "preset", "seed", "size", "n_lights", "light_dist", "intensities", "interreflections",
-        "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed"} (removed: what an
+        "ir_albedo", "light_distance", "objects", "preview", "seconds", "removed", "notes"} (removed: what an
         earlier psctl synth run left in ``out`` that this set does not have; same-named object
         folders are replaced and not listed).
     """
@@ -488,6 +488,10 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         if not keep:
             shutil.rmtree(stage, ignore_errors=True)
             remove_empty(created)
+    notes = []
+    if stage.exists():  # an earlier object's file that could not be deleted (read-only, immutable)
+        notes.append(f"outputs: {stage} could not be removed (it holds the earlier set's files that could not be "
+                     "deleted): the new set is in place; remove that folder by hand")
     # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
     # here is psctl synth's), so that the folder holds this set alone
     names = {o.name for o in objs}
@@ -501,7 +505,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
             "intensities": intensities, "interreflections": interreflections, "ir_albedo": ir_albedo,
             "light_distance": light_distance, "objects": [o.name for o in objs],
             "preview": None if preview_path is None else os.path.abspath(preview_path),
-            "seconds": round(time.perf_counter() - t0, 3), "removed": removed}
+            "seconds": round(time.perf_counter() - t0, 3), "removed": removed, "notes": notes}
 
 
 # --------------------------------------------------------------------------------------------
@@ -564,3 +568,5 @@ def render_synth(report: dict) -> None:
         print(f"preview: {report['preview']}")
     if report.get("removed"):
         print(f"removed {', '.join(report['removed'])}, left by an earlier psctl synth run")
+    for note in report.get("notes", []):
+        print(f"note: {note}")
