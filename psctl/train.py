@@ -532,9 +532,19 @@ _TEMP = re.compile(r"\..+\.[A-Za-z0-9_]{8}\.tmp\.(pt|json)")
 
 
 def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
+    """``path``'s data (a file) or its entries (a folder) on disk; a folder that cannot be opened
+    so (Windows) is left to the system."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        if path.is_dir():
+            return
+        raise
     try:
         os.fsync(fd)
+    except OSError:
+        if not path.is_dir():
+            raise
     finally:
         os.close(fd)
 
