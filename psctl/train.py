@@ -607,10 +607,11 @@ def finish_checkpoint(run: Path) -> bool:
         else:  # moved already, by the run this journal outlived, or never copied here
             ok = final.is_file() and file_sha256(final) == digest
         if not ok:
-            raise PsctlError(journal, f"commits a checkpoint whose {name} is {'damaged' if staged.exists() else 'missing'}"
-                                      f" ({STAGED + name} not as written; a copy without the hidden files?): the "
-                                      f"checkpoint cannot be finished (removing {JOURNAL} and the {STAGED}* files "
-                                      f"resumes the one before, if its files are whole)")
+            why = (f"damaged ({STAGED + name} is not as written)" if staged.exists() else
+                   f"missing ({STAGED + name} is gone and {name} is not the journal's: a copy without the hidden files?)")
+            raise PsctlError(journal, f"commits a checkpoint whose {name} is {why}: the checkpoint cannot be finished "
+                                      f"(removing {JOURNAL} and the {STAGED}* files resumes the one before, if its "
+                                      f"files are whole)")
     for name in files:
         staged = run / (STAGED + name)
         if staged.exists():
