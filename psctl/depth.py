@@ -960,7 +960,7 @@ def depth_preview(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, shading: np.ndarray,
                    report: dict, binary_ply: bool, t0: float, inputs: list) -> None:
     from psctl.io.atomic import staged_outputs, write_outputs_list
-    from psctl.io.images import write_image
+    from psctl.io.images import linear_to_srgb, write_image
     from psctl.io.mesh import write_ply
     from psctl.io.report import write_json
 
@@ -971,7 +971,8 @@ def _write_outputs(out_dir: Path, depth: np.ndarray, valid: np.ndarray, mesh, sh
         write_image(stage / "depth.png", depth_preview(depth, valid), "uint16", kind="data")
         write_ply(stage / "mesh.ply", mesh, binary=binary_ply,
                   comment=f"psctl depth --method {report['method']} ({report['projection']}) of {report['object']}")
-        write_image(stage / "shading.png", np.stack([shading, valid.astype(np.float32)], -1), "uint8")
+        # shade() is radiance: encoded with the sRGB curve so the file's sRGB tag is true
+        write_image(stage / "shading.png", np.stack([linear_to_srgb(shading), valid.astype(np.float32)], -1), "uint8")
         report["seconds"] = round(time.perf_counter() - t0, 3)  # depth_report.json and the return agree
         write_json(stage / "depth_report.json", report)
 

@@ -367,6 +367,11 @@ def test_cli_depth_end_to_end(capture, tmp_path):
     assert info.dtype == "uint16" and preview.shape[2] == 2  # grey + alpha
     shading, _ = read_image(out / "shading.png")
     assert shading[..., 0][mask].std() > 0.05  # a picture, not a flat fill
+    from psctl.depth import LIGHT, shade
+    from psctl.io.images import linear_to_srgb
+
+    # the sphere's centre faces the camera: its radiance, sRGB-encoded as the file's tag says
+    assert abs(shading[20, 20, 0] - linear_to_srgb(shade(np.array([0.0, 0.0, 1.0]), LIGHT))) < 0.03
 
     # normals from a file, bilateral, perspective from PATH/K.txt
     np.save(tmp_path / "n.npy", write_capture(tmp_path / "again")["normals"])
