@@ -1,7 +1,7 @@
 """Without a mask, where should PS-FCN's exposure scale come from? (run by hand)
 
     psctl synth .cache/syntest_exposure --preset syntest --size 128 --lights 64 -k 4 --seed 3 -q
-    python benchmarks/exposure_no_mask.py .cache/syntest_exposure [--levels 0 0.01 0.03] [--no-net]
+    python benchmarks/exposure_no_mask.py .cache/syntest_exposure [--levels 0 0.01 0.03] [--no-net] [--lights]
 
 PS-FCN (no +N) scales every capture by one factor so that the images' mean over the object is the
 mean it was trained at (``psctl.infer.run_network``). Without a mask the object is unknown. This
@@ -16,6 +16,8 @@ level, the ratio of each rule's mean to the mean over the true mask (1 is right)
 Unless --no-net, it also runs the installed PS-FCN on each object with the mask (MAE over the
 mask), without it by the lit rule, and without it by the frame rule (``lit_pixels`` replaced by
 all-True, which is the old code path exactly), and prints the mean MAE of each (degrees).
+With --lights, ``psctl.estimate_lights`` (LCNet, the light refinement with the installed PS-FCN;
+the defaults) without the mask by each rule too, and with the mask: mean light direction error.
 Prints one JSON object.
 """
 
@@ -49,11 +51,12 @@ def main() -> None:
     ap.add_argument("root", type=Path, help="a psctl synth --preset syntest folder")
     ap.add_argument("--levels", type=float, nargs="+", default=[0.0, 0.01, 0.03])
     ap.add_argument("--no-net", action="store_true", help="exposure ratios only")
+    ap.add_argument("--lights", action="store_true", help="also psctl.estimate_lights' light error")
     args = ap.parse_args()
 
     import psctl
     from psctl.io.capture import load_ground_truth, load_images, load_mask, open_capture
-    from psctl.metrics import angular_error
+    from psctl.metrics import angular_error, light_direction_error
 
     rng = np.random.default_rng(0)
     ratios: dict[float, dict[str, list[float]]] = {}
@@ -81,6 +84,13 @@ def main() -> None:
             with mock.patch("psctl.infer.lit_pixels", lambda b: np.ones(b.shape, bool)):
                 n = psctl.estimate_normals(im, lights, None, method="ps-fcn", device="cpu")
             m.setdefault("no mask, frame", []).append(float(angular_error(n, gt, mask).mean()))
+            if args.lights:
+                for label, mk in (("lights, mask", mask), ("lights, no mask, lit", None)):
+                    d, _ = psctl.estimate_lights(im, mk, device="cpu")
+                    m.setdefault(label, []).append(float(light_direction_error(d, lights).mean()))
+                with mock.patch("psctl.infer.lit_pixels", lambda b: np.ones(b.shape, bool)):
+                    d, _ = psctl.estimate_lights(im, None, device="cpu")
+                m.setdefault("lights, no mask, frame", []).append(float(light_direction_error(d, lights).mean()))
         print(name, file=sys.stderr)
     out = {"root": str(args.root), "objects": len(objects), "ratio_to_mask_mean": {
         str(level): {rule: {"mean": round(float(np.mean(v)), 3), "min": round(float(np.min(v)), 3),

@@ -77,7 +77,12 @@ DEFAULT_INFER = {
     # the object, images and mask), its normals interpolated back to full size: about 1/k^2 of the
     # work, for a quick look; detail is lost (docs/models.md, "Downsampling"). 1 = full size.
     "downsample": 1,
+    # where PS-FCN (no +N) takes the mean its exposure scale brings to the trained one: "mask" (the
+    # mask's pixels) or "lit" (lit_pixels: the bright part of the frame). The runs without a mask
+    # (no mask.png, mask=None) use "lit": a dark background would halve the frame's mean
+    "exposure_pixels": "mask",
 }
+EXPOSURE_PIXELS = ("mask", "lit")
 
 FEATURES = 128  # extractor output channels
 _BYTES_PER_PIXEL = 400  # extractor activations per input pixel and image (fp32, channels_last: 384 measured)
@@ -305,12 +310,49 @@ class _RegionImages:
 
 # --- the engine -------------------------------------------------------------------------------
 
-def check_float32_scale(factor: float, mean: float) -> float:
-    """``factor``, the exposure scale of a capture whose mean inside the mask is ``mean``, if float32
+def lit_pixels(brightness: np.ndarray, bins: int = 256) -> np.ndarray:
+    """[H, W] each pixel's summed brightness over the images -> [H, W] bool, the lit part of the
+    frame: Otsu's threshold on log brightness (parameter-free, independent of exposure), so a
+    capture without a mask takes its exposure from the object rather than the dark background
+    around it. Where the brightness does not split (all pixels alike), every lit pixel counts.
+
+    Chosen on psctl's synthetic test set (16 objects, 64 lights) with a dark Lambertian
+    background added (albedo 0, 0.01, 0.03, plus noise; benchmarks/exposure_no_mask.py): the lit
+    pixels' mean was on average 1.01 to 1.05 times the mask's (worst 1.27, a dark material), the
+    whole frame's 0.45 to 0.50 (worst 0.32); a threshold at a fixed fraction of the 99th
+    percentile failed on dark materials before a 0.03 background (as low as 0.46). The release
+    PS-FCN there, without the mask: 4.73 / 5.06 / 5.37 degrees by this rule, 6.60 / 6.82 / 6.97
+    by the whole frame's mean, 4.70 with the mask (session 62).
+    """
+    b = np.asarray(brightness, np.float64)
+    positive = b > 0
+    if not positive.any():
+        return positive
+    # pixels at 0 (a render's or a pre-masked background) join the darkest bin: left out, Otsu
+    # would split the object itself (its lit mean 1.16x the mask's on a sphere, 1.05x so)
+    log = np.log(np.where(positive, b, b[positive].min()))
+    lo, hi = float(log.min()), float(log.max())
+    if not hi - lo > 1e-6:
+        return positive
+    hist, edges = np.histogram(log.ravel(), bins, (lo, hi))
+    centre = (edges[:-1] + edges[1:]) / 2
+    below = np.cumsum(hist)[:-1].astype(np.float64)  # pixels in bins 0..k, for a split after bin k
+    above = log.size - below
+    mass = np.cumsum(hist * centre)
+    total, mass = mass[-1], mass[:-1]
+    with np.errstate(divide="ignore", invalid="ignore"):  # empty sides: scored -1 below
+        between = below * above * (mass / below - (total - mass) / above) ** 2
+    between[(below == 0) | (above == 0)] = -1.0
+    threshold = edges[int(np.argmax(between)) + 1]
+    return positive & (log >= threshold)
+
+
+def check_float32_scale(factor: float, mean: float, where: str = "inside the mask") -> float:
+    """``factor``, the exposure scale of a capture whose mean ``where`` is ``mean``, if float32
     can hold it; a capture of denormal values (mean ~1e-40) is a user error instead of inf."""
     f32 = np.finfo(np.float32)
     if not float(f32.tiny) < factor < float(f32.max):
-        raise PsctlError(None, f"the images' mean inside the mask is {mean:.3g}: too far from 1 to scale in "
+        raise PsctlError(None, f"the images' mean {where} is {mean:.3g}: too far from 1 to scale in "
                                f"float32; rescale them")
     return factor
 
@@ -331,8 +373,9 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         train_images: q for the sqrt(t / q) factor of +N.
         config: overrides of DEFAULT_INFER.
         input_mean: without +N, scale all images by one factor so that their mean over the mask
-            (all images and channels) is this: the exposure the network was trained at
-            (weights metadata ``input_mean``). None: the images as they are.
+            (all images and channels; config ``exposure_pixels`` "lit": over the lit pixels,
+            ``lit_pixels``) is this: the exposure the network was trained at (weights metadata
+            ``input_mean``). None: the images as they are.
         input_clip: with ``input_mean``, clip the scaled images at this value: the sensor
             saturation of the training data (the recipe's ``data.clip``), so highlights scaled
             far above it look as they did in training. None: no clipping.
@@ -343,6 +386,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     t_start = time.perf_counter()
+    if cfg["exposure_pixels"] not in EXPOSURE_PIXELS:
+        raise PsctlError(None, f"exposure_pixels must be {' or '.join(EXPOSURE_PIXELS)}, not {cfg['exposure_pixels']!r}")
     if n < 1:
         raise PsctlError(None, "no images")
     if model.uses_lights:
@@ -399,12 +444,24 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     # exposure, pass 1: one factor for the whole capture (keeps albedo and shading ratios)
     exposure = None
     if input_mean is not None:
-        total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
-        mean = total / (float(stream.mask.sum()) * 3 * n)
+        where = "inside the mask"
+        if cfg["exposure_pixels"] == "lit":  # no mask: the lit pixels' mean, not the dark background's too
+            where = "over the lit pixels"
+            pixel_sum = np.zeros(stream.shape, np.float64)
+            for img in stream:
+                pixel_sum += img.sum(-1, dtype=np.float64)
+            pixel_sum = pixel_sum[: stream.rh, : stream.rw] * stream.mask[..., 0]  # not the zero padding
+            lit = lit_pixels(pixel_sum)
+            total, count = float(pixel_sum[lit].sum()), int(lit.sum())
+            del pixel_sum
+        else:
+            total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
+            count = float(stream.mask.sum())
+        mean = total / (count * 3 * n) if count else 0.0
         if not mean > 0:
-            raise PsctlError(None, "all images are black inside the mask" if total == 0 else
-                             f"the images' mean inside the mask is {mean:.3g}: linear images are not negative")
-        exposure = check_float32_scale(input_mean / mean, mean)
+            raise PsctlError(None, f"all images are black {where}" if total == 0 else
+                             f"the images' mean {where} is {mean:.3g}: linear images are not negative")
+        exposure = check_float32_scale(input_mean / mean, mean, where)
         scale = np.full((1, 1, 1), exposure, np.float32)
 
     out = np.zeros((h, w, 3), np.float32)
@@ -675,7 +732,8 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
     mask = as_mask(mask, (H, W))
     lights = as_lights(lights, n)
     check_not_black(images, mask)
-    mask = np.ones((H, W), bool) if mask is None else mask
+    if mask is None:  # the whole frame; the exposure from its lit part
+        mask, config = np.ones((H, W), bool), {"exposure_pixels": "lit", **(config or {})}
 
     def reader(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
         for k in range(start, n):
@@ -696,7 +754,10 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
     for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again.
     ``memo`` (``psctl.io.capture.DecodeMemo``): images decoded by an earlier pass over this
-    capture, and this pass's kept there (sdps' passes)."""
+    capture, and this pass's kept there (sdps' passes). A capture without a mask file takes
+    its exposure from its lit pixels (config ``exposure_pixels``)."""
+    if capture.mask_path is None:
+        config = {"exposure_pixels": "lit", **(config or {})}
     with _prefetch(capture, mask, config) as decoded:
         if method == "ensemble":
             from psctl.io.capture import ImageCheck
@@ -797,12 +858,13 @@ class ReadMemo:
 # The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic
 # test sets the average of the release files beat either alone (benchmarks/ensemble.py, docs/usage.md).
 # Without a mask the networks take the whole frame for the object (QA helpers' findings: nothing
-# was said). Measured in session 60: `psctl eval` on the dev split's five folders with mask.png
-# left out (the same pixels scored)
-NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the background beside it included (and "
-                        "PS-FCN sets its brightness from the whole frame's mean); a mask of the object makes the "
-                        "normals more accurate (the DiLiGenT dev split without its masks: the ensemble 6.17 degrees "
-                        "against 5.66 with them, PS-FCN+N 6.00 against 5.59, PS-FCN 6.68 against 6.01)")
+# was said). Measured in session 62 (PS-FCN's exposure from the lit pixels; from the whole frame
+# in session 60 it was 6.68, the ensemble 6.17): `psctl eval` on the dev split's five folders
+# with mask.png left out (the same pixels scored)
+NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the background beside it included; a "
+                        "mask of the object makes the normals more accurate (the DiLiGenT dev split without its "
+                        "masks: the ensemble 6.04 degrees against 5.66 with them, PS-FCN+N 6.00 against 5.59, "
+                        "PS-FCN 6.35 against 6.01)")
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
 
 

@@ -704,7 +704,7 @@ def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):
 
 def test_networks_say_when_they_run_without_a_mask(data, tmp_path):
     """Without a mask the networks read the background as part of the object (the dev split
-    without its masks: the ensemble 6.17 against 5.66): psctl normals notes a folder without
+    without its masks: the ensemble 6.04 against 5.66): psctl normals notes a folder without
     mask.png and the array API warns on mask=None, for each network method; l2 and runs with a
     mask say nothing."""
     import warnings

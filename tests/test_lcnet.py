@@ -309,6 +309,40 @@ def test_exposure_guard_reads_the_mean_inside_the_mask_only():
         assert est.info["exposure"] == 1.0, net.config
 
 
+def test_exposure_guard_without_a_mask_reads_the_lit_pixels(tmp_path):
+    """No mask: the guard's mean is over the lit pixels (infer.lit_pixels), so a dark background
+    beside a capture inside the band does not push it out (the frame's mean would be a third)."""
+    images, mask = scene(n=6)
+    images = images * 0.1
+    m = float(images[:, mask].mean())
+    images[:, ~mask] = np.random.default_rng(2).uniform(0, 0.001, images[:, ~mask].shape)
+    assert images.mean() < m * 0.7  # the frame's mean: outside the band below
+    band = {"views": 1, "exposure_band": (m * 0.7, m * 1.5)}
+    est = array_lights(images, None, model=lcnet(), config=band)
+    assert est.info["exposure"] == 1.0, est.notes
+    # a mask that covers the frame is a mask: the frame's mean, below the band
+    est = array_lights(images, np.ones_like(mask), model=lcnet(), config=band)
+    assert est.info["exposure"] > 1.0 and "mean inside the mask" in est.notes[0]
+    with pytest.raises(PsctlError, match="exposure_pixels"):
+        array_lights(images, mask, model=lcnet(), config={"exposure_pixels": "all"})
+    # and a capture that is outside it still is scaled
+    est = array_lights(images / 40, None, model=lcnet(), config=band)
+    assert est.info["exposure"] != 1.0 and "mean over the lit pixels" in est.notes[0]
+    # a folder without mask.png, as the array API without a mask
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import capture_lights
+
+    folder = tmp_path / "obj"
+    folder.mkdir()
+    for k, img in enumerate(images):
+        write_image(folder / f"{k + 1:03d}.exr", img, "float", kind="linear")
+    save_weights(tmp_path / "lcnet.pt", lcnet(), {"method": "lcnet", "train_images": 32})
+    cap = open_capture(folder)
+    est = capture_lights(cap, load_mask(cap), tmp_path / "lcnet.pt", band)
+    assert est.info["exposure"] == 1.0, est.notes
+
+
 def test_intensity_error_is_scale_invariant_and_colour_blind():
     gt = np.array([[1.0, 0.9, 0.8], [2.0, 1.8, 1.6], [0.5, 0.45, 0.4]])  # one light colour, 3 strengths
     assert intensity_error(3.0 * np.array([1.0, 2.0, 0.5]), gt) == pytest.approx(0.0, abs=1e-12)

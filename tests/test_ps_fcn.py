@@ -546,6 +546,69 @@ def test_input_mean_scales_each_capture_to_the_training_exposure():
         run(images, -1.0)
 
 
+def test_no_mask_exposure_comes_from_the_lit_pixels(tmp_path):
+    """Without a mask (mask=None, no mask.png) the exposure mean is over the lit pixels
+    (lit_pixels: Otsu on log brightness), not the whole frame, whose dark background would halve
+    the mean and double the scale (session 62: PS-FCN on the dev split's cat without its mask,
+    6.08 -> 5.89 degrees). A mask that covers the frame is a mask: its mean, as before."""
+    from psctl.io.images import write_image
+
+    images, lights, mask = scene()
+    rng = np.random.default_rng(3)
+    images[:, ~mask] = rng.uniform(0, 0.004, images[:, ~mask].shape)  # a dark cloth, some noise
+    net = model(double=True)
+
+    def run(m, x=images, **cfg):
+        def reader(start, box):
+            for k in range(start, len(x)):
+                yield x[k][box]
+        return run_network(net, reader, len(x), lights, m, "none", None, cfg, None, "t", 0.2)
+
+    masked = run(mask).info["exposure_scale"]
+    whole = np.ones_like(mask)
+    assert run(whole, exposure_pixels="lit").info["exposure_scale"] == pytest.approx(masked, rel=0.02)
+    frame = 0.2 / images.mean(dtype=np.float64)  # the whole frame's mean (the rule before)
+    assert frame > 1.5 * masked
+    assert run(whole).info["exposure_scale"] == pytest.approx(frame, rel=1e-5)  # a frame-filling mask
+    with pytest.raises(PsctlError, match="black over the lit pixels"):  # not ZeroDivisionError
+        run(whole, images * 0, exposure_pixels="lit")
+    with pytest.raises(PsctlError, match="exposure_pixels"):
+        run(mask, exposure_pixels="frame")
+    # the callers: mask=None in the array API, a folder without mask.png
+    w = save_weights(tmp_path / "ps_fcn.pt", model(), {"method": "ps-fcn", "train_images": 32, "input_mean": 0.2})
+    cfg = {"device": "cpu"}
+    assert array_normals(images, lights, mask, "ps-fcn", w, cfg).info["exposure_scale"] == pytest.approx(masked, rel=1e-5)
+    assert array_normals(images, lights, None, "ps-fcn", w, cfg).info["exposure_scale"] == pytest.approx(masked, rel=0.02)
+    assert array_normals(images, lights, whole, "ps-fcn", w, cfg).info["exposure_scale"] == pytest.approx(frame, rel=1e-5)
+    from psctl.infer import capture_normals
+    from psctl.io.capture import load_mask, open_capture
+
+    folder = tmp_path / "obj"
+    folder.mkdir()
+    for k, img in enumerate(images):
+        write_image(folder / f"{k + 1:03d}.exr", img, "float", kind="linear")
+    np.savetxt(folder / "light_directions.txt", lights)
+    cap = open_capture(folder)
+    got = capture_normals(cap, load_mask(cap), "ps-fcn", w, cfg).info["exposure_scale"]
+    assert got == pytest.approx(masked, rel=0.02)
+
+
+def test_lit_pixels_splits_object_from_background():
+    from psctl.infer import lit_pixels
+
+    rng = np.random.default_rng(0)
+    b = np.concatenate([rng.uniform(1e-3, 1e-2, 600), rng.uniform(0.2, 1.0, 400)]).reshape(25, 40)
+    lit = lit_pixels(b)
+    assert lit.sum() == 400 and lit.reshape(-1)[600:].all()
+    # unchanged by the exposure (log brightness), and by the frame's order
+    assert (lit_pixels(b * 1e-6) == lit).all() and (lit_pixels(b.T) == lit.T).all()
+    assert lit_pixels(np.full((4, 5), 0.3)).all()  # nothing to split: every lit pixel
+    zeros = np.zeros((3, 3))
+    assert not lit_pixels(zeros).any()
+    zeros[1, 1] = 0.5
+    assert lit_pixels(zeros).sum() == 1  # zero (unlit) pixels never count
+
+
 def test_input_clip_saturates_scaled_highlights_as_training_did():
     """The training stream clips each sample at 1 after scaling it to its exposure; a dark capture
     with a bright highlight, scaled up to input_mean, must be clipped the same way."""
