@@ -540,6 +540,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
         info["hot_pixels"] = dict(sorted(stream.hot.items()))
     if exposure is not None:
         info["exposure_scale"] = float(f"{exposure:.6g}")  # significant digits: a 1e30-scaled capture gets 1e-31, not 0
+        info["exposure_pixels"] = cfg["exposure_pixels"]
     if not (stream.peak[: stream.rh, : stream.rw][inside] > 0).any():  # PS-FCN+N would answer anyway
         raise PsctlError(None, "all images are black inside the mask")
     return InferResult(normals, dark, info)
@@ -704,7 +705,8 @@ def _prepare_network(method: str, weights: str | Path | None, config: dict | Non
 
 def _note_exposure(res: InferResult, method: str, input_mean: float | None) -> None:
     if "exposure_scale" in res.info:
-        res.notes.append(f"{method}: images scaled by {res.info['exposure_scale']:.4g} to the mean brightness "
+        lit = " (their mean over the lit pixels: no mask)" if res.info.get("exposure_pixels") == "lit" else ""
+        res.notes.append(f"{method}: images scaled by {res.info['exposure_scale']:.4g}{lit} to the mean brightness "
                          f"the network was trained at ({input_mean:.3g})")
 
 
