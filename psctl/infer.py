@@ -461,7 +461,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
             count = float(stream.mask.sum())
         mean = total / (count * 3 * n) if count else 0.0
         if not mean > 0:
-            raise PsctlError(None, f"all images are black {where}" if total == 0 else
+            raise PsctlError(None, ("all images are black" if where != "inside the mask" else
+                                    "all images are black inside the mask") if total == 0 else
                              f"the images' mean {where} is {mean:.3g}: linear images are not negative")
         exposure = check_float32_scale(input_mean / mean, mean, where)
         scale = np.full((1, 1, 1), exposure, np.float32)
