@@ -349,6 +349,21 @@ def lit_pixels(brightness: np.ndarray, bins: int = 256) -> np.ndarray:
     return positive & (log >= threshold)
 
 
+def lit_mean(pixel_sum: np.ndarray, n: int) -> float:
+    """The mean observation over the lit pixels: ``pixel_sum`` [H, W] each pixel's sum over
+    ``n`` RGB images; 0.0 where no pixel is lit. The "lit" exposure of PS-FCN and LCNet's guard."""
+    lit = lit_pixels(pixel_sum)
+    count = int(lit.sum())
+    return float(pixel_sum[lit].sum()) / (3.0 * n * count) if count else 0.0
+
+
+def exposure_where(exposure_pixels: str) -> str:
+    """The words for where an exposure mean is taken (messages), refusing an unknown rule."""
+    if exposure_pixels not in EXPOSURE_PIXELS:
+        raise PsctlError(None, f"exposure_pixels must be {' or '.join(EXPOSURE_PIXELS)}, not {exposure_pixels!r}")
+    return "over the lit pixels" if exposure_pixels == "lit" else "inside the mask"
+
+
 def check_float32_scale(factor: float, mean: float, where: str = "inside the mask") -> float:
     """``factor``, the exposure scale of a capture whose mean ``where`` is ``mean``, if float32
     can hold it; a capture of denormal values (mean ~1e-40) is a user error instead of inf."""
@@ -388,8 +403,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     t_start = time.perf_counter()
-    if cfg["exposure_pixels"] not in EXPOSURE_PIXELS:
-        raise PsctlError(None, f"exposure_pixels must be {' or '.join(EXPOSURE_PIXELS)}, not {cfg['exposure_pixels']!r}")
+    where = exposure_where(cfg["exposure_pixels"])
     if n < 1:
         raise PsctlError(None, "no images")
     if model.uses_lights:
@@ -446,23 +460,19 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     # exposure, pass 1: one factor for the whole capture (keeps albedo and shading ratios)
     exposure = None
     if input_mean is not None:
-        where = "inside the mask"
-        if cfg["exposure_pixels"] == "lit":  # no mask: the lit pixels' mean, not the dark background's too
-            where = "over the lit pixels"
+        lit = cfg["exposure_pixels"] == "lit"
+        if lit:  # no mask: the lit pixels' mean, not the dark background's too
             pixel_sum = np.zeros(stream.shape, np.float64)
             for img in stream:
                 pixel_sum += img.sum(-1, dtype=np.float64)
-            pixel_sum = pixel_sum[: stream.rh, : stream.rw]  # not the zero padding (the stream is masked)
-            lit = lit_pixels(pixel_sum)
-            total, count = float(pixel_sum[lit].sum()), int(lit.sum())
+            mean = lit_mean(pixel_sum[: stream.rh, : stream.rw], n)  # not the zero padding (the stream is masked)
+            black = mean == 0  # no pixel above 0
             del pixel_sum
         else:
             total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
-            count = float(stream.mask.sum())
-        mean = total / (count * 3 * n) if count else 0.0
+            mean, black = total / (float(stream.mask.sum()) * 3 * n), total == 0
         if not mean > 0:
-            raise PsctlError(None, ("all images are black" if where != "inside the mask" else
-                                    "all images are black inside the mask") if total == 0 else
+            raise PsctlError(None, f"all images are black{'' if lit else ' inside the mask'}" if black else
                              f"the images' mean {where} is {mean:.3g}: linear images are not negative")
         exposure = check_float32_scale(input_mean / mean, mean, where)
         scale = np.full((1, 1, 1), exposure, np.float32)

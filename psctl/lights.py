@@ -163,7 +163,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     """
     import torch
 
-    from psctl.infer import check_float32_scale, lit_pixels, pick_device
+    from psctl.infer import check_float32_scale, exposure_where, lit_mean, pick_device
     from psctl.models.lcnet import FEATURES, decode, resize_inputs
     from psctl.symmetry import SYMMETRIES, check_views, transform_images, untransform_dirs
 
@@ -173,9 +173,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         raise PsctlError(None, "no images")
     if cfg["decode"] not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown decoding {cfg['decode']!r}; choose argmax or soft")
-    if cfg["exposure_pixels"] not in ("mask", "lit"):
-        raise PsctlError(None, f"exposure_pixels must be mask or lit, not {cfg['exposure_pixels']!r}")
-    where = "over the lit pixels" if cfg["exposure_pixels"] == "lit" else "inside the mask"
+    where = exposure_where(cfg["exposure_pixels"])
     views = check_views(cfg["views"])
     mask = np.asarray(mask, bool)
     if not mask.any():
@@ -256,8 +254,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         buffered = buffered if keep_inputs else None
         mean = level[0] / max(level[1], 1.0)
         if pixel_sum is not None and mean > 0:
-            lit = lit_pixels(pixel_sum)
-            mean = float(pixel_sum[lit].sum()) / (3.0 * n * int(lit.sum()))
+            mean = lit_mean(pixel_sum, n)
+        pixel_sum = None  # the closure's too: later passes neither add to it nor keep it
         if mean > 0 and not band[0] <= mean <= band[1]:
             factor = check_float32_scale(float(cfg["exposure_target"]) / mean, mean, where)
 
