@@ -331,7 +331,8 @@ def lit_pixels(brightness: np.ndarray, bins: int = 256) -> np.ndarray:
     # pixels at 0 (a render's or a pre-masked background) join the darkest bin: left out, Otsu
     # would split the object itself (its lit mean 1.16x the mask's on a sphere, 1.05x so)
     log = np.empty(b.shape, np.float32)  # float32: 4 bytes a pixel for a 12 MP frame's map
-    np.log(b, out=log, where=positive, casting="same_kind")
+    with np.errstate(invalid="ignore", divide="ignore"):  # numpy's buffered cast may touch the masked-out pixels
+        np.log(b, out=log, where=positive, casting="same_kind")
     lo, hi = float(log[positive].min()), float(log[positive].max())
     log[~positive] = lo
     if not hi - lo > 1e-6:
