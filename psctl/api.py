@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
     from psctl.albedo import AlbedoResult
     from psctl.io.capture import Capture, DecodeMemo
-    from psctl.lights import LightEstimate
+    from psctl.lights import FoundObject, LightEstimate
     from psctl.nearlight import NearLights
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
@@ -152,7 +152,9 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             1)), or uint8 / uint16 arrays, which are scaled so. LCNet depends on that scale; a
             capture far outside its training exposures is rescaled for it (the exposure guard,
             docs/uncalibrated.md).
-        mask: [H, W] bool or numbers (above 0.5 is the object; None: the whole image).
+        mask: [H, W] bool or numbers (above 0.5 is the object; None: LCNet and the light fit
+            read the object found by brightness, ``psctl.lights.find_object``, and a warning
+            says so).
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
         device: auto | cpu | cuda.
@@ -174,7 +176,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, refine_config
+    from psctl.lights import array_lights, find_object, refine_config
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -189,12 +191,11 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     saturated = _saturated(images)
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
-    est = array_lights(images, mask, weights, {"device": device, "decode": decode, "views": views})
-    if mask is None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
-        from psctl.lights import NO_MASK_WHY
-
-        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
-        warnings.warn(f"estimate_lights: mask=None: {NO_MASK_WHY}", PsctlWarning, stacklevel=level)
+    found = None if mask is not None else find_object(images.sum((0, 3), dtype=np.float64))
+    fit_mask = mask if found is None else found.mask
+    est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views})
+    if found is not None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
+        _warn_found(found, "estimate_lights", 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2)
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
     given = {"falloff": falloff, "roll": roll, "precision": precision}
     unused = [k for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
@@ -206,7 +207,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         warnings.warn(f"estimate_lights: {', '.join(f'{k}={given[k]!r}' for k in unused)} unused ({why})",
                       PsctlWarning, stacklevel=level)
     if refines:
-        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg, saturated)
+        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg, saturated, fit_mask)
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
 
@@ -296,10 +297,13 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
+    fit_mask = mask
     if method == "sdps" and mask is None:  # as estimate_lights
-        from psctl.lights import NO_MASK_WHY
+        from psctl.lights import find_object
 
-        warnings.warn(f"sdps: mask=None: {NO_MASK_WHY}", PsctlWarning, stacklevel=level)
+        found = find_object(images.sum((0, 3), dtype=np.float64))
+        fit_mask = found.mask
+        _warn_found(found, "sdps", level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
     unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
     if unused:
@@ -314,8 +318,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
-        est = array_lights(images, mask, lcnet, sdps_lcnet_config(second, weights, device))
-        source = array_source(images, mask, second, weights, net_cfg, saturated)
+        est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
+        source = array_source(images, mask, second, weights, net_cfg, saturated, fit_mask)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
@@ -570,9 +574,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if method == "sdps":
         sd = _sdps_normals(cap, mask, near, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
         est, normals, dark, light_stats = sd.lights, sd.normals, sd.dark, sd.light_stats
-        from psctl.lights import NO_MASK_NOTE, one_sided_notes
+        from psctl.lights import one_sided_notes
 
-        notes += ([NO_MASK_NOTE] if cap.mask_path is None else []) + sd.notes + one_sided_notes(est.directions)
+        notes += sd.notes + one_sided_notes(est.directions)
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
@@ -649,6 +653,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lcnet_light_mae"] = sd.lcnet_stats["light_mae"]  # before refinement
         report["lcnet_intensity_re"] = sd.lcnet_stats["intensity_re"]
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
+        report["found_object"] = sd.found  # None with a mask.png
 
     if arrays is not None:
         arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo)
@@ -784,6 +789,14 @@ class _SdpsRun:
     lcnet_config: dict  # how LCNet ran (decode, views)
     lcnet_stats: dict  # LCNet's own lights against the folder's: light_mae, intensity_re (None without)
     light_stats: dict  # the lights the normals came from, likewise
+    found: dict | None  # without mask.png, the object LCNet and the light fit read (FoundObject.info)
+
+
+def _warn_found(found: "FoundObject", who: str, level: int) -> None:
+    """mask=None on arrays: what ``psctl.lights.find_object`` found for LCNet and the light fit,
+    warned as ``who``'s (a folder's report notes it)."""
+    for note in found.notes:
+        warnings.warn(f"{who}: mask=None: {note}", PsctlWarning, stacklevel=level + 1)
 
 
 def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", weights: str | os.PathLike | None,
@@ -795,20 +808,27 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", w
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import capture_lights, light_errors, lights_changed
+    from psctl.lights import (NO_MASK_PREFIX, capture_brightness, capture_lights, find_object, light_errors,
+                              lights_changed)
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
     second = sdps_second_stage(weights)[0]
     lc_cfg = sdps_lcnet_config(second, weights, device)
     if memo is None:  # every pass takes the images LCNet's decoded, where they fit
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-    est = capture_lights(cap, mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
+    fit_mask, found_notes, found = mask, [], None  # LCNet and the light fit read the object; the normals cover the mask
+    if cap.mask_path is None:
+        found = find_object(capture_brightness(cap, progress, memo))
+        found_notes = [NO_MASK_PREFIX + n for n in found.notes]
+        if found.mask is not None:
+            fit_mask, lc_cfg = found.mask, {**lc_cfg, "exposure_pixels": "mask"}
+    est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
                          keep_box=first_read_box(cap, mask, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-    source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg, progress, memo)
+    source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg, progress, memo, fit_mask)
     est, net = second_stage(source, est, refine, fit)
-    notes = list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
+    notes = found_notes + list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
     light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if light_stats["light_mae"] is not None:
         refined = refine and lights_changed(est.info["refine"])
@@ -816,7 +836,8 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", w
             "" if light_stats["intensity_re"] is None else
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
-    return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats)
+    return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
+                    None if found is None else found.info)
 
 
 def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,

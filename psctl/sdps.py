@@ -144,7 +144,8 @@ class Source:
         with est's directions.
     refine(est, normals [H, W, 3], config) -> LightEstimate: est refined against the normals
         (``psctl.lights.refine_estimate``; config over DEFAULT_REFINE).
-    mask: [H, W] bool or None (the whole image), where the roll is read.
+    mask: [H, W] bool or None (the whole image), where the light fit and the roll read the
+        normals (the object: without a mask, the one ``psctl.lights.find_object`` found).
     """
     normals: Callable[["LightEstimate"], "InferResult"]
     refine: Callable[["LightEstimate", np.ndarray, "dict | None"], "LightEstimate"]
@@ -152,11 +153,15 @@ class Source:
 
 
 def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weights: str | os.PathLike | None = None,
-                 config: dict | None = None, saturated: np.ndarray | None = None) -> Source:
+                 config: dict | None = None, saturated: np.ndarray | None = None,
+                 fit_mask: np.ndarray | None = None) -> Source:
     """In-memory images [N, H, W, 3] float32 as captured; ``method`` (one of SDPS_SECOND, or
     "ensemble": the installed PS-FCN and PS-FCN+N averaged) and ``weights`` (None: installed) the
     second stage, ``config`` its run options (device, views); ``saturated`` [N, H, W] bool: the
-    observations the light fit leaves out (integer images' top code)."""
+    observations the light fit leaves out (integer images' top code). The normals cover
+    ``mask``; the light fit and the roll read ``fit_mask`` (None: ``mask``), the object found
+    in a capture without a mask."""
+    fit_mask = mask if fit_mask is None else fit_mask
     from psctl.infer import array_normals
     from psctl.lights import refine_arrays
 
@@ -165,18 +170,19 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
                              config)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
-        return refine_arrays(images, mask, est, n, SHOWN[method], fit, saturated)
+        return refine_arrays(images, fit_mask, est, n, SHOWN[method], fit, saturated)
 
-    return Source(normals, refine, mask)
+    return Source(normals, refine, fit_mask)
 
 
 def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: str | os.PathLike | None = None,
                    config: dict | None = None, progress: "ProgressFactory | None" = None,
-                   memo: "DecodeMemo | None" = None) -> Source:
+                   memo: "DecodeMemo | None" = None, fit_mask: np.ndarray | None = None) -> Source:
     """A capture folder, streamed from disk (its light files, if any, are not used); as
     ``array_source`` otherwise. The passes share a ``DecodeMemo`` (``memo``, or one of
     ``cache_mb``): each divides the images by other intensities, so what the first decodes is
     kept as decoded."""
+    fit_mask = mask if fit_mask is None else fit_mask
     from psctl.infer import DEFAULT_INFER, capture_normals
     from psctl.io.capture import DecodeMemo
     from psctl.lights import lit_capture, refine_capture
@@ -188,9 +194,9 @@ def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: s
         return capture_normals(lit_capture(capture, est), mask, method, weights, config, progress, memo)
 
     def refine(est: "LightEstimate", n: np.ndarray, fit: dict | None) -> "LightEstimate":
-        return refine_capture(capture, mask, est, n, SHOWN[method], progress, fit, memo)
+        return refine_capture(capture, fit_mask, est, n, SHOWN[method], progress, fit, memo)
 
-    return Source(normals, refine, mask)
+    return Source(normals, refine, fit_mask)
 
 
 def second_stage(source: Source, est: "LightEstimate", refine: bool = True, config: dict | None = None,

@@ -663,25 +663,56 @@ def test_l2_on_arrays_clamps_a_hot_pixel_as_on_a_folder(data, given_mask):
     assert not [w for w in got if issubclass(w.category, PsctlWarning)]
 
 
-def test_lights_and_sdps_on_arrays_warn_without_a_mask(data, fake_weights):
-    """A folder without mask.png is noted for psctl lights and sdps (lights.NO_MASK_NOTE); the
-    array API said nothing for mask=None (a QA helper: 1.75 -> 19.78 degrees on a sphere filling a
-    quarter of a black frame). Now a warning, and none with a mask."""
+def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fake_weights):
+    """mask=None: LCNet and the light fit read the object ``find_object`` finds (the array API
+    took the whole frame, a QA helper: 1.75 -> 19.78 degrees on a sphere filling a quarter of a
+    black frame): the lights of mask=found, and a warning that says so; none with a mask."""
     import warnings
 
-    from psctl.lights import NO_MASK_WHY
+    from psctl.lights import find_object
     from tests.conftest import weights_in
 
     images, _, mask, _ = data
+    found = find_object(images.sum((0, 3), dtype=np.float64))
+    assert found.mask is not None and not (found.mask & ~mask).any()
     with weights_in(fake_weights), warnings.catch_warnings(record=True) as got:
         warnings.simplefilter("always")
-        estimate_lights(images, None, device="cpu", views=1, refine=False)
-        estimate_normals(images, None, None, method="sdps", device="cpu", refine=False)
-        estimate_lights(images, mask, device="cpu", views=1, refine=False)
-        estimate_normals(images, None, mask, method="sdps", device="cpu", refine=False)
+        none = estimate_lights(images, None, device="cpu", views=1)
+        n_none = estimate_normals(images, None, None, method="sdps", device="cpu")
+        assert len([w for w in got if issubclass(w.category, PsctlWarning)]) == 2
+        same = estimate_lights(images, found.mask, device="cpu", views=1)
+        estimate_normals(images, None, mask, method="sdps", device="cpu")
+    for a, b in zip(none, same):
+        np.testing.assert_array_equal(a, b)
+    assert n_none.shape == mask.shape + (3,) and np.isfinite(n_none).all()  # the normals: the whole frame
     assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
-        f"estimate_lights: mask=None: {NO_MASK_WHY}", f"sdps: mask=None: {NO_MASK_WHY}"]
+        f"estimate_lights: mask=None: {found.notes[0]}", f"sdps: mask=None: {found.notes[0]}"]
     assert {w.filename for w in got if issubclass(w.category, PsctlWarning)} == {__file__}
+
+
+def test_find_object_fills_shadows_and_gives_up_on_a_lit_frame():
+    """find_object: the lit pixels with their holes filled (a part shadowed in every image is
+    still the object); the whole frame (None) when nothing is lit or the region covers nearly
+    all of it; a note when the unlit part is not dark (a lit background)."""
+    from psctl.lights import FOUND_MAX_FRACTION, find_object
+
+    b = np.zeros((40, 50))
+    yy, xx = np.mgrid[:40, :50]
+    disc = (yy - 20) ** 2 + (xx - 22) ** 2 < 15 ** 2
+    b[disc] = 5.0 + 0.01 * xx[disc]
+    b[(yy - 20) ** 2 + (xx - 22) ** 2 < 4 ** 2] = 0.0  # shadowed in every image
+    b[~disc] = 0.02
+    f = find_object(b)
+    assert np.array_equal(f.mask, disc) and f.info["used"] and f.info["pixels"] == disc.sum()
+    assert len(f.notes) == 1 and f.info["contrast"] < 0.01
+    grey = np.where(disc, b, 2.0)  # a lit background: darker than the object, but not dark
+    g = find_object(grey)
+    assert g.mask is not None and any("background is not dark" in n for n in g.notes)
+    assert find_object(np.zeros((8, 8))).mask is None and "nothing is lit" in find_object(np.zeros((8, 8))).notes[0]
+    frame = np.full((40, 50), 3.0)
+    frame[:, :2] = 0.01  # a dark strip: the lit region covers 96% of the frame
+    h = find_object(frame)
+    assert h.mask is None and h.info["frame_fraction"] > FOUND_MAX_FRACTION and "covers 96%" in h.notes[0]
 
 
 def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):

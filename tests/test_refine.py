@@ -870,19 +870,45 @@ def test_refine_capture_marks_the_saturated_observations(tmp_path, monkeypatch):
     np.testing.assert_allclose(obs[~top], imgs.mean(-1)[~top], rtol=1e-6)
 
 
-def test_lights_and_sdps_without_a_mask_say_so(tmp_path, fake_weights, monkeypatch):
-    """LCNet's input has a mask channel and the light fit reads the mask's pixels: without mask.png
-    both take the whole frame for the object, and a note says so (a QA helper's finding: silent,
-    and 6.54 degrees against 2.45 on examples/bumpy_sphere)."""
+def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_weights, monkeypatch):
+    """Without mask.png, LCNet and the light fit read the object ``find_object`` finds (they took
+    the whole frame: synthetic objects before a dark background 32.2 degrees, 6.42 with the mask
+    or the found object): the lights are those of the same folder with that object as its
+    mask.png, a note says so and the report gives its size. psctl lights and sdps alike; the
+    normals of sdps still cover the whole frame."""
     from psctl.api import run_normals
-    from psctl.lights import NO_MASK_NOTE, run_lights
+    from psctl.io.capture import open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import NO_MASK_PREFIX, capture_brightness, find_object, run_lights
 
-    write_capture(tmp_path / "aPNG", n=6, size=32, seed=1)
-    write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
+    arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
+    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG")))
+    m = arrays["mask"]
+    assert found.mask is not None and not (found.mask & ~m).any() and found.mask.sum() > 0.9 * m.sum()
+    write_capture(tmp_path / "cPNG", n=6, size=32, seed=1, mask=False)
+    write_image(tmp_path / "cPNG" / "mask.png", found.mask.astype(np.float32), "uint8")
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
-    for path, said in ((tmp_path / "aPNG", False), (tmp_path / "bPNG", True)):
-        assert (NO_MASK_NOTE in run_lights(path, write=False, device="cpu", refine=False)["notes"]) == said
-    assert NO_MASK_NOTE in run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", refine=False)["notes"]
+    import psctl.lights as pl
+
+    read = []  # the masks the light fit and the roll read (the fake network's fit may not move the lights)
+    fit, roll = pl.refine_capture, pl.roll_estimate
+    monkeypatch.setattr(pl, "refine_capture", lambda cap, mask, *a, **k: read.append(mask) or fit(cap, mask, *a, **k))
+    monkeypatch.setattr(pl, "roll_estimate", lambda est, n, mask, *a: read.append(mask) or roll(est, n, mask, *a))
+    for refine in (False, True):
+        b, c = ({}, {})
+        rb = run_lights(tmp_path / "bPNG", write=False, device="cpu", refine=refine, arrays=b)
+        run_lights(tmp_path / "cPNG", write=False, device="cpu", refine=refine, arrays=c)
+        np.testing.assert_allclose(b["directions"], c["directions"], atol=1e-6)
+        np.testing.assert_allclose(b["intensities"], c["intensities"], atol=1e-6)
+        assert rb["found_object"] == found.info and NO_MASK_PREFIX + found.notes[0] in rb["notes"]
+    nb = {}
+    rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", arrays=nb)
+    rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu")
+    assert NO_MASK_PREFIX + found.notes[0] in rb["notes"] and not any("no mask.png" in n for n in rc["notes"])
+    assert rb["found_object"] == found.info and rc["found_object"] is None
+    assert rb["light_mae"] is not None and rb["light_mae"] == rc["light_mae"] and rb["intensity_re"] == rc["intensity_re"]
+    assert nb["mask"].all() and np.isfinite(nb["normals"]).all()  # the normals: the whole frame
+    assert len(read) == 8 and all(np.array_equal(r, found.mask) for r in read)  # b: found; c: its mask.png
 
 
 def test_integer_arrays_leave_their_top_code_out_of_the_fit(monkeypatch):
