@@ -207,7 +207,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         warnings.warn(f"estimate_lights: {', '.join(f'{k}={given[k]!r}' for k in unused)} unused ({why})",
                       PsctlWarning, stacklevel=level)
     if refines:
-        source = array_source(images, mask, sdps_second_stage(None)[0], None, net_cfg, saturated, fit_mask)
+        # no normals returned: the network too reads the found object only (as a mask would make it)
+        source = array_source(images, fit_mask, sdps_second_stage(None)[0], None, net_cfg, saturated)
         est = second_stage(source, est, True, fit, normals=False)[0]
     return est.directions, est.intensities
 
@@ -227,7 +228,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             are scaled so (``psctl.arrays.as_images``).
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
-        mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0.
+        mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
+            the whole image (sdps' LCNet and light fit read the object found by brightness,
+            ``psctl.lights.find_object``).
         method: "l2", "ps-fcn", "ps-fcn-n", "ensemble" (the unit mean of PS-FCN's and PS-FCN+N's
             normals), "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps

@@ -1112,16 +1112,17 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 # --- the object without a mask ---------------------------------------------------------------
 
 # Why: LCNet's input has a mask channel and the light fit reads the mask's pixels; given the whole
-# frame, both take the background for the object (synthetic objects before a dark background: 32.2
-# degrees, 6.42 with the mask). The object of a photometric stereo capture is what the lights light:
+# frame, both take the background for the object (synthetic objects before a dark background: 33.09
+# degrees, 6.45 with the mask). The object of a photometric stereo capture is what the lights light:
 # the lit pixels (psctl.infer.lit_pixels) with their holes filled (shadowed parts inside the
-# outline) found it as well as the true mask there (6.42), and on the DiLiGenT dev split's images
-# as captured (reported only) the lights came out 3.13 degrees off against 6.76 from the whole
-# frame (2.89 with the true masks; benchmarks/auto_mask_lights.py). Before a lit background (grey
+# outline) found it as well as the true mask there (6.30), and on the DiLiGenT dev split's images
+# as captured (reported only) the lights came out 3.11 degrees off against 6.76 from the whole
+# frame (2.89 with the true masks; docs/uncalibrated.md, "Without a mask"). Before a lit background (grey
 # or textured planes) nothing works without a mask (15-60 degrees either way), so a found
 # region that covers nearly the whole frame is read as the whole frame, as before, and a
 # background that is not dark gets a note.
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
+FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
 FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part's, above which the
 # background is not dark (dark backgrounds: 0.018-0.089 on syntest at albedo 0.01, 0.007-0.073 on the
 # dev split; grey planes 0.3-0.8: 0.16-0.84)
@@ -1142,8 +1143,8 @@ def find_object(brightness: np.ndarray) -> FoundObject:
     """The object of a capture without a mask, for LCNet and the light fit: ``brightness`` [H, W]
     each pixel's summed value over the images (as captured) -> the lit pixels
     (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. None (the
-    whole frame) when nothing is lit or the found region covers over FOUND_MAX_FRACTION of the
-    frame; a note when the unlit part is not dark (FOUND_DARK_CONTRAST), i.e. the background is
+    whole frame) when the found region has under FOUND_MIN_PIXELS pixels or covers over
+    FOUND_MAX_FRACTION of the frame; a note when the unlit part is not dark (FOUND_DARK_CONTRAST), i.e. the background is
     lit too and may be in the found region."""
     from scipy import ndimage
 
@@ -1155,14 +1156,15 @@ def find_object(brightness: np.ndarray) -> FoundObject:
     region = ndimage.binary_fill_holes(lit)
     frac = float(region.mean()) if region.size else 0.0
     contrast = float(b[~lit].mean() / b[lit].mean()) if lit.any() and (~lit).any() and b[lit].mean() > 0 else None
-    used = bool(region.any()) and frac <= FOUND_MAX_FRACTION
+    used = int(region.sum()) >= FOUND_MIN_PIXELS and frac <= FOUND_MAX_FRACTION
     info = {"pixels": int(region.sum()), "frame_fraction": round(frac, 4),
             "contrast": None if contrast is None else round(contrast, 4), "used": used}
     if used:
         notes = [f"LCNet and the light fit read the object found by brightness (the lit pixels, holes filled: "
                  f"{info['pixels']} pixels, {frac:.0%} of the frame); a mask of the object is surer"]
     else:
-        why = "nothing is lit" if not region.any() else f"the lit region covers {frac:.0%} of the frame"
+        why = ("nothing is lit" if not region.any() else f"the lit region covers {frac:.0%} of the frame"
+               if frac > FOUND_MAX_FRACTION else f"the lit region has {int(region.sum())} pixels")
         notes = [f"no object found by brightness ({why}): {NO_MASK_WHY}"]
     if contrast is not None and contrast > FOUND_DARK_CONTRAST:
         notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
@@ -1289,13 +1291,6 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         from psctl.io.capture import DecodeMemo
 
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-    lc_cfg = {"device": device, "decode": decode, "views": views}
-    fit_mask, found = mask, None  # what LCNet and the light fit read: the mask, or the object found without one
-    if cap.mask_path is None:
-        found = find_object(capture_brightness(cap, progress, memo))
-        picked += [NO_MASK_PREFIX + n for n in found.notes]
-        if found.mask is not None:
-            fit_mask, lc_cfg = found.mask, {**lc_cfg, "exposure_pixels": "mask"}
     near = None
     if light_distance is not None:
         from psctl.models.weights import installed_path
@@ -1311,17 +1306,29 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         near = near_lights(light_distance, mask, cap.mask_path)
         picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
                       f"each image by its light's falloff (LCNet reads the images as captured)")
+    from psctl.models.weights import installed_path, no_weights_error
+
+    if weights is None and installed_path("lcnet") is None:  # before the read below, as the options' errors
+        raise no_weights_error("lcnet", "--weights")
+    lc_cfg = {"device": device, "decode": decode, "views": views}
+    fit_mask, found = mask, None  # what LCNet and the light fit read: the mask, or the object found without one
+    if cap.mask_path is None:  # one read of the images (near lights: still centred on the frame, as before)
+        found = find_object(capture_brightness(cap, progress, memo))
+        picked += [NO_MASK_PREFIX + n for n in found.notes]
+        if found.mask is not None:
+            fit_mask, lc_cfg = found.mask, {**lc_cfg, "exposure_pixels": "mask"}
     keep_box = None
     if refine:  # the refinement's passes take the images LCNet's decoded, where they fit
         from psctl.infer import first_read_box
 
-        keep_box = first_read_box(cap, mask, net_cfg)
+        keep_box = first_read_box(cap, fit_mask, net_cfg)
     est = capture_lights(cap, fit_mask, weights, lc_cfg, progress, memo=memo, keep_box=keep_box)
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refines:
-        est = _refine_capture(replace(cap, near=near), mask, est, normals_weights, second, net_cfg, progress, fit,
-                              memo, fit_mask)
+        # no normals written: the network too reads the found object only (as a mask.png would make it)
+        est = _refine_capture(replace(cap, near=near), fit_mask, est, normals_weights, second, net_cfg, progress, fit,
+                              memo)
     elif refine:
         est = replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "
                                               "LCNet's lights are not refined"])
@@ -1398,15 +1405,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
 def _refine_capture(cap: "Capture", mask: np.ndarray, est: LightEstimate, weights: str | os.PathLike | None,
                     second: str, net_cfg: dict, progress: "ProgressFactory | None", config: dict | None = None,
-                    memo: "DecodeMemo | None" = None, fit_mask: np.ndarray | None = None) -> LightEstimate:
+                    memo: "DecodeMemo | None" = None) -> LightEstimate:
     """LCNet's lights refined against the normals that sdps' second stage gives from them (and
     turned by the roll of the normals from the refined lights when the config says so).
     ``memo``: images decoded by LCNet's pass. ``second``: the second stage's method, which
-    run_lights chose once, before any work (``weights`` None: the installed network).
-    ``fit_mask``: where the fit reads (None: ``mask``; the object found without a mask)."""
+    run_lights chose once, before any work (``weights`` None: the installed network)."""
     from psctl.sdps import capture_source, second_stage
 
-    source = capture_source(cap, mask, second, weights, net_cfg, progress, memo, fit_mask)
+    source = capture_source(cap, mask, second, weights, net_cfg, progress, memo)
     return second_stage(source, est, True, config, normals=False)[0]
 
 

@@ -672,10 +672,14 @@ def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fa
     from psctl.lights import find_object
     from tests.conftest import weights_in
 
+    import psctl.lights as pl
+
     images, _, mask, _ = data
     found = find_object(images.sum((0, 3), dtype=np.float64))
     assert found.mask is not None and not (found.mask & ~mask).any()
-    with weights_in(fake_weights), warnings.catch_warnings(record=True) as got:
+    read, lcnet = [], pl.array_lights  # the masks LCNet reads
+    with weights_in(fake_weights), warnings.catch_warnings(record=True) as got, pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pl, "array_lights", lambda im, m, *a, **k: read.append(m) or lcnet(im, m, *a, **k))
         warnings.simplefilter("always")
         none = estimate_lights(images, None, device="cpu", views=1)
         n_none = estimate_normals(images, None, None, method="sdps", device="cpu")
@@ -684,7 +688,9 @@ def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fa
         estimate_normals(images, None, mask, method="sdps", device="cpu")
     for a, b in zip(none, same):
         np.testing.assert_array_equal(a, b)
-    assert n_none.shape == mask.shape + (3,) and np.isfinite(n_none).all()  # the normals: the whole frame
+    assert len(read) == 4 and all(np.array_equal(m, found.mask) for m in read[:3]) and np.array_equal(read[3], mask)
+    # the normals: the whole frame (zero outside a mask), LCNet and the fit: the object
+    assert n_none.shape == mask.shape + (3,) and (np.linalg.norm(n_none, axis=-1) > 0.99).all()
     assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
         f"estimate_lights: mask=None: {found.notes[0]}", f"sdps: mask=None: {found.notes[0]}"]
     assert {w.filename for w in got if issubclass(w.category, PsctlWarning)} == {__file__}
@@ -709,6 +715,9 @@ def test_find_object_fills_shadows_and_gives_up_on_a_lit_frame():
     g = find_object(grey)
     assert g.mask is not None and any("background is not dark" in n for n in g.notes)
     assert find_object(np.zeros((8, 8))).mask is None and "nothing is lit" in find_object(np.zeros((8, 8))).notes[0]
+    speck = np.full((40, 50), 0.01)
+    speck[:3, :3] = 5.0  # 9 lit pixels: no object (LCNet on them would say "all images are black")
+    assert find_object(speck).mask is None and "has 9 pixels" in find_object(speck).notes[0]
     frame = np.full((40, 50), 3.0)
     frame[:, :2] = 0.01  # a dark strip: the lit region covers 96% of the frame
     h = find_object(frame)
