@@ -811,20 +811,16 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", w
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import (NO_MASK_PREFIX, capture_brightness, capture_lights, find_object, light_errors,
-                              lights_changed)
+    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
     second = sdps_second_stage(weights)[0]
     lc_cfg = sdps_lcnet_config(second, weights, device)
     if memo is None:  # every pass takes the images LCNet's decoded, where they fit
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-    fit_mask, found_notes, found = mask, [], None  # LCNet and the light fit read the object; the normals cover the mask
-    if cap.mask_path is None:
-        found = find_object(capture_brightness(cap, progress, memo))
-        found_notes = [NO_MASK_PREFIX + n for n in found.notes]
-        if found.mask is not None:
-            fit_mask, lc_cfg = found.mask, {**lc_cfg, "exposure_pixels": "mask"}
+    # LCNet and the light fit read the object (found without a mask file); the normals cover the mask
+    fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo)
+    found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
                          keep_box=first_read_box(cap, mask, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None

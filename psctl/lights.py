@@ -1124,8 +1124,8 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
 FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
 FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part's, above which the
-# background is not dark (dark backgrounds: 0.018-0.089 on syntest at albedo 0.01, 0.007-0.073 on the
-# dev split; grey planes 0.3-0.8: 0.16-0.84)
+# background is not dark (dark backgrounds: 0.018-0.089 on syntest at albedo 0.01, 0.011-0.099 on the
+# dev split; lit planes and textures where an object was used: 0.33-0.84; benchmarks/auto_mask_lights.py)
 
 
 @dataclass
@@ -1173,6 +1173,20 @@ def find_object(brightness: np.ndarray) -> FoundObject:
     return FoundObject(region if used else None, info, notes)
 
 
+def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress: "ProgressFactory | None" = None,
+                   memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, dict, FoundObject | None]:
+    """What LCNet and the light fit read of a capture: (mask, LCNet's config, found). With a mask
+    file, ``mask`` and ``config`` as given and None; without one, the object ``find_object``
+    finds in one read of the images (``capture_brightness``; ``memo`` keeps them), with LCNet's
+    exposure guard reading it as a mask, or where none is found the whole frame (``mask``)."""
+    if capture.mask_path is not None:
+        return mask, config, None
+    found = find_object(capture_brightness(capture, progress, memo))
+    if found.mask is None:
+        return mask, config, found
+    return found.mask, {**config, "exposure_pixels": "mask"}, found
+
+
 def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = None,
                        memo: "DecodeMemo | None" = None) -> np.ndarray:
     """[H, W] float64, each pixel's sum over a capture's images and channels as captured (its
@@ -1197,8 +1211,8 @@ def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = 
 # LCNet's input has a mask channel, and the light fit reads the mask's pixels: without one both take
 # the background for the object (a QA helper's finding: no word was said)
 NO_MASK_WHY = ("LCNet and the light fit take the whole frame for the object; a mask of the object makes the lights "
-               "more accurate (examples/bumpy_sphere: 6.54 degrees without, 2.45 with; synthetic objects before a "
-               "dark background: 33.0 without, 6.45 with)")
+               "more accurate (read whole, examples/bumpy_sphere gave 6.54 degrees, 2.45 with its mask; synthetic "
+               "objects before a dark background 33.0, 6.45 with theirs)")
 NO_MASK_PREFIX = "mask: none (no mask.png): "  # the array API warns "mask=None: " instead
 
 def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
@@ -1310,13 +1324,11 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     if weights is None and installed_path("lcnet") is None:  # before the read below, as the options' errors
         raise no_weights_error("lcnet", "--weights")
-    lc_cfg = {"device": device, "decode": decode, "views": views}
-    fit_mask, found = mask, None  # what LCNet and the light fit read: the mask, or the object found without one
-    if cap.mask_path is None:  # one read of the images (near lights: still centred on the frame, as before)
-        found = find_object(capture_brightness(cap, progress, memo))
-        picked += [NO_MASK_PREFIX + n for n in found.notes]
-        if found.mask is not None:
-            fit_mask, lc_cfg = found.mask, {**lc_cfg, "exposure_pixels": "mask"}
+    # what LCNet and the light fit read: the mask, or the object found without one (near lights: still
+    # centred on the frame, as before)
+    fit_mask, lc_cfg, found = capture_object(cap, mask, {"device": device, "decode": decode, "views": views},
+                                             progress, memo)
+    picked += [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     keep_box = None
     if refine:  # the refinement's passes take the images LCNet's decoded, where they fit
         from psctl.infer import first_read_box
