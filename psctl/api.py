@@ -472,7 +472,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
     (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
     ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, ensemble, sdps): the lights are points that far from
-    the mask's centroid along the listed directions (sdps: LCNet's, refined or not); each image is
+    the mask's centroid along the listed directions (sdps: LCNet's, refined or not, about the
+    centroid of the object LCNet reads, found by brightness without a mask file); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
     [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth; 0 outside the mask,
@@ -519,6 +520,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if light_distance is not None and method not in (*LISTED_LIGHTS, "sdps"):
         raise PsctlError(None, f"--light-distance: {method} uses no light directions, which the falloff follows; "
                                f"use l2, ps-fcn, ps-fcn-n, ensemble or sdps")
+    from psctl.nearlight import check_light_distance
+
+    check_light_distance(light_distance)  # the number now; sdps finds where the lights sit with the object
     # an --images subset is spread over the light directions only where the method reads them
     by_lights = cap.calibrated and method in LISTED_LIGHTS
     picked = selection_notes(cap.n_images, n_images, seed, by_lights)
@@ -554,16 +558,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     gt = load_ground_truth(cap)
     box = bounding_box(mask)
     near = None
-    if light_distance is not None:
-        from psctl.nearlight import near_lights
+    if light_distance is not None and method != "sdps":  # sdps: about the object LCNet reads (_sdps_normals)
+        from psctl.nearlight import near_lights, near_note
 
         near = near_lights(light_distance, mask, cap.mask_path)
-        r, c = near.centre
-        notes.append(f"lights: points {near.distance:g} pixels from the object's centre (row {r:.0f}, column "
-                     f"{c:.0f}): each image divided by its light's falloff; directions as " + (
-                         "estimated (LCNet reads the images as captured)" if method == "sdps" else "listed"))
-        if method != "sdps":
-            cap = replace(cap, near=near)
+        notes.append(near_note(near, "each image divided by its light's falloff; directions as listed"))
+        cap = replace(cap, near=near)
 
     # --- solve -------------------------------------------------------------------------------
     memo = None  # the albedo's pass takes the images this one decodes, where they fit
@@ -575,8 +575,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
-        sd = _sdps_normals(cap, mask, near, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
-        est, normals, dark, light_stats = sd.lights, sd.normals, sd.dark, sd.light_stats
+        sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
+        est, normals, dark, light_stats, near = sd.lights, sd.normals, sd.dark, sd.light_stats, sd.near
         from psctl.lights import one_sided_notes
 
         notes += sd.notes + one_sided_notes(est.directions)
@@ -793,6 +793,7 @@ class _SdpsRun:
     lcnet_stats: dict  # LCNet's own lights against the folder's: light_mae, intensity_re (None without)
     light_stats: dict  # the lights the normals came from, likewise
     found: dict | None  # without mask.png, the object LCNet and the light fit read (FoundObject.info)
+    near: "NearLights | None"  # the lights' distance and centre (the object LCNet reads)
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
@@ -802,16 +803,18 @@ def _warn_found(found: "FoundObject", who: str, level: int) -> None:
         warnings.warn(f"{who}: mask=None: {note}", PsctlWarning, stacklevel=level + 1)
 
 
-def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", weights: str | os.PathLike | None,
-                  lcnet: str | os.PathLike | None, device: str, net_cfg: dict, refine: bool, fit: dict,
-                  progress: ProgressFactory, memo: "DecodeMemo | None") -> _SdpsRun:
+def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None,
+                  weights: str | os.PathLike | None, lcnet: str | os.PathLike | None, device: str, net_cfg: dict,
+                  refine: bool, fit: dict, progress: ProgressFactory, memo: "DecodeMemo | None") -> _SdpsRun:
     """sdps on a capture folder: LCNet's lights, the second stage, the refinement (``refine``,
-    ``fit``); ``near``: the lights' distance, whose falloff the second stage divides out."""
+    ``fit``); ``light_distance``: the lights' distance from the centre of the object LCNet reads
+    (the mask, or the one found without it), whose falloff the second stage divides out."""
     from dataclasses import replace
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
     from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed
+    from psctl.nearlight import near_lights, near_note
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
     second = sdps_second_stage(weights)[0]
@@ -821,6 +824,10 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", w
     # LCNet and the light fit read the object (found without a mask file); the normals cover the mask
     fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo)
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
+    near = near_lights(light_distance, fit_mask, cap.mask_path, found=fit_mask is not mask)
+    if near is not None:
+        found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
+                                           "(LCNet reads the images as captured)"))
     est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
                          keep_box=first_read_box(cap, mask, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None
@@ -836,7 +843,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, near: "NearLights | None", w
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
-                    None if found is None else found.info)
+                    None if found is None else found.info, near)
 
 
 def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,

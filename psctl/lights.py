@@ -1233,8 +1233,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     (``refine_estimate``; off with refine=False or when none is installed, which a note says);
     ``falloff`` "shifted" or "lambertian" and ``roll`` (turn the refined lights by the roll of the
     normals they give, ``roll_estimate``) override DEFAULT_REFINE's. ``light_distance`` (pixels,
-    with ``refine``): the lights are points that far from the mask's centroid along the estimated
-    directions, and the refinement reads the images with their falloff divided out
+    with ``refine``): the lights are points that far from the mask's centroid (without a mask
+    file, the found object's) along the estimated directions, and the refinement reads the images with their falloff divided out
     (``psctl.nearlight``; LCNet reads them as captured). ``precision`` (float32, bf16, fp16): the
     refinement's normals network's arithmetic (LCNet runs in float32), as ``psctl.run_normals``'.
 
@@ -1305,30 +1305,33 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         from psctl.io.capture import DecodeMemo
 
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-    near = None
     if light_distance is not None:
         from psctl.models.weights import installed_path
-        from psctl.nearlight import near_lights
+        from psctl.nearlight import check_light_distance
         from psctl.sdps import SDPS_SECOND
 
+        check_light_distance(light_distance)  # the number now; where the lights sit, once the object is known
         if not refine:
             raise PsctlError(None, "--light-distance needs --refine: LCNet reads the images as captured, and only "
                                    "the refinement divides out the falloff")
         if normals_weights is None and not any(installed_path(m) for m in SDPS_SECOND):
             raise PsctlError(None, "--light-distance needs the light refinement, which needs a normals network "
                                    "(PS-FCN† / PS-FCN / PS-FCN+N): none is installed; name one with --normals-weights")
-        near = near_lights(light_distance, mask, cap.mask_path)
-        picked.append(f"lights: points {near.distance:g} pixels from the object's centre: the refinement divides "
-                      f"each image by its light's falloff (LCNet reads the images as captured)")
     from psctl.models.weights import installed_path, no_weights_error
 
     if weights is None and installed_path("lcnet") is None:  # before the read below, as the options' errors
         raise no_weights_error("lcnet", "--weights")
-    # what LCNet and the light fit read: the mask, or the object found without one (near lights: still
-    # centred on the frame, as before)
+    # what LCNet and the light fit read: the mask, or the object found without one
     fit_mask, lc_cfg, found = capture_object(cap, mask, {"device": device, "decode": decode, "views": views},
                                              progress, memo)
     picked += [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
+    near = None
+    if light_distance is not None:  # the lights sit about the object's centre: the found one's without a mask
+        from psctl.nearlight import near_lights, near_note
+
+        near = near_lights(light_distance, fit_mask, cap.mask_path, found=fit_mask is not mask)
+        picked.append(near_note(near, "the refinement divides each image by its light's falloff (LCNet reads the "
+                                      "images as captured)"))
     keep_box = None
     if refine:  # the refinement's passes take the images LCNet's decoded, where they fit
         from psctl.infer import first_read_box

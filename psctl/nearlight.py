@@ -51,11 +51,10 @@ class NearLights:
         return ((lx - x) ** 2 + (ly - y) ** 2 + lz * lz).astype(np.float32)
 
 
-def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None = None) -> NearLights | None:
-    """``NearLights`` at ``distance`` pixels from the centroid of ``mask`` [H, W] (None: distant
-    lights). A distance that is not a positive number, or that does not clear the object (a
-    light inside it), is a user error; the latter names ``mask_path``, the file the mask came
-    from (None: no file, e.g. a mask given as an array, or none at all)."""
+def check_light_distance(distance: float | None) -> float | None:
+    """``distance`` as a float (None stays None); a value that is not a positive number is a user
+    error. Checked with the options, before any image is read (``near_lights`` also needs the
+    object, which without a mask is found by reading them)."""
     if distance is None:
         return None
     try:
@@ -67,12 +66,33 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
         raise PsctlError(None, f"--light-distance must be a number of pixels, not {distance!r}") from None
     if not math.isfinite(d) or d <= 0:
         raise PsctlError(None, f"--light-distance must be a positive number of pixels, not {distance}")
+    return d
+
+
+def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None = None,
+                found: bool = False) -> NearLights | None:
+    """``NearLights`` at ``distance`` pixels from the centroid of ``mask`` [H, W] (None: distant
+    lights). A distance that is not a positive number, or that does not clear the object (a
+    light inside it), is a user error; the latter names ``mask_path``, the file the mask came
+    from (None: no file, e.g. a mask given as an array, or none at all). ``found``: ``mask`` is
+    the object ``psctl.lights.find_object`` found (no mask file), which the error says."""
+    d = check_light_distance(distance)
+    if d is None:
+        return None
     rows, cols = np.nonzero(mask)
     centre = (float(rows.mean()), float(cols.mean()))
     reach = float(np.sqrt(((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2).max()))
     if d <= 2 * reach:  # the first-order picture (and any listed direction) would be meaningless
-        what = "the object (no mask: the whole frame)" if mask_path is None and mask.all() else "the mask"
+        what = ("the object found by brightness (no mask)" if found else
+                "the object (no mask: the whole frame)" if mask_path is None and mask.all() else "the mask")
         raise PsctlError(mask_path, f"--light-distance {d:g} pixels does not clear the object: {what} reaches "
                                     f"{reach:.0f} pixels from its centre (the distance is in image pixels, from "
                                     f"the object to the lights; it must be over twice that)")
     return NearLights(d, centre)
+
+
+def near_note(near: NearLights, what: str) -> str:
+    """The report's note on the lights' distance and where they sit; ``what``: what is done with it."""
+    r, c = near.centre
+    return (f"lights: points {near.distance:g} pixels from the object's centre (row {r:.0f}, column {c:.0f}): "
+            f"{what}")

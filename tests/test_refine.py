@@ -911,6 +911,47 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     assert len(read) == 8 and all(np.array_equal(r, found.mask) for r in read)  # b: found; c: its mask.png
 
 
+def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_weights, monkeypatch):
+    """--light-distance without mask.png: the point lights sit about the centre of the object
+    LCNet reads (the one found by brightness), as the same folder with it as mask.png would place
+    them, for psctl lights and sdps alike (they were centred on the whole frame, and a distance had
+    to clear the frame's corners: 40 pixels here was refused)."""
+    from psctl.api import run_normals
+    from psctl.io.capture import open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import capture_brightness, find_object, run_lights
+    from psctl.nearlight import near_lights
+
+    arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
+    m = arrays["mask"]
+    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG"))).mask
+    write_capture(tmp_path / "cPNG", n=6, size=32, seed=1, mask=False)
+    write_image(tmp_path / "cPNG" / "mask.png", found.astype(np.float32), "uint8")
+    with pytest.raises(PsctlError, match="whole frame"):  # 40 does not clear the frame's corners
+        near_lights(40, np.ones_like(m))
+    centre = near_lights(40, found).centre
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    import psctl.sdps as ps
+
+    seen = []  # where the lights sit, as the second stage's capture holds them
+    source = ps.capture_source
+    monkeypatch.setattr(ps, "capture_source", lambda cap, *a, **k: seen.append(cap.near) or source(cap, *a, **k))
+    b, c = {}, {}
+    rb = run_lights(tmp_path / "bPNG", write=False, device="cpu", light_distance=40, arrays=b)
+    run_lights(tmp_path / "cPNG", write=False, device="cpu", light_distance=40, arrays=c)
+    np.testing.assert_allclose(b["directions"], c["directions"], atol=1e-6)
+    line = f"lights: points 40 pixels from the object's centre (row {centre[0]:.0f}, column {centre[1]:.0f})"
+    assert rb["light_distance"] == 40 and any(n.startswith(line) for n in rb["notes"])
+    nb, nc = {}, {}
+    rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", light_distance=40, arrays=nb)
+    rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu", light_distance=40, arrays=nc)
+    assert rb["light_distance"] == 40 and any(n.startswith(line) for n in rb["notes"])
+    assert rb["light_mae"] == rc["light_mae"] and nb["mask"].all()
+    assert len(seen) == 4 and all(s is not None and s.centre == centre for s in seen)
+    with pytest.raises(PsctlError, match="the object found by brightness .no mask. reaches"):
+        run_lights(tmp_path / "bPNG", write=False, device="cpu", light_distance=10)
+
+
 def test_integer_arrays_leave_their_top_code_out_of_the_fit(monkeypatch):
     """estimate_lights / estimate_normals(sdps) given uint8 or uint16 arrays mark the top code as a
     capture folder's reader does (a review finding: only the folder path did)."""
