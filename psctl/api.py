@@ -193,7 +193,9 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     mask = as_mask(mask, images.shape[1:3])
     found = None if mask is not None else find_object(images.sum((0, 3), dtype=np.float64))
     fit_mask = mask if found is None else found.mask
-    est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views})
+    used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
+    net_cfg.update(used)
+    est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views, **used})
     if found is not None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
         _warn_found(found, "estimate_lights", 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2)
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)

@@ -1184,7 +1184,7 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
     found = find_object(capture_brightness(capture, progress, memo))
     if found.mask is None:
         return mask, config, found
-    return found.mask, {**config, "exposure_pixels": "mask"}, found
+    return found.mask, {**config, "exposure_pixels": "found"}, found  # its mean, as a mask's (words apart)
 
 
 def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = None,
@@ -1341,8 +1341,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_errors = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
     if refines:
-        # no normals written: the network too reads the found object only (as a mask.png would make it)
-        est = _refine_capture(replace(cap, near=near), fit_mask, est, normals_weights, second, net_cfg, progress, fit,
+        # no normals written: the network too reads the found object only, its exposure the object's mean
+        # (as a mask.png would make them; the lit pixels' rule of a capture without one split the object)
+        cfg = net_cfg if fit_mask is mask else {**net_cfg, "exposure_pixels": "found"}
+        est = _refine_capture(replace(cap, near=near), fit_mask, est, normals_weights, second, cfg, progress, fit,
                               memo)
     elif refine:
         est = replace(est, notes=[*est.notes, "lights: no normals network installed (PS-FCN† / PS-FCN / PS-FCN+N); "

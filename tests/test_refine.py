@@ -901,6 +901,33 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
         np.testing.assert_allclose(b["directions"], c["directions"], atol=1e-6)
         np.testing.assert_allclose(b["intensities"], c["intensities"], atol=1e-6)
         assert rb["found_object"] == found.info and NO_MASK_PREFIX + found.notes[0] in rb["notes"]
+    # a network trained at an exposure (input_mean) refines: its mean is the found object's, as a mask's
+    # (the lit pixels' rule of a capture without a mask split the object: cat 5.80 vs 5.81 degrees)
+    import torch
+
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    torch.manual_seed(2)
+    save_weights(tmp_path / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32, "input_mean": 0.05})
+    for name in ("dPNG", "ePNG"):  # a black spot on the object: in the object found (a hole), not lit
+        spot = write_capture(tmp_path / name, n=6, size=32, seed=1, mask=False)["images"]
+        spot[:, 13:19, 13:19] = 0
+        for k, img in enumerate(spot):
+            write_image(tmp_path / name / f"{k + 1:03d}.png", img, "uint16")
+    spot = find_object(capture_brightness(open_capture(tmp_path / "dPNG"))).mask
+    assert spot[13:19, 13:19].all()
+    write_image(tmp_path / "ePNG" / "mask.png", spot.astype(np.float32), "uint8")
+    import psctl.infer
+
+    scales, infer = [], psctl.infer.capture_normals  # (a random network's refinement is refused: spied)
+    monkeypatch.setattr(psctl.infer, "capture_normals",
+                        lambda *a, **k: (lambda r: scales.append(r.info["exposure_scale"]) or r)(infer(*a, **k)))
+    for name in ("dPNG", "ePNG"):
+        run_lights(tmp_path / name, write=False, device="cpu", normals_weights=tmp_path / "ps_fcn.pt")
+    assert len(scales) == 2 and scales[0] == scales[1]
+    monkeypatch.setattr(psctl.infer, "capture_normals", infer)
+    del read[4:]  # (the spot's masks)
     nb = {}
     rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", arrays=nb)
     rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu")
@@ -909,6 +936,21 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     assert rb["light_mae"] is not None and rb["light_mae"] == rc["light_mae"] and rb["intensity_re"] == rc["intensity_re"]
     assert nb["mask"].all() and (np.linalg.norm(nb["normals"], axis=-1) > 0.99).all()  # the normals: the whole frame
     assert len(read) == 8 and all(np.array_equal(r, found.mask) for r in read)  # b: found; c: its mask.png
+
+
+def test_exposure_notes_name_the_object_found(tmp_path, fake_weights, monkeypatch):
+    """A dim capture without mask.png: LCNet's exposure note says its mean is the found object's,
+    not "inside the mask" (there is none; session 63's wording)."""
+    from psctl.io.images import write_image
+    from psctl.lights import run_lights
+
+    imgs = write_capture(tmp_path / "dimPNG", n=6, size=32, seed=1, mask=False)["images"]
+    for k, img in enumerate(imgs * 0.02):  # a mean under LCNet's band (0.01)
+        write_image(tmp_path / "dimPNG" / f"{k + 1:03d}.png", img, "uint16")
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    notes = run_lights(tmp_path / "dimPNG", write=False, device="cpu", refine=False)["notes"]
+    lcnet = [n for n in notes if n.startswith("lcnet: the images' mean")]
+    assert len(lcnet) == 1 and "inside the object found by brightness (no mask)" in lcnet[0], notes
 
 
 def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_weights, monkeypatch):
