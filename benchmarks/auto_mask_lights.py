@@ -1,19 +1,23 @@
-"""Lights without a mask: the object found by brightness against the whole frame (run by hand)
+"""Lights without a mask: the object found (by brightness, or by shading before a lit background) (run by hand)
 
     psctl synth .cache/syntest_exposure --preset syntest --size 128 --lights 64 -k 4 --seed 3 -q
+    psctl synth .cache/syntest_dl64 --preset syntest --size 128 --lights 64 -k 4 --seed 3 \
+        --light-dist diligent -q
     python benchmarks/auto_mask_lights.py .cache/syntest_exposure [--background plane --level 0.01]
-    python benchmarks/auto_mask_lights.py .cache/syntest_exposure --background texture
+    python benchmarks/auto_mask_lights.py .cache/syntest_dl64 --background texture --shadows 0.25
 
 Each synthetic object (every --every'th of objects.txt) is put in front of a background, a
 Lambertian plane facing the camera lit by the same lights, plus |N(0, 0.002)| noise: "plane" of
 albedo --level (0.01: dark, as a photometric stereo capture's black cloth; 0.3 or 0.8: a lit
-grey or white table), or "texture" (a smooth random albedo in [0.05, 0.6]). Then
+grey or white table), or "texture" (a smooth random albedo in [0.05, 0.6]). ``--shadows GAP``:
+the object also casts shadows on it, as an object on a table does. Then
 ``psctl.estimate_lights`` (the defaults: LCNet, 8 views, refinement with the installed normals
 network) runs with the true mask ("mask"), with mask=None ("found": psctl.lights.find_object's
-object, the lit pixels with holes filled) and with a mask of the whole frame ("frame": what
-mask=None meant before session 63). Prints each object's mean light direction error (degrees)
-with find_object's frame fraction, contrast and overlap with the true mask, then one JSON line
-of the means.
+object; before a lit background, by shading since session 64), with the object found by
+brightness alone as its mask ("brightness": session 63's mask=None) and with a mask of the
+whole frame ("frame": what mask=None meant before session 63); ``--only`` picks some. Prints
+each object's mean light direction error (degrees) with find_object's frame fraction, contrast,
+rule and overlap with the true mask, then one JSON line of the means.
 
 Measured: docs/uncalibrated.md, "Without a mask".
 """
@@ -37,13 +41,17 @@ def main() -> None:
     ap.add_argument("--background", choices=("plane", "texture"), default="plane")
     ap.add_argument("--level", type=float, default=0.01, help="the plane's albedo")
     ap.add_argument("--every", type=int, default=1, help="every K-th object of objects.txt")
+    ap.add_argument("--shadows", type=float, default=None, metavar="GAP",
+                    help="the object casts shadows on the background: a plane GAP times the object's "
+                         "half-width below its rim (depth from its true normals, psctl.depth)")
+    ap.add_argument("--only", default="mask,found,brightness,frame", help="which runs, comma-separated")
     args = ap.parse_args()
 
     from scipy import ndimage
 
     import psctl
     from psctl.io.capture import load_images, load_mask, open_capture
-    from psctl.lights import find_object
+    from psctl.lights import array_shading, find_object
     from psctl.metrics import light_direction_error
 
     warnings.simplefilter("ignore")  # the no-mask warnings, once per run
@@ -58,19 +66,43 @@ def main() -> None:
             t = ndimage.gaussian_filter(rng.normal(size=mask.shape), 6)
             albedo = (0.05 + 0.55 * (t - t.min()) / (t.max() - t.min())).astype(np.float32)
         shade = np.clip(lights[:, 2], 0, None)[:, None, None] * albedo[None]
+        if args.shadows is not None:
+            shade = shade * cast_shadows(cap, mask, lights, args.shadows)
         back = shade[..., None] + np.abs(rng.normal(0, 0.002, images.shape)).astype(np.float32)
         images[:, ~mask] = back[:, ~mask]
-        found = find_object(images.sum((0, 3), dtype=np.float64))
+        found = find_object(*array_shading(images))
         region = np.ones_like(mask) if found.mask is None else found.mask
-        row = {"object": name, **{k: found.info[k] for k in ("frame_fraction", "contrast", "used")},
+        row = {"object": name, **{k: found.info[k] for k in ("frame_fraction", "contrast", "by", "used")},
                "iou": round(float((region & mask).sum() / (region | mask).sum()), 3)}
-        for label, m in (("mask", mask), ("found", None), ("frame", np.ones_like(mask))):
+        bright = find_object(images.sum((0, 3), dtype=np.float64))  # session 63's rule: brightness alone
+        runs = (("mask", mask), ("found", None), ("brightness", np.ones_like(mask) if bright.mask is None else
+                                                 bright.mask), ("frame", np.ones_like(mask)))
+        for label, m in (r for r in runs if r[0] in args.only.split(",")):
             d, _ = psctl.estimate_lights(images, m, device="cpu")
             row[label] = round(float(light_direction_error(d, lights).mean()), 2)
             out.setdefault(label, []).append(row[label])
         print(json.dumps(row), flush=True)
-    print(json.dumps({"background": args.background, "level": args.level,
+    print(json.dumps({"background": args.background, "level": args.level, "shadows": args.shadows,
                       **{k: round(float(np.mean(v)), 2) for k, v in out.items()}}))
+
+
+def cast_shadows(cap, mask: np.ndarray, lights: np.ndarray, gap: float) -> np.ndarray:
+    """[N, H, W] visibility of a background plane under the object: the object's depth
+    integrated from its true normals, the plane ``gap`` times its half-width below its lowest
+    point, shadows marched toward each light (psctl.synth.render.march_shadows)."""
+    import torch
+
+    from psctl.depth import integrate_normals
+    from psctl.io.capture import load_ground_truth
+    from psctl.synth.render import march_shadows
+
+    h, w = mask.shape
+    depth = integrate_normals(load_ground_truth(cap), mask) * (2.0 / w)  # pixels -> image spans [-1, 1]
+    obj = np.isfinite(depth) & mask
+    half = 0.5 * (np.ptp(np.nonzero(obj)[1]) + 1) * (2.0 / w)
+    z = np.where(obj, depth, float(depth[obj].min()) - gap * half).astype(np.float32)
+    vis = march_shadows(torch.from_numpy(z)[None, None], torch.from_numpy(lights.astype(np.float32))[None])[0]
+    return np.where(mask[None], 1.0, vis.numpy()).astype(np.float32)
 
 
 if __name__ == "__main__":

@@ -176,7 +176,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, find_object, refine_config
+    from psctl.lights import array_lights, array_shading, find_object, refine_config
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -191,7 +191,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     saturated = _saturated(images)
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
-    found = None if mask is not None else find_object(images.sum((0, 3), dtype=np.float64))
+    found = None if mask is not None else find_object(*array_shading(images))
     fit_mask = mask if found is None else found.mask
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
     net_cfg.update(used)
@@ -304,9 +304,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
     fit_mask = mask
     if method == "sdps" and mask is None:  # as estimate_lights
-        from psctl.lights import find_object
+        from psctl.lights import array_shading, find_object
 
-        found = find_object(images.sum((0, 3), dtype=np.float64))
+        found = find_object(*array_shading(images))
         fit_mask = found.mask
         _warn_found(found, "sdps", level)
     # options the method does not use: run_normals notes them; here, a warning, not silence

@@ -41,6 +41,7 @@ error (``intensity_re``).
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -1128,6 +1129,84 @@ FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part
 # dev split; lit planes and textures where an object was used: 0.33-0.84; benchmarks/auto_mask_lights.py)
 
 
+# A lit background (a table, a wall) is brighter than the object's shadows, so brightness cannot
+# split them; its shading can: a plane facing the camera under distant lights has one profile over
+# the images at every pixel (its albedo and texture scale it), which the frame's border gives. Its
+# cast shadows only darken it, and nearly to black: a background pixel's ratios to that profile are
+# its level (lit) or near 0 (shadowed), where an object pixel's spread in between, as its normal
+# turns it toward and away from each light. Chosen on psctl's synthetic objects before lit planes
+# and textures with their cast shadows (benchmarks/auto_mask_lights.py, docs/uncalibrated.md).
+FOUND_PROFILE_ELEMENTS = 16 << 20  # the profiles' grid: images x cells within this (64 MB of float32)
+FOUND_PROFILE_SIDE = 256  # ... and its longer side at most this many cells (block means of the frame)
+FOUND_BORDER = 0.03  # the background's profile: the median over the frame's outer ring, this share of its side
+FOUND_LEVEL = 0.9  # a cell's level: this quantile of its ratios (the lit images' ratio, on the background)
+FOUND_BAND = (0.2, 0.8)  # ratios between these fractions of the level: neither lit background nor its shadow
+FOUND_MID = 0.08  # a cell with more than this share of its images in the band is the object
+FOUND_RELIABLE = 0.2  # the images the ratios use: the background's profile over this share of its peak
+FOUND_MIN_IMAGES = 8  # fewer reliable images: no percentiles to speak of, shading not used
+
+
+def profile_grid(n: int, height: int, width: int) -> int:
+    """The block size (pixels per cell side) of ``n`` images' profiles over a height x width frame."""
+    f = max(1, math.ceil(max(height, width) / FOUND_PROFILE_SIDE))
+    while n * math.ceil(height / f) * math.ceil(width / f) > FOUND_PROFILE_ELEMENTS:
+        f += 1
+    return f
+
+
+def block_means(image: np.ndarray, f: int) -> np.ndarray:
+    """[H, W] -> [ceil(H/f), ceil(W/f)] float32 means over f x f blocks (the last ones partial)."""
+    h, w = image.shape
+    hh, ww = -(-h // f), -(-w // f)
+    padded = np.zeros((hh * f, ww * f), np.float64)
+    padded[:h, :w] = image
+    count = np.zeros_like(padded)
+    count[:h, :w] = 1
+    fold = (hh, f, ww, f)
+    return (padded.reshape(fold).sum((1, 3)) / count.reshape(fold).sum((1, 3))).astype(np.float32)
+
+
+def border_ring(height: int, width: int) -> np.ndarray:
+    """[height, width] bool: the frame's outer ring, FOUND_BORDER of its shorter side (at least 1 pixel)."""
+    r = max(1, round(FOUND_BORDER * min(height, width)))
+    ring = np.zeros((height, width), bool)
+    ring[:r], ring[-r:], ring[:, :r], ring[:, -r:] = True, True, True, True
+    return ring
+
+
+def shading_object(profiles: np.ndarray) -> np.ndarray | None:
+    """The cells whose shading differs from the background's: ``profiles`` [N, h, w] (each cell's
+    grey value in each image, as captured) -> [h, w] bool, or None where the frame's border does
+    not agree on one profile (no plain background to tell the object from) or fewer than
+    FOUND_MIN_IMAGES images light it."""
+    from scipy import ndimage
+
+    p = np.asarray(profiles, np.float32)  # (float32: the ratios' quantiles copy them, up to 64 MB each)
+    n, h, w = p.shape
+    ring = border_ring(h, w)
+    edge = p[:, ring].astype(np.float64)
+    total = edge.sum(0)
+    edge = edge[:, total > 0] / total[total > 0]
+    if edge.shape[1] == 0:
+        return None
+    back = np.median(edge, axis=1)  # [N]: each image's share of the background's light
+    use = back > FOUND_RELIABLE * back.max()
+    if int(use.sum()) < FOUND_MIN_IMAGES:
+        return None
+    ratio = p[use] / back[use, None, None].astype(np.float32)
+    level = np.quantile(ratio, FOUND_LEVEL, axis=0)
+    between = (ratio > FOUND_BAND[0] * level) & (ratio < FOUND_BAND[1] * level)
+    unlike = between.mean(0) > FOUND_MID
+    if unlike[ring].mean() > 0.5:  # the border is no one background
+        return None
+    obj = ndimage.binary_opening(unlike, np.ones((3, 3), bool))  # single cells: noise, a speck of texture
+    labels, count = ndimage.label(obj)
+    if count:
+        sizes = ndimage.sum(obj, labels, range(1, count + 1))
+        obj = np.isin(labels, 1 + np.nonzero(sizes >= 0.1 * sizes.max())[0])  # the object's parts, not crumbs
+    return ndimage.binary_fill_holes(obj)
+
+
 @dataclass
 class FoundObject:
     """What ``find_object`` found: ``mask`` [H, W] bool, or None for the whole frame; ``info``
@@ -1139,13 +1218,16 @@ class FoundObject:
     notes: list[str]
 
 
-def find_object(brightness: np.ndarray) -> FoundObject:
+def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> FoundObject:
     """The object of a capture without a mask, for LCNet and the light fit: ``brightness`` [H, W]
     each pixel's summed value over the images (as captured) -> the lit pixels
-    (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. None (the
-    whole frame) when the found region has under FOUND_MIN_PIXELS pixels or covers over
-    FOUND_MAX_FRACTION of the frame; a note when the unlit part is not dark (FOUND_DARK_CONTRAST), i.e. the background is
-    lit too and may be in the found region."""
+    (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. Where the
+    unlit part is not dark (FOUND_DARK_CONTRAST: a lit background, which may be in the lit
+    region) and ``profiles`` [N, h, w] are given (block means of each image, ``profile_grid``),
+    the cells whose shading differs from the background's instead (``shading_object``), when the
+    frame's border agrees on one background. None (the whole frame) when the found region has
+    under FOUND_MIN_PIXELS pixels or covers over FOUND_MAX_FRACTION of the frame; a note when
+    the background is not dark."""
     from scipy import ndimage
 
     from psctl.infer import lit_pixels
@@ -1154,19 +1236,40 @@ def find_object(brightness: np.ndarray) -> FoundObject:
     b = np.where(np.isfinite(b), b, 0.0)  # NaN (a bad pixel outside the object): dark; LCNet refuses it inside
     lit = lit_pixels(b)
     region = ndimage.binary_fill_holes(lit)
-    frac = float(region.mean()) if region.size else 0.0
     contrast = float(b[~lit].mean() / b[lit].mean()) if lit.any() and (~lit).any() and b[lit].mean() > 0 else None
+    # a lit background: its unlit part is not dark, or the frame's border is lit (a background brighter
+    # than a dark object: Otsu's lit part is the background, and its unlit part, the object, is dark)
+    lit_background = contrast is not None and contrast > FOUND_DARK_CONTRAST or bool(lit[border_ring(*b.shape)].mean()
+                                                                                       > 0.5)
+    by = "brightness"
+    if lit_background and profiles is not None:
+        p = np.asarray(profiles, np.float32)
+        cells = shading_object(np.where(np.isfinite(p), p, np.float32(0)))
+        if cells is not None:  # each pixel takes its cell's answer
+            f = profile_grid(len(p), *b.shape)
+            if cells.shape != (-(-b.shape[0] // f), -(-b.shape[1] // f)):
+                raise ValueError(f"profiles {p.shape} are not profile_grid's cells of a {b.shape} frame")
+            region, by = cells[np.arange(b.shape[0]) // f][:, np.arange(b.shape[1]) // f], "shading"
+    frac = float(region.mean()) if region.size else 0.0
     used = int(region.sum()) >= FOUND_MIN_PIXELS and frac <= FOUND_MAX_FRACTION
     info = {"pixels": int(region.sum()), "frame_fraction": round(frac, 4),
-            "contrast": None if contrast is None else round(contrast, 4), "used": used}
+            "contrast": None if contrast is None else round(contrast, 4), "by": by, "used": used}
+    how = ("the lit pixels, holes filled" if by == "brightness" else
+           "the pixels whose shading over the images differs from the background's, holes filled")
     if used:
-        notes = [f"LCNet and the light fit read the object found by brightness (the lit pixels, holes filled: "
-                 f"{info['pixels']} pixels, {frac:.0%} of the frame); a mask of the object is surer"]
+        notes = [f"LCNet and the light fit read the object found by {by} ({how}: {info['pixels']} pixels, "
+                 f"{frac:.0%} of the frame); a mask of the object is surer"]
     else:
-        why = ("nothing is lit" if not region.any() else f"the lit region covers {frac:.0%} of the frame"
-               if frac > FOUND_MAX_FRACTION else f"the lit region has {int(region.sum())} pixels")
-        notes = [f"no object found by brightness ({why}): {NO_MASK_WHY}"]
-    if contrast is not None and contrast > FOUND_DARK_CONTRAST:
+        why = (("nothing is lit" if by == "brightness" else "no part differs from the background")
+               if not region.any() else f"the {'lit' if by == 'brightness' else 'found'} region "
+               f"covers {frac:.0%} of the frame" if frac > FOUND_MAX_FRACTION else
+               f"the {'lit' if by == 'brightness' else 'found'} region has {int(region.sum())} pixels")
+        notes = [f"no object found by {by} ({why}): {NO_MASK_WHY}"]
+    if lit_background and by == "shading" and used:
+        notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
+                     f"ones'): the object was told from it by shading, which assumes a background of one plane "
+                     f"under distant lights; give a mask of the object where you can")
+    elif lit_background:
         notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
                      f"ones'): without a mask the lights may be far off (synthetic objects before a lit plane: 15-60 "
                      f"degrees); give a mask of the object")
@@ -1181,7 +1284,7 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
     exposure guard reading it as a mask, or where none is found the whole frame (``mask``)."""
     if capture.mask_path is not None:
         return mask, config, None
-    found = find_object(capture_brightness(capture, progress, memo))
+    found = find_object(*capture_shading(capture, progress, memo))
     if found.mask is None:
         return mask, config, found
     return found.mask, {**config, "exposure_pixels": "found"}, found  # its mean, as a mask's (words apart)
@@ -1192,18 +1295,42 @@ def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = 
     """[H, W] float64, each pixel's sum over a capture's images and channels as captured (its
     light_intensities.txt not applied), for ``find_object``. ``memo`` keeps the decoded images
     (the whole frame) for the passes after, where they fit."""
+    return capture_shading(capture, progress, memo)[0]
+
+
+def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = None,
+                    memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, np.ndarray]:
+    """``capture_brightness`` and, from the same read, the profiles ``find_object`` tells a lit
+    background by: [N, h, w] float32 grey block means (``profile_grid``, ``block_means``)."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
 
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     box = (slice(0, capture.height), slice(0, capture.width))
     total = np.zeros((capture.height, capture.width), np.float64)
+    f = profile_grid(capture.n_images, capture.height, capture.width)
+    profiles = np.zeros((capture.n_images, -(-capture.height // f), -(-capture.width // f)), np.float32)
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: finding the object", capture.n_images)
     with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
-        for img in iter_images(raw, box, decoded=pf, memo=memo):
-            total += img.sum(-1, dtype=np.float64)
+        for k, img in enumerate(iter_images(raw, box, decoded=pf, memo=memo)):
+            grey = img.sum(-1, dtype=np.float64)
+            total += grey
+            profiles[k] = block_means(grey / img.shape[-1], f)
             advance(1)
-    return total
+    return total, profiles
+
+
+def array_shading(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``capture_shading`` of in-memory images [N, H, W, 3]."""
+    n, h, w, c = images.shape
+    f = profile_grid(n, h, w)
+    total = np.zeros((h, w), np.float64)
+    profiles = np.zeros((n, -(-h // f), -(-w // f)), np.float32)
+    for k, img in enumerate(images):  # one image at a time: no float64 copy of them all
+        grey = img.sum(-1, dtype=np.float64)
+        total += grey
+        profiles[k] = block_means(grey / c, f)
+    return total, profiles
 
 
 # --- the command ------------------------------------------------------------------------------

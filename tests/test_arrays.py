@@ -724,6 +724,67 @@ def test_find_object_fills_shadows_and_gives_up_on_a_lit_frame():
     assert h.mask is None and h.info["frame_fraction"] > FOUND_MAX_FRACTION and "covers 96%" in h.notes[0]
 
 
+def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weights, monkeypatch):
+    """Before a lit background (a textured table with the object's shadows on it) brightness cannot
+    find the object; the background's one shading profile over the images can (the frame's border
+    gives it): the object found by shading, for arrays and folders alike. A border that agrees on
+    no profile (no plain background) leaves the brightness rule."""
+    from scipy import ndimage
+
+    from psctl.io.capture import open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import array_shading, capture_shading, find_object
+    from tests.conftest import render_lambertian
+
+    normals, mask = sphere(48, radius=0.55)
+    lights = hemisphere_lights(24, max_angle_deg=60, seed=4)
+    rng = np.random.default_rng(0)
+    tex = ndimage.gaussian_filter(rng.normal(size=mask.shape), 4)
+    albedo = 0.2 + 0.4 * (tex - tex.min()) / np.ptp(tex)
+    back = np.clip(lights[:, 2], 0, None)[:, None, None] * albedo
+    yy, xx = np.mgrid[:48, :48]
+    for k, lt in enumerate(lights):  # each light's shadow: the sphere's disc moved away from it
+        dx, dy = -8 * lt[0] / lt[2], 8 * lt[1] / lt[2]
+        back[k][((yy - 23.5 - dy) ** 2 + (xx - 23.5 - dx) ** 2 < (0.55 * 24) ** 2)] *= 0.15
+    images = render_lambertian(normals, mask, lights, 0.5)
+    images[:, ~mask] = back[:, ~mask][..., None]
+    images += np.abs(rng.normal(0, 0.002, images.shape)).astype(np.float32)
+    iou = lambda m: (m & mask).sum() / (m | mask).sum()  # noqa: E731
+    by_light = find_object(images.sum((0, 3)))
+    found = find_object(*array_shading(images))
+    assert found.info["by"] == "shading" and found.info["used"] and iou(found.mask) > 0.95, iou(found.mask)
+    assert by_light.info["by"] == "brightness" and (by_light.mask is None or iou(by_light.mask) < 0.8)
+    assert any("told from it by shading" in n for n in found.notes)
+    for k, img in enumerate(images):
+        write_image(tmp_path / f"{k:03d}.png", img, "uint16")
+    np.savetxt(tmp_path / "light_directions.txt", lights)
+    brightness, profiles = capture_shading(open_capture(tmp_path))
+    assert np.array_equal(find_object(brightness, profiles).mask, found.mask)
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))  # psctl lights and sdps read it so
+    import psctl.lights
+    from psctl.api import run_normals
+
+    fits = []
+    fit = psctl.lights.refine_capture
+    monkeypatch.setattr(psctl.lights, "refine_capture", lambda c, m, *a, **k: fits.append(m) or fit(c, m, *a, **k))
+    report = psctl.lights.run_lights(tmp_path, write=False, device="cpu")
+    assert report["found_object"] == found.info and np.array_equal(fits[-1], found.mask)
+    assert run_normals(tmp_path, method="sdps", write=False, device="cpu")["found_object"] == found.info
+    with pytest.warns(PsctlWarning) as caught:
+        estimate_lights(images, None, device="cpu")
+    said = [str(w.message) for w in caught]
+    assert len(said) == 2 and "found by shading" in said[0] and "told from it by shading" in said[1], said
+    dark = images.copy()  # a dark object before a white table: Otsu's lit part is the table
+    dark[:, mask] *= 0.05
+    dark[:, ~mask] *= 2.0
+    assert find_object(dark.sum((0, 3))).mask is None  # the lit region: nearly all of the frame
+    white = find_object(*array_shading(dark))
+    assert white.info["by"] == "shading" and iou(white.mask) > 0.95, iou(white.mask)
+    noise = images.copy()  # a background of no one profile: each pixel lit at random
+    noise[:, ~mask] = rng.uniform(0.1, 0.4, (len(images), int((~mask).sum()), 1))
+    assert find_object(*array_shading(noise)).info["by"] == "brightness"
+
+
 def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):
     """The networks on arrays clamped hot values with a note no one saw (estimate_normals returns
     the normals alone): now a warning, as l2's."""
