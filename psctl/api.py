@@ -153,7 +153,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             capture far outside its training exposures is rescaled for it (the exposure guard,
             docs/uncalibrated.md).
         mask: [H, W] bool or numbers (above 0.5 is the object; None: LCNet and the light fit
-            read the object found by brightness, ``psctl.lights.find_object``, and a warning
+            read the object found without it (by brightness, or by shading before a lit
+            background: ``psctl.lights.find_object``), and a warning
             says so).
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
@@ -231,7 +232,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
-            the whole image (sdps' LCNet and light fit read the object found by brightness,
+            the whole image (sdps' LCNet and light fit read the object found without it,
             ``psctl.lights.find_object``).
         method: "l2", "ps-fcn", "ps-fcn-n", "ensemble" (the unit mean of PS-FCN's and PS-FCN+N's
             normals), "ups-fcn", "sdps" or "auto".
@@ -475,7 +476,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
     ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, ensemble, sdps): the lights are points that far from
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not, about the
-    centroid of the object LCNet reads, found by brightness without a mask file); each image is
+    centroid of the object LCNet reads, found without a mask file, ``find_object``); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
     [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth; 0 outside the mask,

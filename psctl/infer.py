@@ -82,7 +82,7 @@ DEFAULT_INFER = {
     # (no mask.png, mask=None) use "lit": a dark background would halve the frame's mean
     "exposure_pixels": "mask",
 }
-EXPOSURE_PIXELS = ("mask", "lit", "found")  # found: the mask is the object found by brightness (no file)
+EXPOSURE_PIXELS = ("mask", "lit", "found")  # found: the mask is the object found without a file
 
 FEATURES = 128  # extractor output channels
 _BYTES_PER_PIXEL = 400  # extractor activations per input pixel and image (fp32, channels_last: 384 measured)
@@ -362,7 +362,7 @@ def exposure_where(exposure_pixels: str) -> str:
     """The words for where an exposure mean is taken (messages), refusing an unknown rule."""
     if exposure_pixels not in EXPOSURE_PIXELS:
         raise PsctlError(None, f"exposure_pixels must be {' or '.join(EXPOSURE_PIXELS)}, not {exposure_pixels!r}")
-    return {"lit": "over the lit pixels", "found": "inside the object found by brightness (no mask)"}.get(
+    return {"lit": "over the lit pixels", "found": "inside the object found without a mask"}.get(
         exposure_pixels, "inside the mask")
 
 
@@ -719,7 +719,7 @@ def _prepare_network(method: str, weights: str | Path | None, config: dict | Non
 def _note_exposure(res: InferResult, method: str, input_mean: float | None) -> None:
     if "exposure_scale" in res.info:
         lit = {"lit": " (their mean over the lit pixels: no mask)",
-               "found": " (their mean inside the object found by brightness: no mask)"}.get(
+               "found": " (their mean inside the object found without a mask)"}.get(
             res.info.get("exposure_pixels"), "")
         res.notes.append(f"{method}: images scaled by {res.info['exposure_scale']:.4g}{lit} to the mean brightness "
                          f"the network was trained at ({input_mean:.3g})")

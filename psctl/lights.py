@@ -1137,7 +1137,7 @@ FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part
 # turns it toward and away from each light. Chosen on psctl's synthetic objects before lit planes
 # and textures with their cast shadows (benchmarks/auto_mask_lights.py, docs/uncalibrated.md).
 FOUND_PROFILE_ELEMENTS = 16 << 20  # the profiles' grid: images x cells within this (64 MB of float32)
-FOUND_PROFILE_SIDE = 256  # ... and its longer side at most this many cells (block means of the frame)
+FOUND_PROFILE_SIDE = 256  # ... and its longer side at most this many cells (a pixel of each block)
 FOUND_BORDER = 0.03  # the background's profile: the median over the frame's outer ring, this share of its side
 FOUND_LEVEL = 0.9  # a cell's level: this quantile of its ratios (the lit images' ratio, on the background)
 FOUND_BAND = (0.2, 0.8)  # ratios between these fractions of the level: neither lit background nor its shadow
@@ -1154,16 +1154,14 @@ def profile_grid(n: int, height: int, width: int) -> int:
     return f
 
 
-def block_means(image: np.ndarray, f: int) -> np.ndarray:
-    """[H, W] -> [ceil(H/f), ceil(W/f)] float32 means over f x f blocks (the last ones partial)."""
+def block_samples(image: np.ndarray, f: int) -> np.ndarray:
+    """[H, W] -> [ceil(H/f), ceil(W/f)] float32: each f x f block's centre pixel (the last blocks'
+    clipped to the frame). Samples, not means: a block that a cast shadow's edge crosses would
+    average to a value between lit and shadowed, which is how the object's shading differs."""
     h, w = image.shape
-    hh, ww = -(-h // f), -(-w // f)
-    padded = np.zeros((hh * f, ww * f), np.float64)
-    padded[:h, :w] = image
-    count = np.zeros_like(padded)
-    count[:h, :w] = 1
-    fold = (hh, f, ww, f)
-    return (padded.reshape(fold).sum((1, 3)) / count.reshape(fold).sum((1, 3))).astype(np.float32)
+    rows = np.minimum(np.arange(0, h, f) + f // 2, h - 1)
+    cols = np.minimum(np.arange(0, w, f) + f // 2, w - 1)
+    return np.asarray(image, np.float32)[np.ix_(rows, cols)]
 
 
 def border_ring(height: int, width: int) -> np.ndarray:
@@ -1199,7 +1197,9 @@ def shading_object(profiles: np.ndarray) -> np.ndarray | None:
     unlike = between.mean(0) > FOUND_MID
     if unlike[ring].mean() > 0.5:  # the border is no one background
         return None
-    obj = ndimage.binary_opening(unlike, np.ones((3, 3), bool))  # single cells: noise, a speck of texture
+    # holes filled first: an object's rim may be its only part unlike the background (a face turned
+    # to the camera shades as the background does), one or two cells thick where the grid is coarse
+    obj = ndimage.binary_opening(ndimage.binary_fill_holes(unlike), np.ones((3, 3), bool))  # no specks
     labels, count = ndimage.label(obj)
     if count:
         sizes = ndimage.sum(obj, labels, range(1, count + 1))
@@ -1223,7 +1223,7 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
     each pixel's summed value over the images (as captured) -> the lit pixels
     (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. Where the
     unlit part is not dark (FOUND_DARK_CONTRAST: a lit background, which may be in the lit
-    region) and ``profiles`` [N, h, w] are given (block means of each image, ``profile_grid``),
+    region) and ``profiles`` [N, h, w] are given (a pixel of each block of each image, ``profile_grid``),
     the cells whose shading differs from the background's instead (``shading_object``), when the
     frame's border agrees on one background. None (the whole frame) when the found region has
     under FOUND_MIN_PIXELS pixels or covers over FOUND_MAX_FRACTION of the frame; a note when
@@ -1237,10 +1237,11 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
     lit = lit_pixels(b)
     region = ndimage.binary_fill_holes(lit)
     contrast = float(b[~lit].mean() / b[lit].mean()) if lit.any() and (~lit).any() and b[lit].mean() > 0 else None
-    # a lit background: its unlit part is not dark, or the frame's border is lit (a background brighter
-    # than a dark object: Otsu's lit part is the background, and its unlit part, the object, is dark)
-    lit_background = contrast is not None and contrast > FOUND_DARK_CONTRAST or bool(lit[border_ring(*b.shape)].mean()
-                                                                                       > 0.5)
+    not_dark = contrast is not None and contrast > FOUND_DARK_CONTRAST
+    # a lit background: the unlit part is not dark, or the frame's border is lit (a background brighter
+    # than a dark object: Otsu's lit part is the background, and its unlit part, the object, is dark;
+    # or an object that fills the frame, whose border then agrees on no one profile: brightness stays)
+    lit_background = not_dark or bool(lit[border_ring(*b.shape)].mean() > 0.5)
     by = "brightness"
     if lit_background and profiles is not None:
         p = np.asarray(profiles, np.float32)
@@ -1265,11 +1266,10 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
                f"covers {frac:.0%} of the frame" if frac > FOUND_MAX_FRACTION else
                f"the {'lit' if by == 'brightness' else 'found'} region has {int(region.sum())} pixels")
         notes = [f"no object found by {by} ({why}): {NO_MASK_WHY}"]
-    if lit_background and by == "shading" and used:
-        notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
-                     f"ones'): the object was told from it by shading, which assumes a background of one plane "
-                     f"under distant lights; give a mask of the object where you can")
-    elif lit_background:
+    if by == "shading" and used:
+        notes.append("the background is lit: the object was told from it by shading, which assumes a background of "
+                     "one plane under distant lights; give a mask of the object where you can")
+    elif not_dark:
         notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
                      f"ones'): without a mask the lights may be far off (synthetic objects before a lit plane: 15-60 "
                      f"degrees); give a mask of the object")
@@ -1301,7 +1301,7 @@ def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = 
 def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = None,
                     memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, np.ndarray]:
     """``capture_brightness`` and, from the same read, the profiles ``find_object`` tells a lit
-    background by: [N, h, w] float32 grey block means (``profile_grid``, ``block_means``)."""
+    background by: [N, h, w] float32 grey, a pixel of each block (``profile_grid``, ``block_samples``)."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
 
@@ -1315,13 +1315,14 @@ def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = Non
         for k, img in enumerate(iter_images(raw, box, decoded=pf, memo=memo)):
             grey = img.sum(-1, dtype=np.float64)
             total += grey
-            profiles[k] = block_means(grey / img.shape[-1], f)
+            profiles[k] = block_samples(grey / img.shape[-1], f)
             advance(1)
     return total, profiles
 
 
 def array_shading(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``capture_shading`` of in-memory images [N, H, W, 3]."""
+    """``capture_shading`` of in-memory images [N, H, W, 3] (or [N, H, W] grey)."""
+    images = images[..., None] if images.ndim == 3 else images
     n, h, w, c = images.shape
     f = profile_grid(n, h, w)
     total = np.zeros((h, w), np.float64)
@@ -1329,7 +1330,7 @@ def array_shading(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for k, img in enumerate(images):  # one image at a time: no float64 copy of them all
         grey = img.sum(-1, dtype=np.float64)
         total += grey
-        profiles[k] = block_means(grey / c, f)
+        profiles[k] = block_samples(grey / c, f)
     return total, profiles
 
 

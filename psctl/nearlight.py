@@ -83,7 +83,7 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     centre = (float(rows.mean()), float(cols.mean()))
     reach = float(np.sqrt(((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2).max()))
     if d <= 2 * reach:  # the first-order picture (and any listed direction) would be meaningless
-        what = ("the object found by brightness (no mask)" if found else
+        what = ("the object found without a mask" if found else
                 "the object (no mask: the whole frame)" if mask_path is None and mask.all() else "the mask")
         raise PsctlError(mask_path, f"--light-distance {d:g} pixels does not clear the object: {what} reaches "
                                     f"{reach:.0f} pixels from its centre (the distance is in image pixels, from "

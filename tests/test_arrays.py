@@ -780,6 +780,19 @@ def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weight
     assert find_object(dark.sum((0, 3))).mask is None  # the lit region: nearly all of the frame
     white = find_object(*array_shading(dark))
     assert white.info["by"] == "shading" and iou(white.mask) > 0.95, iou(white.mask)
+    import psctl.lights
+
+    monkeypatch.setattr(psctl.lights, "FOUND_PROFILE_SIDE", 16)  # 3 x 3 blocks: each pixel takes its cell's answer
+    coarse = find_object(*array_shading(images))
+    assert coarse.info["by"] == "shading" and not np.array_equal(coarse.mask, found.mask)
+    # each pixel takes its block's answer (its centre pixel's): the outline within a block of the object's
+    near = lambda m: ndimage.binary_dilation(m, np.ones((3, 3), bool), iterations=2)  # noqa: E731
+    assert not (coarse.mask & ~near(mask)).any() and not (mask & ~near(coarse.mask)).any()
+    assert np.array_equal(coarse.mask, np.kron(coarse.mask[::3, ::3], np.ones((3, 3), bool)))
+    with pytest.raises(ValueError, match="profile_grid"):  # profiles of another grid: a caller's bug
+        find_object(images.sum((0, 3)), array_shading(images[:, :40])[1])
+    monkeypatch.undo()
+    assert find_object(np.ones((40, 50))).mask is None  # a uniform frame: no contrast to speak of, no error
     noise = images.copy()  # a background of no one profile: each pixel lit at random
     noise[:, ~mask] = rng.uniform(0.1, 0.4, (len(images), int((~mask).sum()), 1))
     assert find_object(*array_shading(noise)).info["by"] == "brightness"

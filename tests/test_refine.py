@@ -950,7 +950,7 @@ def test_exposure_notes_name_the_object_found(tmp_path, fake_weights, monkeypatc
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
     notes = run_lights(tmp_path / "dimPNG", write=False, device="cpu", refine=False)["notes"]
     lcnet = [n for n in notes if n.startswith("lcnet: the images' mean")]
-    assert len(lcnet) == 1 and "inside the object found by brightness (no mask)" in lcnet[0], notes
+    assert len(lcnet) == 1 and "inside the object found without a mask" in lcnet[0], notes
 
 
 def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_weights, monkeypatch):
@@ -990,7 +990,7 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
     assert rb["light_distance"] == 40 and any(n.startswith(line) for n in rb["notes"])
     assert rb["light_mae"] == rc["light_mae"] and nb["mask"].all()
     assert len(seen) == 4 and all(s is not None and s.centre == centre for s in seen)
-    with pytest.raises(PsctlError, match="the object found by brightness .no mask. reaches"):
+    with pytest.raises(PsctlError, match="the object found without a mask reaches"):
         run_lights(tmp_path / "bPNG", write=False, device="cpu", light_distance=10)
 
 
