@@ -44,6 +44,10 @@ def main() -> None:
     ap.add_argument("--shadows", type=float, default=None, metavar="GAP",
                     help="the object casts shadows on the background: a plane GAP times the object's "
                          "half-width below its rim (depth from its true normals, psctl.depth)")
+    ap.add_argument("--near", type=float, default=None, metavar="D",
+                    help="the background lit by point lights D pixels from the object's centroid along the "
+                         "light directions (falloff and per-pixel direction; render the objects with psctl synth "
+                         "--light-distance D to match)")
     ap.add_argument("--only", default="mask,found,brightness,frame", help="which runs, comma-separated")
     args = ap.parse_args()
 
@@ -65,7 +69,8 @@ def main() -> None:
         else:
             t = ndimage.gaussian_filter(rng.normal(size=mask.shape), 6)
             albedo = (0.05 + 0.55 * (t - t.min()) / (t.max() - t.min())).astype(np.float32)
-        shade = np.clip(lights[:, 2], 0, None)[:, None, None] * albedo[None]
+        shade = (np.clip(lights[:, 2], 0, None)[:, None, None] if args.near is None else
+                 near_shading(mask, lights, args.near)) * albedo[None]
         if args.shadows is not None:
             shade = shade * cast_shadows(cap, mask, lights, args.shadows)
         back = shade[..., None] + np.abs(rng.normal(0, 0.002, images.shape)).astype(np.float32)
@@ -84,6 +89,18 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     print(json.dumps({"background": args.background, "level": args.level, "shadows": args.shadows,
                       **{k: round(float(np.mean(v)), 2) for k, v in out.items()}}))
+
+
+def near_shading(mask: np.ndarray, lights: np.ndarray, distance: float) -> np.ndarray:
+    """[N, H, W] irradiance of a plane facing the camera (at the object's centroid's depth) from point
+    lights ``distance`` pixels from the centroid along ``lights``: cos / r^2, 1 / D^2 scaled to 1."""
+    rows, cols = np.nonzero(mask)
+    h, w = mask.shape
+    x = np.arange(w)[None, :] - cols.mean()
+    y = rows.mean() - np.arange(h)[:, None]  # y up
+    v = distance * lights[:, :, None, None] - np.stack(np.broadcast_arrays(x, y, np.zeros_like(x)))[None]
+    r = np.linalg.norm(v, axis=1)
+    return (np.clip(v[:, 2], 0, None) / r * (distance / r) ** 2).astype(np.float32)
 
 
 def cast_shadows(cap, mask: np.ndarray, lights: np.ndarray, gap: float) -> np.ndarray:

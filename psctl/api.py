@@ -579,6 +579,13 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
         sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
+        from psctl.lights import FOUND_FILE, NO_MASK_PREFIX
+
+        if sd.found_mask is None and FOUND_FILE in names:  # none found: no file (an earlier one goes)
+            names.remove(FOUND_FILE)
+        elif FOUND_FILE in names and write:
+            notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: check "
+                         f"it; copied into the capture folder as mask.png, it is read as the mask")
         est, normals, dark, light_stats, near = sd.lights, sd.normals, sd.dark, sd.light_stats, sd.near
         from psctl.lights import one_sided_notes
 
@@ -681,6 +688,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if spread is not None:
                 write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"],
                                  label=label)
+            if method == "sdps" and sd.found_mask is not None:
+                from psctl.io.images import write_image
+                from psctl.lights import FOUND_FILE
+
+                write_image(stage / FOUND_FILE, sd.found_mask.astype(np.float32), "uint8")
             if light_files:
                 from psctl.lights import image_list, write_light_files, write_lights_plot
 
@@ -708,7 +720,7 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
     from psctl.io.atomic import check_inputs_kept, check_output_dir
     from psctl.io.capture import check_not_capture
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS
-    from psctl.lights import SDPS_FILES
+    from psctl.lights import FOUND_FILE, SDPS_FILES
 
     notes: list[str] = []
     # report.json always: without ground truth it still records the method, notes and timings
@@ -721,10 +733,11 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
                      f"{SDPS_FILES['light_images']}")
     names = [FORMATS[f] for f in formats] + ([ALBEDO_FORMATS[f] for f in formats] if want_albedo else []) + \
         (["error.png"] if cap.gt_path else []) + \
-        (["spread.png"] if method == "ensemble" else []) + light_files + ["report.json"]
+        (["spread.png"] if method == "ensemble" else []) + light_files + \
+        ([FOUND_FILE] if method == "sdps" and cap.mask_path is None else []) + ["report.json"]  # (if one is found)
     # every file psctl normals may write
     all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(),
-                 "report.json")
+                 FOUND_FILE, "report.json")
     given = {os.path.realpath(p) for p in (weights, lcnet, *cap.input_paths) if p is not None}
 
     def stale(listed: list[str] | None = None) -> list[str]:
@@ -797,6 +810,7 @@ class _SdpsRun:
     light_stats: dict  # the lights the normals came from, likewise
     found: dict | None  # without mask.png, the object LCNet and the light fit read (FoundObject.info)
     near: "NearLights | None"  # the lights' distance and centre (the object LCNet reads)
+    found_mask: np.ndarray | None  # [H, W] bool, the object found and used (None: a mask file, or none found)
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
@@ -846,7 +860,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
-                    None if found is None else found.info, near)
+                    None if found is None else found.info, near, None if found is None else found.mask)
 
 
 def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,
@@ -1029,4 +1043,5 @@ def _output_key(filename: str) -> str:
     format); error.png -> error, spread.png -> spread, report.json -> report, sdps' light files
     light_directions_estimated.txt -> light_directions_estimated, ... (one file each)."""
     stem, ext = filename.rsplit(".", 1)
-    return stem if stem in ("error", "spread", "report") or stem.endswith("_estimated") else f"{stem}_{ext}"
+    return stem if stem in ("error", "spread", "report", "mask_found") or stem.endswith("_estimated") else \
+        f"{stem}_{ext}"

@@ -98,6 +98,9 @@ DEFAULT_LIGHTS = {
 OUTPUT_FILES = {"light_directions": "light_directions.txt", "light_intensities": "light_intensities.txt",
                 "lights": "lights.png"}
 SUBSET_FILE = "light_images.txt"  # with --images: the image each light file row belongs to
+# without a mask: the object found for LCNet and the light fit, 0 / 255 as a mask.png, to look at, or
+# to copy into the capture folder as mask.png (named mask_*: never read as one of its images)
+FOUND_FILE = "mask_found.png"
 # the run's report (what --json prints: errors, notes, provenance), beside the light files it
 # describes; named as psctl depth's depth_report.json, so never psctl normals' report.json
 REPORT_FILE = "lights_report.json"
@@ -1422,10 +1425,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         picked.append(f"images: the light files have {cap.n_images} rows, one per image listed in {SUBSET_FILE}")
     out_dir = output_folder(out, cap.path)
     if write:
-        check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), REPORT_FILE))  # its light files are inputs
+        check_not_capture(out_dir, cap, (*OUTPUT_FILES.values(), FOUND_FILE, REPORT_FILE))  # its light files are inputs
         from psctl.io.atomic import check_inputs_kept
 
-        check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE, REPORT_FILE],
+        check_inputs_kept(out_dir, [*OUTPUT_FILES.values(), SUBSET_FILE, FOUND_FILE, REPORT_FILE],
                           (("--weights", weights), ("--normals-weights", normals_weights)))
         check_output_dir(out_dir)
     mask = load_mask(cap)
@@ -1530,18 +1533,32 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         from psctl.io.report import write_json
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
-        names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), REPORT_FILE]
+        shown = found is not None and found.mask is not None  # the object found, written for the user to check
+        names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), *([FOUND_FILE] if shown else []),
+                 REPORT_FILE]
         report["notes"] += replaced_notes(out_dir, names, "lights")  # a same-named file of the user's
         if subset:
             report["outputs"]["light_images"] = os.path.abspath(out_dir / SUBSET_FILE)
         elif (out_dir / SUBSET_FILE).is_file():
             report["notes"].append(f"outputs: removed {SUBSET_FILE}, left by an earlier psctl lights --images run "
                                    "(these light files have a row for every image)")
-        with staged_outputs(out_dir, replaces=[SUBSET_FILE]) as stage:  # an earlier subset's list goes
+        if shown:
+            report["outputs"]["mask_found"] = os.path.abspath(out_dir / FOUND_FILE)
+            report["notes"].append(f"{NO_MASK_PREFIX}the object found is in {FOUND_FILE}: check it; copied into the "
+                                   f"capture folder as mask.png, it is read as the mask")
+        elif (out_dir / FOUND_FILE).is_file():
+            report["notes"].append(f"outputs: removed {FOUND_FILE}, left by an earlier psctl lights run that found the "
+                                   f"object (this one {'read ' + cap.mask_path.name if found is None else 'found none'})")
+        # an earlier subset's list goes, and an earlier found object
+        with staged_outputs(out_dir, replaces=[SUBSET_FILE, FOUND_FILE]) as stage:
             write_outputs_list(stage, names, "lights")
             write_light_files(stage, est.directions, est.intensities)
             if subset:
                 (stage / SUBSET_FILE).write_text(image_list(cap), encoding="utf-8")
+            if shown:
+                from psctl.io.images import write_image
+
+                write_image(stage / FOUND_FILE, found.mask.astype(np.float32), "uint8")
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
                               errors["light_mae"], cap.name)
             report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)

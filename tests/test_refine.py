@@ -938,6 +938,46 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     assert len(read) == 8 and all(np.array_equal(r, found.mask) for r in read)  # b: found; c: its mask.png
 
 
+def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypatch):
+    """Without mask.png, psctl lights and sdps write the object they found as mask_found.png (0 /
+    255, as a mask.png): copied into the capture folder it is read as the mask and gives the same
+    lights. A later run that reads a mask removes the earlier file."""
+    import shutil
+
+    from psctl.api import run_normals
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import read_image
+    from psctl.lights import FOUND_FILE, capture_brightness, find_object, run_lights
+
+    write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
+    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG"))).mask
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
+    r = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
+    assert r["outputs"]["mask_found"] == str(tmp_path / "out" / FOUND_FILE)
+    assert any(FOUND_FILE in n for n in r["notes"])
+    png = read_image(tmp_path / "out" / FOUND_FILE)
+    png = png[0] if isinstance(png, tuple) else png
+    assert np.array_equal(np.asarray(png).reshape(32, 32, -1)[..., 0] > 0.5, found)
+    s = run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
+    assert s["outputs"]["mask_found"] == str(tmp_path / "sd" / FOUND_FILE) and (tmp_path / "sd" / FOUND_FILE).is_file()
+    assert json.loads((tmp_path / "sd" / "report.json").read_text())["written"][FOUND_FILE]
+    shutil.copy(tmp_path / "out" / FOUND_FILE, tmp_path / "bPNG" / "mask.png")  # the user takes it as the mask
+    assert np.array_equal(load_mask(open_capture(tmp_path / "bPNG")), found)
+    again = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
+    assert again["light_mae"] == r["light_mae"] and not (tmp_path / "out" / FOUND_FILE).exists()
+    assert "mask_found" not in again["outputs"] and any(f"removed {FOUND_FILE}" in n for n in again["notes"])
+    run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
+    assert not (tmp_path / "sd" / FOUND_FILE).exists()
+    from psctl.io.images import write_image
+
+    (tmp_path / "flat").mkdir()  # no mask and no object found (a lit frame): no file
+    for k in range(6):
+        write_image(tmp_path / "flat" / f"{k:03d}.png", np.full((32, 40, 3), 0.2 + 0.1 * k, np.float32), "uint16")
+    flat = run_normals(tmp_path / "flat", method="sdps", out=tmp_path / "fl", device="cpu")
+    assert flat["found_object"]["used"] is False and "mask_found" not in flat["outputs"]
+    assert not (tmp_path / "fl" / FOUND_FILE).exists()
+
+
 def test_exposure_notes_name_the_object_found(tmp_path, fake_weights, monkeypatch):
     """A dim capture without mask.png: LCNet's exposure note says its mean is the found object's,
     not "inside the mask" (there is none; session 63's wording)."""
