@@ -579,17 +579,17 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
         sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
-        from psctl.lights import FOUND_FILE, NO_MASK_PREFIX
-
-        if sd.found_mask is None and FOUND_FILE in names:  # none found: no file (an earlier one goes)
-            names.remove(FOUND_FILE)
-        elif FOUND_FILE in names and write:
-            notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: check "
-                         f"it; copied into the capture folder as mask.png, it is read as the mask")
         est, normals, dark, light_stats, near = sd.lights, sd.normals, sd.dark, sd.light_stats, sd.near
-        from psctl.lights import one_sided_notes
+        from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, one_sided_notes
 
         notes += sd.notes + one_sided_notes(est.directions)
+        if FOUND_FILE in names:  # no mask file: the object found is written, or none was (_normals_outputs)
+            if sd.found_mask is None:
+                names.remove(FOUND_FILE)  # (before the note: stale() then counts an earlier one)
+            notes += _found_file_notes(sd.found_mask is not None, stale, out_dir) if write else []
+            if sd.found_mask is not None and write:
+                notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: "
+                             f"check it; copied into the capture folder as mask.png, it is read as the mask")
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
 
@@ -754,7 +754,7 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         listed = read_outputs_list(out_dir, "normals")  # read once here: for the note on removals and the one below
-        removed = stale(listed)
+        removed = [n for n in stale(listed) if n != FOUND_FILE]  # (whether it is written: after the search)
         if removed:
             notes.append(f"outputs: removed {', '.join(removed)}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")
@@ -762,8 +762,23 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
             if os.path.lexists(out_dir / n) and not ((out_dir / n).is_file() or (out_dir / n).is_symlink()):
                 raise PsctlError(out_dir / n, "is in the way of an output file (it is not a file); move it away "
                                               "or choose another --out")
-        notes += replaced_notes(out_dir, names, "normals", listed)  # not psctl's (or from a psctl without the list)
+        # not psctl's (or from a psctl without the list); the found object's file: after the search
+        notes += replaced_notes(out_dir, [n for n in names if n != FOUND_FILE], "normals", listed)
     return names, light_files, stale, notes
+
+
+def _found_file_notes(written: bool, stale: Callable[[], list[str]], out_dir: "Path") -> list[str]:
+    """The notes on mask_found.png that _normals_outputs leaves to after the object search:
+    replacing a user's own file of that name (``written``), or removing an earlier run's."""
+    from psctl.io.atomic import replaced_notes
+    from psctl.lights import FOUND_FILE
+
+    if written:
+        return [n for n in replaced_notes(out_dir, [FOUND_FILE], "normals") if FOUND_FILE in n]
+    if FOUND_FILE in stale():
+        return [f"outputs: removed {FOUND_FILE}, left in {out_dir} by an earlier psctl run (this one found no "
+                f"object)"]
+    return []
 
 
 def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: ProgressFactory,

@@ -1529,7 +1529,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
         report["seed"] = seed
     if write:
-        from psctl.io.atomic import replaced_notes, write_outputs_list
+        from psctl.io.atomic import read_outputs_list, replaced_notes, write_outputs_list
         from psctl.io.report import write_json
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
@@ -1546,11 +1546,13 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             report["outputs"]["mask_found"] = os.path.abspath(out_dir / FOUND_FILE)
             report["notes"].append(f"{NO_MASK_PREFIX}the object found is in {FOUND_FILE}: check it; copied into the "
                                    f"capture folder as mask.png, it is read as the mask")
-        elif (out_dir / FOUND_FILE).is_file():
+        # an earlier run's found object goes (one this run's list will not name); a file of the user's stays
+        earlier = FOUND_FILE in read_outputs_list(out_dir, "lights") and (out_dir / FOUND_FILE).is_file()
+        if earlier and not shown:
             report["notes"].append(f"outputs: removed {FOUND_FILE}, left by an earlier psctl lights run that found the "
                                    f"object (this one {'read ' + cap.mask_path.name if found is None else 'found none'})")
         # an earlier subset's list goes, and an earlier found object
-        with staged_outputs(out_dir, replaces=[SUBSET_FILE, FOUND_FILE]) as stage:
+        with staged_outputs(out_dir, replaces=[SUBSET_FILE, *([FOUND_FILE] if earlier else [])]) as stage:
             write_outputs_list(stage, names, "lights")
             write_light_files(stage, est.directions, est.intensities)
             if subset:

@@ -961,6 +961,7 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     s = run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
     assert s["outputs"]["mask_found"] == str(tmp_path / "sd" / FOUND_FILE) and (tmp_path / "sd" / FOUND_FILE).is_file()
     assert json.loads((tmp_path / "sd" / "report.json").read_text())["written"][FOUND_FILE]
+    shutil.copytree(tmp_path / "bPNG", tmp_path / "nomask")
     shutil.copy(tmp_path / "out" / FOUND_FILE, tmp_path / "bPNG" / "mask.png")  # the user takes it as the mask
     assert np.array_equal(load_mask(open_capture(tmp_path / "bPNG")), found)
     again = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
@@ -973,9 +974,19 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     (tmp_path / "flat").mkdir()  # no mask and no object found (a lit frame): no file
     for k in range(6):
         write_image(tmp_path / "flat" / f"{k:03d}.png", np.full((32, 40, 3), 0.2 + 0.1 * k, np.float32), "uint16")
-    flat = run_normals(tmp_path / "flat", method="sdps", out=tmp_path / "fl", device="cpu")
+    shutil.copytree(tmp_path / "sd", tmp_path / "fl")
+    (tmp_path / "sd" / FOUND_FILE).write_bytes(b"mine")  # a file of the user's: kept, and said to be replaced
+    (tmp_path / "sd" / ".psctl-normals").unlink()
+    flat = run_normals(tmp_path / "flat", method="sdps", out=tmp_path / "sd", device="cpu")
     assert flat["found_object"]["used"] is False and "mask_found" not in flat["outputs"]
+    assert (tmp_path / "sd" / FOUND_FILE).read_bytes() == b"mine" and not any(FOUND_FILE in n for n in flat["notes"])
+    s = run_normals(tmp_path / "nomask", method="sdps", out=tmp_path / "fl", device="cpu")  # an earlier run's file:
+    flat = run_normals(tmp_path / "flat", method="sdps", out=tmp_path / "fl", device="cpu")  # removed, with a note
     assert not (tmp_path / "fl" / FOUND_FILE).exists()
+    assert any(f"removed {FOUND_FILE}" in n and "found no object" in n for n in flat["notes"]), flat["notes"]
+    (tmp_path / "out" / FOUND_FILE).write_bytes(b"mine")  # psctl lights keeps a file of the user's too
+    kept = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
+    assert (tmp_path / "out" / FOUND_FILE).read_bytes() == b"mine" and not any(FOUND_FILE in n for n in kept["notes"])
 
 
 def test_exposure_notes_name_the_object_found(tmp_path, fake_weights, monkeypatch):
