@@ -1285,8 +1285,9 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
                    memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, dict, FoundObject | None]:
     """What LCNet and the light fit read of a capture: (mask, LCNet's config, found). With a mask
     file, ``mask`` and ``config`` as given and None; without one, the object ``find_object``
-    finds in one read of the images (``capture_brightness``; ``memo`` keeps them), with LCNet's
-    exposure guard reading it as a mask, or where none is found the whole frame (``mask``)."""
+    finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
+    keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
+    whole frame (``mask``)."""
     if capture.mask_path is not None:
         return mask, config, None
     found = find_object(*capture_shading(capture, progress, memo))
