@@ -666,7 +666,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lcnet_light_mae"] = sd.lcnet_stats["light_mae"]  # before refinement
         report["lcnet_intensity_re"] = sd.lcnet_stats["intensity_re"]
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
-        report["found_object"] = sd.found  # None with a mask.png
+        report["found_object"] = None if sd.found is None else sd.found.info  # None with a mask.png
 
     if arrays is not None:
         arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo)
@@ -823,9 +823,13 @@ class _SdpsRun:
     lcnet_config: dict  # how LCNet ran (decode, views)
     lcnet_stats: dict  # LCNet's own lights against the folder's: light_mae, intensity_re (None without)
     light_stats: dict  # the lights the normals came from, likewise
-    found: dict | None  # without mask.png, the object LCNet and the light fit read (FoundObject.info)
+    found: "FoundObject | None"  # without mask.png, the object LCNet and the light fit read (None: a mask file)
     near: "NearLights | None"  # the lights' distance and centre (the object LCNet reads)
-    found_mask: np.ndarray | None  # [H, W] bool, the object found and used (None: a mask file, or none found)
+
+    @property
+    def found_mask(self) -> np.ndarray | None:
+        """[H, W] bool, the object found and used (None: a mask file, or none found)."""
+        return None if self.found is None else self.found.mask
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
@@ -856,7 +860,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     # LCNet and the light fit read the object (found without a mask file); the normals cover the mask
     fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo)
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
-    near = near_lights(light_distance, fit_mask, cap.mask_path, found=fit_mask is not mask)
+    near = near_lights(light_distance, fit_mask, cap.mask_path, found=found is not None and found.mask is not None)
     if near is not None:
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
                                            "(LCNet reads the images as captured)"))
@@ -875,7 +879,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
-                    None if found is None else found.info, near, None if found is None else found.mask)
+                    found, near)
 
 
 def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,

@@ -358,12 +358,15 @@ def lit_mean(pixel_sum: np.ndarray, n: int) -> float:
     return float(pixel_sum[lit].sum()) / (3.0 * n * count) if count else 0.0
 
 
+_EXPOSURE_WHERE = {"mask": "inside the mask", "lit": "over the lit pixels",
+                   "found": "inside the object found without a mask"}
+
+
 def exposure_where(exposure_pixels: str) -> str:
     """The words for where an exposure mean is taken (messages), refusing an unknown rule."""
     if exposure_pixels not in EXPOSURE_PIXELS:
         raise PsctlError(None, f"exposure_pixels must be {' or '.join(EXPOSURE_PIXELS)}, not {exposure_pixels!r}")
-    return {"lit": "over the lit pixels", "found": "inside the object found without a mask"}.get(
-        exposure_pixels, "inside the mask")
+    return _EXPOSURE_WHERE[exposure_pixels]
 
 
 def check_float32_scale(factor: float, mean: float, where: str = "inside the mask") -> float:
@@ -718,9 +721,8 @@ def _prepare_network(method: str, weights: str | Path | None, config: dict | Non
 
 def _note_exposure(res: InferResult, method: str, input_mean: float | None) -> None:
     if "exposure_scale" in res.info:
-        lit = {"lit": " (their mean over the lit pixels: no mask)",
-               "found": " (their mean inside the object found without a mask)"}.get(
-            res.info.get("exposure_pixels"), "")
+        rule = res.info.get("exposure_pixels", "mask")  # the mask's: said by no note
+        lit = "" if rule == "mask" else f" (their mean {_EXPOSURE_WHERE[rule]}{': no mask' if rule == 'lit' else ''})"
         res.notes.append(f"{method}: images scaled by {res.info['exposure_scale']:.4g}{lit} to the mean brightness "
                          f"the network was trained at ({input_mean:.3g})")
 

@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -1164,7 +1164,7 @@ def block_samples(image: np.ndarray, f: int) -> np.ndarray:
     h, w = image.shape
     rows = np.minimum(np.arange(0, h, f) + f // 2, h - 1)
     cols = np.minimum(np.arange(0, w, f) + f // 2, w - 1)
-    return np.asarray(image, np.float32)[np.ix_(rows, cols)]
+    return np.asarray(image)[np.ix_(rows, cols)].astype(np.float32)  # (sampled, then converted: not the frame)
 
 
 def border_ring(height: int, width: int) -> np.ndarray:
@@ -1264,10 +1264,10 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
         notes = [f"LCNet and the light fit read the object found by {by} ({how}: {info['pixels']} pixels, "
                  f"{frac:.0%} of the frame); a mask of the object is surer"]
     else:
-        why = (("nothing is lit" if by == "brightness" else "no part differs from the background")
-               if not region.any() else f"the {'lit' if by == 'brightness' else 'found'} region "
-               f"covers {frac:.0%} of the frame" if frac > FOUND_MAX_FRACTION else
-               f"the {'lit' if by == 'brightness' else 'found'} region has {int(region.sum())} pixels")
+        part = "lit" if by == "brightness" else "found"
+        why = ("nothing is lit" if by == "brightness" else "no part differs from the background") if \
+            not region.any() else f"the {part} region covers {frac:.0%} of the frame" if \
+            frac > FOUND_MAX_FRACTION else f"the {part} region has {int(region.sum())} pixels"
         notes = [f"no object found by {by} ({why}): {NO_MASK_WHY}"]
     if by == "shading" and used:
         notes.append("the background is lit: the object was told from it by shading, which assumes a background of "
@@ -1313,30 +1313,31 @@ def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = Non
 
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     box = (slice(0, capture.height), slice(0, capture.width))
-    total = np.zeros((capture.height, capture.width), np.float64)
-    f = profile_grid(capture.n_images, capture.height, capture.width)
-    profiles = np.zeros((capture.n_images, -(-capture.height // f), -(-capture.width // f)), np.float32)
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: finding the object", capture.n_images)
     with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
-        for k, img in enumerate(iter_images(raw, box, decoded=pf, memo=memo)):
-            grey = img.sum(-1, dtype=np.float64)
-            total += grey
-            profiles[k] = block_samples(grey / img.shape[-1], f)
-            advance(1)
-    return total, profiles
+        return _shading(iter_images(raw, box, decoded=pf, memo=memo), capture.n_images, capture.height,
+                        capture.width, advance)
 
 
 def array_shading(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``capture_shading`` of in-memory images [N, H, W, 3] (or [N, H, W] grey)."""
     images = images[..., None] if images.ndim == 3 else images
-    n, h, w, c = images.shape
+    return _shading(images, *images.shape[:3])
+
+
+def _shading(images: Iterable[np.ndarray], n: int, h: int, w: int,
+             advance: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The brightness and profiles of ``n`` images [h, w, C], taken one at a time (no float64 copy
+    of them all)."""
     f = profile_grid(n, h, w)
     total = np.zeros((h, w), np.float64)
     profiles = np.zeros((n, -(-h // f), -(-w // f)), np.float32)
-    for k, img in enumerate(images):  # one image at a time: no float64 copy of them all
+    for k, img in enumerate(images):
         grey = img.sum(-1, dtype=np.float64)
         total += grey
-        profiles[k] = block_samples(grey / c, f)
+        profiles[k] = block_samples(grey, f) / img.shape[-1]
+        if advance is not None:
+            advance(1)
     return total, profiles
 
 
@@ -1459,11 +1460,12 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     fit_mask, lc_cfg, found = capture_object(cap, mask, {"device": device, "decode": decode, "views": views},
                                              progress, memo)
     picked += [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
+    shown = found is not None and found.mask is not None  # read in the mask's place (and written for the user)
     near = None
     if light_distance is not None:  # the lights sit about the object's centre: the found one's without a mask
         from psctl.nearlight import near_lights, near_note
 
-        near = near_lights(light_distance, fit_mask, cap.mask_path, found=fit_mask is not mask)
+        near = near_lights(light_distance, fit_mask, cap.mask_path, found=shown)
         picked.append(near_note(near, "the refinement divides each image by its light's falloff (LCNet reads the "
                                       "images as captured)"))
     keep_box = None
@@ -1477,7 +1479,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if refines:
         # no normals written: the network too reads the found object only, its exposure the object's mean
         # (as a mask.png would make them; the lit pixels' rule of a capture without one split the object)
-        cfg = net_cfg if fit_mask is mask else {**net_cfg, "exposure_pixels": "found"}
+        cfg = {**net_cfg, "exposure_pixels": "found"} if shown else net_cfg
         est = _refine_capture(replace(cap, near=near), fit_mask, est, normals_weights, second, cfg, progress, fit,
                               memo)
     elif refine:
@@ -1534,7 +1536,6 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         from psctl.io.report import write_json
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
-        shown = found is not None and found.mask is not None  # the object found, written for the user to check
         names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), *([FOUND_FILE] if shown else []),
                  REPORT_FILE]
         report["notes"] += replaced_notes(out_dir, names, "lights")  # a same-named file of the user's
