@@ -51,10 +51,8 @@ def main() -> None:
     ap.add_argument("--only", default="mask,found,brightness,frame", help="which runs, comma-separated")
     args = ap.parse_args()
 
-    from scipy import ndimage
-
     import psctl
-    from psctl.io.capture import load_images, load_mask, open_capture
+    from psctl.io.capture import open_capture
     from psctl.lights import array_shading, find_object
     from psctl.metrics import light_direction_error
 
@@ -63,18 +61,7 @@ def main() -> None:
     out: dict[str, list[float]] = {}
     for name in (args.root / "objects.txt").read_text().split()[::args.every]:
         cap = open_capture(args.root / name)
-        images, lights, mask = load_images(cap), cap.lights, load_mask(cap)
-        if args.background == "plane":
-            albedo = np.full(mask.shape, args.level, np.float32)
-        else:
-            t = ndimage.gaussian_filter(rng.normal(size=mask.shape), 6)
-            albedo = (0.05 + 0.55 * (t - t.min()) / (t.max() - t.min())).astype(np.float32)
-        shade = (np.clip(lights[:, 2], 0, None)[:, None, None] if args.near is None else
-                 near_shading(mask, lights, args.near)) * albedo[None]
-        if args.shadows is not None:
-            shade = shade * cast_shadows(cap, mask, lights, args.shadows)
-        back = shade[..., None] + np.abs(rng.normal(0, 0.002, images.shape)).astype(np.float32)
-        images[:, ~mask] = back[:, ~mask]
+        images, lights, mask = scene(cap, args.background, args.level, args.shadows, args.near, rng)
         found = find_object(*array_shading(images))
         region = np.ones_like(mask) if found.mask is None else found.mask
         row = {"object": name, **{k: found.info[k] for k in ("frame_fraction", "contrast", "by", "used")},
@@ -89,6 +76,29 @@ def main() -> None:
         print(json.dumps(row), flush=True)
     print(json.dumps({"background": args.background, "level": args.level, "shadows": args.shadows,
                       **{k: round(float(np.mean(v)), 2) for k, v in out.items()}}))
+
+
+def scene(cap, background: str, level: float, shadows: float | None, near: float | None,
+          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The synthetic object of ``cap`` in front of a background (see the module's docstring):
+    images [N, H, W, 3] as captured, its lights [N, 3] and its true mask [H, W]."""
+    from scipy import ndimage
+
+    from psctl.io.capture import load_images, load_mask
+
+    images, lights, mask = load_images(cap, as_captured=True), cap.lights, load_mask(cap)
+    if background == "plane":
+        albedo = np.full(mask.shape, level, np.float32)
+    else:
+        t = ndimage.gaussian_filter(rng.normal(size=mask.shape), 6)
+        albedo = (0.05 + 0.55 * (t - t.min()) / (t.max() - t.min())).astype(np.float32)
+    shade = (np.clip(lights[:, 2], 0, None)[:, None, None] if near is None else
+             near_shading(mask, lights, near)) * albedo[None]
+    if shadows is not None:
+        shade = shade * cast_shadows(cap, mask, lights, shadows)
+    back = shade[..., None] + np.abs(rng.normal(0, 0.002, images.shape)).astype(np.float32)
+    images[:, ~mask] = back[:, ~mask]
+    return images, lights, mask
 
 
 def near_shading(mask: np.ndarray, lights: np.ndarray, distance: float) -> np.ndarray:

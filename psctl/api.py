@@ -232,8 +232,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
-            the whole image (sdps' LCNet and light fit read the object found without it,
-            ``psctl.lights.find_object``).
+            l2 the whole image; the network methods (and sdps' LCNet and light fit) read the
+            object ``psctl.lights.find_object`` finds and give normals on it and
+            ``psctl.infer.FOUND_GROW`` pixels around it (0 beyond), or where it finds none the
+            whole image (warnings say which).
         method: "l2", "ps-fcn", "ps-fcn-n", "ensemble" (the unit mean of PS-FCN's and PS-FCN+N's
             normals), "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps
@@ -288,28 +290,31 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         raise PsctlError(None, f"lights: {method} does not use given light directions ("
                                + ("it estimates them" if method == "sdps" else "it works without them")
                                + "); pass lights=None, or use l2, ps-fcn, ps-fcn-n or ensemble")
+    if light_distance is not None and method not in LISTED_LIGHTS:
+        raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
+                               f"the falloff follows; use l2, ps-fcn, ps-fcn-n or ensemble (or psctl.run_normals "
+                               f"on a folder)")
+    # called as psctl.estimate_normals, the package's wrapper is one frame between
+    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+    found = None  # mask=None: the object the networks (sdps: LCNet and the light fit too) read
+    if mask is None and method != "l2":
+        from psctl.lights import array_shading, find_object
+
+        found = find_object(*array_shading(images), reader="normals" if method != "sdps" else "sdps")
+        _warn_found(found, method, level)
+    read = mask if found is None or found.mask is None else found.mask
     if light_distance is not None:
-        if method not in LISTED_LIGHTS:
-            raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
-                                   f"the falloff follows; use l2, ps-fcn, ps-fcn-n or ensemble (or psctl.run_normals "
-                                   f"on a folder)")
         from psctl.nearlight import near_lights
 
         h, w = images.shape[1:3]
-        near = near_lights(light_distance, np.ones((h, w), bool) if mask is None else mask)
+        near = near_lights(light_distance, np.ones((h, w), bool) if read is None else read, found=read is not mask)
         rows, cols = np.arange(h), np.arange(w)
         images = np.stack([img * near.correction(lt, rows, cols)[..., None] for img, lt in zip(images, lights)])
-    # called as psctl.estimate_normals, the package's wrapper is one frame between
-    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
-    fit_mask = mask
-    if method == "sdps" and mask is None:  # as estimate_lights
-        from psctl.lights import array_shading, find_object
-
-        found = find_object(*array_shading(images))
-        fit_mask = found.mask
-        _warn_found(found, "sdps", level)
+    net_cfg.update(_found_config(found))
+    if found is not None and found.mask is not None:
+        warnings.warn(f"{method}: mask=None: {_found_file_note(False)}", PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
     unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
     if unused:
@@ -324,21 +329,17 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
-        est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
-        source = array_source(images, mask, second, weights, net_cfg, saturated, fit_mask)
+        est = array_lights(images, read, lcnet, sdps_lcnet_config(second, weights, device))
+        source = array_source(images, read, second, weights, net_cfg, saturated)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
         from psctl.hotpixels import HOT_PIXEL_WORDS
         from psctl.infer import array_normals
 
-        res = array_normals(images, lights, mask, method, weights, net_cfg)
+        res = array_normals(images, lights, read, method, weights, net_cfg)
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
-        if mask is None:  # as run_normals notes a folder without mask.png
-            from psctl.infer import NO_MASK_NETWORKS_WHY
-
-            warnings.warn(f"{method}: mask=None: {NO_MASK_NETWORKS_WHY}", PsctlWarning, stacklevel=level)
         for note in res.notes:  # values changed: a warning, as l2's below
             if HOT_PIXEL_WORDS in note:
                 warnings.warn(f"{method}: {note}", PsctlWarning, stacklevel=level)
@@ -478,9 +479,14 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not, about the
     centroid of the object LCNet reads, found without a mask file, ``find_object``); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
-    the images as captured. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
-    [H, W, 3], "mask" [H, W], "error" [H, W] degrees (None without ground truth; 0 outside the mask,
-    NaN on mask pixels whose ground truth is zero or NaN, which the metrics leave out), "spread"
+    the images as captured. Without a mask file the network methods (all but l2) read the object
+    ``psctl.lights.find_object`` finds and give normals on it and ``psctl.infer.FOUND_GROW``
+    pixels around it (docs/models.md, "Without a mask"); it is written as ``mask_found.png`` and
+    is the report's ``found_object``. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
+    [H, W, 3], "mask" [H, W] (where normals are given), "error" [H, W] degrees (None without ground
+    truth; 0 outside the pixels scored, NaN on mask pixels whose ground truth is zero or NaN, which
+    the metrics leave out; without a mask file, a ground-truth pixel beyond the object found has no
+    normal and scores 90), "spread"
     [H, W] degrees (None but for the ensemble) and "albedo" [H, W, 3] (None without ``albedo``).
     ``albedo``: also the albedo map from the normals, the lights (sdps: as estimated) and the
     images (``psctl.albedo``: per channel, the median of image / (n . l) over the images that
@@ -492,7 +498,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     from psctl.classic import lights_problem
     from psctl.models import check_downsample, check_precision, precision_autocast
-    from psctl.lights import SDPS_FILES, refine_config
+    from psctl.lights import FOUND_FILE, SDPS_FILES, refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
     from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture,
@@ -559,53 +565,65 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     mask = load_mask(cap)
     gt = load_ground_truth(cap)
-    box = bounding_box(mask)
-    near = None
-    if light_distance is not None and method != "sdps":  # sdps: about the object LCNet reads (_sdps_normals)
-        from psctl.nearlight import near_lights, near_note
-
-        near = near_lights(light_distance, mask, cap.mask_path)
-        notes.append(near_note(near, "each image divided by its light's falloff; directions as listed"))
-        cap = replace(cap, near=near)
-
-    # --- solve -------------------------------------------------------------------------------
     memo = None  # the albedo's pass takes the images this one decodes, where they fit
     if want_albedo:
         from psctl.albedo import DEFAULT_ALBEDO
         from psctl.io.capture import DecodeMemo
 
         memo = DecodeMemo(DEFAULT_ALBEDO["memo_mb"] << 20)
+    found = None  # without a mask file, the object the networks read (sdps: _sdps_normals finds it)
+    if cap.mask_path is None and method in (*NETWORKS, "ensemble"):
+        from psctl.infer import DEFAULT_INFER
+        from psctl.io.capture import DecodeMemo
+        from psctl.lights import capture_object
+
+        if memo is None:  # the networks' pass takes the images the search decoded, where they fit
+            memo = DecodeMemo(DEFAULT_INFER["cache_mb"] << 20)
+        found = capture_object(cap, mask, {}, progress, memo, reader="normals")[2]
+    read = mask if found is None or found.mask is None else found.mask  # what the networks read
+    box = bounding_box(mask)
+    near = None
+    if light_distance is not None and method != "sdps":  # sdps: about the object LCNet reads (_sdps_normals)
+        from psctl.nearlight import near_lights, near_note
+
+        near = near_lights(light_distance, read, cap.mask_path, found=read is not mask)
+        notes.append(near_note(near, "each image divided by its light's falloff; directions as listed"))
+        cap = replace(cap, near=near)
+
+    # --- solve -------------------------------------------------------------------------------
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
         sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
         est, normals, dark, light_stats, near = sd.lights, sd.normals, sd.dark, sd.light_stats, sd.near
-        from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, one_sided_notes
+        from psctl.lights import one_sided_notes
 
         notes += sd.notes + one_sided_notes(est.directions)
-        if FOUND_FILE in names:  # no mask file: the object found is written, or none was (_normals_outputs)
-            if sd.found_mask is None:
-                names.remove(FOUND_FILE)  # (before the note: stale() then counts an earlier one)
-            notes += _found_file_notes(sd.found_mask is not None, stale, out_dir) if write else []
-            if sd.found_mask is not None and write:
-                notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: "
-                             f"check it; copied into the capture folder as mask.png, it is read as the mask")
+        found, mask = sd.found, sd.mask
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
+        from psctl.lights import NO_MASK_PREFIX
 
-        net = capture_normals(cap, mask, method, weights, net_cfg, progress, memo)
+        net = capture_normals(cap, read, method, weights, {**net_cfg, **_found_config(found)}, progress, memo)
         normals, dark, spread = net.normals, net.dark, net.spread
-        notes += net.notes + (["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)]
-                              if method == "ensemble" else [])
-        if cap.mask_path is None:
-            from psctl.infer import NO_MASK_NETWORKS_WHY
-
-            notes.append("mask: none (no mask.png): " + NO_MASK_NETWORKS_WHY)
+        notes += ([] if found is None else [NO_MASK_PREFIX + n for n in found.notes]) + net.notes + (
+            ["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)] if method == "ensemble" else [])
+        mask = _found_domain(found, mask)
     else:
         normals, dark, l2_notes = _l2_normals(cap, mask, box, progress, memo)
         notes += l2_notes
     if not np.isfinite(normals).all():  # a bug, never a user error: fail loudly
         raise RuntimeError("internal error: non-finite normals")
+    found_mask = None if found is None else found.mask
+    if FOUND_FILE in names:  # no mask file: the object found is written, or none was (_normals_outputs)
+        if found_mask is None:
+            names.remove(FOUND_FILE)  # (before the note: stale() then counts an earlier one)
+        notes += _found_file_notes(found_mask is not None, stale, out_dir) if write else []
+    if found_mask is not None:
+        from psctl.lights import NO_MASK_PREFIX
+
+        notes.append(NO_MASK_PREFIX + _found_file_note(write))
+    box = bounding_box(mask)
     if method in LISTED_LIGHTS:  # the light file's methods
         notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
 
@@ -618,7 +636,19 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         notes += alb_notes
 
     # --- evaluate ------------------------------------------------------------------------------
-    error, stats, valid, eval_notes = _evaluate(normals, gt, mask, cap.gt_path)
+    scored = mask
+    if found_mask is not None and gt is not None:
+        # the object found may miss pixels the ground truth has: scored too, at 90 degrees (no
+        # normal), else a search that found less would score better
+        truth = np.isfinite(gt).all(-1) & (np.linalg.norm(np.nan_to_num(gt), axis=-1) > 0.5)
+        scored = mask | truth
+        missed = int((truth & ~mask).sum())
+        if missed:
+            from psctl.infer import FOUND_GROW
+
+            notes.append(f"scoring: {missed} pixels with a ground-truth normal lie beyond the object found and the "
+                         f"{FOUND_GROW} pixels around it: they have no normal and count at 90 degrees")
+    error, stats, valid, eval_notes = _evaluate(normals, gt, scored, cap.gt_path)
     n_eval = 0 if valid is None else int(valid.sum())
     notes += eval_notes
 
@@ -666,7 +696,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["lcnet_light_mae"] = sd.lcnet_stats["light_mae"]  # before refinement
         report["lcnet_intensity_re"] = sd.lcnet_stats["intensity_re"]
         report["lights_refined"] = est.info.get("refine")  # {quality, weight, ...} or None
-        report["found_object"] = None if sd.found is None else sd.found.info  # None with a mask.png
+    if method != "l2":  # the networks' object without a mask file (None with one)
+        report["found_object"] = None if found is None else found.info
 
     if arrays is not None:
         arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo)
@@ -684,15 +715,14 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                     write_albedo_map(stage / ALBEDO_FORMATS[f], alb.albedo, mask, f, albedo_stats["png_scale"])
             label = f"{report['object']}  {report['method']}"  # which run: pictures get compared side by side
             if error is not None:
-                write_error_map(stage / "error.png", error, mask, stats["mae"], stats["median"], label=label)
+                write_error_map(stage / "error.png", error, scored, stats["mae"], stats["median"], label=label)
             if spread is not None:
                 write_spread_map(stage / "spread.png", spread, mask, report["spread"]["mean"], report["spread"]["p90"],
                                  label=label)
-            if method == "sdps" and sd.found_mask is not None:
+            if found_mask is not None:
                 from psctl.io.images import write_image
-                from psctl.lights import FOUND_FILE
 
-                write_image(stage / FOUND_FILE, sd.found_mask.astype(np.float32), "uint8")
+                write_image(stage / FOUND_FILE, found_mask.astype(np.float32), "uint8")
             if light_files:
                 from psctl.lights import image_list, write_light_files, write_lights_plot
 
@@ -734,7 +764,7 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
     names = [FORMATS[f] for f in formats] + ([ALBEDO_FORMATS[f] for f in formats] if want_albedo else []) + \
         (["error.png"] if cap.gt_path else []) + \
         (["spread.png"] if method == "ensemble" else []) + light_files + \
-        ([FOUND_FILE] if method == "sdps" and cap.mask_path is None else []) + ["report.json"]  # (if one is found)
+        ([FOUND_FILE] if method != "l2" and cap.mask_path is None else []) + ["report.json"]  # (if one is found)
     # every file psctl normals may write
     all_names = (*FORMATS.values(), *ALBEDO_FORMATS.values(), "error.png", "spread.png", *SDPS_FILES.values(),
                  FOUND_FILE, "report.json")
@@ -823,13 +853,9 @@ class _SdpsRun:
     lcnet_config: dict  # how LCNet ran (decode, views)
     lcnet_stats: dict  # LCNet's own lights against the folder's: light_mae, intensity_re (None without)
     light_stats: dict  # the lights the normals came from, likewise
-    found: "FoundObject | None"  # without mask.png, the object LCNet and the light fit read (None: a mask file)
+    found: "FoundObject | None"  # without mask.png, the object LCNet, the light fit and the networks read (None: a mask file)
     near: "NearLights | None"  # the lights' distance and centre (the object LCNet reads)
-
-    @property
-    def found_mask(self) -> np.ndarray | None:
-        """[H, W] bool, the object found and used (None: a mask file, or none found)."""
-        return None if self.found is None else self.found.mask
+    mask: np.ndarray  # [H, W] bool, where the normals are given (_found_domain)
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
@@ -857,18 +883,19 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     lc_cfg = sdps_lcnet_config(second, weights, device)
     if memo is None:  # every pass takes the images LCNet's decoded, where they fit
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
-    # LCNet and the light fit read the object (found without a mask file); the normals cover the mask
-    fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo)
+    # LCNet, the light fit and the second stage read the object (found without a mask file)
+    fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps")
+    net_cfg = {**net_cfg, **_found_config(found)}
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     near = near_lights(light_distance, fit_mask, cap.mask_path, found=found is not None and found.mask is not None)
     if near is not None:
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
                                            "(LCNet reads the images as captured)"))
     est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
-                         keep_box=first_read_box(cap, mask, net_cfg))
+                         keep_box=first_read_box(cap, fit_mask, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-    source = capture_source(replace(cap, near=near), mask, second, weights, net_cfg, progress, memo, fit_mask)
+    source = capture_source(replace(cap, near=near), fit_mask, second, weights, net_cfg, progress, memo)
     est, net = second_stage(source, est, refine, fit)
     notes = found_notes + list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
     light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
@@ -879,7 +906,34 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
-                    found, near)
+                    found, near, _found_domain(found, mask))
+
+
+def _found_config(found: "FoundObject | None") -> dict:
+    """The networks' settings for the object found without a mask (``psctl.lights.find_object``):
+    its mean for PS-FCN's exposure, as a mask's, and normals FOUND_GROW pixels beyond it; {} with
+    a mask, or where none was found (the whole frame)."""
+    from psctl.infer import FOUND_GROW
+
+    return {} if found is None or found.mask is None else {"exposure_pixels": "found", "grow": FOUND_GROW}
+
+
+def _found_domain(found: "FoundObject | None", mask: np.ndarray) -> np.ndarray:
+    """Where the networks give normals: the object found grown by FOUND_GROW, else ``mask``."""
+    from psctl.infer import FOUND_GROW, grow_mask
+
+    return mask if found is None or found.mask is None else grow_mask(found.mask, FOUND_GROW)
+
+
+def _found_file_note(write: bool) -> str:
+    """What the normals of a capture without a mask file cover, and where the object found is."""
+    from psctl.infer import FOUND_GROW
+    from psctl.lights import FOUND_FILE
+
+    return (f"the normals cover the object found and {FOUND_GROW} pixels around it (its dark rim, "
+            f"which the search can miss; the networks answer there from the object beside it)" +
+            (f"; the object is in {FOUND_FILE}: check it; copied into the capture folder as mask.png, it is read "
+             f"as the mask (the normals then cover it alone)" if write else ""))
 
 
 def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.ndarray, mask: np.ndarray,

@@ -81,6 +81,10 @@ DEFAULT_INFER = {
     # mask's pixels) or "lit" (lit_pixels: the bright part of the frame). The runs without a mask
     # (no mask.png, mask=None) use "lit": a dark background would halve the frame's mean
     "exposure_pixels": "mask",
+    # normals are also given this many pixels beyond the mask (a square step per pixel), the network's
+    # answer there read from the object beside them, their own observations not read: the object
+    # found without a mask misses part of its dark rim (psctl.api, FOUND_GROW). 0 = the mask only
+    "grow": 0,
 }
 EXPOSURE_PIXELS = ("mask", "lit", "found")  # found: the mask is the object found without a file
 
@@ -112,6 +116,24 @@ def region_box(mask: np.ndarray, cfg: dict) -> tuple[int, int, int, int]:
     """(y0, y1, x0, x1): the region ``run_network`` processes under the config ``cfg``."""
     H, W = mask.shape
     return crop_region(mask, cfg["margin"]) if cfg["crop"] else (0, _ceil(H, STRIDE), 0, _ceil(W, STRIDE))
+
+
+def check_grow(grow: object) -> int:
+    """The ``grow`` setting: a whole number of pixels, 0 to HALO (beyond HALO the network sees
+    nothing of the object)."""
+    if isinstance(grow, bool) or not isinstance(grow, (int, np.integer)) or not 0 <= grow <= HALO:
+        raise PsctlError(None, f"grow must be a whole number of pixels from 0 to {HALO}, not {grow!r}")
+    return int(grow)
+
+
+def grow_mask(mask: np.ndarray, grow: int) -> np.ndarray:
+    """[H, W] bool ``mask`` grown by ``grow`` pixels (3 x 3 steps: a square of side 2 grow + 1 about
+    each pixel); ``mask`` itself for 0."""
+    if grow == 0:
+        return mask
+    from scipy import ndimage
+
+    return ndimage.binary_dilation(mask, np.ones((2 * grow + 1, 2 * grow + 1), bool))
 
 
 def read_box(box: tuple[int, int, int, int], shape: tuple[int, int]) -> tuple[slice, slice]:
@@ -428,12 +450,13 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise PsctlError(None, "mask is empty (no foreground pixel)")
+    keep = grow_mask(mask, check_grow(cfg["grow"]))  # where normals are given
     device = pick_device(cfg["device"])
     fmt = torch.channels_last if cfg["channels_last"] else torch.contiguous_format
     model = model.to(device=device, memory_format=fmt).eval()
 
     H, W = mask.shape
-    box = region_box(mask, cfg)
+    box = region_box(keep, cfg)
     h, w = box[1] - box[0], box[3] - box[2]
     tiles = plan_tiles(h, w, cfg["tile"], cfg["halo"])
     groups = group_tiles(tiles, cfg["group_mb"] << 20)
@@ -544,7 +567,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     normals = np.zeros((H, W, 3), np.float32)
     region = stream.read_box
     inside = mask[region]
-    normals[region] = np.where(inside[..., None], out[: stream.rh, : stream.rw], 0.0)
+    normals[region] = np.where(keep[region][..., None], out[: stream.rh, : stream.rw], 0.0)
     dark = np.zeros((H, W), bool)
     dark[region][inside] = dark_pixels(stream.peak[: stream.rh, : stream.rw][inside])  # the rule L2 uses
     info = {
@@ -554,6 +577,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     }
     if stream.hot:
         info["hot_pixels"] = dict(sorted(stream.hot.items()))
+    if cfg["grow"]:
+        info["grow"] = int(cfg["grow"])
     if exposure is not None:
         info["exposure_scale"] = float(f"{exposure:.6g}")  # significant digits: a 1e30-scaled capture gets 1e-31, not 0
         info["exposure_pixels"] = cfg["exposure_pixels"]
@@ -602,7 +627,8 @@ def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None,
         if first is None:
             first = res
     norm = np.linalg.norm(total, axis=-1, keepdims=True)
-    normals = np.where(mask[..., None] & (norm > 0), total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    keep = grow_mask(mask, check_grow(cfg["grow"]))  # each view's normals cover the mask grown alike
+    normals = np.where(keep[..., None] & (norm > 0), total / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
     info = {**first.info, "views": views, "seconds": round(time.perf_counter() - t0, 3)}
     return InferResult(normals, first.dark, info, first.notes)
 
@@ -690,12 +716,16 @@ def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray |
             np.maximum(peak[full], np.where(sub, grey, 0), out=peak[full])
             yield block_mean(img, sub, k)
 
+    grow = check_grow({**DEFAULT_INFER, **(config or {})}["grow"])
     res = run_views(model, small_reader, n, lights, small, normalization, train_images,
-                    {**(config or {}), "downsample": 1}, progress, f"{label} (1/{k} size)", input_mean, input_clip)
-    normals = upsample_normals(res.normals, mask, k)
+                    {**(config or {}), "downsample": 1, "grow": -(-grow // k)}, progress, f"{label} (1/{k} size)",
+                    input_mean, input_clip)
+    normals = upsample_normals(res.normals, grow_mask(mask, grow), k)
     dark = np.zeros((H, W), bool)
     dark[mask] = dark_pixels(peak[mask])  # the rule run_network and L2 use
     info = {**res.info, "downsample": k, "seconds": round(time.perf_counter() - t0, 3)}
+    if grow:
+        info["grow"] = grow  # (in full-size pixels)
     if hot:
         info["hot_pixels"] = dict(sorted(hot.items()))
     return InferResult(normals, dark, info, res.notes)
@@ -816,7 +846,7 @@ def first_read_box(capture: "Capture", mask: np.ndarray, config: dict | None = N
     cfg = {**DEFAULT_INFER, **(config or {})}
     mask = np.asarray(mask, bool)
     on = check_downsample(cfg["downsample"]) == 1 and mask.any() and mask.shape == (capture.height, capture.width)
-    return read_box(region_box(mask, cfg), mask.shape) if on else None
+    return read_box(region_box(grow_mask(mask, check_grow(cfg["grow"])), cfg), mask.shape) if on else None
 
 
 def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
@@ -887,6 +917,13 @@ NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the ba
                         "masks: the ensemble 6.04 degrees against 5.66 with them, PS-FCN+N 6.00 against 5.59, "
                         "PS-FCN 6.35 against 6.01)")
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
+# Without a mask the networks read the object psctl.lights.find_object finds, not the whole frame: the
+# background beside the object, put through +N's per-pixel normalisation or PS-FCN's exposure, spoils
+# the normals along its outline. The object found misses part of its dark rim (its pixels are lit in
+# few images), so the normals are also given FOUND_GROW pixels beyond it, where the network answers
+# from the object beside them (the setting "grow"). Chosen on synthetic objects before dark, lit and
+# textured backgrounds (benchmarks/auto_mask_normals.py, docs/models.md "Without a mask")
+FOUND_GROW = 4
 
 
 def _no_weights(weights: str | Path | None) -> None:

@@ -53,6 +53,7 @@ import numpy as np
 
 from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
+from psctl.infer import NO_MASK_NETWORKS_WHY
 
 if TYPE_CHECKING:
     import torch
@@ -1221,7 +1222,7 @@ class FoundObject:
     notes: list[str]
 
 
-def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> FoundObject:
+def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, reader: str = "lights") -> FoundObject:
     """The object of a capture without a mask, for LCNet and the light fit: ``brightness`` [H, W]
     each pixel's summed value over the images (as captured) -> the lit pixels
     (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. Where the
@@ -1230,11 +1231,14 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
     the cells whose shading differs from the background's instead (``shading_object``), when the
     frame's border agrees on one background. None (the whole frame) when the found region has
     under FOUND_MIN_PIXELS pixels or covers over FOUND_MAX_FRACTION of the frame; a note when
-    the background is not dark."""
+    the background is not dark. ``reader``: who reads the object, for the notes' words
+    (``FOUND_READERS``: "lights", LCNet and the light fit; "normals", the normals networks;
+    "sdps", all three)."""
     from scipy import ndimage
 
     from psctl.infer import lit_pixels
 
+    who, whole, off = FOUND_READERS[reader]
     b = np.asarray(brightness, np.float64)
     b = np.where(np.isfinite(b), b, 0.0)  # NaN (a bad pixel outside the object): dark; LCNet refuses it inside
     lit = lit_pixels(b)
@@ -1261,14 +1265,14 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
     how = ("the lit pixels, holes filled" if by == "brightness" else
            "the pixels whose shading over the images differs from the background's, holes filled")
     if used:
-        notes = [f"LCNet and the light fit read the object found by {by} ({how}: {info['pixels']} pixels, "
+        notes = [f"{who} read the object found by {by} ({how}: {info['pixels']} pixels, "
                  f"{frac:.0%} of the frame); a mask of the object is surer"]
     else:
         part = "lit" if by == "brightness" else "found"
         why = ("nothing is lit" if by == "brightness" else "no part differs from the background") if \
             not region.any() else f"the {part} region covers {frac:.0%} of the frame" if \
             frac > FOUND_MAX_FRACTION else f"the {part} region has {int(region.sum())} pixels"
-        notes = [f"no object found by {by} ({why}): {NO_MASK_WHY}"]
+        notes = [f"no object found by {by} ({why}): {whole}"]
     if by == "shading" and used:
         notes.append("the background is lit: the object was told from it by shading, which assumes a background of "
                      "one plane under distant lights (synthetic objects before lit planes and textures, with their "
@@ -1276,21 +1280,20 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None) -> F
                      "where you can")
     elif not_dark:
         notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
-                     f"ones'): without a mask the lights may be far off (synthetic objects before a lit plane: 15-60 "
-                     f"degrees); give a mask of the object")
+                     f"ones'): without a mask {off}; give a mask of the object")
     return FoundObject(region if used else None, info, notes)
 
 
 def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress: "ProgressFactory | None" = None,
-                   memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, dict, FoundObject | None]:
+                   memo: "DecodeMemo | None" = None, reader: str = "lights") -> tuple[np.ndarray, dict, FoundObject | None]:
     """What LCNet and the light fit read of a capture: (mask, LCNet's config, found). With a mask
     file, ``mask`` and ``config`` as given and None; without one, the object ``find_object``
     finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
     keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
-    whole frame (``mask``)."""
+    whole frame (``mask``). ``reader``: as ``find_object``'s."""
     if capture.mask_path is not None:
         return mask, config, None
-    found = find_object(*capture_shading(capture, progress, memo))
+    found = find_object(*capture_shading(capture, progress, memo), reader=reader)
     if found.mask is None:
         return mask, config, found
     return found.mask, {**config, "exposure_pixels": "found"}, found  # its mean, as a mask's (words apart)
@@ -1349,6 +1352,13 @@ NO_MASK_WHY = ("LCNet and the light fit take the whole frame for the object; a m
                "more accurate (read whole, examples/bumpy_sphere gave 6.54 degrees, 2.45 with its mask; synthetic "
                "objects before a dark background 33.0, 6.45 with theirs)")
 NO_MASK_PREFIX = "mask: none (no mask.png): "  # the array API warns "mask=None: " instead
+# find_object's reader -> (who reads the object, why the whole frame is worse, what a lit background may do)
+_LIGHTS_OFF = "the lights may be far off (synthetic objects before a lit plane: 15-60 degrees)"
+FOUND_READERS = {
+    "lights": ("LCNet and the light fit", NO_MASK_WHY, _LIGHTS_OFF),
+    "normals": ("the networks", NO_MASK_NETWORKS_WHY, "the object found may take in some of the background"),
+    "sdps": ("LCNet, the light fit and the normals network", NO_MASK_WHY, _LIGHTS_OFF),
+}
 
 def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                weights: str | os.PathLike | None = None, device: str = "auto", decode: str = "soft",

@@ -666,9 +666,12 @@ def test_l2_on_arrays_clamps_a_hot_pixel_as_on_a_folder(data, given_mask):
 def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fake_weights):
     """mask=None: LCNet and the light fit read the object ``find_object`` finds (the array API
     took the whole frame, a QA helper: 1.75 -> 19.78 degrees on a sphere filling a quarter of a
-    black frame): the lights of mask=found, and a warning that says so; none with a mask."""
+    black frame): the lights of mask=found, and a warning that says so; none with a mask. sdps'
+    second stage reads it too (since session 65), its normals on it and FOUND_GROW pixels around."""
     import warnings
 
+    from psctl.api import _found_file_note
+    from psctl.infer import FOUND_GROW, grow_mask
     from psctl.lights import find_object
     from tests.conftest import weights_in
 
@@ -683,16 +686,23 @@ def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fa
         warnings.simplefilter("always")
         none = estimate_lights(images, None, device="cpu", views=1)
         n_none = estimate_normals(images, None, None, method="sdps", device="cpu")
-        assert len([w for w in got if issubclass(w.category, PsctlWarning)]) == 2
+        assert len([w for w in got if issubclass(w.category, PsctlWarning)]) == 3
         same = estimate_lights(images, found.mask, device="cpu", views=1)
-        estimate_normals(images, None, mask, method="sdps", device="cpu")
+        n_found = estimate_normals(images, None, found.mask, method="sdps", device="cpu")
     for a, b in zip(none, same):
         np.testing.assert_array_equal(a, b)
-    assert len(read) == 4 and all(np.array_equal(m, found.mask) for m in read[:3]) and np.array_equal(read[3], mask)
-    # the normals: the whole frame (zero outside a mask), LCNet and the fit: the object
-    assert n_none.shape == mask.shape + (3,) and (np.linalg.norm(n_none, axis=-1) > 0.99).all()
+    assert len(read) == 4 and all(np.array_equal(m, found.mask) for m in read)
+    # LCNet, the fit and the second stage read the object; the normals cover it and FOUND_GROW
+    # pixels around it (its rim), where the network answers from the object beside them
+    grown = grow_mask(found.mask, FOUND_GROW)
+    assert n_none.shape == mask.shape + (3,) and not n_none[~grown].any()
+    assert (np.linalg.norm(n_none[grown], axis=-1) > 0.99).all()
+    np.testing.assert_allclose(n_none[found.mask], n_found[found.mask], atol=1e-5)
+    words = find_object(images.sum((0, 3), dtype=np.float64), reader="sdps").notes[0]
+    assert words.startswith("LCNet, the light fit and the normals network read the object found")
     assert [str(w.message) for w in got if issubclass(w.category, PsctlWarning)] == [
-        f"estimate_lights: mask=None: {found.notes[0]}", f"sdps: mask=None: {found.notes[0]}"]
+        f"estimate_lights: mask=None: {found.notes[0]}", f"sdps: mask=None: {words}",
+        f"sdps: mask=None: {_found_file_note(False)}"]
     assert {w.filename for w in got if issubclass(w.category, PsctlWarning)} == {__file__}
 
 
@@ -816,30 +826,71 @@ def test_networks_on_arrays_warn_when_they_clamp_a_hot_pixel(data, tmp_path):
         "300 times the image's mean and 4 times every neighbour: a sensor's hot pixel?)"]
 
 
-def test_networks_say_when_they_run_without_a_mask(data, tmp_path):
-    """Without a mask the networks read the background as part of the object (the dev split
-    without its masks: the ensemble 6.04 against 5.66): psctl normals notes a folder without
-    mask.png and the array API warns on mask=None, for each network method; l2 and runs with a
-    mask say nothing."""
+def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
+    """Without a mask the networks read the object find_object finds, not the whole frame (the
+    background beside the object, through +N or the exposure, spoilt the outline's normals;
+    docs/models.md, "Without a mask"): the normals inside it are those of mask=found, and they
+    cover it and FOUND_GROW pixels around it, 0 beyond. The array API warns, psctl normals notes
+    it and writes the object as mask_found.png; where nothing is found the whole frame is read,
+    with the old note. l2 and runs with a mask say nothing."""
     import warnings
 
-    from psctl.api import run_normals
-    from psctl.infer import NO_MASK_NETWORKS_WHY
+    from psctl.api import _found_file_note, run_normals
+    from psctl.infer import FOUND_GROW, NO_MASK_NETWORKS_WHY, grow_mask
+    from psctl.io.images import read_image
+    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, find_object
+    from psctl.metrics import angular_error
     from tests.conftest import write_capture
 
     images, lights, mask, _ = data
     w = _ps_fcn_file(tmp_path)
+    found = find_object(images.sum((0, 3), dtype=np.float64), reader="normals")
+    assert found.mask is not None and found.notes[0].startswith("the networks read the object found by brightness")
+    grown = grow_mask(found.mask, FOUND_GROW)
+    assert grown.sum() > found.mask.sum() and not grown.all()
     with warnings.catch_warnings(record=True) as got:
         warnings.simplefilter("always")
-        estimate_normals(images, lights, None, method="ps-fcn", weights=w, device="cpu")
-        estimate_normals(images, lights, mask, method="ps-fcn", weights=w, device="cpu")
+        none = estimate_normals(images, lights, None, method="ps-fcn", weights=w, device="cpu")
+        given = estimate_normals(images, lights, found.mask, method="ps-fcn", weights=w, device="cpu")
         estimate_normals(images, lights, None, method="l2")
     assert [str(x.message) for x in got if issubclass(x.category, PsctlWarning)] == [
-        f"ps-fcn: mask=None: {NO_MASK_NETWORKS_WHY}"]
-    note = "mask: none (no mask.png): " + NO_MASK_NETWORKS_WHY
+        f"ps-fcn: mask=None: {found.notes[0]}", f"ps-fcn: mask=None: {_found_file_note(False)}"]
+    np.testing.assert_allclose(none[found.mask], given[found.mask], atol=1e-5)  # the network read the object only
+    assert (np.linalg.norm(none[grown], axis=-1) > 0.99).all() and not none[~grown].any()
+    whole = estimate_normals(images, lights, np.ones_like(mask), method="ps-fcn", weights=w, device="cpu")
+    assert angular_error(none[found.mask], whole[found.mask]).max() > 1  # the whole frame's differ
+    flat = np.ones_like(images)  # nothing to find: the whole frame, and the old words
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        out = estimate_normals(flat, lights, None, method="ps-fcn", weights=w, device="cpu")
+    said = [str(x.message) for x in got if issubclass(x.category, PsctlWarning)]
+    assert len(said) == 1 and said[0].endswith(NO_MASK_NETWORKS_WHY) and (np.linalg.norm(out, axis=-1) > 0.99).all()
+
     write_capture(tmp_path / "with", n=6, size=24)
     write_capture(tmp_path / "without", n=6, size=24, mask=False)
+    note = NO_MASK_PREFIX + _found_file_note(True)
     for folder, method, said in (("with", "ps-fcn", False), ("without", "ps-fcn", True), ("without", "l2", False)):
-        r = run_normals(tmp_path / folder, method=method, weights=w if method != "l2" else None, write=False,
+        out = tmp_path / "out" / folder / method
+        r = run_normals(tmp_path / folder, method=method, weights=w if method != "l2" else None, out=out,
                         device="cpu")
-        assert (note in r["notes"]) == said, (folder, method)
+        assert (note in r["notes"]) == said and ((out / FOUND_FILE).is_file() == said), (folder, method)
+        assert (r.get("found_object") is not None) == said
+    arrays: dict = {}
+    r = run_normals(tmp_path / "without", method="ps-fcn", weights=w, write=False, device="cpu", arrays=arrays)
+    shown = read_image(tmp_path / "out" / "without" / "ps-fcn" / FOUND_FILE)[0][..., 0] > 0.5
+    assert np.array_equal(arrays["mask"], grow_mask(shown, FOUND_GROW)) and r["n_mask_pixels"] == arrays["mask"].sum()
+    assert NO_MASK_PREFIX + _found_file_note(False) in r["notes"]  # (no file written: no word of one)
+    # the ground truth's pixels the object found misses are scored, at 90 degrees (no normal)
+    from psctl.io.images import write_image
+
+    dark = write_capture(tmp_path / "cut", n=6, size=24, mask=False)
+    for k, img in enumerate(dark["images"]):
+        img[:, :9] = 0  # the sphere's left part unlit in every image: not found
+        write_image(tmp_path / "cut" / f"{k + 1:03d}.png", img, "uint16")
+    truth = np.linalg.norm(dark["normals"], axis=-1) > 0.5
+    cut: dict = {}
+    r = run_normals(tmp_path / "cut", method="ps-fcn", weights=w, write=False, device="cpu", arrays=cut)
+    missed = truth & ~cut["mask"]
+    assert missed.sum() >= 10 and r["n_evaluated_pixels"] == truth.sum()
+    assert (cut["error"][missed] == 90).all() and r["mae"] > 90 * missed.sum() / truth.sum()
+    assert any(n.startswith(f"scoring: {missed.sum()} pixels with a ground-truth normal lie beyond") for n in r["notes"])

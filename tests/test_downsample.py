@@ -212,3 +212,43 @@ def test_folder_runs_report_the_factor(tmp_path):
                         views=np.int64(2), downsample=np.int64(2), out=tmp_path / "ev")
     saved = json.loads((tmp_path / "ev" / "eval.json").read_text())
     assert saved["views"] == res["views"] == 2 and saved["downsample"] == 2
+
+
+@pytest.mark.parametrize("cfg", [{}, {"views": 2, "tile": 16}, {"downsample": 3}])
+def test_grow_gives_normals_beyond_the_mask_from_the_same_run(cfg):
+    """The setting "grow" (the object found without a mask, psctl.api): the network reads the
+    mask's pixels only, and its answer is kept also ``grow`` pixels beyond the mask: inside the
+    mask the normals of grow 0, unit normals on the ring, 0 beyond; with views and downsampling
+    too (downsampled: the small run grows by whole blocks, the full-size result by ``grow``, and
+    the edge pixels' interpolation takes in the ring's blocks)."""
+    from psctl.infer import check_grow, grow_mask
+
+    images, lights, _ = scene(4, 50, 56, seed=5)
+    mask = np.zeros((50, 56), bool)
+    mask[9:42, 10:47] = True
+    mask[12:15, 10:14] = False  # a notch: the ring fills it
+    net = model(double=True)
+    base = run_views(net, reader_of(images), 4, lights, mask, "none", 3, cfg)
+    got = run_views(net, reader_of(images), 4, lights, mask, "none", 3, {**cfg, "grow": 2})
+    ring = grow_mask(mask, 2)
+    assert ring.sum() > mask.sum() and not ring.all() and ring[12:15, 10:14].all()
+    # (downsampled: the mask's edge pixels interpolate the ring's blocks too)
+    inner = mask if "downsample" not in cfg else ~grow_mask(~mask, 2 * cfg["downsample"])
+    assert inner.sum() > 0.3 * mask.sum()
+    np.testing.assert_allclose(got.normals[inner], base.normals[inner], atol=1e-5)  # float32 block means
+    assert (np.linalg.norm(got.normals[ring], axis=-1) > 0.999).all() and not got.normals[~ring].any()
+    assert got.info["grow"] == 2 and "grow" not in base.info and not got.dark[~mask].any()
+    # the ring's answer ignores its own pixels: other values there change nothing
+    noisy = images.copy()
+    noisy[:, ring & ~mask] = 5.0
+    again = run_views(net, reader_of(noisy), 4, lights, mask, "none", 3, {**cfg, "grow": 2})
+    np.testing.assert_allclose(again.normals, got.normals, atol=1e-6)
+    assert check_grow(0) == 0 and grow_mask(mask, 0) is mask
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "2", HALO + 1])
+def test_grow_must_be_whole_pixels_within_the_halo(bad):
+    from psctl.infer import check_grow
+
+    with pytest.raises(PsctlError, match="grow must be a whole number of pixels"):
+        check_grow(bad)

@@ -874,9 +874,10 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     """Without mask.png, LCNet and the light fit read the object ``find_object`` finds (they took
     the whole frame: synthetic objects before a dark background 32.2 degrees, 6.42 with the mask
     or the found object): the lights are those of the same folder with that object as its
-    mask.png, a note says so and the report gives its size. psctl lights and sdps alike; the
-    normals of sdps still cover the whole frame."""
-    from psctl.api import run_normals
+    mask.png, a note says so and the report gives its size. psctl lights and sdps alike; sdps'
+    normals cover the object found and FOUND_GROW pixels around it."""
+    from psctl.api import _found_file_note, run_normals
+    from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
     from psctl.lights import NO_MASK_PREFIX, capture_brightness, find_object, run_lights
@@ -927,14 +928,23 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
         run_lights(tmp_path / name, write=False, device="cpu", normals_weights=tmp_path / "ps_fcn.pt")
     assert len(scales) == 2 and scales[0] == scales[1]
     monkeypatch.setattr(psctl.infer, "capture_normals", infer)
+    # psctl normals' networks too (since session 65): the found object's mean, as its mask.png's
+    said = [[n for n in run_normals(tmp_path / name, method="ps-fcn", weights=tmp_path / "ps_fcn.pt", write=False,
+                                    device="cpu")["notes"] if "images scaled by" in n][0] for name in ("dPNG", "ePNG")]
+    assert said[0].split()[4] == said[1].split()[4] and "inside the object found without a mask" in said[0], said
     del read[4:]  # (the spot's masks)
     nb = {}
     rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", arrays=nb)
     rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu")
-    assert NO_MASK_PREFIX + found.notes[0] in rb["notes"] and not any("no mask.png" in n for n in rc["notes"])
+    words = find_object(capture_brightness(open_capture(tmp_path / "bPNG")), reader="sdps").notes[0]
+    assert NO_MASK_PREFIX + words in rb["notes"] and not any("no mask.png" in n for n in rc["notes"])
     assert rb["found_object"] == found.info and rc["found_object"] is None
     assert rb["light_mae"] is not None and rb["light_mae"] == rc["light_mae"] and rb["intensity_re"] == rc["intensity_re"]
-    assert nb["mask"].all() and (np.linalg.norm(nb["normals"], axis=-1) > 0.99).all()  # the normals: the whole frame
+    # the normals: the object and FOUND_GROW pixels around it (the second stage reads the object, since session 65)
+    grown = grow_mask(found.mask, FOUND_GROW)
+    assert np.array_equal(nb["mask"], grown) and not nb["normals"][~grown].any()
+    assert (np.linalg.norm(nb["normals"][grown], axis=-1) > 0.99).all()
+    assert NO_MASK_PREFIX + _found_file_note(False) in rb["notes"]
     assert len(read) == 8 and all(np.array_equal(r, found.mask) for r in read)  # b: found; c: its mask.png
 
 
@@ -1010,6 +1020,7 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
     them, for psctl lights and sdps alike (they were centred on the whole frame, and a distance had
     to clear the frame's corners: 40 pixels here was refused)."""
     from psctl.api import run_normals
+    from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
     from psctl.lights import capture_brightness, find_object, run_lights
@@ -1039,8 +1050,22 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
     rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", light_distance=40, arrays=nb)
     rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu", light_distance=40, arrays=nc)
     assert rb["light_distance"] == 40 and any(n.startswith(line) for n in rb["notes"])
-    assert rb["light_mae"] == rc["light_mae"] and nb["mask"].all()
+    assert rb["light_mae"] == rc["light_mae"] and np.array_equal(nb["mask"], grow_mask(found, FOUND_GROW))
     assert len(seen) == 4 and all(s is not None and s.centre == centre for s in seen)
+    # the calibrated networks read the object found too, their lights about its centre (session 65)
+    import torch
+
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    torch.manual_seed(2)
+    save_weights(tmp_path / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    pb, pc = {}, {}
+    kw = {"method": "ps-fcn", "weights": tmp_path / "ps_fcn.pt", "write": False, "device": "cpu", "light_distance": 40}
+    rp = run_normals(tmp_path / "bPNG", arrays=pb, **kw)
+    run_normals(tmp_path / "cPNG", arrays=pc, **kw)
+    assert rp["light_distance"] == 40 and any(n.startswith(line) for n in rp["notes"])
+    np.testing.assert_allclose(pb["normals"][found], pc["normals"][found], atol=1e-5)
     with pytest.raises(PsctlError, match="the object found without a mask reaches"):
         run_lights(tmp_path / "bPNG", write=False, device="cpu", light_distance=10)
 
