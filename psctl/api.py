@@ -232,10 +232,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
-            l2 the whole image; the network methods (and sdps' LCNet and light fit) read the
-            object ``psctl.lights.find_object`` finds and give normals on it and
-            ``psctl.infer.FOUND_GROW`` pixels around it (0 beyond), or where it finds none the
-            whole image (warnings say which).
+            l2 the whole image; the network methods read the object ``psctl.lights.find_object``
+            finds by brightness before a dark background (``FoundObject.normals_mask``) and give
+            normals on it and ``psctl.infer.FOUND_GROW`` pixels around it (0 beyond), else the
+            whole image (warnings say which); sdps' LCNet and light fit read any object found.
         method: "l2", "ps-fcn", "ps-fcn-n", "ensemble" (the unit mean of PS-FCN's and PS-FCN+N's
             normals), "ups-fcn", "sdps" or "auto".
         weights: a weights file for the network methods (default: the installed ones; for sdps
@@ -251,7 +251,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         roll: sdps: turn the refined lights and the normals about the view axis by the normals'
             roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
         light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels
-            from the mask's centroid along ``lights``; each image is divided by its light's
+            from the mask's centroid (mask=None: the networks' object found, else the frame's) along ``lights``; each image is divided by its light's
             falloff first (``psctl.nearlight``, docs/near-lights.md).
         downsample: network methods: run the network on the capture shrunk by this whole
             factor (each k x k block's mean over the mask), its normals interpolated back to
@@ -302,7 +302,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         found = find_object(*array_shading(images), reader="normals" if method != "sdps" else "sdps")
         _warn_found(found, method, level)
-    read = mask if found is None or found.mask is None else found.mask
+    read = mask if found is None or found.normals_mask is None else found.normals_mask  # the networks'
     if light_distance is not None:
         from psctl.nearlight import near_lights
 
@@ -313,7 +313,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
     net_cfg.update(_found_config(found))
-    if found is not None and found.mask is not None:
+    if found is not None and found.normals_mask is not None:
         warnings.warn(f"{method}: mask=None: {_found_file_note(False)}", PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
     unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
@@ -329,8 +329,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
-        est = array_lights(images, read, lcnet, sdps_lcnet_config(second, weights, device))
-        source = array_source(images, read, second, weights, net_cfg, saturated)
+        fit_mask = mask if found is None else found.mask  # LCNet and the light fit: the object found
+        est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
+        source = array_source(images, read, second, weights, net_cfg, saturated, fit_mask)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
@@ -480,13 +481,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     centroid of the object LCNet reads, found without a mask file, ``find_object``); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. Without a mask file the network methods (all but l2) read the object
-    ``psctl.lights.find_object`` finds and give normals on it and ``psctl.infer.FOUND_GROW``
-    pixels around it (docs/models.md, "Without a mask"); it is written as ``mask_found.png`` and
+    ``psctl.lights.find_object`` finds by brightness before a dark background and give normals
+    on it and ``psctl.infer.FOUND_GROW`` pixels around it, else the whole frame (docs/models.md,
+    "Without a mask"); it is written as ``mask_found.png`` and
     is the report's ``found_object``. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
     [H, W, 3], "mask" [H, W] (where normals are given), "error" [H, W] degrees (None without ground
     truth; 0 outside the pixels scored, NaN on mask pixels whose ground truth is zero or NaN, which
     the metrics leave out; without a mask file, a ground-truth pixel beyond the object found has no
-    normal and scores 90), "spread"
+    normal and scores 90), "scored" [H, W] (the pixels the error map covers: the mask, and there
+    those ground-truth pixels), "spread"
     [H, W] degrees (None but for the ensemble) and "albedo" [H, W, 3] (None without ``albedo``).
     ``albedo``: also the albedo map from the normals, the lights (sdps: as estimated) and the
     images (``psctl.albedo``: per channel, the median of image / (n . l) over the images that
@@ -604,11 +607,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.infer import ENSEMBLE, capture_normals
         from psctl.lights import NO_MASK_PREFIX
 
-        net = capture_normals(cap, read, method, weights, {**net_cfg, **_found_config(found)}, progress, memo)
+        cfg = {**net_cfg, **_found_config(found)}
+        net = capture_normals(cap, read, method, weights, cfg, progress, memo)
         normals, dark, spread = net.normals, net.dark, net.spread
         notes += ([] if found is None else [NO_MASK_PREFIX + n for n in found.notes]) + net.notes + (
             ["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)] if method == "ensemble" else [])
-        mask = _found_domain(found, mask)
+        mask = _normals_domain(read, cfg)
     else:
         normals, dark, l2_notes = _l2_normals(cap, mask, box, progress, memo)
         notes += l2_notes
@@ -619,10 +623,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if found_mask is None:
             names.remove(FOUND_FILE)  # (before the note: stale() then counts an earlier one)
         notes += _found_file_notes(found_mask is not None, stale, out_dir) if write else []
-    if found_mask is not None:
+    if found is not None and found.normals_mask is not None:
         from psctl.lights import NO_MASK_PREFIX
 
         notes.append(NO_MASK_PREFIX + _found_file_note(write))
+    elif found_mask is not None and write:  # sdps: the object LCNet and the light fit read
+        from psctl.lights import NO_MASK_PREFIX
+
+        notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: check it; "
+                     f"copied into the capture folder as mask.png, it is read as the mask")
     box = bounding_box(mask)
     if method in LISTED_LIGHTS:  # the light file's methods
         notes += mirror_notes(normals[box], mask[box])  # the box: the rest of the frame is background
@@ -632,12 +641,14 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.lights import lit_capture
 
         lit = cap if method != "sdps" else lit_capture(replace(cap, near=near), est)  # the lights the normals used
-        alb, albedo_stats, alb_notes = _capture_albedo(lit, method, normals, dark, mask, progress, memo)
+        # the object found, not the ring around it (background there: no albedo to speak of)
+        on = mask if found is None or found.normals_mask is None else found.normals_mask
+        alb, albedo_stats, alb_notes = _capture_albedo(lit, method, normals, dark, on, progress, memo)
         notes += alb_notes
 
     # --- evaluate ------------------------------------------------------------------------------
     scored = mask
-    if found_mask is not None and gt is not None:
+    if found is not None and found.normals_mask is not None and gt is not None:
         # the object found may miss pixels the ground truth has: scored too, at 90 degrees (no
         # normal), else a search that found less would score better
         truth = np.isfinite(gt).all(-1) & (np.linalg.norm(np.nan_to_num(gt), axis=-1) > 0.5)
@@ -648,7 +659,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
             notes.append(f"scoring: {missed} pixels with a ground-truth normal lie beyond the object found and the "
                          f"{FOUND_GROW} pixels around it: they have no normal and count at 90 degrees")
-    error, stats, valid, eval_notes = _evaluate(normals, gt, scored, cap.gt_path)
+    error, stats, valid, eval_notes = _evaluate(normals, gt, scored, cap.gt_path,
+                                                "mask" if scored is mask else "scored")
     n_eval = 0 if valid is None else int(valid.sum())
     notes += eval_notes
 
@@ -700,7 +712,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["found_object"] = None if found is None else found.info
 
     if arrays is not None:
-        arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo)
+        arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo,
+                      scored=scored)
 
     # --- write ---------------------------------------------------------------------------------
     if write:
@@ -855,7 +868,7 @@ class _SdpsRun:
     light_stats: dict  # the lights the normals came from, likewise
     found: "FoundObject | None"  # without mask.png, the object LCNet, the light fit and the networks read (None: a mask file)
     near: "NearLights | None"  # the lights' distance and centre (the object LCNet reads)
-    mask: np.ndarray  # [H, W] bool, where the normals are given (_found_domain)
+    mask: np.ndarray  # [H, W] bool, where the normals are given (_normals_domain)
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
@@ -892,10 +905,12 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
                                            "(LCNet reads the images as captured)"))
     est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
-                         keep_box=first_read_box(cap, fit_mask, net_cfg))
+                         keep_box=first_read_box(cap, mask if found is None or found.normals_mask is None
+                                                 else found.normals_mask, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-    source = capture_source(replace(cap, near=near), fit_mask, second, weights, net_cfg, progress, memo)
+    read = mask if found is None or found.normals_mask is None else found.normals_mask  # the second stage's
+    source = capture_source(replace(cap, near=near), read, second, weights, net_cfg, progress, memo, fit_mask)
     est, net = second_stage(source, est, refine, fit)
     notes = found_notes + list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
     light_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
@@ -906,7 +921,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
             f", intensity relative error {light_stats['intensity_re']:.3f}") + (
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
-                    found, near, _found_domain(found, mask))
+                    found, near, _normals_domain(read, net_cfg))
 
 
 def _found_config(found: "FoundObject | None") -> dict:
@@ -915,14 +930,15 @@ def _found_config(found: "FoundObject | None") -> dict:
     a mask, or where none was found (the whole frame)."""
     from psctl.infer import FOUND_GROW
 
-    return {} if found is None or found.mask is None else {"exposure_pixels": "found", "grow": FOUND_GROW}
+    return {} if found is None or found.normals_mask is None else {"exposure_pixels": "found", "grow": FOUND_GROW}
 
 
-def _found_domain(found: "FoundObject | None", mask: np.ndarray) -> np.ndarray:
-    """Where the networks give normals: the object found grown by FOUND_GROW, else ``mask``."""
-    from psctl.infer import FOUND_GROW, grow_mask
+def _normals_domain(read: np.ndarray, config: dict) -> np.ndarray:
+    """Where the networks give normals: the mask they read (``read``) grown by the config's
+    ``grow`` (FOUND_GROW for the object found without a mask file, else 0 unless set)."""
+    from psctl.infer import DEFAULT_INFER, check_grow, grow_mask
 
-    return mask if found is None or found.mask is None else grow_mask(found.mask, FOUND_GROW)
+    return grow_mask(read, check_grow({**DEFAULT_INFER, **config}["grow"]))
 
 
 def _found_file_note(write: bool) -> str:
@@ -961,11 +977,12 @@ def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.n
 
 
 def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
-              gt_path: "Path | None") -> tuple[np.ndarray | None, dict, np.ndarray | None, list[str]]:
+              gt_path: "Path | None", pixels: str = "mask") -> tuple[np.ndarray | None, dict, np.ndarray | None, list[str]]:
     """Normals [H, W, 3] against the ground truth (None: not scored): (the error map [H, W]
     degrees, 0 outside the mask and NaN where the ground truth has no normal; the summary
     (mae, median, within); the scored pixels [H, W]; notes). Without ground truth: None, the
-    summary's keys with None, None, no notes."""
+    summary's keys with None, None, no notes. ``pixels``: the notes' word for ``mask`` ("scored"
+    without a mask file: the object found, the pixels around it and the ground truth's)."""
     from psctl.metrics import angular_error, summarize
 
     if gt is None:
@@ -985,7 +1002,7 @@ def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
     stats["mae_missing_as_90"] = (stats["mae"] * (n_mask - n_missing) + 90.0 * n_missing) / n_mask
     notes = convention_notes(normals, gt, valid, stats["mae"], gt_path.name)
     if n_missing:
-        notes.append(f"scoring: {n_missing} of {n_mask} mask pixels have no ground-truth normal in {gt_path.name} "
+        notes.append(f"scoring: {n_missing} of {n_mask} {pixels} pixels have no ground-truth normal in {gt_path.name} "
                      f"(zero or NaN) and are not scored; at 90 degrees each, as the authors' evaluation code counts "
                      f"a zero normal, the MAE would be {stats['mae_missing_as_90']:.2f} (mae_missing_as_90)")
     return error, stats, valid, notes

@@ -141,7 +141,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
             used_k.add(r["downsample"])
             if arrays is not None:
                 panels.append(object_panel(r["object"], r["mae"], arrays["normals"], arrays["error"],
-                                           arrays["mask"], height=sheet_layout(len(folders))[1],
+                                           arrays["scored"], height=sheet_layout(len(folders))[1],
                                            spread=arrays.get("spread")))
         # what ran: the objects' own values where they agree (l2 runs one view at full size)
         result = _table(benchmark, root, objects, used, light_distance,

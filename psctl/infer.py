@@ -78,8 +78,10 @@ DEFAULT_INFER = {
     # work, for a quick look; detail is lost (docs/models.md, "Downsampling"). 1 = full size.
     "downsample": 1,
     # where PS-FCN (no +N) takes the mean its exposure scale brings to the trained one: "mask" (the
-    # mask's pixels) or "lit" (lit_pixels: the bright part of the frame). The runs without a mask
-    # (no mask.png, mask=None) use "lit": a dark background would halve the frame's mean
+    # mask's pixels), "found" (the same, the mask being the object found without a mask file: the
+    # words differ) or "lit" (lit_pixels: the bright part of the frame). The runs without a mask
+    # (no mask.png, mask=None) use "found" where an object is found for the networks (psctl.api),
+    # else "lit": a dark background would halve the frame's mean
     "exposure_pixels": "mask",
     # normals are also given this many pixels beyond the mask (a square step per pixel), the network's
     # answer there read from the object beside them, their own observations not read: the object
@@ -695,7 +697,9 @@ def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray |
         ys, xs = np.nonzero(mask)
         side = int(max(ys.max() - ys.min(), xs.max() - xs.min())) + 1
         if -(-side // k) < MIN_SIDE:
-            raise PsctlError(None, f"downsample {k} would leave the object {-(-side // k)} px across (the mask is "
+            what = ("the object found without a mask" if {**DEFAULT_INFER, **(config or {})}["exposure_pixels"] == "found"
+                    else "the mask")
+            raise PsctlError(None, f"downsample {k} would leave the object {-(-side // k)} px across ({what} is "
                                    f"{side} px); use at most {max(side // MIN_SIDE, 1)}")
     small = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
     peak = np.zeros((H, W), np.float32)  # each pixel's brightest observation, as run_network keeps it
@@ -806,10 +810,11 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again.
     ``memo`` (``psctl.io.capture.DecodeMemo``): images decoded by an earlier pass over this
     capture, and this pass's kept there (sdps' passes). A capture without a mask file takes
-    its exposure from its lit pixels (config ``exposure_pixels``)."""
+    its exposure from its lit pixels (config ``exposure_pixels``) unless the config says
+    otherwise (``psctl.api`` passes "found" with the object it found)."""
     if capture.mask_path is None:
         config = {"exposure_pixels": "lit", **(config or {})}
-    with _prefetch(capture, mask, config) as decoded:
+    with _prefetch(capture, mask, config, memo) as decoded:
         if method == "ensemble":
             from psctl.io.capture import ImageCheck
 
@@ -827,16 +832,18 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     return res
 
 
-def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None):
+def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None, memo: "DecodeMemo | None" = None):
     """The helper process that decodes ``capture``'s images for the first pass over them
     (``psctl.io.prefetch.prefetch``: only before torch is imported). Off (an object that serves
-    nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads shrunk images) or an
-    empty mask."""
+    nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads shrunk images), an
+    empty mask, or where ``memo`` holds every image already (decoded by an earlier pass: the
+    search for the object without a mask, sdps' LCNet)."""
     from psctl.io.prefetch import prefetch
 
     cfg = {**DEFAULT_INFER, **(config or {})}
-    return prefetch(capture.image_paths, first_read_box(capture, mask, cfg), (capture.width, capture.height),
-                    cfg["prefetch_mb"])
+    box = first_read_box(capture, mask, cfg)
+    held = memo is not None and box is not None and all(memo.holds(p, box) for p in capture.image_paths)
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), 0 if held else cfg["prefetch_mb"])
 
 
 def first_read_box(capture: "Capture", mask: np.ndarray, config: dict | None = None) -> tuple[slice, slice] | None:

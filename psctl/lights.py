@@ -1221,6 +1221,21 @@ class FoundObject:
     info: dict
     notes: list[str]
 
+    @property
+    def normals_mask(self) -> np.ndarray | None:
+        """The object the normals networks read (``psctl.api``): ``mask`` where it was found by
+        brightness before a dark background (``for_normals``), else None (the whole frame)."""
+        return self.mask if self.mask is not None and for_normals(self.info) else None
+
+
+def for_normals(info: dict) -> bool:
+    """Whether the normals networks may read an object ``find_object`` found (its ``info``):
+    found by brightness before a dark background (contrast at most FOUND_DARK_CONTRAST). Before
+    a lit one, what is left out may be the object's own: a surface that fills the frame, split by
+    brightness or read as a background plane by shading (a review's 48 px relief, ensemble:
+    5.02 -> 33.72 degrees with its flat part left without normals), so they read the whole frame."""
+    return info["by"] == "brightness" and info["contrast"] is not None and info["contrast"] <= FOUND_DARK_CONTRAST
+
 
 def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, reader: str = "lights") -> FoundObject:
     """The object of a capture without a mask, for LCNet and the light fit: ``brightness`` [H, W]
@@ -1264,7 +1279,18 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
             "contrast": None if contrast is None else round(contrast, 4), "by": by, "used": used}
     how = ("the lit pixels, holes filled" if by == "brightness" else
            "the pixels whose shading over the images differs from the background's, holes filled")
-    if used:
+    if used and reader != "lights" and not for_normals(info):
+        # the normals networks read the whole frame (for_normals); sdps' LCNet and light fit the object
+        lit = ("the background is lit (the object was told from it by shading)" if by == "shading" else
+               f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit ones')")
+        why_not = (f"{lit}, and what is left out may be part of the object (a surface that fills the frame): "
+                   f"{NO_MASK_NETWORKS_WHY}")
+        if reader == "normals":
+            return FoundObject(None, {**info, "used": False}, [why_not])
+        who = "LCNet and the light fit"
+        notes = [f"{who} read the object found by {by} ({how}: {info['pixels']} pixels, "
+                 f"{frac:.0%} of the frame); a mask of the object is surer", f"the normals network: {why_not}"]
+    elif used:
         notes = [f"{who} read the object found by {by} ({how}: {info['pixels']} pixels, "
                  f"{frac:.0%} of the frame); a mask of the object is surer"]
     else:

@@ -4,6 +4,7 @@ refused for, integer pixels scaled as image files are, inputs never written to."
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -838,7 +839,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     from psctl.api import _found_file_note, run_normals
     from psctl.infer import FOUND_GROW, NO_MASK_NETWORKS_WHY, grow_mask
     from psctl.io.images import read_image
-    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, find_object
+    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, array_shading, find_object, for_normals
     from psctl.metrics import angular_error
     from tests.conftest import write_capture
 
@@ -880,6 +881,31 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     shown = read_image(tmp_path / "out" / "without" / "ps-fcn" / FOUND_FILE)[0][..., 0] > 0.5
     assert np.array_equal(arrays["mask"], grow_mask(shown, FOUND_GROW)) and r["n_mask_pixels"] == arrays["mask"].sum()
     assert NO_MASK_PREFIX + _found_file_note(False) in r["notes"]  # (no file written: no word of one)
+    assert not any("mask pixels" in n for n in r["notes"])  # the pixels scored are not a mask's
+    alb: dict = {}
+    r = run_normals(tmp_path / "without", method="ps-fcn", weights=w, write=False, device="cpu", albedo=True,
+                    arrays=alb)
+    assert alb["albedo"][shown].any() and not alb["albedo"][~shown].any()  # the object's, not the ring's
+    assert any(n.startswith(f"albedo: {r['albedo']['n_undetermined']} of {shown.sum()} object pixels") for n in r["notes"])
+    # a surface that fills the frame (no background): brightness splits it, and the unlit part is not
+    # dark; before a lit background the same: the networks read the whole frame (a review: 2.53 -> 16.99)
+    filling, fmask = sphere(32, 2.0)
+    assert fmask.all()
+    bright = render_lambertian(filling, fmask, lights, 0.7)
+    lit_bg = np.where(mask[None, ..., None], images, 0.3 * np.clip(lights[:, 2], 0, None)[:, None, None, None])
+    for frame, by in ((bright, "brightness"), (lit_bg, None)):
+        info = find_object(*array_shading(frame), reader="lights").info
+        assert info["used"] and (by is None or info["by"] == by) and not for_normals(info), info
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            out = estimate_normals(frame, lights, None, method="ps-fcn", weights=w, device="cpu")
+        said = [str(x.message) for x in got if issubclass(x.category, PsctlWarning)]
+        assert len(said) == 1 and "what is left out may be part of the object" in said[0], said
+        assert said[0].endswith(NO_MASK_NETWORKS_WHY) and (np.linalg.norm(out, axis=-1) > 0.99).all()
+        whole = estimate_normals(frame, lights, np.ones_like(mask), method="ps-fcn", weights=w, device="cpu")
+        np.testing.assert_allclose(out, whole, atol=1e-5)
+        sd = find_object(*array_shading(frame), reader="sdps")  # sdps: LCNet reads it, its network the frame
+        assert sd.mask is not None and sd.normals_mask is None and sd.notes[1].startswith("the normals network: ")
     # the ground truth's pixels the object found misses are scored, at 90 degrees (no normal)
     from psctl.io.images import write_image
 
@@ -894,3 +920,41 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     assert missed.sum() >= 10 and r["n_evaluated_pixels"] == truth.sum()
     assert (cut["error"][missed] == 90).all() and r["mae"] > 90 * missed.sum() / truth.sum()
     assert any(n.startswith(f"scoring: {missed.sum()} pixels with a ground-truth normal lie beyond") for n in r["notes"])
+    # psctl eval's picture shows those pixels too (its panel covers the pixels scored)
+    import psctl.io.report as rep
+    from psctl.eval import run_benchmark
+
+    panels, panel = [], rep.object_panel
+    monkeypatch = pytest.MonkeyPatch()
+    monkeypatch.setattr(rep, "object_panel", lambda *a, **k: panels.append(a[4]) or panel(*a, **k))
+    try:
+        (tmp_path / "root").mkdir()
+        (tmp_path / "root" / "cut").symlink_to(tmp_path / "cut")
+        run_benchmark("folder", tmp_path / "root", "ps-fcn", weights=w, device="cpu", out=tmp_path / "ev")
+    finally:
+        monkeypatch.undo()
+    assert len(panels) == 1 and np.array_equal(panels[0], cut["mask"] | truth)
+
+
+def test_no_decoding_helper_where_an_earlier_pass_kept_every_image(tmp_path, monkeypatch):
+    """Without a mask the search decodes every image first (kept in a DecodeMemo): the networks'
+    pass then starts no helper to decode them again (a review: it served none of them)."""
+    import psctl.io.prefetch as pp
+    from psctl.infer import DEFAULT_INFER, _prefetch, first_read_box
+    from psctl.io.capture import DecodeMemo, iter_images, load_mask, open_capture
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "cap", n=5, size=24)
+    cap = open_capture(tmp_path / "cap")
+    mask = load_mask(cap)
+    asked = []
+    monkeypatch.setattr(pp, "prefetch", lambda paths, box, size, mb: asked.append(mb) or contextlib.nullcontext())
+    memo = DecodeMemo(1 << 26)
+    _prefetch(cap, mask, {}, memo)  # nothing kept yet: the helper as configured
+    box = first_read_box(cap, mask, {})
+    list(iter_images(cap.subset(range(4)), box, memo=memo))
+    _prefetch(cap, mask, {}, memo)  # four of five kept: still the helper
+    list(iter_images(cap, box, memo=memo))
+    _prefetch(cap, mask, {}, memo)  # all five: none
+    _prefetch(cap, mask, {}, None)
+    assert asked == [DEFAULT_INFER["prefetch_mb"]] * 2 + [0, DEFAULT_INFER["prefetch_mb"]]

@@ -966,6 +966,14 @@ class DecodeMemo:
         self.served += 1
         return rgb[want[0] - y0:want[1] - y0, want[2] - x0:want[3] - x0], info
 
+    def holds(self, path: Path, box: tuple[slice, slice]) -> bool:
+        """Whether ``take(path, box)`` would find a kept box (the file's stamp is not checked)."""
+        hit, want = self.kept.get(Path(path)), self._key(box)
+        if hit is None or want is None:
+            return False
+        y0, y1, x0, x1 = hit[0]
+        return y0 <= want[0] <= want[1] <= y1 and x0 <= want[2] <= want[3] <= x1
+
     def keep(self, path: Path, box: tuple[slice, slice], rgb: np.ndarray, info: ImageInfo,
              stamp: tuple[int, int, int] | None) -> None:
         key, path = self._key(box), Path(path)
