@@ -839,6 +839,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     from psctl.api import _found_file_note, run_normals
     from psctl.infer import FOUND_GROW, NO_MASK_NETWORKS_WHY, grow_mask
     from psctl.io.images import read_image
+    from psctl.io.capture import load_mask, open_capture
     from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, array_shading, find_object, for_normals
     from psctl.metrics import angular_error
     from tests.conftest import write_capture
@@ -882,6 +883,16 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     assert np.array_equal(arrays["mask"], grow_mask(shown, FOUND_GROW)) and r["n_mask_pixels"] == arrays["mask"].sum()
     assert NO_MASK_PREFIX + _found_file_note(False) in r["notes"]  # (no file written: no word of one)
     assert not any("mask pixels" in n for n in r["notes"])  # the pixels scored are not a mask's
+    from psctl.infer import DEFAULT_INFER  # a grow set by hand: the domain written follows the normals
+
+    given: dict = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(DEFAULT_INFER, "grow", 1)
+        run_normals(tmp_path / "with", method="ps-fcn", weights=w, write=False, device="cpu", arrays=given)
+    ring = grow_mask(load_mask(open_capture(tmp_path / "with")), 1)
+    assert np.array_equal(given["mask"], ring) and np.array_equal(np.abs(given["normals"]).sum(-1) > 0, ring)
+    with pytest.raises(PsctlError, match=r"px across \(the object found without a mask is \d+ px\)"):
+        run_normals(tmp_path / "without", method="ps-fcn", weights=w, write=False, device="cpu", downsample=8)
     alb: dict = {}
     r = run_normals(tmp_path / "without", method="ps-fcn", weights=w, write=False, device="cpu", albedo=True,
                     arrays=alb)
