@@ -193,6 +193,8 @@ def test_info(capture):
     (capture / "mask_obj.png").write_bytes((capture / "mask.png").read_bytes())  # looks like a mask, is not read
     assert json.loads(cli("info", capture, "--json", check=True).stdout)["notes"][0].startswith("files: not read: mask_obj.png")
     assert "note: files: not read: mask_obj.png" in cli("info", capture, check=True).stdout
+    (capture / "mask.png").unlink()  # none: what the methods make of that (not "the whole image" for all)
+    assert "the networks and psctl lights find the object" in " ".join(cli("info", capture, check=True).stdout.split())
 
 
 def test_info_check_decodes_every_file(tmp_path):

@@ -303,7 +303,9 @@ def render_info(report: dict) -> None:
     lo, hi = r["intensity_range"]
     t.add_row("intensities", r["intensities"] if r["intensities"].startswith("none") else
               f"{r['intensities']}, range {lo:.3g} .. {hi:.3g}")
-    t.add_row("mask", escape(f"{r['mask'] or 'none (whole image)'}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})"))
+    t.add_row("mask", escape(f"{r['mask']}, {r['mask_coverage']:.1%} of pixels ({r['mask_pixels']})" if r["mask"] else
+                             f"none: the networks and psctl lights find the object (l2: the whole image, "
+                             f"{r['mask_pixels']} pixels)"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
     if r.get("camera"):
         t.add_row("camera", escape(f"focal length {r['camera']['focal']:,.0f} pixels ({r['camera']['from']}; "
