@@ -819,8 +819,8 @@ def _found_file_notes(written: bool, stale: Callable[[], list[str]], out_dir: "P
     if written:
         return [n for n in replaced_notes(out_dir, [FOUND_FILE], "normals") if FOUND_FILE in n]
     if FOUND_FILE in stale():
-        return [f"outputs: removed {FOUND_FILE}, left in {out_dir} by an earlier psctl run (this one found no "
-                f"object)"]
+        return [f"outputs: removed {FOUND_FILE}, left in {out_dir} by an earlier psctl run (this one read no object "
+                f"found: none was, or the networks read the whole frame)"]
     return []
 
 

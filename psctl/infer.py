@@ -697,8 +697,8 @@ def run_downsampled(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray |
         ys, xs = np.nonzero(mask)
         side = int(max(ys.max() - ys.min(), xs.max() - xs.min())) + 1
         if -(-side // k) < MIN_SIDE:
-            what = ("the object found without a mask" if {**DEFAULT_INFER, **(config or {})}["exposure_pixels"] == "found"
-                    else "the mask")
+            what = {"found": "the object found without a mask", "lit": "the frame, without a mask"}.get(
+                {**DEFAULT_INFER, **(config or {})}["exposure_pixels"], "the mask")
             raise PsctlError(None, f"downsample {k} would leave the object {-(-side // k)} px across ({what} is "
                                    f"{side} px); use at most {max(side // MIN_SIDE, 1)}")
     small = block_mean(mask.astype(np.float32), np.ones_like(mask), k) > 0
@@ -842,8 +842,10 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None, memo: "
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     box = first_read_box(capture, mask, cfg)
-    held = memo is not None and box is not None and all(memo.holds(p, box) for p in capture.image_paths)
-    return prefetch(capture.image_paths, box, (capture.width, capture.height), 0 if held else cfg["prefetch_mb"])
+    pf = prefetch(capture.image_paths, None, (capture.width, capture.height), cfg["prefetch_mb"])  # (checks it)
+    if memo is not None and box is not None and all(memo.holds(p, box) for p in capture.image_paths):
+        return pf  # off: it serves nothing
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])
 
 
 def first_read_box(capture: "Capture", mask: np.ndarray, config: dict | None = None) -> tuple[slice, slice] | None:
@@ -920,8 +922,8 @@ class ReadMemo:
 # in session 60 it was 6.68, the ensemble 6.17): `psctl eval` on the dev split's five folders
 # with mask.png left out (the same pixels scored)
 NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the background beside it included; a "
-                        "mask of the object makes the normals more accurate (the DiLiGenT dev split without its "
-                        "masks: the ensemble 6.04 degrees against 5.66 with them, PS-FCN+N 6.00 against 5.59, "
+                        "mask of the object makes the normals more accurate (the DiLiGenT dev split read whole: "
+                        "the ensemble 6.04 degrees against 5.66 with its masks, PS-FCN+N 6.00 against 5.59, "
                         "PS-FCN 6.35 against 6.01)")
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
 # Without a mask the networks read the object psctl.lights.find_object finds, not the whole frame: the

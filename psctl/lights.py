@@ -1126,6 +1126,9 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 # or textured planes) brightness cannot find it (15-60 degrees either way), the shading below can
 # (since session 64); a found region that covers nearly the whole frame is read as the whole
 # frame, as before, and a background that is not dark, where shading is not used, gets a note.
+FOUND_NORMALS_BORDER = 0.25  # the normals networks read the whole frame where the object found covers more
+# of the frame's border ring (border_ring) than this: no background around it (a surface that fills the
+# frame with a dark part, a review: 8.66 -> 40.6 degrees with its dark half left without normals)
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
 FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
 FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part's, above which the
@@ -1234,7 +1237,8 @@ def for_normals(info: dict) -> bool:
     a lit one, what is left out may be the object's own: a surface that fills the frame, split by
     brightness or read as a background plane by shading (a review's 48 px relief, ensemble:
     5.02 -> 33.72 degrees with its flat part left without normals), so they read the whole frame."""
-    return info["by"] == "brightness" and info["contrast"] is not None and info["contrast"] <= FOUND_DARK_CONTRAST
+    return (info["by"] == "brightness" and info["contrast"] is not None and info["contrast"] <= FOUND_DARK_CONTRAST
+            and info.get("border", 0.0) <= FOUND_NORMALS_BORDER)
 
 
 def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, reader: str = "lights") -> FoundObject:
@@ -1258,7 +1262,9 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     b = np.where(np.isfinite(b), b, 0.0)  # NaN (a bad pixel outside the object): dark; LCNet refuses it inside
     lit = lit_pixels(b)
     region = ndimage.binary_fill_holes(lit)
-    contrast = float(b[~lit].mean() / b[lit].mean()) if lit.any() and (~lit).any() and b[lit].mean() > 0 else None
+    # rounded as the report gives it: for_normals reads the report's value, and the notes must agree with it
+    contrast = round(float(b[~lit].mean() / b[lit].mean()), 4) if lit.any() and (~lit).any() and b[lit].mean() > 0 \
+        else None
     not_dark = contrast is not None and contrast > FOUND_DARK_CONTRAST
     # a lit background: the unlit part is not dark, or the frame's border is lit (a background brighter
     # than a dark object: Otsu's lit part is the background, and its unlit part, the object, is dark;
@@ -1275,14 +1281,18 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
             region, by = cells[np.arange(b.shape[0]) // f][:, np.arange(b.shape[1]) // f], "shading"
     frac = float(region.mean()) if region.size else 0.0
     used = int(region.sum()) >= FOUND_MIN_PIXELS and frac <= FOUND_MAX_FRACTION
+    ring = border_ring(*b.shape)
     info = {"pixels": int(region.sum()), "frame_fraction": round(frac, 4),
-            "contrast": None if contrast is None else round(contrast, 4), "by": by, "used": used}
+            "contrast": None if contrast is None else round(contrast, 4), "by": by, "used": used,
+            "border": round(float(region[ring].mean()), 4) if ring.any() else 0.0}
     how = ("the lit pixels, holes filled" if by == "brightness" else
            "the pixels whose shading over the images differs from the background's, holes filled")
     if used and reader != "lights" and not for_normals(info):
         # the normals networks read the whole frame (for_normals); sdps' LCNet and light fit the object
         lit = ("the background is lit (the object was told from it by shading)" if by == "shading" else
-               f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit ones')")
+               f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit ones')"
+               if not_dark else f"the object found covers {info['border']:.0%} of the frame's border (no background "
+                                f"around it)")
         why_not = (f"{lit}, and what is left out may be part of the object (a surface that fills the frame): "
                    f"{NO_MASK_NETWORKS_WHY}")
         if reader == "normals":

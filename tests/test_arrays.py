@@ -4,7 +4,6 @@ refused for, integer pixels scaled as image files are, inputs never written to."
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -840,7 +839,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     from psctl.infer import FOUND_GROW, NO_MASK_NETWORKS_WHY, grow_mask
     from psctl.io.images import read_image
     from psctl.io.capture import load_mask, open_capture
-    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, array_shading, find_object, for_normals
+    from psctl.lights import FOUND_FILE, FOUND_NORMALS_BORDER, NO_MASK_PREFIX, array_shading, find_object, for_normals
     from psctl.metrics import angular_error
     from tests.conftest import write_capture
 
@@ -904,7 +903,11 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     assert fmask.all()
     bright = render_lambertian(filling, fmask, lights, 0.7)
     lit_bg = np.where(mask[None, ..., None], images, 0.3 * np.clip(lights[:, 2], 0, None)[:, None, None, None])
-    for frame, by in ((bright, "brightness"), (lit_bg, None)):
+    half = np.full(filling.shape, 0.7, np.float32)
+    half[:, 16:] = 0.05  # its right half dark: the unlit part looks like a dark background, but lies on the border
+    dark_half = render_lambertian(filling, fmask, lights, half)
+    assert find_object(*array_shading(dark_half)).info["border"] > FOUND_NORMALS_BORDER
+    for frame, by in ((bright, "brightness"), (lit_bg, None), (dark_half, "brightness")):
         info = find_object(*array_shading(frame), reader="lights").info
         assert info["used"] and (by is None or info["by"] == by) and not for_normals(info), info
         with warnings.catch_warnings(record=True) as got:
@@ -949,7 +952,8 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
 
 def test_no_decoding_helper_where_an_earlier_pass_kept_every_image(tmp_path, monkeypatch):
     """Without a mask the search decodes every image first (kept in a DecodeMemo): the networks'
-    pass then starts no helper to decode them again (a review: it served none of them)."""
+    pass then starts no helper to decode them again (a review: it served none of them); its
+    setting is checked all the same (a second review)."""
     import psctl.io.prefetch as pp
     from psctl.infer import DEFAULT_INFER, _prefetch, first_read_box
     from psctl.io.capture import DecodeMemo, iter_images, load_mask, open_capture
@@ -958,14 +962,18 @@ def test_no_decoding_helper_where_an_earlier_pass_kept_every_image(tmp_path, mon
     write_capture(tmp_path / "cap", n=5, size=24)
     cap = open_capture(tmp_path / "cap")
     mask = load_mask(cap)
-    asked = []
-    monkeypatch.setattr(pp, "prefetch", lambda paths, box, size, mb: asked.append(mb) or contextlib.nullcontext())
+    started, real = [], pp.prefetch  # the helpers asked for a region (box None: none started)
+    monkeypatch.setattr(pp, "prefetch", lambda paths, box, size, mb: started.append(box is not None and mb > 0)
+                        or real(paths, None, size, mb))
     memo = DecodeMemo(1 << 26)
-    _prefetch(cap, mask, {}, memo)  # nothing kept yet: the helper as configured
     box = first_read_box(cap, mask, {})
-    list(iter_images(cap.subset(range(4)), box, memo=memo))
-    _prefetch(cap, mask, {}, memo)  # four of five kept: still the helper
-    list(iter_images(cap, box, memo=memo))
-    _prefetch(cap, mask, {}, memo)  # all five: none
+    for held, want in ((0, True), (4, True), (5, False)):  # images kept before the networks' pass
+        list(iter_images(cap.subset(range(held)), box, memo=memo))
+        started.clear()
+        _prefetch(cap, mask, {}, memo)
+        assert any(started) == want, held
+    started.clear()
     _prefetch(cap, mask, {}, None)
-    assert asked == [DEFAULT_INFER["prefetch_mb"]] * 2 + [0, DEFAULT_INFER["prefetch_mb"]]
+    assert any(started) and DEFAULT_INFER["prefetch_mb"] > 0
+    with pytest.raises(PsctlError, match="prefetch_mb must be a whole number"):
+        _prefetch(cap, mask, {"prefetch_mb": -1}, memo)

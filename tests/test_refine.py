@@ -993,7 +993,7 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     s = run_normals(tmp_path / "nomask", method="sdps", out=tmp_path / "fl", device="cpu")  # an earlier run's file:
     flat = run_normals(tmp_path / "flat", method="sdps", out=tmp_path / "fl", device="cpu")  # removed, with a note
     assert not (tmp_path / "fl" / FOUND_FILE).exists()
-    assert any(f"removed {FOUND_FILE}" in n and "found no object" in n for n in flat["notes"]), flat["notes"]
+    assert any(f"removed {FOUND_FILE}" in n and "read no object found" in n for n in flat["notes"]), flat["notes"]
     (tmp_path / "out" / FOUND_FILE).write_bytes(b"mine")  # psctl lights keeps a file of the user's too
     kept = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
     assert (tmp_path / "out" / FOUND_FILE).read_bytes() == b"mine" and not any(FOUND_FILE in n for n in kept["notes"])
