@@ -659,8 +659,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
             notes.append(f"scoring: {missed} pixels with a ground-truth normal lie beyond the object found and the "
                          f"{FOUND_GROW} pixels around it: they have no normal and count at 90 degrees")
-    error, stats, valid, eval_notes = _evaluate(normals, gt, scored, cap.gt_path,
-                                                "mask" if scored is mask else "scored")
+    error, stats, valid, eval_notes = _evaluate(normals, gt, scored, cap.gt_path, mask_file=scored is mask)
     n_eval = 0 if valid is None else int(valid.sum())
     notes += eval_notes
 
@@ -977,12 +976,13 @@ def _capture_albedo(lit: "Capture", method: str, normals: np.ndarray, dark: np.n
 
 
 def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
-              gt_path: "Path | None", pixels: str = "mask") -> tuple[np.ndarray | None, dict, np.ndarray | None, list[str]]:
+              gt_path: "Path | None", mask_file: bool = True) -> tuple[np.ndarray | None, dict, np.ndarray | None, list[str]]:
     """Normals [H, W, 3] against the ground truth (None: not scored): (the error map [H, W]
     degrees, 0 outside the mask and NaN where the ground truth has no normal; the summary
     (mae, median, within); the scored pixels [H, W]; notes). Without ground truth: None, the
-    summary's keys with None, None, no notes. ``pixels``: the notes' word for ``mask`` ("scored"
-    without a mask file: the object found, the pixels around it and the ground truth's)."""
+    summary's keys with None, None, no notes. ``mask_file`` False: ``mask`` is no mask of the
+    user's but the pixels given a normal and the ground truth's (the object found without a mask
+    file): no note on the authors' count over a mask (mae_missing_as_90 is still given)."""
     from psctl.metrics import angular_error, summarize
 
     if gt is None:
@@ -1001,8 +1001,8 @@ def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
     n_missing, n_mask = int((mask & ~valid).sum()), int(mask.sum())
     stats["mae_missing_as_90"] = (stats["mae"] * (n_mask - n_missing) + 90.0 * n_missing) / n_mask
     notes = convention_notes(normals, gt, valid, stats["mae"], gt_path.name)
-    if n_missing:
-        notes.append(f"scoring: {n_missing} of {n_mask} {pixels} pixels have no ground-truth normal in {gt_path.name} "
+    if n_missing and mask_file:  # (without one the authors' count has no mask to go by: the value alone)
+        notes.append(f"scoring: {n_missing} of {n_mask} mask pixels have no ground-truth normal in {gt_path.name} "
                      f"(zero or NaN) and are not scored; at 90 degrees each, as the authors' evaluation code counts "
                      f"a zero normal, the MAE would be {stats['mae_missing_as_90']:.2f} (mae_missing_as_90)")
     return error, stats, valid, notes
