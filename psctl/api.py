@@ -815,8 +815,9 @@ def _found_file_notes(written: bool, stale: Callable[[], list[str]], out_dir: "P
     from psctl.io.atomic import replaced_notes
     from psctl.lights import FOUND_FILE
 
-    if written:
-        return [n for n in replaced_notes(out_dir, [FOUND_FILE], "normals") if FOUND_FILE in n]
+    if written:  # one psctl lights wrote there is psctl's too (the same search): replaced without a word
+        listed = read_outputs_list(out_dir, "normals") + read_outputs_list(out_dir, "lights")
+        return [n for n in replaced_notes(out_dir, [FOUND_FILE], "normals", listed) if FOUND_FILE in n]
     if FOUND_FILE in stale():
         return [f"outputs: removed {FOUND_FILE}, left in {out_dir} by an earlier psctl run (this one read no object "
                 f"found: none was, or the networks read the whole frame)"]

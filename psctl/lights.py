@@ -1584,7 +1584,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
         names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), *([FOUND_FILE] if shown else []),
                  REPORT_FILE]
-        report["notes"] += replaced_notes(out_dir, names, "lights")  # a same-named file of the user's
+        # a same-named file of the user's (a mask_found.png psctl normals wrote there is psctl's: no word)
+        ours = read_outputs_list(out_dir, "lights") + [n for n in read_outputs_list(out_dir, "normals") if n == FOUND_FILE]
+        report["notes"] += replaced_notes(out_dir, names, "lights", ours)
         if subset:
             report["outputs"]["light_images"] = os.path.abspath(out_dir / SUBSET_FILE)
         elif (out_dir / SUBSET_FILE).is_file():

@@ -997,6 +997,16 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     (tmp_path / "out" / FOUND_FILE).write_bytes(b"mine")  # psctl lights keeps a file of the user's too
     kept = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
     assert (tmp_path / "out" / FOUND_FILE).read_bytes() == b"mine" and not any(FOUND_FILE in n for n in kept["notes"])
+    # psctl lights and psctl normals into one folder (both default to PATH/psctl): each replaces the
+    # other's mask_found.png (the same search) without calling it a file of the user's
+    import functools
+
+    sdps = functools.partial(run_normals, method="sdps")  # (the fake weights: no calibrated network)
+    for first, then in ((run_lights, sdps), (sdps, run_lights)):
+        shutil.rmtree(tmp_path / "both", ignore_errors=True)
+        first(tmp_path / "nomask", out=tmp_path / "both", device="cpu")
+        r2 = then(tmp_path / "nomask", out=tmp_path / "both", device="cpu")
+        assert "mask_found" in r2["outputs"] and not any("replaced" in n for n in r2["notes"]), r2["notes"]
 
 
 def test_exposure_notes_name_the_object_found(tmp_path, fake_weights, monkeypatch):
