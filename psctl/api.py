@@ -489,7 +489,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     truth; 0 outside the pixels scored, NaN on mask pixels whose ground truth is zero or NaN, which
     the metrics leave out; without a mask file, a ground-truth pixel beyond the object found has no
     normal and scores 90), "scored" [H, W] (the pixels the error map covers: the mask, and there
-    those ground-truth pixels), "spread"
+    those ground-truth pixels), "found" [H, W] (the object found that the networks read, without the
+    pixels around it; None with a mask file or where they read the whole frame), "spread"
     [H, W] degrees (None but for the ensemble) and "albedo" [H, W, 3] (None without ``albedo``).
     ``albedo``: also the albedo map from the normals, the lights (sdps: as estimated) and the
     images (``psctl.albedo``: per channel, the median of image / (n . l) over the images that
@@ -712,7 +713,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     if arrays is not None:
         arrays.update(normals=normals, mask=mask, error=error, spread=spread, albedo=None if alb is None else alb.albedo,
-                      scored=scored)
+                      scored=scored, found=None if found is None else found.normals_mask)
 
     # --- write ---------------------------------------------------------------------------------
     if write:

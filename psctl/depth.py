@@ -740,6 +740,12 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             mask = ~(nmap == 0).all(axis=-1)
             if not mask.any():
                 raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
+            found = found_beside(source, mask.shape)
+            if found is not None and (found & mask).any():  # the object, not the ring of normals around it
+                mask &= found
+                notes.append(f"mask: none (no mask.png): the surface is the object found ({int(mask.sum())} "
+                             f"pixels, mask_found.png beside {source.name}), without the pixels around it its "
+                             f"normals also cover")
         normals_source = os.path.abspath(source)
         notes += encoding_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
@@ -759,7 +765,11 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             raise PsctlError(e.path or cap.path, f"no normal map to integrate and cannot estimate one: "
                                                  f"{e.message} (give one with --normals)") from None
         nmap = got["normals"]
-        if mask is None:
+        if mask is None and got.get("found") is not None:  # the object, not the ring of normals around it
+            mask = got["found"]
+            notes.append(f"mask: none (no mask.png): the surface is the object found ({int(mask.sum())} pixels, "
+                         f"psctl normals' mask_found.png), without the pixels around it its normals also cover")
+        elif mask is None:
             mask = got["mask"]
         # its albedo notes speak of albedo maps, which depth does not write (black vertices here, below)
         notes += [n for n in estimated["notes"] if n not in notes and not n.startswith("albedo:")]
@@ -858,6 +868,28 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
 # psctl normals --albedo's files, the most precise first
 ALBEDO_FILES = tuple(ALBEDO_FORMATS[f] for f in ("exr", "npy", "png16", "png8"))
+
+
+def found_beside(normals: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    """[H, W] bool, the object found without a mask (``mask_found.png``) that the psctl normals run
+    which wrote the normal map ``normals`` wrote beside it: both files as that run's report.json
+    recorded them ("written"), the mask of ``shape``; else None (no such run, a file replaced since)."""
+    import json
+
+    from psctl.io.atomic import read_small_text
+    from psctl.io.images import read_image
+    from psctl.lights import FOUND_FILE
+
+    try:
+        written = json.loads(read_small_text(normals.parent / "report.json", 64 << 20)).get("written")
+        stamps = {n: [(normals.parent / n).stat().st_size, (normals.parent / n).stat().st_mtime_ns]
+                  for n in (normals.name, FOUND_FILE)}
+        if not isinstance(written, dict) or any(written.get(n) != v for n, v in stamps.items()):
+            return None
+        found = read_image(normals.parent / FOUND_FILE)[0]
+    except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
+        return None
+    return found[..., 0] > 0.5 if found.shape[:2] == tuple(shape) else None
 
 
 def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None = None

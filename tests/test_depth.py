@@ -639,3 +639,37 @@ def test_integrate_normals_given_a_file_name_for_k_says_how_to_read_it(tmp_path)
         with pytest.raises(PsctlError, match=r"^K must be a 3 x 3 array here, not a file name .*"
                                              r"psctl\.depth\.read_intrinsics\(PATH\)$"):
             integrate_normals(normals, mask, K=k)
+
+
+def test_depth_without_a_mask_integrates_the_object_found_not_the_ring(tmp_path, monkeypatch):
+    """Without a mask the networks' normals cover the object found and FOUND_GROW pixels around it;
+    psctl depth integrates the object (its mask_found.png), not that ring (a 4-pixel skirt of
+    made-up surface, its vertices black: examples/bumpy_sphere without its mask), whether it
+    estimates the normals itself or reads those a psctl normals run wrote beside mask_found.png;
+    a mask_found.png replaced since that run is not used."""
+    import os
+
+    import psctl.depth as D
+    from psctl.api import run_normals
+    from psctl.infer import FOUND_GROW, grow_mask
+    from psctl.models.ps_fcn import PSFCN
+    from psctl.models.weights import save_weights
+
+    write_capture(tmp_path / "cap", n=8, size=32, mask=False)
+    (tmp_path / "w").mkdir()
+    save_weights(tmp_path / "w" / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))  # auto: ps-fcn
+    got: dict = {}
+    run_normals(tmp_path / "cap", write=False, arrays=got)
+    found = got["found"]
+    assert found is not None and np.array_equal(got["mask"], grow_mask(found, FOUND_GROW))
+    r = D.run_depth(tmp_path / "cap", write=False)
+    assert r["n_mask_pixels"] == found.sum() and any("the surface is the object found" in n for n in r["notes"])
+    run_normals(tmp_path / "cap")  # PATH/psctl/normal.png, mask_found.png, report.json
+    r = D.run_depth(tmp_path / "cap", write=False)
+    assert r["n_mask_pixels"] == found.sum() and any("mask_found.png beside" in n for n in r["notes"])
+    shown = tmp_path / "cap" / "psctl" / "mask_found.png"
+    st = shown.stat()
+    os.utime(shown, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # replaced since (as far as its time says)
+    r = D.run_depth(tmp_path / "cap", write=False)
+    assert r["n_mask_pixels"] == grow_mask(found, FOUND_GROW).sum()
