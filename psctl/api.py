@@ -302,7 +302,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         found = find_object(*array_shading(images), reader="normals" if method != "sdps" else "sdps")
         _warn_found(found, method, level)
-    read = mask if found is None or found.normals_mask is None else found.normals_mask  # the networks'
+    read = _networks_read(found, mask)
     if light_distance is not None:
         from psctl.nearlight import near_lights
 
@@ -584,7 +584,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         if memo is None:  # the networks' pass takes the images the search decoded, where they fit
             memo = DecodeMemo(DEFAULT_INFER["cache_mb"] << 20)
         found = capture_object(cap, mask, {}, progress, memo, reader="normals")[2]
-    read = mask if found is None or found.mask is None else found.mask  # what the networks read
+    read = _networks_read(found, mask)
     box = bounding_box(mask)
     near = None
     if light_distance is not None and method != "sdps":  # sdps: about the object LCNet reads (_sdps_normals)
@@ -643,7 +643,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
         lit = cap if method != "sdps" else lit_capture(replace(cap, near=near), est)  # the lights the normals used
         # the object found, not the ring around it (background there: no albedo to speak of)
-        on = mask if found is None or found.normals_mask is None else found.normals_mask
+        on = _networks_read(found, mask)
         alb, albedo_stats, alb_notes = _capture_albedo(lit, method, normals, dark, on, progress, memo)
         notes += alb_notes
 
@@ -905,12 +905,11 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     if near is not None:
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
                                            "(LCNet reads the images as captured)"))
+    read = _networks_read(found, mask)  # the second stage's
     est = capture_lights(cap, fit_mask, lcnet, lc_cfg, progress, flag="--lcnet", memo=memo,
-                         keep_box=first_read_box(cap, mask if found is None or found.normals_mask is None
-                                                 else found.normals_mask, net_cfg))
+                         keep_box=first_read_box(cap, read, net_cfg))
     gt_ints = cap.intensities if cap.intensities_given else None
     lcnet_stats = light_errors(est.directions, est.intensities, cap.lights, gt_ints)
-    read = mask if found is None or found.normals_mask is None else found.normals_mask  # the second stage's
     source = capture_source(replace(cap, near=near), read, second, weights, net_cfg, progress, memo, fit_mask)
     est, net = second_stage(source, est, refine, fit)
     notes = found_notes + list(dict.fromkeys(est.notes + net.notes))  # both stages may name a black image
@@ -923,6 +922,12 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
             f"; LCNet alone {lcnet_stats['light_mae']:.2f}°" if refined else ""))
     return _SdpsRun(est, net.normals, net.dark, notes, second, lc_cfg, lcnet_stats, light_stats,
                     found, near, _normals_domain(read, net_cfg))
+
+
+def _networks_read(found: "FoundObject | None", mask: np.ndarray | None) -> np.ndarray | None:
+    """What the normals networks read: the object found without a mask file where they may read it
+    (``FoundObject.normals_mask``), else ``mask`` (a mask file's, the whole frame, or None)."""
+    return mask if found is None or found.normals_mask is None else found.normals_mask
 
 
 def _found_config(found: "FoundObject | None") -> dict:

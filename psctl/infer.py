@@ -838,14 +838,13 @@ def _prefetch(capture: "Capture", mask: np.ndarray, config: dict | None, memo: "
     nothing) with ``prefetch_mb`` 0, ``downsample`` > 1 (the network reads shrunk images), an
     empty mask, or where ``memo`` holds every image already (decoded by an earlier pass: the
     search for the object without a mask, sdps' LCNet)."""
-    from psctl.io.prefetch import prefetch
+    from psctl.io.prefetch import check_prefetch_mb, prefetch
 
     cfg = {**DEFAULT_INFER, **(config or {})}
+    mb = check_prefetch_mb(cfg["prefetch_mb"])  # (a bad setting is an error whether a helper starts or not)
     box = first_read_box(capture, mask, cfg)
-    pf = prefetch(capture.image_paths, None, (capture.width, capture.height), cfg["prefetch_mb"])  # (checks it)
-    if memo is not None and box is not None and all(memo.holds(p, box) for p in capture.image_paths):
-        return pf  # off: it serves nothing
-    return prefetch(capture.image_paths, box, (capture.width, capture.height), cfg["prefetch_mb"])
+    held = memo is not None and box is not None and all(memo.holds(p, box) for p in capture.image_paths)
+    return prefetch(capture.image_paths, box, (capture.width, capture.height), 0 if held else mb)
 
 
 def first_read_box(capture: "Capture", mask: np.ndarray, config: dict | None = None) -> tuple[slice, slice] | None:

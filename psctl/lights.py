@@ -1126,14 +1126,14 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 # or textured planes) brightness cannot find it (15-60 degrees either way), the shading below can
 # (since session 64); a found region that covers nearly the whole frame is read as the whole
 # frame, as before, and a background that is not dark, where shading is not used, gets a note.
-FOUND_NORMALS_BORDER = 0.25  # the normals networks read the whole frame where the object found covers more
-# of the frame's border ring (border_ring) than this: no background around it (a surface that fills the
-# frame with a dark part, a review: 8.66 -> 40.6 degrees with its dark half left without normals)
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
 FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
 FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part's, above which the
 # background is not dark (dark backgrounds: 0.018-0.089 on syntest at albedo 0.01, 0.011-0.099 on the
 # dev split; lit planes and textures where an object was used: 0.33-0.84; benchmarks/auto_mask_lights.py)
+FOUND_NORMALS_BORDER = 0.25  # the normals networks read the whole frame where the object found covers more
+# of the frame's border ring (border_ring) than this: no background around it (a surface that fills the
+# frame with a dark part, a review: 8.66 -> 40.6 degrees with its dark half left without normals)
 
 
 # A lit background (a table, a wall) is brighter than the object's shadows, so brightness cannot
@@ -1233,7 +1233,8 @@ class FoundObject:
 
 def for_normals(info: dict) -> bool:
     """Whether the normals networks may read an object ``find_object`` found (its ``info``):
-    found by brightness before a dark background (contrast at most FOUND_DARK_CONTRAST). Before
+    found by brightness before a dark background (contrast at most FOUND_DARK_CONTRAST) that
+    surrounds it (it covers at most FOUND_NORMALS_BORDER of the frame's border ring). Before
     a lit one, what is left out may be the object's own: a surface that fills the frame, split by
     brightness or read as a background plane by shading (a review's 48 px relief, ensemble:
     5.02 -> 33.72 degrees with its flat part left without normals), so they read the whole frame."""

@@ -237,16 +237,22 @@ class Prefetch:
         return pixels, info
 
 
+def check_prefetch_mb(mb: object) -> int:
+    """The ``prefetch_mb`` setting: a whole number of MB >= 0 (0: off)."""
+    from psctl.errors import PsctlError
+
+    if isinstance(mb, bool) or not isinstance(mb, (int, np.integer)) or mb < 0:
+        raise PsctlError(None, f"prefetch_mb must be a whole number of MB >= 0 (0: off), got {mb!r}")
+    return int(mb)
+
+
 def prefetch(paths: Sequence[Path], box: _Box | None, size: tuple[int, int], mb: object) -> Prefetch:
     """A ``Prefetch`` for a first pass over ``paths`` cut to ``box`` with a ring of ``mb`` MB (a
     network's ``prefetch_mb`` setting, checked here; 0: off), started only while torch is not
     imported: the child's decoding overlaps torch's import, and once torch is loaded there is
     nothing to overlap (``psctl eval``'s later objects: the same time either way). ``box`` None:
     off (the caller reads no region the helper could cut, e.g. an empty mask)."""
-    from psctl.errors import PsctlError
-
-    if isinstance(mb, bool) or not isinstance(mb, (int, np.integer)) or mb < 0:
-        raise PsctlError(None, f"prefetch_mb must be a whole number of MB >= 0 (0: off), got {mb!r}")
+    check_prefetch_mb(mb)
     off = box is None or "torch" in sys.modules
     return Prefetch(paths, (slice(0, 0), slice(0, 0)) if box is None else box, size, 0 if off else int(mb) << 20)
 
