@@ -77,7 +77,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
-    "n_images", "n_dark", "seconds", "notes", "provenance"}], "mean_mae", "mean_mae_missing_as_90", "paper",
+    "n_images", "n_dark", "seconds", "notes", "provenance"}], "mean_mae", "mean_mae_missing_as_90" (None where an
+    object has no mask file), "paper",
     "paper_method", "light_distance", "views",
     "downsample", "precision", "notes"}
     (docs/formats.md has each key; "paper": the published numbers of
@@ -393,7 +394,9 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "objects": objects,
         "mean_mae": float(np.mean([o["mae"] for o in objects])),
         # as the authors' code scores: mask pixels without a ground-truth normal at 90 degrees
-        "mean_mae_missing_as_90": float(np.mean([o["mae_missing_as_90"] for o in objects])),
+        # (None where an object has no mask file: no mask to count over)
+        "mean_mae_missing_as_90": None if any(o["mae_missing_as_90"] is None for o in objects) else
+        float(np.mean([o["mae_missing_as_90"] for o in objects])),
         "light_distance": None if light_distance is None else float(light_distance),
         "views": views,
         "downsample": downsample,

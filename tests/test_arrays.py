@@ -882,6 +882,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     assert np.array_equal(arrays["mask"], grow_mask(shown, FOUND_GROW)) and r["n_mask_pixels"] == arrays["mask"].sum()
     assert NO_MASK_PREFIX + _found_file_note(False) in r["notes"]  # (no file written: no word of one)
     assert not any("mask pixels" in n for n in r["notes"])  # no note on the authors' count: no mask of the user's
+    assert r["mae_missing_as_90"] is None and r["mae"] is not None  # (nor its value: it counted the ring at 90)
     from psctl.infer import DEFAULT_INFER  # a grow set by hand: the domain written follows the normals
 
     given: dict = {}

@@ -410,6 +410,14 @@ def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):
     cat_line = next(line for line in narrow.stdout.splitlines() if line.startswith("│ cat "))
     assert f"{cat['mae']:.2f}" in cat_line and f"{cat['mae_missing_as_90']:.2f}" in cat_line
     assert max(len(line) for line in narrow.stdout.splitlines() if line[:1] in "┏┃┡│├└") <= 40
+    # without a mask file there is no mask to count over (it counted the background at 90 degrees)
+    (tmp_path / "root" / "catPNG" / "mask.png").unlink()
+    r = json.loads(psctl("eval", "--root", tmp_path / "root", "-m", "l2", "--json", check=True).stdout)
+    ball, cat = r["objects"]
+    assert ball["mae_missing_as_90"] == ball["mae"] and cat["mae_missing_as_90"] is None and cat["mae"] is not None
+    assert r["mean_mae_missing_as_90"] is None and not any("scoring:" in n for n in cat["notes"])
+    table = psctl("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
+    assert "scored as the paper" not in table  # (ball's is its mae, cat's none)
 
 
 def test_eval_light_means_and_paper_lights():
