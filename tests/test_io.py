@@ -1282,6 +1282,32 @@ def test_atomic_path_names_the_output_when_a_write_fails(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
+def test_a_full_disk_while_staging_names_the_output_folder(tmp_path):
+    """A full disk that the system reports without a file name (pathlib's write_text finding the
+    write short at close: psctl normals' list of outputs on a 64 kB tmpfs, an audit) names the
+    output folder, for one run's staging and for psctl eval's batch; nothing is left; another
+    error passes as is."""
+    import errno
+
+    from psctl.io.atomic import OutputBatch, staged_outputs
+
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with pytest.raises(PsctlError, match=r"^.*o: cannot write the outputs \(no space left on device\); nothing was"):
+        with staged_outputs(tmp_path / "o") as stage:
+            (stage / "normal.png").write_bytes(b"x")
+            raise full
+    assert os.listdir(tmp_path) == []
+    with pytest.raises(PsctlError, match=r"e: cannot write the outputs \(no space left on device\)"):
+        with OutputBatch(tmp_path / "e") as batch:
+            (batch.stage(tmp_path / "e" / "ball").path / "normal.png").write_bytes(b"x")
+            raise full
+    assert os.listdir(tmp_path) == []
+    with pytest.raises(OSError, match="Input/output error"):
+        with staged_outputs(tmp_path / "o"):
+            raise OSError(errno.EIO, "Input/output error")
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_pickled_npy_normal_map_is_refused_without_numpys_advice(tmp_path):
     """np.load's own message suggests allow_pickle=True (running code from the file): ours names
     the file and what it is instead."""

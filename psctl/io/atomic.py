@@ -7,6 +7,7 @@ see complete files.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import sys
@@ -496,6 +497,8 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
             stage.discard()
         if isinstance(e, PsctlError):
             raise by_final_name(e, [(stage.path, stage.out_dir)]) from None
+        if no_room(e, stage.out_dir) is not e:
+            raise no_room(e, stage.out_dir) from None
         raise
     # the lock first (a wait for it can be stopped: then nothing moved), then moved and cleaned up
     # in one piece
@@ -513,6 +516,19 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
             with signals_deferred():
                 stage.discard()
         raise
+
+
+_NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def no_room(error: BaseException, out_dir: str | os.PathLike) -> BaseException:
+    """A full disk met while staging the outputs, where the system's error names no file (a write
+    found short at close, as pathlib's write_text raises it): a PsctlError naming the output
+    folder, else ``error`` itself."""
+    if isinstance(error, OSError) and error.filename is None and error.errno in _NO_ROOM:
+        what = error.strerror.lower() if error.strerror else str(error)
+        return PsctlError(out_dir, f"cannot write the outputs ({what}); nothing was written")
+    return error
 
 
 def by_final_name(error: PsctlError, stagings: "Iterable[tuple[Path, Path]]") -> PsctlError:
@@ -566,6 +582,8 @@ class OutputBatch:
                 renamed = by_final_name(value, [(s.path, s.out_dir) for s in self.stagings])
                 if renamed is not value:
                     raise renamed from None
+            if no_room(value, self.root) is not value:
+                raise no_room(value, self.root) from None
             if kind is None:
                 for s in self.stagings:
                     s.check()
