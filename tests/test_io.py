@@ -1855,6 +1855,26 @@ def test_pick_channels_by_name():
         pick_channels(["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"])
 
 
+def test_an_image_without_a_colour_channel_is_refused(tmp_path):
+    """An EXR whose channels are none of R, G, B, Y (a depth pass, Z; alpha alone, A) was read as a
+    grey photograph (an audit: the only word was the mixed channels' note, none when every image
+    was such): one line naming the file and its channels. Grey (Y) images are still read."""
+    from psctl.io.capture import open_capture
+
+    arrays = write_capture(tmp_path / "c", n=6, size=24)
+    grey = arrays["images"][2][..., :1]
+    for names in (("Z",), ("A",), ("A", "depth.Z")):  # (as EXR stores them: sorted)
+        (tmp_path / "c" / "003.png").unlink(missing_ok=True)
+        _write_exr(tmp_path / "c" / "003.exr", np.repeat(grey, len(names), -1), names)
+        (tmp_path / "c" / "filenames.txt").write_text(
+            "".join(f"{k + 1:03d}.{'exr' if k == 2 else 'png'}\n" for k in range(6)))
+        with pytest.raises(PsctlError, match=rf"003.exr: holds no colour channel \(R, G, B or Y\), only "
+                                             rf"{', '.join(names)}: not a photograph"):
+            open_capture(tmp_path / "c")
+    _write_exr(tmp_path / "c" / "003.exr", grey, ("Y",))
+    assert open_capture(tmp_path / "c").n_images == 6
+
+
 def test_exr_layers_and_data_windows_are_read_as_a_viewer_shows_them(tmp_path):
     """QA helper's findings: a Blender multilayer EXR (Albedo.* sorts before Combined.*) was read
     as its albedo pass, 41 degrees off; an EXR whose data window is cropped (oiiotool --trim) or

@@ -27,7 +27,7 @@ import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_int, check_path, few
-from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, image_info, read_image, srgb_to_linear, to_rgb
+from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, holds_colour, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
 
@@ -564,6 +564,10 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         raise PsctlError(ambient_path, f"is the ambient image (subtracted from every image) but is also listed "
                                        f"in {list_file.name} as an input image")
     infos = [image_info(p) for p in image_paths]
+    for info in infos:  # (a mask or ground-truth file may hold no colour: alpha alone, X Y Z)
+        if info.names and not holds_colour(info.names):
+            raise PsctlError(info.path, f"holds no colour channel (R, G, B or Y), only {', '.join(info.names)}: "
+                                        f"not a photograph (a depth or alpha pass?)")
     first = infos[0]
     sizes = [(i.width, i.height) for i in infos]
     if len(set(sizes)) > 1:  # name the odd one out: the first image of a size most images do not have

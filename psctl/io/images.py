@@ -52,11 +52,18 @@ class ImageInfo:
     # window: width x height above), when they differ (an EXR's data window); None: the same
     window: tuple[int, int, int, int] | None = None
     color_space: str = ""  # OpenImageIO's oiio:ColorSpace for the file (its tag, or its format's default)
+    names: tuple[str, ...] = ()  # the stored channels' names (an EXR's own; OpenImageIO's for other formats)
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
 # AOVs: beauty); one layer with colour channels, or the unnamed one, needs no name
 MAIN_LAYERS = ("combined", "beauty", "rgba")
+
+
+def holds_colour(names: "list[str] | tuple[str, ...]") -> bool:
+    """Whether any stored channel is named as colour (R, G, B or Y, in any layer): a file whose
+    channels are all something else (an EXR of a depth pass, Z; of alpha alone, A) holds no picture."""
+    return any(name.rpartition(".")[2].upper() in ("R", "G", "B", "Y") for name in names)
 
 
 def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], str, tuple[str, ...]]:
@@ -151,7 +158,8 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
-                         inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space)
+                         inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
+                         tuple(spec.channelnames))
     finally:
         inp.close()
 
