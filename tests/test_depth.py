@@ -391,7 +391,7 @@ def _one_line_error(proc, culprit: str):
     assert "Traceback" not in proc.stderr
 
 
-@pytest.mark.parametrize("case", ["size", "empty_mask", "all_nan", "bad_K", "bad_method"])
+@pytest.mark.parametrize("case", ["size", "empty_mask", "all_nan", "bad_K", "bad_method", "photo", "away"])
 def test_cli_depth_bad_inputs(case, capture, tmp_path):
     from psctl.io.images import write_image
 
@@ -412,6 +412,13 @@ def test_cli_depth_bad_inputs(case, capture, tmp_path):
         culprit = "K.txt"
     elif case == "bad_method":
         args, culprit = ["--method", "magic"], "magic"
+    elif case == "photo":  # one of the capture's images given as the normal map (an audit: a mesh of 278 px)
+        args, culprit = ["--normals", capture / "001.png"], "001.png: is not a normal map"
+    elif case == "away":  # most normals' z away from the camera (all of them: no usable normal, refused before)
+        away = normals.copy()
+        away[:28, :, 2] *= -1
+        write_image(tmp_path / "away.exr", away, "float")
+        args, culprit = ["--normals", tmp_path / "away.exr"], "normals face away from the camera"
     out = tmp_path / "out"
     _one_line_error(cli("depth", capture, "--out", out, *args), culprit)
     assert not out.exists() or not any(out.iterdir())  # nothing half-written
@@ -657,10 +664,16 @@ def test_depth_without_a_mask_integrates_the_object_found_not_the_ring(tmp_path,
 
     write_capture(tmp_path / "cap", n=8, size=32, mask=False)
     (tmp_path / "w").mkdir()
-    save_weights(tmp_path / "w" / "ps_fcn.pt", PSFCN(), {"method": "ps-fcn", "train_images": 32})
+    import torch
+
+    net = PSFCN()
+    with torch.no_grad():  # its normals towards the camera (psctl depth refuses a map that mostly faces away)
+        net.regressor.est_normal[0].weight[2] = 10 * net.regressor.est_normal[0].weight[2].abs()
+    save_weights(tmp_path / "w" / "ps_fcn.pt", net, {"method": "ps-fcn", "train_images": 32})
     monkeypatch.setenv("PSCTL_WEIGHTS", str(tmp_path / "w"))  # auto: ps-fcn
     got: dict = {}
     run_normals(tmp_path / "cap", write=False, arrays=got)
+    assert (got["normals"][got["mask"]][:, 2] > 0).mean() > 0.9
     found = got["found"]
     assert found is not None and np.array_equal(got["mask"], grow_mask(found, FOUND_GROW))
     r = D.run_depth(tmp_path / "cap", write=False)
