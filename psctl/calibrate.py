@@ -72,6 +72,10 @@ DEFAULT_CALIBRATE = {
 }
 
 # each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
+# chrome: a highlight whose peak is under this many times the sphere's 90th percentile (in the median image) is
+# no mirror's: benchmarks/calibrate_sphere.py's spheres gave 1.09-1.10 for matte balls, 1.61-1.68 for its
+# glossy ball, 230-770 for its mirrors (exposed as there; overexposed ones have broad highlights, noted apart)
+MATTE_LIKE = 1.3
 DARK_LIGHT = 0.02  # an image whose highlight or intensity is under this share of the median's: no light
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
@@ -511,7 +515,7 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
         sides = ((frame[0].all() and peak_px[0].any()) or (frame[-1].all() and peak_px[-1].any()),
                  (frame[:, 0].all() and peak_px[:, 0].any()) or (frame[:, -1].all() and peak_px[:, -1].any()))
         frame_peak = (sides[0] and tall < wide / 2) or (sides[1] and wide < tall / 2)
-    out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top,
+    out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top, "base": b,
            "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any()), "frame": bool(cut.any()),
            "frame_peak": bool(frame_peak)}
     if normals is not None:
@@ -671,6 +675,7 @@ class _Calibrator:
                 raise PsctlError(name, "gives no direction: its highlight could not be located")
             self.directions.append(d)
             self.images.append({"highlight": [round(x, 3), round(y, 3)], "peak": round(spot["peak"], 6),
+                                "over_base": round(spot["peak"] / spot["base"], 3) if spot["base"] > 0 else None,
                                 "pixels": spot["pixels"], "spots": spot["spots"], "rim": spot["rim"],
                                 "frame": spot["frame"]})
         else:
@@ -985,9 +990,16 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
                          f"({names(rim)}): lights far behind the sphere, whose highlight is partly cut off; their "
                          "directions are less accurate")
         broad = [k for k, i in enumerate(res.images) if i["pixels"] > 0.05 * np.pi * res.circle.r ** 2]
-        if broad:
+        # (a clipped plateau over the sphere's top tenth gives 1: overexposed, which the broad note says)
+        ratios = [i["over_base"] for i in res.images if i.get("over_base") is not None and i["over_base"] > 1.001]
+        level = float(np.median(ratios)) if len(ratios) > len(res.images) / 2 else None
+        if broad and not (level is not None and level < MATTE_LIKE):  # (else the note below says it of all)
             notes.append(f"sphere: {len(broad)} of {cap.n_images} images have a broad highlight (over 5 % of the "
                          f"sphere; {names(broad)}): is it a mirror? for a matte ball use --sphere matte")
+        if level is not None and level < MATTE_LIKE:
+            notes.append(f"sphere: the brightest spot is barely brighter than the sphere's brightest tenth (its peak "
+                         f"{level:.2f} times their lowest value, in the median image; a mirror's is hundreds of times, "
+                         f"a glossy ball's about 1.6): is the ball matte? then use --sphere matte")
         notes.append("lights: a chrome sphere gives directions only; light_intensities.txt is not written "
                      "(a matte sphere, --sphere matte, gives intensities)")
     else:

@@ -233,6 +233,21 @@ def test_chrome_highlight_at_the_rim_gets_a_note(tmp_path):
     assert any("point away from the camera" in n for n in r["notes"])
 
 
+def test_a_matte_ball_calibrated_as_chrome_gets_a_note(tmp_path):
+    """A matte ball run with --sphere chrome: its 'highlight' is the top of its shading, a few
+    percent of the sphere (under the broad-highlight note's 5 %), and its directions 24 degrees
+    off (an audit), without a word. Its peak is barely above the sphere's 90th percentile (1.05
+    here; a mirror's hundreds of times): a note says so. A mirror gets none."""
+    write_sphere_folder(tmp_path / "matte", "matte", n=8, size=64)
+    write_sphere_folder(tmp_path / "chrome", "chrome", n=8, size=64)
+    said = "is the ball matte? then use --sphere matte"
+    r = run_calibrate(tmp_path / "matte", "chrome", write=False)
+    assert all(i["over_base"] < 1.2 for i in r["images"]) and sum(said in n for n in r["notes"]) == 1
+    assert not any("broad highlight" in n for n in r["notes"])
+    r = run_calibrate(tmp_path / "chrome", "chrome", write=False)
+    assert all(i["over_base"] is None or i["over_base"] > 10 for i in r["images"]) and not any(said in n for n in r["notes"])
+
+
 def test_a_highlight_cut_by_the_image_edge_is_refused_or_noted(tmp_path):
     """A sphere cut by the image's left edge (QA helper's rig): a highlight whose brightest pixel
     is on that edge lies partly beyond the image, and its centroid there was taken as the light
