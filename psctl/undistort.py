@@ -46,6 +46,9 @@ N_COEFFS = (4, 5, 8)  # k1 k2 p1 p2 [k3 [k4 k5 k6]], OpenCV's order
 COEFF_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 
+MIN_VALID = 0.05  # under this share of output pixels with a source in the photos: refused, not written
+
+
 def check_distortion(coeffs: "str | Iterable[float]", where: str | os.PathLike | None = None) -> np.ndarray:
     """OpenCV's coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]] as float64 [8] (missing ones 0);
     text is comma- or space-separated numbers."""
@@ -437,6 +440,10 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
         raise PsctlError(K_path, "with these intrinsics and --distortion no output pixel has a source in the "
                                  "photos: are fx, fy, cx and cy in this image's pixels, and the coefficients this "
                                  "lens's?")
+    if m.valid.mean() < MIN_VALID:  # (a lens's undistortion keeps most of the frame: wrong units or a typo)
+        raise PsctlError(K_path, f"with these intrinsics and --distortion only {int(m.valid.sum())} of {m.valid.size} "
+                                 f"output pixels ({100 * m.valid.mean():.2g} %) have a source in the photos: are fx, "
+                                 f"fy, cx and cy in this image's pixels, and the coefficients this lens's?")
     # the mask: the folder's, resampled, and never where the photo has nothing
     mask = m.valid
     mask_from = "the pixels with a source in the photos"
