@@ -84,7 +84,7 @@ def test_file_names_that_are_not_utf8_are_one_error(tmp_path):
 
 @pytest.mark.parametrize("case, needle", [
     ("grey_png", "needs 3 channels"),
-    ("no_key", "has no variable 'Normal_gt'"),
+    ("no_key", r"has no variable 'Normal_gt' \(it holds N; psctl reads the normals from the one named Normal_gt\)"),
     ("size", "size 20x40 differs from the images"),
     ("shape", r"Normal_gt has shape \(40, 40\)"),
     ("junk", "cannot read .mat file"),
@@ -105,6 +105,25 @@ def test_ground_truth_headers_are_checked_when_the_folder_opens(tmp_path, case, 
         scipy.io.savemat(folder / "Normal_gt.mat", value)
     with pytest.raises(PsctlError, match=needle):
         open_capture(folder)
+
+
+def test_a_logical_ground_truth_is_refused(tmp_path):
+    """A MATLAB logical array (scipy gives uint8 0 / 1) as Normal_gt was scored as normals, 35
+    degrees off without a word (an audit): whole numbers whose vectors are not of unit length are
+    refused. Whole numbers along the axes (a cube's faces, as MATLAB may store such doubles) are
+    unit normals and read."""
+    import scipy.io
+
+    folder = tmp_path / "obj"
+    write_capture(folder, n=4)
+    rng = np.random.default_rng(0)
+    scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": rng.random((40, 40, 3)) > 0.5})
+    with pytest.raises(PsctlError, match=r"Normal_gt holds whole numbers \(uint8\) and \d+ of its pixels are no unit"):
+        load_ground_truth(open_capture(folder))
+    cube = np.zeros((40, 40, 3), np.int8)
+    cube[:20, :, 2], cube[20:, :, 0] = 1, -1
+    scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": cube})
+    np.testing.assert_array_equal(load_ground_truth(open_capture(folder)), cube)
 
 
 def test_a_matlab_v73_ground_truth_does_not_stop_what_does_not_read_it(tmp_path):

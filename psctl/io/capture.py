@@ -15,6 +15,7 @@ before any pixel is decoded; ``iter_images`` then streams the pixels one image a
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import unicodedata
@@ -649,6 +650,14 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     )
 
 
+def _no_normal_gt(p: Path, held: "Iterable[str]") -> PsctlError:
+    """Normal_gt.mat without that variable: the error, naming the variables it holds (the normals
+    may be there under another name)."""
+    held = sorted(held)
+    return PsctlError(p, "has no variable 'Normal_gt'" + (
+        f" (it holds {few(held, 4)}; psctl reads the normals from the one named Normal_gt)" if held else ""))
+
+
 def _check_mat_header(p: Path, ref: ImageInfo) -> None:
     """Normal_gt.mat's variable list (names and shapes): what load_ground_truth would refuse
     later, said when the folder is opened (psctl info too). psctl's reader of plain files first
@@ -666,7 +675,7 @@ def _check_mat_header(p: Path, ref: ImageInfo) -> None:
         except Exception as e:  # scipy raises several types for bad/unsupported files
             raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
     if "Normal_gt" not in shapes:
-        raise PsctlError(p, "has no variable 'Normal_gt'")
+        raise _no_normal_gt(p, shapes)
     shape = shapes["Normal_gt"]
     if len(shape) != 3 or shape[2] != 3:
         raise PsctlError(p, f"Normal_gt has shape {shape}, expected H x W x 3")
@@ -690,7 +699,10 @@ def _mat_ground_truth(p: Path) -> np.ndarray:
         except Exception as e:  # scipy raises several types for bad/unsupported files
             raise PsctlError(p, f"cannot read .mat file ({' '.join(str(e).split())})") from None
         if "Normal_gt" not in mat:
-            raise PsctlError(p, "has no variable 'Normal_gt'")
+            held: list[str] = []
+            with contextlib.suppress(Exception):  # (its list, for the message: scipy reads the headers alone)
+                held = [name for name, *_ in scipy.io.whosmat(str(p))]
+            raise _no_normal_gt(p, held)
         raw = np.asarray(mat["Normal_gt"])
     if raw.dtype.kind not in "fiu":  # a string, a cell array (object), a struct or complex numbers
         raise PsctlError(p, f"Normal_gt holds {raw.dtype} values, expected real numbers (H x W x 3 normals)")
@@ -700,6 +712,15 @@ def _mat_ground_truth(p: Path) -> np.ndarray:
         raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                             "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                             "Normal_gt.png an encoded image")
+    if raw.dtype.kind in "iu" and raw.ndim == 3 and raw.shape[-1] == 3 and raw.size:
+        # whole numbers in -1 .. 1 are unit vectors only along an axis (a cube's faces); others, as
+        # (1, 1, 0), are no normals: MATLAB logicals (an audit's were scored 35 degrees off, silently)
+        square = (raw.astype(np.int64) ** 2).sum(-1)
+        odd = int(((square != 0) & (square != 1)).sum())
+        if odd:
+            raise PsctlError(p, f"Normal_gt holds whole numbers ({raw.dtype}) and {odd} of its pixels are no unit "
+                                "vector (as (1, 1, 0)): a logical array or a mask? Normal_gt.mat holds unit normals "
+                                "(x, y, z in -1 .. 1)")
     return raw
 
 
