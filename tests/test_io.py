@@ -745,6 +745,13 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     (cap / "light_intensities.txt").write_text("# R G B or one value\n1 1 1\n\n1 1 1\n0.5\n1 1 1\n")
     with pytest.raises(PsctlError, match=r"light_intensities.txt: line 5: 1 value, but line 2 has 3"):
         read_matrix(cap / "light_intensities.txt", (1, 3), "light intensities")
+    # decimal commas (a European spreadsheet's export): said, where a row of them has a width's worth
+    (cap / "light_directions.txt").write_text("0,1 0,2 0,97\n")
+    with pytest.raises(PsctlError, match=r"line 1: expected 3 values, found 6 \(decimal commas\? psctl reads a point"):
+        read_matrix(cap / "light_directions.txt", (3,), "light directions")
+    (cap / "light_directions.txt").write_text("0,1,0.2,0.97,1\n")  # commas as separators: no such word
+    with pytest.raises(PsctlError, match=r"line 1: expected 3 values, found 5$"):
+        read_matrix(cap / "light_directions.txt", (3,), "light directions")
     lines: list[int] = []
     (cap / "light_intensities.txt").write_text("# R G B\n1 1 1\n\n2 2 2\n")
     assert read_matrix(cap / "light_intensities.txt", (1, 3), "light intensities", lines).shape == (2, 3)

@@ -304,7 +304,11 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
         values = [float(v) for v in parts]
         if len(values) not in widths:
             want = " or ".join(str(w) for w in widths)
-            raise PsctlError(path, f"line {lineno}: expected {want} values, found {len(values)}")
+            # "0,1 0,2 0,9": a decimal comma (a European locale's export), read as a separator
+            comma = "." not in line and "," in line and len(line.split()) in widths and \
+                all(re.fullmatch(r"[-+]?\d+,\d+", v) for v in line.split())
+            raise PsctlError(path, f"line {lineno}: expected {want} values, found {len(values)}" + (
+                " (decimal commas? psctl reads a point as the decimal mark: 0.1, not 0,1)" if comma else ""))
         if not np.all(np.isfinite(values)):
             raise PsctlError(path, f"line {lineno}: NaN or infinite value")
         rows.append(values)
