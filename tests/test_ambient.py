@@ -44,6 +44,23 @@ def test_ambient_image_is_subtracted(tmp_path):
     assert with_ambient["mae"] < 1.5 and without["mae"] > with_ambient["mae"] + 2
 
 
+def test_a_negative_ambient_image_gets_a_note(tmp_path):
+    """A float ambient image below 0 (a dark frame's noise about 0) adds light where subtracted: a
+    note says where and how far (an audit: -0.01 everywhere, not a word). None at or above 0."""
+    folder = tmp_path / "roomPNG"
+    _with_ambient(folder)
+    (folder / "ambient.png").unlink()
+    amb = np.full((40, 40, 3), 0.01, np.float32)
+    amb[:10] = -0.02
+    write_image(folder / "ambient.exr", amb, "float")
+    r = run_normals(folder, method="l2", write=False)
+    assert [n for n in r["notes"] if "is negative" in n] == [
+        "ambient: ambient.exr is negative in 25% of its pixels (down to -0.02): taken as stored, so subtracting it "
+        "adds light there"]
+    write_image(folder / "ambient.exr", np.abs(amb), "float")
+    assert not any("is negative" in n for n in run_normals(folder, method="l2", write=False)["notes"])
+
+
 def test_ambient_errors_and_info(tmp_path):
     folder = tmp_path / "roomPNG"
     _with_ambient(folder)

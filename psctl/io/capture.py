@@ -1168,6 +1168,13 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.ambient_path is not None:
         decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
+        if image_info(capture.ambient_path).dtype in ("half", "float", "double"):  # (only floats go below 0)
+            amb = read_image(capture.ambient_path, allow_nonfinite=True)[0]
+            below = np.isfinite(amb) & (amb < 0)
+            if below.any():  # subtracted, a negative ambient adds light (a dark frame's noise about 0?)
+                notes.append(f"ambient: {capture.ambient_path.name} is negative in {below.any(-1).mean():.0%} of its "
+                             f"pixels (down to {float(amb[below].min()):.3g}): taken as stored, so subtracting it "
+                             f"adds light there")
     if capture.encoding == "auto":  # (a JPEG name over other data: read as its content says, and said so)
         misnamed = [p.name for k, p in enumerate(capture.image_paths)
                     if p.suffix.lower() in JPEG and not capture.is_srgb(k)]
