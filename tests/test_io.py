@@ -1343,6 +1343,29 @@ def test_a_pickled_npy_normal_map_is_refused_without_numpys_advice(tmp_path):
     assert "allow_pickle" not in str(e.value)
 
 
+def test_a_run_notes_an_image_on_another_scale(tmp_path):
+    """A float TIFF of 0..65535 values among 0..1 images (an audit: 72 degrees off, under the
+    mixed-sample-types note alone): an image over BRIGHT_OUTLIER times the median image's
+    brightness over the object is named, by l2 and the network engine alike; none otherwise."""
+    from psctl.api import run_normals
+    from psctl.io.capture import BRIGHT_OUTLIER
+
+    d = write_capture(tmp_path / "c", n=8, size=32)
+    assert not any("times as bright" in n for n in run_normals(tmp_path / "c", method="l2", write=False)["notes"])
+    names = (tmp_path / "c" / "filenames.txt").read_text()
+    for k in (2, 5):
+        (tmp_path / "c" / f"{k + 1:03d}.png").unlink()
+        write_image(tmp_path / "c" / f"{k + 1:03d}.tif", d["images"][k] * (65535 if k == 2 else 100), "float")
+        names = names.replace(f"{k + 1:03d}.png", f"{k + 1:03d}.tif")
+        (tmp_path / "c" / "filenames.txt").write_text(names)
+        for method in ("l2", "ps-fcn"):
+            r = run_normals(tmp_path / "c", method=method, write=False, device="cpu")
+            said = [n for n in r["notes"] if "times as bright" in n]
+            assert len(said) == 1 and f"over {BRIGHT_OUTLIER} times as bright over the object" in said[0], said
+            assert ("1 of 8 is over" in said[0] and "(003.tif, " in said[0]) if k == 2 else \
+                ("2 of 8 are over" in said[0] and "(003.tif, 006.tif; the brightest, 003.tif," in said[0]), said
+
+
 def test_a_run_notes_heavily_saturated_images(tmp_path):
     """Images with over 10 % of the object at the top code value get a run note (l2 and the
     network engine's reader, through any number of passes); an unsaturated capture none."""

@@ -716,9 +716,11 @@ def _mat_ground_truth(p: Path) -> np.ndarray:
         raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                             "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                             "Normal_gt.png an encoded image")
-    if raw.dtype.kind in "iu" and raw.ndim == 3 and raw.shape[-1] == 3 and raw.size:
+    if raw.dtype.kind in "iu" and raw.ndim == 3 and raw.shape[-1] == 3 and raw.size and \
+            int(np.abs(raw.astype(np.int64)).max()) <= 1:
         # whole numbers in -1 .. 1 are unit vectors only along an axis (a cube's faces); others, as
-        # (1, 1, 0), are no normals: MATLAB logicals (an audit's were scored 35 degrees off, silently)
+        # (1, 1, 0), are no normals: MATLAB logicals (an audit's were scored 35 degrees off, silently).
+        # (Scaled ones, as int16 normals times 1000, are directions: normalised as any others)
         square = (raw.astype(np.int64) ** 2).sum(-1)
         odd = int(((square != 0) & (square != 1)).sum())
         if odd:
@@ -1027,6 +1029,9 @@ class DecodeMemo:
 CLIPPED_NOTE = 0.10
 
 
+BRIGHT_OUTLIER = 20  # an image whose mean over the object is over this many times the median image's: noted
+
+
 class ImageCheck:
     """What the readers saw of each image over the object, for notes after a run: images black
     there in every tile and pass (black only if no tile or view saw it lit: a dark tile of a large
@@ -1039,6 +1044,7 @@ class ImageCheck:
         self.lit: set[int] = set()
         self.negative: set[int] = set()
         self.clipped: dict[int, list[int]] = {}  # image -> [object pixels at the top code value, object pixels]
+        self.sums: dict[int, list[float]] = {}  # image -> [sum of its values over the object, their count]
 
     def see_clipped(self, k: int, top: np.ndarray, mask: np.ndarray) -> None:
         """``top``: image ``k``'s saturated-pixel flags (see iter_images), ``mask`` the object's
@@ -1061,6 +1067,10 @@ class ImageCheck:
             self.lit.add(k)
         if pixels.size and pixels.min() < 0:
             self.negative.add(k)
+        if pixels.size:
+            t = self.sums.setdefault(k, [0.0, 0])
+            t[0] += float(np.sum(pixels, dtype=np.float64))
+            t[1] += pixels.size
 
     def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None,
                memo: DecodeMemo | None = None, ambient_check: "bool | tuple[slice, slice]" = True
@@ -1094,6 +1104,21 @@ class ImageCheck:
             names = few([self.capture.image_paths[i].name for i in idx])
             notes.append(f"images: {len(idx)} of {self.capture.n_images} have negative values over the object "
                          f"({names}): taken as stored (noise about a subtracted black level?)")
+        # one image far brighter than the rest over the object: another scale (an audit's float TIFF of
+        # 0..65535 among 0..1 images: 72 degrees off, under a note on mixed sample types alone)
+        level = {k: t[0] / t[1] for k, t in self.sums.items() if t[1]}
+        ref = float(np.median(list(level.values()))) if len(level) >= 3 else 0.0
+        bright = sorted(k for k, v in level.items() if ref > 0 and v > BRIGHT_OUTLIER * ref)
+        if bright:
+            worst = max(bright, key=lambda k: level[k])
+            most = (f"{level[worst] / ref:.3g} times" if len(bright) == 1 else
+                    f"{few([self.capture.image_paths[i].name for i in bright])}; the brightest, "
+                    f"{self.capture.image_paths[worst].name}, {level[worst] / ref:.3g} times")
+            notes.append(f"images: {len(bright)} of {self.capture.n_images} {'is' if len(bright) == 1 else 'are'} over "
+                         f"{BRIGHT_OUTLIER} times as bright over the object as the median image "
+                         f"({self.capture.image_paths[worst].name + ', ' if len(bright) == 1 else ''}{most}): on another "
+                         f"scale (a float file of 0..65535 values?) or an intensity missing from light_intensities.txt? "
+                         f"{'It outweighs' if len(bright) == 1 else 'They outweigh'} the others")
         share = {k: c[0] / c[1] for k, c in self.clipped.items() if c[1]}
         over = sorted(k for k, v in share.items() if v > CLIPPED_NOTE)
         if over:
