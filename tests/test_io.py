@@ -300,6 +300,23 @@ def test_light_files_with_commas_and_comments(tmp_path):
     np.testing.assert_allclose(read_lights(f), [[0, 0, 1], [0.6, 0, 0.8], [-0.6, 0, 0.8]], atol=1e-6)
 
 
+def test_light_rows_that_are_not_unit_vectors_get_a_note(tmp_path):
+    """Rows of other lengths (light positions? a scaled export) are normalised, as the docs say,
+    and now a note says so (an audit: silently); unit rows to 4 decimals (DiLiGenT's) get none."""
+    from psctl.io.capture import capture_notes
+
+    data = write_capture(tmp_path / "c", n=6, size=16)
+    lengths = np.array([1.0, 2.0, 0.5, 10.0, 1.0, 1.0])
+    np.savetxt(tmp_path / "c" / "light_directions.txt", data["lights"] * lengths[:, None])
+    cap = open_capture(tmp_path / "c")
+    np.testing.assert_allclose(cap.lights, data["lights"], atol=1e-6)
+    assert [n for n in capture_notes(cap) if n.startswith("light file:")] == [
+        "light file: light_directions.txt's rows are not unit vectors (lengths 0.5 to 10): each is normalised, and "
+        "read as a direction"]
+    np.savetxt(tmp_path / "c" / "light_directions.txt", data["lights"], fmt="%.4f")
+    assert not any("unit vectors" in n for n in capture_notes(open_capture(tmp_path / "c")))
+
+
 def test_atomic_path_keeps_the_old_file_when_writing_fails(tmp_path):
     from psctl.io.atomic import atomic_path
 

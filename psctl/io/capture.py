@@ -82,6 +82,7 @@ class Capture:
     intensities_path: Path | None = None  # light_intensities.txt likewise
     list_path: Path | None = None  # the image list (filenames.txt or names.txt), when the folder has one
     near: NearLights | None = None  # point lights: iter_images divides out their falloff (psctl.nearlight)
+    light_lengths: tuple[float, float] | None = None  # the light file's shortest and longest rows, where not unit
 
     @property
     def n_images(self) -> int:
@@ -333,13 +334,20 @@ def _where(lines: list[int], row: int) -> str:
 
 def read_lights(path: Path) -> np.ndarray:
     """light_directions.txt -> [N, 3] float32 unit vectors (rows normalised)."""
+    return read_light_rows(path)[0]
+
+
+def read_light_rows(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``read_lights`` and each row's length as written ([N]: a file of directions has 1s)."""
     lines: list[int] = []
-    unit, bad = unit_rows(read_matrix(path, (3,), "light directions", lines))
+    rows = read_matrix(path, (3,), "light directions", lines)
+    unit, bad = unit_rows(rows)
     if bad.size:
         raise PsctlError(path, f"{_where(lines, bad[0])}: zero-length light direction (shorter than 1e-6)")
-    return unit
+    return unit, np.linalg.norm(rows, axis=1)
 
 
+UNIT_TOLERANCE = 1e-3  # light rows further from unit length get a note (DiLiGenT's are within 7e-5)
 INTENSITY_RANGE = (1e-12, 1e12)
 
 
@@ -588,10 +596,12 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     n = len(image_paths)
     found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
-    lights = None
+    lights, light_lengths = None, None
     lights_path = _first_existing(path, entries, [LIGHTS_FILE], "light direction files") if light_files else None
     if lights_path is not None:
-        lights = read_lights(lights_path)
+        lights, lengths = read_light_rows(lights_path)
+        if np.abs(lengths - 1).max() > UNIT_TOLERANCE:
+            light_lengths = (float(lengths.min()), float(lengths.max()))
         if len(lights) != n:
             raise PsctlError(lights_path, f"{len(lights)} light row{'s' * (len(lights) != 1)} but {n} "
                                           f"image{'s' * (n != 1)}{found}")
@@ -642,7 +652,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
-        gt_path=gt_path, encoding=encoding, ambient_path=ambient_path,
+        gt_path=gt_path, encoding=encoding, ambient_path=ambient_path, light_lengths=light_lengths,
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
@@ -1159,6 +1169,10 @@ def capture_notes(capture: Capture) -> list[str]:
         rows = ", ".join(str(i + 1) for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
         notes.append(f"light file: {len(behind)} of {capture.n_images} light directions have z <= 0, behind the object "
                      f"({'row' if len(behind) == 1 else 'rows'} {rows}); psctl wants z toward the camera")
+    if capture.light_lengths is not None:
+        lo, hi = capture.light_lengths
+        notes.append(f"light file: {capture.lights_path.name if capture.lights_path else LIGHTS_FILE}'s rows are not "
+                     f"unit vectors (lengths {lo:.4g} to {hi:.4g}): each is normalised, and read as a direction")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
