@@ -74,7 +74,8 @@ DEFAULT_CALIBRATE = {
 # each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
 # chrome: a highlight whose peak is under this many times the sphere's 90th percentile (in the median image) is
 # no mirror's: benchmarks/calibrate_sphere.py's spheres gave 1.09-1.10 for matte balls, 1.61-1.68 for its
-# glossy ball, 230-770 for its mirrors (exposed as there; overexposed ones have broad highlights, noted apart)
+# glossy ball, 231-765 for its mirrors (median images; single ones down to 134). Clipped peaks are left out
+# (overexposed balls have broad highlights, noted apart)
 MATTE_LIKE = 1.3
 DARK_LIGHT = 0.02  # an image whose highlight or intensity is under this share of the median's: no light
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
@@ -515,7 +516,7 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
         sides = ((frame[0].all() and peak_px[0].any()) or (frame[-1].all() and peak_px[-1].any()),
                  (frame[:, 0].all() and peak_px[:, 0].any()) or (frame[:, -1].all() and peak_px[:, -1].any()))
         frame_peak = (sides[0] and tall < wide / 2) or (sides[1] and wide < tall / 2)
-    out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top, "base": b,
+    out = {"x": float((ww * xs).sum() / ww.sum()), "y": float((ww * ys).sum() / ww.sum()), "peak": top,
            "pixels": int(spot.sum()), "spots": int(spots), "rim": bool(edge.any()), "frame": bool(cut.any()),
            "frame_peak": bool(frame_peak)}
     if normals is not None:
@@ -653,6 +654,14 @@ class _Calibrator:
         self.images: list[dict] = []
         self.brightest: np.ndarray | None = None  # per pixel over the images: sphere.png
 
+    def _over_base(self, gray: np.ndarray, peak: float, saturated: np.ndarray | None) -> float | None:
+        """The highlight's peak over the sphere's 90th percentile (MATTE_LIKE); None where that is 0
+        or the peak is clipped (a mirror's clipped highlight over a lit room's reflection can be
+        near it: a review's gave 1.25)."""
+        p90 = float(np.percentile(gray[self.inside], 90))
+        clipped = saturated is not None and bool((saturated & self.inside & (gray >= peak)).any())
+        return round(peak / p90, 3) if p90 > 0 and not clipped else None
+
     def add(self, rgb: np.ndarray, saturated: np.ndarray | None = None, name: Path | str | None = None) -> None:
         """``rgb`` [h, w, 3] the image inside ``box``; ``saturated`` [h, w] its clipped pixels."""
         gray = rgb.mean(-1)
@@ -675,7 +684,7 @@ class _Calibrator:
                 raise PsctlError(name, "gives no direction: its highlight could not be located")
             self.directions.append(d)
             self.images.append({"highlight": [round(x, 3), round(y, 3)], "peak": round(spot["peak"], 6),
-                                "over_base": round(spot["peak"] / spot["base"], 3) if spot["base"] > 0 else None,
+                                "over_base": self._over_base(gray, spot["peak"], saturated),
                                 "pixels": spot["pixels"], "spots": spot["spots"], "rim": spot["rim"],
                                 "frame": spot["frame"]})
         else:

@@ -785,8 +785,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         raise PsctlError(e.path or source, e.message) from None
     numbers = res.n_rejected_facing + int(res.valid.sum())  # the mask's normals that are directions
     if normals is not None and res.n_rejected_facing > numbers / 2:  # (a visible surface faces the camera)
-        raise PsctlError(source, f"{res.n_rejected_facing} of the {numbers} normals face away from the camera: not "
-                                 f"a normal map in psctl's convention (x right, y up, z towards the camera; "
+        rays = (f" along the rays of the intrinsics {Path(k_source).name if k_source != 'array' else 'given'} (are "
+                f"they this image's?)") if res.projection == "perspective" else ""
+        raise PsctlError(source, f"{res.n_rejected_facing} of the {numbers} normals face away from the camera{rays}: "
+                                 f"not a normal map in psctl's convention (x right, y up, z towards the camera; "
                                  f"docs/formats.md), or not a normal map")
     if res.n_rejected:
         notes.append(f"{res.n_rejected} mask pixels have no usable normal ({res.n_rejected_nan} NaN or zero, "

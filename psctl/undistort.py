@@ -442,7 +442,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
                                  "lens's?")
     if m.valid.mean() < MIN_VALID:  # (a lens's undistortion keeps most of the frame: wrong units or a typo)
         raise PsctlError(K_path, f"with these intrinsics and --distortion only {int(m.valid.sum())} of {m.valid.size} "
-                                 f"output pixels ({100 * m.valid.mean():.2g} %) have a source in the photos: are fx, "
+                                 f"output pixels ({100 * m.valid.mean():.3g} %) have a source in the photos: are fx, "
                                  f"fy, cx and cy in this image's pixels, and the coefficients this lens's?")
     # the mask: the folder's, resampled, and never where the photo has nothing
     mask = m.valid

@@ -312,8 +312,8 @@ def test_light_rows_that_are_not_unit_vectors_get_a_note(tmp_path):
     np.testing.assert_allclose(cap.lights, data["lights"], atol=1e-6)
     assert [n for n in capture_notes(cap) if n.startswith("light file:")] == [
         "light file: light_directions.txt's rows are not unit vectors (lengths 0.5 to 10): each is normalised, and "
-        "read as a direction"]
-    np.savetxt(tmp_path / "c" / "light_directions.txt", data["lights"], fmt="%.4f")
+        "read as a direction (the lights' strengths go in light_intensities.txt)"]
+    np.savetxt(tmp_path / "c" / "light_directions.txt", data["lights"], fmt="%.2f")  # (rounded: within 0.01)
     assert not any("unit vectors" in n for n in capture_notes(open_capture(tmp_path / "c")))
 
 
@@ -763,9 +763,10 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     with pytest.raises(PsctlError, match=r"light_intensities.txt: line 5: 1 value, but line 2 has 3"):
         read_matrix(cap / "light_intensities.txt", (1, 3), "light intensities")
     # decimal commas (a European spreadsheet's export): said, where a row of them has a width's worth
-    (cap / "light_directions.txt").write_text("0,1 0,2 0,97\n")
-    with pytest.raises(PsctlError, match=r"line 1: expected 3 values, found 6 \(decimal commas\? psctl reads a point"):
-        read_matrix(cap / "light_directions.txt", (3,), "light directions")
+    for row, n in (("0,1 0,2 0,97", 6), ("0,5 0 0,866", 5)):
+        (cap / "light_directions.txt").write_text(row + "\n")
+        with pytest.raises(PsctlError, match=rf"line 1: expected 3 values, found {n} \(decimal commas\? psctl reads a"):
+            read_matrix(cap / "light_directions.txt", (3,), "light directions")
     (cap / "light_directions.txt").write_text("0,1,0.2,0.97,1\n")  # commas as separators: no such word
     with pytest.raises(PsctlError, match=r"line 1: expected 3 values, found 5$"):
         read_matrix(cap / "light_directions.txt", (3,), "light directions")
@@ -1922,7 +1923,7 @@ def test_pick_channels_by_name():
 
 
 def test_an_image_without_a_colour_channel_is_refused(tmp_path):
-    """An EXR whose channels are none of R, G, B, Y (a depth pass, Z; alpha alone, A) was read as a
+    """An EXR whose channels are all alpha, depth or UV (a depth pass, Z; alpha alone, A) was read as a
     grey photograph (an audit: the only word was the mixed channels' note, none when every image
     was such): one line naming the file and its channels. Grey (Y) images are still read."""
     from psctl.io.capture import open_capture
@@ -1934,11 +1935,12 @@ def test_an_image_without_a_colour_channel_is_refused(tmp_path):
         _write_exr(tmp_path / "c" / "003.exr", np.repeat(grey, len(names), -1), names)
         (tmp_path / "c" / "filenames.txt").write_text(
             "".join(f"{k + 1:03d}.{'exr' if k == 2 else 'png'}\n" for k in range(6)))
-        with pytest.raises(PsctlError, match=rf"003.exr: holds no colour channel \(R, G, B or Y\), only "
+        with pytest.raises(PsctlError, match=rf"003.exr: holds no colour channel, only "
                                              rf"{', '.join(names)}: not a photograph"):
             open_capture(tmp_path / "c")
-    _write_exr(tmp_path / "c" / "003.exr", grey, ("Y",))
-    assert open_capture(tmp_path / "c").n_images == 6
+    for names in (("Y",), ("L",), ("blue", "green", "red")):  # grey; other tools' names (read as stored)
+        _write_exr(tmp_path / "c" / "003.exr", np.repeat(grey, len(names), -1), names)
+        assert open_capture(tmp_path / "c").n_images == 6
 
 
 def test_exr_layers_and_data_windows_are_read_as_a_viewer_shows_them(tmp_path):

@@ -258,7 +258,7 @@ def test_undistort_errors_are_one_line_and_write_nothing(tmp_path):
         (["--K", tmp_path / "none.txt", *d], "intrinsics file is missing"),
         (["--K", far, "-d", "0.1,0,0,0"], "no output pixel has a source"),
         # nearly none (an audit: 0.1 % of the frame kept, near-black images written, rc 0)
-        (["--K", K, "-d", "1000,0,0,0"], "only 32 of 1920 output pixels (1.7 %) have a source in the photos"),
+        (["--K", K, "-d", "1000,0,0,0"], "only 32 of 1920 output pixels (1.67 %) have a source in the photos"),
     ]
     for args, words in cases:
         r = cli("undistort", tmp_path / "obj", "-o", tmp_path / "new", *args)

@@ -307,7 +307,7 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
             want = " or ".join(str(w) for w in widths)
             # "0,1 0,2 0,9": a decimal comma (a European locale's export), read as a separator
             comma = "." not in line and "," in line and len(line.split()) in widths and \
-                all(re.fullmatch(r"[-+]?\d+,\d+", v) for v in line.split())
+                all(re.fullmatch(r"[-+]?\d+(,\d+)?", v) for v in line.split())
             raise PsctlError(path, f"line {lineno}: expected {want} values, found {len(values)}" + (
                 " (decimal commas? psctl reads a point as the decimal mark: 0.1, not 0,1)" if comma else ""))
         if not np.all(np.isfinite(values)):
@@ -344,10 +344,12 @@ def read_light_rows(path: Path) -> tuple[np.ndarray, np.ndarray]:
     unit, bad = unit_rows(rows)
     if bad.size:
         raise PsctlError(path, f"{_where(lines, bad[0])}: zero-length light direction (shorter than 1e-6)")
-    return unit, np.linalg.norm(rows, axis=1)
+    top = np.abs(rows).max(axis=1)  # (scaled first: rows of 1e300 have a length, their squares none)
+    return unit, top * np.linalg.norm(rows / np.where(top > 0, top, 1.0)[:, None], axis=1)
 
 
-UNIT_TOLERANCE = 1e-3  # light rows further from unit length get a note (DiLiGenT's are within 7e-5)
+UNIT_TOLERANCE = 0.02  # light rows further from unit length get a note (DiLiGenT's are within 7e-5; rows
+# rounded to 2 decimals, within 0.01)
 INTENSITY_RANGE = (1e-12, 1e12)
 
 
@@ -579,8 +581,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     infos = [image_info(p) for p in image_paths]
     for info in infos:  # (a mask or ground-truth file may hold no colour: alpha alone, X Y Z)
         if info.names and not holds_colour(info.names):
-            raise PsctlError(info.path, f"holds no colour channel (R, G, B or Y), only {', '.join(info.names)}: "
-                                        f"not a photograph (a depth or alpha pass?)")
+            raise PsctlError(info.path, f"holds no colour channel, only {', '.join(info.names)}: not a photograph "
+                                        f"(a depth, alpha or UV pass?)")
     first = infos[0]
     sizes = [(i.width, i.height) for i in infos]
     if len(set(sizes)) > 1:  # name the odd one out: the first image of a size most images do not have
@@ -1127,7 +1129,7 @@ class ImageCheck:
             notes.append(f"images: {len(bright)} of {self.capture.n_images} {'is' if len(bright) == 1 else 'are'} over "
                          f"{BRIGHT_OUTLIER} times as bright over the object as the median image "
                          f"({self.capture.image_paths[worst].name + ', ' if len(bright) == 1 else ''}{most}): on another "
-                         f"scale (a float file of 0..65535 values?) or an intensity missing from light_intensities.txt? "
+                         f"scale (a float file of 0..65535 values?) or lit far more strongly than the rest? "
                          f"{'It outweighs' if len(bright) == 1 else 'They outweigh'} the others")
         share = {k: c[0] / c[1] for k, c in self.clipped.items() if c[1]}
         over = sorted(k for k, v in share.items() if v > CLIPPED_NOTE)
@@ -1172,7 +1174,8 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.light_lengths is not None:
         lo, hi = capture.light_lengths
         notes.append(f"light file: {capture.lights_path.name if capture.lights_path else LIGHTS_FILE}'s rows are not "
-                     f"unit vectors (lengths {lo:.4g} to {hi:.4g}): each is normalised, and read as a direction")
+                     f"unit vectors (lengths {lo:.4g} to {hi:.4g}): each is normalised, and read as a direction (the lights' "
+                     f"strengths go in {INTENSITIES_FILE})")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")

@@ -60,10 +60,15 @@ class ImageInfo:
 MAIN_LAYERS = ("combined", "beauty", "rgba")
 
 
+# channel names that are no picture: alpha, depth, texture coordinates (other names, as Nuke's "red" or a
+# renderer's "LeR", may be colour: read as stored)
+NOT_COLOUR = ("A", "ALPHA", "Z", "ZBACK", "DEPTH", "U", "V")
+
+
 def holds_colour(names: "list[str] | tuple[str, ...]") -> bool:
-    """Whether any stored channel is named as colour (R, G, B or Y, in any layer): a file whose
-    channels are all something else (an EXR of a depth pass, Z; of alpha alone, A) holds no picture."""
-    return any(name.rpartition(".")[2].upper() in ("R", "G", "B", "Y") for name in names)
+    """Whether a file's stored channels may be a picture: False where every one is named as
+    something else (NOT_COLOUR, in any layer: an EXR of a depth pass, Z; of alpha alone, A)."""
+    return not names or any(name.rpartition(".")[2].upper() not in NOT_COLOUR for name in names)
 
 
 def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], str, tuple[str, ...]]:

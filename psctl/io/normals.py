@@ -85,8 +85,12 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
             raise PsctlError(path, "a normal map needs 3 channels")
         nmap = decode_normal_pixels(pixels, info)
         if info.dtype not in ("half", "float", "double"):  # (n + 1) / 2 of unit normals: 2 v - 1 has length 1
-            stored = pixels[..., :3][::4, ::4].astype(np.float64)  # (a sample: seconds saved on 12 MP)
-            length = np.linalg.norm(2 * stored[(stored != 0).any(-1)] - 1, axis=-1)
+            stored = pixels[..., :3][::4, ::4].reshape(-1, 3).astype(np.float64)  # (a sample: seconds saved on 12 MP)
+            stored = stored[(stored != 0).any(-1)]
+            if len(stored):  # nor the commonest colour: a background of grey or white, not of black (a review)
+                colours, counts = np.unique(stored, axis=0, return_counts=True)
+                stored = stored[(stored != colours[np.argmax(counts)]).any(-1)]
+            length = np.linalg.norm(2 * stored - 1, axis=-1)
             off = float(np.mean(np.abs(length - 1) > NOT_UNIT[0])) if len(length) else 0.0
             if off > NOT_UNIT[1]:
                 raise PsctlError(path, f"is not a normal map: {off:.0%} of its pixels decode to vectors of a length "
