@@ -1382,6 +1382,17 @@ def test_a_run_notes_an_image_on_another_scale(tmp_path):
             assert len(said) == 1 and f"over {BRIGHT_OUTLIER} times as bright over the object" in said[0], said
             assert ("1 of 8 is over" in said[0] and "(003.tif, " in said[0]) if k == 2 else \
                 ("2 of 8 are over" in said[0] and "(003.tif, 006.tif; the brightest, 003.tif," in said[0]), said
+    # psctl info --check judges them after their intensities, as psctl normals does (a review: it
+    # named an image whose listed intensity explained it)
+    from psctl.io.capture import load_mask
+    from psctl.io.summary import check_pixels
+
+    e = np.ones((8, 3))
+    e[2], e[5] = 65535 * d["intensities"][2], 100 * d["intensities"][5]
+    for listed, said in ((d["intensities"], True), (e, False)):
+        np.savetxt(tmp_path / "c" / "light_intensities.txt", listed)
+        cap = open_capture(tmp_path / "c")
+        assert any("times as bright" in n for n in check_pixels(cap, load_mask(cap))["notes"]) == said
 
 
 def test_a_run_notes_heavily_saturated_images(tmp_path):

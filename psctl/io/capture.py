@@ -1072,8 +1072,9 @@ class ImageCheck:
         m = mask if box is None else mask[box]
         return lambda k, top: self.see_clipped(start + k, top, m)
 
-    def see(self, k: int, pixels: np.ndarray) -> None:
-        """``pixels``: image ``k``'s values over the object (any shape)."""
+    def see(self, k: int, pixels: np.ndarray, divide: np.ndarray | None = None) -> None:
+        """``pixels``: image ``k``'s values over the object (any shape; [..., 3] with ``divide``, its
+        intensity [3], which the brightness note divides out: summed first, no copy of them)."""
         self.seen.add(k)
         if pixels.size and pixels.max() > 0:  # an image at or below 0 everywhere is as black (noise about 0)
             self.lit.add(k)
@@ -1081,7 +1082,10 @@ class ImageCheck:
             self.negative.add(k)
         if pixels.size:
             t = self.sums.setdefault(k, [0.0, 0])
-            t[0] += float(np.sum(pixels, dtype=np.float64))
+            if divide is None:
+                t[0] += float(np.sum(pixels, dtype=np.float64))
+            else:  # (float64 sums, then divided: values near float32's limit over a small intensity overflow)
+                t[0] += float((pixels.reshape(-1, 3).sum(0, dtype=np.float64) / np.asarray(divide, np.float64)).sum())
             t[1] += pixels.size
 
     def reader(self, capture: Capture, mask: np.ndarray, decoded: "Prefetch | None" = None,

@@ -72,10 +72,10 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             except PsctlError as e:
                 blacked_out, lit = blacked_out or e, np.zeros_like(full)
             # divided by the intensities, as psctl normals reads them: its brightness note compares them so
-            check.see(k, lit[mask] / cap.intensities[k])
+            check.see(k, lit[mask], cap.intensities[k])
             region = lit[box]
         else:
-            check.see(k, rgb / cap.intensities[k])
+            check.see(k, rgb, cap.intensities[k])
             region = srgb_to_linear(full[box]) if cap.is_srgb(k) else full[box]
         # as the networks find them: around the object, zero outside it
         _, count = clamp_hot_pixels(np.where(box_mask[..., None], region, np.float32(0.0)), box_mask)
