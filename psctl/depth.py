@@ -717,6 +717,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     # --- normals and mask ----------------------------------------------------------------------
     mask = _capture_mask(cap)
     got: dict = {}  # the arrays of psctl normals' run here, when the normals are estimated
+    estimated: dict | None = None  # and its report
     inputs: list = []  # (file, input_stamp): read here, to be unchanged when the outputs are written
     if normals is None:
         for name in NORMAL_FILES:
@@ -868,6 +869,11 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         "outputs": {},
         "notes": notes,
     }
+    from psctl.api import provenance
+
+    # what made the result: psctl normals' own where it estimated the normals (versions, device, weights), else
+    # the versions alone (a normal map's own report.json says what made it)
+    report["provenance"] = estimated["provenance"] if estimated is not None else provenance({})
     if write:
         _write_outputs(out_dir, res.depth, valid, mesh, shading, report, binary_ply, t0, inputs)
     return report

@@ -433,6 +433,7 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
     write_normal_map(capture / "psctl" / "normal.exr", data["normals"], data["mask"], "exr")
     report = run_depth(capture, write=False)
     assert report["normals"].endswith("normal.exr") and report["outputs"] == {}
+    assert report["provenance"]["weights"] == {} and report["provenance"]["psctl"]  # a given map: versions alone
     assert report["n_pixels"] == data["mask"].sum() and report["n_regions"] == 1
     (capture / "psctl" / "normal.exr").unlink()  # psctl normals -f npy: found too, not re-estimated
     write_normal_map(capture / "psctl" / "normal.npy", data["normals"], data["mask"], "npy")
@@ -678,6 +679,7 @@ def test_depth_without_a_mask_integrates_the_object_found_not_the_ring(tmp_path,
     assert found is not None and np.array_equal(got["mask"], grow_mask(found, FOUND_GROW))
     r = D.run_depth(tmp_path / "cap", write=False)
     assert r["n_mask_pixels"] == found.sum() and any("the surface is the object found" in n for n in r["notes"])
+    assert list(r["provenance"]["weights"]) == ["ps-fcn"]  # the estimate's weights file, by role
     run_normals(tmp_path / "cap")  # PATH/psctl/normal.png, mask_found.png, report.json
     r = D.run_depth(tmp_path / "cap", write=False)
     assert r["n_mask_pixels"] == found.sum() and any("mask_found.png beside" in n for n in r["notes"])
