@@ -937,9 +937,10 @@ def test_benchmark_sheet_draws_each_objects_maps():
     # names drawn as spelt: all of ASCII, accents dropped, "?" for what the font cannot spell
     from psctl.io.report import drawable
 
-    assert drawable("chat_été pot#2 [a]{b}~ß 猫") == "CHAT_ETE POT#2 [A]{B}~SS ?"
+    assert drawable("chat_été pot#2 [a]{b}~ß 猫 Ärger") == "chat_ete pot#2 [a]{b}~ss ? Arger"
     named = benchmark_sheet([object_panel("chat_été #2", 1.0, normals, error, mask, height=40)], "données 猫")
-    assert _text_at(named, "CHAT_ETE #2", 2) and _text_at(named, "DONNEES ?", 2)
+    assert _text_at(named, "chat_ete #2", 2) and _text_at(named, "donnees ?", 2)
+    assert not _text_at(named, "CHAT_ETE #2", 2)  # (as spelt: small letters, not capitals)
     # a run that mixes methods: only the row with a spread map gets the third row of maps and its bar
     mixed = benchmark_sheet([r, q, p, q], "X", per_row=2)
     assert np.isclose(mixed, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
@@ -1216,16 +1217,16 @@ def test_error_map_labels_and_title_are_the_numbers_drawn(tmp_path):
     # with a label (run_normals': the object and the method) on a line of its own above the numbers
     write_error_map(tmp_path / "e.png", err, mask, mae=12.5, median=10.0, label="cat  ps-fcn-n")
     e = read_image(tmp_path / "e.png")[0]
-    assert _text_at(e, "CAT  PS-FCN-N", 2) == [(4, 4)] and _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(22, 4)]
+    assert _text_at(e, "cat  ps-fcn-n", 2) == [(4, 4)] and _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(22, 4)]
     write_spread_map(tmp_path / "s.png", err, mask, mean=1.25, p90=3.5, label="cat  ensemble")
     sp = read_image(tmp_path / "s.png")[0]
-    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°", 2) == [(22, 4)] and _text_at(sp, "CAT  ENSEMBLE", 2)
+    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°", 2) == [(22, 4)] and _text_at(sp, "cat  ensemble", 2)
     assert _text_at(sp, f">{SPREAD_VMAX:.0f}°", 2) and not _text_at(sp, ">45°", 2)
     from psctl.api import run_normals
 
     write_capture(tmp_path / "ballPNG", n=6, size=24)
     r = run_normals(tmp_path / "ballPNG", method="l2", out=tmp_path / "o")
-    assert _text_at(read_image(r["outputs"]["error"])[0], "BALL  L2", 2) == [(4, 4)]  # DiLiGenT's PNG suffix dropped, as in the report
+    assert _text_at(read_image(r["outputs"]["error"])[0], "ball  l2", 2) == [(4, 4)]  # DiLiGenT's PNG suffix dropped, as in the report
 
 
 def test_a_0_1_mask_file_says_so(tmp_path):

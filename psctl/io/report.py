@@ -88,28 +88,60 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
     "|": ["  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  "],
     "}": ["##   ", "  #  ", "  #  ", "   # ", "  #  ", "  #  ", "##   "],
     "~": ["     ", "     ", " #   ", "# # #", "   # ", "     ", "     "],
+    # small letters, so that names are drawn as spelt (catPNG, not CATPNG); in 7 rows those with a
+    # tail (g, j, p, q, y) have a shorter body, their tops level with the others'
+    "a": ["     ", "     ", " ### ", "    #", " ####", "#   #", " ####"],
+    "b": ["#    ", "#    ", "# ## ", "##  #", "#   #", "#   #", "#### "],
+    "c": ["     ", "     ", " ### ", "#    ", "#    ", "#   #", " ### "],
+    "d": ["    #", "    #", " ## #", "#  ##", "#   #", "#   #", " ####"],
+    "e": ["     ", "     ", " ### ", "#   #", "#####", "#    ", " ### "],
+    "f": ["  ## ", " #  #", " #   ", "###  ", " #   ", " #   ", " #   "],
+    "g": ["     ", "     ", " ####", "#   #", " ####", "    #", " ### "],
+    "h": ["#    ", "#    ", "# ## ", "##  #", "#   #", "#   #", "#   #"],
+    "i": ["  #  ", "     ", " ##  ", "  #  ", "  #  ", "  #  ", " ### "],
+    "j": ["   # ", "     ", "  ## ", "   # ", "   # ", "#  # ", " ##  "],
+    "k": ["#    ", "#    ", "#  # ", "# #  ", "##   ", "# #  ", "#  # "],
+    "l": [" ##  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", " ### "],
+    "m": ["     ", "     ", "## # ", "# # #", "# # #", "#   #", "#   #"],
+    "n": ["     ", "     ", "# ## ", "##  #", "#   #", "#   #", "#   #"],
+    "o": ["     ", "     ", " ### ", "#   #", "#   #", "#   #", " ### "],
+    "p": ["     ", "     ", "#### ", "#   #", "#### ", "#    ", "#    "],
+    "q": ["     ", "     ", " ####", "#   #", " ####", "    #", "    #"],
+    "r": ["     ", "     ", "# ## ", "##  #", "#    ", "#    ", "#    "],
+    "s": ["     ", "     ", " ####", "#    ", " ### ", "    #", "#### "],
+    "t": [" #   ", " #   ", "###  ", " #   ", " #   ", " #  #", "  ## "],
+    "u": ["     ", "     ", "#   #", "#   #", "#   #", "#  ##", " ## #"],
+    "v": ["     ", "     ", "#   #", "#   #", "#   #", " # # ", "  #  "],
+    "w": ["     ", "     ", "#   #", "#   #", "# # #", "# # #", " # # "],
+    "x": ["     ", "     ", "#   #", " # # ", "  #  ", " # # ", "#   #"],
+    "y": ["     ", "     ", "#   #", "#   #", " ####", "    #", " ### "],
+    "z": ["     ", "     ", "#####", "   # ", "  #  ", " #   ", "#####"],
 }
 
 
 def drawable(text: str) -> str:
-    """``text`` in the letters ``text_bitmap`` draws: capitals, accents dropped (été -> ETE,
-    ß -> SS), and "?" for a character it cannot spell (猫), rather than a blank that would turn
-    a name into another one."""
+    """``text`` in the letters ``text_bitmap`` draws: printable ASCII as spelt, accents dropped
+    (été -> ete, ß -> ss), and "?" for a character it cannot spell (猫), rather than a blank that
+    would turn a name into another one."""
     import unicodedata
 
     out = []
-    for ch in text.upper():
+    for ch in text:
         if ch in _FONT:
             out.append(ch)
             continue
-        parts = [c for c in unicodedata.normalize("NFKD", ch).upper() if not unicodedata.combining(c)]
-        out.append("".join(parts) if parts and all(c in _FONT for c in parts) else "?")
+        for form in (ch, ch.casefold(), ch.upper()):  # (ß: no accent to drop, but casefolds to ss)
+            parts = [c for c in unicodedata.normalize("NFKD", form) if not unicodedata.combining(c)]
+            if parts and all(c in _FONT for c in parts):
+                out.append("".join(parts))
+                break
+        else:
+            out.append("?")
     return "".join(out)
 
 
 def text_bitmap(text: str, scale: int = 1) -> np.ndarray:
-    """Render ``text`` (printable ASCII, in capitals, and ``°``; other letters as ``drawable``
-    spells them) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for its n >= 1 characters."""
+    """Render ``text`` (printable ASCII and ``°``; other letters as ``drawable`` spells them) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for its n >= 1 characters."""
     glyphs = [np.array([[c == "#" for c in row] for row in _FONT[ch]]) for ch in drawable(text)]
     gap = np.zeros((7, 1), bool)
     parts = []
