@@ -502,7 +502,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
     from psctl.classic import lights_problem
     from psctl.models import check_downsample, check_precision, precision_autocast
-    from psctl.lights import FOUND_FILE, SDPS_FILES, refine_config
+    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, SDPS_FILES, refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
     from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture,
@@ -606,7 +606,6 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         found, mask = sd.found, sd.mask
     elif method in NETWORKS or method == "ensemble":
         from psctl.infer import ENSEMBLE, capture_normals
-        from psctl.lights import NO_MASK_PREFIX
 
         cfg = {**net_cfg, **_found_config(found)}
         net = capture_normals(cap, read, method, weights, cfg, progress, memo)
@@ -625,12 +624,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             names.remove(FOUND_FILE)  # (before the note: stale() then counts an earlier one)
         notes += _found_file_notes(found_mask is not None, stale, out_dir) if write else []
     if found is not None and found.normals_mask is not None:
-        from psctl.lights import NO_MASK_PREFIX
-
         notes.append(NO_MASK_PREFIX + _found_file_note(write))
     elif found_mask is not None and write:  # sdps: the object LCNet and the light fit read
-        from psctl.lights import NO_MASK_PREFIX
-
         notes.append(f"{NO_MASK_PREFIX}the object found for LCNet and the light fit is in {FOUND_FILE}: check it; "
                      f"copied into the capture folder as mask.png, it is read as the mask")
     box = bounding_box(mask)

@@ -71,12 +71,13 @@ DEFAULT_CALIBRATE = {
     "min_pixels": 30,  # matte: lit pixels needed to fit a light
 }
 
-# each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
 # chrome: a highlight whose peak is under this many times the sphere's 90th percentile (in the median image) is
 # no mirror's: benchmarks/calibrate_sphere.py's spheres gave 1.09-1.10 for matte balls, 1.61-1.68 for its
 # glossy ball, 231-765 for its mirrors (median images; single ones down to 134). Clipped peaks are left out
 # (overexposed balls have broad highlights, noted apart)
 MATTE_LIKE = 1.3
+
+# each setting's allowed range (inclusive); iterations and min_pixels are whole numbers
 DARK_LIGHT = 0.02  # an image whose highlight or intensity is under this share of the median's: no light
 _RANGES = {"rim": (0.1, 1.0), "highlight": (0.0, 0.99), "base": (0.0, 100.0), "lit": (0.0, 0.9), "trim": (0.5, 100.0),
            "iterations": (1, 100), "min_radius": (1.0, 1e6), "min_pixels": (3, 1e9)}
@@ -1002,10 +1003,11 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
         # (a clipped plateau over the sphere's top tenth gives 1: overexposed, which the broad note says)
         ratios = [i["over_base"] for i in res.images if i.get("over_base") is not None and i["over_base"] > 1.001]
         level = float(np.median(ratios)) if len(ratios) > len(res.images) / 2 else None
-        if broad and not (level is not None and level < MATTE_LIKE):  # (else the note below says it of all)
+        matte_like = level is not None and level < MATTE_LIKE
+        if broad and not matte_like:  # (else the note below says it of all)
             notes.append(f"sphere: {len(broad)} of {cap.n_images} images have a broad highlight (over 5 % of the "
                          f"sphere; {names(broad)}): is it a mirror? for a matte ball use --sphere matte")
-        if level is not None and level < MATTE_LIKE:
+        if matte_like:
             notes.append(f"sphere: the brightest spot is barely brighter than the sphere's brightest tenth (its peak "
                          f"{level:.2f} times their lowest value, in the median image; a mirror's is hundreds of times, "
                          f"a glossy ball's about 1.6): is the ball matte? then use --sphere matte")

@@ -497,8 +497,9 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
             stage.discard()
         if isinstance(e, PsctlError):
             raise by_final_name(e, [(stage.path, stage.out_dir)]) from None
-        if no_room(e, stage.out_dir) is not e:
-            raise no_room(e, stage.out_dir) from None
+        named = no_room(e, stage.out_dir)
+        if named is not e:
+            raise named from None
         raise
     # the lock first (a wait for it can be stopped: then nothing moved), then moved and cleaned up
     # in one piece
@@ -582,8 +583,9 @@ class OutputBatch:
                 renamed = by_final_name(value, [(s.path, s.out_dir) for s in self.stagings])
                 if renamed is not value:
                     raise renamed from None
-            if no_room(value, self.root) is not value:
-                raise no_room(value, self.root) from None
+            named = no_room(value, self.root)
+            if named is not value:
+                raise named from None
             if kind is None:
                 for s in self.stagings:
                     s.check()

@@ -348,8 +348,8 @@ def read_light_rows(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return unit, top * np.linalg.norm(rows / np.where(top > 0, top, 1.0)[:, None], axis=1)
 
 
-UNIT_TOLERANCE = 0.02  # light rows further from unit length get a note (DiLiGenT's are within 7e-5; rows
-# rounded to 2 decimals, within 0.01)
+UNIT_TOLERANCE = 0.02  # light rows further from unit length get a note (DiLiGenT's are within 7e-5; unit rows
+# rounded to 2 decimals within about 0.009)
 INTENSITY_RANGE = (1e-12, 1e12)
 
 
@@ -728,12 +728,12 @@ def _mat_ground_truth(p: Path) -> np.ndarray:
         raise PsctlError(p, f"Normal_gt holds whole numbers {int(raw.min())} .. {int(raw.max())} ({raw.dtype}): "
                             "an encoded image's values? Normal_gt.mat holds unit normals (x, y, z in -1 .. 1), "
                             "Normal_gt.png an encoded image")
-    if raw.dtype.kind in "iu" and raw.ndim == 3 and raw.shape[-1] == 3 and raw.size and \
-            int(np.abs(raw.astype(np.int64)).max()) <= 1:
+    whole = raw.astype(np.int64) if raw.dtype.kind in "iu" and raw.ndim == 3 and raw.shape[-1] == 3 else None
+    if whole is not None and whole.size and int(np.abs(whole).max()) <= 1:
         # whole numbers in -1 .. 1 are unit vectors only along an axis (a cube's faces); others, as
         # (1, 1, 0), are no normals: MATLAB logicals (an audit's were scored 35 degrees off, silently).
         # (Scaled ones, as int16 normals times 1000, are directions: normalised as any others)
-        square = (raw.astype(np.int64) ** 2).sum(-1)
+        square = (whole ** 2).sum(-1)
         odd = int(((square != 0) & (square != 1)).sum())
         if odd:
             raise PsctlError(p, f"Normal_gt holds whole numbers ({raw.dtype}) and {odd} of its pixels are no unit "
@@ -1004,7 +1004,7 @@ class DecodeMemo:
             del self.kept[Path(path)]
             self.used -= rgb.nbytes
             return None
-        if not (y0 <= want[0] <= want[1] <= y1 and x0 <= want[2] <= want[3] <= x1):
+        if not self._inside(want, (y0, y1, x0, x1)):
             return None
         self.served += 1
         return rgb[want[0] - y0:want[1] - y0, want[2] - x0:want[3] - x0], info
@@ -1012,9 +1012,12 @@ class DecodeMemo:
     def holds(self, path: Path, box: tuple[slice, slice]) -> bool:
         """Whether ``take(path, box)`` would find a kept box (the file's stamp is not checked)."""
         hit, want = self.kept.get(Path(path)), self._key(box)
-        if hit is None or want is None:
-            return False
-        y0, y1, x0, x1 = hit[0]
+        return hit is not None and want is not None and self._inside(want, hit[0])
+
+    @staticmethod
+    def _inside(want: tuple[int, int, int, int], kept: tuple[int, int, int, int]) -> bool:
+        """Whether box ``want`` (y0, y1, x0, x1) lies within the kept box ``kept``."""
+        y0, y1, x0, x1 = kept
         return y0 <= want[0] <= want[1] <= y1 and x0 <= want[2] <= want[3] <= x1
 
     def keep(self, path: Path, box: tuple[slice, slice], rgb: np.ndarray, info: ImageInfo,
