@@ -146,3 +146,30 @@ def test_an_out_folder_with_an_ambient_image_of_any_case_is_a_capture(tmp_path):
     assert not holds_capture(out)
     write_image(out / "Ambient.PNG", np.zeros((4, 4, 3), np.float32), "uint8")
     assert holds_capture(out)
+
+
+def test_later_passes_take_the_ambient_image_from_the_memo(tmp_path, monkeypatch):
+    """Passes that share a DecodeMemo (sdps: LCNet, the light fit, the second stage) decode the
+    ambient image once, as they do the images, with the same values; one changed since is read
+    again."""
+    import os
+
+    import psctl.io.capture as capture_mod
+    from psctl.io.capture import DecodeMemo, bounding_box, iter_images
+
+    folder = tmp_path / "roomPNG"
+    data = _with_ambient(folder)
+    cap = open_capture(folder)
+    box = bounding_box(data["mask"])
+    plain = [im.copy() for im in iter_images(cap, box)]
+    reads = []
+    real = capture_mod.read_image
+    monkeypatch.setattr(capture_mod, "read_image", lambda p, *a, **k: reads.append(p.name) or real(p, *a, **k))
+    memo = DecodeMemo(1 << 26)
+    for _ in range(3):
+        assert all(np.array_equal(a, b) for a, b in zip(plain, iter_images(cap, box, memo=memo), strict=True))
+    assert reads.count("ambient.png") == 1 and len(reads) == 13
+    st = os.stat(folder / "ambient.png")
+    os.utime(folder / "ambient.png", ns=(st.st_atime_ns, st.st_mtime_ns + 5 * 10**9))
+    list(iter_images(cap, box, memo=memo))
+    assert reads.count("ambient.png") == 2 and len(reads) == 14

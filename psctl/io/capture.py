@@ -910,9 +910,17 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
     ambient = None
-    if capture.ambient_path is not None:  # read once; in linear values, as the images
-        ambient = to_rgb(read_image(capture.ambient_path)[0])
-        ambient = ambient if box is None else ambient[box]
+    if capture.ambient_path is not None:  # read once a pass (or from an earlier pass's memo); linear, as the images
+        got = None if memo is None or box is None else memo.take(capture.ambient_path, box)
+        if got is not None:
+            ambient = got[0]
+        else:
+            stamp = memo.stamp(capture.ambient_path) if memo is not None and box is not None else None
+            pixels, info = read_image(capture.ambient_path)
+            ambient = to_rgb(pixels)
+            ambient = ambient if box is None else ambient[box]
+            if stamp is not None:
+                memo.keep(capture.ambient_path, box, ambient, info, stamp)
         ambient = srgb_to_linear(ambient) if capture.is_srgb(capture.ambient_path) else ambient
     if capture.near is not None:
         if capture.lights is None:
