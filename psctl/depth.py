@@ -162,8 +162,11 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
 
 def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str = "poisson",
               K: np.ndarray | None = None, config: dict | None = None,
-              progress: ProgressFactory | None = None) -> DepthResult:
-    """``integrate_normals`` with the bookkeeping: rejected counts, components, iterations."""
+              progress: ProgressFactory | None = None,
+              check_facing: Callable[[int, int], None] | None = None) -> DepthResult:
+    """``integrate_normals`` with the bookkeeping: rejected counts, components, iterations.
+    ``check_facing(n_facing_away, n_directions)``, when given, is called with the mask's counts
+    before the solve (and may raise: a map that is not normals is refused without the work)."""
     import scipy.sparse.csgraph as csgraph
 
     cfg = depth_config(config)
@@ -213,6 +216,8 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     n_mask = int(mask.sum())
     n_nan = int((mask & ~finite).sum())
     n_facing = int((good & ~valid).sum())
+    if check_facing is not None:
+        check_facing(n_facing, n_facing + int(valid.sum()))
     if not valid.any():
         raise PsctlError(None, f"no usable normal inside the mask ({n_nan} NaN or zero, "
                                f"{n_facing} facing away from the camera)")
@@ -780,17 +785,21 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
                      f"{estimated['method']} (run `psctl normals` first to choose the method and keep them)")
 
     # --- integrate -----------------------------------------------------------------------------
-    try:
-        res = integrate(nmap, mask, method, K, config, progress)
-    except PsctlError as e:
-        raise PsctlError(e.path or source, e.message) from None
-    numbers = res.n_rejected_facing + int(res.valid.sum())  # the mask's normals that are directions
-    if normals is not None and res.n_rejected_facing > numbers / 2:  # (a visible surface faces the camera)
+    def refuse_facing_away(n_facing: int, numbers: int) -> None:
+        """A given map most of whose directions face away (a visible surface faces the camera):
+        refused before the solve (numbers: the mask's normals that are directions)."""
+        if normals is None or n_facing <= numbers / 2:
+            return
         rays = (f" along the rays of the intrinsics {Path(k_source).name if k_source != 'array' else 'given'} (are "
-                f"they this image's?)") if res.projection == "perspective" else ""
-        raise PsctlError(source, f"{res.n_rejected_facing} of the {numbers} normals face away from the camera{rays}: "
+                f"they this image's?)") if K is not None else ""
+        raise PsctlError(source, f"{n_facing} of the {numbers} normals face away from the camera{rays}: "
                                  f"not a normal map in psctl's convention (x right, y up, z towards the camera; "
                                  f"docs/formats.md), or not a normal map")
+
+    try:
+        res = integrate(nmap, mask, method, K, config, progress, check_facing=refuse_facing_away)
+    except PsctlError as e:
+        raise PsctlError(e.path or source, e.message) from None
     if res.n_rejected:
         notes.append(f"{res.n_rejected} mask pixels have no usable normal ({res.n_rejected_nan} NaN or zero, "
                      f"{res.n_rejected_facing} facing away from the camera): they get no depth")

@@ -688,3 +688,31 @@ def test_depth_without_a_mask_integrates_the_object_found_not_the_ring(tmp_path,
     os.utime(shown, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # replaced since (as far as its time says)
     r = D.run_depth(tmp_path / "cap", write=False)
     assert r["n_mask_pixels"] == grow_mask(found, FOUND_GROW).sum()
+
+
+@pytest.mark.parametrize("perspective", [False, True])
+def test_a_map_facing_away_is_refused_before_the_solve(capture, tmp_path, monkeypatch, perspective):
+    """psctl depth refuses a given map most of whose normals face away before integrating it
+    (a large map cost the whole solve first); perspective names the intrinsics' file."""
+    import psctl.depth as depth
+    from psctl.io.images import write_image
+
+    normals = write_capture(tmp_path / "ref")["normals"]
+    away = normals.copy()
+    away[:28, :, 2] *= -1
+    write_image(tmp_path / "away.exr", away, "float")
+    if perspective:
+        (capture / "K.txt").write_text("3000 0 20\n0 3000 20\n0 0 1\n")
+    monkeypatch.setattr(depth, "_solve", lambda *a, **k: pytest.fail("solved a map it refuses"))
+    with pytest.raises(PsctlError, match="normals face away from the camera" +
+                       (" along the rays of the intrinsics K.txt" if perspective else ": not a normal map")):
+        depth.run_depth(capture, normals=tmp_path / "away.exr", write=False)
+    seen = []
+
+    def stop(n_facing, n_directions):
+        seen.append((n_facing, n_directions))
+        raise PsctlError(None, "stop")
+
+    with pytest.raises(PsctlError, match="stop"):  # the library's hook: the mask's counts, before the solve
+        depth.integrate(away, check_facing=stop)
+    assert seen == [(int((away[..., 2] < 0).sum()), int((np.abs(away).sum(-1) > 0).sum()))]
