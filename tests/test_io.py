@@ -2040,3 +2040,59 @@ def test_psctls_own_pictures_are_not_read_as_images(tmp_path):
     assert root_notes(tmp_path / "root") == []
     (tmp_path / "root" / "a" / "filenames.txt").unlink()  # the images found by their names
     assert open_capture(tmp_path / "root" / "a").n_images == 4
+
+
+def _write_cfa_tiff(path, mosaic: np.ndarray, photometric: int = 32803) -> None:
+    """A minimal little-endian TIFF of 16-bit sensor values with a DNG's photometric
+    interpretation (32803: a colour filter array; 34892: linear raw) and an RGGB CFA pattern."""
+    import struct
+
+    h, w = mosaic.shape
+    data = np.ascontiguousarray(mosaic, "<u2").tobytes()
+    tags = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, photometric),
+            (273, 4, 1, 0), (277, 3, 1, 1), (278, 3, 1, h), (279, 4, 1, len(data)),
+            (33421, 3, 2, 2 | 2 << 16), (33422, 1, 4, int.from_bytes(bytes([0, 1, 1, 2]), "little"))]
+    ifd_size = 2 + 12 * len(tags) + 4
+    offset = 8 + ifd_size  # the pixels after the header and the IFD
+    entries = b"".join(struct.pack("<HHII", tag, kind, count, offset if tag == 273 else value)
+                       for tag, kind, count, value in tags)
+    path.write_bytes(b"II*\0" + struct.pack("<I", 8) + struct.pack("<H", len(tags)) + entries + b"\0\0\0\0" + data)
+
+
+def test_camera_raw_files_are_refused_with_how_to_convert_them(tmp_path):
+    """Camera raw files: OpenImageIO (without its raw plugin) read a DNG as a grey picture of the
+    sensor's colour mosaic, and most raw formats are TIFF inside (the embedded preview): now one
+    line saying how to convert them, by name and, for a DNG under a TIFF name, by content."""
+    from typer.testing import CliRunner
+
+    from psctl.cli import app
+    from psctl.io.capture import open_capture
+    from psctl.io.images import image_info
+
+    mosaic = (np.arange(24 * 32).reshape(24, 32) * 50 % 4000 + 64).astype(np.uint16)
+    _write_cfa_tiff(tmp_path / "sensor.tif", mosaic)
+    with pytest.raises(PsctlError, match=r"sensor.tif: holds camera raw sensor data \(a colour filter array, as a "
+                                         r"DNG\), which psctl does not decode; convert it to a 16-bit linear TIFF "
+                                         r"first, e.g. `dcraw -4 -T sensor.tif`"):
+        image_info(tmp_path / "sensor.tif")
+    _write_cfa_tiff(tmp_path / "linear.tif", mosaic, 34892)
+    with pytest.raises(PsctlError, match=r"linear.tif: holds camera raw sensor data \(linear raw"):
+        read_image(tmp_path / "linear.tif")
+    write_image(tmp_path / "plain.tif", np.full((24, 32, 3), 0.5, np.float32), "uint16")  # an ordinary TIFF reads
+    assert image_info(tmp_path / "plain.tif").channels == 3
+    (tmp_path / "plain.tif").rename(tmp_path / "IMG_0001.CR2")  # by name, whatever it holds (CR3 is no TIFF)
+    with pytest.raises(PsctlError, match=r"IMG_0001.CR2: is a camera raw file \(.CR2\), which psctl does not decode"):
+        image_info(tmp_path / "IMG_0001.CR2")
+
+    cap = tmp_path / "cap"  # a capture folder of raw files: not 'list them', but how to convert them
+    write_capture(cap, n=4, size=24)
+    (cap / "filenames.txt").unlink(missing_ok=True)
+    for k in range(4):
+        (cap / f"{k + 1:03d}.png").rename(cap / f"DSC_{k:04d}.NEF")
+    with pytest.raises(PsctlError, match=r"no images found .*; DSC_0000.NEF, .* are camera raw, which psctl does not "
+                                         r"decode: convert them to 16-bit linear TIFFs first, e.g. `dcraw -4 -T \*.NEF`"):
+        open_capture(cap)
+    (cap / "filenames.txt").write_text("".join(f"DSC_{k:04d}.NEF\n" for k in range(4)))  # listed: refused by name
+    result = CliRunner().invoke(app, ["normals", str(cap), "-m", "l2", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "Traceback" not in result.output and not (tmp_path / "out").exists()
+    assert result.output.strip().splitlines()[-1].startswith(f"error: {cap / 'DSC_0000.NEF'}: is a camera raw file")

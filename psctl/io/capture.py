@@ -28,7 +28,7 @@ import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_int, check_path, few
-from psctl.io.images import IMAGE_EXTENSIONS, ImageInfo, holds_colour, image_info, read_image, srgb_to_linear, to_rgb
+from psctl.io.images import IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
 
@@ -570,7 +570,12 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
             other = [n for n in files if n.lower().endswith(_OTHER_IMAGE_SUFFIXES)]
             said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
                 [f"{some(other)} not read unless listed"] if other else [])
-            hint = f"; {'; '.join(said)}: list the images in {LIST_FILES[0]}" if said else ""
+            hint = [f"{'; '.join(said)}: list the images in {LIST_FILES[0]}"] if said else []
+            raw = [n for n in files if n.lower().endswith(RAW_SUFFIXES)]
+            if raw:  # listing them would not help: say how to convert them
+                hint.append(f"{some(raw)} camera raw, which psctl does not decode: convert them to 16-bit linear "
+                            f"TIFFs first, e.g. `dcraw -4 -T *{Path(raw[0]).suffix}` (docs/formats.md, 'Camera raw files')")
+            hint = "".join(f"; {h}" for h in hint)
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
     ambient_path = _first_existing(path, entries, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
@@ -768,8 +773,7 @@ def as_capture(capture: "Capture | str | os.PathLike") -> Capture:
 
 # image formats psctl does not look for by itself, that OpenImageIO may read once listed
 _OTHER_IMAGE_SUFFIXES = (".bmp", ".webp", ".gif", ".tga", ".hdr", ".dpx", ".jp2", ".j2k", ".heic", ".heif", ".psd",
-                         ".pgm", ".ppm", ".pnm", ".pbm", ".sgi", ".rgb", ".iff", ".dds", ".ico", ".dng", ".cr2",
-                         ".nef", ".arw", ".raw", ".fits", ".cin", ".sxr")
+                         ".pgm", ".ppm", ".pnm", ".pbm", ".sgi", ".rgb", ".iff", ".dds", ".ico", ".fits", ".cin", ".sxr")
 
 
 def _same_name(p: Path) -> Path:

@@ -24,6 +24,17 @@ from psctl.io.atomic import atomic_path, utf8_path
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 
+# Camera raw files. Most are TIFF inside, and OpenImageIO without its raw plugin reads them as a TIFF:
+# the embedded preview (sRGB, often smaller) or the sensor's colour mosaic as a grey picture, never
+# the linear colour image photometric stereo needs, so they are refused with how to convert them.
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2",
+                ".pef", ".srw", ".raw", ".rwl", ".3fr", ".fff", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos",
+                ".x3f")
+# TIFF photometric interpretations of sensor data (DNG's colour filter array and linear raw)
+_RAW_PHOTOMETRIC = {32803: "a colour filter array", 34892: "linear raw"}
+RAW_HINT = ("convert it to a 16-bit linear TIFF first, e.g. `dcraw -4 -T {name}` (or a raw converter with a linear "
+            "profile, no tone curve and fixed white balance); docs/formats.md, 'Camera raw files'")
+
 
 def _oiio():
     import OpenImageIO as oiio  # imported here: it is slow to import and only needed for files
@@ -136,6 +147,9 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
     if not path.is_file():
         raise PsctlError(path, not_a_file(path, "image file is missing"))
     name = _oiio_name(path)
+    if path.suffix.lower() in RAW_SUFFIXES:
+        raise PsctlError(path, f"is a camera raw file ({path.suffix}), which psctl does not decode; "
+                               f"{RAW_HINT.format(name=path.name)}")
     with _quiet_stderr():  # libpng prints its own line for a garbage file; the error below says it
         inp = oiio.ImageInput.open(name)
         err = oiio.geterror() if inp is None else ""
@@ -143,6 +157,10 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         raise PsctlError(path, f"cannot open image ({_clean(err)})")
     try:
         spec = inp.spec()
+        sensor = _RAW_PHOTOMETRIC.get(spec.get_int_attribute("tiff:PhotometricInterpretation", 0))
+        if sensor is not None:  # a DNG under another name: its pixels are the sensor's, not a picture's
+            raise PsctlError(path, f"holds camera raw sensor data ({sensor}, as a DNG), which psctl does not "
+                                   f"decode; {RAW_HINT.format(name=path.name)}")
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
         orientation = spec.get_int_attribute("Orientation", 1)
