@@ -475,7 +475,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     (its list, OUTPUTS_LIST) that this run does not write (another ``formats``, no ground truth)
     are removed, and a note says so; no other file is. ``out`` may not hold a capture.
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
-    (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
+    (``psctl.io.capture.open_capture``; auto decodes files with an ICC profile through its tone curves,
+    else JPEGs from sRGB, with a note).
     ``light_distance`` (pixels; l2, ps-fcn, ps-fcn-n, ensemble, sdps): the lights are points that far from
     the mask's centroid along the listed directions (sdps: LCNet's, refined or not, about the
     centroid of the object LCNet reads, found without a mask file, ``find_object``); each image is

@@ -1408,7 +1408,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
-    (``psctl.io.capture.open_capture``; auto decodes JPEGs from sRGB, with a note).
+    (``psctl.io.capture.open_capture``; auto decodes files with an ICC profile through its tone curves,
+    else JPEGs from sRGB, with a note).
 
     ``refine``: when a network that estimates normals from lights is installed (sdps' second
     stage, or ``normals_weights``), LCNet's lights are refined against its normals

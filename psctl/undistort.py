@@ -354,7 +354,7 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
                                  write_bytes_atomic, write_outputs_list)
     from psctl.io.capture import (GT_FILES, INTENSITIES_FILE, LIGHTS_FILE, check_not_capture, holds_capture,
                                   load_ground_truth, load_mask, open_capture, read_matrix)
-    from psctl.io.images import read_image, write_image
+    from psctl.io.images import icc_profile, read_image, write_image
     from psctl.io.report import write_json
 
     t0 = time.perf_counter()
@@ -525,7 +525,8 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
             pixels, info = read_image(p)
             # a file tagged linear (psctl synth's PNGs, EXRs) stays tagged so; others carry no colour tag
             write_image(stage / p.name, remap(pixels, m), _write_dtype(info.dtype, info.bits, p.suffix.lower()),
-                        kind="linear" if "lin" in info.color_space.lower() else "data")
+                        kind="linear" if "lin" in info.color_space.lower() else "data",
+                        icc=icc_profile(p))  # its profile (tone curves) goes with it
             advance(1)
         for p in copies:
             write_bytes_atomic(stage / p.name, p.read_bytes())

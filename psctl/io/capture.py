@@ -28,6 +28,7 @@ import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_int, check_path, few
+from psctl.io.icc import ToneCurve
 from psctl.io.images import IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image, srgb_to_linear, to_rgb
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
@@ -77,6 +78,8 @@ class Capture:
     layers: tuple[str, ...] = ()  # each image's layer read, of several ("Combined"; "": one or none)
     windowed: tuple[bool, ...] = ()  # each image's stored pixels are a window of its frame (an EXR's)
     ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
+    tones: tuple[ToneCurve | None, ...] = ()  # each image's embedded ICC profile's tone curves (psctl.io.icc)
+    ambient_tone: ToneCurve | None = None  # the ambient image's
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -92,17 +95,41 @@ class Capture:
     def calibrated(self) -> bool:
         return self.lights is not None
 
-    def is_srgb(self, k: int | Path) -> bool:
-        """Whether image ``k`` (an index, or a file such as the ambient image) is decoded from
-        sRGB to linear (``encoding``: srgb, or auto and JPEG data: by content where the header was
-        read, whatever the name, so that a 16-bit PNG named .jpg stays linear; else by name)."""
-        if self.encoding != "auto":
-            return self.encoding == "srgb"
+    def is_jpeg(self, k: int | Path) -> bool:
+        """Whether image ``k`` (an index, or a file such as the ambient image) is JPEG data: by
+        content where the header was read, whatever the name; else by name."""
         if isinstance(k, (int, np.integer)):
             return self.jpeg[int(k)] if self.jpeg else self.image_paths[int(k)].suffix.lower() in JPEG
         if self.ambient_path is not None and k == self.ambient_path:
             return self.ambient_jpeg
         return k.suffix.lower() in JPEG
+
+    def decoding(self, k: int | Path) -> "str | ToneCurve | None":
+        """How image ``k``'s stored values become linear: "srgb" (the sRGB curve), a ToneCurve (its
+        embedded ICC profile's curves) or None (as stored). ``encoding`` linear: None; srgb:
+        "srgb"; auto: the profile's curves where the file has a readable profile (None where they
+        are linear: a linear export), else "srgb" for JPEG data (``is_jpeg``: a 16-bit PNG named
+        .jpg stays linear), else None."""
+        if self.encoding != "auto":
+            return "srgb" if self.encoding == "srgb" else None
+        if isinstance(k, (int, np.integer)):
+            tone = self.tones[int(k)] if self.tones else None
+        else:
+            tone = self.ambient_tone if self.ambient_path is not None and k == self.ambient_path else None
+        if tone is not None:
+            return None if tone.linear else tone
+        return "srgb" if self.is_jpeg(k) else None
+
+    def is_srgb(self, k: int | Path) -> bool:
+        """Whether image ``k`` is decoded with the sRGB curve (``decoding``)."""
+        return isinstance(self.decoding(k), str)
+
+    def to_linear(self, k: int | Path, values: np.ndarray) -> np.ndarray:
+        """Image ``k``'s values (in [0, 1] for integer files) as linear values (``decoding``)."""
+        how = self.decoding(k)
+        if how is None:
+            return values
+        return srgb_to_linear(values) if isinstance(how, str) else how.to_linear(values)
 
     @property
     def turned(self) -> int:
@@ -113,6 +140,11 @@ class Capture:
     def srgb_images(self) -> int:
         """How many of the images are decoded from sRGB (``is_srgb``)."""
         return sum(self.is_srgb(k) for k in range(self.n_images))
+
+    @property
+    def profile_images(self) -> int:
+        """How many of the images are decoded through their ICC profile's curves (``decoding``)."""
+        return sum(isinstance(self.decoding(k), ToneCurve) for k in range(self.n_images))
 
     @property
     def input_paths(self) -> tuple[Path, ...]:
@@ -129,6 +161,7 @@ class Capture:
             kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
             channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
             jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
+            tones=tuple(self.tones[i] for i in idx) if self.tones else (),
             pages=tuple(self.pages[i] for i in idx) if self.pages else (),
             layers=tuple(self.layers[i] for i in idx) if self.layers else (),
             windowed=tuple(self.windowed[i] for i in idx) if self.windowed else (),
@@ -140,7 +173,8 @@ class Capture:
 # how pixel values map to radiance. Photometric stereo needs values proportional to radiance:
 # DiLiGenT's PNGs and raw-converted TIFFs are linear; a camera's JPEGs carry the sRGB tone curve
 # (their headers, like most PNGs', say sRGB whatever the data are, so only the kind of file or the
-# user can tell). auto: JPEGs are sRGB, every other file linear.
+# user can tell, unless the file embeds an ICC profile). auto: a profile's tone curves where a file has
+# one (psctl.io.icc), else JPEGs are sRGB and every other file linear.
 ENCODINGS = ("auto", "linear", "srgb")
 JPEG = (".jpg", ".jpeg")
 
@@ -661,6 +695,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path, light_lengths=light_lengths,
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
+        tones=tuple(i.tone for i in infos), ambient_tone=None if ambient_info is None else ambient_info.tone,
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         pages=tuple(i.pages for i in infos), layers=tuple(i.layer for i in infos),
@@ -925,7 +960,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             ambient = ambient if box is None else ambient[box]
             if stamp is not None:
                 memo.keep(capture.ambient_path, box, ambient, info, stamp)
-        ambient = srgb_to_linear(ambient) if capture.is_srgb(capture.ambient_path) else ambient
+        ambient = capture.to_linear(capture.ambient_path, ambient)
     if capture.near is not None:
         if capture.lights is None:
             raise PsctlError(capture.path / "light_directions.txt", "missing: near lights need the listed directions")
@@ -953,8 +988,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             memo.keep(p, box, rgb, info, stamp)
         if clipped is not None and has_top_code(info):
             clipped(k, saturated_map(rgb))
-        if capture.is_srgb(k):
-            rgb = srgb_to_linear(rgb)
+        rgb = capture.to_linear(k, rgb)
         if ambient is not None:
             rgb = minus_ambient(rgb, ambient, capture, p.name, ambient_check)
         with np.errstate(over="ignore"):  # checked below: a tiny intensity under huge float values
@@ -1227,7 +1261,9 @@ def capture_notes(capture: Capture) -> list[str]:
         notes.append(f"images: of mixed channel counts ({counts}); grey ones (1 channel, or 2: grey and alpha) are "
                      f"read as RGB")
     if capture.ambient_path is not None:
-        decoded = " (decoded from sRGB)" if capture.is_srgb(capture.ambient_path) else ""
+        how = capture.decoding(capture.ambient_path)
+        decoded = "" if how is None else " (decoded from sRGB)" if isinstance(how, str) else \
+            f" (decoded through its ICC profile's tone curves: {how.describe()})"
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
         if image_info(capture.ambient_path).dtype in ("half", "float", "double"):  # (only floats go below 0)
             amb = read_image(capture.ambient_path, allow_nonfinite=True)[0]
@@ -1238,12 +1274,19 @@ def capture_notes(capture: Capture) -> list[str]:
                              f"adds light there")
     if capture.encoding == "auto":  # (a JPEG name over other data: read as its content says, and said so)
         misnamed = [p.name for k, p in enumerate(capture.image_paths)
-                    if p.suffix.lower() in JPEG and not capture.is_srgb(k)]
+                    if p.suffix.lower() in JPEG and not capture.is_jpeg(k)]
         if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and not capture.ambient_jpeg:
             misnamed.append(capture.ambient_path.name)
         if misnamed:
             notes.append(f"encoding: {few(misnamed)}: named JPEG but "
                          f"not JPEG data, read as linear as their content's format is (--encoding srgb decodes them)")
+    profiled = [k for k in range(capture.n_images) if isinstance(capture.decoding(k), ToneCurve)]
+    if profiled:  # a TIFF or PNG exported with a tone curve (Adobe RGB, ProPhoto, sRGB) says so in its profile
+        kinds = sorted({capture.decoding(k).describe() for k in profiled})
+        which = "all images" if len(profiled) == capture.n_images else \
+            f"{len(profiled)} of {capture.n_images} images ({few([capture.image_paths[k].name for k in profiled])})"
+        notes.append(f"encoding: {which} decoded to linear through their embedded ICC profile's tone curves "
+                     f"({'; '.join(kinds)}) (--encoding linear reads them as stored)")
     n = capture.srgb_images
     if not n:
         return notes

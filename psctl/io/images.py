@@ -4,7 +4,8 @@ Pillow, imageio and skimage.io silently reduce 16-bit RGB PNGs to 8 bits; DiLiGe
 so everything goes through OpenImageIO. Integer pixels become linear float32 in [0, 1] as
 ``value / (2**bits - 1)``; float files (EXR, float TIFF) are returned as stored. Photometric
 stereo needs pixel values proportional to radiance: ``srgb_to_linear`` undoes the sRGB tone curve
-of camera JPEGs (psctl.io.capture decides which images need it).
+of camera JPEGs, and an embedded ICC profile's curves are read into ``ImageInfo.tone``
+(psctl.io.icc; psctl.io.capture decides which images need which).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 
 from psctl.errors import C_STDERR, PsctlError, not_a_file
 from psctl.io.atomic import atomic_path, utf8_path
+from psctl.io.icc import ToneCurve, tone_curve
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 
@@ -64,6 +66,8 @@ class ImageInfo:
     window: tuple[int, int, int, int] | None = None
     color_space: str = ""  # OpenImageIO's oiio:ColorSpace for the file (its tag, or its format's default)
     names: tuple[str, ...] = ()  # the stored channels' names (an EXR's own; OpenImageIO's for other formats)
+    # the tone curves of the file's embedded ICC profile (psctl.io.icc), when it has one that psctl can read
+    tone: "ToneCurve | None" = None
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
@@ -180,9 +184,25 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         pages = 1
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
+        profile = spec.getattribute("ICCProfile")
+        tone = None if profile is None else tone_curve(bytes(np.asarray(profile, np.uint8)))
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
                          inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
-                         tuple(spec.channelnames))
+                         tuple(spec.channelnames), tone)
+    finally:
+        inp.close()
+
+
+def icc_profile(path: str | os.PathLike) -> bytes | None:
+    """The ICC profile embedded in an image file (its bytes), or None."""
+    oiio = _oiio()
+    with _quiet_stderr():
+        inp = oiio.ImageInput.open(_oiio_name(Path(path)))
+    if inp is None:
+        return None
+    try:
+        profile = inp.spec().getattribute("ICCProfile")
+        return None if profile is None else bytes(np.asarray(profile, np.uint8))
     finally:
         inp.close()
 
@@ -352,13 +372,15 @@ def to_rgb(pixels: np.ndarray) -> np.ndarray:
 COLOR_TAGS = {"picture": None, "data": "Raw", "linear": "lin_rec709"}
 
 
-def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16", kind: str = "picture") -> None:
+def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16", kind: str = "picture",
+                icc: bytes | None = None) -> None:
     """Write [H, W] or [H, W, C] float pixels atomically.
 
     ``dtype`` is "uint8", "uint16" (values in [0, 1], rounded in float64) or "float"/"half"
     (stored as is). The format follows the file extension (png, tif, exr, ...). ``kind``: a
     "picture" for display (PNGs tagged sRGB), "data" (numbers: normal and depth maps, masks; no
-    colour tag) or "linear" (radiance, as DiLiGenT's images: tagged linear).
+    colour tag) or "linear" (radiance, as DiLiGenT's images: tagged linear). ``icc``: an ICC
+    profile to embed (``icc_profile`` of the file the pixels came from; TIFF, PNG and JPEG keep it).
     """
     oiio = _oiio()
     path = Path(path)
@@ -381,6 +403,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     spec = oiio.ImageSpec(w, h, c, fmt)
     if COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
+    if icc:
+        spec.attribute("ICCProfile", oiio.TypeDesc(f"uint8[{len(icc)}]"), np.frombuffer(bytes(icc), np.uint8))
     if c in (2, 4):  # colour as given, not divided by alpha as PNG's writer would (read_image reads it so)
         spec.attribute("oiio:UnassociatedAlpha", 1)
     if path.suffix.lower() in (".jpg", ".jpeg"):  # psctl undistort's copies: as little loss as JPEG allows

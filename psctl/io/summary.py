@@ -33,7 +33,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
 
     from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
     from psctl.io.capture import ImageCheck, bounding_box, has_top_code, load_ground_truth, minus_ambient, saturated_map
-    from psctl.io.images import read_image, srgb_to_linear, to_rgb
+    from psctl.io.images import read_image, to_rgb
 
     t0 = time.perf_counter()
     check = ImageCheck(cap)
@@ -50,7 +50,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         except PsctlError as e:
             damaged.append(e)
         else:
-            ambient = srgb_to_linear(ambient) if cap.is_srgb(cap.ambient_path) else ambient
+            ambient = cap.to_linear(cap.ambient_path, ambient)
     for k, p in enumerate(cap.image_paths):
         try:
             pixels, info = read_image(p)
@@ -63,10 +63,9 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         full = to_rgb(pixels)
         rgb = full[mask]  # [pixels over the object, 3]
         saturated = float(saturated_map(rgb).mean()) if has_top_code(info) and len(rgb) else None
-        if cap.is_srgb(k):
-            rgb = srgb_to_linear(rgb)
+        rgb = cap.to_linear(k, rgb)
         if ambient is not None and ambient.shape == full.shape:  # (a size mismatch: open_capture's error)
-            full = srgb_to_linear(full) if cap.is_srgb(k) else full
+            full = cap.to_linear(k, full)
             try:
                 lit = minus_ambient(full, ambient, cap, p.name)
             except PsctlError as e:
@@ -76,7 +75,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
             region = lit[box]
         else:
             check.see(k, rgb, cap.intensities[k])
-            region = srgb_to_linear(full[box]) if cap.is_srgb(k) else full[box]
+            region = cap.to_linear(k, full[box])
         # as the networks find them: around the object, zero outside it
         _, count = clamp_hot_pixels(np.where(box_mask[..., None], region, np.float32(0.0)), box_mask)
         if count:
@@ -119,7 +118,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
-    srgb = cap.srgb_images
+    srgb, profiled = cap.srgb_images, cap.profile_images
     e = cap.intensities
     kinds = sorted(set(cap.kinds))  # from the headers open_capture read
     report = {
@@ -135,9 +134,15 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "sample_type": cap.dtype,
         "bit_depths": sorted({b for b, _ in kinds}),  # the distinct depths over the images: more than one when mixed
         "sample_types": list(dict.fromkeys(t for _, t in kinds)),  # in the order of bit_depths
-        # how the values are read: linear, srgb (decoded to linear), or mixed
-        "encoding": "linear" if srgb == 0 else "srgb" if srgb == cap.n_images else "mixed",
+        # how the values are read: linear, srgb (decoded to linear), profile (decoded through the files'
+        # ICC profiles' tone curves), or mixed
+        "encoding": "linear" if srgb + profiled == 0 else "srgb" if srgb == cap.n_images else
+                    "profile" if profiled == cap.n_images else "mixed",
         "srgb_images": srgb,
+        "profile_images": profiled,
+        # the curves of the profiles decoded through ('Adobe RGB (1998)', gamma 2.2), each once
+        "profiles": sorted({cap.decoding(k).describe() for k in range(cap.n_images)
+                            if not isinstance(cap.decoding(k), (str, type(None)))}),
         "calibrated": cap.calibrated,
         "intensities": cap.intensities_path.name if cap.intensities_path else "none (all ones)",
         "lights": cap.lights_path.name if cap.lights_path else None,
@@ -148,6 +153,8 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "ground_truth": cap.gt_path.name if cap.gt_path else None,
         "ambient": cap.ambient_path.name if cap.ambient_path else None,
         "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
+        "ambient_profile": bool(cap.ambient_path and cap.decoding(cap.ambient_path) is not None
+                                and not cap.is_srgb(cap.ambient_path)),
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
         # the first image's EXIF focal length in pixels, for psctl calibrate --focal exif; else None
@@ -297,8 +304,12 @@ def render_info(report: dict) -> None:
     else:
         t.add_row("bit depth", f"{r['bit_depth']} ({r['sample_type']})")
     enc = r.get("encoding", "linear")
-    t.add_row("encoding", "linear" if enc == "linear" else "sRGB, decoded to linear" if enc == "srgb" else
-              f"mixed: {r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear")
+    profiles = "; ".join(r.get("profiles", []))
+    t.add_row("encoding", escape(
+        "linear" if enc == "linear" else "sRGB, decoded to linear" if enc == "srgb" else
+        f"decoded to linear through their ICC profiles ({profiles})" if enc == "profile" else
+        f"mixed: {r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear" +
+        (f", {r.get('profile_images', 0)} through their ICC profiles ({profiles})" if r.get("profile_images") else "")))
     t.add_row("calibrated", escape(f"yes ({r.get('lights') or 'light_directions.txt'})") if r["calibrated"]
               else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
