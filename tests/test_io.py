@@ -2096,3 +2096,46 @@ def test_camera_raw_files_are_refused_with_how_to_convert_them(tmp_path):
     result = CliRunner().invoke(app, ["normals", str(cap), "-m", "l2", "-o", str(tmp_path / "out")])
     assert result.exit_code == 2 and "Traceback" not in result.output and not (tmp_path / "out").exists()
     assert result.output.strip().splitlines()[-1].startswith(f"error: {cap / 'DSC_0000.NEF'}: is a camera raw file")
+
+
+def test_images_whose_exif_exposures_differ_get_a_note(tmp_path):
+    """A bracketed or auto-exposed capture: each image's exposure scales its light's intensity,
+    which psctl reads from light_intensities.txt only; a note says so (EXIF time x ISO / N^2,
+    the factors every header gives). None when the exposures agree or are not all known."""
+    import OpenImageIO as oiio
+
+    from psctl.io.capture import capture_notes, open_capture, relative_exposures
+
+    def write(folder, times, isos, intensities=True):
+        data = write_capture(folder, n=len(times), size=24, bits=8, intensities=intensities)
+        for k, (t, iso) in enumerate(zip(times, isos)):
+            (folder / f"{k + 1:03d}.png").unlink()
+            spec = oiio.ImageSpec(24, 24, 3, oiio.UINT8)
+            spec.attribute("ExposureTime", t)
+            spec.attribute("FNumber", 8.0)
+            if iso:
+                spec.attribute("Exif:PhotographicSensitivity", iso)
+            out = oiio.ImageOutput.create(str(folder / f"{k + 1:03d}.jpg"))
+            assert out.open(str(folder / f"{k + 1:03d}.jpg"), spec)
+            out.write_image(np.round(np.clip(data["images"][k], 0, 1) * 255).astype(np.uint8))
+            out.close()
+        (folder / "filenames.txt").write_text("".join(f"{k + 1:03d}.jpg\n" for k in range(len(times))))
+        return open_capture(folder)
+
+    cap = write(tmp_path / "a", [1 / 60, 1 / 60, 1 / 30, 1 / 60], [200, 400, 200, 200])
+    rel = relative_exposures(cap)
+    np.testing.assert_allclose(rel / rel[0], [1, 2, 2, 1], rtol=1e-3)
+    assert np.median(rel) == 1  # over the median image's
+    assert [n for n in capture_notes(cap) if "exposures" in n] == [
+        "images: their EXIF exposures differ (time 1/60 s to 1/30 s, ISO 200 to 400: 003.jpg 2 times 001.jpg's); "
+        "psctl reads each image as stored, so its exposure scales its light's intensity: each row of "
+        "light_intensities.txt should include its image's exposure (intensity x exposure)"]
+    assert cap.subset([0, 3]).exposures == (cap.exposures[0], cap.exposures[3])
+    assert not any("exposures" in n for n in capture_notes(cap.subset([0, 3])))  # the same: no note
+    cap = write(tmp_path / "b", [1 / 60, 1 / 15, 1 / 60], [200, 200, 0], intensities=False)  # ISO not in every header
+    np.testing.assert_allclose(relative_exposures(cap), [1, 4, 1], rtol=1e-3)
+    assert any("(time 1/60 s to 1/15 s: 002.jpg 4 times 001.jpg's)" in n and "without light_intensities.txt every "
+               "light is taken as equally strong, except by sdps" in n for n in capture_notes(cap))
+    cap = write(tmp_path / "c", [1 / 60, 1 / 60, 0.0165], [200, 200, 200])  # within EXIF's rounding
+    assert not any("exposures" in n for n in capture_notes(cap))
+    assert relative_exposures(open_capture(write_capture(tmp_path / "d", n=4, size=24) and tmp_path / "d")) is None

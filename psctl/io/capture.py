@@ -80,6 +80,7 @@ class Capture:
     ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
     tones: tuple[ToneCurve | None, ...] = ()  # each image's embedded ICC profile's tone curves (psctl.io.icc)
     ambient_tone: ToneCurve | None = None  # the ambient image's
+    exposures: tuple[tuple[float, float, float], ...] = ()  # each image's EXIF time (s), f-number, ISO (0: none)
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -162,6 +163,7 @@ class Capture:
             channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
             jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
             tones=tuple(self.tones[i] for i in idx) if self.tones else (),
+            exposures=tuple(self.exposures[i] for i in idx) if self.exposures else (),
             pages=tuple(self.pages[i] for i in idx) if self.pages else (),
             layers=tuple(self.layers[i] for i in idx) if self.layers else (),
             windowed=tuple(self.windowed[i] for i in idx) if self.windowed else (),
@@ -696,6 +698,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path, light_lengths=light_lengths,
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         tones=tuple(i.tone for i in infos), ambient_tone=None if ambient_info is None else ambient_info.tone,
+        exposures=tuple(i.exposure for i in infos),
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         pages=tuple(i.pages for i in infos), layers=tuple(i.layer for i in infos),
@@ -1272,6 +1275,7 @@ def capture_notes(capture: Capture) -> list[str]:
                 notes.append(f"ambient: {capture.ambient_path.name} is negative in {below.any(-1).mean():.0%} of its "
                              f"pixels (down to {float(amb[below].min()):.3g}): taken as stored, so subtracting it "
                              f"adds light there")
+    notes += exposure_notes(capture)
     if capture.encoding == "auto":  # (a JPEG name over other data: read as its content says, and said so)
         misnamed = [p.name for k, p in enumerate(capture.image_paths)
                     if p.suffix.lower() in JPEG and not capture.is_jpeg(k)]
@@ -1298,6 +1302,48 @@ def capture_notes(capture: Capture) -> list[str]:
         which += f" ({few(named)}: JPEG data, by their content)"
     return notes + [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
                     f"(--encoding linear reads them as stored)"]
+
+
+# images whose EXIF exposures differ by more than this factor get a note (EXIF's values are nominal)
+EXPOSURE_SPREAD = 1.02
+
+
+def relative_exposures(capture: Capture) -> np.ndarray | None:
+    """Each image's exposure from its EXIF header, time x ISO / f-number^2, over the median image's;
+    only the factors that every image's header gives count. None when no factor is given by all
+    the images."""
+    if not capture.exposures or capture.n_images < 2:
+        return None
+    e = np.asarray(capture.exposures, np.float64)  # [N, 3]: time, f-number, ISO
+    known = (e > 0).all(axis=0)
+    if not known.any():
+        return None
+    t, f, iso = (np.where(known[i], e[:, i], 1.0) for i in range(3))
+    rel = t * iso / f ** 2
+    return rel / np.median(rel)
+
+
+def exposure_notes(capture: Capture) -> list[str]:
+    """A note when the images' EXIF exposures differ (a bracketed or auto-exposed capture): psctl
+    reads each image as stored, so its exposure belongs in its light intensity."""
+    rel = relative_exposures(capture)
+    if rel is None or rel.max() / rel.min() <= EXPOSURE_SPREAD:
+        return []
+    e = np.asarray(capture.exposures, np.float64)
+    parts = []
+    for i, (what, show) in enumerate((("time", lambda v: f"1/{1 / v:.4g} s" if v < 1 else f"{v:.3g} s"),
+                                      ("f-number", lambda v: f"f/{v:.3g}"), ("ISO", lambda v: f"{v:.0f}"))):
+        col = e[:, i]
+        if (col > 0).all() and col.max() > col.min() * 1.001:
+            parts.append(f"{what} {show(col.min())} to {show(col.max())}")
+    given = (f"each row of {capture.intensities_path.name if capture.intensities_path else INTENSITIES_FILE} "
+             f"should include its image's exposure (intensity x exposure)") if capture.intensities_given else \
+        (f"without {INTENSITIES_FILE} every light is taken as equally strong, except by sdps and psctl lights, which "
+         f"estimate each image's intensity, exposure included")
+    lo, hi = int(np.argmin(rel)), int(np.argmax(rel))
+    return [f"images: their EXIF exposures differ ({', '.join(parts)}: {capture.image_paths[hi].name} "
+            f"{rel[hi] / rel[lo]:.3g} times {capture.image_paths[lo].name}'s); psctl reads each image as stored, "
+            f"so its exposure scales its light's intensity: {given}"]
 
 
 def select_images(n: int, k: int | None, seed: int | None, lights: np.ndarray | None = None) -> np.ndarray:

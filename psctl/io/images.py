@@ -68,6 +68,8 @@ class ImageInfo:
     names: tuple[str, ...] = ()  # the stored channels' names (an EXR's own; OpenImageIO's for other formats)
     # the tone curves of the file's embedded ICC profile (psctl.io.icc), when it has one that psctl can read
     tone: "ToneCurve | None" = None
+    # the EXIF exposure: time (s), f-number, ISO; 0 where the header has no such tag
+    exposure: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
@@ -186,9 +188,12 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
             pages += 1
         profile = spec.getattribute("ICCProfile")
         tone = None if profile is None else tone_curve(bytes(np.asarray(profile, np.uint8)))
+        exposure = (_tag_number(spec, "ExposureTime", 0.0, 1e5), _tag_number(spec, "FNumber", 0.1, 1000.0),
+                    _tag_number(spec, "Exif:PhotographicSensitivity", 0.0, 1e7) or
+                    _tag_number(spec, "Exif:ISOSpeedRatings", 0.0, 1e7))
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
                          inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
-                         tuple(spec.channelnames), tone)
+                         tuple(spec.channelnames), tone, exposure)
     finally:
         inp.close()
 
@@ -211,6 +216,16 @@ def icc_profile(path: str | os.PathLike) -> bytes | None:
 # millimetre and 5 micrometre are written by some cameras
 _FOCAL_PLANE_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))  # what FocalLengthIn35mmFilm is relative to
+
+
+def _tag_number(spec, name: str, lo: float = 0.0, hi: float = np.inf) -> float:
+    """A header tag as a float in (lo, hi], else 0 (missing, text, out of range)."""
+    v = spec.getattribute(name)
+    try:
+        v = float(v[0] if isinstance(v, (tuple, list)) else v)
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return 0.0
+    return v if np.isfinite(v) and lo < v <= hi else 0.0
 
 
 def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
@@ -244,13 +259,7 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
         w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
 
         def number(name: str, lo: float = 0.0, hi: float = np.inf) -> float:
-            """The tag as a float in (lo, hi], else 0 (missing, text, out of range)."""
-            v = spec.getattribute(name)
-            try:
-                v = float(v[0] if isinstance(v, (tuple, list)) else v)
-            except (TypeError, ValueError, IndexError, OverflowError):
-                return 0.0
-            return v if np.isfinite(v) and lo < v <= hi else 0.0
+            return _tag_number(spec, name, lo, hi)
 
         mm, f35 = number("Exif:FocalLength", 0.5, 5000.0), number("Exif:FocalLengthIn35mmFilm", 1.0, 5000.0)
         res, unit_tag = number("Exif:FocalPlaneXResolution"), int(number("Exif:FocalPlaneResolutionUnit", 0, 9))
