@@ -636,7 +636,7 @@ def train(
                     raise
                 gone[0] = True
 
-        kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet,
+        kwargs = dict(resume=resume is not None, device=device, lcnet=lcnet, recipe=config,
                       max_seconds=None if max_minutes is None else 60 * max_minutes,
                       note=None if quiet or sys.stderr is None else
                       lambda text: say(f"[yellow]note:[/] {escape(text)}"))

@@ -150,6 +150,15 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                         used_k.pop() if len(used_k) == 1 else downsample, " + ".join(dict.fromkeys(precisions)),
                         {n for f, n in zip(folders, names) if f.name == n + "PNG"})
         result["notes"] += root_notes(root)
+        from psctl.api import unused_note, unused_options
+        from psctl.models import check_device_name
+
+        for m in dict.fromkeys(used):  # options a method ignored: said once for the table, as psctl normals does
+            said = [unused_note(k, why, precision) for k, why in
+                    unused_options(m, refine, views, downsample, precision, falloff, roll)]
+            if m == "l2" and check_device_name(device).startswith("cuda"):
+                said.append(f"device: l2 solves with NumPy on the CPU; --device {device} unused")
+            result["notes"] += [n for n in said if n not in result["notes"]]
         if albedo and out is None:
             result["notes"].append("albedo: --albedo writes each object's albedo maps under --out; unused without it")
         if out is not None:

@@ -163,9 +163,18 @@ def check_recipe(config: dict) -> dict:
         raise PsctlError(None, f"config 'val.data' must be a mapping of synth stream options, not "
                                f"{config['val']['data']!r}")
     for where, value in (("train.init", config["train"].get("init")), ("lcnet.weights", config["lcnet"].get("weights"))):
-        if value is not None and not isinstance(value, str):  # a number or a list would fail later, unnamed
-            raise PsctlError(None, f"config '{where}' must be a weights file's path, not {value!r}")
+        if value is not None and not (isinstance(value, str) and value.strip()):  # a number, a list or "" (read
+            # as no file, silently random weights) would fail later or quietly, unnamed
+            raise PsctlError(None, f"config '{where}' must be a weights file's path (or null), not {value!r}")
     lc = config["lcnet"]
+    lw = lc["loss_weights"]
+    if not (len(lw) == 3 and all(w >= 0 for w in lw) and sum(lw) > 0):  # negative: the loss runs away; all 0: no learning
+        raise PsctlError(None, f"config 'lcnet.loss_weights' must be three weights (azimuth, elevation, intensity), "
+                               f"0 or more and not all 0, not {lw!r}")
+    tr = config["train"]
+    if tr["warmup"] > tr["samples"]:  # the lr would stay near 0 for the whole run
+        raise PsctlError(None, f"config 'train.warmup' ({tr['warmup']:,} samples) is longer than the run "
+                               f"('train.samples', {tr['samples']:,})")
     lo_hi = lc["ints_range"]
     if not (len(lo_hi) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in lo_hi)
             and 0 < lo_hi[0] < lo_hi[1] and math.isfinite(lo_hi[1])):  # reversed, the classes would run backwards
@@ -229,6 +238,11 @@ def check_sizes(method: str, config: dict) -> None:
                                    f"layers), not {size}")
 
 
+# synth stream options that each run sets from its own sections (synth_stream), and where they go
+_RUN_OPTIONS = {"batch_size": "train.batch_size (val.batch_size)", "n_images": "train.images_per_sample (val.images)",
+                "crop": "train.crop (val.size)", "seed": "train.seed (val.seed)", "device": "psctl train --device"}
+
+
 def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
     """What a checked recipe must hold for ``method``, before any run folder exists (``psctl
     train`` names the recipe's file in these errors): its ``method`` label and PS-FCN's multiples
@@ -249,6 +263,11 @@ def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
     if stream:  # bad stream options fail here, before the run folder exists
         from psctl.synth.stream import make_config
 
+        for part, options in (("data", config["data"]), ("val.data", config["val"].get("data") or {})):
+            for key, home in _RUN_OPTIONS.items():
+                if key in options:  # the run sets these on the stream: given here they were silently overridden
+                    raise PsctlError(None, f"config '{part}.{key}' is set by the run, not the stream's options: "
+                                           f"give it as {home}")
         make_config(config["data"], crop=config["train"]["crop"])
         make_config(val_data, crop=config["val"]["size"])
 
@@ -559,6 +578,7 @@ def commit_checkpoint(run: Path, files: list[str], state: dict, remove: list[str
     for name in files:  # on disk before the journal says they are there (a lost machine, not just a kill)
         _fsync(run / (STAGED + name))
         digests[name] = file_sha256(run / (STAGED + name))
+    state = {**state, "files_sha256": digests}  # kept in state.json: --resume takes only these very files
     write_text_atomic(run / JOURNAL, json.dumps({"files": digests, "state": state, "remove": list(remove)}, indent=1))
     _fsync(run / JOURNAL)
     _fsync(run)  # the journal's name too
@@ -714,6 +734,7 @@ def _check_state(path: Path, saved: dict) -> None:
              "data_notes": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
              "data_sources": lambda v: isinstance(v, list),
              "lcnet_sha256": lambda v: isinstance(v, str),
+             "files_sha256": lambda v: isinstance(v, dict) and all(isinstance(d, str) for d in v.values()),
              "optim_step": lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)}
     for key, ok in kinds.items():
         if key in saved and not ok(saved[key]):
@@ -1073,6 +1094,7 @@ def _restore_checkpoint(run: Path, st: dict, method: str, model: torch.nn.Module
                                                      f"{st['optim_step']:,}: not this checkpoint's; the run cannot "
                                                      f"continue exactly (\"optim_files\": [] in state.json continues "
                                                      f"with fresh Adam moments, not exactly)")
+    _check_sha256(run, st, ["model.pt", *st["optim_files"]])
     if (run / "best.pt").exists():  # the run's answer so far: a damaged one would be named at the end as its result
         best = read_weights(run / "best.pt")  # a file that is not weights: one line naming it
         if best.method != method:
@@ -1094,6 +1116,19 @@ def _restore_stream(run: Path, st: dict, stream: Any) -> None:
         stream.load_state_dict(state)
     except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
         raise PsctlError(run / "stream.pt", f"is not this run's stream state ({' '.join(str(e).split())[:120]})") from None
+    _check_sha256(run, st, ["stream.pt"])
+
+
+def _check_sha256(run: Path, st: dict, names: list[str]) -> None:
+    """The very files the checkpoint wrote, after the checks that say more (damaged, another
+    network, another point of the run): state.json records their sha256 (runs from before it
+    have none), so another run's file saved at the same sample count is refused too."""
+    digests = st.get("files_sha256") or {}
+    for name in names:
+        if name in digests and file_sha256(run / name) != digests[name]:
+            raise PsctlError(run / name, "is not the file this run's last checkpoint wrote (its sha256 differs "
+                                         "from state.json's): replaced, or copied from another run; the run cannot "
+                                         "continue exactly")
 
 
 def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
@@ -1112,7 +1147,8 @@ def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
 def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool = False, device: str = "auto",
           max_seconds: float | None = None, progress: Callable[[dict], object] | None = None,
           make_stream: Callable = synth_stream, lcnet: str | os.PathLike | None = None,
-          note: Callable[[str], object] | None = None, started: Callable[[], object] | None = None) -> dict:
+          note: Callable[[str], object] | None = None, started: Callable[[], object] | None = None,
+          recipe: str | os.PathLike | None = None) -> dict:
     """Train ``method`` with ``config``; checkpoints and logs in ``run_dir``; returns the final state.
 
     Args:
@@ -1136,6 +1172,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             metadata (``data_notes``).
         started: called once when every check has passed, before the data notes, the validation
             set and the run folder (a log's first line: a run refused at once prints none).
+        recipe: the file ``config`` was read from, named in the errors about the recipe that
+            name no other file (a resumed run's recipe is its state.json's, named instead).
 
     Side effects on the process: torch's global generator is seeded (the initial weights), and
     on a CPU ``keep_freed_memory`` keeps the heap at its peak size afterwards.
@@ -1181,10 +1219,12 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         saved, config = _resumed_state(state_file, method, config, lcnet)
     if config is None:
         config = load_config(None)
-    config = check_recipe(config)  # a recipe given as a dict, not through load_config
-    check_method_recipe(method, config, stream=make_stream is synth_stream)
-    if make_stream is synth_stream:
-        check_memory(config, dev)
+    source = state_file if resume else recipe  # where the recipe's errors point
+    with naming(source) if source is not None else contextlib.nullcontext():
+        config = check_recipe(config)  # a recipe given as a dict, not through load_config
+        check_method_recipe(method, config, stream=make_stream is synth_stream)
+        if make_stream is synth_stream:
+            check_memory(config, dev)
     t = config["train"]
 
     use_amp, amp_dtype = amp_settings(t["amp"], dev)
@@ -1286,6 +1326,11 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if resume and st.get("log_bytes") is not None:
         _drop_lines_after_checkpoint(run / "log.jsonl", st["log_bytes"], st["samples"])
     # the folder is made only now: a bad recipe (crop > size, ...) leaves none behind
+    def kept() -> str:
+        return ("the last checkpoint is kept" if state_file.is_file() else
+                f"no checkpoint had been written; best.pt (validated at {st['best_samples']:,} samples) is kept"
+                if st["best_val"] is not None else "no checkpoint had been written, so nothing is kept")
+
     with _no_half_run(run) as log, _Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
@@ -1298,11 +1343,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             batch = stream.next_batch()
             loss = task.loss(batch)
             if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
-                kept = ("the last checkpoint is kept" if state_file.is_file() else
-                        f"no checkpoint had been written; best.pt (validated at {st['best_samples']:,} samples) is kept"
-                        if st["best_val"] is not None else "no checkpoint had been written, so nothing is kept")
                 raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
-                                      f"({st['samples']:,} samples seen): stopped; {kept}")
+                                      f"({st['samples']:,} samples seen): stopped; {kept()}")
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
@@ -1324,6 +1366,10 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 t_log, samples_log = now, st["samples"]
             if st["samples"] >= next_val or st["samples"] >= t["samples"]:
                 mae = evaluate(task, val)
+                if not math.isfinite(mae):  # never a best.pt, never installed (an audit: steps 0 shapes, exit 0)
+                    raise PsctlError(run, f"validation {task.metric} is {mae} at {st['samples']:,} samples (no object "
+                                          f"pixel in the validation views? see data.shapes, data.blobby): stopped; "
+                                          f"{kept()}")
                 st["val"].append([st["samples"], round(mae, 4)])
                 log.write(json.dumps({"samples": st["samples"], f"val_{task.metric}": round(mae, 4)}) + "\n")
                 log.flush()

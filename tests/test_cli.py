@@ -376,6 +376,13 @@ def test_eval_on_a_folder_of_objects(tmp_path):
         assert o["median"] != pytest.approx(o["mae"])
     table = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", check=True).stdout
     assert "avg" in table
+    # options l2 ignores: said once for the table, as psctl normals says them (an audit: eval said nothing)
+    r = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "l2", "--views", "8",
+            "--precision", "bf16", "--no-refine", "--json", check=True)
+    assert json.loads(r.stdout)["notes"] == [
+        "lights: --no-refine is unused (only sdps refines lights)",
+        "views: l2 gives the same normals in every view; one pass",
+        "precision: l2 solves in float64; --precision bf16 unused"]
 
 
 def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):

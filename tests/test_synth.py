@@ -724,7 +724,7 @@ def test_stream_crops_rotate_normals_with_the_image():
     assert torch.allclose(nl_out, nl_src, atol=1e-5)
 
 
-def test_stream_never_uses_test_shapes(tmp_path):
+def test_stream_never_uses_test_shapes(tmp_path, monkeypatch):
     from psctl.synth import meshes
     from psctl.synth.stream import SynthStream
 
@@ -744,13 +744,28 @@ def test_stream_never_uses_test_shapes(tmp_path):
     # a view cache made from a test shape is refused too
     views = meshes.mesh_views(*meshes.load_obj(tmp_path / "bunny.obj"), torch.eye(3)[None], 48, name="bunny")
     meshes.save_views(tmp_path / "cache.npz", views)
+    (tmp_path / "empty").mkdir()
     with pytest.raises(PsctlError, match="test shape"):
-        SynthStream({**cfg, "mesh_dir": str(tmp_path / "none"), "mesh_cache": str(tmp_path / "cache.npz")})
-    # without meshes the stream falls back to procedural shapes (or fails when asked to)
-    s = SynthStream({**cfg, "mesh_dir": str(tmp_path / "none")})
+        SynthStream({**cfg, "mesh_dir": str(tmp_path / "empty"), "mesh_cache": str(tmp_path / "cache.npz")})
+    # without the default meshes the stream falls back to procedural shapes (or fails when asked to)
+    monkeypatch.setenv("PSCTL_MESHES", str(tmp_path / "empty"))
+    default = {k: v for k, v in cfg.items() if k != "mesh_dir"}
+    s = SynthStream(default)
     assert set(s.pool.names) == {"blobby"} and s.notes
     with pytest.raises(PsctlError, match="no training mesh"):
-        SynthStream({**cfg, "mesh_dir": str(tmp_path / "none"), "require_meshes": True})
+        SynthStream({**default, "require_meshes": True})
+    with pytest.raises(PsctlError, match="no geometry source left: shapes gives only mesh"):
+        SynthStream({**default, "shapes": {"mesh": 1.0}})
+    # ones a recipe names must be there (an audit: a named folder, cache or mesh was skipped with a note)
+    with pytest.raises(PsctlError, match=r"none: not found \(synth stream option 'mesh_dir' names this folder\)"):
+        SynthStream({**cfg, "mesh_dir": str(tmp_path / "none")})
+    with pytest.raises(PsctlError, match=r"nope.npz: not found \(synth stream option 'mesh_cache' names this file\)"):
+        SynthStream({**default, "mesh_cache": str(tmp_path / "nope.npz")})
+    with pytest.raises(PsctlError, match=r"teapot.obj: mesh 'teapot' not found"):
+        SynthStream({**cfg, "meshes": ["teapot"]})
+    with pytest.raises(PsctlError, match="'meshes' is empty but shapes gives mesh a positive weight"):
+        SynthStream({**cfg, "meshes": []})
+    assert "lucy" in SynthStream({**cfg, "meshes": "lucy", "pool": 16}).pool.names  # a name alone: a list of one
 
 
 def test_stream_runs_without_openimageio():
@@ -995,6 +1010,11 @@ def test_cli_synth(tmp_path):
                "--interreflections", "1", "--ir-albedo", "1.5")
     assert proc.returncode == 2 and "--ir-albedo must be in [0, 1)" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "j").exists()
+    from psctl.synth.write import write_preset  # an audit: 10^8 bounces ran for hours without a word
+
+    with pytest.raises(PsctlError, match=r"--interreflections must be 0 to 100 \(got 100000000\)"):
+        write_preset(tmp_path / "k", "blobby", size=16, n_lights=4, interreflections=10**8)
+    assert not (tmp_path / "k").exists()
 
 
 def test_syntest_preset_with_shared_meshes(tmp_path):
@@ -1402,3 +1422,31 @@ def test_a_failed_synth_write_is_named_in_the_set_not_in_its_staging_folder(tmp_
     assert e.value.path == str(out / "blobby_02" / "Normal_gt.mat")
     assert ".psctl-synth." not in str(e.value) and str(out / "blobby_02" / "Normal_gt.mat") in e.value.message
     assert not out.exists()
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("blobby", {"steps": 0}, "blobby': steps must be a whole number, 1 or more"),
+    ("blobby", {"foo": 1}, "blobby': unknown foo; choose from primitives"),
+    ("blobby", {"primitives": [6, 2]}, r"primitives must be \[lo, hi\], whole numbers with 1 <= lo <= hi <= 9"),
+    ("blobby", {"features": -1}, "features must be a whole number, 0 or more"),
+    ("blobby", {"p_box": 1.5}, "p_box must be a chance"),
+    ("blobby", {"detail": [2, 1]}, r"detail must be \[lo, hi\] with 0 <= lo <= hi"),
+    ("blobby", 5, "'blobby' must map primitives"),
+    ("scale", "ab", r"'scale' must be \[lo, hi\], two whole numbers of pixels"),
+    ("scale", [16], r"'scale' must be \[lo, hi\]"),
+    ("windows", "x", "'windows' must be a whole number of pixels or null"),
+    ("windows", 2.5, "'windows' must be a whole number"),
+    ("merl_names", [], "'merl_names' is empty"),
+    ("merl_names", [3], "'merl_names' must be a list of names or null"),
+    ("meshes", {"lucy": 1}, "'meshes' must be a list of names"),
+])
+def test_stream_options_are_checked_when_the_config_is_made(option, value, message):
+    """An audit of recipes: these ended in a torch or Python error mid-run (scale, windows,
+    merl_names [], blobby primitives/features), were read letter by letter (a string), or with
+    blobby steps 0 rendered empty shapes that trained on nothing and exited 0."""
+    from psctl.synth.stream import make_config
+
+    with pytest.raises(PsctlError, match=message):
+        make_config({**SMALL, option: value})
+    assert make_config({**SMALL, "blobby": {"steps": 12, "primitives": [1, 9]}})["blobby"]["primitives"] == (1, 9)
+    assert make_config({**SMALL, "merl_names": "alum-bronze"})["merl_names"] == ["alum-bronze"]

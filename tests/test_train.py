@@ -75,6 +75,35 @@ def test_nan_loss_stops_the_run_before_the_step(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_nan_validation_stops_the_run_and_is_never_kept(tmp_path, monkeypatch):
+    """An audit: a recipe whose shapes rendered empty (blobby steps 0, refused now) validated at
+    NaN, finished with exit 0 and --install installed its best.pt. A non-finite validation now
+    stops the run like a non-finite loss: no best.pt from it, nothing left of a new run."""
+    import psctl.train as T
+
+    monkeypatch.setattr(T, "evaluate", lambda task, val: float("nan"))
+    with pytest.raises(PsctlError, match=r"run: validation mae is nan at 16 samples \(no object pixel in the "
+                                         r"validation views\?.*\): stopped; no checkpoint had been written, so "
+                                         r"nothing is kept"):
+        train("ps-fcn", merge(tiny(48), {"train": {"val_every": 16}}), tmp_path / "run", device="cpu")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("where, value, message", [
+    ("data", {"batch_size": 2}, r"config 'data.batch_size' is set by the run, not the stream's options: give it as "
+                                r"train.batch_size"),
+    ("data", {"n_images": 3}, r"'data.n_images' .* give it as train.images_per_sample"),
+    ("data", {"device": "cuda"}, r"'data.device' .* psctl train --device"),
+    ("val", {"data": {"seed": 5}}, r"'val.data.seed' .* train.seed \(val.seed\)"),
+])
+def test_stream_options_the_run_sets_are_refused_in_the_recipe(tmp_path, where, value, message):
+    """An audit: data.batch_size, n_images, crop, seed and device were silently overridden by the
+    run's own (the same loss and validation as without them)."""
+    with pytest.raises(PsctlError, match=message):
+        train("ps-fcn", merge(tiny(8), {where: value}), tmp_path / "run", device="cpu")
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, monkeypatch):
     """Out of memory at the first step left the new folder with an empty log.jsonl; a failure
     after a validation also left best.pt, and the same --out was then refused."""
@@ -929,6 +958,9 @@ def test_a_tampered_run_is_one_error_on_resume(tmp_path):
     ({"ints_range": [0.0, 2.0]}, "lcnet.ints_range' must be two intensities 0 < low < high"),
     ({"dirs_cls": 1}, "lcnet.dirs_cls' must be at least 2 classes"),
     ({"ints_cls": 1}, "lcnet.ints_cls' must be at least 2 classes"),
+    # an audit: negative weights ran the loss away (-226 -> -1570), zero ones learnt nothing, exit 0
+    ({"loss_weights": [-1.0, -1.0, -1.0]}, r"lcnet.loss_weights' must be three weights .* 0 or more and not all 0"),
+    ({"loss_weights": [0.0, 0.0, 0.0]}, r"lcnet.loss_weights' must be three weights"),
 ])
 def test_lcnet_class_settings_are_checked(lcnet, needle):
     """A review's fuzzing: a reversed intensity range and one class trained without a word."""
@@ -952,9 +984,12 @@ def test_weights_paths_in_a_recipe_are_named_when_wrong():
     """train.init: 5 said 'weights must be a path ... not 5', naming neither file nor key."""
     from psctl.train import DEFAULT_CONFIG, check_recipe
 
-    for cfg, key in (({"train": {"init": 5}}, "train.init"), ({"lcnet": {"weights": [1]}}, "lcnet.weights")):
+    for cfg, key in (({"train": {"init": 5}}, "train.init"), ({"lcnet": {"weights": [1]}}, "lcnet.weights"),
+                     ({"train": {"init": ""}}, "train.init")):  # "" was read as no file: random weights (an audit)
         with pytest.raises(PsctlError, match=f"config '{key}' must be a weights file's path"):
             check_recipe(merge(DEFAULT_CONFIG, cfg))
+    with pytest.raises(PsctlError, match=r"config 'train.warmup' \(1,000,000 samples\) is longer than the run"):
+        check_recipe(merge(DEFAULT_CONFIG, {"train": {"warmup": 1_000_000, "samples": 1000}}))  # lr ~0 throughout
 
 
 def test_a_damaged_best_pt_stops_resume(tmp_path):
@@ -980,6 +1015,8 @@ def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
     with pytest.raises(PsctlError, match=r"needs at least [\d,]+ GiB of memory, .*config 'val'"):
         train("ps-fcn", huge, tmp_path / "run", device="cpu")
     assert not (tmp_path / "run").exists()
+    with pytest.raises(PsctlError, match=r"huge.yaml: the recipe needs at least"):  # an audit: the file was not named
+        train("ps-fcn", huge, tmp_path / "run", device="cpu", recipe=tmp_path / "huge.yaml")
     # every shipped recipe fits an 8 GB laptop (the guard must not refuse what the project uses)
     for recipe in sorted((REPO / "configs").glob("*.yaml")):
         assert memory_needed(load_config(recipe), torch.device("cpu")) < 0.8 * 8 * 2**30, recipe.name
@@ -1038,6 +1075,23 @@ def test_a_checkpoint_file_from_another_point_of_the_run_is_refused(tmp_path, pa
     shutil.copy(tmp_path / "early" / part, tmp_path / "late" / part)
     with pytest.raises(PsctlError, match=f"{part}: .*(saved at|optimiser at step).*not this checkpoint's"):
         train("ps-fcn", cfg, tmp_path / "late", resume=True, device="cpu")
+
+
+@pytest.mark.parametrize("part", ["optim.0.pt", "model.pt"])
+def test_another_runs_checkpoint_file_at_the_same_point_is_refused(tmp_path, part):
+    """An audit: another run's model.pt or optimiser saved at the same sample count resumed
+    without a word (validation 12.66 / 28.26 against 31.42 exactly), against docs/training.md's
+    'never a silently inexact run': state.json now records each checkpoint file's sha256."""
+    import shutil
+
+    cfg = merge(tiny(48), {"train": {"samples": 16}})
+    train("ps-fcn", cfg, tmp_path / "a", device="cpu")
+    train("ps-fcn", merge(cfg, {"train": {"seed": 11}}), tmp_path / "b", device="cpu")
+    state = json.loads((tmp_path / "a" / "state.json").read_text())
+    assert set(state["files_sha256"]) >= {"model.pt", "stream.pt", "optim.0.pt"}
+    shutil.copy(tmp_path / "b" / part, tmp_path / "a" / part)
+    with pytest.raises(PsctlError, match=f"a/{part}: is not the file this run's last checkpoint wrote .*sha256"):
+        train("ps-fcn", tiny(48), tmp_path / "a", resume=True, device="cpu")
 
 
 def test_log_and_loss_average_continue_across_a_resume_and_model_pt_holds_its_own_metric(tmp_path):

@@ -36,6 +36,43 @@ BLOBBY = {
 }
 
 
+def check_blobby(overrides: object, where: str = "synth stream option 'blobby'") -> dict:
+    """Overrides of BLOBBY checked (known keys, kinds and ranges) and returned as a dict: a
+    one-line error naming the key, not a torch error while rendering (or, with steps 0, empty
+    shapes that train on nothing)."""
+    from psctl.errors import PsctlError, is_number
+
+    if overrides is None:
+        return {}
+    if not isinstance(overrides, dict):
+        raise PsctlError(None, f"{where} must map {', '.join(BLOBBY)} to values, not {overrides!r}")
+    bad = sorted(map(str, set(overrides) - set(BLOBBY)))
+    if bad:
+        raise PsctlError(None, f"{where}: unknown {', '.join(bad)}; choose from {', '.join(BLOBBY)}")
+    positive = sum(k for kind, k in SLOTS.items() if kind != "dent")
+
+    def whole(v: object) -> bool:
+        return is_number(v) and float(v).is_integer()
+
+    for k, v in overrides.items():
+        if k == "primitives":
+            ok = isinstance(v, (list, tuple)) and len(v) == 2 and all(map(whole, v)) and 1 <= v[0] <= v[1] <= positive
+            want = f"[lo, hi], whole numbers with 1 <= lo <= hi <= {positive}"
+        elif k == "detail":
+            ok = isinstance(v, (list, tuple)) and len(v) == 2 and all(map(is_number, v)) and 0 <= v[0] <= v[1]
+            want = "[lo, hi] with 0 <= lo <= hi"
+        elif k in ("p_capsule", "p_torus", "p_box", "dents"):
+            ok, want = is_number(v) and 0 <= v <= 1, "a chance: 0 to 1"
+        elif k == "features":
+            ok, want = whole(v) and v >= 0, "a whole number, 0 or more"
+        else:  # steps
+            ok, want = whole(v) and v >= 1, "a whole number, 1 or more (sphere-tracing steps)"
+        if not ok:
+            raise PsctlError(None, f"{where}: {k} must be {want}, not {v!r}")
+    return {k: (tuple(int(x) for x in v) if k == "primitives" else tuple(float(x) for x in v) if k == "detail"
+                else int(v) if k in ("features", "steps") else float(v)) for k, v in overrides.items()}
+
+
 @dataclass
 class GBuffer:
     """Per-pixel geometry of B views.

@@ -27,6 +27,7 @@ The stream never imports OpenImageIO, so it runs where only torch is installed.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from psctl.errors import PsctlError
 from psctl.synth import lights as L
 from psctl.synth import materials as M
 from psctl.synth import render as R
-from psctl.synth.shapes import GBuffer, blobby_gbuffers
+from psctl.synth.shapes import GBuffer, blobby_gbuffers, check_blobby
 
 DEFAULT_CONFIG: dict = {
     "batch_size": 32,
@@ -302,6 +303,45 @@ def _check_options(cfg: dict) -> None:
         lo, hi = pair("albedo", (0.0, 0.9))
         if not 0 <= lo <= hi < 1:
             raise PsctlError(None, f"{where('interreflection')}: need 0 <= albedo lo <= hi < 1, got [{lo}, {hi}]")
+    cfg["blobby"] = check_blobby(cfg["blobby"], where("blobby"))
+    sc = cfg["scale"]
+    if sc is not None and not (isinstance(sc, (list, tuple)) and len(sc) == 2 and
+                               all(is_number(v) and float(v).is_integer() for v in sc)):
+        raise PsctlError(None, f"{where('scale')} must be [lo, hi], two whole numbers of pixels, or null "
+                               f"((crop, size)), not {sc!r}")
+    w = cfg["windows"]
+    if w is not None and not (is_number(w) and float(w).is_integer()):
+        raise PsctlError(None, f"{where('windows')} must be a whole number of pixels or null, not {w!r}")
+    for k in ("meshes", "merl_names"):  # a name alone is a list of one (not its letters)
+        v = cfg[k]
+        if isinstance(v, str):
+            cfg[k] = [v]
+        elif v is not None and not (isinstance(v, (list, tuple)) and all(isinstance(n, str) and n for n in v)):
+            raise PsctlError(None, f"{where(k)} must be a list of names{' or null' if k == 'merl_names' else ''}, "
+                                   f"not {v!r}")
+    if cfg["merl_names"] is not None and not cfg["merl_names"]:
+        raise PsctlError(None, f"{where('merl_names')} is empty: give at least one MERL material, or null for all")
+    for k, kind in (("mesh_cache", "file"), ("mesh_dir", "folder"), ("merl", "file")):
+        v = cfg[k]
+        if v is None or (k == "mesh_dir" and cfg["mesh_cache"] is not None):  # (the cache stands in for the folder)
+            continue
+        if not isinstance(v, (str, os.PathLike)) or not str(v):
+            raise PsctlError(None, f"{where(k)} must be a path or null, not {v!r}")
+        if not (Path(v).is_file() if kind == "file" else Path(v).is_dir()):
+            raise PsctlError(v, f"not found ({where(k)} names this {kind})")
+
+
+def _check_named_meshes(cfg: dict) -> None:
+    """Meshes a recipe names (``meshes`` or ``mesh_dir``) with a positive mesh weight: each must be
+    found, or the run would train on procedural shapes alone with only a note."""
+    from psctl.synth import meshes
+
+    if not cfg["meshes"]:
+        raise PsctlError(None, "synth stream option 'meshes' is empty but shapes gives mesh a positive weight")
+    meshes.check_training_meshes(list(cfg["meshes"]))
+    folder = Path(cfg["mesh_dir"]) if cfg["mesh_dir"] else meshes.mesh_dir()
+    for name in cfg["meshes"]:
+        meshes.find_mesh(name, folder)  # raises, naming what it looked for
 
 
 def make_config(config: dict | None = None, **overrides: Any) -> dict:
@@ -314,6 +354,9 @@ def make_config(config: dict | None = None, **overrides: Any) -> dict:
     if bad:
         raise PsctlError(None, f"unknown synth stream option(s): {', '.join(sorted(map(str, bad)))}")
     _check_options(cfg)
+    given = set(config or {}) | set(overrides)
+    if cfg["shapes"].get("mesh", 0) > 0 and given & {"meshes", "mesh_dir"} and cfg["mesh_cache"] is None:
+        _check_named_meshes(cfg)  # named ones must be there (the default, lucy, may be absent: a note)
     if cfg["crop"] is None:
         cfg["crop"] = cfg["size"]
     unset = cfg["scale"] is None
@@ -433,6 +476,7 @@ class GeometryPool:
             raise PsctlError(None, f"unknown shape source(s) {sorted(bad)}; choose blobby, mesh")
         self.mesh_data: list[tuple[str, Tensor, Tensor]] = []
         self.mesh_bank: GBuffer | None = None
+        folder = None
         if weights.get("mesh", 0) > 0:
             names = list(cfg["meshes"])
             meshes.check_training_meshes(names)
@@ -457,7 +501,8 @@ class GeometryPool:
                 weights["mesh"] = 0.0
         out = [(k, float(w)) for k, w in weights.items() if w > 0]
         if not out:
-            raise PsctlError(None, "no geometry source has a positive weight")
+            raise PsctlError(folder, "no geometry source left: shapes gives only mesh a positive weight and no "
+                                     "training mesh was found here (and no mesh_cache)")
         return out
 
     def _render(self, n: int, gen: torch.Generator) -> GBuffer:

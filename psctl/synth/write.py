@@ -44,6 +44,7 @@ from psctl.synth.stream import MAX_SEED
 TEST_VIEWS = {"bunny": 0.0, "dragon": 45.0, "armadillo": 180.0}
 EXPOSURE_QUANTILE = 0.995  # this quantile of an object's pixel values is written as ...
 EXPOSURE_LEVEL = 0.9  # ... this 16-bit level (brighter highlights saturate, as in a camera)
+MAX_BOUNCES = 100  # --interreflections: more only costs time (linear in the count)
 
 
 @dataclass
@@ -410,8 +411,9 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     out = Path(out)
     check_output_dir(out)
     _check_synth_root(out)
-    if interreflections < 0:
-        raise PsctlError(None, f"--interreflections must be >= 0 (got {interreflections})")
+    if not 0 <= interreflections <= MAX_BOUNCES:  # (an audit: 10^8 ran for hours, no word said)
+        raise PsctlError(None, f"--interreflections must be 0 to {MAX_BOUNCES} (got {interreflections}): each bounce "
+                               f"is weaker than the last by the albedo and the view factor, so a few add what is seen")
     if ir_albedo is not None and not 0 <= ir_albedo < 1:
         raise PsctlError(None, f"--ir-albedo must be in [0, 1) (got {ir_albedo})")
     if ir_albedo is not None and not interreflections:  # it would be ignored without a word
