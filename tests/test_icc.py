@@ -198,3 +198,87 @@ def test_write_image_embeds_a_profile(tmp_path, suffix):
     assert image_info(tmp_path / f"a{suffix}").tone == tone_curve(icc)
     write_image(tmp_path / f"b{suffix}", np.full((4, 5, 3), 0.5, np.float32), "uint16")
     assert image_info(tmp_path / f"b{suffix}").tone is None
+
+
+def test_parametric_curves_beyond_the_unit_range_and_odd_profiles():
+    """A review: para types 1, 2 and 4 were never checked against values; a float file's values
+    above 1 were clamped (a float TIFF with an sRGB profile: l2 5.07 degrees instead of 1.02);
+    a decreasing table (an inverted picture) and a newline in a name were taken as they were."""
+    x = np.linspace(0, 1, 201)
+    g, a, b, c, d, e, f = 2.2, 0.9, 0.1, 0.05, 0.2, 0.01, 0.002
+    cases = {
+        1: ((g, a, b), np.where(x >= -b / a, (a * x + b) ** g, 0)),
+        2: ((g, a, b, c), np.where(x >= -b / a, (a * x + b) ** g + c, c)),
+        4: ((g, a, b, c, d, e, f), np.where(x >= d, (a * x + b) ** g + e, c * x + f)),
+    }
+    for ftype, (params, want) in cases.items():
+        curve = tone_curve(rgb_profile(f"type {ftype}", para(ftype, *params)))
+        np.testing.assert_allclose(curve.to_linear(np.stack([x] * 3, -1))[:, 2], np.clip(want, 0, 1), atol=1e-4,
+                                   err_msg=f"para type {ftype}")
+    # beyond [0, 1] (float files): the formula carried on, a table along its end slope, mirrored below 0
+    v = np.array([[1.5, 2.0, -0.5]], np.float32)
+    np.testing.assert_allclose(tone_curve(rgb_profile("g", curv_gamma(2.2))).to_linear(v)[0],
+                               [1.5 ** (563 / 256), 2.0 ** (563 / 256), -(0.5 ** (563 / 256))], rtol=1e-4)
+    srgb = tone_curve(profile({"rTRC": SRGB_PARA, "gTRC": SRGB_PARA, "bTRC": SRGB_PARA}))
+    np.testing.assert_allclose(srgb.to_linear(v)[0], [srgb_decode(1.5), srgb_decode(2.0), -srgb_decode(0.5)],
+                               rtol=1e-4)
+    table = tone_curve(rgb_profile("t", curv_table(np.linspace(0, 1, 11) ** 2)))  # last step: 0.81 -> 1 over 0.1
+    np.testing.assert_allclose(table.to_linear(np.array([[1.5, 1.0, 0.5]], np.float32))[0],
+                               [1 + 0.5 * 1.9, 1.0, 0.25], rtol=1e-3)
+    assert tone_curve(rgb_profile("down", curv_table(np.linspace(1, 0, 16)))) is None
+    assert tone_curve(rgb_profile("bump", curv_table([0, 0.5, 0.4, 1.0]))) is None
+    assert tone_curve(rgb_profile("two\nlines\x07", curv_gamma(2.2))).name == "two lines"
+
+
+def test_float_files_above_one_and_jpeg_profiles_that_do_not_fit(tmp_path):
+    folder = tmp_path / "float"  # linear values up to 2.5, sRGB-encoded unbounded, in float TIFFs
+    data = write_capture(folder, n=12, size=48)
+    icc = profile({"desc": desc("sRGB"), "rTRC": SRGB_PARA, "gTRC": SRGB_PARA, "bTRC": SRGB_PARA})
+    names = []
+    for k, img in enumerate(data["images"]):
+        (folder / f"{k + 1:03d}.png").unlink()
+        v = 2.5 * img
+        names.append(f"{k + 1:03d}.tif")
+        write_image(folder / names[-1], np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055), "float",
+                    kind="data", icc=icc)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    assert max(read_image(folder / n)[0].max() for n in names) > 1.2
+    truth = 2.5 * data["images"] / data["intensities"][:, None, None, :]
+    assert np.abs(load_images(open_capture(folder)) - truth).max() < 1e-3 * truth.max()
+
+    big = rgb_profile("big", curv_table(np.linspace(0, 1, 40_000) ** 1.8))  # over one JPEG segment
+    assert len(big) > 65519
+    with pytest.raises(Exception, match=r"a.jpg: cannot keep its ICC profile \([\d,]+ bytes; over 65,519"):
+        write_image(tmp_path / "a.jpg", np.full((4, 4, 3), 0.5, np.float32), "uint8", icc=big)
+    assert not (tmp_path / "a.jpg").exists()
+    write_image(tmp_path / "a.tif", np.full((4, 4, 3), 0.5, np.float32), "uint16", icc=big)  # TIFF keeps it whole
+    assert image_info(tmp_path / "a.tif").tone == tone_curve(big)
+
+
+def test_notes_and_info_for_a_profile_under_a_jpeg_name_and_a_mixed_capture(tmp_path):
+    """A review: a profiled PNG named .jpg was also noted as 'read as linear'; info's mixed row
+    led with '0 of 12 images decoded from sRGB'; the ambient row did not say it was decoded."""
+    folder = tmp_path / "mix"
+    data = write_capture(folder, n=6, size=32)
+    icc = rgb_profile("ProPhoto RGB", curv_gamma(1.8))
+    names = [f"{k + 1:03d}.png" for k in range(6)]
+    for k in (1, 3):  # two profiled PNGs, one of them named .jpg
+        write_image(folder / names[k], np.clip(data["images"][k], 0, 1) ** (256 / 461), "uint16", kind="data", icc=icc)
+    (folder / names[1]).rename(folder / "002.jpg")
+    names[1] = "002.jpg"
+    write_image(folder / "ambient.png", np.zeros((32, 32, 3), np.float32), "uint16", kind="data", icc=icc)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    cap = open_capture(folder)
+    assert not cap.is_jpeg(1) and cap.decoding(1) is not None  # PNG data, by its content
+    from psctl.io.capture import capture_notes
+
+    notes = capture_notes(cap)
+    assert not any("named JPEG" in n for n in notes)
+    assert "encoding: 2 of 6 images (002.jpg, 004.png) decoded to linear through their embedded ICC profile's " \
+           "tone curves ('ProPhoto RGB', gamma 1.8) (--encoding linear reads them as stored)" in notes
+    r = CliRunner().invoke(app, ["info", str(folder), "--json"])
+    info = json.loads(r.stdout)
+    assert (info["encoding"], info["profile_images"], info["ambient_profile"]) == ("mixed", 2, True)
+    r = CliRunner().invoke(app, ["info", str(folder)], env={"COLUMNS": "200"})
+    assert "mixed: 2 of 6 through their ICC profiles ('ProPhoto RGB', gamma 1.8), 4 read as stored" in r.stdout
+    assert "ambient.png, decoded through its ICC profile, subtracted from every image" in r.stdout

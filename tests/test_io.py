@@ -2042,14 +2042,15 @@ def test_psctls_own_pictures_are_not_read_as_images(tmp_path):
     assert open_capture(tmp_path / "root" / "a").n_images == 4
 
 
-def _write_cfa_tiff(path, mosaic: np.ndarray, photometric: int = 32803) -> None:
+def _write_cfa_tiff(path, mosaic: np.ndarray, photometric: int = 32803, subfile: int = 0) -> None:
     """A minimal little-endian TIFF of 16-bit sensor values with a DNG's photometric
-    interpretation (32803: a colour filter array; 34892: linear raw) and an RGGB CFA pattern."""
+    interpretation (32803: a colour filter array; 34892: linear raw; 1: grey) and an RGGB CFA
+    pattern; ``subfile``: its NewSubfileType (1: a reduced-resolution image, as a DNG's preview)."""
     import struct
 
     h, w = mosaic.shape
     data = np.ascontiguousarray(mosaic, "<u2").tobytes()
-    tags = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, photometric),
+    tags = [(254, 4, 1, subfile)] * bool(subfile) + [(256, 3, 1, w), (257, 3, 1, h), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, photometric),
             (273, 4, 1, 0), (277, 3, 1, 1), (278, 3, 1, h), (279, 4, 1, len(data)),
             (33421, 3, 2, 2 | 2 << 16), (33422, 1, 4, int.from_bytes(bytes([0, 1, 1, 2]), "little"))]
     ifd_size = 2 + 12 * len(tags) + 4
@@ -2078,6 +2079,12 @@ def test_camera_raw_files_are_refused_with_how_to_convert_them(tmp_path):
     _write_cfa_tiff(tmp_path / "linear.tif", mosaic, 34892)
     with pytest.raises(PsctlError, match=r"linear.tif: holds camera raw sensor data \(linear raw"):
         read_image(tmp_path / "linear.tif")
+    _write_cfa_tiff(tmp_path / "preview.tif", mosaic, 1, subfile=1)  # a DNG's first image: its preview (a review)
+    with pytest.raises(PsctlError, match=r"preview.tif: starts with a reduced-resolution preview \(TIFF "
+                                         r"NewSubfileType 1\), as a DNG or a camera raw file does"):
+        image_info(tmp_path / "preview.tif")
+    _write_cfa_tiff(tmp_path / "grey.tif", mosaic, 1)  # the same grey TIFF as a full-size image reads
+    assert image_info(tmp_path / "grey.tif").channels == 1
     write_image(tmp_path / "plain.tif", np.full((24, 32, 3), 0.5, np.float32), "uint16")  # an ordinary TIFF reads
     assert image_info(tmp_path / "plain.tif").channels == 3
     (tmp_path / "plain.tif").rename(tmp_path / "IMG_0001.CR2")  # by name, whatever it holds (CR3 is no TIFF)

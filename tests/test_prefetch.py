@@ -17,7 +17,7 @@ import pytest
 
 from psctl.errors import PsctlError
 from psctl.io.capture import iter_images, open_capture
-from psctl.io.images import read_image, to_rgb
+from psctl.io.images import read_image, to_rgb, write_image
 from psctl.io.prefetch import Prefetch, _usable
 from tests.conftest import write_capture
 
@@ -407,3 +407,21 @@ def test_lcnet_gets_the_same_lights_with_the_helper(tmp_path):
         open(sys.argv[1], "w").write(json.dumps([a.info["prefetched"], b.info["prefetched"], same, a.notes == b.notes]))
     """, tmp_path)
     assert out == [10, 0, True, True]
+
+
+def test_the_helper_serves_images_with_an_icc_profile(tmp_path):
+    """A review: the helper sent each header as JSON, which an ICC tone curve is not, so it died
+    at the first profiled image and the parent read every image itself (slower, same values)."""
+    from tests.test_icc import curv_gamma, rgb_profile
+
+    data = write_capture(tmp_path / "cap", n=4, size=40)
+    icc = rgb_profile("ProPhoto RGB", curv_gamma(1.8))
+    for k, img in enumerate(data["images"]):
+        write_image(tmp_path / "cap" / f"{k + 1:03d}.png", np.clip(img, 0, 1) ** (256 / 461), "uint16", kind="data",
+                    icc=icc)
+    cap = open_capture(tmp_path / "cap")
+    assert cap.profile_images == 4
+    with Prefetch(cap.image_paths, BOX, (40, 40), 1 << 30) as pf:
+        helped = list(iter_images(cap, BOX, decoded=pf))
+        assert pf.served == 4
+    assert all(np.array_equal(a, b) for a, b in zip(helped, iter_images(cap, BOX), strict=True))

@@ -542,8 +542,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
 
     Checks: images exist and share one size, light and intensity rows match the image count and
     are well formed, mask and ground truth (headers) have the image size. ``encoding`` (one of
-    ENCODINGS): how the images' values map to radiance, applied when they are read; auto decodes
-    JPEGs from sRGB and reads every other file as linear. ``light_files`` False: the folder's light
+    ENCODINGS): how the images' values map to radiance, applied when they are read; auto decodes a
+    file with an embedded ICC profile through its tone curves (as stored when they are linear),
+    else JPEGs from sRGB, and reads every other file as linear. ``light_files`` False: the folder's light
     files are not read (an uncalibrated capture; psctl calibrate, which writes new ones, when
     the old ones are damaged).
     """
@@ -609,8 +610,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
             hint = [f"{'; '.join(said)}: list the images in {LIST_FILES[0]}"] if said else []
             raw = [n for n in files if n.lower().endswith(RAW_SUFFIXES)]
             if raw:  # listing them would not help: say how to convert them
-                hint.append(f"{some(raw)} camera raw, which psctl does not decode: convert them to 16-bit linear "
-                            f"TIFFs first, e.g. `dcraw -4 -T *{Path(raw[0]).suffix}` (docs/formats.md, 'Camera raw files')")
+                them = "them to 16-bit linear TIFFs" if len(raw) > 1 else "it to a 16-bit linear TIFF"
+                hint.append(f"{some(raw)} camera raw, which psctl does not decode: convert {them} first, e.g. "
+                            f"`dcraw -4 -T *{Path(raw[0]).suffix}` (docs/formats.md, 'Camera raw files')")
             hint = "".join(f"; {h}" for h in hint)
             raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
 
@@ -1278,8 +1280,9 @@ def capture_notes(capture: Capture) -> list[str]:
     notes += exposure_notes(capture)
     if capture.encoding == "auto":  # (a JPEG name over other data: read as its content says, and said so)
         misnamed = [p.name for k, p in enumerate(capture.image_paths)
-                    if p.suffix.lower() in JPEG and not capture.is_jpeg(k)]
-        if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and not capture.ambient_jpeg:
+                    if p.suffix.lower() in JPEG and not capture.is_jpeg(k) and capture.decoding(k) is None]
+        if capture.ambient_path is not None and capture.ambient_path.suffix.lower() in JPEG and \
+                not capture.ambient_jpeg and capture.decoding(capture.ambient_path) is None:
             misnamed.append(capture.ambient_path.name)
         if misnamed:
             notes.append(f"encoding: {few(misnamed)}: named JPEG but "

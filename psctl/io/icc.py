@@ -17,6 +17,7 @@ read as it would be without a profile.
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -24,7 +25,7 @@ import numpy as np
 
 # a curve within this of the identity over [0, 1] is linear (an 8-bit step is 0.0039)
 LINEAR_TOLERANCE = 1e-3
-_SAMPLES = 4096  # the curves are applied through a table of this many samples, interpolated
+_CODES = 65535  # values in [0, 1] are looked up at this many steps: exact for 8- and 16-bit files
 
 
 @dataclass(frozen=True)
@@ -32,18 +33,24 @@ class ToneCurve:
     """An ICC profile's tone curves, one per channel (three; grey: the same one three times).
 
     ``curves``: each channel's curve as the profile stores it: ``("identity",)``, ``("gamma", g)``,
-    ``("table", (v0, v1, ...))`` (values in [0, 1], sampled uniformly over [0, 1]) or
+    ``("table", bytes)`` (the profile's big-endian 16-bit samples, uniform over [0, 1]) or
     ``("para", type, (g, a, b, ...))``. ``name``: the profile's description ("Adobe RGB (1998)";
     "" when it has none)."""
 
     name: str
     curves: tuple[tuple, tuple, tuple]
 
-    @property
+    @functools.cached_property
     def linear(self) -> bool:
         """Whether every curve is the identity within LINEAR_TOLERANCE (values read as stored)."""
         x = np.linspace(0.0, 1.0, 257)
         return all(float(np.abs(_evaluate(c, x) - x).max()) <= LINEAR_TOLERANCE for c in self.curves)
+
+    @functools.cached_property
+    def _tables(self) -> np.ndarray:
+        """[3, _CODES + 1] float32: each channel's curve at k / _CODES."""
+        x = np.linspace(0.0, 1.0, _CODES + 1)
+        return np.stack([_evaluate(c, x) for c in self.curves]).astype(np.float32)
 
     def describe(self) -> str:
         """A few words for notes: the profile's name and its curve ("'Adobe RGB (1998)', gamma 2.2")."""
@@ -52,13 +59,25 @@ class ToneCurve:
         return f"'{self.name}', {curve}" if self.name else curve
 
     def to_linear(self, values: np.ndarray) -> np.ndarray:
-        """Stored values in [0, 1] (any shape [..., 3]) -> linear values, float32; values outside
-        [0, 1] are clamped to it (the curves are defined there)."""
-        x = np.linspace(0.0, 1.0, _SAMPLES)
+        """Stored values (any shape [..., C], C <= 3; integer files' in [0, 1]) -> linear values,
+        float32. Values in [0, 1] are looked up at 1/65535 steps (exact for 8- and 16-bit
+        files); a float file's values outside it follow the curve beyond (a gamma or parametric
+        curve's formula, a table's end slope; below 0, mirrored), as ``srgb_to_linear`` does, not
+        clipped."""
+        values = np.asarray(values, np.float32)
         out = np.empty(values.shape, np.float32)
+        tables = self._tables
         for ch in range(values.shape[-1]):
-            curve = self.curves[min(ch, 2)]
-            out[..., ch] = np.interp(values[..., ch], x, _evaluate(curve, x))
+            v = values[..., ch]
+            inside = np.isfinite(v) & (v >= 0) & (v <= 1)
+            if inside.all():
+                out[..., ch] = tables[min(ch, 2)][np.rint(v * _CODES).astype(np.int32)]
+                continue
+            lookup = tables[min(ch, 2)][np.rint(np.where(inside, v, 0) * _CODES).astype(np.int32)]
+            far = np.abs(v[~inside].astype(np.float64))
+            beyond = np.sign(v[~inside]) * _evaluate(self.curves[min(ch, 2)], far, extend=True)
+            lookup[~inside] = beyond
+            out[..., ch] = lookup
         return out
 
 
@@ -68,24 +87,34 @@ def _describe(curve: tuple) -> str:
     if curve[0] == "gamma":
         return f"gamma {curve[1]:.3g}"
     if curve[0] == "table":
-        return f"a {len(curve[1])}-point curve"
+        return f"a {len(curve[1]) // 2}-point curve"
     return f"a parametric curve (gamma {curve[2][0]:.3g})"
 
 
-def _evaluate(curve: tuple, x: np.ndarray) -> np.ndarray:
-    """The curve at ``x`` in [0, 1] (float64), clipped to [0, 1]."""
+def _table(curve: tuple) -> np.ndarray:
+    return np.frombuffer(curve[1], ">u2").astype(np.float64) / 65535.0
+
+
+def _evaluate(curve: tuple, x: np.ndarray, extend: bool = False) -> np.ndarray:
+    """The curve at ``x`` (float64): in [0, 1], clipped to [0, 1]; with ``extend``, ``x`` >= 0
+    beyond 1 as well (a formula carried on, a table along its last step's slope), unclipped
+    above."""
     kind = curve[0]
-    if kind == "identity":
-        y = x.copy()
-    elif kind == "gamma":
-        y = x ** curve[1]
-    elif kind == "table":
-        table = np.asarray(curve[1], np.float64)
-        y = np.interp(x, np.linspace(0.0, 1.0, len(table)), table)
-    else:  # ICC.1 parametricCurveType, functions 0-4
-        ftype, p = curve[1], curve[2]
-        g, a, b, c, d, e, f = (*p, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)[:7] if ftype != 0 else (p[0], 1, 0, 0, 0, 0, 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        if kind == "identity":
+            y = x.copy()
+        elif kind == "gamma":
+            y = x ** curve[1]
+        elif kind == "table":
+            table = _table(curve)
+            grid = np.linspace(0.0, 1.0, len(table))
+            y = np.interp(x, grid, table)
+            if extend:
+                slope = (table[-1] - table[-2]) * (len(table) - 1)
+                y = np.where(x > 1, table[-1] + (x - 1) * slope, y)
+        else:  # ICC.1 parametricCurveType, functions 0-4
+            ftype, p = curve[1], curve[2]
+            g, a, b, c, d, e, f = (*p, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)[:7] if ftype != 0 else (p[0], 1, 0, 0, 0, 0, 0)
             if ftype == 0:
                 y = x ** g
             elif ftype == 1:
@@ -96,7 +125,8 @@ def _evaluate(curve: tuple, x: np.ndarray) -> np.ndarray:
                 y = np.where(x >= d, np.maximum(a * x + b, 0.0) ** g, c * x)
             else:
                 y = np.where(x >= d, np.maximum(a * x + b, 0.0) ** g + e, c * x + f)
-    return np.clip(np.nan_to_num(y), 0.0, 1.0)
+    y = np.nan_to_num(y, posinf=np.finfo(np.float32).max)
+    return np.maximum(y, 0.0) if extend else np.clip(y, 0.0, 1.0)
 
 
 def _s15f16(data: bytes, at: int, n: int) -> tuple[float, ...]:
@@ -112,10 +142,10 @@ def _curve(data: bytes, at: int, size: int) -> tuple | None:
             return None
         if count == 0:
             return ("identity",)
-        values = struct.unpack_from(f">{count}H", data, at + 12)
         if count == 1:
-            return ("gamma", values[0] / 256.0) if values[0] else None  # u8Fixed8Number
-        return ("table", tuple(v / 65535.0 for v in values))
+            (g,) = struct.unpack_from(">H", data, at + 12)
+            return ("gamma", g / 256.0) if g else None  # u8Fixed8Number
+        return ("table", bytes(data[at + 12:at + 12 + 2 * count]))
     if kind == b"para":
         (ftype,) = struct.unpack_from(">H", data, at + 8)
         n = {0: 1, 1: 3, 2: 4, 3: 5, 4: 7}.get(ftype)
@@ -143,9 +173,11 @@ def _description(data: bytes, at: int, size: int) -> str:
     return ""
 
 
+@functools.lru_cache(maxsize=64)  # a capture's images share one profile: parsed once, one table kept
 def tone_curve(profile: bytes) -> ToneCurve | None:
     """The tone curves of an ICC profile (its bytes, as an image file embeds them); None when the
-    profile is not an RGB or grey one with curv/para curves, or cannot be parsed."""
+    profile is not an RGB or grey one with curv/para curves, or cannot be parsed, or a curve
+    decreases."""
     data = bytes(profile)
     try:
         if len(data) < 132 or data[36:40] != b"acsp":
@@ -163,7 +195,11 @@ def tone_curve(profile: bytes) -> ToneCurve | None:
         curves = tuple(_curve(data, *tags[t]) for t in wanted)
         if any(c is None for c in curves):
             return None
+        x = np.linspace(0.0, 1.0, 257)
+        if any((np.diff(_evaluate(c, x)) < -1e-6).any() or _evaluate(c, x)[-1] <= 0 for c in curves):
+            return None  # a curve that falls somewhere (an inverted picture) or stays black: no camera's or editor's
         name = _description(data, *tags[b"desc"]) if b"desc" in tags else ""
+        name = " ".join("".join(ch if ch.isprintable() else " " for ch in name).split())  # one line in notes
         return ToneCurve(name, curves)
     except (struct.error, UnicodeDecodeError, IndexError):
         return None

@@ -31,9 +31,10 @@ IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 # the linear colour image photometric stereo needs, so they are refused with how to convert them.
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2",
                 ".pef", ".srw", ".raw", ".rwl", ".3fr", ".fff", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos",
-                ".x3f")
+                ".x3f", ".mef", ".gpr")
 # TIFF photometric interpretations of sensor data (DNG's colour filter array and linear raw)
 _RAW_PHOTOMETRIC = {32803: "a colour filter array", 34892: "linear raw"}
+JPEG_ICC_MAX = 65519  # bytes of an ICC profile in one JPEG APP2 segment (65533 less its 14-byte header)
 RAW_HINT = ("convert it to a 16-bit linear TIFF first, e.g. `dcraw -4 -T {name}` (or a raw converter with a linear "
             "profile, no tone curve and fixed white balance); docs/formats.md, 'Camera raw files'")
 
@@ -167,6 +168,11 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         if sensor is not None:  # a DNG under another name: its pixels are the sensor's, not a picture's
             raise PsctlError(path, f"holds camera raw sensor data ({sensor}, as a DNG), which psctl does not "
                                    f"decode; {RAW_HINT.format(name=path.name)}")
+        if spec.get_int_attribute("tiff:subfiletype", 0) == 1:  # NewSubfileType: a reduced-resolution image
+            # first: a DNG's or a TIFF-based raw file's preview, with the sensor data further on
+            raise PsctlError(path, f"starts with a reduced-resolution preview (TIFF NewSubfileType 1), as a DNG or "
+                                   f"a camera raw file does: psctl would read the preview; if it is raw, "
+                                   f"{RAW_HINT.format(name=path.name)}")
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
         orientation = spec.get_int_attribute("Orientation", 1)
@@ -412,6 +418,11 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     spec = oiio.ImageSpec(w, h, c, fmt)
     if COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
+    if icc and path.suffix.lower() in (".jpg", ".jpeg") and len(icc) > JPEG_ICC_MAX:
+        # a JPEG holds a larger profile in several APP2 segments, which OpenImageIO 3.2 writes
+        # damaged (a review: the copy's curve then read wrong or not at all)
+        raise PsctlError(path, f"cannot keep its ICC profile ({len(icc):,} bytes; over {JPEG_ICC_MAX:,} bytes "
+                               f"does not fit one JPEG segment, which is all psctl writes correctly)")
     if icc:
         spec.attribute("ICCProfile", oiio.TypeDesc(f"uint8[{len(icc)}]"), np.frombuffer(bytes(icc), np.uint8))
     if c in (2, 4):  # colour as given, not divided by alpha as PNG's writer would (read_image reads it so)

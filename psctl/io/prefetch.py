@@ -292,7 +292,8 @@ def _child() -> None:
             if rgb.shape != shape:
                 break
             np.frombuffer(ring, np.float32, rgb.size, (k % slots) * slot).reshape(shape)[...] = rgb
-            header = {f.name: getattr(info, f.name) for f in dataclasses.fields(info) if f.name != "path"}
+            # (the ICC tone curve stays out: the readers take it from the Capture, and it is no JSON)
+            header = {f.name: getattr(info, f.name) for f in dataclasses.fields(info) if f.name not in ("path", "tone")}
             stamp = [st.st_ino, st.st_size, st.st_mtime_ns]
             os.write(1, json.dumps({"k": k, "info": header, "stamp": stamp}).encode() + b"\n")
     except BaseException:  # noqa: BLE001 - whatever it was, the parent reads the image itself

@@ -308,8 +308,11 @@ def render_info(report: dict) -> None:
     t.add_row("encoding", escape(
         "linear" if enc == "linear" else "sRGB, decoded to linear" if enc == "srgb" else
         f"decoded to linear through their ICC profiles ({profiles})" if enc == "profile" else
-        f"mixed: {r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear" +
-        (f", {r.get('profile_images', 0)} through their ICC profiles ({profiles})" if r.get("profile_images") else "")))
+        "mixed: " + ", ".join(part for part in (
+            f"{r['srgb_images']} of {r['n_images']} images decoded from sRGB to linear" if r["srgb_images"] else "",
+            f"{r.get('profile_images', 0)} of {r['n_images']} through their ICC profiles ({profiles})"
+            if r.get("profile_images") else "",
+            f"{r['n_images'] - r['srgb_images'] - r.get('profile_images', 0)} read as stored") if part)))
     t.add_row("calibrated", escape(f"yes ({r.get('lights') or 'light_directions.txt'})") if r["calibrated"]
               else "no light_directions.txt: uncalibrated")
     lo, hi = r["intensity_range"]
@@ -333,7 +336,8 @@ def render_info(report: dict) -> None:
                                        f"{k['cy']:g} (psctl depth's pinhole camera"
                                        + ("; psctl calibrate --K)" if square else ")")))
     if r.get("ambient"):
-        decoded = ", decoded from sRGB" if r.get("ambient_srgb") else ""
+        decoded = ", decoded from sRGB" if r.get("ambient_srgb") else \
+            ", decoded through its ICC profile" if r.get("ambient_profile") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
     con.print(t)
     print_notes(con, [n for n in r.get("notes", []) if not n.startswith(("ambient:", "encoding:"))])  # rows above
