@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from psctl.errors import PsctlError, like_default, naming, not_a_file
+from psctl.errors import PsctlError, few, like_default, naming, not_a_file
 from psctl.models.weights import file_sha256, normalization_allowed, save_torch
 from psctl.synth.stream import MAX_SEED
 
@@ -741,6 +741,14 @@ def _check_state(path: Path, saved: dict) -> None:
             raise PsctlError(path, f"holds a bad {key!r} ({json.dumps(saved[key])[:40]}): the run state is damaged")
 
 
+def _differences(a: Any, b: Any, where: str = "") -> list[str]:
+    """The dotted keys at which two recipes (plain JSON) differ: what a refused resume names."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b), key=str)
+                for d in _differences(a.get(k), b.get(k), f"{where}.{k}" if where else str(k))]
+    return [] if a == b else [where or "the recipe"]
+
+
 def _plain_json(obj: Any) -> Any:
     """What ``obj`` looks like after a JSON round trip (tuples become lists), for comparisons."""
     return json.loads(json.dumps(obj))
@@ -1041,10 +1049,10 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
     saved["config"] = _plain_json(merge(DEFAULT_CONFIG, saved["config"]))
     if config is not None:
         # only the length of the run and its bookkeeping may change on resume
-        changed = _recipe_core(config) != _recipe_core(saved["config"])
+        changed = _differences(_recipe_core(config), _recipe_core(saved["config"]))
         if changed:
-            raise PsctlError(state_file, "the run was started with another recipe; resume without --config "
-                                         "(a run keeps its recipe) or start a new run with --out")
+            raise PsctlError(state_file, f"the run was started with another recipe ({few(changed)} differ); resume "
+                                         f"without --config (a run keeps its recipe) or start a new run with --out")
         config = check_recipe(config)  # a bad value is its one line, not a TypeError here
         label = _other_method(config, method)  # the one key the comparison leaves out
         if label is not None:
@@ -1195,6 +1203,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     state_file = run / "state.json"
     if resume and run.is_dir():
         finish_checkpoint(run)  # one a hard kill left committed but not carried out (or only staged)
+    if resume and not run.exists():
+        raise PsctlError(run, "no such run folder to resume")
     if resume and not state_file.is_file():
         began = (run / "log.jsonl").is_file()  # a run of ours, stopped (kill -9?) before its first checkpoint
         raise PsctlError(state_file, "no checkpoint to resume (state.json missing)" + (
