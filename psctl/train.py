@@ -964,7 +964,10 @@ def init_from(model: torch.nn.Module, path: str | os.PathLike) -> dict:
         what = not_a_file(path, "not found", "is a folder, not a weights file")  # a folder is not 'not found'
         raise PsctlError(path, f"{what}: the recipe's train.init (the weights to start from); make it as the "
                                f"recipe's comment says, or set train.init to another weights file")
-    w = read_weights(path)
+    try:
+        w = read_weights(path)
+    except PsctlError as e:  # said as the recipe's start, not only as a weights file
+        raise PsctlError(e.path, f"{e.message} (the recipe's train.init)") from None
     arch, own = dict(w.metadata.get("architecture", {})), dict(model.config)
     state = {k: v.float() for k, v in w.state_dict.items()}
     adapted = None

@@ -178,6 +178,20 @@ class Payload:  # stands for anything a malicious or careless pickle could carry
     pass
 
 
+def _cut_einval(path, n, out) -> bool:
+    """Whether torch itself fails with EINVAL on ``path`` cut to ``n`` bytes (written to ``out``)."""
+    import errno
+
+    out.write_bytes(path.read_bytes()[:n])
+    try:
+        torch.load(out, map_location="cpu", weights_only=True)
+    except OSError as e:
+        return e.errno == errno.EINVAL
+    except Exception:  # noqa: BLE001 - another failure: not this case
+        return False
+    return False
+
+
 def test_refuses_arbitrary_objects_and_garbage(tmp_path):
     evil = tmp_path / "evil.pth.tar"
     torch.save({"state_dict": model().state_dict(), "extra": Payload()}, evil)
@@ -187,6 +201,13 @@ def test_refuses_arbitrary_objects_and_garbage(tmp_path):
     junk.write_bytes(b"not a torch file at all")
     with pytest.raises(PsctlError, match="cannot read weights file"):
         read_weights(junk)
+    whole = tmp_path / "whole.pt"  # cut inside its zip entries: torch's reader gave "[Errno 22] Invalid argument"
+    torch.save({"state_dict": model().state_dict()}, whole)
+    cut = next((n for n in range(2000, whole.stat().st_size, 997) if _cut_einval(whole, n, tmp_path / "cut.pt")), None)
+    assert cut is not None, "no cut gave torch's EINVAL"
+    (tmp_path / "cut.pt").write_bytes(whole.read_bytes()[:cut])
+    with pytest.raises(PsctlError, match=r"cut.pt: cannot read weights file: damaged \(cut short\?\)"):
+        read_weights(tmp_path / "cut.pt")
     # files torch.load fails on in its own ways: one message each, no warning on the way
     import pickle
     import warnings

@@ -985,7 +985,7 @@ def test_a_validation_seed_equal_to_the_training_seed_is_refused(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
-def test_weights_paths_in_a_recipe_are_named_when_wrong():
+def test_weights_paths_in_a_recipe_are_named_when_wrong(tmp_path):
     """train.init: 5 said 'weights must be a path ... not 5', naming neither file nor key."""
     from psctl.train import DEFAULT_CONFIG, check_recipe
 
@@ -993,6 +993,10 @@ def test_weights_paths_in_a_recipe_are_named_when_wrong():
                      ({"train": {"init": ""}}, "train.init")):  # "" was read as no file: random weights (an audit)
         with pytest.raises(PsctlError, match=f"config '{key}' must be a weights file's path"):
             check_recipe(merge(DEFAULT_CONFIG, cfg))
+    junk = Path(tmp_path) / "junk.pt"  # a damaged start file is said to be the recipe's (an audit)
+    junk.write_bytes(b"not torch")
+    with pytest.raises(PsctlError, match=r"junk.pt: cannot read weights file.*\(the recipe's train.init\)"):
+        train("ps-fcn", merge(tiny(8), {"train": {"init": str(junk)}}), Path(tmp_path) / "run", device="cpu")
     with pytest.raises(PsctlError, match=r"config 'train.warmup' \(1,000,000 samples\) is longer than the run"):
         check_recipe(merge(DEFAULT_CONFIG, {"train": {"warmup": 1_000_000, "samples": 1000}}))  # lr ~0 throughout
 

@@ -27,6 +27,7 @@ PS-FCN's keys and runs as ``ps-fcn-dagger``.
 from __future__ import annotations
 
 import datetime
+import errno
 import math
 import os
 from dataclasses import dataclass
@@ -207,6 +208,8 @@ def _torch_load(path: Path) -> Any:
     except MemoryError:
         raise
     except OSError as e:  # the file system's say (permissions, a folder, I/O), not the file's content
+        if e.errno == errno.EINVAL:  # torch's zip reader on a cut file (an audit: "[Errno 22] Invalid argument")
+            raise PsctlError(path, "cannot read weights file: damaged (cut short?)") from None
         raise PsctlError(path, f"cannot read weights file ({detail(e, 160)})") from None
     except Exception as e:  # a file that is not torch's fails in many ways (OSError, EOFError, KeyError, ...)
         empty = path.stat().st_size == 0 if path.exists() else False
