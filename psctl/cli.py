@@ -217,7 +217,9 @@ def _is_torch_oom(e: RuntimeError) -> bool:
 
 def _out_of_memory(detail: str) -> str:
     # the allocator's own words say how much was asked for; a bug asking for terabytes shows there
-    detail = " ".join(detail.split())[:160]
+    detail = " ".join(detail.split())
+    if len(detail) > 160:  # cut at a word, not mid-word (an audit: "Cannot allocat")
+        detail = detail[:160].rsplit(" ", 1)[0] + " ..."
     return (f"out of memory{f' ({detail})' if detail else ''}: ask for less (normals, eval: --downsample K or "
             "fewer --images; train: a smaller train.batch_size, crop or images_per_sample), or use a machine "
             "with more memory")

@@ -1725,6 +1725,8 @@ def test_second_review_of_the_fuzzing_fixes(capture, tmp_path, monkeypatch, caps
                            "you tried to allocate 1099511627776 bytes. Error code 12 (Cannot allocate memory)")
     err = capsys.readouterr().err
     assert e.value.exit_code == 2 and "out of memory (" in err and "1099511627776 bytes" in " ".join(err.split())
+    said = " ".join(err.split()).split("out of memory (", 1)[1].split(" ...)", 1)[0]  # cut at a word (an audit)
+    assert said.split()[-1] in "Error code 12 (Cannot allocate memory)".split(), said
     with pytest.raises(RuntimeError, match="a bug"), _user_errors():  # other RuntimeErrors keep their traceback
         raise RuntimeError("a bug")
     (tmp_path / "zeros.txt").write_bytes(bytes(64))
