@@ -2136,7 +2136,11 @@ def test_images_whose_exif_exposures_differ_get_a_note(tmp_path):
     assert [n for n in capture_notes(cap) if "exposures" in n] == [
         "images: their EXIF exposures differ (time 1/60 s to 1/30 s, ISO 200 to 400: 003.jpg 2 times 001.jpg's); "
         "psctl reads each image as stored, so its exposure scales its light's intensity: each row of "
-        "light_intensities.txt should include its image's exposure (intensity x exposure)"]
+        "light_intensities.txt should include its image's exposure (intensity x exposure) (psctl info --json: "
+        "relative_exposures)"]
+    from psctl.io.summary import describe_capture
+
+    np.testing.assert_allclose(describe_capture(tmp_path / "a")["relative_exposures"], rel, rtol=1e-5)
     assert cap.subset([0, 3]).exposures == (cap.exposures[0], cap.exposures[3])
     assert not any("exposures" in n for n in capture_notes(cap.subset([0, 3])))  # the same: no note
     cap = write(tmp_path / "b", [1 / 60, 1 / 15, 1 / 60], [200, 200, 0], intensities=False)  # ISO not in every header

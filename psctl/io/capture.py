@@ -1346,7 +1346,7 @@ def exposure_notes(capture: Capture) -> list[str]:
     lo, hi = int(np.argmin(rel)), int(np.argmax(rel))
     return [f"images: their EXIF exposures differ ({', '.join(parts)}: {capture.image_paths[hi].name} "
             f"{rel[hi] / rel[lo]:.3g} times {capture.image_paths[lo].name}'s); psctl reads each image as stored, "
-            f"so its exposure scales its light's intensity: {given}"]
+            f"so its exposure scales its light's intensity: {given} (psctl info --json: relative_exposures)"]
 
 
 def select_images(n: int, k: int | None, seed: int | None, lights: np.ndarray | None = None) -> np.ndarray:

@@ -114,11 +114,12 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
                      progress: Callable[[str, int], Callable[[int], None]] | None = None) -> dict:
     """What a capture folder holds, as a JSON-ready dict. ``check``: also decode every file
     (``check_pixels``) under the key ``check``; otherwise only headers and text files are read."""
-    from psctl.io.capture import capture_notes, load_mask, open_capture
+    from psctl.io.capture import capture_notes, load_mask, open_capture, relative_exposures
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
     srgb, profiled = cap.srgb_images, cap.profile_images
+    exposures = relative_exposures(cap)
     e = cap.intensities
     kinds = sorted(set(cap.kinds))  # from the headers open_capture read
     report = {
@@ -155,6 +156,9 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
         "ambient_profile": bool(cap.ambient_path and cap.decoding(cap.ambient_path) is not None
                                 and not cap.is_srgb(cap.ambient_path)),
+        # each image's EXIF exposure over the median image's (time x ISO / f-number^2), null without EXIF:
+        # what to multiply light_intensities.txt's rows by where they differ (the exposure note)
+        "relative_exposures": None if exposures is None else [round(float(v), 6) for v in exposures],
         "first_image": cap.image_paths[0].name,
         "last_image": cap.image_paths[-1].name,
         # the first image's EXIF focal length in pixels, for psctl calibrate --focal exif; else None
