@@ -516,7 +516,7 @@ def synth(
     light_dist: Annotated[str, typer.Option("--light-dist", help="Zenith band of the lights: hemisphere (0-90 degrees) | diligent (0-45, like DiLiGenT's rig) | poles (0-30) | equator (60-90).")] = "hemisphere",
     intensities: Annotated[str, typer.Option("--intensities", help="Light intensities, drawn per object: unit | random (uniform in [0.2, 2], independent per image) | directional (a smooth function of the light direction, as rigs whose LEDs dim towards the rim) | mixed.")] = "unit",
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
-    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none).")] = 0,
+    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none; at most 100).")] = 0,
     ir_albedo: Annotated[Optional[float], typer.Option("--ir-albedo", help="With --interreflections: the surface lights itself as a source of albedo A * kd / max(kd) (default: kd).")] = None,
     light_distance: Annotated[Optional[float], typer.Option("--light-distance", help="Point lights this many pixels from each object's centre along its light directions (falloff and per-pixel directions; docs/near-lights.md). Default: distant lights.")] = None,
     preview: Annotated[bool, _flag("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,

@@ -153,12 +153,14 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
         from psctl.api import unused_note, unused_options
         from psctl.models import check_device_name
 
-        for m in dict.fromkeys(used):  # options a method ignored: said once for the table, as psctl normals does
-            said = [unused_note(k, why, precision) for k, why in
-                    unused_options(m, refine, views, downsample, precision, falloff, roll)]
-            if m == "l2" and check_device_name(device).startswith("cuda"):
-                said.append(f"device: l2 solves with NumPy on the CPU; --device {device} unused")
-            result["notes"] += [n for n in said if n not in result["notes"]]
+        # options the run ignored: said once for the table, as psctl normals says them; only those every
+        # object's method ignored (auto may run sdps on one object, which uses --no-refine, l2 on another)
+        ignored = [dict(unused_options(m, refine, views, downsample, precision, falloff, roll)) for m in set(used)]
+        for k, why in ignored[0].items() if ignored else ():
+            if all(k in other for other in ignored):
+                result["notes"].append(unused_note(k, why, precision))
+        if set(used) == {"l2"} and check_device_name(device).startswith("cuda"):
+            result["notes"].append(f"device: l2 solves with NumPy on the CPU; --device {device} unused")
         if albedo and out is None:
             result["notes"].append("albedo: --albedo writes each object's albedo maps under --out; unused without it")
         if out is not None:

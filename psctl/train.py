@@ -239,8 +239,9 @@ def check_sizes(method: str, config: dict) -> None:
 
 
 # synth stream options that each run sets from its own sections (synth_stream), and where they go
-_RUN_OPTIONS = {"batch_size": "train.batch_size (val.batch_size)", "n_images": "train.images_per_sample (val.images)",
-                "crop": "train.crop (val.size)", "seed": "train.seed (val.seed)", "device": "psctl train --device"}
+_RUN_OPTIONS = {"batch_size": ("train.batch_size", "val.batch_size"), "n_images": ("train.images_per_sample", "val.images"),
+                "crop": ("train.crop", "val.size"), "seed": ("train.seed", "val.seed"),
+                "device": ("psctl train --device", "psctl train --device")}
 
 
 def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
@@ -264,10 +265,10 @@ def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
         from psctl.synth.stream import make_config
 
         for part, options in (("data", config["data"]), ("val.data", config["val"].get("data") or {})):
-            for key, home in _RUN_OPTIONS.items():
+            for key, homes in _RUN_OPTIONS.items():
                 if key in options:  # the run sets these on the stream: given here they were silently overridden
                     raise PsctlError(None, f"config '{part}.{key}' is set by the run, not the stream's options: "
-                                           f"give it as {home}")
+                                           f"give it as {homes[part == 'val.data']}")
         make_config(config["data"], crop=config["train"]["crop"])
         make_config(val_data, crop=config["val"]["size"])
 
@@ -355,9 +356,11 @@ def load_config(path: str | os.PathLike | None) -> dict:
         # the stream options are checked again by train(); here a bad one is named with its file
         from psctl.synth.stream import make_config
 
-        make_config(config["data"])
-        make_config({**config["data"], **(config["val"].get("data") or {})})
-    except PsctlError as e:
+        make_config(config["data"], crop=config["train"]["crop"])  # with the crops the run gives them
+        make_config({**config["data"], **(config["val"].get("data") or {})}, crop=config["val"]["size"])
+    except PsctlError as e:  # named with its file; an error about another file (a missing mesh) keeps it
+        if e.path is not None and Path(e.path) != path:
+            raise PsctlError(e.path, f"{e.message} (in the recipe {path})") from None
         raise PsctlError(path, e.message) from None
     return config
 
@@ -1054,7 +1057,8 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
         # only the length of the run and its bookkeeping may change on resume
         changed = _differences(_recipe_core(config), _recipe_core(saved["config"]))
         if changed:
-            raise PsctlError(state_file, f"the run was started with another recipe ({few(changed)} differ); resume "
+            raise PsctlError(state_file, f"the run was started with another recipe ({few(changed)} "
+                                         f"{'differs' if len(changed) == 1 else 'differ'}); resume "
                                          f"without --config (a run keeps its recipe) or start a new run with --out")
         config = check_recipe(config)  # a bad value is its one line, not a TypeError here
         label = _other_method(config, method)  # the one key the comparison leaves out
@@ -1137,9 +1141,11 @@ def _check_sha256(run: Path, st: dict, names: list[str]) -> None:
     digests = st.get("files_sha256") or {}
     for name in names:
         if name in digests and file_sha256(run / name) != digests[name]:
+            fresh = (" (\"optim_files\": [] in state.json continues with fresh Adam moments, not exactly)"
+                     if name.startswith("optim.") else "")
             raise PsctlError(run / name, "is not the file this run's last checkpoint wrote (its sha256 differs "
                                          "from state.json's): replaced, or copied from another run; the run cannot "
-                                         "continue exactly")
+                                         f"continue exactly{fresh}")
 
 
 def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
@@ -1344,6 +1350,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
                 f"no checkpoint had been written; best.pt (validated at {st['best_samples']:,} samples) is kept"
                 if st["best_val"] is not None else "no checkpoint had been written, so nothing is kept")
 
+    if init_mae is not None and not math.isfinite(init_mae):  # before the run folder exists
+        raise PsctlError(run, f"validation {task.metric} of train.init's weights is {init_mae} (no object pixel in "
+                              f"the validation views? see val.data, data.shapes, data.blobby): nothing was trained")
     with _no_half_run(run) as log, _Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
@@ -1354,6 +1363,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             for g in optim.param_groups:
                 g["lr"] = lr_at(st["samples"], config)
             batch = stream.next_batch()
+            if "masks" in batch and not bool(batch["masks"].any()):  # a loss of exactly 0: nothing learnt
+                raise PsctlError(run, f"training batch {st['step'] + 1} has no object pixel ({st['samples']:,} samples "
+                                      f"seen; see data.shapes, data.blobby): stopped; {kept()}")
             loss = task.loss(batch)
             if not torch.isfinite(loss):  # stop before the step spoils the weights; the last checkpoint stays
                 raise PsctlError(run, f"training loss is {loss.item()} at step {st['step'] + 1} "
@@ -1525,7 +1537,7 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         method, dev = first.metadata["method"], pick_device(device)
         with naming(recipe_name) if recipe_name is not None else contextlib.nullcontext():  # as training's
             config = check_recipe(_full_recipe(config))
-            check_sizes(method, config)
+            check_method_recipe(method, config)  # as training's: keys the run sets, windows, stream options
             norm = first.metadata.get("normalization") or "none"
             if config["normalization"] not in (None, norm):  # it would be measured with other inputs
                 raise PsctlError(None, f"config 'normalization' is {config['normalization']!r} but the averaged "

@@ -383,6 +383,13 @@ def test_eval_on_a_folder_of_objects(tmp_path):
         "lights: --no-refine is unused (only sdps refines lights)",
         "views: l2 gives the same normals in every view; one pass",
         "precision: l2 solves in float64; --precision bf16 unused"]
+    # auto running sdps on an object without lights uses --no-refine: no such note then (a review)
+    (tmp_path / "root" / "bPNG" / "light_directions.txt").unlink()
+    r = cli("eval", "--benchmark", "folder", "--root", tmp_path / "root", "-m", "auto", "--no-refine", "--json",
+            check=True)
+    res = json.loads(r.stdout)
+    assert res["method"] == "ensemble + sdps"
+    assert not any("--no-refine is unused" in n for n in res["notes"])
 
 
 def test_eval_scores_missing_ground_truth_as_the_paper_too(tmp_path):

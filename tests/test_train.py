@@ -75,6 +75,43 @@ def test_nan_loss_stops_the_run_before_the_step(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_batch_without_object_pixels_stops_the_run(tmp_path):
+    """A review: blobby steps 1 renders no object pixel, so every loss was exactly 0 (not NaN) and
+    a finite validation of other shapes let the run finish and be installed."""
+    cfg = merge(tiny(16), {"data": {"blobby": {"steps": 1}}, "val": {"data": {"blobby": {"steps": 48}}}})
+    with pytest.raises(PsctlError, match=r"run: training batch 1 has no object pixel \(0 samples seen; see "
+                                         r"data.shapes, data.blobby\): stopped; no checkpoint had been written"):
+        train("ps-fcn", cfg, tmp_path / "run", device="cpu")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_nan_validation_of_the_start_weights_trains_nothing(tmp_path, monkeypatch):
+    import psctl.train as T
+
+    train("ps-fcn", tiny(8), tmp_path / "first", device="cpu")
+    monkeypatch.setattr(T, "evaluate", lambda task, val: float("nan"))
+    with pytest.raises(PsctlError, match=r"validation mae of train.init's weights is nan .*: nothing was trained"):
+        train("ps-fcn", merge(tiny(8), {"train": {"init": str(tmp_path / "first" / "best.pt")}}), tmp_path / "run",
+              device="cpu")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_recipe_file_names_the_missing_file_and_checks_with_the_runs_crops(tmp_path):
+    """A review: load_config replaced the missing file's name by the recipe's, and checked data
+    against the stream's default crop (32), not train.crop."""
+    import yaml
+
+    base = yaml.safe_load((REPO / "configs" / "tiny.yaml").read_text())
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(yaml.safe_dump({**base, "data": {**base["data"], "mesh_cache": str(tmp_path / "nope.npz")}}))
+    with pytest.raises(PsctlError, match=r"nope.npz: not found \(synth stream option 'mesh_cache' names this file\) "
+                                         r"\(in the recipe .*r.yaml\)"):
+        load_config(recipe)
+    crop = base["train"]["crop"]
+    recipe.write_text(yaml.safe_dump({**base, "data": {**base["data"], "scale": [crop, 2 * crop]}}))
+    assert load_config(recipe)["data"]["scale"] == [crop, 2 * crop]
+
+
 def test_a_nan_validation_stops_the_run_and_is_never_kept(tmp_path, monkeypatch):
     """An audit: a recipe whose shapes rendered empty (blobby steps 0, refused now) validated at
     NaN, finished with exit 0 and --install installed its best.pt. A non-finite validation now
@@ -94,7 +131,7 @@ def test_a_nan_validation_stops_the_run_and_is_never_kept(tmp_path, monkeypatch)
                                 r"train.batch_size"),
     ("data", {"n_images": 3}, r"'data.n_images' .* give it as train.images_per_sample"),
     ("data", {"device": "cuda"}, r"'data.device' .* psctl train --device"),
-    ("val", {"data": {"seed": 5}}, r"'val.data.seed' .* train.seed \(val.seed\)"),
+    ("val", {"data": {"seed": 5}}, r"'val.data.seed' .* give it as val.seed$"),
 ])
 def test_stream_options_the_run_sets_are_refused_in_the_recipe(tmp_path, where, value, message):
     """An audit: data.batch_size, n_images, crop, seed and device were silently overridden by the
@@ -421,6 +458,8 @@ def test_install_refuses_a_file_without_its_validation(tmp_path, monkeypatch):
     with pytest.raises(PsctlError, match="no synthetic validation") as e:
         T.install_weights(tmp_path / "avg", "ps-fcn")
     assert str(bare) in str(e.value) and not (tmp_path / "w").exists()
+    with pytest.raises(PsctlError, match=r"'data.batch_size' is set by the run"):  # checked as training's (a review)
+        T.average_weights([run / "best.pt", twin], tmp_path / "avg_bad", config=merge(tiny(16), {"data": {"batch_size": 8}}))
     T.average_weights([run / "best.pt", twin], tmp_path / "avg_val", config=tiny(16))
     assert T.install_weights(tmp_path / "avg_val", "ps-fcn").is_file()
 
@@ -1086,7 +1125,7 @@ def test_a_checkpoint_file_from_another_point_of_the_run_is_refused(tmp_path, pa
         train("ps-fcn", cfg, tmp_path / "late", resume=True, device="cpu")
 
 
-@pytest.mark.parametrize("part", ["optim.0.pt", "model.pt"])
+@pytest.mark.parametrize("part", ["optim.0.pt", "model.pt", "stream.pt"])
 def test_another_runs_checkpoint_file_at_the_same_point_is_refused(tmp_path, part):
     """An audit: another run's model.pt or optimiser saved at the same sample count resumed
     without a word (validation 12.66 / 28.26 against 31.42 exactly), against docs/training.md's

@@ -63,8 +63,8 @@ def check_blobby(overrides: object, where: str = "synth stream option 'blobby'")
             want = "[lo, hi] with 0 <= lo <= hi"
         elif k in ("p_capsule", "p_torus", "p_box", "dents"):
             ok, want = is_number(v) and 0 <= v <= 1, "a chance: 0 to 1"
-        elif k == "features":
-            ok, want = whole(v) and v >= 0, "a whole number, 0 or more"
+        elif k == "features":  # (10^6 ran past a minute per chunk: a review)
+            ok, want = whole(v) and 0 <= v <= 1024, "a whole number, 0 to 1024"
         else:  # steps
             ok, want = whole(v) and v >= 1, "a whole number, 1 or more (sphere-tracing steps)"
         if not ok:
