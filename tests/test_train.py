@@ -251,7 +251,7 @@ def test_resume_continues_exactly(tmp_path):
 def test_resume_keeps_the_runs_recipe(tmp_path):
     cfg = tiny(16)
     train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
-    with pytest.raises(PsctlError, match=r"another recipe \(train.lr differ\)"):  # which key (an audit: none named)
+    with pytest.raises(PsctlError, match=r"another recipe \(train.lr differs\)"):  # which key (an audit: none named)
         train("ps-fcn", merge(cfg, {"train": {"lr": 0.5}}), tmp_path / "run", resume=True, device="cpu")
     with pytest.raises(PsctlError, match=r"another recipe \(data.noise, train.lr differ\)"):
         train("ps-fcn", merge(cfg, {"train": {"lr": 0.5}, "data": {"noise": 0.1}}), tmp_path / "run", resume=True,
