@@ -273,13 +273,24 @@ def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
         make_config(val_data, crop=config["val"]["size"])
 
 
-def memory_needed(config: dict, device: torch.device) -> float:
+# Host bytes of one CPU training step (forward and backward) per pixel of the network's input
+# side, per image, per sample, float32. Measured 2026-12-01 on the 2-core VM (session 67) as the
+# slope of psctl train's peak RSS over train.images_per_sample (batch 4, one step): PS-FCN about
+# 1,900 at crop 16 and 32, LCNet about 330 at 64. The guard takes about half (it is a lower
+# bound: configs/lcnet.yaml peaks at 5.3 GiB in all), and half again under amp.
+_STEP_BYTES = {"lcnet": 160.0}
+_STEP_BYTES_PS_FCN = 1000.0
+
+
+def memory_needed(config: dict, device: torch.device, method: str | None = None) -> float:
     """Bytes of host memory a run holds at least: the validation set (its stream batches and
     their network inputs side by side while it is made, float32), the validation stream's
-    geometry pool, and the training stream's where it lives on the CPU. Python, torch and
-    rendering come on top. Against peak RSS on the CPU (2026-11-29, 2-core VM, the validation set
-    made batch by batch): 0.95 GiB here and 1.7 GiB peak for configs/ps_fcn_n.yaml, 3.29 GiB and
-    5.3 GiB for configs/lcnet.yaml."""
+    geometry pool, the training stream's where it lives on the CPU, and with ``method`` a CPU
+    training step's activations (_STEP_BYTES: ``images_per_sample: 100000`` passed the guard and
+    ran out of memory after half a minute). Python, torch and rendering come on top. Against peak
+    RSS on the CPU (2026-11-29, 2-core VM, the validation set made batch by batch): 0.95 GiB here
+    (without the step) and 1.7 GiB peak for configs/ps_fcn_n.yaml, 3.29 GiB and 5.3 GiB for
+    configs/lcnet.yaml."""
     from psctl.synth.stream import make_config
 
     def pool(data: dict, crop: int) -> float:
@@ -290,20 +301,28 @@ def memory_needed(config: dict, device: torch.device) -> float:
     val_data = {**config["data"], **(v.get("data") or {})}
     n = math.ceil(v["samples"] / v["batch_size"]) * v["batch_size"]
     need = 2 * n * (3 * v["images"] + 4) * v["size"] ** 2 * 4 + pool(val_data, v["size"])
-    return need + (pool(config["data"], t["crop"]) if device.type == "cpu" else 0)
+    if device.type != "cpu":
+        return need
+    need += pool(config["data"], t["crop"])
+    if method is not None:
+        side = (config["data"].get("windows") or t["crop"]) if method == "ps-fcn-dagger" else t["crop"]
+        per = _STEP_BYTES.get(method, _STEP_BYTES_PS_FCN) * (0.5 if t["amp"] != "none" else 1.0)
+        need += per * t["batch_size"] * t["images_per_sample"] * side ** 2
+    return need
 
 
-def check_memory(config: dict, device: torch.device) -> None:
+def check_memory(config: dict, device: torch.device, method: str | None = None) -> None:
     """A recipe that needs more memory than the machine has is one line before minutes of
     rendering (``val.images: 100000`` was an out-of-memory kill, no word said)."""
     from psctl.synth import physical_memory
 
     total = physical_memory()
-    need = memory_needed(config, device)
+    need = memory_needed(config, device, method)
     if need > 0.8 * total:
         raise PsctlError(None, f"the recipe needs at least {need / 2**30:,.0f} GiB of memory, this machine has "
                                f"{total / 2**30:.0f} GiB: ask for less (the validation set: config 'val' samples, "
-                               f"images, size; the geometry pools: 'data' pool, size)")
+                               f"images, size; the geometry pools: 'data' pool, size; a training step: 'train' "
+                               f"batch_size, images_per_sample, crop)")
 
 
 def _unique_key_loader():
@@ -1243,7 +1262,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         config = check_recipe(config)  # a recipe given as a dict, not through load_config
         check_method_recipe(method, config, stream=make_stream is synth_stream)
         if make_stream is synth_stream:
-            check_memory(config, dev)
+            check_memory(config, dev, method)
     t = config["train"]
 
     use_amp, amp_dtype = amp_settings(t["amp"], dev)
