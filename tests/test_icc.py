@@ -160,6 +160,16 @@ def test_a_linear_profile_reads_as_stored_and_a_jpeg_profile_wins_over_the_srgb_
     (jpegs / "filenames.txt").write_text("\n".join(names) + "\n")
     cap = open_capture(jpegs)
     assert cap.profile_images == 12 and cap.srgb_images == 0 and cap.is_jpeg(0)
+    lin = tmp_path / "linjpeg"  # a JPEG with a linear profile reads as stored, and says so (a review)
+    lin.mkdir()
+    write_image(lin / "a.jpg", np.full((8, 8, 3), 0.5, np.float32), "uint8", kind="data",
+                icc=rgb_profile("linear", curv_gamma(1.0)))
+    write_image(lin / "b.jpg", np.full((8, 8, 3), 0.5, np.float32), "uint8", kind="data")
+    from psctl.io.capture import capture_notes
+
+    assert "encoding: a.jpg: JPEG with a linear ICC profile, read as stored (--encoding srgb decodes them from " \
+           "sRGB)" in capture_notes(open_capture(lin))
+    assert open_capture(lin).decoding(1) == "srgb"
     write_capture(tmp_path / "plain8", n=12, size=48, bits=8)  # the same capture stored linear in 8 bits
     assert run_normals(jpegs, method="l2", write=False)["mae"] < \
         run_normals(tmp_path / "plain8", method="l2", write=False)["mae"] + 0.5
