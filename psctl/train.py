@@ -276,8 +276,8 @@ def check_method_recipe(method: str, config: dict, stream: bool = True) -> None:
 # Host bytes of one CPU training step (forward and backward) per pixel of the network's input
 # side, per image, per sample, float32. Measured 2026-12-01 on the 2-core VM (session 67) as the
 # slope of psctl train's peak RSS over train.images_per_sample (batch 4, one step): PS-FCN about
-# 1,900 at crop 16 and 32, LCNet about 330 at 64. The guard takes about half (it is a lower
-# bound: configs/lcnet.yaml peaks at 5.3 GiB in all), and half again under amp.
+# 1,400 (crop 16) to 1,900 (crop 16 -> 32), LCNet about 330 at 64. The guard takes less (it is a
+# lower bound: configs/lcnet.yaml peaks at 5.3 GiB in all), and half that where amp runs.
 _STEP_BYTES = {"lcnet": 160.0}
 _STEP_BYTES_PS_FCN = 1000.0
 
@@ -306,7 +306,7 @@ def memory_needed(config: dict, device: torch.device, method: str | None = None)
     need += pool(config["data"], t["crop"])
     if method is not None:
         side = (config["data"].get("windows") or t["crop"]) if method == "ps-fcn-dagger" else t["crop"]
-        per = _STEP_BYTES.get(method, _STEP_BYTES_PS_FCN) * (0.5 if t["amp"] != "none" else 1.0)
+        per = _STEP_BYTES.get(method, _STEP_BYTES_PS_FCN) * (0.5 if amp_settings(t["amp"], device)[0] else 1.0)
         need += per * t["batch_size"] * t["images_per_sample"] * side ** 2
     return need
 

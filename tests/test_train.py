@@ -1050,7 +1050,7 @@ def test_a_damaged_best_pt_stops_resume(tmp_path):
         train("ps-fcn", tiny(16), run, resume=True, device="cpu")
 
 
-def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
+def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path, monkeypatch):
     """val.images: 100000 rendered for minutes and was killed for memory without a word."""
     from psctl.train import check_memory, memory_needed
 
@@ -1077,6 +1077,17 @@ def test_a_recipe_too_large_for_memory_is_one_line_before_any_work(tmp_path):
     steps = merge(cfg, {"train": {"images_per_sample": 100_000}})
     assert memory_needed(steps, torch.device("cpu"), "ps-fcn") > 2**36 > memory_needed(steps, torch.device("cpu"))
     assert memory_needed(steps, torch.device("cuda"), "ps-fcn") == memory_needed(steps, torch.device("cuda"))
+    # under amp the step counts half, where amp really runs: not with bf16 on a CPU without it (a review)
+    import psctl.infer
+
+    bf16 = merge(steps, {"train": {"amp": "bf16"}})
+    base = memory_needed(steps, torch.device("cpu"))
+    with monkeypatch.context() as m:
+        m.setattr(psctl.infer, "cpu_has_bf16", lambda: True)
+        half = memory_needed(bf16, torch.device("cpu"), "ps-fcn") - base
+        m.setattr(psctl.infer, "cpu_has_bf16", lambda: False)
+        full = memory_needed(bf16, torch.device("cpu"), "ps-fcn") - base
+    assert full == pytest.approx(2 * half) and full == pytest.approx(memory_needed(steps, torch.device("cpu"), "ps-fcn") - base)
     with pytest.raises(PsctlError, match=r"needs at least [\d,]+ GiB of memory, .*a training step: 'train' "
                                          r"batch_size, images_per_sample, crop"):
         train("ps-fcn", steps, tmp_path / "run", device="cpu")

@@ -1312,14 +1312,16 @@ def capture_notes(capture: Capture) -> list[str]:
                     f"(--encoding linear reads them as stored)"]
 
 
-# images whose EXIF exposures differ by more than this factor get a note (EXIF's values are nominal)
-EXPOSURE_SPREAD = 1.02
+# images whose EXIF exposures differ by more than this factor get a note: EXIF's values are the
+# nominal ones (1/125 s for 1/128, f/11 for f/11.3: up to about 6 % in time x ISO / N^2), so a
+# capture compensated in nominal steps must not get it; a third of a stop is 26 %
+EXPOSURE_SPREAD = 1.12
 
 
 def relative_exposures(capture: Capture) -> np.ndarray | None:
-    """Each image's exposure from its EXIF header, time x ISO / f-number^2, over the median image's;
-    only the factors that every image's header gives count. None when no factor is given by all
-    the images."""
+    """Each image's exposure from its EXIF header, time x ISO / f-number^2, over the images'
+    median; only the factors that every image's header gives count. None when no factor is given
+    by all the images, or for a single image."""
     if not capture.exposures or capture.n_images < 2:
         return None
     e = np.asarray(capture.exposures, np.float64)  # [N, 3]: time, f-number, ISO

@@ -62,8 +62,8 @@ class ToneCurve:
         """Stored values (any shape [..., C], C <= 3; integer files' in [0, 1]) -> linear values,
         float32. Values in [0, 1] are looked up at 1/65535 steps (exact for 8- and 16-bit
         files); a float file's values outside it follow the curve beyond (a gamma or parametric
-        curve's formula, a table's end slope; below 0, mirrored), as ``srgb_to_linear`` does, not
-        clipped."""
+        curve's formula, a table's end slope; below 0, mirrored), not clipped (as
+        ``srgb_to_linear`` does not clip, though it carries its linear segment on below 0)."""
         values = np.asarray(values, np.float32)
         out = np.empty(values.shape, np.float32)
         tables = self._tables
