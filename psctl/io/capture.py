@@ -1287,11 +1287,11 @@ def capture_notes(capture: Capture) -> list[str]:
         if misnamed:
             notes.append(f"encoding: {few(misnamed)}: named JPEG but "
                          f"not JPEG data, read as linear as their content's format is (--encoding srgb decodes them)")
-    linear_jpegs = [capture.image_paths[k].name for k in range(capture.n_images)
-                    if capture.encoding == "auto" and capture.is_jpeg(k) and capture.decoding(k) is None]
-    if linear_jpegs:  # JPEGs are otherwise decoded from sRGB: say why these are not
-        notes.append(f"encoding: {few(linear_jpegs)}: JPEG with a linear ICC profile, read as stored (--encoding "
-                     f"srgb decodes them from sRGB)")
+        linear_jpegs = [p.name for k, p in enumerate(capture.image_paths)
+                        if capture.is_jpeg(k) and capture.decoding(k) is None]
+        if linear_jpegs:  # JPEGs are otherwise decoded from sRGB: say why these are not
+            notes.append(f"encoding: {few(linear_jpegs)}: JPEG with a linear ICC profile, read as stored (--encoding "
+                         f"srgb decodes them from sRGB)")
     profiled = [k for k in range(capture.n_images) if isinstance(capture.decoding(k), ToneCurve)]
     if profiled:  # a TIFF or PNG exported with a tone curve (Adobe RGB, ProPhoto, sRGB) says so in its profile
         kinds = sorted({capture.decoding(k).describe() for k in profiled})

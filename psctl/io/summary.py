@@ -115,10 +115,12 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
     """What a capture folder holds, as a JSON-ready dict. ``check``: also decode every file
     (``check_pixels``) under the key ``check``; otherwise only headers and text files are read."""
     from psctl.io.capture import capture_notes, load_mask, open_capture, relative_exposures
+    from psctl.io.icc import ToneCurve
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
-    srgb, profiled = cap.srgb_images, cap.profile_images
+    curves = [d for d in map(cap.decoding, range(cap.n_images)) if isinstance(d, ToneCurve)]
+    srgb, profiled = cap.srgb_images, len(curves)
     exposures = relative_exposures(cap)
     e = cap.intensities
     kinds = sorted(set(cap.kinds))  # from the headers open_capture read
@@ -142,8 +144,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "srgb_images": srgb,
         "profile_images": profiled,
         # the curves of the profiles decoded through ('Adobe RGB (1998)', gamma 2.2), each once
-        "profiles": sorted({cap.decoding(k).describe() for k in range(cap.n_images)
-                            if not isinstance(cap.decoding(k), (str, type(None)))}),
+        "profiles": sorted({d.describe() for d in curves}),
         "calibrated": cap.calibrated,
         "intensities": cap.intensities_path.name if cap.intensities_path else "none (all ones)",
         "lights": cap.lights_path.name if cap.lights_path else None,
@@ -154,9 +155,8 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "ground_truth": cap.gt_path.name if cap.gt_path else None,
         "ambient": cap.ambient_path.name if cap.ambient_path else None,
         "ambient_srgb": bool(cap.ambient_path and cap.is_srgb(cap.ambient_path)),
-        "ambient_profile": bool(cap.ambient_path and cap.decoding(cap.ambient_path) is not None
-                                and not cap.is_srgb(cap.ambient_path)),
-        # each image's EXIF exposure over the median image's (time x ISO / f-number^2), null without EXIF:
+        "ambient_profile": bool(cap.ambient_path and isinstance(cap.decoding(cap.ambient_path), ToneCurve)),
+        # each image's EXIF exposure over the images' median (time x ISO / f-number^2), null without EXIF:
         # what to multiply light_intensities.txt's rows by where they differ (the exposure note)
         "relative_exposures": None if exposures is None else [round(float(v), 6) for v in exposures],
         "first_image": cap.image_paths[0].name,
