@@ -81,7 +81,7 @@ def make(out: Path, size: int = 128, n_lights: int = 24, ss: int = 4) -> None:
     scale = 0.95 / peak  # expose so the brightest pixel is just below white
     for i, img in enumerate(imgs):
         name = f"{i + 1:03d}.png"
-        write_image(out / name, img * scale, "uint16")
+        write_image(out / name, img * scale, "uint16", kind="linear")  # PNG gAMA 1: linear radiance, not sRGB
         names.append(name)
     mask = pool(mask_ss.astype(np.float64)) > 0.999  # pixels fully inside the object
     normals = pool(n_ss)
@@ -91,13 +91,13 @@ def make(out: Path, size: int = 128, n_lights: int = 24, ss: int = 4) -> None:
     np.savetxt(out / "light_directions.txt", lights, fmt="%.6f")
     # images were scaled by `scale`, so the intensities psctl divides by include it
     np.savetxt(out / "light_intensities.txt", intensities * scale, fmt="%.6f")
-    write_image(out / "mask.png", mask.astype(np.float32), "uint8")
+    write_image(out / "mask.png", mask.astype(np.float32), "uint8", kind="data")
     scipy.io.savemat(out / "Normal_gt.mat", {"Normal_gt": normals}, do_compression=True)
     # the MAT header's 116 bytes of text carry the time of writing: a fixed text keeps the file
     # the same from run to run (what the docstring promises)
     mat = (out / "Normal_gt.mat").read_bytes()
     (out / "Normal_gt.mat").write_bytes(b"MATLAB 5.0 MAT-file, written by psctl examples/make_example.py".ljust(116) + mat[116:])
-    write_image(out / "Normal_gt.png", np.where(mask[..., None], (normals + 1) / 2, 0), "uint16")
+    write_image(out / "Normal_gt.png", np.where(mask[..., None], (normals + 1) / 2, 0), "uint16", kind="data")
 
 
 if __name__ == "__main__":

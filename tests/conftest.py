@@ -100,18 +100,18 @@ def write_capture(folder: Path, n: int = 12, size: int = 40, bits: int = 16, int
     names = []
     for k in range(n):
         name = f"{k + 1:03d}.png"
-        write_image(folder / name, imgs[k], "uint16" if bits == 16 else "uint8")
+        write_image(folder / name, imgs[k], "uint16" if bits == 16 else "uint8", kind="linear")  # as psctl synth
         names.append(name)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
     np.savetxt(folder / "light_directions.txt", lights, fmt="%.6f")
     if intensities:
         np.savetxt(folder / "light_intensities.txt", e / 1.6, fmt="%.6f")
     if mask:
-        write_image(folder / "mask.png", m.astype(np.float32), "uint8")
+        write_image(folder / "mask.png", m.astype(np.float32), "uint8", kind="data")
     if gt == "mat":
         scipy.io.savemat(folder / "Normal_gt.mat", {"Normal_gt": normals.astype(np.float64)})
     elif gt == "png":
-        write_image(folder / "Normal_gt.png", np.where(m[..., None], (normals + 1) / 2, 0), "uint16")
+        write_image(folder / "Normal_gt.png", np.where(m[..., None], (normals + 1) / 2, 0), "uint16", kind="data")
     return {"normals": normals, "mask": m, "lights": lights, "intensities": e / 1.6, "images": imgs}
 
 

@@ -81,6 +81,11 @@ class Capture:
     tones: tuple[ToneCurve | None, ...] = ()  # each image's embedded ICC profile's tone curves (psctl.io.icc)
     ambient_tone: ToneCurve | None = None  # the ambient image's
     exposures: tuple[tuple[float, float, float], ...] = ()  # each image's EXIF time (s), f-number, ISO (0: none)
+    # each image's embedded ICC profile that gives no tone curves: why (ImageInfo.profile_problem; "": none)
+    profile_problems: tuple[str, ...] = ()
+    png_tags: tuple[str, ...] = ()  # what each PNG's colour chunks say its values are (ImageInfo.png_tag)
+    ambient_problem: str = ""  # the ambient image's profile_problem
+    ambient_png_tag: str = ""  # the ambient image's png_tag
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -164,6 +169,8 @@ class Capture:
             jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
             tones=tuple(self.tones[i] for i in idx) if self.tones else (),
             exposures=tuple(self.exposures[i] for i in idx) if self.exposures else (),
+            profile_problems=tuple(self.profile_problems[i] for i in idx) if self.profile_problems else (),
+            png_tags=tuple(self.png_tags[i] for i in idx) if self.png_tags else (),
             pages=tuple(self.pages[i] for i in idx) if self.pages else (),
             layers=tuple(self.layers[i] for i in idx) if self.layers else (),
             windowed=tuple(self.windowed[i] for i in idx) if self.windowed else (),
@@ -701,6 +708,9 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
         tones=tuple(i.tone for i in infos), ambient_tone=None if ambient_info is None else ambient_info.tone,
         exposures=tuple(i.exposure for i in infos),
+        profile_problems=tuple(i.profile_problem for i in infos), png_tags=tuple(i.png_tag for i in infos),
+        ambient_problem="" if ambient_info is None else ambient_info.profile_problem,
+        ambient_png_tag="" if ambient_info is None else ambient_info.png_tag,
         orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
         channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
         pages=tuple(i.pages for i in infos), layers=tuple(i.layer for i in infos),
@@ -1292,6 +1302,8 @@ def capture_notes(capture: Capture) -> list[str]:
         if linear_jpegs:  # JPEGs are otherwise decoded from sRGB: say why these are not
             notes.append(f"encoding: {few(linear_jpegs)}: JPEG with a linear ICC profile, read as stored (--encoding "
                          f"srgb decodes them from sRGB)")
+    if capture.encoding == "auto":
+        notes += tag_notes(capture)
     profiled = [k for k in range(capture.n_images) if isinstance(capture.decoding(k), ToneCurve)]
     if profiled:  # a TIFF or PNG exported with a tone curve (Adobe RGB, ProPhoto, sRGB) says so in its profile
         kinds = sorted({capture.decoding(k).describe() for k in profiled})
@@ -1310,6 +1322,54 @@ def capture_notes(capture: Capture) -> list[str]:
         which += f" ({few(named)}: JPEG data, by their content)"
     return notes + [f"encoding: {which} are JPEG, decoded from sRGB to linear as camera JPEGs are encoded "
                     f"(--encoding linear reads them as stored)"]
+
+
+def _which(capture: Capture, names: list[str]) -> str:
+    """"all images" or "3 of 12 images (a.png, b.png, c.png)"; the ambient image by name."""
+    images = [n for n in names if capture.ambient_path is None or n != capture.ambient_path.name]
+    which = "all images" if len(images) == capture.n_images else \
+        f"{len(images)} of {capture.n_images} images ({few(images)})" if images else ""
+    return " and ".join(part for part in (which, "" if len(images) == len(names) else capture.ambient_path.name) if part)
+
+
+def tag_notes(capture: Capture) -> list[str]:
+    """Notes (``encoding`` auto) on what the files say of their encoding that psctl does not
+    follow: an ICC profile without tone curves psctl can read (read as without one), and a PNG's
+    sRGB or gAMA chunk (read as stored, as linear: many programs write one into every PNG, and
+    DiLiGenT's PNGs, which are linear, have none)."""
+    notes = []
+    files = [(p, k) for k, p in enumerate(capture.image_paths)]
+    files += [(capture.ambient_path, capture.ambient_path)] if capture.ambient_path is not None else []
+
+    def problem(k):
+        return capture.ambient_problem if isinstance(k, Path) else \
+            capture.profile_problems[k] if capture.profile_problems else ""
+
+    def tag(k):
+        return capture.ambient_png_tag if isinstance(k, Path) else capture.png_tags[k] if capture.png_tags else ""
+
+    unread = [(p.name, problem(k)) for p, k in files if problem(k)]
+    if unread:  # read as a file without a profile: JPEG data from sRGB, the rest as stored
+        why = "; ".join(sorted({w for _, w in unread}))
+        notes.append(f"encoding: {_which(capture, [n for n, _ in unread])} embed an ICC profile that psctl cannot "
+                     f"take tone curves from ({why}): read as files without one are (JPEG data decoded from sRGB, "
+                     f"others as stored); --encoding linear or srgb says which they are")
+    tagged: dict[str, list[str]] = {}
+    for p, k in files:  # (a profile, read or not, outranks the chunks, as the PNG standard says)
+        if tag(k) and not problem(k) and (capture.ambient_tone if isinstance(k, Path) else
+                                          capture.tones[k] if capture.tones else None) is None:
+            tagged.setdefault(tag(k), []).append(p.name)
+    for t, names in tagged.items():
+        which = _which(capture, names)
+        if t in ("sRGB", "gamma 2.2"):  # what libpng's and OpenImageIO's writers put in by default
+            notes.append(f"encoding: {which} say {t} in their PNG chunks but are read as stored, as linear (as "
+                         f"DiLiGenT's PNGs, which say nothing; many programs tag every PNG sRGB): if they came from "
+                         f"a camera's JPEGs or an editor, use --encoding srgb; --encoding linear drops this note")
+        else:
+            notes.append(f"encoding: {which} say {t} in their PNG gAMA chunks but are read as stored, as linear "
+                         f"(psctl decodes sRGB, --encoding srgb, but no other curve without an ICC profile): if so "
+                         f"encoded, convert them to linear first; --encoding linear drops this note")
+    return notes
 
 
 # images whose EXIF exposures differ by more than this factor get a note: EXIF's values are the

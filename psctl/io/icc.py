@@ -174,14 +174,14 @@ def _description(data: bytes, at: int, size: int) -> str:
 
 
 @functools.lru_cache(maxsize=64)  # a capture's images share one profile: parsed once, one table kept
-def tone_curve(profile: bytes) -> ToneCurve | None:
-    """The tone curves of an ICC profile (its bytes, as an image file embeds them); None when the
-    profile is not an RGB or grey one with curv/para curves, or cannot be parsed, or a curve
-    decreases."""
+def read_profile(profile: bytes) -> ToneCurve | str:
+    """The tone curves of an ICC profile (its bytes, as an image file embeds them), or a few words
+    on why psctl cannot take them from it: not an RGB or grey profile, no curv/para curves (a
+    lookup-table profile), a curve that decreases, damaged."""
     data = bytes(profile)
     try:
         if len(data) < 132 or data[36:40] != b"acsp":
-            return None
+            return "not an ICC profile, or damaged"
         space = data[16:20]
         (count,) = struct.unpack_from(">I", data, 128)
         tags = {}
@@ -189,17 +189,29 @@ def tone_curve(profile: bytes) -> ToneCurve | None:
             sig, offset, size = struct.unpack_from(">4sII", data, 132 + 12 * i)
             if offset + size <= len(data):
                 tags[sig] = (offset, size)
-        wanted = (b"rTRC", b"gTRC", b"bTRC") if space == b"RGB " else (b"kTRC",) * 3 if space == b"GRAY" else None
-        if wanted is None or any(t not in tags for t in wanted):
-            return None
-        curves = tuple(_curve(data, *tags[t]) for t in wanted)
-        if any(c is None for c in curves):
-            return None
-        x = np.linspace(0.0, 1.0, 257)
-        if any((np.diff(_evaluate(c, x)) < -1e-6).any() or _evaluate(c, x)[-1] <= 0 for c in curves):
-            return None  # a curve that falls somewhere (an inverted picture) or stays black: no camera's or editor's
         name = _description(data, *tags[b"desc"]) if b"desc" in tags else ""
         name = " ".join("".join(ch if ch.isprintable() else " " for ch in name).split())  # one line in notes
+        named = f"'{name}': " if name else ""
+        wanted = (b"rTRC", b"gTRC", b"bTRC") if space == b"RGB " else (b"kTRC",) * 3 if space == b"GRAY" else None
+        if wanted is None:
+            space = space.decode("latin-1").strip() or "?"
+            return f"{named}a {space if space.isprintable() else '?'} profile, not an RGB or grey one"
+        if any(t not in tags for t in wanted):
+            return f"{named}no tone curves (a lookup-table profile)"
+        curves = tuple(_curve(data, *tags[t]) for t in wanted)
+        if any(c is None for c in curves):
+            return f"{named}a tone curve of a kind psctl does not read, or damaged"
+        x = np.linspace(0.0, 1.0, 257)
+        if any((np.diff(_evaluate(c, x)) < -1e-6).any() or _evaluate(c, x)[-1] <= 0 for c in curves):
+            # no camera's or editor's: an inverted picture's, or one that stays black
+            return f"{named}a tone curve that falls or stays black"
         return ToneCurve(name, curves)
     except (struct.error, UnicodeDecodeError, IndexError):
-        return None
+        return "damaged"
+
+
+def tone_curve(profile: bytes) -> ToneCurve | None:
+    """The tone curves of an ICC profile (``read_profile``); None when psctl cannot take them from
+    it (``read_profile`` says why)."""
+    read = read_profile(profile)
+    return read if isinstance(read, ToneCurve) else None

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import sys
 import threading
 from collections.abc import Iterator
@@ -22,7 +23,7 @@ import numpy as np
 
 from psctl.errors import C_STDERR, PsctlError, not_a_file
 from psctl.io.atomic import atomic_path, utf8_path
-from psctl.io.icc import ToneCurve, tone_curve
+from psctl.io.icc import ToneCurve, read_profile
 
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 
@@ -71,6 +72,10 @@ class ImageInfo:
     tone: "ToneCurve | None" = None
     # the EXIF exposure: time (s), f-number, ISO; 0 where the header has no such tag
     exposure: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # why the file's embedded ICC profile gives no tone curves (psctl.io.icc.read_profile); "": none, or read
+    profile_problem: str = ""
+    # what a PNG's colour chunks say its values are: "sRGB", "gamma 2.2" (a gAMA chunk), "" (neither, or linear)
+    png_tag: str = ""
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
@@ -193,15 +198,54 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         while pages < 10_000 and inp.seek_subimage(pages, 0):
             pages += 1
         profile = spec.getattribute("ICCProfile")
-        tone = None if profile is None else tone_curve(bytes(np.asarray(profile, np.uint8)))
+        read = None if profile is None else read_profile(bytes(np.asarray(profile, np.uint8)))
+        tone, problem = (read, "") if not isinstance(read, str) else (None, read)
         exposure = (_tag_number(spec, "ExposureTime", 0.0, 1e5), _tag_number(spec, "FNumber", 0.1, 1000.0),
                     _tag_number(spec, "Exif:PhotographicSensitivity", 0.0, 1e7) or
                     _tag_number(spec, "Exif:ISOSpeedRatings", 0.0, 1e7))
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
                          inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
-                         tuple(spec.channelnames), tone, exposure)
+                         tuple(spec.channelnames), tone, exposure, problem,
+                         png_colour_tag(path) if inp.format_name() == "png" else "")
     finally:
         inp.close()
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_colour_tag(path: str | os.PathLike) -> str:
+    """What a PNG file's colour chunks before its pixels say its values are: "sRGB" (an sRGB
+    chunk), "gamma G" (a gAMA chunk: G 2.2 for the 0.45455 that programs write for sRGB), or ""
+    (neither, or a gAMA of 1: linear). OpenImageIO's oiio:ColorSpace cannot tell: it says sRGB
+    for a PNG without either chunk too. (An iCCP chunk is read as the file's ICC profile, which
+    the PNG standard puts first.)"""
+    srgb, gamma = False, 0.0
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != PNG_SIGNATURE:
+                return ""
+            for _ in range(1000):  # chunks before the pixels: a few, unless the file is damaged
+                head = f.read(8)
+                if len(head) < 8:
+                    break
+                size, kind = struct.unpack(">I4s", head)
+                if kind in (b"IDAT", b"IEND"):
+                    break
+                body = f.read(size) if kind in (b"sRGB", b"gAMA") and size <= 4 else None
+                if body is None:
+                    f.seek(size, os.SEEK_CUR)
+                f.seek(4, os.SEEK_CUR)  # the chunk's CRC
+                srgb |= kind == b"sRGB" and body is not None and len(body) == 1
+                if kind == b"gAMA" and body is not None and len(body) == 4:
+                    gamma = struct.unpack(">I", body)[0] / 100000.0
+    except OSError:
+        return ""
+    if srgb:  # sRGB outranks gAMA (the PNG standard; writers add a gAMA of 0.45455 beside it)
+        return "sRGB"
+    if gamma <= 0 or abs(1.0 / gamma - 1.0) <= 0.01:
+        return ""
+    return f"gamma {1.0 / gamma:.3g}"
 
 
 def icc_profile(path: str | os.PathLike) -> bytes | None:

@@ -110,6 +110,13 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     }
 
 
+def _in_rows(note: str) -> bool:
+    """Whether ``psctl info``'s encoding and ambient rows already say what a note says: how the
+    images are decoded does; a note that some are read as stored against what their files
+    suggest (a JPEG name, a PNG chunk, an unreadable or linear profile) does not."""
+    return note.startswith("ambient:") or (note.startswith("encoding:") and "read as" not in note)
+
+
 def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: bool = False,
                      progress: Callable[[str, int], Callable[[int], None]] | None = None) -> dict:
     """What a capture folder holds, as a JSON-ready dict. ``check``: also decode every file
@@ -291,7 +298,7 @@ def render_info(report: dict) -> None:
                       f"at the top code value", highlight=False, soft_wrap=True)
         print_notes(con, report.get("notes", []))
         for o in report["objects"]:  # what psctl eval would say of each (encoding and ambient are columns)
-            notes = [n for n in o.get("notes", []) if not n.startswith(("ambient:", "encoding:"))]
+            notes = [n for n in o.get("notes", []) if not _in_rows(n)]
             print_notes(con, notes + (o["check"]["notes"] if checked else []), f"{o['object']}: ")
         return
     r = report
@@ -344,7 +351,7 @@ def render_info(report: dict) -> None:
             ", decoded through its ICC profile" if r.get("ambient_profile") else ""
         t.add_row("ambient", escape(f"{r['ambient']}{decoded}, subtracted from every image"))
     con.print(t)
-    print_notes(con, [n for n in r.get("notes", []) if not n.startswith(("ambient:", "encoding:"))])  # rows above
+    print_notes(con, [n for n in r.get("notes", []) if not _in_rows(n)])
     if "check" in r:
         _render_check(con, r["check"])
         return
