@@ -523,11 +523,10 @@ def run_undistort(path: str | os.PathLike, out: str | os.PathLike, K: "str | os.
     with staged_outputs(out_dir, replaces=lambda: read_outputs_list(out_dir, COMMAND)) as stage:
         for p in images:
             pixels, info = read_image(p)
-            # a file tagged linear (psctl synth's PNGs, EXRs) stays tagged so, a PNG tagged sRGB so (psctl reads
-            # both as stored; the tag is the file's own word, which psctl's note repeats); others carry no tag
-            kind = "picture" if info.png_tag in ("sRGB", "gamma 2.2") and p.suffix.lower() == ".png" else \
-                "linear" if "lin" in info.color_space.lower() else "data"
-            write_image(stage / p.name, remap(pixels, m), _write_dtype(info.dtype, info.bits, p.suffix.lower()), kind=kind,
+            # a file tagged linear (psctl synth's PNGs, EXRs) stays tagged so, a PNG tagged sRGB or a gamma so
+            # (psctl reads it as stored, and its note repeats the file's word); others carry no tag
+            write_image(stage / p.name, remap(pixels, m), _write_dtype(info.dtype, info.bits, p.suffix.lower()),
+                        kind="linear" if "lin" in info.color_space.lower() else "data", png_tag=info.png_tag,
                         icc=icc_profile(p))  # its profile (tone curves) goes with it
             advance(1)
         for p in copies:

@@ -340,7 +340,7 @@ def test_mesh_colours_from_albedo_png_and_exr_agree(tmp_path):
     tex[rng.random((32, 32)) < 0.03, 0] = 1.5
     shading = np.clip(np.einsum("hwc,nc->nhw", arrays["normals"], arrays["lights"]), 0, None) * arrays["mask"]
     for k in range(12):
-        write_image(folder / f"{k + 1:03d}.png", tex * shading[k][..., None] / 1.6, "uint16")
+        write_image(folder / f"{k + 1:03d}.png", tex * shading[k][..., None] / 1.6, "uint16", kind="linear")
     colours = []
     for fmt in ("exr", "png16"):
         psctl.run_normals(folder, method="l2", albedo=True, formats=(fmt,))
@@ -387,7 +387,7 @@ def test_the_albedo_with_an_ambient_image_and_its_ratios_in_a_file(tmp_path, mon
     folder = tmp_path / "sphere"
     made = write_capture(folder, n=12, size=32)
     ambient = np.full((32, 32, 3), 0.05, np.float32)
-    write_image(folder / "ambient.png", ambient, "uint16")
+    write_image(folder / "ambient.png", ambient, "uint16", kind="linear")
     for k in range(12):  # the room light in every image
         p = folder / f"{k + 1:03d}.png"
         write_image(p, read_image(p)[0] + ambient, "uint16")

@@ -24,8 +24,8 @@ def _with_ambient(folder, level: float = 0.08):
     ramp = np.linspace(0.5, 1.0, w, dtype=np.float32)[None, :, None] * np.array([1.0, 0.9, 0.8], np.float32)
     ambient = np.broadcast_to(level * ramp, (h, w, 3)).copy()
     for k, img in enumerate(data["images"]):
-        write_image(folder / f"{k + 1:03d}.png", img + ambient, "uint16")
-    write_image(folder / "ambient.png", ambient, "uint16")
+        write_image(folder / f"{k + 1:03d}.png", img + ambient, "uint16", kind="linear")
+    write_image(folder / "ambient.png", ambient, "uint16", kind="linear")
     return data
 
 

@@ -766,7 +766,7 @@ def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weight
     assert by_light.info["by"] == "brightness" and (by_light.mask is None or iou(by_light.mask) < 0.8)
     assert any("told from it by shading" in n for n in found.notes)
     for k, img in enumerate(images):
-        write_image(tmp_path / f"{k:03d}.png", img, "uint16")
+        write_image(tmp_path / f"{k:03d}.png", img, "uint16", kind="linear")
     np.savetxt(tmp_path / "light_directions.txt", lights)
     brightness, profiles = capture_shading(open_capture(tmp_path))
     assert np.array_equal(find_object(brightness, profiles).mask, found.mask)
@@ -927,7 +927,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     dark = write_capture(tmp_path / "cut", n=6, size=24, mask=False)
     for k, img in enumerate(dark["images"]):
         img[:, :9] = 0  # the sphere's left part unlit in every image: not found
-        write_image(tmp_path / "cut" / f"{k + 1:03d}.png", img, "uint16")
+        write_image(tmp_path / "cut" / f"{k + 1:03d}.png", img, "uint16", kind="linear")
     truth = np.linalg.norm(dark["normals"], axis=-1) > 0.5
     cut: dict = {}
     r = run_normals(tmp_path / "cut", method="ps-fcn", weights=w, write=False, device="cpu", arrays=cut)

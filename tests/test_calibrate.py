@@ -68,7 +68,7 @@ def write_sphere_folder(folder, kind: str, n: int = 10, size: int = 64, mask: bo
     cx, cy, r = circle or (size / 2 - 0.3, size / 2 + 0.6, size * 0.4)
     imgs = sphere_views(lights, size, cx, cy, r, kind, e)
     for k in range(n):
-        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16", kind="linear")
     if mask:
         write_image(folder / "mask.png", disk(size, size, cx, cy, r).astype(np.float32), "uint8")
     if lights_file:
@@ -224,7 +224,7 @@ def test_chrome_highlight_at_the_rim_gets_a_note(tmp_path):
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)
     imgs = sphere_views(lights, 80, 80 / 2 - 0.3, 80 / 2 + 0.6, 32.0, "chrome")
     for k in range(4):
-        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16", kind="linear")
     (folder / "light_directions.txt").unlink()
     (folder / "light_intensities.txt").unlink()
     r = run_calibrate(folder, "chrome", write=False)
@@ -276,7 +276,7 @@ def test_a_highlight_cut_by_the_image_edge_is_refused_or_noted(tmp_path):
     lights = np.array([at(20, 0), at(30, 90), at(40, 180), at(25, 300)])
     imgs = sphere_views(lights, 80, 8.0, 40.0, 36.0, "chrome")
     for k in range(4):
-        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16")
+        write_image(folder / f"{k + 1:03d}.png", np.clip(imgs[k], 0, 1), "uint16", kind="linear")
     write_image(folder / "mask.png", disk(80, 80, 8.0, 40.0, 36.0).astype(np.float32), "uint8")
     with pytest.raises(PsctlError, match=r"003.png: has its highlight at the image's edge, where the sphere goes on "
                                          r"beyond the image"):

@@ -204,8 +204,8 @@ def test_info_check_decodes_every_file(tmp_path):
     assert "check" not in r  # headers only unless asked
     img = truth["images"][2].copy()
     img[truth["mask"]] = 1.0  # every object pixel at 65535
-    write_image(folder / "003.png", img, "uint16")
-    write_image(folder / "005.png", np.zeros((40, 40, 3)), "uint16")  # a light that did not fire
+    write_image(folder / "003.png", img, "uint16", kind="linear")
+    write_image(folder / "005.png", np.zeros((40, 40, 3)), "uint16", kind="linear")  # a light that did not fire
     c = json.loads(cli("info", folder, "--check", "--json").stdout)["check"]
     assert [x["image"] for x in c["images"]] == [f"{k:03d}.png" for k in range(1, 7)]
     assert c["saturated_images"] == ["003.png"] and c["images"][2]["saturated"] == 1.0
@@ -216,10 +216,10 @@ def test_info_check_decodes_every_file(tmp_path):
     assert c["mean_range"][1] == pytest.approx(np.median([x["mean"] for x in c["images"]]))  # the median, not the mean
     red = truth["images"][3].copy()
     red[truth["mask"], 0] = 1.0  # only the red channel clipped: saturated all the same
-    write_image(folder / "004.png", red, "uint16")
+    write_image(folder / "004.png", red, "uint16", kind="linear")
     c = json.loads(cli("info", folder, "--check", "--json").stdout)["check"]
     assert c["images"][3]["saturated"] == 1.0 and c["saturated_images"] == ["003.png", "004.png"]
-    write_image(folder / "004.png", truth["images"][3], "uint16")
+    write_image(folder / "004.png", truth["images"][3], "uint16", kind="linear")
     assert len(c["notes"]) == 1 and c["notes"][0].startswith("images: 1 of 6 black over the object (005.png)")
     out = cli("info", folder, "--check").stdout
     assert "saturated: 1 of 6 images" in out and "003.png, 100.0%" in out and "005.png" in out
@@ -240,7 +240,7 @@ def test_info_check_stops_where_normals_would(tmp_path):
     dark = tmp_path / "dark"
     write_capture(dark, n=4)
     for k in range(1, 5):
-        write_image(dark / f"{k:03d}.png", np.zeros((40, 40, 3)), "uint16")
+        write_image(dark / f"{k:03d}.png", np.zeros((40, 40, 3)), "uint16", kind="linear")
     for args in (("info", dark, "--check"), ("normals", dark, "-m", "l2", "-o", tmp_path / "o1")):
         proc = cli(*args)
         assert proc.returncode == 2 and proc.stderr.strip() == f"error: {dark}: all images are black inside the mask"
@@ -255,9 +255,9 @@ def test_info_check_stops_where_normals_would(tmp_path):
     mask = write_capture(tmp_path / "ref", n=4)["mask"]
     img = read_image(amb / "004.png")[0]
     img[~mask] = 0.05  # lit around the object
-    write_image(amb / "004.png", img, "uint16")
+    write_image(amb / "004.png", img, "uint16", kind="linear")
     img[~mask] = 0.0
-    write_image(amb / "ambient.png", img, "uint16")  # the object as bright as in 004.png
+    write_image(amb / "ambient.png", img, "uint16", kind="linear")  # the object as bright as in 004.png
     c = json.loads(cli("info", amb, "--check", "--json").stdout)["check"]
     assert c["notes"][0].startswith("images: 1 of 4 black over the object (004.png)")
     assert c["images"][3]["mean"] > 0  # the means are of the images as captured
@@ -291,7 +291,7 @@ def test_info_names_mixed_channels_and_keeps_long_names_whole(tmp_path):
     folder = tmp_path / "o"
     write_capture(folder, n=4)
     grey = read_image(folder / "001.png")[0].mean(-1)
-    write_image(folder / "001.png", grey, "uint16")
+    write_image(folder / "001.png", grey, "uint16", kind="linear")
     r = json.loads(cli("info", folder, "--json").stdout)
     assert r["channels"] == 1 and r["channel_counts"] == [1, 3]
     out = cli("info", folder, env={"COLUMNS": "80"}).stdout
@@ -301,7 +301,7 @@ def test_info_names_mixed_channels_and_keeps_long_names_whole(tmp_path):
     for k, name in enumerate(names, 1):
         (folder / f"{k:03d}.png").rename(folder / name)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
-    write_image(folder / names[0], np.repeat(grey[..., None], 3, -1), "uint16")
+    write_image(folder / names[0], np.repeat(grey[..., None], 3, -1), "uint16", kind="linear")
     out = cli("info", folder, env={"COLUMNS": "80"}).stdout
     flat = "".join(out.replace("│", " ").split())  # the table wraps the names; nothing is cut
     assert "…" not in out and names[0] in flat and names[-1] in flat

@@ -151,9 +151,10 @@ def test_srgb_on_request_for_other_files(tmp_path):
     # written with OpenImageIO's sRGB chunk, as such files usually are: read as stored, and the note says
     # what --encoding srgb would do
     assert [n for n in r_auto["notes"] if n.startswith("encoding")] == [
-        "encoding: all images say sRGB in their PNG chunks but are read as stored, as linear (as DiLiGenT's PNGs, "
-        "which say nothing; many programs tag every PNG sRGB): if they came from a camera's JPEGs or an editor, use "
-        "--encoding srgb; --encoding linear drops this note"]
+        "encoding: all images say sRGB in PNG chunks but are read as stored, as linear (as DiLiGenT's PNGs, which "
+        "say nothing; OpenImageIO, for one, tags a PNG sRGB unless told otherwise): if they came from a camera's "
+        "JPEGs or an editor, --encoding srgb decodes every file from sRGB; --encoding linear reads every file as "
+        "stored, without this note"]
 
 
 def test_encoding_on_the_command_line(tmp_path):

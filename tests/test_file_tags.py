@@ -46,7 +46,11 @@ def test_png_colour_chunks_are_read(tmp_path):
              "g55": ((gama(1 / 1.8),), "gamma 1.8"), "g100": ((gama(1.0),), ""), "both": ((gama(0.45455), SRGB), "sRGB"),
              "cHRM": (((b"cHRM", b"\0" * 32), gama(0.45455)), "gamma 2.2"),  # other chunks between are skipped
              "bad": (((b"sRGB", b"\0\0"), (b"gAMA", b"\0\0")), ""),  # wrong lengths: no tag
-             "big": (((b"sRGB", b"\0" * 9),), "")}  # longer than an sRGB chunk: skipped, not misread
+             "big": (((b"sRGB", b"\0" * 9),), ""),  # longer than an sRGB chunk: skipped, not misread
+             "g0": ((gama(0.0),), ""), "gmax": (((b"gAMA", b"\xff" * 4),), ""),  # out of range: ignored
+             "pq": (((b"cICP", bytes([9, 16, 0, 1])), SRGB), "the PQ curve (HDR)"),  # cICP outranks sRGB
+             "cicp_lin": (((b"cICP", bytes([1, 8, 0, 1])), SRGB), ""), "cicp_srgb": (((b"cICP", bytes([1, 13, 0, 1])),), "sRGB"),
+             "cicp_odd": (((b"cICP", bytes([1, 7, 0, 1])),), "transfer characteristics 7 (cICP)")}
     for name, (chunks, tag) in cases.items():
         (tmp_path / f"{name}.png").write_bytes(png_bytes(px, chunks))
         assert png_colour_tag(tmp_path / f"{name}.png") == tag, name
@@ -92,9 +96,10 @@ def test_a_png_tagged_srgb_is_read_as_stored_with_a_note(tmp_path):
     r = run_normals(folder, method="l2", write=False)
     assert r["mae"] == plain["mae"]
     assert [n for n in r["notes"] if n.startswith("encoding:")] == [
-        "encoding: all images say sRGB in their PNG chunks but are read as stored, as linear (as DiLiGenT's PNGs, "
-        "which say nothing; many programs tag every PNG sRGB): if they came from a camera's JPEGs or an editor, use "
-        "--encoding srgb; --encoding linear drops this note"]
+        "encoding: all images say sRGB in PNG chunks but are read as stored, as linear (as DiLiGenT's PNGs, which "
+        "say nothing; OpenImageIO, for one, tags a PNG sRGB unless told otherwise): if they came from a camera's "
+        "JPEGs or an editor, --encoding srgb decodes every file from sRGB; --encoding linear reads every file as "
+        "stored, without this note"]
     assert not any(n.startswith("encoding:") for n in run_normals(folder, method="l2", write=False,
                                                                      encoding="linear")["notes"])
     assert open_capture(folder, "srgb").srgb_images == 12  # what the note offers
@@ -105,20 +110,31 @@ def test_a_png_tagged_srgb_is_read_as_stored_with_a_note(tmp_path):
     write_image(folder / "ambient.png", np.zeros((48, 48, 3), np.float32), "uint8", kind="picture")
     notes = [n for n in capture_notes(open_capture(folder)) if n.startswith("encoding:")]
     assert len(notes) == 1 and notes[0].startswith("encoding: 1 of 12 images (003.png) and ambient.png say sRGB"), notes
+    assert open_capture(folder).png_tags.count("sRGB") == 1
     some = open_capture(folder).subset([2, 0])  # (psctl normals --images): the tags follow their images
     assert some.png_tags == ("sRGB", "") and some.profile_problems == ("", "")
     assert capture_notes(some)[-1].startswith("encoding: 1 of 2 images (003.png) and ambient.png say sRGB")
+    _retag(folder, kind="linear")  # the ambient image alone: named, in the singular
+    notes = [n for n in capture_notes(open_capture(folder)) if n.startswith("encoding:")]
+    assert len(notes) == 1 and notes[0].startswith("encoding: ambient.png says sRGB in PNG chunks but is read as "
+                                                   "stored"), notes
+    assert "if it came from" in notes[0]
     (folder / "ambient.png").unlink()
+    _retag(folder, gamma=2.22)  # a gamma near sRGB's: the sRGB note
+    assert open_capture(folder).png_tags[0] == "gamma 2.22"
+    assert capture_notes(open_capture(folder))[-1].startswith("encoding: all images say sRGB in PNG chunks")
     _retag(folder, gamma=1.8)
     notes = [n for n in capture_notes(open_capture(folder)) if n.startswith("encoding:")]
-    assert notes == ["encoding: all images say gamma 1.8 in their PNG gAMA chunks but are read as stored, as linear "
-                     "(psctl decodes sRGB, --encoding srgb, but no other curve without an ICC profile): if so encoded, "
-                     "convert them to linear first; --encoding linear drops this note"]
+    assert notes == ["encoding: all images say gamma 1.8 in PNG chunks but are read as stored, as linear (psctl "
+                     "decodes sRGB, --encoding srgb, and ICC profiles' curves, but no other curve): if so encoded, "
+                     "convert them to linear first; --encoding linear reads every file as stored, without this note"]
 
     # psctl info shows the note (its encoding row says only how the images are decoded)
     out = CliRunner().invoke(app, ["info", str(folder)])
-    assert out.exit_code == 0 and "say gamma 1.8 in their PNG gAMA chunks" in out.stdout, out.stdout
-    assert "say gamma 1.8" in " ".join(json.loads(CliRunner().invoke(app, ["info", str(folder), "--json"]).stdout)["notes"])
+    assert out.exit_code == 0 and "say gamma 1.8 in PNG chunks" in out.stdout, out.stdout
+    info = json.loads(CliRunner().invoke(app, ["info", str(folder), "--json"]).stdout)
+    assert "say gamma 1.8" in " ".join(info["notes"]) and info["png_tags"] == {"gamma 1.8": 12}
+    assert info["unreadable_profiles"] == 0
 
 
 def test_a_readable_profile_outranks_the_png_chunks(tmp_path):
@@ -136,13 +152,17 @@ def test_a_readable_profile_outranks_the_png_chunks(tmp_path):
 def test_a_profile_without_readable_curves_is_named_in_a_note(tmp_path):
     assert read_profile(b"") == "not an ICC profile, or damaged"
     cmyk = profile({"desc": desc("U.S. Web Coated (SWOP) v2"), "rTRC": curv_gamma(2.2)}, b"CMYK")
-    assert read_profile(cmyk) == "'U.S. Web Coated (SWOP) v2': a CMYK profile, not an RGB or grey one"
+    assert read_profile(cmyk) == "'U.S. Web Coated (SWOP) v2': a profile of colour space 'CMYK', not RGB or grey"
     lut = profile({"desc": desc("Camera LUT"), "A2B0": b"mft2" + b"\0" * 60})
     assert read_profile(lut) == "'Camera LUT': no tone curves (a lookup-table profile)"
     odd = rgb_profile("odd", b"sf32" + b"\0" * 20)
     assert read_profile(odd) == "'odd': a tone curve of a kind psctl does not read, or damaged"
     falling = rgb_profile("inverted", b"curv\0\0\0\0" + struct.pack(">I3H", 3, 65535, 30000, 0))
     assert read_profile(falling) == "'inverted': a tone curve that falls or stays black"
+    adobe = rgb_profile("Adobe RGB (1998)", curv_gamma(2.2))
+    assert read_profile(adobe[:len(adobe) - 4]) == read_profile(adobe[:200]) == "damaged (cut short)"
+    damaged = profile({"desc": desc("x"), "rTRC": curv_gamma(2.2)}, b" RGB")
+    assert read_profile(damaged) == "'x': a profile of colour space ' RGB', not RGB or grey"
     assert tone_curve(lut) is None and read_profile(rgb_profile("ok", curv_gamma(2.2))) == tone_curve(
         rgb_profile("ok", curv_gamma(2.2)))
 
@@ -156,12 +176,19 @@ def test_a_profile_without_readable_curves_is_named_in_a_note(tmp_path):
     assert cap.profile_images == 0 and cap.decoding(0) is None
     assert np.array_equal(load_images(cap), before)
     note = ("encoding: all images embed an ICC profile that psctl cannot take tone curves from ('Camera LUT': no "
-            "tone curves (a lookup-table profile)): read as files without one are (JPEG data decoded from sRGB, "
-            "others as stored); --encoding linear or srgb says which they are")
+            "tone curves (a lookup-table profile)): read as a file without one is (JPEG data decoded from sRGB, "
+            "other data as stored); --encoding linear or --encoding srgb sets how every file is read")
     assert [n for n in capture_notes(cap) if n.startswith("encoding:")] == [note]
     assert not any(n.startswith("encoding:") for n in capture_notes(open_capture(folder, "linear")))
     out = CliRunner().invoke(app, ["info", str(folder)])
     assert "cannot take tone curves from" in out.stdout, out.stdout
+    assert json.loads(CliRunner().invoke(app, ["info", str(folder), "--json"]).stdout)["unreadable_profiles"] == 12
+
+    p = folder / "001.png"  # beside an sRGB chunk, both are named: the chunk is what is left to go by
+    write_image(p, read_image(p)[0], "uint16", kind="picture", icc=lut)
+    notes = [n for n in capture_notes(open_capture(folder)) if n.startswith("encoding:")]
+    assert notes[0] == note and \
+        notes[1].startswith("encoding: 1 of 12 images (001.png) says sRGB in PNG chunks"), notes
 
     jpg = tmp_path / "jpg"  # a JPEG with such a profile: decoded from sRGB, as without one, and both notes say so
     jpg.mkdir()
@@ -170,6 +197,16 @@ def test_a_profile_without_readable_curves_is_named_in_a_note(tmp_path):
     assert cap.decoding(0) == "srgb"
     notes = capture_notes(cap)
     assert any("cannot take tone curves" in n for n in notes) and any("decoded from sRGB" in n for n in notes)
+
+
+def test_a_png_named_jpeg_gets_one_note(tmp_path):
+    folder = tmp_path / "named"
+    folder.mkdir()
+    for k in range(3):  # PNG data tagged sRGB under .jpg names: the misnamed note says how they are read
+        write_image(folder / f"{k}.jpg.png", np.full((8, 8, 3), 0.5, np.float32), "uint8", kind="picture")
+        (folder / f"{k}.jpg.png").rename(folder / f"{k}.jpg")
+    notes = [n for n in capture_notes(open_capture(folder)) if n.startswith("encoding:")]
+    assert len(notes) == 1 and "named JPEG but not JPEG data" in notes[0], notes
 
 
 def test_undistort_keeps_a_png_srgb_tag(tmp_path):
@@ -182,5 +219,13 @@ def test_undistort_keeps_a_png_srgb_tag(tmp_path):
                                    str(tmp_path / "K.txt"), "-d", "0,0,0,0"])
     assert out.exit_code == 0, out.output
     assert image_info(tmp_path / "flat" / "001.png").png_tag == "sRGB"
+    for name, gamma in (("003.png", 1.8), ("004.png", 2.22)):  # a gamma's gAMA chunk too (a review)
+        codes = np.round(read_image(folder / name)[0] * 255).astype(np.uint8)
+        (folder / name).write_bytes(png_bytes(codes, (gama(1 / gamma),)))
+    out = CliRunner().invoke(app, ["undistort", str(folder), "-o", str(tmp_path / "flat2"), "--K",
+                                   str(tmp_path / "K.txt"), "-d", "0,0,0,0"])
+    assert out.exit_code == 0, out.output
+    assert [image_info(tmp_path / "flat2" / n).png_tag for n in ("003.png", "004.png")] == ["gamma 1.8", "gamma 2.22"]
+    assert np.array_equal(read_image(tmp_path / "flat2" / "003.png")[0], read_image(folder / "003.png")[0])
     assert image_info(tmp_path / "flat" / "002.png").png_tag == "" and \
         "lin" in image_info(tmp_path / "flat" / "002.png").color_space

@@ -43,7 +43,7 @@ def _near_capture(folder, distance: float) -> dict:
     centre = (rows.mean(), cols.mean())
     for k, light in enumerate(arrays["lights"]):
         img = arrays["images"][k] * _falloff(light, distance, centre, m.shape)[..., None]  # intensities included
-        write_image(folder / f"{k + 1:03d}.png", 0.5 * img, "uint16")  # 0.5: room for the brighter side
+        write_image(folder / f"{k + 1:03d}.png", 0.5 * img, "uint16", kind="linear")  # 0.5: room for the brighter side
     return arrays
 
 
@@ -235,7 +235,7 @@ def test_falloff_correction_under_full_point_light_physics(tmp_path):
         folder = tmp_path / name
         folder.mkdir(exist_ok=True)
         for k, img in enumerate(imgs):
-            write_image(folder / f"{k + 1:03d}.png", 0.4 * img.reshape(3, 48, 48).permute(1, 2, 0).numpy(), "uint16")
+            write_image(folder / f"{k + 1:03d}.png", 0.4 * img.reshape(3, 48, 48).permute(1, 2, 0).numpy(), "uint16", kind="linear")
         np.savetxt(folder / "light_directions.txt", lights)
         write_image(folder / "mask.png", mask.astype(np.float32), "uint8")
         write_image(folder / "Normal_gt.png", np.where(mask[..., None], (normals + 1) / 2, 0), "uint16")

@@ -163,7 +163,7 @@ def test_the_network_runs_get_the_same_normals_and_notes_with_the_helper(tmp_pat
 
     write_capture(tmp_path / "cap", n=10, size=48)
     cap = open_capture(tmp_path / "cap")
-    write_image(cap.image_paths[2], np.zeros((48, 48, 3), np.float32), "uint16")
+    write_image(cap.image_paths[2], np.zeros((48, 48, 3), np.float32), "uint16", kind="linear")
     write_image(cap.image_paths[5], np.ones((48, 48, 3), np.float32), "uint16")
     out = _fresh(f"""
         import json, sys

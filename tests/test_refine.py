@@ -692,7 +692,7 @@ def test_sdps_passes_decode_each_image_once(tmp_path, fake_weights, monkeypatch,
 
     write_capture(tmp_path / "cap", n=12, size=40, seed=2)
     if extras != "plain":
-        write_image(tmp_path / "cap" / "ambient.png", np.full((40, 40, 3), 0.02, np.float32), "uint16")
+        write_image(tmp_path / "cap" / "ambient.png", np.full((40, 40, 3), 0.02, np.float32), "uint16", kind="linear")
     cap = open_capture(tmp_path / "cap", encoding="linear" if extras == "plain" else "srgb")
     if extras != "plain":
         cap = replace(cap, near=NearLights(60.0, (20.0, 20.0)))
@@ -809,7 +809,7 @@ def test_lcnet_reading_the_second_stages_box_gives_what_reading_its_own_crop_doe
     amb[lc] = img[lc]
     img[net[0].start:net[0].start + 3, net[1].start:net[1].start + 3] = 0.3
     write_image(tmp_path / "cap" / "005.png", img, "uint16")
-    write_image(tmp_path / "cap" / "ambient.png", amb, "uint16")
+    write_image(tmp_path / "cap" / "ambient.png", amb, "uint16", kind="linear")
     cap = open_capture(tmp_path / "cap")
     errors = []
     for kw in ({}, {"memo": DecodeMemo(64 << 20), "keep_box": net}):
@@ -915,7 +915,7 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
         spot = write_capture(tmp_path / name, n=6, size=32, seed=1, mask=False)["images"]
         spot[:, 13:19, 13:19] = 0
         for k, img in enumerate(spot):
-            write_image(tmp_path / name / f"{k + 1:03d}.png", img, "uint16")
+            write_image(tmp_path / name / f"{k + 1:03d}.png", img, "uint16", kind="linear")
     spot = find_object(capture_brightness(open_capture(tmp_path / "dPNG"))).mask
     assert spot[13:19, 13:19].all()
     write_image(tmp_path / "ePNG" / "mask.png", spot.astype(np.float32), "uint8")

@@ -29,7 +29,8 @@ import numpy as np
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_int, check_path, few
 from psctl.io.icc import ToneCurve
-from psctl.io.images import IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image, srgb_to_linear, to_rgb
+from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
+                              srgb_like, srgb_to_linear, to_rgb)
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
 
@@ -1325,7 +1326,8 @@ def capture_notes(capture: Capture) -> list[str]:
 
 
 def _which(capture: Capture, names: list[str]) -> str:
-    """"all images" or "3 of 12 images (a.png, b.png, c.png)"; the ambient image by name."""
+    """"all images", "3 of 12 images (a.png, b.png, c.png)", the ambient image by name, or both
+    joined by "and"."""
     images = [n for n in names if capture.ambient_path is None or n != capture.ambient_path.name]
     which = "all images" if len(images) == capture.n_images else \
         f"{len(images)} of {capture.n_images} images ({few(images)})" if images else ""
@@ -1335,8 +1337,8 @@ def _which(capture: Capture, names: list[str]) -> str:
 def tag_notes(capture: Capture) -> list[str]:
     """Notes (``encoding`` auto) on what the files say of their encoding that psctl does not
     follow: an ICC profile without tone curves psctl can read (read as without one), and a PNG's
-    sRGB or gAMA chunk (read as stored, as linear: many programs write one into every PNG, and
-    DiLiGenT's PNGs, which are linear, have none)."""
+    sRGB, gAMA or cICP chunk (read as stored, as linear: OpenImageIO, for one, writes an sRGB
+    chunk into every PNG unless told otherwise, and DiLiGenT's PNGs, which are linear, have none)."""
     notes = []
     files = [(p, k) for k, p in enumerate(capture.image_paths)]
     files += [(capture.ambient_path, capture.ambient_path)] if capture.ambient_path is not None else []
@@ -1348,27 +1350,36 @@ def tag_notes(capture: Capture) -> list[str]:
     def tag(k):
         return capture.ambient_png_tag if isinstance(k, Path) else capture.png_tags[k] if capture.png_tags else ""
 
+    def verb(names, singular, plural):
+        return singular if len(names) == 1 else plural
+
     unread = [(p.name, problem(k)) for p, k in files if problem(k)]
     if unread:  # read as a file without a profile: JPEG data from sRGB, the rest as stored
+        names = [n for n, _ in unread]
         why = "; ".join(sorted({w for _, w in unread}))
-        notes.append(f"encoding: {_which(capture, [n for n, _ in unread])} embed an ICC profile that psctl cannot "
-                     f"take tone curves from ({why}): read as files without one are (JPEG data decoded from sRGB, "
-                     f"others as stored); --encoding linear or srgb says which they are")
+        notes.append(f"encoding: {_which(capture, names)} {verb(names, 'embeds', 'embed')} an ICC profile that "
+                     f"psctl cannot take tone curves from ({why}): read as a file without one is (JPEG data decoded "
+                     f"from sRGB, other data as stored); --encoding linear or --encoding srgb sets how every file is read")
     tagged: dict[str, list[str]] = {}
-    for p, k in files:  # (a profile, read or not, outranks the chunks, as the PNG standard says)
-        if tag(k) and not problem(k) and (capture.ambient_tone if isinstance(k, Path) else
-                                          capture.tones[k] if capture.tones else None) is None:
-            tagged.setdefault(tag(k), []).append(p.name)
+    for p, k in files:  # a readable profile outranks the chunks (one that cannot be read does not)
+        tone = capture.ambient_tone if isinstance(k, Path) else capture.tones[k] if capture.tones else None
+        misnamed = p.suffix.lower() in JPEG and not capture.is_jpeg(k)  # (its own note says how it is read)
+        if tag(k) and tone is None and not misnamed:
+            tagged.setdefault("sRGB" if srgb_like(tag(k)) else tag(k), []).append(p.name)
     for t, names in tagged.items():
-        which = _which(capture, names)
-        if t in ("sRGB", "gamma 2.2"):  # what libpng's and OpenImageIO's writers put in by default
-            notes.append(f"encoding: {which} say {t} in their PNG chunks but are read as stored, as linear (as "
-                         f"DiLiGenT's PNGs, which say nothing; many programs tag every PNG sRGB): if they came from "
-                         f"a camera's JPEGs or an editor, use --encoding srgb; --encoding linear drops this note")
+        which, says = _which(capture, names), verb(names, "says", "say")
+        if t == "sRGB":  # (or a gamma near 2.2)
+            notes.append(f"encoding: {which} {says} sRGB in PNG chunks but {verb(names, 'is', 'are')} read as stored, "
+                         f"as linear (as DiLiGenT's PNGs, which say nothing; OpenImageIO, for one, tags a PNG sRGB "
+                         f"unless told otherwise): if {verb(names, 'it', 'they')} came from a camera's JPEGs or an "
+                         f"editor, --encoding srgb "
+                         f"decodes every file from sRGB; --encoding linear reads every file as stored, without this note")
         else:
-            notes.append(f"encoding: {which} say {t} in their PNG gAMA chunks but are read as stored, as linear "
-                         f"(psctl decodes sRGB, --encoding srgb, but no other curve without an ICC profile): if so "
-                         f"encoded, convert them to linear first; --encoding linear drops this note")
+            notes.append(f"encoding: {which} {says} {t} in PNG chunks but {verb(names, 'is', 'are')} read as stored, "
+                         f"as linear (psctl decodes sRGB, --encoding srgb, and ICC profiles' curves, but no other "
+                         f"curve): if so encoded, convert {verb(names, 'it', 'them')} to linear first; --encoding linear "
+                         f"reads every file as "
+                         f"stored, without this note")
     return notes
 
 

@@ -182,6 +182,8 @@ def read_profile(profile: bytes) -> ToneCurve | str:
     try:
         if len(data) < 132 or data[36:40] != b"acsp":
             return "not an ICC profile, or damaged"
+        if struct.unpack_from(">I", data, 0)[0] > len(data):  # the header's size: tags past the end are lost
+            return "damaged (cut short)"
         space = data[16:20]
         (count,) = struct.unpack_from(">I", data, 128)
         tags = {}
@@ -194,8 +196,7 @@ def read_profile(profile: bytes) -> ToneCurve | str:
         named = f"'{name}': " if name else ""
         wanted = (b"rTRC", b"gTRC", b"bTRC") if space == b"RGB " else (b"kTRC",) * 3 if space == b"GRAY" else None
         if wanted is None:
-            space = space.decode("latin-1").strip() or "?"
-            return f"{named}a {space if space.isprintable() else '?'} profile, not an RGB or grey one"
+            return f"{named}a profile of colour space {space.decode('latin-1')!r}, not RGB or grey"
         if any(t not in tags for t in wanted):
             return f"{named}no tone curves (a lookup-table profile)"
         curves = tuple(_curve(data, *tags[t]) for t in wanted)

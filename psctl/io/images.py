@@ -214,38 +214,54 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+# a cICP chunk's transfer characteristics (ITU-T H.273) -> png_colour_tag's words; 8 is linear
+_CICP_TRANSFER = {1: "the BT.709 curve", 4: "gamma 2.2", 5: "gamma 2.8", 6: "the BT.709 curve", 13: "sRGB",
+                  14: "the BT.709 curve", 15: "the BT.709 curve", 16: "the PQ curve (HDR)", 18: "the HLG curve (HDR)"}
+
+
 def png_colour_tag(path: str | os.PathLike) -> str:
     """What a PNG file's colour chunks before its pixels say its values are: "sRGB" (an sRGB
-    chunk), "gamma G" (a gAMA chunk: G 2.2 for the 0.45455 that programs write for sRGB), or ""
-    (neither, or a gAMA of 1: linear). OpenImageIO's oiio:ColorSpace cannot tell: it says sRGB
-    for a PNG without either chunk too. (An iCCP chunk is read as the file's ICC profile, which
-    the PNG standard puts first.)"""
-    srgb, gamma = False, 0.0
+    chunk), "gamma G" (a gAMA chunk: G 2.2 for the 0.45455 that programs write for sRGB), a cICP
+    chunk's curve ("the PQ curve (HDR)", ...), or "" (none of them, or linear: a gAMA of 1, a
+    cICP of 8). cICP outranks sRGB and sRGB gAMA, as the PNG standard (third edition) orders
+    them. OpenImageIO's oiio:ColorSpace cannot tell: it says sRGB for a PNG without any of them
+    too. (An iCCP chunk is read as the file's ICC profile: psctl.io.icc.)"""
+    srgb, gamma, cicp = False, 0.0, -1
     try:
         with open(path, "rb") as f:
             if f.read(8) != PNG_SIGNATURE:
                 return ""
-            for _ in range(1000):  # chunks before the pixels: a few, unless the file is damaged
+            for _ in range(10_000):  # chunks before the pixels: a few, unless the file is damaged
                 head = f.read(8)
                 if len(head) < 8:
                     break
                 size, kind = struct.unpack(">I4s", head)
                 if kind in (b"IDAT", b"IEND"):
                     break
-                body = f.read(size) if kind in (b"sRGB", b"gAMA") and size <= 4 else None
+                body = f.read(size) if kind in (b"sRGB", b"gAMA", b"cICP") and size <= 4 else None
                 if body is None:
                     f.seek(size, os.SEEK_CUR)
                 f.seek(4, os.SEEK_CUR)  # the chunk's CRC
                 srgb |= kind == b"sRGB" and body is not None and len(body) == 1
                 if kind == b"gAMA" and body is not None and len(body) == 4:
                     gamma = struct.unpack(">I", body)[0] / 100000.0
+                if kind == b"cICP" and body is not None and len(body) == 4:
+                    cicp = body[1]
     except OSError:
         return ""
-    if srgb:  # sRGB outranks gAMA (the PNG standard; writers add a gAMA of 0.45455 beside it)
+    if cicp >= 0:
+        return "" if cicp == 8 else _CICP_TRANSFER.get(cicp, f"transfer characteristics {cicp} (cICP)")
+    if srgb:  # sRGB outranks gAMA (writers add a gAMA of 0.45455 beside it)
         return "sRGB"
-    if gamma <= 0 or abs(1.0 / gamma - 1.0) <= 0.01:
+    if not 0.1 <= gamma <= 10.0 or abs(1.0 / gamma - 1.0) <= 0.01:  # (libpng too ignores one out of range)
         return ""
     return f"gamma {1.0 / gamma:.3g}"
+
+
+def srgb_like(tag: str) -> bool:
+    """Whether a png_colour_tag is sRGB or a gamma near sRGB's 2.2 (--encoding srgb decodes it
+    within a few per cent)."""
+    return tag == "sRGB" or (tag.startswith("gamma ") and 2.1 <= float(tag.split()[1]) <= 2.3)
 
 
 def icc_profile(path: str | os.PathLike) -> bytes | None:
@@ -432,7 +448,7 @@ COLOR_TAGS = {"picture": None, "data": "Raw", "linear": "lin_rec709"}
 
 
 def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint16", kind: str = "picture",
-                icc: bytes | None = None) -> None:
+                icc: bytes | None = None, png_tag: str = "") -> None:
     """Write [H, W] or [H, W, C] float pixels atomically.
 
     ``dtype`` is "uint8", "uint16" (values in [0, 1], rounded in float64) or "float"/"half"
@@ -440,6 +456,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     "picture" for display (PNGs tagged sRGB), "data" (numbers: normal and depth maps, masks; no
     colour tag) or "linear" (radiance, as DiLiGenT's images: tagged linear). ``icc``: an ICC
     profile to embed (``icc_profile`` of the file the pixels came from; TIFF, PNG and JPEG keep it).
+    ``png_tag``: a PNG's colour chunk as ``png_colour_tag`` gives it ("sRGB" or "gamma G"; a
+    cICP curve is not written), instead of ``kind``'s (``psctl undistort``'s copies keep their own).
     """
     oiio = _oiio()
     path = Path(path)
@@ -460,7 +478,12 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     if kind not in COLOR_TAGS:
         raise ValueError(f"kind must be one of {', '.join(COLOR_TAGS)}, not {kind!r}")
     spec = oiio.ImageSpec(w, h, c, fmt)
-    if COLOR_TAGS[kind] is not None:
+    if png_tag.startswith("gamma ") and path.suffix.lower() == ".png":  # a gAMA chunk of 1 / G
+        spec.attribute("oiio:ColorSpace", "GammaCorrected")
+        spec.attribute("oiio:Gamma", float(png_tag.split()[1]))
+    elif png_tag == "sRGB" and path.suffix.lower() == ".png":
+        spec.attribute("oiio:ColorSpace", "srgb_rec709_scene")
+    elif COLOR_TAGS[kind] is not None:
         spec.attribute("oiio:ColorSpace", COLOR_TAGS[kind])
     if icc and path.suffix.lower() in (".jpg", ".jpeg") and len(icc) > JPEG_ICC_MAX:
         # a JPEG holds a larger profile in several APP2 segments, which OpenImageIO 3.2 writes

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -152,6 +153,10 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "profile_images": profiled,
         # the curves of the profiles decoded through ('Adobe RGB (1998)', gamma 2.2), each once
         "profiles": sorted({d.describe() for d in curves}),
+        # what the images' PNG colour chunks say, counted ({"sRGB": 12}; psctl reads them as stored unless
+        # --encoding srgb: the notes), and how many images embed an ICC profile psctl cannot take curves from
+        "png_tags": dict(collections.Counter(t for t in cap.png_tags if t)),
+        "unreadable_profiles": sum(map(bool, cap.profile_problems)),
         "calibrated": cap.calibrated,
         "intensities": cap.intensities_path.name if cap.intensities_path else "none (all ones)",
         "lights": cap.lights_path.name if cap.lights_path else None,
