@@ -2185,3 +2185,21 @@ def test_info_check_refuses_ground_truth_that_psctl_normals_refuses(tmp_path):
         proc = cli(*args)
         assert proc.returncode == 2 and proc.stderr.strip() == \
             f"error: {gt}: ground truth has no valid normal inside the mask", (args, proc.stderr)
+
+
+def test_readme_and_docs_link_to_files_that_exist():
+    """Markdown links and pictures in README.md and docs/*.md that point into the repository
+    (docs/img/*.png, docs/usage.md, ...) name files that exist (a picture renamed or not committed
+    shows as a broken image on the project's page)."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    missing = []
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue  # a web address or an anchor in the same file
+            if not (doc.parent / target.split("#")[0]).exists():
+                missing.append(f"{doc.relative_to(root)}: {target}")
+    assert not missing, missing
+    assert (root / "docs" / "img" / "dev_split_l2_vs_ensemble.png").is_file()
