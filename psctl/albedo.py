@@ -57,7 +57,9 @@ def _median_ratios(ratios: np.ndarray, k: np.ndarray) -> np.ndarray:
     place."""
     ratios.sort(axis=0)  # the uncounted (+inf) go last
     lo, hi = np.maximum((k - 1) // 2, 0), np.maximum(k // 2, 0)
-    med = 0.5 * (np.take_along_axis(ratios, lo[None], 0)[0] + np.take_along_axis(ratios, hi[None], 0)[0])
+    a, b = np.take_along_axis(ratios, lo[None], 0)[0], np.take_along_axis(ratios, hi[None], 0)[0]
+    with np.errstate(invalid="ignore"):  # (inf - inf where nothing counts: 0 below)
+        med = a + 0.5 * (b - a)  # not (a + b) / 2, which overflows float32 near its top (an audit: 3e38)
     return np.where(k > 0, med, 0.0).astype(np.float32)
 
 
@@ -284,9 +286,9 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         [H, W, 3] float32 albedo: per channel, the median of image / (n . l) over the counted
         images; 0 outside the mask and where no light reaches the normal.
     """
-    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, check_vector_dtype, plain
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, check_vector_dtype, n_rows, plain
 
-    images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)  # [N, H, W, 3]
+    images = as_images(images, n_rows(lights))  # [N, H, W, 3]
     lights = as_lights(lights, images.shape[0])
     if lights is None:
         raise PsctlError(None, "lights: the albedo needs light directions")
@@ -306,6 +308,14 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
         raise PsctlError(None, "normals contain infinite values")
     # NaN marks "no normal" (read_normal_map's, as integrate_normals takes it): no albedo there
     normals = np.where(np.isnan(normals).any(axis=-1, keepdims=True), np.float32(0.0), normals)
+    inside = normals[mask]
+    directions = int((np.abs(inside) > 0).any(-1).sum())
+    if not directions:  # an all-zero albedo would look like an answer (an audit: -normals, zeros)
+        raise PsctlError(None, "normals: none inside the mask is a direction (all 0 or NaN)")
+    away = int(((np.abs(inside) > 0).any(-1) & (inside[:, 2] <= 0)).sum())
+    if away > directions / 2:  # as psctl depth refuses such a map: flipped z gave albedos 2 to 900 times too big
+        raise PsctlError(None, f"normals: {away} of the {directions} inside the mask face away from the camera "
+                               f"(z <= 0): not in psctl's convention (x right, y up, z towards the camera)?")
     try:
         if isinstance(min_shading, (str, bytes, bool, np.bool_)):  # "0.1" or True is a mistake, not a number
             raise TypeError

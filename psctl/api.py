@@ -131,11 +131,19 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
 
 def _saturated(images) -> np.ndarray | None:
-    """[N, H, W] bool: integer images' values at their type's top code (saturated; the light fit
-    leaves them out, as it does a capture folder's), or None for float images, which cannot tell."""
-    raw = np.asarray(images) if not isinstance(images, np.ndarray) else images
+    """[N, H, W] bool: integer images' values at their type's top code in a channel that
+    ``as_images`` keeps (saturated; the light fit leaves them out, as it does a capture
+    folder's), or None for float images, which cannot tell (and for what ``as_images`` refuses)."""
+    from psctl.arrays import plain
+
+    try:
+        raw = np.asarray(plain(images))
+    except (TypeError, ValueError, RuntimeError):
+        return None
     if raw.dtype.kind not in "iu" or raw.ndim < 3:
         return None
+    if raw.ndim == 4:  # an alpha channel is no light's: grey + alpha reads grey, RGBA reads RGB
+        raw = raw[..., :1] if raw.shape[-1] in (1, 2) else raw[..., :3]
     top = raw >= np.iinfo(raw.dtype).max
     return top.any(-1) if raw.ndim == 4 else top
 
@@ -267,7 +275,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     """
     from psctl.lights import refine_config
 
-    from psctl.arrays import as_images, as_lights, as_mask, check_not_black
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, n_rows
     from psctl.models import check_downsample, check_precision, precision_autocast
     from psctl.symmetry import check_views
 
@@ -278,8 +286,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     views = check_views(views)
     downsample = check_downsample(downsample)
     net_cfg = {"device": device, "views": views, "downsample": downsample}
-    saturated = _saturated(images) if lights is None and method == "sdps" else None
-    images = as_images(images, len(lights) if hasattr(lights, "__len__") else None)
+    # (before method resolves: auto and 'SDPS' are sdps without lights too; an audit found them reading
+    # saturated pixels that sdps left out)
+    saturated = _saturated(images) if lights is None else None
+    images = as_images(images, n_rows(lights))
     mask = as_mask(mask, images.shape[1:3])
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)
@@ -312,6 +322,11 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         images = np.stack([img * near.correction(lt, rows, cols)[..., None] for img, lt in zip(images, lights)])
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
+    behind = [] if lights is None else np.flatnonzero(lights[:, 2] <= 0)  # (all of them: as_lights' error)
+    if len(behind):  # as a folder's light file gets a note (an audit: arrays got none)
+        rows = ", ".join(f"lights[{i}]" for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
+        warnings.warn(f"lights: {len(behind)} of {len(lights)} light directions have z <= 0, behind the object "
+                      f"({rows}); psctl wants z toward the camera", PsctlWarning, stacklevel=level)
     net_cfg.update(_found_config(found))
     if found is not None and found.normals_mask is not None:
         warnings.warn(f"{method}: mask=None: {_found_file_note(False)}", PsctlWarning, stacklevel=level)

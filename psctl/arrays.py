@@ -28,6 +28,15 @@ def plain(x: object) -> object:
     return x
 
 
+def n_rows(x: object) -> int | None:
+    """How many rows an array argument has (the lights': how many images they are for), where it
+    has any: a 0-d array, a number or None gives None, left to the argument's own check."""
+    try:
+        return len(x) if np.ndim(plain(x)) >= 1 else None
+    except (TypeError, ValueError):
+        return None
+
+
 def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     """[N, H, W, 3] float32 from [N, H, W, C] (C = 1, 2, 3 or 4: grey repeated, alpha dropped) or
     [N, H, W] grey. Integer arrays are divided by their type's largest value (uint8 by 255,
@@ -45,6 +54,12 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     if arr.ndim == 3 and arr.shape[-1] in (3, 4) and min(arr.shape[:2]) > 4 and n != arr.shape[0]:
         raise PsctlError(None, f"images of shape {arr.shape} look like one [H, W, 3] image; pass a stack "
                                "[N, H, W, 3] (grey images of width 3 or 4: [N, H, W, 1])")
+    if arr.ndim == 3 and n is not None and arr.shape[0] != n == arr.shape[-1]:  # (an audit: the mask was blamed)
+        raise PsctlError(None, f"images of shape {arr.shape} look like [H, W, N], the {n} images last; pass "
+                               "[N, H, W] (np.moveaxis(images, -1, 0))")
+    if arr.ndim == 4 and arr.shape[1] in (1, 3, 4) and arr.shape[-1] not in (1, 2, 3, 4):
+        raise PsctlError(None, f"images of shape {arr.shape} look like [N, C, H, W], channels first; pass "
+                               "[N, H, W, C] (np.moveaxis(images, 1, -1))")
     if arr.ndim == 3:
         arr = arr[..., None]
     if arr.ndim != 4 or arr.shape[-1] not in (1, 2, 3, 4) or min(arr.shape[:3]) < 1:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -749,21 +750,26 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
         ``SphereLights``: directions [N, 3] (x right, y up, z toward the camera), intensities
         [N, 3] or None, the circle, per-image details.
     """
-    from psctl.arrays import as_images, as_mask
+    from psctl.arrays import as_images, as_mask, plain
     from psctl.io.capture import saturated_map
 
     cfg = check_config(config)
     check_sphere(sphere)
     _check_offset(cfg, sphere)
     imgs = as_images(images)
-    integer = np.asarray(images).dtype.kind in "iu"  # float images have no top code: nothing is saturated
+    integer = np.asarray(plain(images)).dtype.kind in "iu"  # float images have no top code: nothing is saturated
     camera = camera_config(cfg, imgs.shape[1:3])
     if mask is not None and circle is not None:
         raise PsctlError(None, "give mask or circle, not both")
     if circle is not None:
         c = check_circle(circle)
     elif mask is not None:
-        c = fit_circle(as_mask(mask, imgs.shape[1:3]), "mask", None, cfg, camera)
+        m = as_mask(mask, imgs.shape[1:3])
+        try:
+            c = fit_circle(m, "mask", None, cfg, camera)
+        except PsctlError as e:  # its messages' subject is the file, which an array has not: "mask is not round"
+            raise PsctlError(None, ("mask " if e.message.startswith(("is ", "has ", "holds ")) else "mask: ")
+                             + e.message) from None
     else:
         c = _circle_from_images(imgs.mean(-1).max(0), sphere, None, cfg, camera)
     box = _sphere_box(c, imgs.shape[1:3], camera)
@@ -771,7 +777,21 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     for k in range(len(imgs)):
         img = imgs[k][box]
         cal.add(img, saturated_map(img) if integer else None, f"images[{k}]")
-    return cal.result()
+    res = cal.result()
+    import warnings
+
+    from psctl.errors import PsctlWarning, python_wording
+
+    for note in _result_notes(res, [f"images[{k}]" for k in range(len(imgs))], bool(cfg["offset"])):
+        if "light_intensities.txt is not written" in note:  # a file's: no array result has one
+            continue
+        note = note.replace("use --offset", 'use config={"offset": True}').replace(  # (the command's words)
+            "take ambient.png with every light off", "subtract an image taken with every light off")
+        # psctl.calibrate_lights, the package's wrapper, is one frame between
+        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+        warnings.warn(python_wording(note).replace("sphere.png shows them", "res.images has them"),
+                      PsctlWarning, stacklevel=level)
+    return res
 
 
 def _sphere_box(c: Circle, shape: tuple[int, int], camera: tuple[float, float, float] | None
@@ -945,7 +965,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         cal.add(img, clipped.pop(k, None), cap.image_paths[k])
         advance(1)
     res = cal.result()
-    notes += _result_notes(res, cap, bool(cfg["offset"]))
+    notes += _result_notes(res, [p.name for p in cap.image_paths], bool(cfg["offset"]))
     report = _report(res, cap, notes)
     if report["camera"] is not None:
         report["camera"]["from"] = K_from or ("given" if focal_from is None else f"EXIF: {focal_from}")
@@ -973,30 +993,32 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     return report
 
 
-def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False) -> list[str]:
+def _result_notes(res: SphereLights, files: list[str], offset_fitted: bool = False) -> list[str]:
+    """What a calibration's result suggests went wrong (lights behind, a matte ball taken for
+    chrome, an offset, ...); ``files``: each image's name (a capture's files, or images[k])."""
     notes = []
 
     def names(idx: list[int]) -> str:
-        return few([cap.image_paths[i].name for i in idx])
+        return few([files[i] for i in idx])
 
     behind = [k for k, d in enumerate(res.directions) if d[2] <= 0]
     if behind:
-        notes.append(f"lights: {len(behind)} of {cap.n_images} point away from the camera ({names(behind)}): they "
+        notes.append(f"lights: {len(behind)} of {len(files)} point away from the camera ({names(behind)}): they "
                      "light the object's far side, which the camera does not see")
     if res.sphere == "chrome":
         second = [k for k, i in enumerate(res.images) if i["spots"] > 1]
         if second:
-            notes.append(f"sphere: {len(second)} of {cap.n_images} images show more than one bright spot on the sphere "
+            notes.append(f"sphere: {len(second)} of {len(files)} images show more than one bright spot on the sphere "
                          f"({names(second)}): the brightest was taken; a reflection of a lamp or a window? "
                          "sphere.png shows them")
         cut = [k for k, i in enumerate(res.images) if i.get("frame")]
         if cut:
-            notes.append(f"sphere: {len(cut)} of {cap.n_images} highlights reach the image's edge, where the sphere "
+            notes.append(f"sphere: {len(cut)} of {len(files)} highlights reach the image's edge, where the sphere "
                          f"goes on beyond the image ({names(cut)}): partly cut off, their directions are less "
                          "accurate; frame the whole sphere")
         rim = [k for k, i in enumerate(res.images) if i["rim"]]
         if rim:
-            notes.append(f"sphere: {len(rim)} of {cap.n_images} highlights reach the edge of the sphere's used part "
+            notes.append(f"sphere: {len(rim)} of {len(files)} highlights reach the edge of the sphere's used part "
                          f"({names(rim)}): lights far behind the sphere, whose highlight is partly cut off; their "
                          "directions are less accurate")
         broad = [k for k, i in enumerate(res.images) if i["pixels"] > 0.05 * np.pi * res.circle.r ** 2]
@@ -1005,7 +1027,7 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
         level = float(np.median(ratios)) if len(ratios) > len(res.images) / 2 else None
         matte_like = level is not None and level < MATTE_LIKE
         if broad and not matte_like:  # (else the note below says it of all)
-            notes.append(f"sphere: {len(broad)} of {cap.n_images} images have a broad highlight (over 5 % of the "
+            notes.append(f"sphere: {len(broad)} of {len(files)} images have a broad highlight (over 5 % of the "
                          f"sphere; {names(broad)}): is it a mirror? for a matte ball use --sphere matte")
         if matte_like:
             notes.append(f"sphere: the brightest spot is barely brighter than the sphere's brightest tenth (its peak "
@@ -1016,7 +1038,7 @@ def _result_notes(res: SphereLights, cap: "Capture", offset_fitted: bool = False
     else:
         rough = [k for k, i in enumerate(res.images) if i["rms"] is not None and i["rms"] > 0.1]
         if rough:
-            notes.append(f"sphere: {len(rough)} of {cap.n_images} images fit a Lambertian sphere poorly (residual over "
+            notes.append(f"sphere: {len(rough)} of {len(files)} images fit a Lambertian sphere poorly (residual over "
                          f"10 % of the mean value; {names(rough)}): is the ball matte, and the images linear?")
         offsets = [i["offset"] for i in res.images if i.get("offset") is not None]
         level = float(np.median(offsets)) if offsets else 0.0

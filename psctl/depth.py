@@ -156,8 +156,27 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
         rejected normals (NaN, or facing away). Orthographic: pixel units, each connected
         region shifted to mean 0. Perspective: z = -distance, each region scaled so that its
         geometric-mean distance is 1.
+
+    Warns (PsctlWarning) where ``psctl depth`` would add a note that the depth may be wrong: a
+    solve stopped at cg_maxiter before cg_rtol, most of the mask's normals facing away.
     """
-    return integrate(normals, mask, method, K, config, progress).depth
+    import sys
+    import warnings
+
+    from psctl.errors import PsctlWarning
+
+    res = integrate(normals, mask, method, K, config, progress)
+    # called as psctl.integrate_normals, the package's wrapper is one frame between
+    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+    if not res.converged:
+        warnings.warn("integrate_normals: the linear solve stopped at cg_maxiter before reaching cg_rtol: the depth "
+                      "may be inaccurate (a larger config['cg_maxiter'] lets it finish)", PsctlWarning, stacklevel=level)
+    directions = res.n_mask - res.n_rejected_nan
+    if res.n_rejected_facing > directions / 2:
+        warnings.warn(f"integrate_normals: {res.n_rejected_facing} of the mask's {directions} normals face away from "
+                      f"the camera and get no depth: not in psctl's convention (x right, y up, z towards the camera)?",
+                      PsctlWarning, stacklevel=level)
+    return res.depth
 
 
 def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str = "poisson",

@@ -234,6 +234,7 @@ PYTHON_ARGS = {
     "--normals-weights": "normals_weights", "--normals": "normals", "--root": "root",
     "--benchmark": "benchmark", "--decode": "decode", "--K": "K", "--downsample": "downsample",
     "--precision": "precision", "--sphere": "sphere", "--circle": "circle", "--offset": "offset",
+    "--focal": "focal", "--principal": "principal",
 }
 _SWITCHES = {"--no-refine": "refine=False", "--refine": "refine=True", "--no-roll": "roll=False",
              "--roll/--no-roll": "roll", "--roll": "roll=True", "`psctl lights`": "psctl.estimate_lights",

@@ -30,6 +30,7 @@ on the CPU it moved the normals by 0.07-0.09 degrees on average, at most 0.6 (do
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -203,10 +204,28 @@ def _bbox(tiles: list[Tile]) -> tuple[int, int, int, int]:
 
 # --- devices ----------------------------------------------------------------------------------
 
+def _one_thread_after_fork() -> None:
+    import torch  # (imported in the parent: this costs nothing)
+
+    torch.set_num_threads(1)
+
+
+_FORK_HOOK: list[bool] = []  # registered once per process (os.register_at_fork cannot be undone)
+
+
 def pick_device(name: str = "auto") -> "torch.device":
-    """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error."""
+    """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error.
+
+    Once psctl has run a network, a process forked from this one (a ProcessPoolExecutor's worker
+    on Linux) runs torch on one thread: GNU OpenMP's thread pool does not survive a fork, and
+    the child's first parallel operation would wait for the parent's threads for ever (an audit:
+    psctl.run_normals mapped over folders hung after a psctl call in the parent). A spawn or
+    forkserver context gives workers their own thread pools instead."""
     import torch
 
+    if not _FORK_HOOK and hasattr(os, "register_at_fork"):
+        os.register_at_fork(after_in_child=_one_thread_after_fork)
+        _FORK_HOOK.append(True)
     name = check_device_name(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

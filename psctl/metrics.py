@@ -27,8 +27,8 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     normals, gt = arrays
     if normals.shape != gt.shape or normals.ndim < 1 or normals.shape[-1] != 3:
         # no broadcasting: one normal against a map is a mistake more often than a wish
-        raise PsctlError(None, f"angular_error: normals {list(normals.shape)} and gt {list(gt.shape)} must be "
-                               "the same shape [..., 3]")
+        what = "be [..., 3] (x, y, z)" if normals.shape == gt.shape else "have the same shape [..., 3]"
+        raise PsctlError(None, f"angular_error: normals {list(normals.shape)} and gt {list(gt.shape)} must {what}")
     if mask is not None:  # [...] of the maps' shape: numbers read as in mask files, not as indices
         m = np.asarray(plain(mask))
         if m.shape == (*normals.shape[:-1], 1):  # [H, W, 1], as the other array functions take it

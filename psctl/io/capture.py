@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
-from psctl.errors import PsctlError, check_int, check_path, few
+from psctl.errors import PsctlError, check_bool, check_int, check_path, few
 from psctl.io.icc import ToneCurve
 from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
                               srgb_like, srgb_to_linear, to_rgb)
@@ -964,6 +964,13 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     capture = as_capture(capture)
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
+    for part, side, name in zip(box or (), (capture.height, capture.width), ("rows", "columns")):
+        ends = (part.start, part.stop)  # (an audit: slice(0.5, 10) raised numpy's TypeError, slice(20, 10) read nothing)
+        if any(v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))) for v in ends) \
+                or part.step not in (None, 1):
+            raise PsctlError(None, f"box: {name} must be a slice of whole numbers with step 1, not {part!r}")
+        if not len(range(*part.indices(side))):
+            raise PsctlError(None, f"box: {name} {part!r} hold none of the image's {side} {name}")
     ambient = None
     if capture.ambient_path is not None:  # read once a pass (or from an earlier pass's memo); linear, as the images
         got = None if memo is None or box is None else memo.take(capture.ambient_path, box)
@@ -1217,7 +1224,7 @@ def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     ``iter_images``), or with ``as_captured`` not (what ``psctl.estimate_lights`` takes). Prefer
     ``iter_images`` for large captures."""
     capture = as_capture(capture)
-    if as_captured:
+    if check_bool("as_captured", as_captured):
         capture = replace(capture, intensities=np.ones_like(capture.intensities))
     out = None
     for k, img in enumerate(iter_images(capture, box, progress)):
