@@ -240,7 +240,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         lights: [N, 3] light directions, x right / y up / z toward the camera, normalised here
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
-            l2 the whole image; the network methods read the object ``psctl.lights.find_object``
+            l2 the whole image (a pixel dark in every image, as a black background's, gets
+            (0, 0, 1): facing the camera); the network methods read the object ``psctl.lights.find_object``
             finds by brightness before a dark background (``FoundObject.normals_mask``) and give
             normals on it and ``psctl.infer.FOUND_GROW`` pixels around it (0 beyond), else the
             whole image (warnings say which); sdps' LCNet and light fit read any object found.
@@ -286,14 +287,15 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     views = check_views(views)
     downsample = check_downsample(downsample)
     net_cfg = {"device": device, "views": views, "downsample": downsample}
-    # (before method resolves: auto and 'SDPS' are sdps without lights too; an audit found them reading
-    # saturated pixels that sdps left out)
-    saturated = _saturated(images) if lights is None else None
+    raw_images = images  # (for the saturated map: sdps' light fit leaves those pixels out)
     images = as_images(images, n_rows(lights))
     mask = as_mask(mask, images.shape[1:3])
     lights = as_lights(lights, images.shape[0])
     check_not_black(images, mask)
     method, _ = resolve_method(method, calibrated=lights is not None, weights=weights, lcnet=lcnet)
+    # after method resolves: auto and 'SDPS' are sdps without lights too (an audit found them reading the
+    # saturated pixels that method='sdps' left out)
+    saturated = _saturated(raw_images) if method == "sdps" else None
     if method != "l2":
         net_cfg["autocast"] = precision_autocast(precision, device)  # bf16 this CPU would emulate: before any work
     if lights is not None and method not in LISTED_LIGHTS:  # they would be dropped without a word

@@ -731,6 +731,24 @@ def check_sphere(sphere: str) -> str:
     return sphere
 
 
+# the command's words -> calibrate_lights' arguments (config keys; circle a tuple; results' fields),
+# before psctl's Python wording (which would say focal=F, an argument calibrate_lights has not)
+_ARRAY_WORDS = (("--focal and principal point", 'config["focal"] and config["principal"]'),
+                (" or 'exif' (read from the images)", ""), ("--focal", 'config["focal"]'),
+                ("--principal", 'config["principal"]'), ("--circle X,Y,R", "circle=(x, y, r)"),
+                ("--circle", "circle"), ("use --offset", 'use config={"offset": True}'),
+                ("take ambient.png with every light off", "subtract an image taken with every light off"),
+                ("sphere.png shows them", "res.brightest (each pixel's brightest value) shows them"),
+                ("add mask.png (white on the sphere) or pass", "give mask or"),
+                ("psctl calibrate needs", "calibrate_lights needs"))
+
+
+def _array_wording(text: str) -> str:
+    for cli, py in _ARRAY_WORDS:
+        text = text.replace(cli, py)
+    return text
+
+
 def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = None,
                      circle: "Circle | str | Iterable[float] | None" = None, config: dict | None = None
                      ) -> SphereLights:
@@ -750,6 +768,13 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
         ``SphereLights``: directions [N, 3] (x right, y up, z toward the camera), intensities
         [N, 3] or None, the circle, per-image details.
     """
+    try:
+        return _calibrate_lights(images, sphere, mask, circle, config)
+    except PsctlError as e:
+        raise PsctlError(e.path, _array_wording(e.message)) from None
+
+
+def _calibrate_lights(images, sphere, mask, circle, config) -> SphereLights:
     from psctl.arrays import as_images, as_mask, plain
     from psctl.io.capture import saturated_map
 
@@ -785,12 +810,9 @@ def calibrate_lights(images: np.ndarray, sphere: str, mask: np.ndarray | None = 
     for note in _result_notes(res, [f"images[{k}]" for k in range(len(imgs))], bool(cfg["offset"])):
         if "light_intensities.txt is not written" in note:  # a file's: no array result has one
             continue
-        note = note.replace("use --offset", 'use config={"offset": True}').replace(  # (the command's words)
-            "take ambient.png with every light off", "subtract an image taken with every light off")
-        # psctl.calibrate_lights, the package's wrapper, is one frame between
-        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
-        warnings.warn(python_wording(note).replace("sphere.png shows them", "res.images has them"),
-                      PsctlWarning, stacklevel=level)
+        # calibrate_lights is one frame up; psctl.calibrate_lights, the package's wrapper, one more
+        level = 4 if sys._getframe(2).f_globals.get("__name__") == "psctl" else 3
+        warnings.warn(python_wording(_array_wording(note)), PsctlWarning, stacklevel=level)
     return res
 
 

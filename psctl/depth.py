@@ -173,9 +173,10 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
                       "may be inaccurate (a larger config['cg_maxiter'] lets it finish)", PsctlWarning, stacklevel=level)
     directions = res.n_mask - res.n_rejected_nan
     if res.n_rejected_facing > directions / 2:
+        rays = " along the rays of K (is K this image's?)" if K is not None else ""
         warnings.warn(f"integrate_normals: {res.n_rejected_facing} of the mask's {directions} normals face away from "
-                      f"the camera and get no depth: not in psctl's convention (x right, y up, z towards the camera)?",
-                      PsctlWarning, stacklevel=level)
+                      f"the camera{rays} and get no depth: not in psctl's convention (x right, y up, z towards the "
+                      f"camera)?", PsctlWarning, stacklevel=level)
     return res.depth
 
 

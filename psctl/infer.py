@@ -216,20 +216,22 @@ _FORK_HOOK: list[bool] = []  # registered once per process (os.register_at_fork 
 def pick_device(name: str = "auto") -> "torch.device":
     """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error.
 
-    Once psctl has run a network, a process forked from this one (a ProcessPoolExecutor's worker
+    Once psctl has picked the CPU for a network, a process forked from this one (a ProcessPoolExecutor's worker
     on Linux) runs torch on one thread: GNU OpenMP's thread pool does not survive a fork, and
     the child's first parallel operation would wait for the parent's threads for ever (an audit:
     psctl.run_normals mapped over folders hung after a psctl call in the parent). A spawn or
-    forkserver context gives workers their own thread pools instead."""
+    forkserver context gives workers their own thread pools instead. The hook lasts for the
+    process's life: a fork-based server that loads psctl and picks the CPU before forking
+    (gunicorn --preload, celery prefork) gets one torch thread per worker."""
     import torch
 
-    if not _FORK_HOOK and hasattr(os, "register_at_fork"):
-        os.register_at_fork(after_in_child=_one_thread_after_fork)
-        _FORK_HOOK.append(True)
     name = check_device_name(name)
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cpu":
+    if name == "auto" and torch.cuda.is_available():
+        return torch.device("cuda")
+    if name in ("auto", "cpu"):
+        if not _FORK_HOOK and hasattr(os, "register_at_fork"):
+            os.register_at_fork(after_in_child=_one_thread_after_fork)
+            _FORK_HOOK.append(True)
         return torch.device("cpu")
     if name == "cuda" or name.startswith("cuda:"):
         if not torch.cuda.is_available():

@@ -970,7 +970,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
                 or part.step not in (None, 1):
             raise PsctlError(None, f"box: {name} must be a slice of whole numbers with step 1, not {part!r}")
         if not len(range(*part.indices(side))):
-            raise PsctlError(None, f"box: {name} {part!r} hold none of the image's {side} {name}")
+            raise PsctlError(None, f"box: {name} {part!r} holds none of the image's {side} {name}")
     ambient = None
     if capture.ambient_path is not None:  # read once a pass (or from an earlier pass's memo); linear, as the images
         got = None if memo is None or box is None else memo.take(capture.ambient_path, box)
@@ -1379,14 +1379,13 @@ def tag_notes(capture: Capture) -> list[str]:
             notes.append(f"encoding: {which} {says} sRGB in PNG chunks but {verb(names, 'is', 'are')} read as stored, "
                          f"as linear (as DiLiGenT's PNGs, which say nothing; OpenImageIO, for one, tags a PNG sRGB "
                          f"unless told otherwise): if {verb(names, 'it', 'they')} came from a camera's JPEGs or an "
-                         f"editor, --encoding srgb "
-                         f"decodes every file from sRGB; --encoding linear reads every file as stored, without this note")
+                         f"editor, --encoding srgb decodes every file from sRGB; --encoding linear reads every file "
+                         f"as stored, without this note")
         else:
             notes.append(f"encoding: {which} {says} {t} in PNG chunks but {verb(names, 'is', 'are')} read as stored, "
                          f"as linear (psctl decodes sRGB, --encoding srgb, and ICC profiles' curves, but no other "
-                         f"curve): if so encoded, convert {verb(names, 'it', 'them')} to linear first; --encoding linear "
-                         f"reads every file as "
-                         f"stored, without this note")
+                         f"curve): if so encoded, convert {verb(names, 'it', 'them')} to linear first; --encoding "
+                         f"linear reads every file as stored, without this note")
     return notes
 
 
