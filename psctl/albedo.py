@@ -316,17 +316,15 @@ def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
                                "direction (all 0 or NaN)")
     away = int(((np.abs(inside) > 0).any(-1) & (inside[:, 2] <= 0)).sum())
     if given_mask and away > directions / 2:  # (without a mask, a background's normals could decide it)
-        import sys
         import warnings
 
-        from psctl.errors import PsctlWarning
+        from psctl.errors import PsctlWarning, caller_level
 
         # a warning, not an error: a perspective camera's surface may face it along its rays with z <= 0
         # (an audit: flipped z gave medians twice the truth, a maximum of 723 against 0.8, silently)
-        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
         warnings.warn(f"estimate_albedo: {away} of the mask's {directions} normals have z <= 0, facing away from "
                       f"an orthographic camera: are they in psctl's convention (x right, y up, z towards the camera)?",
-                      PsctlWarning, stacklevel=level)
+                      PsctlWarning, stacklevel=caller_level())
     try:
         if isinstance(min_shading, (str, bytes, bool, np.bool_)):  # "0.1" or True is a mistake, not a number
             raise TypeError

@@ -20,7 +20,7 @@ import numpy as np
 
 # ProgressFactory: progress(description, total) -> advance(n), how library code reports progress
 # without depending on a UI (the CLI passes a Rich one; None is silent); defined in psctl.errors
-from psctl.errors import (ProgressFactory, PsctlError, PsctlWarning, check_bool, check_formats,  # noqa: F401
+from psctl.errors import (ProgressFactory, PsctlError, PsctlWarning, caller_level, check_bool, check_formats,  # noqa: F401
                           check_path, check_progress)
 from psctl.io.atomic import OutputBatch, outputs_list, read_outputs_list, replaced_notes, write_outputs_list
 from psctl.models import NETWORK_METHODS, check_device_name
@@ -206,13 +206,13 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     net_cfg.update(used)
     est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views, **used})
     if found is not None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
-        _warn_found(found, "estimate_lights", 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2)
+        _warn_found(found, "estimate_lights", caller_level())
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
     given = {"falloff": falloff, "roll": roll, "precision": precision}
     unused = [k for k, _ in unused_options("sdps", refines, 1, 1, "float32", falloff, roll)]
     unused += ["precision"] if not refines and precision != "float32" else []
     if unused:
-        level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+        level = caller_level()
         why = "the refinement's, and refine=False" if not refine else \
             "the refinement's, and no normals network is installed to refine with: PS-FCN†, PS-FCN or PS-FCN+N"
         warnings.warn(f"estimate_lights: {', '.join(f'{k}={given[k]!r}' for k in unused)} unused ({why})",
@@ -276,7 +276,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     """
     from psctl.lights import refine_config
 
-    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, n_rows
+    from psctl.arrays import as_images, as_lights, as_mask, check_not_black, lights_behind, n_rows
     from psctl.models import check_downsample, check_precision, precision_autocast
     from psctl.symmetry import check_views
 
@@ -306,8 +306,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         raise PsctlError(None, f"light_distance: {method} on arrays does not read listed light directions, which "
                                f"the falloff follows; use l2, ps-fcn, ps-fcn-n or ensemble (or psctl.run_normals "
                                f"on a folder)")
-    # called as psctl.estimate_normals, the package's wrapper is one frame between
-    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+    level = caller_level()
     found = None  # mask=None: the object the networks (sdps: LCNet and the light fit too) read
     if mask is None and method != "l2":
         from psctl.lights import array_shading, find_object
@@ -324,11 +323,9 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         images = np.stack([img * near.correction(lt, rows, cols)[..., None] for img, lt in zip(images, lights)])
     if lights is None and method in ("sdps", "ups-fcn") and len(images) < 3:  # as run_normals' note
         warnings.warn(few_images_note(method, len(images)), PsctlWarning, stacklevel=level)
-    behind = [] if lights is None else np.flatnonzero(lights[:, 2] <= 0)  # (all of them: as_lights' error)
-    if len(behind):  # as a folder's light file gets a note (an audit: arrays got none)
-        rows = ", ".join(f"lights[{i}]" for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
-        warnings.warn(f"lights: {len(behind)} of {len(lights)} light directions have z <= 0, behind the object "
-                      f"({rows}); psctl wants z toward the camera", PsctlWarning, stacklevel=level)
+    behind = None if lights is None else lights_behind(lights, lambda idx: ", ".join(f"lights[{i}]" for i in idx))
+    if behind:  # as a folder's light file gets a note (an audit: arrays got none)
+        warnings.warn(f"lights: {behind}", PsctlWarning, stacklevel=level)
     net_cfg.update(_found_config(found))
     if found is not None and found.normals_mask is not None:
         warnings.warn(f"{method}: mask=None: {_found_file_note(False)}", PsctlWarning, stacklevel=level)

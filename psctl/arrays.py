@@ -10,6 +10,7 @@ refused for (NaN, zero-length lights, an empty mask, all-black images).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import numpy as np
 
@@ -148,6 +149,17 @@ def check_lights_face_camera(unit: np.ndarray, path: str | os.PathLike | None) -
     if (unit[:, 2] <= 0).all():
         raise PsctlError(path, ("" if path else "lights: ") + "every light has z <= 0 (behind the object); psctl "
                                "wants z toward the camera (x right, y up): negate the z column if yours points away")
+
+
+def lights_behind(lights: np.ndarray, rows: Callable[[list[int]], str]) -> str | None:
+    """The note on unit light directions [N, 3] of which some have z <= 0 (all: the error of
+    ``check_lights_face_camera``), or None; ``rows`` names the first few ("rows 2, 5", "lights[1]")."""
+    behind = [int(i) for i in np.flatnonzero(lights[:, 2] <= 0)]
+    if not behind:
+        return None
+    named = rows(behind[:5]) + (" ..." if len(behind) > 5 else "")
+    return (f"{len(behind)} of {len(lights)} light directions have z <= 0, behind the object ({named}); psctl "
+            f"wants z toward the camera")
 
 
 def check_vector_dtype(a: np.ndarray, what: str) -> None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -805,14 +804,13 @@ def _calibrate_lights(images, sphere, mask, circle, config) -> SphereLights:
     res = cal.result()
     import warnings
 
-    from psctl.errors import PsctlWarning, python_wording
+    from psctl.errors import PsctlWarning, caller_level, python_wording
 
     for note in _result_notes(res, [f"images[{k}]" for k in range(len(imgs))], bool(cfg["offset"])):
         if "light_intensities.txt is not written" in note:  # a file's: no array result has one
             continue
-        # calibrate_lights is one frame up; psctl.calibrate_lights, the package's wrapper, one more
-        level = 4 if sys._getframe(2).f_globals.get("__name__") == "psctl" else 3
-        warnings.warn(python_wording(_array_wording(note)), PsctlWarning, stacklevel=level)
+        # (calibrate_lights, the public function, is one frame up)
+        warnings.warn(python_wording(_array_wording(note)), PsctlWarning, stacklevel=caller_level(2))
     return res
 
 

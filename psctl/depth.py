@@ -160,14 +160,12 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
     Warns (PsctlWarning) where ``psctl depth`` would add a note that the depth may be wrong: a
     solve stopped at cg_maxiter before cg_rtol, most of the mask's normals facing away.
     """
-    import sys
     import warnings
 
-    from psctl.errors import PsctlWarning
+    from psctl.errors import PsctlWarning, caller_level
 
     res = integrate(normals, mask, method, K, config, progress)
-    # called as psctl.integrate_normals, the package's wrapper is one frame between
-    level = 3 if sys._getframe(1).f_globals.get("__name__") == "psctl" else 2
+    level = caller_level()
     if not res.converged:
         warnings.warn("integrate_normals: the linear solve stopped at cg_maxiter before reaching cg_rtol: the depth "
                       "may be inaccurate (a larger config['cg_maxiter'] lets it finish)", PsctlWarning, stacklevel=level)

@@ -138,6 +138,16 @@ def check_int(where: str, value: Any) -> int | None:
     return int(value)
 
 
+def caller_level(frames: int = 1) -> int:
+    """The ``stacklevel`` of a warning raised ``frames`` calls below a public function (1: in it),
+    so that it points at the user's line: one more where the call came through the package's
+    wrapper (``psctl.X``)."""
+    import sys
+
+    caller = sys._getframe(frames + 1).f_globals.get("__name__")
+    return frames + (2 if caller == "psctl" else 1)
+
+
 def check_bool(where: str, value: Any) -> bool:
     """True or False (numpy's too); anything else, such as the truthy text "no", is an error."""
     import numpy as np

@@ -216,13 +216,14 @@ _FORK_HOOK: list[bool] = []  # registered once per process (os.register_at_fork 
 def pick_device(name: str = "auto") -> "torch.device":
     """auto: CUDA when torch sees a GPU, else CPU. Asking for cuda without one is a user error.
 
-    Once psctl has picked the CPU for a network, a process forked from this one (a ProcessPoolExecutor's worker
-    on Linux) runs torch on one thread: GNU OpenMP's thread pool does not survive a fork, and
-    the child's first parallel operation would wait for the parent's threads for ever (an audit:
-    psctl.run_normals mapped over folders hung after a psctl call in the parent). A spawn or
-    forkserver context gives workers their own thread pools instead. The hook lasts for the
-    process's life: a fork-based server that loads psctl and picks the CPU before forking
-    (gunicorn --preload, celery prefork) gets one torch thread per worker."""
+    Once psctl has picked the CPU for a network, a process forked from this one (a
+    ProcessPoolExecutor's worker on Linux) runs torch on one thread: GNU OpenMP's thread pool
+    does not survive a fork, and the child's first parallel operation would wait for the
+    parent's threads for ever (an audit: psctl.run_normals mapped over folders hung after a
+    psctl call in the parent). A spawn or forkserver context gives workers their own thread
+    pools instead. The hook lasts for the process's life: a fork-based server that loads psctl
+    and picks the CPU before forking (gunicorn --preload, celery prefork) gets one torch thread
+    per worker."""
     import torch
 
     name = check_device_name(name)

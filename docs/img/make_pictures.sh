@@ -19,7 +19,6 @@ for src, dst in ((f"{tmp}/eval/compare.png", "docs/img/dev_split_l2_vs_ensemble.
                  (f"{tmp}/lights/lights.png", "docs/img/cat_lights.png"),
                  (f"{tmp}/depth/shading.png", "docs/img/cat_depth_shading.png")):
     buf = oiio.ImageBuf(src)
-    spec = buf.spec()
     buf.specmod().attribute("png:compressionLevel", 9)
     assert buf.write(dst), buf.geterror()
     print("wrote", dst)

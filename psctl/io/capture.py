@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.arrays import check_lights_face_camera, unit_rows, unit_vectors
+from psctl.arrays import check_lights_face_camera, lights_behind, unit_rows, unit_vectors
 from psctl.errors import PsctlError, check_bool, check_int, check_path, few
 from psctl.io.icc import ToneCurve
 from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
@@ -1242,11 +1242,10 @@ def capture_notes(capture: Capture) -> list[str]:
     """Notes on how the images are read when it is not as stored (ambient image subtracted,
     sRGB decoded), so that a result never silently depends on it."""
     notes = []
-    behind = [] if capture.lights is None else np.flatnonzero(capture.lights[:, 2] <= 0)
-    if len(behind):
-        rows = ", ".join(str(i + 1) for i in behind[:5]) + (" ..." if len(behind) > 5 else "")
-        notes.append(f"light file: {len(behind)} of {capture.n_images} light directions have z <= 0, behind the object "
-                     f"({'row' if len(behind) == 1 else 'rows'} {rows}); psctl wants z toward the camera")
+    behind = None if capture.lights is None else lights_behind(
+        capture.lights, lambda idx: f"{'row' if len(idx) == 1 else 'rows'} {', '.join(str(i + 1) for i in idx)}")
+    if behind:
+        notes.append(f"light file: {behind}")
     if capture.light_lengths is not None:
         lo, hi = capture.light_lengths
         notes.append(f"light file: {capture.lights_path.name if capture.lights_path else LIGHTS_FILE}'s rows are not "
@@ -1310,7 +1309,6 @@ def capture_notes(capture: Capture) -> list[str]:
         if linear_jpegs:  # JPEGs are otherwise decoded from sRGB: say why these are not
             notes.append(f"encoding: {few(linear_jpegs)}: JPEG with a linear ICC profile, read as stored (--encoding "
                          f"srgb decodes them from sRGB)")
-    if capture.encoding == "auto":
         notes += tag_notes(capture)
     profiled = [k for k in range(capture.n_images) if isinstance(capture.decoding(k), ToneCurve)]
     if profiled:  # a TIFF or PNG exported with a tone curve (Adobe RGB, ProPhoto, sRGB) says so in its profile

@@ -11,8 +11,8 @@ linearly, which keeps each channel proportional to radiance.
 
 The parser reads the ICC.1 tag table and the two curve types, ``curv`` (identity, a gamma, or a
 sampled table) and ``para`` (the five parametric functions). Anything else (a profile whose TRC
-is a lookup-table transform, a CMYK or Lab profile, a damaged one) gives None, and the image is
-read as it would be without a profile.
+is a lookup-table transform, a CMYK or Lab profile, a damaged one) gives the reason instead
+(``read_profile``), which a note repeats, and the image is read as it would be without a profile.
 """
 
 from __future__ import annotations

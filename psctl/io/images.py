@@ -11,6 +11,7 @@ of camera JPEGs, and an embedded ICC profile's curves are read into ``ImageInfo.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import struct
 import sys
@@ -324,8 +325,7 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
         spec = inp.spec()
         w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
 
-        def number(name: str, lo: float = 0.0, hi: float = np.inf) -> float:
-            return _tag_number(spec, name, lo, hi)
+        number = functools.partial(_tag_number, spec)
 
         mm, f35 = number("Exif:FocalLength", 0.5, 5000.0), number("Exif:FocalLengthIn35mmFilm", 1.0, 5000.0)
         res, unit_tag = number("Exif:FocalPlaneXResolution"), int(number("Exif:FocalPlaneResolutionUnit", 0, 9))
