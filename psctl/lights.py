@@ -1128,9 +1128,9 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 # frame, as before, and a background that is not dark, where shading is not used, gets a note.
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
 FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
-FOUND_DARK_CONTRAST = 0.15  # the unlit part's mean brightness over the lit part's, above which the
-# background is not dark (dark backgrounds: 0.018-0.089 on syntest at albedo 0.01, 0.011-0.099 on the
-# dev split; lit planes and textures where an object was used: 0.33-0.84; benchmarks/auto_mask_lights.py)
+FOUND_DARK_CONTRAST = 0.15  # the unlit part's median brightness over the lit part's mean, above which the
+# background is not dark (dark backgrounds: 0.018-0.087 on syntest at albedo 0.01, 0.008-0.074 on the
+# dev split; lit planes and textures, their border not lit: 0.245-0.864; benchmarks/auto_mask_lights.py's scenes)
 FOUND_NORMALS_BORDER = 0.25  # the normals networks read the whole frame where the object found covers more
 # of the frame's border ring (border_ring) than this: no background around it (a surface that fills the
 # frame with a dark part, a review: 8.66 -> 40.6 degrees with its dark half left without normals)
@@ -1264,8 +1264,10 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     lit = lit_pixels(b)
     region = ndimage.binary_fill_holes(lit)
     # rounded as the report gives it: for_normals reads the report's value, and the notes must agree with it
-    contrast = round(float(b[~lit].mean() / b[lit].mean()), 4) if lit.any() and (~lit).any() and b[lit].mean() > 0 \
-        else None
+    # the unlit part's median: its mean counted the object's own dim rim where the background is black
+    # (an exactly black one: a sphere's rim under oblique lights gave 0.13-0.17, median 0)
+    contrast = round(float(np.median(b[~lit]) / b[lit].mean()), 4) if lit.any() and (~lit).any() and \
+        b[lit].mean() > 0 else None
     not_dark = contrast is not None and contrast > FOUND_DARK_CONTRAST
     # a lit background: the unlit part is not dark, or the frame's border is lit (a background brighter
     # than a dark object: Otsu's lit part is the background, and its unlit part, the object, is dark;
@@ -1291,7 +1293,7 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     if used and reader != "lights" and not for_normals(info):
         # the normals networks read the whole frame (for_normals); sdps' LCNet and light fit the object
         lit = ("the background is lit (the object was told from it by shading)" if by == "shading" else
-               f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit ones')"
+               f"the background is not dark (the unlit pixels' median brightness is {contrast:.2f} of the lit ones' mean)"
                if not_dark else f"the object found covers {info['border']:.0%} of the frame's border (no background "
                                 f"around it)")
         why_not = (f"{lit}, and what is left out may be part of the object (a surface that fills the frame): "
@@ -1316,8 +1318,8 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
                      "shadows: lights 3.43 degrees off on average, 3.33 with their masks); give a mask of the object "
                      "where you can")
     elif not_dark:
-        notes.append(f"the background is not dark (the unlit pixels' mean brightness is {contrast:.2f} of the lit "
-                     f"ones'): without a mask {off}; give a mask of the object")
+        notes.append(f"the background is not dark (the unlit pixels' median brightness is {contrast:.2f} of the lit "
+                     f"ones' mean): without a mask {off}; give a mask of the object")
     return FoundObject(region if used else None, info, notes)
 
 

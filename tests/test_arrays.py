@@ -734,6 +734,29 @@ def test_find_object_fills_shadows_and_gives_up_on_a_lit_frame():
     assert h.mask is None and h.info["frame_fraction"] > FOUND_MAX_FRACTION and "covers 96%" in h.notes[0]
 
 
+def test_a_black_background_is_dark_whatever_the_objects_dim_rim():
+    """A sphere before an exactly black background under oblique lights (a ring at 50 degrees): its
+    rim is too dim for Otsu's lit part, so the unlit part is the black background plus that rim.
+    Its mean over the lit part's was 0.17 ("the background is not dark", an audit's false note);
+    the median, the background's own level, is 0."""
+    from psctl.lights import find_object
+
+    h = 32
+    yy, xx = np.mgrid[:h, :h]
+    nx, ny = (xx - (h - 1) / 2) / (0.45 * h), -(yy - (h - 1) / 2) / (0.45 * h)
+    disc = nx ** 2 + ny ** 2 < 1
+    normals = np.stack([nx, ny, np.sqrt(np.clip(1 - nx ** 2 - ny ** 2, 0, None))], -1) * disc[..., None]
+    th = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    el = np.radians(50)
+    lights = np.stack([np.cos(th) * np.sin(el), np.sin(th) * np.sin(el), np.full(12, np.cos(el))], -1)
+    b = np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None).sum(0)
+    f = find_object(b)
+    assert f.mask is not None and f.info["used"] and f.info["contrast"] == 0.0
+    assert len(f.notes) == 1 and "not dark" not in f.notes[0]
+    rim = disc & ~f.mask
+    assert rim.sum() > 50 and b[~f.mask].mean() / b[f.mask].mean() > 0.15  # the dim rim, which the mean counted
+
+
 def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weights, monkeypatch):
     """Before a lit background (a textured table with the object's shadows on it) brightness cannot
     find the object; the background's one shading profile over the images can (the frame's border
