@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError
+from psctl.errors import NO_ROOM, PsctlError
 
 if TYPE_CHECKING:
     from psctl.api import ProgressFactory
@@ -63,16 +63,10 @@ def _median_ratios(ratios: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.where(k > 0, med, 0.0).astype(np.float32)
 
 
-def counted_images(shading: np.ndarray, min_shading: float) -> np.ndarray:
-    """shading [P, N] (n . l) -> [P, N] bool: the images that light each pixel well enough to
-    count: n . l >= min_shading, or, for a pixel where no image reaches that, at least half its
-    best n . l (and above 0)."""
-    return (shading >= shading_floor(shading.max(axis=1, keepdims=True), min_shading)) & (shading > 0)
-
-
 def shading_floor(best: np.ndarray, min_shading: float) -> np.ndarray:
     """The least n . l that counts at pixels whose best n . l is ``best``: ``min_shading``, or
-    half the best where no image reaches ``min_shading``."""
+    half the best where no image reaches ``min_shading``. An image counts at a pixel where its
+    n . l is at least this and above 0."""
     return np.where(best >= min_shading, min_shading, 0.5 * best)
 
 
@@ -105,7 +99,7 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
     npx = len(nrm)
     min_shading = float(cfg["min_shading"])
     best = np.full(npx, -np.inf, np.float32)
-    for light in lights:  # each pixel's best n . l, for counted_images' rule without a [P, N] array
+    for light in lights:  # each pixel's best n . l, for shading_floor, without a [P, N] array
         np.maximum(best, nrm @ light, out=best)
     floor = shading_floor(best, min_shading)
     budget = int(float(cfg["budget_mb"]) * (1 << 20))
@@ -117,7 +111,7 @@ def albedo_from_reader(read: Callable[[tuple[slice, slice]], Iterator[np.ndarray
                 raise PsctlError(None, f"albedo: the reader gave more than the {n} images of the lights")
             vals = img[sel]  # [P, 3]
             s = nrm @ lights[i]
-            c = ((s >= floor) & (s > 0))[:, None]  # the images that count (counted_images)
+            c = ((s >= floor) & (s > 0))[:, None]  # the images that count (shading_floor)
             with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # n . l <= 0: not counted
                 r = vals / s[:, None]
             if (~np.isfinite(r) & c).any():
@@ -167,7 +161,6 @@ def _none_counted(none: np.ndarray, sel: np.ndarray) -> np.ndarray:
 # (tracemalloc: 14.1 bytes in all on the dev split's cat, 96 images)
 BYTES_PER_OBSERVATION = 12 + 3
 BAND_BYTES_PER_OBSERVATION = BYTES_PER_OBSERVATION + 12  # a band read from the file: a copy beside
-NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def fits_in_memory(n_pixels: int, n_images: int, config: dict | None = None) -> bool:

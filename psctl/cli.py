@@ -151,11 +151,6 @@ def _stderr():
     return console(stderr=True)
 
 
-# errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
-# even where no file name comes with them (a write to stdout redirected to a full disk)
-_NO_ROOM = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
-
-
 def _fail(message: str) -> None:
     from rich.markup import escape
 
@@ -227,7 +222,7 @@ def _out_of_memory(detail: str) -> str:
 
 @contextlib.contextmanager
 def _user_errors() -> Iterator[None]:
-    from psctl.errors import PsctlError
+    from psctl.errors import NO_ROOM, PsctlError
 
     try:
         with _on_termination():
@@ -235,7 +230,7 @@ def _user_errors() -> Iterator[None]:
     except PsctlError as e:
         _fail(str(e))
     except OSError as e:
-        if e.filename is None and e.errno in _NO_ROOM:  # printing to a full disk (`> out.json`), ...
+        if e.filename is None and e.errno in NO_ROOM:  # printing to a full disk (`> out.json`), ...
             with contextlib.suppress(OSError):
                 _fail(f"cannot write the output ({e.strerror.lower() if e.strerror else e})")
             raise typer.Exit(2) from None
@@ -318,7 +313,9 @@ def _run(work: Callable, json_out: bool, quiet: bool, render: Callable[[dict], N
         else:
             render(report)
     except OSError as e:  # stdout to a full disk (`> /dev/full`) or closed (`>&-`): the outputs are written
-        if e.filename is not None or e.errno not in (*_NO_ROOM, errno.EBADF):
+        from psctl.errors import NO_ROOM
+
+        if e.filename is not None or e.errno not in (*NO_ROOM, errno.EBADF):
             raise
         outs = (report.get("outputs") or report.get("out")) if isinstance(report, dict) else None  # synth: "out"
         with contextlib.suppress(OSError):

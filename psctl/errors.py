@@ -7,12 +7,17 @@ The CLI prints ``str(err)`` as a single line and exits with code 2; library user
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import math
 import numbers
 import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
+
+# errno values that say the disk (or a quota, or a size limit) has no room: the user's to fix,
+# even where no file name comes with them (a write to stdout redirected to a full disk)
+NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def visible(text: str, newlines: bool = True) -> str:

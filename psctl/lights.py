@@ -1338,18 +1338,13 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
     return found.mask, {**config, "exposure_pixels": "found"}, found  # its mean, as a mask's (words apart)
 
 
-def capture_brightness(capture: "Capture", progress: "ProgressFactory | None" = None,
-                       memo: "DecodeMemo | None" = None) -> np.ndarray:
-    """[H, W] float64, each pixel's sum over a capture's images and channels as captured (its
-    light_intensities.txt not applied), for ``find_object``. ``memo`` keeps the decoded images
-    (the whole frame) for the passes after, where they fit."""
-    return capture_shading(capture, progress, memo)[0]
-
-
 def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = None,
                     memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, np.ndarray]:
-    """``capture_brightness`` and, from the same read, the profiles ``find_object`` tells a lit
-    background by: [N, h, w] float32 grey, a pixel of each block (``profile_grid``, ``block_samples``)."""
+    """What ``find_object`` reads of a capture, in one read of its images: (brightness [H, W]
+    float64, each pixel's sum over the images and channels as captured, its light_intensities.txt
+    not applied; the profiles it tells a lit background by, [N, h, w] float32 grey, a pixel of
+    each block: ``profile_grid``, ``block_samples``). ``memo`` keeps the decoded images (the whole
+    frame) for the passes after, where they fit."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
 

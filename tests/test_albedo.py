@@ -350,12 +350,15 @@ def test_mesh_colours_from_albedo_png_and_exr_agree(tmp_path):
     assert np.abs(colours[0] - colours[1]).max() <= 1
 
 
-def test_counted_images_follow_the_documented_rule():
-    from psctl.albedo import counted_images
+def test_the_shading_floor_follows_the_documented_rule():
+    from psctl.albedo import shading_floor
 
     s = np.array([[0.30, 0.15, 0.10], [0.15, 0.10, 0.05], [0.5, -0.2, 0.0]], np.float32)
     # a pixel some image lights with n . l >= 0.2 takes only those; else those at half its best
-    assert counted_images(s, 0.2).tolist() == [[True, False, False], [True, True, False], [True, False, False]]
+    floor = shading_floor(s.max(axis=1), 0.2)
+    assert floor.tolist() == pytest.approx([0.2, 0.075, 0.2])
+    counted = (s >= floor[:, None]) & (s > 0)  # as albedo_from_reader counts each image
+    assert counted.tolist() == [[True, False, False], [True, True, False], [True, False, False]]
 
 
 def test_cast_shadows_are_left_out_and_all_black_pixels_are_undetermined():

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from psctl.api import run_normals
 from psctl.cli import app
 from psctl.io.capture import capture_notes, load_images, open_capture
-from psctl.io.icc import read_profile, tone_curve
+from psctl.io.icc import ToneCurve, read_profile
 from psctl.io.images import image_info, png_colour_tag, read_image, write_image
 from tests.conftest import write_capture
 from tests.test_icc import curv_gamma, desc, profile, rgb_profile
@@ -23,6 +23,12 @@ from tests.test_icc import curv_gamma, desc, profile, rgb_profile
 # --- PNGs written byte by byte from the PNG specification, with the chunks asked for ---
 def _chunk(kind: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+
+def tone_curve(profile: bytes) -> ToneCurve | None:
+    """read_profile's curves, or None where it gives a reason instead."""
+    read = read_profile(profile)
+    return read if isinstance(read, ToneCurve) else None
 
 
 def png_bytes(pixels: np.ndarray, chunks=()) -> bytes:

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from psctl.api import run_normals
 from psctl.cli import app
 from psctl.io.capture import load_images, open_capture
-from psctl.io.icc import tone_curve
+from psctl.io.icc import ToneCurve, read_profile
 from psctl.io.images import image_info, read_image, write_image
 from tests.conftest import write_capture
 
@@ -21,6 +21,12 @@ from tests.conftest import write_capture
 # --- ICC profiles, written here from the ICC.1 specification (independently of psctl's parser) ---
 def _pad(body: bytes) -> bytes:
     return body + b"\0" * (-len(body) % 4)
+
+
+def tone_curve(profile: bytes) -> ToneCurve | None:
+    """read_profile's curves, or None where it gives a reason instead."""
+    read = read_profile(profile)
+    return read if isinstance(read, ToneCurve) else None
 
 
 def curv_gamma(g: float) -> bytes:

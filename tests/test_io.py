@@ -196,12 +196,11 @@ def test_select_images():
     assert select_images(10, 4, None).tolist() == [2, 4, 5, 7]  # no lights: seed 0
 
 
-def test_bounding_box_multiple():
+def test_bounding_box_margin_is_clipped_to_the_image():
     m = np.zeros((50, 60), bool)
-    m[10:21, 5:9] = True
-    ys, xs = bounding_box(m, margin=2, multiple=4)
-    assert (ys.stop - ys.start) % 4 == 0 and (xs.stop - xs.start) % 4 == 0
-    assert ys.start <= 8 and ys.stop >= 23 and xs.start <= 3 and xs.stop >= 11
+    m[10:21, 2:9] = True
+    assert bounding_box(m) == (slice(10, 21), slice(2, 9))
+    assert bounding_box(m, margin=3) == (slice(7, 24), slice(0, 12))  # the left side stops at the frame
 
 
 @pytest.mark.parametrize("fmt,name,tol", [("png16", "n.png", 0.01), ("png8", "n8.png", 0.5), ("exr", "n.exr", 1e-4),

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from psctl.errors import PsctlError
 from psctl.lights import array_lights, intensity_error, lights_plot, run_lcnet, write_light_files
 from psctl.models.lcnet import (LCNet, angles_to_dirs, classes_to_dirs, classes_to_ints, classification_loss,
-                                count_parameters, decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
+                                decode, dirs_to_angles, dirs_to_classes, ints_to_classes,
                                 resize_inputs)
 from psctl.models.ps_fcn import PSFCN
 from psctl.models.weights import file_sha256, load_network, read_weights, save_weights
@@ -64,7 +64,7 @@ def psctl(*args, env: dict | None = None) -> subprocess.CompletedProcess:
 
 def test_parameter_count_and_official_names():
     net = lcnet()
-    assert count_parameters(net) == 4_409_692  # "about 4.41 M"
+    assert sum(p.numel() for p in net.parameters()) == 4_409_692  # "about 4.41 M"
     assert {k: tuple(v.shape) for k, v in net.state_dict().items()} == OFFICIAL
 
 

@@ -880,10 +880,10 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
-    from psctl.lights import NO_MASK_PREFIX, capture_brightness, find_object, run_lights
+    from psctl.lights import NO_MASK_PREFIX, capture_shading, find_object, run_lights
 
     arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
-    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG")))
+    found = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0])
     m = arrays["mask"]
     assert found.mask is not None and not (found.mask & ~m).any() and found.mask.sum() > 0.9 * m.sum()
     write_capture(tmp_path / "cPNG", n=6, size=32, seed=1, mask=False)
@@ -916,7 +916,7 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
         spot[:, 13:19, 13:19] = 0
         for k, img in enumerate(spot):
             write_image(tmp_path / name / f"{k + 1:03d}.png", img, "uint16", kind="linear")
-    spot = find_object(capture_brightness(open_capture(tmp_path / "dPNG"))).mask
+    spot = find_object(capture_shading(open_capture(tmp_path / "dPNG"))[0]).mask
     assert spot[13:19, 13:19].all()
     write_image(tmp_path / "ePNG" / "mask.png", spot.astype(np.float32), "uint8")
     import psctl.infer
@@ -936,7 +936,7 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     nb = {}
     rb = run_normals(tmp_path / "bPNG", method="sdps", write=False, device="cpu", arrays=nb)
     rc = run_normals(tmp_path / "cPNG", method="sdps", write=False, device="cpu")
-    words = find_object(capture_brightness(open_capture(tmp_path / "bPNG")), reader="sdps").notes[0]
+    words = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0], reader="sdps").notes[0]
     assert NO_MASK_PREFIX + words in rb["notes"] and not any("no mask.png" in n for n in rc["notes"])
     assert rb["found_object"] == found.info and rc["found_object"] is None
     assert rb["light_mae"] is not None and rb["light_mae"] == rc["light_mae"] and rb["intensity_re"] == rc["intensity_re"]
@@ -957,10 +957,10 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     from psctl.api import run_normals
     from psctl.io.capture import load_mask, open_capture
     from psctl.io.images import read_image
-    from psctl.lights import FOUND_FILE, capture_brightness, find_object, run_lights
+    from psctl.lights import FOUND_FILE, capture_shading, find_object, run_lights
 
     write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
-    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG"))).mask
+    found = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0]).mask
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
     r = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
     assert r["outputs"]["mask_found"] == str(tmp_path / "out" / FOUND_FILE)
@@ -1033,12 +1033,12 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
     from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
-    from psctl.lights import capture_brightness, find_object, run_lights
+    from psctl.lights import capture_shading, find_object, run_lights
     from psctl.nearlight import near_lights
 
     arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
     m = arrays["mask"]
-    found = find_object(capture_brightness(open_capture(tmp_path / "bPNG"))).mask
+    found = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0]).mask
     write_capture(tmp_path / "cPNG", n=6, size=32, seed=1, mask=False)
     write_image(tmp_path / "cPNG" / "mask.png", found.astype(np.float32), "uint8")
     with pytest.raises(PsctlError, match="whole frame"):  # 40 does not clear the frame's corners

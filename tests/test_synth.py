@@ -1149,10 +1149,6 @@ def test_shade_is_the_reference_brdf_times_the_cosine():
     for mat in models:
         got = R.shade(normals.permute(0, 2, 1), lights, mat, intensities=e)
         assert torch.allclose(got, reference(mat), rtol=5e-4, atol=1e-6)  # float32 over sharp lobes
-    w = torch.rand(b, 1, p, generator=g)
-    blend = R.shade(normals.permute(0, 2, 1), lights, models[0], intensities=e, mat_b=models[2], weights=w)
-    want = w[:, None] * reference(models[0]) + (1 - w[:, None]) * reference(models[2])
-    assert torch.allclose(blend, want, rtol=5e-4, atol=1e-6)
 
 
 def test_sampled_lights_cover_the_whole_hemisphere_evenly():

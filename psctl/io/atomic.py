@@ -7,7 +7,6 @@ see complete files.
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import shutil
 import sys
@@ -15,7 +14,7 @@ import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
-from psctl.errors import PsctlError
+from psctl.errors import NO_ROOM, PsctlError
 
 
 def utf8_path(path: Path, message: str) -> str:
@@ -519,14 +518,11 @@ def staged_outputs(out_dir: str | os.PathLike, replaces: Iterable[str] | Callabl
         raise
 
 
-_NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-
-
 def no_room(error: BaseException, out_dir: str | os.PathLike) -> BaseException:
     """A full disk met while staging the outputs, where the system's error names no file (a write
     found short at close, as pathlib's write_text raises it): a PsctlError naming the output
     folder, else ``error`` itself."""
-    if isinstance(error, OSError) and error.filename is None and error.errno in _NO_ROOM:
+    if isinstance(error, OSError) and error.filename is None and error.errno in NO_ROOM:
         what = error.strerror.lower() if error.strerror else str(error)
         return PsctlError(out_dir, f"cannot write the outputs ({what}); nothing was written")
     return error

@@ -901,19 +901,13 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
     return unit_vectors(gt, 1e-6)[0].astype(np.float32)
 
 
-def bounding_box(mask: np.ndarray, margin: int = 0, multiple: int = 1) -> tuple[slice, slice]:
-    """Rows/cols slices of the mask's bounding box grown by ``margin`` (clipped to the image)
-    and, where the image allows, to sides that are a multiple of ``multiple``."""
+def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
+    """Rows/cols slices of the mask's bounding box grown by ``margin`` (clipped to the image)."""
     ys, xs = np.nonzero(mask)
     h, w = mask.shape
 
     def span(lo: int, hi: int, size: int) -> slice:
-        lo, hi = max(lo - margin, 0), min(hi + 1 + margin, size)
-        extra = (-(hi - lo)) % multiple
-        grow_hi = min(extra, size - hi)
-        hi += grow_hi
-        lo = max(lo - (extra - grow_hi), 0)
-        return slice(lo, hi)
+        return slice(max(lo - margin, 0), min(hi + 1 + margin, size))
 
     return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
 

@@ -209,10 +209,3 @@ def read_profile(profile: bytes) -> ToneCurve | str:
         return ToneCurve(name, curves)
     except (struct.error, UnicodeDecodeError, IndexError):
         return "damaged"
-
-
-def tone_curve(profile: bytes) -> ToneCurve | None:
-    """The tone curves of an ICC profile (``read_profile``); None when psctl cannot take them from
-    it (``read_profile`` says why)."""
-    read = read_profile(profile)
-    return read if isinstance(read, ToneCurve) else None

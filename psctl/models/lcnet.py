@@ -164,11 +164,6 @@ class LCNet(nn.Module):
         return decode(self(images, mask), self.config, mode)
 
 
-def count_parameters(model: nn.Module) -> int:
-    """Number of learnt values (weights and biases)."""
-    return sum(p.numel() for p in model.parameters())
-
-
 def resize_inputs(images: torch.Tensor, mask: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Resize images [B, 3, H, W] and masks [B, 1, H, W] to size x size (bilinear, antialiased
     when shrinking, so that a large photo is averaged rather than point-sampled); the mask is
@@ -275,11 +270,6 @@ def decode(logits: dict[str, torch.Tensor], config: dict | None = None,
     raise ValueError(f"unknown decoding {mode!r}; choose from {', '.join(DECODINGS)}")
 
 
-def discretize_dirs(dirs: torch.Tensor, k: int = DEFAULT_CONFIG["dirs_cls"]) -> torch.Tensor:
-    """Snap directions [..., 3] to their class centres (what an argmax LCNet can output)."""
-    return classes_to_dirs(*dirs_to_classes(dirs, k), k).to(dirs.dtype)
-
-
 def classification_loss(logits: dict[str, torch.Tensor], dirs: torch.Tensor, ints: torch.Tensor,
                         config: dict | None = None, weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
                         ) -> tuple[torch.Tensor, dict[str, float]]:
@@ -301,4 +291,4 @@ def classification_loss(logits: dict[str, torch.Tensor], dirs: torch.Tensor, int
 
 
 __all__ = ["LCNet", "DEFAULT_CONFIG", "decode", "classification_loss", "resize_inputs", "dirs_to_classes",
-           "classes_to_dirs", "ints_to_classes", "classes_to_ints", "discretize_dirs", "count_parameters"]
+           "classes_to_dirs", "ints_to_classes", "classes_to_ints"]

@@ -147,11 +147,6 @@ class PSFCN(nn.Module):
         return self.regress(fused)
 
 
-def count_parameters(model: nn.Module) -> int:
-    """Number of learnt values (weights and biases)."""
-    return sum(p.numel() for p in model.parameters())
-
-
 def normalize_observations(images: torch.Tensor, variant: str = "per-channel", q: int | None = None) -> torch.Tensor:
     """+N: divide each pixel's observations by their L2 norm over the images.
 

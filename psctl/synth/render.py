@@ -34,7 +34,6 @@ VIEW = (0.0, 0.0, 1.0)
 
 def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | None = None,
           intensities: Tensor | None = None, texture: Tensor | None = None,
-          mat_b: Material | None = None, weights: Tensor | None = None,
           ambient: Tensor | None = None, indirect: Tensor | None = None,
           falloff: Tensor | None = None) -> Tensor:
     """Render B samples of P pixels under N lights each.
@@ -43,8 +42,7 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         normals: [B, 3, P] unit normals (0 outside the object gives 0 radiance).
         lights: [B, N, 3] unit directions toward the lights, or [B, N, 3, P] one per pixel
             (near point lights, ``near_light_field``).
-        mat: B materials; ``mat_b`` optional second materials blended as
-            weights * f_A + (1 - weights) * f_B with ``weights`` [B, 1, P] in [0, 1].
+        mat: B materials (a blend of two: shade each, then mix, as the stream does).
         visibility: [B, N, P] in [0, 1] (cast shadows), or None.
         intensities: [B, N] light intensities e, or None for 1.
         texture: [B, 3, P] multiplier of the diffuse albedo, or None.
@@ -96,11 +94,7 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
             out.addcmul_((alb / math.pi)[:, None], indirect)
         return out
 
-    img = one(mat)
-    if mat_b is not None:
-        w = weights[:, None]  # [B, 1, 1, P]
-        img = w * img + (1.0 - w) * one(mat_b)
-    return img
+    return one(mat)
 
 
 def near_field(lights: Tensor, xy: Tensor, to_src: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:

@@ -350,7 +350,7 @@ def render_sdf(s: dict[str, Tensor], size: int,
         reach = (block - 1) / 2 * math.sqrt(2) * px + 1e-6  # block centre to its farthest pixel centre
         inside = ((xc * xc + yc * yc).sqrt() < bound + reach).nonzero()[:, 0]
         ids = inside[None].expand(n, -1)
-        zc_stop, zc_prev = _march(s, sdf, xc, yc, ids, torch.full(ids.shape, bound, device=dev), -bound,
+        _, zc_prev = _march(s, sdf, xc, yc, ids, torch.full(ids.shape, bound, device=dev), -bound,
                                   1.2 * reach * lip, steps)
         # each pixel starts where its block's ray last had an empty ball wider than the block
         r, c = torch.arange(size, device=dev) // block, torch.arange(size, device=dev) // block

@@ -380,7 +380,7 @@ def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
 
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
-                 sensor_noise: float = 0.0, light_dist: str = "hemisphere", intensities: str = "unit",
+                 light_dist: str = "hemisphere", intensities: str = "unit",
                  interreflections: int = 0, ir_albedo: float | None = None, light_distance: float | None = None,
                  progress: "ProgressFactory | None" = None) -> dict:
     """Render a preset into ``out`` (a benchmark root: one capture folder per object + objects.txt).
@@ -389,7 +389,6 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         preset: syntest | dragon-svbrdf | blobby.
         k: materials per shape (syntest), material pairs (dragon-svbrdf) or shapes (blobby).
         preview: also write out/preview.png, a contact sheet of a few images per object.
-        sensor_noise: standard deviation of Gaussian read noise added before quantisation.
         light_dist: zenith band of the lights (hemisphere | diligent | poles | equator).
         intensities: unit | random | directional | mixed (psctl.synth.lights), per object.
         interreflections: diffuse bounces to add (0: none).
@@ -451,8 +450,6 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
                                    ir_albedo=ir_albedo, light_distance=light_distance)
             scale = exposure_scale(images, obj.view.mask[0, 0], gen)
             images = images * scale
-            if sensor_noise > 0:
-                images = R.sensor_noise(images, gen, read=sensor_noise, shot=0.0)
             images = R.quantize(images, 16) * obj.view.mask[0]
             obj.meta["exposure"] = scale
             if light_distance is not None:
