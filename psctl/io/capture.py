@@ -71,22 +71,10 @@ class Capture:
     gt_path: Path | None = None
     encoding: str = "auto"  # how pixel values map to radiance: one of ENCODINGS
     ambient_path: Path | None = None  # subtracted from every image (AMBIENT_FILES)
-    orientations: tuple[int, ...] = ()  # each image's EXIF orientation (1: as stored; psctl.io.images.upright)
-    kinds: tuple[tuple[int, str], ...] = ()  # each image's (bits, sample type), from its header
-    channel_counts: tuple[int, ...] = ()  # each image's channels, from its header
-    jpeg: tuple[bool, ...] = ()  # each image is JPEG data, by its content (whatever its name)
-    pages: tuple[int, ...] = ()  # each image file's subimages (a TIFF stack: psctl reads the first)
-    layers: tuple[str, ...] = ()  # each image's layer read, of several ("Combined"; "": one or none)
-    windowed: tuple[bool, ...] = ()  # each image's stored pixels are a window of its frame (an EXR's)
-    ambient_jpeg: bool = False  # the ambient image is JPEG data, by its content
-    tones: tuple[ToneCurve | None, ...] = ()  # each image's embedded ICC profile's tone curves (psctl.io.icc)
-    ambient_tone: ToneCurve | None = None  # the ambient image's
-    exposures: tuple[tuple[float, float, float], ...] = ()  # each image's EXIF time (s), f-number, ISO (0: none)
-    # each image's embedded ICC profile that gives no tone curves: why (ImageInfo.profile_problem; "": none)
-    profile_problems: tuple[str, ...] = ()
-    png_tags: tuple[str, ...] = ()  # what each PNG's colour chunks say its values are (ImageInfo.png_tag)
-    ambient_problem: str = ""  # the ambient image's profile_problem
-    ambient_png_tag: str = ""  # the ambient image's png_tag
+    # each image's header as open_capture read it (psctl.io.images.image_info), and the ambient
+    # image's; the per-image properties below read them (empty: a Capture made without headers)
+    infos: tuple[ImageInfo, ...] = field(default=(), repr=False)
+    ambient_info: ImageInfo | None = field(default=None, repr=False)
     unread: tuple[str, ...] = ()  # files whose names look meant for psctl that it does not read (_unread)
     lights_path: Path | None = None  # light_directions.txt as named in the folder (any case)
     intensities_path: Path | None = None  # light_intensities.txt likewise
@@ -98,6 +86,77 @@ class Capture:
     def n_images(self) -> int:
         return len(self.image_paths)
 
+    # each image's header fields, in image order ((): no headers)
+    @property
+    def orientations(self) -> tuple[int, ...]:
+        """Each image's EXIF orientation (1: as stored; psctl.io.images.upright)."""
+        return tuple(i.orientation for i in self.infos)
+
+    @property
+    def kinds(self) -> tuple[tuple[int, str], ...]:
+        """Each image's (bits, sample type)."""
+        return tuple((i.bits, i.dtype) for i in self.infos)
+
+    @property
+    def channel_counts(self) -> tuple[int, ...]:
+        return tuple(i.channels for i in self.infos)
+
+    @property
+    def jpeg(self) -> tuple[bool, ...]:
+        """Each image is JPEG data, by its content (whatever its name)."""
+        return tuple(i.format == "jpeg" for i in self.infos)
+
+    @property
+    def pages(self) -> tuple[int, ...]:
+        """Each image file's subimages (a TIFF stack: psctl reads the first)."""
+        return tuple(i.pages for i in self.infos)
+
+    @property
+    def layers(self) -> tuple[str, ...]:
+        """Each image's layer read, of several ("Combined"; "": one or none)."""
+        return tuple(i.layer for i in self.infos)
+
+    @property
+    def windowed(self) -> tuple[bool, ...]:
+        """Each image's stored pixels are a window of its frame (an EXR's)."""
+        return tuple(i.window is not None for i in self.infos)
+
+    @property
+    def tones(self) -> tuple[ToneCurve | None, ...]:
+        """Each image's embedded ICC profile's tone curves (psctl.io.icc), where it has one psctl reads."""
+        return tuple(i.tone for i in self.infos)
+
+    @property
+    def exposures(self) -> tuple[tuple[float, float, float], ...]:
+        """Each image's EXIF time (s), f-number, ISO (0: none)."""
+        return tuple(i.exposure for i in self.infos)
+
+    @property
+    def profile_problems(self) -> tuple[str, ...]:
+        """Why each image's embedded ICC profile gives no tone curves ("": none, or read)."""
+        return tuple(i.profile_problem for i in self.infos)
+
+    @property
+    def png_tags(self) -> tuple[str, ...]:
+        """What each PNG's colour chunks say its values are (ImageInfo.png_tag)."""
+        return tuple(i.png_tag for i in self.infos)
+
+    @property
+    def ambient_jpeg(self) -> bool:
+        return self.ambient_info is not None and self.ambient_info.format == "jpeg"
+
+    @property
+    def ambient_tone(self) -> ToneCurve | None:
+        return None if self.ambient_info is None else self.ambient_info.tone
+
+    @property
+    def ambient_problem(self) -> str:
+        return "" if self.ambient_info is None else self.ambient_info.profile_problem
+
+    @property
+    def ambient_png_tag(self) -> str:
+        return "" if self.ambient_info is None else self.ambient_info.png_tag
+
     @property
     def calibrated(self) -> bool:
         return self.lights is not None
@@ -106,7 +165,7 @@ class Capture:
         """Whether image ``k`` (an index, or a file such as the ambient image) is JPEG data: by
         content where the header was read, whatever the name; else by name."""
         if isinstance(k, (int, np.integer)):
-            return self.jpeg[int(k)] if self.jpeg else self.image_paths[int(k)].suffix.lower() in JPEG
+            return self.infos[int(k)].format == "jpeg" if self.infos else self.image_paths[int(k)].suffix.lower() in JPEG
         if self.ambient_path is not None and k == self.ambient_path:
             return self.ambient_jpeg
         return k.suffix.lower() in JPEG
@@ -120,7 +179,7 @@ class Capture:
         if self.encoding != "auto":
             return "srgb" if self.encoding == "srgb" else None
         if isinstance(k, (int, np.integer)):
-            tone = self.tones[int(k)] if self.tones else None
+            tone = self.infos[int(k)].tone if self.infos else None
         else:
             tone = self.ambient_tone if self.ambient_path is not None and k == self.ambient_path else None
         if tone is not None:
@@ -164,17 +223,7 @@ class Capture:
         return replace(
             self,
             image_paths=tuple(self.image_paths[i] for i in idx),
-            orientations=tuple(self.orientations[i] for i in idx) if self.orientations else (),
-            kinds=tuple(self.kinds[i] for i in idx) if self.kinds else (),
-            channel_counts=tuple(self.channel_counts[i] for i in idx) if self.channel_counts else (),
-            jpeg=tuple(self.jpeg[i] for i in idx) if self.jpeg else (),
-            tones=tuple(self.tones[i] for i in idx) if self.tones else (),
-            exposures=tuple(self.exposures[i] for i in idx) if self.exposures else (),
-            profile_problems=tuple(self.profile_problems[i] for i in idx) if self.profile_problems else (),
-            png_tags=tuple(self.png_tags[i] for i in idx) if self.png_tags else (),
-            pages=tuple(self.pages[i] for i in idx) if self.pages else (),
-            layers=tuple(self.layers[i] for i in idx) if self.layers else (),
-            windowed=tuple(self.windowed[i] for i in idx) if self.windowed else (),
+            infos=tuple(self.infos[i] for i in idx) if self.infos else (),
             lights=None if self.lights is None else self.lights[idx],
             intensities=self.intensities[idx],
         )
@@ -706,16 +755,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         width=first.width, channels=first.channels, dtype=first.dtype, bits=first.bits,
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path, light_lengths=light_lengths,
-        ambient_jpeg=ambient_info is not None and ambient_info.format == "jpeg",
-        tones=tuple(i.tone for i in infos), ambient_tone=None if ambient_info is None else ambient_info.tone,
-        exposures=tuple(i.exposure for i in infos),
-        profile_problems=tuple(i.profile_problem for i in infos), png_tags=tuple(i.png_tag for i in infos),
-        ambient_problem="" if ambient_info is None else ambient_info.profile_problem,
-        ambient_png_tag="" if ambient_info is None else ambient_info.png_tag,
-        orientations=tuple(i.orientation for i in infos), kinds=tuple((i.bits, i.dtype) for i in infos),
-        channel_counts=tuple(i.channels for i in infos), jpeg=tuple(i.format == "jpeg" for i in infos),
-        pages=tuple(i.pages for i in infos), layers=tuple(i.layer for i in infos),
-        windowed=tuple(i.window is not None for i in infos), lights_path=lights_path, intensities_path=intensities_path,
+        infos=tuple(infos), ambient_info=ambient_info, lights_path=lights_path, intensities_path=intensities_path,
         list_path=list_file,
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
@@ -1344,10 +1384,10 @@ def tag_notes(capture: Capture) -> list[str]:
 
     def problem(k):
         return capture.ambient_problem if isinstance(k, Path) else \
-            capture.profile_problems[k] if capture.profile_problems else ""
+            capture.infos[k].profile_problem if capture.infos else ""
 
     def tag(k):
-        return capture.ambient_png_tag if isinstance(k, Path) else capture.png_tags[k] if capture.png_tags else ""
+        return capture.ambient_png_tag if isinstance(k, Path) else capture.infos[k].png_tag if capture.infos else ""
 
     def verb(names, singular, plural):
         return singular if len(names) == 1 else plural
@@ -1361,7 +1401,7 @@ def tag_notes(capture: Capture) -> list[str]:
                      f"from sRGB, other data as stored); --encoding linear or --encoding srgb sets how every file is read")
     tagged: dict[str, list[str]] = {}
     for p, k in files:  # a readable profile outranks the chunks (one that cannot be read does not)
-        tone = capture.ambient_tone if isinstance(k, Path) else capture.tones[k] if capture.tones else None
+        tone = capture.ambient_tone if isinstance(k, Path) else capture.infos[k].tone if capture.infos else None
         misnamed = p.suffix.lower() in JPEG and not capture.is_jpeg(k)  # (its own note says how it is read)
         if tag(k) and tone is None and not misnamed:
             tagged.setdefault("sRGB" if srgb_like(tag(k)) else tag(k), []).append(p.name)
