@@ -1072,6 +1072,11 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
     # a run started by an older psctl lacks keys added since: they take their defaults
     # (which reproduce the old behaviour), so it resumes, and compares equal to its recipe
     saved["config"] = _plain_json(merge(DEFAULT_CONFIG, saved["config"]))
+    # keys an older psctl let a recipe give the stream, which the run always set itself
+    # (_RUN_OPTIONS, refused since session 67): dropped, which changes nothing the run did
+    for part in (saved["config"].get("data"), (saved["config"].get("val") or {}).get("data")):
+        for key in _RUN_OPTIONS if isinstance(part, dict) else ():
+            part.pop(key, None)
     if config is not None:
         # only the length of the run and its bookkeeping may change on resume
         changed = _differences(_recipe_core(config), _recipe_core(saved["config"]))

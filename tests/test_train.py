@@ -277,6 +277,26 @@ def test_a_run_from_before_a_new_recipe_key_resumes(tmp_path):
     assert train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
 
 
+def test_a_run_from_before_the_run_options_were_refused_resumes(tmp_path):
+    """A recipe could give data.seed or val.data.batch_size until session 67, which the run
+    overrode with its own (train.seed, val.batch_size): such a run resumes, with or without its
+    recipe file edited (the keys moved), and goes on exactly as it would have."""
+    cfg = tiny(16)
+    a = train("ps-fcn", cfg, tmp_path / "a", device="cpu")
+    train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
+    state = tmp_path / "run" / "state.json"
+    st = json.loads(state.read_text())
+    st["config"]["data"]["seed"] = 99  # as an old run's recipe recorded it
+    st["config"]["val"]["data"] = {"batch_size": 3}
+    state.write_text(json.dumps(st))
+    assert train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")["samples"] == 8
+    b = train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")  # the edited recipe: no such keys
+    assert b["samples"] == 16
+    wa = read_weights(tmp_path / "a" / "model.pt").state_dict
+    wb = read_weights(tmp_path / "run" / "model.pt").state_dict
+    assert max((wa[k] - wb[k]).abs().max().item() for k in wa) < 1e-5
+
+
 def test_a_run_resumes_with_its_recipe_now_naming_the_method(tmp_path):
     """The recipes in configs/ gained a ``method:`` key in session 50: runs started from them
     before resume with the edited file (the key is a label the run's method already checks)."""
