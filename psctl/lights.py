@@ -1129,8 +1129,9 @@ def one_sided_notes(directions: np.ndarray) -> list[str]:
 FOUND_MAX_FRACTION = 0.9  # a found object over this share of the frame: the whole frame instead
 FOUND_MIN_PIXELS = 100  # one under this (a lit speck in a dark scene): the whole frame instead
 FOUND_DARK_CONTRAST = 0.15  # the unlit part's median brightness over the lit part's mean, above which the
-# background is not dark (dark backgrounds: 0.018-0.087 on syntest at albedo 0.01, 0.008-0.074 on the
-# dev split; lit planes and textures, their border not lit: 0.245-0.864; benchmarks/auto_mask_lights.py's scenes)
+# background is not dark (dark backgrounds: 0.018-0.085 on syntest at albedo 0.01, 0.021-0.087 under
+# DiLiGenT-like lights, 0.008-0.074 on the dev split; lit planes and textures, their border not lit:
+# 0.245-0.864; benchmarks/auto_mask_lights.py's scenes)
 FOUND_NORMALS_BORDER = 0.25  # the normals networks read the whole frame where the object found covers more
 # of the frame's border ring (border_ring) than this: no background around it (a surface that fills the
 # frame with a dark part, a review: 8.66 -> 40.6 degrees with its dark half left without normals)
@@ -1266,7 +1267,7 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     # rounded as the report gives it: for_normals reads the report's value, and the notes must agree with it
     # the unlit part's median: its mean counted the object's own dim rim where the background is black
     # (an exactly black one: a sphere's rim under oblique lights gave 0.13-0.17, median 0)
-    contrast = round(float(np.median(b[~lit]) / b[lit].mean()), 4) if lit.any() and (~lit).any() and \
+    contrast = round(float(np.median(b[~lit], overwrite_input=True) / b[lit].mean()), 4) if lit.any() and (~lit).any() and \
         b[lit].mean() > 0 else None
     not_dark = contrast is not None and contrast > FOUND_DARK_CONTRAST
     # a lit background: the unlit part is not dark, or the frame's border is lit (a background brighter

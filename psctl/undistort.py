@@ -31,7 +31,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.depth import K_FILE  # the intrinsics file psctl depth reads by default
 from psctl.errors import ProgressFactory, PsctlError, check_path, check_progress
 
 if TYPE_CHECKING:
@@ -40,6 +39,7 @@ if TYPE_CHECKING:
 COMMAND = "undistort"
 REPORT_FILE = "undistort_report.json"
 PICTURE_FILE = "undistort.png"  # the shift of every pixel (psctl.io.capture's _NOT_IMAGES skips it)
+K_FILE = "K.txt"  # psctl.depth.K_FILE, which psctl depth reads by default (a test holds them equal)
 MASK_FILE = "mask.png"
 GT_FILE = "Normal_gt.exr"  # float, NaN where there is none (psctl reads it after .mat and .png)
 N_COEFFS = (4, 5, 8)  # k1 k2 p1 p2 [k3 [k4 k5 k6]], OpenCV's order

@@ -1127,8 +1127,8 @@ def test_ggx_matches_hand_computation(metal):
 
 
 def test_shade_is_the_reference_brdf_times_the_cosine():
-    """The renderer's fast path (R.shade) against M.brdf for each model, a blend of two, and
-    intensities: radiance = e * f(n, l, v) * max(n.l, 0), v = +z."""
+    """The renderer's fast path (R.shade) against M.brdf for each model, with intensities:
+    radiance = e * f(n, l, v) * max(n.l, 0), v = +z."""
     b, p, n_lights = 5, 300, 4
     g = gen(7)
     normals = random_dirs(b * p, g).reshape(b, p, 3)

@@ -282,7 +282,7 @@ def test_a_run_from_before_the_run_options_were_refused_resumes(tmp_path):
     overrode with its own (train.seed, val.batch_size): such a run resumes, with or without its
     recipe file edited (the keys moved), and goes on exactly as it would have."""
     cfg = tiny(16)
-    a = train("ps-fcn", cfg, tmp_path / "a", device="cpu")
+    train("ps-fcn", cfg, tmp_path / "a", device="cpu")
     train("ps-fcn", merge(cfg, {"train": {"samples": 8}}), tmp_path / "run", device="cpu")
     state = tmp_path / "run" / "state.json"
     st = json.loads(state.read_text())

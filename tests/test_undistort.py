@@ -42,6 +42,12 @@ def test_undistort_map_is_opencvs_model(coeffs, pixel, expected):
     assert m.valid[v, u] and m.folded == 0
 
 
+def test_undistort_writes_the_intrinsics_file_psctl_depth_reads():
+    from psctl import depth, undistort
+
+    assert undistort.K_FILE == depth.K_FILE  # two constants, so that undistort need not import depth
+
+
 def test_zero_distortion_is_the_identity_and_a_fold_is_left_out():
     m = undistort_map(K1, "0,0,0,0", (81, 101))
     assert np.abs(m.x - np.arange(101)).max() < 1e-9 and np.abs(m.y - np.arange(81)[:, None]).max() < 1e-9
