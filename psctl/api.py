@@ -185,7 +185,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, array_shading, find_object, refine_config
+    from psctl.lights import array_lights, array_shading, find_object, refine_config, snap_mask, snap_note
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -201,7 +201,10 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     found = None if mask is not None else find_object(*array_shading(images))
-    fit_mask = mask if found is None else found.mask
+    fit_mask = snap_mask(images.max(axis=(0, 3)), mask) if found is None else found.mask
+    snapped = snap_note(mask, fit_mask) if found is None else None
+    if snapped:
+        warnings.warn(f"estimate_lights: mask: {snapped}", PsctlWarning, stacklevel=caller_level())
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
     net_cfg.update(used)
     est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views, **used})
@@ -339,11 +342,15 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
                       PsctlWarning, stacklevel=level)
     if method == "sdps":
-        from psctl.lights import array_lights
+        from psctl.lights import array_lights, snap_mask, snap_note
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
-        fit_mask = mask if found is None else found.mask  # LCNet and the light fit: the object found
+        # LCNet and the light fit: the object found, or the mask snapped to the object (snap_mask)
+        fit_mask = found.mask if found is not None else None if mask is None else snap_mask(images.max(axis=(0, 3)), mask)
+        snapped = None if found is not None or mask is None else snap_note(mask, fit_mask)
+        if snapped:
+            warnings.warn(f"sdps: mask: {snapped}", PsctlWarning, stacklevel=level)
         est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
         source = array_source(images, read, second, weights, net_cfg, saturated, fit_mask)
         return second_stage(source, est, refine, fit)[1].normals
@@ -899,7 +906,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed
+    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed, snap_note
     from psctl.nearlight import near_lights, near_note
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
@@ -911,6 +918,8 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps")
     net_cfg = {**net_cfg, **_found_config(found)}
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
+    snapped = snap_note(mask, fit_mask) if found is None else None
+    found_notes += [f"mask: {snapped}"] if snapped else []
     near = near_lights(light_distance, fit_mask, cap.mask_path, found=found is not None and found.mask is not None)
     if near is not None:
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "

@@ -1,0 +1,98 @@
+"""A mask wider than the object: LCNet and the light fit read it snapped to the object
+(psctl.lights.snap_mask), since LCNet learnt exact masks and reads the mask's edge as the
+object's contour."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+from scipy import ndimage
+
+from psctl.errors import PsctlWarning
+from tests.conftest import weights_in, write_capture
+
+
+def _disc(size: int = 64, radius: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.mgrid[:size, :size]
+    disc = (yy - size / 2) ** 2 + (xx - size / 2) ** 2 < radius ** 2
+    rng = np.random.default_rng(0)
+    peak = np.where(disc, rng.uniform(0.3, 0.8, disc.shape), np.abs(rng.normal(0, 0.003, disc.shape)))
+    return peak.astype(np.float32), disc
+
+
+def test_snap_mask_keeps_the_object_within_a_wider_mask():
+    from psctl.lights import snap_mask, snap_note
+
+    peak, disc = _disc()
+    wide = ndimage.binary_dilation(disc, iterations=5)
+    assert np.array_equal(snap_mask(peak, wide), disc)
+    assert "never brighter than the background" in snap_note(wide, disc)
+    assert np.array_equal(snap_mask(peak, disc), disc) and snap_note(disc, disc) is None
+    holed = wide.copy()
+    holed[30:34, 30:34] = False  # the user's own hole stays one
+    assert np.array_equal(snap_mask(peak, holed), disc & holed)
+    dark_inside = peak.copy()
+    dark_inside[26:38, 26:38] = 0.0  # a part dark in every image, inside the object: kept (holes filled)
+    assert np.array_equal(snap_mask(dark_inside, wide), disc)
+    speck = peak.copy()
+    speck[10, 32] = 0.9  # a bright speck in the mask's margin, apart from the object: a crumb, left out
+    wider = ndimage.binary_dilation(disc, iterations=12)
+    assert np.array_equal(snap_mask(speck, wider), disc)
+
+
+def test_snap_mask_leaves_the_mask_where_it_cannot_tell():
+    from psctl.lights import snap_mask
+
+    peak, disc = _disc()
+    wide = ndimage.binary_dilation(disc, iterations=5)
+    lit = np.where(disc, peak, 0.3).astype(np.float32)  # a lit table around it: no dark background to measure
+    assert np.array_equal(snap_mask(lit, wide), wide)
+    frame = np.ones_like(disc)
+    frame[0, :50] = False  # 50 pixels outside: too few to measure the background
+    assert np.array_equal(snap_mask(peak, frame), frame)
+    black = np.zeros_like(peak)  # nothing brighter than the background: the mask as given
+    assert np.array_equal(snap_mask(black, wide), wide)
+
+
+def test_a_wider_mask_file_gives_the_lights_of_the_exact_one(tmp_path, fake_weights):
+    """psctl lights (and sdps) on a folder whose mask.png is 3 px wider than the sphere: the same
+    lights as with its exact mask, and a note saying why."""
+    from psctl.io.images import write_image
+    from psctl.lights import run_lights
+
+    data = write_capture(tmp_path / "exactPNG", n=12, size=48)
+    write_capture(tmp_path / "widePNG", n=12, size=48)
+    wide = ndimage.binary_dilation(data["mask"], iterations=3)
+    write_image(tmp_path / "widePNG" / "mask.png", wide.astype(np.float32), "uint8", kind="data")
+    with weights_in(fake_weights):
+        exact = run_lights(tmp_path / "exactPNG", write=False, device="cpu")
+        got = run_lights(tmp_path / "widePNG", out=tmp_path / "out", device="cpu")
+    assert got["light_mae"] == exact["light_mae"] and got["intensity_re"] == exact["intensity_re"]
+    note = [n for n in got["notes"] if n.startswith("mask: ") and "never brighter than the background" in n]
+    assert len(note) == 1 and not any("never brighter" in n for n in exact["notes"])
+    report = json.loads((tmp_path / "out" / "lights_report.json").read_text())
+    assert note[0] in report["notes"]
+
+
+def test_arrays_with_a_wider_mask_warn_and_give_the_exact_masks_lights(fake_weights):
+    import psctl
+
+    from tests.conftest import hemisphere_lights, render_lambertian, sphere
+
+    normals, m = sphere(48)
+    images = render_lambertian(normals, m, hemisphere_lights(12, seed=0), 0.7)
+    wide = ndimage.binary_dilation(m, iterations=3)
+    with weights_in(fake_weights):
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            d_wide, e_wide = psctl.estimate_lights(images, wide, device="cpu", refine=False)
+        d, e = psctl.estimate_lights(images, m, device="cpu", refine=False)
+        assert np.array_equal(d_wide, d) and np.array_equal(e_wide, e)
+        said = [str(w.message) for w in got if issubclass(w.category, PsctlWarning)]
+        assert len(said) == 1 and said[0].startswith("estimate_lights: mask: ") and "never brighter" in said[0]
+        with warnings.catch_warnings(record=True) as sd:
+            warnings.simplefilter("always")
+            psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", refine=False)
+        assert any(str(w.message).startswith("sdps: mask: ") for w in sd)
