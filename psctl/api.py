@@ -185,7 +185,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, array_shading, find_object, refine_config, snap_mask, snap_note
+    from psctl.lights import (array_lights, array_shading, few_lights_note, find_object, refine_config, snap_mask,
+                              snap_note)
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -208,6 +209,9 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
     net_cfg.update(used)
     est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views, **used})
+    few = few_lights_note(len(images))
+    if few:  # (a folder's report notes it)
+        warnings.warn(f"estimate_lights: {few}", PsctlWarning, stacklevel=caller_level())
     if found is not None:  # as a folder without mask.png is noted (a QA helper: 1.75 -> 19.78 degrees, silently)
         _warn_found(found, "estimate_lights", caller_level())
     # as run_lights' notes: a warning, not silence (the refinement's options, and its network's precision)
@@ -342,15 +346,16 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
                       PsctlWarning, stacklevel=level)
     if method == "sdps":
-        from psctl.lights import array_lights, snap_mask, snap_note
+        from psctl.lights import array_lights, few_lights_note, snap_mask, snap_note
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
         # LCNet and the light fit: the object found, or the mask snapped to the object (snap_mask)
         fit_mask = found.mask if found is not None else None if mask is None else snap_mask(images.max(axis=(0, 3)), mask)
         snapped = None if found is not None or mask is None else snap_note(mask, fit_mask)
-        if snapped:
-            warnings.warn(f"sdps: mask: {snapped}", PsctlWarning, stacklevel=level)
+        for note in (f"mask: {snapped}" if snapped else None, few_lights_note(len(images))):
+            if note:
+                warnings.warn(f"sdps: {note}", PsctlWarning, stacklevel=level)
         est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
         source = array_source(images, read, second, weights, net_cfg, saturated, fit_mask)
         return second_stage(source, est, refine, fit)[1].normals
