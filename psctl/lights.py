@@ -318,10 +318,11 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
             "exposure": round(factor, 6), "seconds": round(time.perf_counter() - t0, 3)}
     if hot:
         info["hot_pixels"] = dict(sorted(hot.items()))
-    notes = [note for note in [few_lights_note(n)] if note]
+    notes = []
     if factor != 1.0:
         notes.append(f"lcnet: the images' mean {where}, {mean:.3g}, is outside the exposures LCNet was "
                      f"trained on ({band[0]:g} to {band[1]:g}); it sees them scaled by {factor:.3g}")
+    notes += [note for note in [few_lights_note(n)] if note]
     return LightEstimate(dirs.numpy().astype(np.float32), ints.numpy().astype(np.float32),
                          {k: v.numpy() for k, v in out.items()}, info, notes)
 

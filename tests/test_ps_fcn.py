@@ -306,6 +306,7 @@ def test_ensemble_needs_both_networks_and_listed_lights(tmp_path, monkeypatch):
     assert resolve_method("ENSEMBLE", True) == ("ensemble", None)
 
 
+@pytest.mark.filterwarnings("ignore:.*only 6 images")  # (few on purpose: quick)
 def test_sdps_second_stage_can_be_the_ensemble(tmp_path, monkeypatch):
     """psctl.sdps.SDPS_ENSEMBLE: with PS-FCN and PS-FCN+N installed (no PS-FCN†) sdps' second
     stage is their average; a file passed with --weights is always that network."""
