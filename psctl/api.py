@@ -925,7 +925,9 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     snapped = snap_note(mask, fit_mask) if found is None else None
     found_notes += [f"mask: {snapped}"] if snapped else []
-    near = near_lights(light_distance, fit_mask, cap.mask_path, found=found is not None and found.mask is not None)
+    # the centre of the user's mask (as the calibrated methods take it), not of the snapped one
+    near = near_lights(light_distance, fit_mask if found is not None else mask, cap.mask_path,
+                       found=found is not None and found.mask is not None)
     if near is not None:
         found_notes.append(near_note(near, "each image divided by its light's falloff; directions as estimated "
                                            "(LCNet reads the images as captured)"))

@@ -1367,7 +1367,7 @@ def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
-    p = np.where(np.isfinite(peak), peak, 0.0)
+    p = np.where(np.isfinite(peak), np.maximum(peak, 0.0), 0.0)  # (as capture_peak floors them)
     outside = p[~mask]
     if outside.size < SNAP_MIN_OUTSIDE or not mask.any():
         return mask
@@ -1394,15 +1394,14 @@ def snap_note(mask: np.ndarray, snapped: np.ndarray) -> str | None:
     if n == 0 or n - kept <= SNAP_NOTE * n:
         return None
     return (f"{n - kept} of the mask's {n} pixels ({(n - kept) / n:.0%}) are never brighter than the background "
-            f"around it: LCNet and the light fit read the mask without them (LCNet learnt exact masks: on a synthetic "
-            f"bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off); the normals cover the whole mask")
+            f"around it (or specks apart from the object): LCNet and the light fit read the mask without them "
+            f"(LCNet learnt exact masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off)")
 
 
-def capture_peak(capture: "Capture", progress: "ProgressFactory | None" = None,
-                 memo: "DecodeMemo | None" = None) -> np.ndarray:
+def capture_peak(capture: "Capture", progress: "ProgressFactory | None" = None) -> np.ndarray:
     """[H, W] float32, each pixel's brightest value over a capture's images and channels, as
-    captured (its light_intensities.txt not applied), for ``snap_mask``: one read of the images,
-    ``memo`` keeping them (the whole frame) for the passes after, where they fit."""
+    captured (its light_intensities.txt not applied), for ``snap_mask``: one read of the images.
+    Not kept in a decode memo: whole frames there would crowd out the crops the later passes keep."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
 
@@ -1411,7 +1410,7 @@ def capture_peak(capture: "Capture", progress: "ProgressFactory | None" = None,
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: reading the mask's edge", capture.n_images)
     peak = np.zeros((capture.height, capture.width), np.float32)
     with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
-        for img in iter_images(raw, box, decoded=pf, memo=memo):
+        for img in iter_images(raw, box, decoded=pf):
             np.fmax(peak, img.max(axis=-1) if img.ndim == 3 else img, out=peak)  # (fmax: a NaN pixel stays 0)
             advance(1)
     return peak
@@ -1420,13 +1419,15 @@ def capture_peak(capture: "Capture", progress: "ProgressFactory | None" = None,
 def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress: "ProgressFactory | None" = None,
                    memo: "DecodeMemo | None" = None, reader: str = "lights") -> tuple[np.ndarray, dict, FoundObject | None]:
     """What LCNet and the light fit read of a capture: (mask, LCNet's config, found). With a mask
-    file, ``mask`` snapped to the object (``snap_mask`` of one read's ``capture_peak``; ``memo``
-    keeps the images), ``config`` as given and None; without one, the object ``find_object``
+    file, ``mask`` snapped to the object (``snap_mask`` of one read's ``capture_peak``), ``config``
+    as given and None; without one, the object ``find_object``
     finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
     keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
     whole frame (``mask``). ``reader``: as ``find_object``'s."""
-    if capture.mask_path is not None:
-        return snap_mask(capture_peak(capture, progress, memo), mask), config, None
+    if capture.mask_path is not None:  # (no read where snap_mask could not measure the background)
+        if np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
+            return mask, config, None
+        return snap_mask(capture_peak(capture, progress), mask), config, None
     found = find_object(*capture_shading(capture, progress, memo), reader=reader)
     if found.mask is None:
         return mask, config, found
@@ -1574,11 +1575,12 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                           (("--weights", weights), ("--normals-weights", normals_weights)))
         check_output_dir(out_dir)
     mask = load_mask(cap)
-    from psctl.infer import DEFAULT_INFER
-    from psctl.io.capture import DecodeMemo
+    memo = None
+    if refine or cap.mask_path is None:  # later passes take the images earlier ones decoded, where they fit
+        from psctl.infer import DEFAULT_INFER
+        from psctl.io.capture import DecodeMemo
 
-    # later passes take the images the first (the object's search, or the mask's edge) decoded, where they fit
-    memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
+        memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
     if light_distance is not None:
         from psctl.models.weights import installed_path
         from psctl.nearlight import check_light_distance
@@ -1606,7 +1608,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if light_distance is not None:  # the lights sit about the object's centre: the found one's without a mask
         from psctl.nearlight import near_lights, near_note
 
-        near = near_lights(light_distance, fit_mask, cap.mask_path, found=shown)
+        # the centre of the user's mask (as psctl normals takes it), not of the snapped one
+        near = near_lights(light_distance, fit_mask if found is not None else mask, cap.mask_path, found=shown)
         picked.append(near_note(near, "the refinement divides each image by its light's falloff (LCNet reads the "
                                       "images as captured)"))
     keep_box = None

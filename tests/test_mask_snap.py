@@ -96,3 +96,21 @@ def test_arrays_with_a_wider_mask_warn_and_give_the_exact_masks_lights(fake_weig
             warnings.simplefilter("always")
             psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", refine=False)
         assert any(str(w.message).startswith("sdps: mask: ") for w in sd)
+
+
+def test_point_lights_sit_about_the_users_mask_as_psctl_normals_takes_it(tmp_path, fake_weights):
+    """--light-distance: the lights' centre is the user's mask's, snapped or not, so that psctl
+    lights and psctl normals -m ps-fcn on one folder put the lights in one place."""
+    from psctl.io.images import write_image
+    from psctl.lights import run_lights
+
+    data = write_capture(tmp_path / "sidePNG", n=12, size=48)
+    wide = data["mask"].copy()
+    wide[:, 24:46] |= ndimage.binary_dilation(data["mask"], iterations=6)[:, 24:46]  # wider to the right only
+    write_image(tmp_path / "sidePNG" / "mask.png", wide.astype(np.float32), "uint8", kind="data")
+    with weights_in(fake_weights):
+        r = run_lights(tmp_path / "sidePNG", write=False, device="cpu", light_distance=1000.0)
+    rows, cols = np.nonzero(wide)
+    note = next(n for n in r["notes"] if n.startswith("lights: points 1000 pixels"))
+    assert f"(row {rows.mean():.0f}, column {cols.mean():.0f})" in note
+    assert any(n.startswith("mask: ") and "never brighter" in n for n in r["notes"])
