@@ -1354,6 +1354,8 @@ SNAP_DARK = 0.15  # ... only where that level is under this share of the kept pi
 SNAP_KEEP = 0.25  # ... and where they are at least this share of the mask (else the highlights of a
 # shiny object before a lit table, say: the mask as given)
 SNAP_MIN_OUTSIDE = 100  # fewer pixels outside the mask: no background to measure, the mask as given
+SNAP_NOTE = 0.02  # the mask as given where the snap would leave out no more than this share of it (exact
+# enough: the dev split's masks lose 0-0.8%, and bear's 0.8% cost its lights 0.36 degrees), else a note
 
 
 def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -1363,7 +1365,8 @@ def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
     SNAP_QUANTILE of the peaks outside the mask), holes filled, parts under a tenth of the largest
     dropped. The mask as given where fewer than SNAP_MIN_OUTSIDE pixels lie outside it, where the
     pixels kept are under SNAP_KEEP of the mask or FOUND_MIN_PIXELS, or where the background is not
-    dark (its level over SNAP_DARK of the kept pixels' median peak)."""
+    dark (its level over SNAP_DARK of the kept pixels' median peak), and where it would leave out no
+    more than SNAP_NOTE of the mask (every snap gets ``snap_note``'s note)."""
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
@@ -1382,10 +1385,8 @@ def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
     if count > 1:
         sizes = ndimage.sum(obj, labels, range(1, count + 1))
         obj = np.isin(labels, 1 + np.nonzero(sizes >= 0.1 * sizes.max())[0])
-    return obj if int(obj.sum()) >= FOUND_MIN_PIXELS else mask
-
-
-SNAP_NOTE = 0.02  # a note when snap_mask leaves out more than this share of the mask
+    kept = int(obj.sum())
+    return obj if kept >= FOUND_MIN_PIXELS and kept < (1.0 - SNAP_NOTE) * np.count_nonzero(mask) else mask
 
 
 def snap_note(mask: np.ndarray, snapped: np.ndarray) -> str | None:
