@@ -1225,11 +1225,19 @@ def shading_object(profiles: np.ndarray) -> np.ndarray | None:
     # holes filled first: an object's rim may be its only part unlike the background (a face turned
     # to the camera shades as the background does), one or two cells thick where the grid is coarse
     obj = ndimage.binary_opening(ndimage.binary_fill_holes(unlike), np.ones((3, 3), bool))  # no specks
-    labels, count = ndimage.label(obj)
-    if count:
-        sizes = ndimage.sum(obj, labels, range(1, count + 1))
-        obj = np.isin(labels, 1 + np.nonzero(sizes >= 0.1 * sizes.max())[0])  # the object's parts, not crumbs
-    return ndimage.binary_fill_holes(obj)
+    return ndimage.binary_fill_holes(object_parts(obj))
+
+
+def object_parts(region: np.ndarray, share: float = 0.1) -> np.ndarray:
+    """[H, W] bool -> the connected parts of ``region`` of at least ``share`` of its largest part's
+    pixels: the object's parts, not crumbs (specks of noise, a lit dust grain)."""
+    from scipy import ndimage
+
+    labels, count = ndimage.label(region)
+    if count < 2:
+        return np.asarray(region, bool)
+    sizes = ndimage.sum(region, labels, range(1, count + 1))
+    return np.isin(labels, 1 + np.nonzero(sizes >= share * sizes.max())[0])
 
 
 @dataclass
@@ -1380,11 +1388,7 @@ def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
     if n < max(SNAP_KEEP * np.count_nonzero(mask), FOUND_MIN_PIXELS) or \
             not level <= SNAP_DARK * float(np.median(p[bright])):
         return mask
-    obj = ndimage.binary_fill_holes(bright) & mask  # (a mask's own holes stay)
-    labels, count = ndimage.label(obj)
-    if count > 1:
-        sizes = ndimage.sum(obj, labels, range(1, count + 1))
-        obj = np.isin(labels, 1 + np.nonzero(sizes >= 0.1 * sizes.max())[0])
+    obj = object_parts(ndimage.binary_fill_holes(bright) & mask)  # (a mask's own holes stay)
     kept = int(obj.sum())
     return obj if kept >= FOUND_MIN_PIXELS and kept < (1.0 - SNAP_NOTE) * np.count_nonzero(mask) else mask
 
