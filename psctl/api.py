@@ -185,8 +185,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import (array_lights, array_shading, few_lights_note, find_object, refine_config, snap_mask,
-                              snap_note)
+    from psctl.lights import array_lights, array_shading, array_snap, few_lights_note, find_object, refine_config
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -202,8 +201,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     found = None if mask is not None else find_object(*array_shading(images))
-    fit_mask = snap_mask(images.max(axis=(0, 3)), mask) if found is None else found.mask
-    snapped = snap_note(mask, fit_mask) if found is None else None
+    fit_mask, snapped = array_snap(images, mask) if found is None else (found.mask, None)
     if snapped:
         warnings.warn(f"estimate_lights: mask: {snapped}", PsctlWarning, stacklevel=caller_level())
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
@@ -346,13 +344,12 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
                       PsctlWarning, stacklevel=level)
     if method == "sdps":
-        from psctl.lights import array_lights, few_lights_note, snap_mask, snap_note
+        from psctl.lights import array_lights, array_snap, few_lights_note
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
         # LCNet and the light fit: the object found, or the mask snapped to the object (snap_mask)
-        fit_mask = found.mask if found is not None else None if mask is None else snap_mask(images.max(axis=(0, 3)), mask)
-        snapped = None if found is not None or mask is None else snap_note(mask, fit_mask)
+        fit_mask, snapped = (found.mask, None) if found is not None else array_snap(images, mask)
         for note in (f"mask: {snapped}" if snapped else None, few_lights_note(len(images))):
             if note:
                 warnings.warn(f"sdps: {note}", PsctlWarning, stacklevel=level)
@@ -911,7 +908,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed, snap_note
+    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed
     from psctl.nearlight import near_lights, near_note
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
@@ -920,10 +917,9 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     if memo is None:  # every pass takes the images LCNet's decoded, where they fit
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
     # LCNet, the light fit and the second stage read the object (found without a mask file)
-    fit_mask, lc_cfg, found = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps")
+    fit_mask, lc_cfg, found, snapped = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps")
     net_cfg = {**net_cfg, **_found_config(found)}
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
-    snapped = snap_note(mask, fit_mask) if found is None else None
     found_notes += [f"mask: {snapped}"] if snapped else []
     # the centre of the user's mask (as the calibrated methods take it), not of the snapped one
     near = near_lights(light_distance, fit_mask if found is not None else mask, cap.mask_path,

@@ -1197,19 +1197,21 @@ def border_ring(height: int, width: int) -> np.ndarray:
     return ring
 
 
-def shading_object(profiles: np.ndarray) -> np.ndarray | None:
-    """The cells whose shading differs from the background's: ``profiles`` [N, h, w] (each cell's
-    grey value in each image, as captured) -> [h, w] bool, or None where the frame's border does
-    not agree on one profile (no plain background to tell the object from) or fewer than
-    FOUND_MIN_IMAGES images light it."""
-    from scipy import ndimage
+FOUND_REFERENCE_MAX = 1 << 16  # the background's profile: the median of at most this many of its cells
 
-    p = np.asarray(profiles, np.float32)  # (float32: the ratios' quantiles copy them, up to 64 MB each)
-    n, h, w = p.shape
-    ring = border_ring(h, w)
-    edge = p[:, ring].astype(np.float64)
+
+def unlike_background(profiles: np.ndarray, reference: np.ndarray) -> np.ndarray | None:
+    """The cells whose shading differs from the background's: ``profiles`` [N, h, w] float32 (each
+    cell's grey value in each image, as captured, finite), ``reference`` [h, w] bool (cells of the
+    background: the frame's border, or the pixels around a mask) -> [h, w] bool, each cell with
+    over FOUND_MID of its images' ratios to the background's profile between lit and shadowed; None
+    where no reference cell is lit or fewer than FOUND_MIN_IMAGES images light the background."""
+    p = profiles
+    ref = np.flatnonzero(reference.ravel())
+    ref = ref[::-(-len(ref) // FOUND_REFERENCE_MAX)] if len(ref) > FOUND_REFERENCE_MAX else ref  # (evenly)
+    edge = p.reshape(len(p), -1)[:, ref].astype(np.float64)
     total = edge.sum(0)
-    edge = edge[:, total > 0] / total[total > 0]
+    edge = edge[:, total > 0] / total[total > 0]  # each cell's profile, its albedo divided out
     if edge.shape[1] == 0:
         return None
     back = np.median(edge, axis=1)  # [N]: each image's share of the background's light
@@ -1219,7 +1221,21 @@ def shading_object(profiles: np.ndarray) -> np.ndarray | None:
     ratio = p[use] / back[use, None, None].astype(np.float32)
     level = np.quantile(ratio, FOUND_LEVEL, axis=0)
     between = (ratio > FOUND_BAND[0] * level) & (ratio < FOUND_BAND[1] * level)
-    unlike = between.mean(0) > FOUND_MID
+    return between.mean(0) > FOUND_MID
+
+
+def shading_object(profiles: np.ndarray) -> np.ndarray | None:
+    """The cells whose shading differs from the background's: ``profiles`` [N, h, w] (each cell's
+    grey value in each image, as captured) -> [h, w] bool, or None where the frame's border does
+    not agree on one profile (no plain background to tell the object from) or fewer than
+    FOUND_MIN_IMAGES images light it."""
+    from scipy import ndimage
+
+    p = np.asarray(profiles, np.float32)  # (float32: the ratios' quantiles copy them, up to 64 MB each)
+    ring = border_ring(*p.shape[1:])
+    unlike = unlike_background(p, ring)
+    if unlike is None:
+        return None
     if unlike[ring].mean() > 0.5:  # the border is no one background
         return None
     # holes filled first: an object's rim may be its only part unlike the background (a face turned
@@ -1366,77 +1382,171 @@ SNAP_NOTE = 0.02  # the mask as given where the snap would leave out no more tha
 # enough: the dev split's masks lose 0-0.8%, and bear's 0.8% cost its lights 0.36 degrees), else a note
 
 
-def snap_mask(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The object within a user's mask, for LCNet and the light fit: ``peak`` [H, W] each pixel's
-    brightest value over the images and channels (as captured), ``mask`` [H, W] bool -> the mask
-    without its pixels that are never brighter than SNAP_FACTOR x the background's level (the
-    SNAP_QUANTILE of the peaks outside the mask), holes filled, parts under a tenth of the largest
-    dropped. The mask as given where fewer than SNAP_MIN_OUTSIDE pixels lie outside it, where the
-    pixels kept are under SNAP_KEEP of the mask or FOUND_MIN_PIXELS, or where the background is not
-    dark (its level over SNAP_DARK of the kept pixels' median peak), and where it would leave out no
-    more than SNAP_NOTE of the mask (every snap gets ``snap_note``'s note)."""
+SNAP_MARGIN = 16  # before a lit background, the shading snap's background: the pixels outside the mask
+# within this many of its bounding box (their median profile, as find_object's frame border gives it)
+
+
+@dataclass
+class MaskEdge:
+    """What ``snap_mask`` reads of the images, in one read (``capture_edge``, ``array_edge``):
+    ``peak`` [H, W] float32, each pixel's brightest value over the images and channels (as
+    captured, negatives and NaN 0); ``profiles`` [N, h, w] float32, grey samples (``block_samples``,
+    a pixel of each ``grid`` x ``grid`` block) of ``box``, the mask's bounding box grown by
+    SNAP_MARGIN (``edge_box``)."""
+    peak: np.ndarray
+    profiles: np.ndarray
+    box: tuple[slice, slice]
+    grid: int
+
+
+def edge_box(mask: np.ndarray, n: int) -> tuple[tuple[slice, slice], int]:
+    """The box and grid of ``n`` images' profiles for the snap: the mask's bounding box grown by
+    SNAP_MARGIN (the whole frame for an empty mask), every pixel where n x its pixels fit in
+    FOUND_PROFILE_ELEMENTS, else a pixel of each f x f block."""
+    h, w = mask.shape
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        box = (slice(0, h), slice(0, w))
+    else:
+        box = (slice(max(0, int(rows[0]) - SNAP_MARGIN), min(h, int(rows[-1]) + SNAP_MARGIN + 1)),
+               slice(max(0, int(cols[0]) - SNAP_MARGIN), min(w, int(cols[-1]) + SNAP_MARGIN + 1)))
+    bh, bw = box[0].stop - box[0].start, box[1].stop - box[1].start
+    f = 1
+    while n * math.ceil(bh / f) * math.ceil(bw / f) > FOUND_PROFILE_ELEMENTS:
+        f += 1
+    return box, f
+
+
+def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """The object within a user's mask, for LCNet and the light fit: ``edge`` (what one read of
+    the images gives, ``MaskEdge``), ``mask`` [H, W] bool -> (the mask snapped or as given, the note
+    that says so or None).
+
+    Before a dark background, the mask without its pixels never brighter than SNAP_FACTOR x the
+    background's level (the SNAP_QUANTILE of the peaks outside the mask), holes filled, parts under
+    a tenth of the largest dropped. It is dark where that level is at most SNAP_DARK of the
+    brighter pixels' median peak and those are at least SNAP_KEEP of the mask and FOUND_MIN_PIXELS.
+    Before a lit one, the mask without its pixels that shade over the images as the background
+    around it does (``shading_snap``). The mask as given where fewer than SNAP_MIN_OUTSIDE pixels
+    lie outside it, where neither can tell, where under FOUND_MIN_PIXELS would be kept, and where
+    it would leave out no more than SNAP_NOTE of the mask (every snap gets a note)."""
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
-    p = np.where(np.isfinite(peak), np.maximum(peak, 0.0), 0.0)  # (as capture_peak floors them)
+    p = np.where(np.isfinite(edge.peak), np.maximum(edge.peak, 0.0), 0.0)
     outside = p[~mask]
     if outside.size < SNAP_MIN_OUTSIDE or not mask.any():
-        return mask
+        return mask, None
     level = float(np.quantile(outside, SNAP_QUANTILE))
     bright = mask & (p > SNAP_FACTOR * level)
     n = int(np.count_nonzero(bright))
-    if n < max(SNAP_KEEP * np.count_nonzero(mask), FOUND_MIN_PIXELS) or \
-            not level <= SNAP_DARK * float(np.median(p[bright])):
-        return mask
-    obj = object_parts(ndimage.binary_fill_holes(bright) & mask)  # (a mask's own holes stay)
-    kept = int(obj.sum())
-    return obj if kept >= FOUND_MIN_PIXELS and kept < (1.0 - SNAP_NOTE) * np.count_nonzero(mask) else mask
+    if n >= max(SNAP_KEEP * np.count_nonzero(mask), FOUND_MIN_PIXELS) and \
+            level <= SNAP_DARK * float(np.median(p[bright])):
+        obj, by = object_parts(ndimage.binary_fill_holes(bright) & mask), "brightness"  # (a mask's own holes stay)
+    else:  # a lit background (or nothing brighter than it): its shading, where it is one background
+        obj, by = shading_snap(edge, mask), "shading"
+        if obj is None:
+            return mask, None
+    total, kept = int(np.count_nonzero(mask)), int(obj.sum())
+    if kept < FOUND_MIN_PIXELS or kept >= (1.0 - SNAP_NOTE) * total:
+        return mask, None
+    why = ("are never brighter than the background around it" if by == "brightness" else
+           "shade over the images as the lit background around it does")
+    return obj, (f"{total - kept} of the mask's {total} pixels ({(total - kept) / total:.0%}) {why} (or are specks "
+                 f"apart from the object): LCNet and the light fit read the mask without them (LCNet learnt exact "
+                 f"masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off)")
 
 
-def snap_note(mask: np.ndarray, snapped: np.ndarray) -> str | None:
-    """The note for a mask ``snap_mask`` took pixels from (more than SNAP_NOTE of them), else None."""
-    n, kept = int(np.count_nonzero(mask)), int(np.count_nonzero(snapped))
-    if n == 0 or n - kept <= SNAP_NOTE * n:
+def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
+    """The object within ``mask`` [H, W] bool before a lit background: the mask's cells whose
+    shading differs from that of the cells around it (``unlike_background``, the reference being
+    the box's cells outside the mask), holes filled, parts under a tenth of the largest dropped ->
+    [H, W] bool within the mask, or None where the cells around the mask do not agree on one
+    background (over half of them unlike it) or the images do not light it (FOUND_MIN_IMAGES).
+    No opening, unlike ``shading_object``: at a pixel's grain it would cut an object's thin parts."""
+    from scipy import ndimage
+
+    rows, cols = edge.box
+    f = edge.grid
+    inner = np.asarray(mask, bool)[rows, cols]
+    cells = block_samples(inner, f).astype(bool)  # whether each cell's sampled pixel is in the mask
+    if np.count_nonzero(~cells) * f * f < SNAP_MIN_OUTSIDE:
         return None
-    return (f"{n - kept} of the mask's {n} pixels ({(n - kept) / n:.0%}) are never brighter than the background "
-            f"around it (or specks apart from the object): LCNet and the light fit read the mask without them "
-            f"(LCNet learnt exact masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off)")
+    p = np.asarray(edge.profiles, np.float32)
+    unlike = unlike_background(np.where(np.isfinite(p), np.maximum(p, 0), np.float32(0)), ~cells)
+    if unlike is None or unlike[~cells].mean() > 0.5:
+        return None
+    obj = ndimage.binary_fill_holes(object_parts(ndimage.binary_fill_holes(unlike & cells)))
+    px = obj[np.arange(inner.shape[0]) // f][:, np.arange(inner.shape[1]) // f] & inner  # (a mask's own holes stay)
+    out = np.zeros(mask.shape, bool)
+    out[rows, cols] = px
+    return out
 
 
-def capture_peak(capture: "Capture", progress: "ProgressFactory | None" = None) -> np.ndarray:
-    """[H, W] float32, each pixel's brightest value over a capture's images and channels, as
-    captured (its light_intensities.txt not applied), for ``snap_mask``: one read of the images.
-    Not kept in a decode memo: whole frames there would crowd out the crops the later passes keep."""
+def _edge(images: Iterable[np.ndarray], n: int, mask: np.ndarray,
+          advance: Callable[[int], None] | None = None) -> MaskEdge:
+    """``MaskEdge`` of ``n`` images [H, W, C] (or [H, W]) taken one at a time."""
+    box, f = edge_box(mask, n)
+    bh, bw = box[0].stop - box[0].start, box[1].stop - box[1].start
+    peak = np.zeros(mask.shape, np.float32)
+    profiles = np.zeros((n, -(-bh // f), -(-bw // f)), np.float32)
+    for k, img in enumerate(images):
+        img = img[..., None] if img.ndim == 2 else img
+        np.fmax(peak, img.max(axis=-1), out=peak)  # (fmax: a NaN pixel stays 0)
+        profiles[k] = block_samples(img[box].sum(-1, dtype=np.float32), f) / img.shape[-1]
+        if advance is not None:
+            advance(1)
+    np.maximum(peak, 0.0, out=peak)
+    return MaskEdge(peak, profiles, box, f)
+
+
+def array_edge(images: np.ndarray, mask: np.ndarray) -> MaskEdge:
+    """``capture_edge`` of in-memory images [N, H, W, 3] (or [N, H, W] grey)."""
+    return _edge(images, len(images), np.asarray(mask, bool))
+
+
+def array_snap(images: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray | None, str | None]:
+    """``snap_mask`` of in-memory images with ``mask`` (None: (None, None)), as a folder's mask file
+    is snapped; the edge read only where the snap can measure the background."""
+    if mask is None:
+        return None, None
+    if np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
+        return np.asarray(mask, bool), None
+    return snap_mask(array_edge(images, mask), mask)
+
+
+def capture_edge(capture: "Capture", mask: np.ndarray, progress: "ProgressFactory | None" = None) -> MaskEdge:
+    """``MaskEdge`` of a capture's images, as captured (its light_intensities.txt not applied),
+    for ``snap_mask``: one read of the images. Nothing kept in a decode memo: whole frames there
+    would crowd out the crops the later passes keep."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
 
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     box = (slice(0, capture.height), slice(0, capture.width))
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: reading the mask's edge", capture.n_images)
-    peak = np.zeros((capture.height, capture.width), np.float32)
     with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
-        for img in iter_images(raw, box, decoded=pf):
-            np.fmax(peak, img.max(axis=-1) if img.ndim == 3 else img, out=peak)  # (fmax: a NaN pixel stays 0)
-            advance(1)
-    return peak
+        return _edge(iter_images(raw, box, decoded=pf), capture.n_images, np.asarray(mask, bool), advance)
 
 
 def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress: "ProgressFactory | None" = None,
-                   memo: "DecodeMemo | None" = None, reader: str = "lights") -> tuple[np.ndarray, dict, FoundObject | None]:
-    """What LCNet and the light fit read of a capture: (mask, LCNet's config, found). With a mask
-    file, ``mask`` snapped to the object (``snap_mask`` of one read's ``capture_peak``), ``config``
-    as given and None; without one, the object ``find_object``
+                   memo: "DecodeMemo | None" = None,
+                   reader: str = "lights") -> tuple[np.ndarray, dict, FoundObject | None, str | None]:
+    """What LCNet and the light fit read of a capture: (mask, LCNet's config, found, the snap's
+    note). With a mask file, ``mask`` snapped to the object (``snap_mask`` of one read's
+    ``capture_edge``, with its note or None), ``config`` as given and None; without one, the object ``find_object``
     finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
     keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
-    whole frame (``mask``). ``reader``: as ``find_object``'s."""
+    whole frame (``mask``), and no note here (``found.notes``). ``reader``: as ``find_object``'s."""
     if capture.mask_path is not None:  # (no read where snap_mask could not measure the background)
         if np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
-            return mask, config, None
-        return snap_mask(capture_peak(capture, progress), mask), config, None
+            return mask, config, None, None
+        snapped, note = snap_mask(capture_edge(capture, mask, progress), mask)
+        return snapped, config, None, note
     found = find_object(*capture_shading(capture, progress, memo), reader=reader)
     if found.mask is None:
-        return mask, config, found
-    return found.mask, {**config, "exposure_pixels": "found"}, found  # its mean, as a mask's (words apart)
+        return mask, config, found, None
+    return found.mask, {**config, "exposure_pixels": "found"}, found, None  # its mean, as a mask's (words apart)
 
 
 def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = None,
@@ -1603,10 +1713,9 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     if weights is None and installed_path("lcnet") is None:  # before the read below, as the options' errors
         raise no_weights_error("lcnet", "--weights")
     # what LCNet and the light fit read: the mask, or the object found without one
-    fit_mask, lc_cfg, found = capture_object(cap, mask, {"device": device, "decode": decode, "views": views},
-                                             progress, memo)
+    fit_mask, lc_cfg, found, snapped = capture_object(cap, mask, {"device": device, "decode": decode,
+                                                                  "views": views}, progress, memo)
     picked += [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
-    snapped = snap_note(mask, fit_mask) if found is None else None
     picked += [f"mask: {snapped}"] if snapped else []
     shown = found is not None and found.mask is not None  # read in the mask's place (and written for the user)
     near = None
