@@ -1197,15 +1197,17 @@ def border_ring(height: int, width: int) -> np.ndarray:
     return ring
 
 
-FOUND_REFERENCE_MAX = 1 << 16  # the background's profile: the median of at most this many of its cells
+FOUND_REFERENCE_MAX = 8192  # the background's profile: the median of at most this many of its cells (the
+# frame's border ring has under 8k on find_object's grid of at most 256 cells a side: all of them)
 
 
-def unlike_background(profiles: np.ndarray, reference: np.ndarray) -> np.ndarray | None:
+def unlike_background(profiles: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The cells whose shading differs from the background's: ``profiles`` [N, h, w] float32 (each
     cell's grey value in each image, as captured, finite), ``reference`` [h, w] bool (cells of the
-    background: the frame's border, or the pixels around a mask) -> [h, w] bool, each cell with
-    over FOUND_MID of its images' ratios to the background's profile between lit and shadowed; None
-    where no reference cell is lit or fewer than FOUND_MIN_IMAGES images light the background."""
+    background: the frame's border, or the pixels around a mask) -> (unlike [h, w] bool, each cell
+    with over FOUND_MID of its images' ratios to the background's profile between lit and shadowed;
+    level [h, w] float32, its FOUND_LEVEL quantile of them: a background cell's albedo, to scale);
+    None where no reference cell is lit or fewer than FOUND_MIN_IMAGES images light the background."""
     p = profiles
     ref = np.flatnonzero(reference.ravel())
     ref = ref[::-(-len(ref) // FOUND_REFERENCE_MAX)] if len(ref) > FOUND_REFERENCE_MAX else ref  # (evenly)
@@ -1221,7 +1223,7 @@ def unlike_background(profiles: np.ndarray, reference: np.ndarray) -> np.ndarray
     ratio = p[use] / back[use, None, None].astype(np.float32)
     level = np.quantile(ratio, FOUND_LEVEL, axis=0)
     between = (ratio > FOUND_BAND[0] * level) & (ratio < FOUND_BAND[1] * level)
-    return between.mean(0) > FOUND_MID
+    return between.mean(0) > FOUND_MID, level.astype(np.float32)
 
 
 def shading_object(profiles: np.ndarray) -> np.ndarray | None:
@@ -1233,9 +1235,10 @@ def shading_object(profiles: np.ndarray) -> np.ndarray | None:
 
     p = np.asarray(profiles, np.float32)  # (float32: the ratios' quantiles copy them, up to 64 MB each)
     ring = border_ring(*p.shape[1:])
-    unlike = unlike_background(p, ring)
-    if unlike is None:
+    found = unlike_background(p, ring)
+    if found is None:
         return None
+    unlike = found[0]
     if unlike[ring].mean() > 0.5:  # the border is no one background
         return None
     # holes filled first: an object's rim may be its only part unlike the background (a face turned
@@ -1384,6 +1387,8 @@ SNAP_NOTE = 0.02  # the mask as given where the snap would leave out no more tha
 
 SNAP_MARGIN = 16  # before a lit background, the shading snap's background: the pixels outside the mask
 # within this many of its bounding box (their median profile, as find_object's frame border gives it)
+SNAP_EDGE = 0.5  # ... which leaves out pixels only where they hold at least this share of the mask's edge
+SNAP_ALBEDO = 1.5  # ... and their albedo is within this factor of the surroundings' (medians)
 
 
 @dataclass
@@ -1427,9 +1432,10 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
     a tenth of the largest dropped. It is dark where that level is at most SNAP_DARK of the
     brighter pixels' median peak and those are at least SNAP_KEEP of the mask and FOUND_MIN_PIXELS.
     Before a lit one, the mask without its pixels that shade over the images as the background
-    around it does (``shading_snap``). The mask as given where fewer than SNAP_MIN_OUTSIDE pixels
-    lie outside it, where neither can tell, where under FOUND_MIN_PIXELS would be kept, and where
-    it would leave out no more than SNAP_NOTE of the mask (every snap gets a note)."""
+    around it does (``shading_snap``, with its guards), where at least SNAP_KEEP of the mask is kept.
+    The mask as given where fewer than SNAP_MIN_OUTSIDE pixels lie outside it, where neither can
+    tell, where under FOUND_MIN_PIXELS would be kept, and where it would leave out no more than
+    SNAP_NOTE of the mask (every snap gets a note)."""
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
@@ -1448,22 +1454,28 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
         if obj is None:
             return mask, None
     total, kept = int(np.count_nonzero(mask)), int(obj.sum())
-    if kept < FOUND_MIN_PIXELS or kept >= (1.0 - SNAP_NOTE) * total:
+    if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total if by == "shading" else 0) or kept >= (1.0 - SNAP_NOTE) * total:
         return mask, None
     why = ("are never brighter than the background around it" if by == "brightness" else
-           "shade over the images as the lit background around it does")
+           "shade over the images as the background around it does")
     return obj, (f"{total - kept} of the mask's {total} pixels ({(total - kept) / total:.0%}) {why} (or are specks "
                  f"apart from the object): LCNet and the light fit read the mask without them (LCNet learnt exact "
                  f"masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off)")
 
 
 def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
-    """The object within ``mask`` [H, W] bool before a lit background: the mask's cells whose
-    shading differs from that of the cells around it (``unlike_background``, the reference being
-    the box's cells outside the mask), holes filled, parts under a tenth of the largest dropped ->
-    [H, W] bool within the mask, or None where the cells around the mask do not agree on one
-    background (over half of them unlike it) or the images do not light it (FOUND_MIN_IMAGES).
-    No opening, unlike ``shading_object``: at a pixel's grain it would cut an object's thin parts."""
+    """The object within ``mask`` [H, W] bool where its brightness cannot tell (a lit background):
+    the mask's cells whose shading differs from that of the cells around it (``unlike_background``,
+    the reference being the box's cells outside the mask) and its cells on the frame's edge (the
+    object may run on past it), holes filled, parts under a tenth of the largest dropped -> [H, W]
+    bool within the mask. None (the mask as given) where the cells around the mask do not agree on
+    one background (over half of them unlike it), where the images do not light it
+    (FOUND_MIN_IMAGES), and where what would be left out does not look like the background drawn
+    into the mask: it holds under SNAP_EDGE of the mask's edge (a wider mask's margin runs all
+    along it; a few patches of an exact mask's object that shade like the background, a dragon's
+    hollows, do not), or its albedo is not the surroundings' (within SNAP_ALBEDO: a coin's flat
+    face, which shades as the table does, is not the table). No opening, unlike ``shading_object``:
+    at a pixel's grain it would cut an object's thin parts."""
     from scipy import ndimage
 
     rows, cols = edge.box
@@ -1472,11 +1484,29 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     cells = block_samples(inner, f).astype(bool)  # whether each cell's sampled pixel is in the mask
     if np.count_nonzero(~cells) * f * f < SNAP_MIN_OUTSIDE:
         return None
-    p = np.asarray(edge.profiles, np.float32)
-    unlike = unlike_background(np.where(np.isfinite(p), np.maximum(p, 0), np.float32(0)), ~cells)
-    if unlike is None or unlike[~cells].mean() > 0.5:
+    p = np.nan_to_num(np.asarray(edge.profiles, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(p, 0.0, out=p)
+    found = unlike_background(p, ~cells)
+    del p
+    if found is None:
         return None
-    obj = ndimage.binary_fill_holes(object_parts(ndimage.binary_fill_holes(unlike & cells)))
+    unlike, level = found
+    if unlike[~cells].mean() > 0.5:
+        return None
+    h, w = mask.shape
+    rim = np.zeros_like(cells)  # the cells on the frame's edge
+    rim[0, :] |= rows.start == 0
+    rim[-1, :] |= rows.stop == h
+    rim[:, 0] |= cols.start == 0
+    rim[:, -1] |= cols.stop == w
+    obj = ndimage.binary_fill_holes(object_parts(ndimage.binary_fill_holes((unlike | rim) & cells)))
+    out_cells = cells & ~obj
+    border = cells & ~ndimage.binary_erosion(cells, border_value=1) & ~rim  # the mask's edge, in the frame
+    if not out_cells.any() or not border.any() or out_cells[border].mean() < SNAP_EDGE:
+        return None
+    around, left = float(np.median(level[~cells])), float(np.median(level[out_cells]))
+    if not (around > 0 and left > 0 and 1 / SNAP_ALBEDO <= left / around <= SNAP_ALBEDO):
+        return None
     px = obj[np.arange(inner.shape[0]) // f][:, np.arange(inner.shape[1]) // f] & inner  # (a mask's own holes stay)
     out = np.zeros(mask.shape, bool)
     out[rows, cols] = px

@@ -22,41 +22,98 @@ def _disc(size: int = 64, radius: float = 20.0) -> tuple[np.ndarray, np.ndarray]
     return peak.astype(np.float32), disc
 
 
+def _edge(peak: np.ndarray):
+    """A MaskEdge of ``peak`` with no shading to read (every profile 0): brightness alone."""
+    from psctl.lights import MaskEdge
+
+    h, w = peak.shape
+    return MaskEdge(peak, np.zeros((8, h, w), np.float32), (slice(0, h), slice(0, w)), 1)
+
+
+def _snapped(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    from psctl.lights import snap_mask
+
+    return snap_mask(_edge(peak), mask)[0]
+
+
 def test_snap_mask_keeps_the_object_within_a_wider_mask():
-    from psctl.lights import snap_mask, snap_note
-
-    peak, disc = _disc()
-    wide = ndimage.binary_dilation(disc, iterations=5)
-    assert np.array_equal(snap_mask(peak, wide), disc)
-    assert "never brighter than the background" in snap_note(wide, disc)
-    assert np.array_equal(snap_mask(peak, disc), disc) and snap_note(disc, disc) is None
-    near = disc.copy()
-    near[12, 28:34] = True  # 6 pixels past the object (0.5% of the mask): exact enough, kept as given
-    assert np.array_equal(snap_mask(peak, near), near)
-    holed = wide.copy()
-    holed[30:34, 30:34] = False  # the user's own hole stays one
-    assert np.array_equal(snap_mask(peak, holed), disc & holed)
-    dark_inside = peak.copy()
-    dark_inside[26:38, 26:38] = 0.0  # a part dark in every image, inside the object: kept (holes filled)
-    assert np.array_equal(snap_mask(dark_inside, wide), disc)
-    speck = peak.copy()
-    speck[10, 32] = 0.9  # a bright speck in the mask's margin, apart from the object: a crumb, left out
-    wider = ndimage.binary_dilation(disc, iterations=12)
-    assert np.array_equal(snap_mask(speck, wider), disc)
-
-
-def test_snap_mask_leaves_the_mask_where_it_cannot_tell():
     from psctl.lights import snap_mask
 
     peak, disc = _disc()
     wide = ndimage.binary_dilation(disc, iterations=5)
-    lit = np.where(disc, peak, 0.3).astype(np.float32)  # a lit table around it: no dark background to measure
-    assert np.array_equal(snap_mask(lit, wide), wide)
+    got, note = snap_mask(_edge(peak), wide)
+    assert np.array_equal(got, disc) and "never brighter than the background" in note
+    got, note = snap_mask(_edge(peak), disc)
+    assert np.array_equal(got, disc) and note is None
+    near = disc.copy()
+    near[12, 28:34] = True  # 6 pixels past the object (0.5% of the mask): exact enough, kept as given
+    assert snap_mask(_edge(peak), near)[1] is None and np.array_equal(_snapped(peak, near), near)
+    holed = wide.copy()
+    holed[30:34, 30:34] = False  # the user's own hole stays one
+    assert np.array_equal(_snapped(peak, holed), disc & holed)
+    dark_inside = peak.copy()
+    dark_inside[26:38, 26:38] = 0.0  # a part dark in every image, inside the object: kept (holes filled)
+    assert np.array_equal(_snapped(dark_inside, wide), disc)
+    speck = peak.copy()
+    speck[10, 32] = 0.9  # a bright speck in the mask's margin, apart from the object: a crumb, left out
+    wider = ndimage.binary_dilation(disc, iterations=12)
+    assert np.array_equal(_snapped(speck, wider), disc)
+
+
+def test_snap_mask_leaves_the_mask_where_it_cannot_tell():
+    peak, disc = _disc()
+    wide = ndimage.binary_dilation(disc, iterations=5)
+    lit = np.where(disc, peak, 0.3).astype(np.float32)  # a lit table around it, no shading to tell it by
+    assert np.array_equal(_snapped(lit, wide), wide)
     frame = np.ones_like(disc)
     frame[0, :50] = False  # 50 pixels outside: too few to measure the background
-    assert np.array_equal(snap_mask(peak, frame), frame)
+    assert np.array_equal(_snapped(peak, frame), frame)
     black = np.zeros_like(peak)  # nothing brighter than the background: the mask as given
-    assert np.array_equal(snap_mask(black, wide), wide)
+    assert np.array_equal(_snapped(black, wide), wide)
+
+
+def _before_a_lit_table(n: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """A Lambertian sphere before a textured Lambertian plane (albedo 0.1-0.5, facing the camera)
+    lit by the same 16 lights, plus noise: images [n, 64, 64, 3], the sphere's mask."""
+    from tests.conftest import hemisphere_lights, render_lambertian, sphere
+
+    normals, m = sphere(64, 0.7)
+    lights = hemisphere_lights(n, 45.0, seed=1)
+    images = render_lambertian(normals, m, lights, 0.7)
+    rng = np.random.default_rng(0)
+    t = ndimage.gaussian_filter(rng.normal(size=m.shape), 4)
+    albedo = 0.1 + 0.4 * (t - t.min()) / np.ptp(t)
+    table = np.clip(lights[:, 2], 0, None)[:, None, None, None] * albedo[None, ..., None]
+    table = table + np.abs(rng.normal(0, 0.002, images.shape))
+    return np.where(m[None, ..., None], images, table).astype(np.float32), m
+
+
+def test_snap_mask_before_a_lit_background_reads_the_shading():
+    """The sphere's own shading differs from the table's (one profile over the images wherever
+    the table is, its albedo apart): a mask 3 or 8 px wider snaps to the sphere, within 3 of its
+    1568 pixels (its rim's), with a note that says how; a true mask is left as given."""
+    from psctl.lights import array_snap
+
+    images, m = _before_a_lit_table()
+    assert float(np.median(images.max(axis=(0, 3))[~m])) > 0.15 * float(np.median(images.max(axis=(0, 3))[m]))
+    for grow in (3, 8):
+        got, note = array_snap(images, ndimage.binary_dilation(m, iterations=grow))
+        assert np.count_nonzero(got ^ m) <= 3 and not (got & ~ndimage.binary_dilation(m, iterations=grow)).any()
+        assert "shade over the images as the background around it does" in note
+    got, note = array_snap(images, m)
+    assert np.array_equal(got, m) and note is None
+
+
+def test_snap_mask_before_a_lit_background_leaves_it_where_it_cannot_tell():
+    from psctl.lights import array_snap
+
+    images, m = _before_a_lit_table()
+    wide = ndimage.binary_dilation(m, iterations=3)
+    noise = images.copy()  # no one background: each pixel's own values
+    noise[:, ~m] = np.random.default_rng(1).uniform(0, 0.5, noise[:, ~m].shape)
+    assert np.array_equal(array_snap(noise, wide)[0], wide)
+    few, fm = _before_a_lit_table(6)  # too few images to tell shadow from shading
+    assert np.array_equal(array_snap(few, wide)[0], wide)
 
 
 def test_a_wider_mask_file_gives_the_lights_of_the_exact_one(tmp_path, fake_weights):
@@ -99,6 +156,52 @@ def test_arrays_with_a_wider_mask_warn_and_give_the_exact_masks_lights(fake_weig
             warnings.simplefilter("always")
             psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", refine=False)
         assert any(str(w.message).startswith("sdps: mask: ") for w in sd)
+
+
+def test_arrays_before_a_lit_table_with_a_wider_mask_get_the_exact_masks_lights(fake_weights):
+    import psctl
+    from psctl.lights import array_snap
+
+    images, m = _before_a_lit_table()
+    wide = ndimage.binary_dilation(m, iterations=3)
+    with weights_in(fake_weights):
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            d_wide, e_wide = psctl.estimate_lights(images, wide, device="cpu", refine=False)
+        exact = array_snap(images, wide)[0]
+        d, e = psctl.estimate_lights(images, exact, device="cpu", refine=False)
+        assert np.array_equal(d_wide, d) and np.array_equal(e_wide, e)
+        said = [str(w.message) for w in got if issubclass(w.category, PsctlWarning)]
+        assert any(w.startswith("estimate_lights: mask: ") and "shade over the images as the background" in w for w in said)
+
+
+def test_a_folder_before_a_lit_table_reads_its_mask_snapped_by_shading(tmp_path, fake_weights):
+    """psctl lights on a folder (16-bit PNGs) of the sphere before a lit table whose mask.png is
+    3 px wider: the lights of the same folder with the mask that array_snap gives its decoded images,
+    so the folder's one read (capture_edge) sees what the arrays' does, and a note."""
+    from psctl.io.capture import load_images, open_capture
+    from psctl.io.images import write_image
+    from psctl.lights import array_snap, run_lights
+
+    images, m = _before_a_lit_table()
+    wide = ndimage.binary_dilation(m, iterations=3)
+    for name in ("widePNG", "snappedPNG"):
+        folder = tmp_path / name
+        folder.mkdir()
+        for k, img in enumerate(images):
+            write_image(folder / f"{k + 1:03d}.png", img, "uint16", kind="linear")
+        (folder / "filenames.txt").write_text("".join(f"{k + 1:03d}.png\n" for k in range(len(images))))
+        np.savetxt(folder / "light_directions.txt", np.tile([0.0, 0.0, 1.0], (len(images), 1)), fmt="%.6f")
+        write_image(folder / "mask.png", wide.astype(np.float32), "uint8", kind="data")
+    snapped, _ = array_snap(load_images(open_capture(tmp_path / "widePNG"), as_captured=True), wide)
+    assert np.count_nonzero(snapped ^ m) <= 3
+    write_image(tmp_path / "snappedPNG" / "mask.png", snapped.astype(np.float32), "uint8", kind="data")
+    with weights_in(fake_weights):
+        got = run_lights(tmp_path / "widePNG", write=False, device="cpu", refine=False)
+        exact = run_lights(tmp_path / "snappedPNG", write=False, device="cpu", refine=False)
+    assert got["light_mae"] == exact["light_mae"] and got["intensity_re"] == exact["intensity_re"]
+    assert any(n.startswith("mask: ") and "shade over the images as the background" in n for n in got["notes"])
+    assert not any("shade over the images" in n for n in exact["notes"])
 
 
 def test_point_lights_sit_about_the_users_mask_as_psctl_normals_takes_it(tmp_path, fake_weights):
