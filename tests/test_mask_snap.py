@@ -8,6 +8,7 @@ import json
 import warnings
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from psctl.errors import PsctlWarning
@@ -72,20 +73,33 @@ def test_snap_mask_leaves_the_mask_where_it_cannot_tell():
     assert np.array_equal(_snapped(black, wide), wide)
 
 
-def _before_a_lit_table(n: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """A Lambertian sphere before a textured Lambertian plane (albedo 0.1-0.5, facing the camera)
-    lit by the same 16 lights, plus noise: images [n, 64, 64, 3], the sphere's mask."""
+def _before_a_lit_table(n: int = 16, normals: np.ndarray | None = None, m: np.ndarray | None = None,
+                        table_albedo: tuple[float, float] = (0.1, 0.5)) -> tuple[np.ndarray, np.ndarray]:
+    """A Lambertian object (albedo 0.7; a sphere unless ``normals`` [64, 64, 3] and its mask ``m``
+    are given) before a textured Lambertian plane (albedo in ``table_albedo``, facing the camera)
+    lit by the same ``n`` lights, plus noise: images [n, 64, 64, 3], the object's mask."""
     from tests.conftest import hemisphere_lights, render_lambertian, sphere
 
-    normals, m = sphere(64, 0.7)
+    if normals is None:
+        normals, m = sphere(64, 0.7)
     lights = hemisphere_lights(n, 45.0, seed=1)
     images = render_lambertian(normals, m, lights, 0.7)
     rng = np.random.default_rng(0)
     t = ndimage.gaussian_filter(rng.normal(size=m.shape), 4)
-    albedo = 0.1 + 0.4 * (t - t.min()) / np.ptp(t)
+    albedo = table_albedo[0] + (table_albedo[1] - table_albedo[0]) * (t - t.min()) / np.ptp(t)
     table = np.clip(lights[:, 2], 0, None)[:, None, None, None] * albedo[None, ..., None]
     table = table + np.abs(rng.normal(0, 0.002, images.shape))
     return np.where(m[None, ..., None], images, table).astype(np.float32), m
+
+
+def _dome(cy: float, cx: float, r: float, size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The normals [size, size, 3] and mask of a hemisphere of radius ``r`` px about (cy, cx),
+    clipped to the frame."""
+    yy, xx = np.mgrid[:size, :size].astype(np.float64)
+    x, y = (xx + 0.5 - cx) / r, (cy - yy - 0.5) / r
+    m = x * x + y * y < 1
+    n = np.stack([x, y, np.sqrt(np.clip(1 - x * x - y * y, 0, None))], -1) * m[..., None]
+    return n.astype(np.float32), m
 
 
 def test_snap_mask_before_a_lit_background_reads_the_shading():
@@ -158,6 +172,73 @@ def test_arrays_with_a_wider_mask_warn_and_give_the_exact_masks_lights(fake_weig
         assert any(str(w.message).startswith("sdps: mask: ") for w in sd)
 
 
+def test_snap_mask_before_a_lit_background_keeps_faces_that_shade_as_it_does():
+    """A face turned to the camera shades as the table does: a coin's flat face around a relief is
+    not the table (its albedo is not the table's), and a dome running off the frame keeps its cap
+    (the mask's cells on the frame's edge are the object's); each is kept, not cut."""
+    from psctl.lights import array_snap
+
+    coin = _dome(32, 32, 24)[1]
+    normals, relief = _dome(32, 32, 9)  # a flat face (normal to the camera) with a dome in its middle
+    normals[coin & ~relief] = (0.0, 0.0, 1.0)
+    images, m = _before_a_lit_table(normals=normals, m=coin)
+    for mask in (coin, ndimage.binary_dilation(coin, iterations=3)):
+        got, note = array_snap(images, mask)
+        assert np.array_equal(got, mask) and note is None
+    normals, edge = _dome(32, 3, 20)  # off the frame's left edge
+    images, m = _before_a_lit_table(normals=normals, m=edge)
+    got, note = array_snap(images, ndimage.binary_dilation(edge, iterations=5))
+    assert np.count_nonzero(edge & ~got) <= 3 and note is not None
+
+
+@pytest.mark.parametrize("case", ["flat segment", "coin, other albedo", "coin, small relief"])
+def test_snap_mask_before_a_lit_background_guards(case):
+    """Each of the shading snap's guards keeps an object's face that shades as the table does,
+    where the other guards would let it be cut (each case cuts 279-1549 of its pixels without
+    its guard): a flat segment on a sphere's side with its exact mask holds under half of the
+    mask's edge (SNAP_EDGE); a coin's flat face around a wide relief is brighter than the table
+    (SNAP_ALBEDO); around a small relief on a table of the coin's albedo it would leave out over
+    three quarters of the mask (SNAP_KEEP)."""
+    from psctl.lights import array_snap
+
+    from tests.conftest import sphere
+
+    coin = _dome(32, 32, 24)[1]
+    if case == "flat segment":
+        normals, m = sphere(64, 0.7)
+        normals[m & (np.arange(64) < 20)[None, :]] = (0.0, 0.0, 1.0)
+        table, masks = (0.6, 0.8), [m]
+    else:
+        normals, relief = _dome(32, 32, 16 if case == "coin, other albedo" else 9)
+        normals[coin & ~relief] = (0.0, 0.0, 1.0)
+        m = coin
+        table = (0.1, 0.5) if case == "coin, other albedo" else (0.6, 0.8)
+        masks = [coin, ndimage.binary_dilation(coin, iterations=3)]
+    images, _ = _before_a_lit_table(normals=normals, m=m, table_albedo=table)
+    for mask in masks:
+        got, note = array_snap(images, mask)
+        assert np.array_equal(got, mask) and note is None
+
+
+def test_snap_mask_reads_brightness_first_and_a_coarse_grid(monkeypatch):
+    """Before a dark table the brightness test decides (its note), and on a grid of 2 x 2 blocks
+    (many or large images) the shading snap still finds the sphere, to a cell about its rim."""
+    import psctl.lights
+    from psctl.lights import array_snap, edge_box
+
+    images, m = _before_a_lit_table(table_albedo=(0.005, 0.01))
+    got, note = array_snap(images, ndimage.binary_dilation(m, iterations=3))
+    assert np.array_equal(got, m) and "never brighter than the background" in note
+    images, m = _before_a_lit_table()
+    wide = ndimage.binary_dilation(m, iterations=4)
+    monkeypatch.setattr(psctl.lights, "FOUND_PROFILE_ELEMENTS", 16 * 64 * 64 // 4)
+    assert edge_box(wide, 16)[1] == 2
+    got, note = array_snap(images, wide)
+    band = ndimage.binary_dilation(m, iterations=2) & ~ndimage.binary_erosion(m, iterations=3)
+    assert note is not None and not ((got ^ m) & ~band).any()  # right to a cell (2 x 2 px) about the rim
+    assert np.count_nonzero(got ^ m) <= 0.05 * m.sum()  # (68 of 1568 pixels, 36 of them the sphere's)
+
+
 def test_arrays_before_a_lit_table_with_a_wider_mask_get_the_exact_masks_lights(fake_weights):
     import psctl
     from psctl.lights import array_snap
@@ -169,6 +250,7 @@ def test_arrays_before_a_lit_table_with_a_wider_mask_get_the_exact_masks_lights(
             warnings.simplefilter("always")
             d_wide, e_wide = psctl.estimate_lights(images, wide, device="cpu", refine=False)
         exact = array_snap(images, wide)[0]
+        assert np.count_nonzero(exact ^ m) <= 3
         d, e = psctl.estimate_lights(images, exact, device="cpu", refine=False)
         assert np.array_equal(d_wide, d) and np.array_equal(e_wide, e)
         said = [str(w.message) for w in got if issubclass(w.category, PsctlWarning)]
