@@ -151,7 +151,8 @@ def _saturated(images) -> np.ndarray | None:
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
                     refine: bool = True, falloff: str | None = None,
-                    roll: bool | None = None, precision: str = "float32") -> tuple[np.ndarray, np.ndarray]:
+                    roll: bool | None = None, precision: str = "float32",
+                    snap: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Light directions and relative intensities from arrays (LCNet, uncalibrated).
 
     Args:
@@ -180,6 +181,10 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             ``DEFAULT_REFINE["roll"]``; docs/uncalibrated.md, "Roll from integrability").
         precision: the refinement's normals network: "float32" (the default), "bf16" or "fp16"
             (as ``estimate_normals``); LCNet runs in float32.
+        snap: LCNet and the light fit read ``mask`` snapped to the object (``psctl.lights.snap_mask``:
+            a mask drawn wider than the object puts LCNet's lights far off), with a warning when
+            it leaves out over 2% of it; False: the mask as given (an exact mask whose object
+            has a face that shades as the background does; docs/uncalibrated.md).
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
@@ -192,7 +197,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     from psctl.models import check_precision, precision_autocast
 
     fit = refine_config(falloff, roll)
-    refine = check_bool("refine", refine)
+    refine, snap = check_bool("refine", refine), check_bool("snap", snap)
     check_precision(precision)  # a bad name is an error with refine=False too
     refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
     # the refinement's normals network; checked before any work (not where none will run)
@@ -201,7 +206,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     images = as_images(images)
     mask = as_mask(mask, images.shape[1:3])
     found = None if mask is not None else find_object(*array_shading(images))
-    fit_mask, snapped = array_snap(images, mask) if found is None else (found.mask, None)
+    fit_mask, snapped = (found.mask, None) if found is not None else array_snap(images, mask) if snap else (mask, None)
     if snapped:
         warnings.warn(f"estimate_lights: mask: {snapped}", PsctlWarning, stacklevel=caller_level())
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
@@ -234,7 +239,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
                      device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                      refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                      light_distance: float | None = None, downsample: int = 1,
-                     precision: str = "float32") -> np.ndarray:
+                     precision: str = "float32", snap: bool = True) -> np.ndarray:
     """Normals from arrays.
 
     Args:
@@ -276,6 +281,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             as TF32 where the GPU has it), "bf16" (an Ampere or newer GPU, or a CPU with native bf16: 1.6x faster end to end on a
             2-core AVX512-BF16 CPU, normals about 0.1 degrees from float32's on average; docs/models.md,
             "Precision") or "fp16" (CUDA).
+        snap: sdps: its LCNet and light fit read ``mask`` snapped to the object (as
+            ``estimate_lights``); False: as given. The other methods read the mask as given.
     Returns:
         [H, W, 3] float32 unit normals.
     """
@@ -349,7 +356,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
 
         second = sdps_second_stage(weights)[0]
         # LCNet and the light fit: the object found, or the mask snapped to the object (snap_mask)
-        fit_mask, snapped = (found.mask, None) if found is not None else array_snap(images, mask)
+        fit_mask, snapped = (found.mask, None) if found is not None else array_snap(images, mask) if snap \
+            else (mask, None)
         for note in (f"mask: {snapped}" if snapped else None, few_lights_note(len(images))):
             if note:
                 warnings.warn(f"sdps: {note}", PsctlWarning, stacklevel=level)
@@ -466,7 +474,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
                 light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1,
-                precision: str = "float32", albedo: bool = False) -> dict:
+                precision: str = "float32", albedo: bool = False, snap: bool = True) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -521,6 +529,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light each pixel well; one more pass over the images), in each of ``formats``
     (``albedo.png``: an sRGB picture scaled to the report's ``albedo.png_scale``; ``albedo.exr``
     and ``albedo.npy``: linear values), and the report's "albedo" (None without it).
+    ``snap`` (sdps; True): its LCNet and light fit read a mask file snapped to the object
+    (``psctl.lights.snap_mask``); False: as given (--no-snap). The other methods read it as given.
     """
     from dataclasses import replace
 
@@ -546,6 +556,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         raise PsctlError(None, f"batch must be a psctl.io.atomic.OutputBatch or None, not {type(batch).__name__}")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
+    snap = check_bool("snap", snap)
     want_albedo = check_bool("albedo", albedo)
     check_device_name(device)  # a typo is an error for l2 too, which does not use it
     precision = check_precision(precision)
@@ -622,7 +633,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     light_stats = None
     spread = None  # the ensemble's members' disagreement, [H, W] degrees
     if method == "sdps":
-        sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo)
+        sd = _sdps_normals(cap, mask, light_distance, weights, lcnet, device, net_cfg, refine, fit, progress, memo,
+                           snap)
         est, normals, dark, light_stats, near = sd.lights, sd.normals, sd.dark, sd.light_stats, sd.near
         from psctl.lights import one_sided_notes
 
@@ -900,7 +912,8 @@ def _warn_found(found: "FoundObject", who: str, level: int) -> None:
 
 def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None,
                   weights: str | os.PathLike | None, lcnet: str | os.PathLike | None, device: str, net_cfg: dict,
-                  refine: bool, fit: dict, progress: ProgressFactory, memo: "DecodeMemo | None") -> _SdpsRun:
+                  refine: bool, fit: dict, progress: ProgressFactory, memo: "DecodeMemo | None",
+                  snap: bool = True) -> _SdpsRun:
     """sdps on a capture folder: LCNet's lights, the second stage, the refinement (``refine``,
     ``fit``); ``light_distance``: the lights' distance from the centre of the object LCNet reads
     (the mask, or the one found without it), whose falloff the second stage divides out."""
@@ -917,7 +930,7 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
     if memo is None:  # every pass takes the images LCNet's decoded, where they fit
         memo = DecodeMemo({**DEFAULT_INFER, **net_cfg}["cache_mb"] << 20)
     # LCNet, the light fit and the second stage read the object (found without a mask file)
-    fit_mask, lc_cfg, found, snapped = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps")
+    fit_mask, lc_cfg, found, snapped = capture_object(cap, mask, lc_cfg, progress, memo, reader="sdps", snap=snap)
     net_cfg = {**net_cfg, **_found_config(found)}
     found_notes = [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     found_notes += [f"mask: {snapped}"] if snapped else []

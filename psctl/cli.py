@@ -137,6 +137,7 @@ DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda | cu
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="sdps and psctl lights: after the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
+SnapOpt = Annotated[bool, _flag("--snap/--no-snap", help="sdps and psctl lights: LCNet and the light fit read mask.png snapped to the object (a mask drawn wider puts LCNet's lights far off; a note says what was left out); --no-snap: as given (an exact mask whose object has a face that shades as the background does; docs/uncalibrated.md, 'A mask wider than the object').")]
 ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
 DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the capture shrunk by this whole factor (each K x K block's mean), normals interpolated back to full size: about 1/K^2 of the network's work, for a quick look; detail is lost (docs/models.md, 'Downsampling'). 1: full size.")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (a file with an ICC profile is decoded through its tone curves; else JPEGs are decoded from sRGB, other files read as linear) | linear (all as stored) | srgb (all decoded from sRGB).")]
@@ -364,6 +365,7 @@ def normals(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
+    snap: SnapOpt = True,
     albedo: Annotated[bool, _flag("--albedo", help="Also the albedo map in each --format (albedo.png, albedo_8bit.png with png8: sRGB pictures; albedo.exr, albedo.npy: linear): per channel the median of image / (n . l) over the images that light each pixel well, from the normals and the lights (sdps: as estimated); one more pass over the images.")] = False,
     json_out: Json = False,
     quiet: Quiet = False,
@@ -380,7 +382,7 @@ def normals(
                                           progress=progress, weights=weights, device=device, lcnet=lcnet,
                                           views=views, refine=refine, falloff=falloff, roll=roll, encoding=encoding,
                                           light_distance=light_distance, downsample=downsample,
-                                          precision=precision, albedo=albedo),
+                                          precision=precision, albedo=albedo, snap=snap),
              json_out, quiet, lambda r: render_normals(r, quiet=quiet))
 
 
@@ -447,6 +449,7 @@ def lights(
     encoding: EncodingOpt = "auto",
     light_distance: Annotated[Optional[float], typer.Option("--light-distance", help="With --refine: the lights are points this many image pixels from the object along the estimated directions; each image is divided by its light's falloff before the refinement's normals (docs/near-lights.md; DiLiGenT's rig: about 2400).")] = None,
     precision: Annotated[str, typer.Option("--precision", help="With --refine: the normals network's arithmetic, as psctl normals --precision (float32 | bf16 | fp16; LCNet runs in float32).")] = "float32",
+    snap: SnapOpt = True,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -458,7 +461,7 @@ def lights(
                                          views=views, n_images=images, seed=seed, progress=progress,
                                          refine=refine, normals_weights=normals_weights, falloff=falloff,
                                          roll=roll, encoding=encoding, light_distance=light_distance,
-                                         precision=precision),
+                                         precision=precision, snap=snap),
              json_out, quiet, render_lights)
 
 

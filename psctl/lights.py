@@ -1374,17 +1374,19 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
 # and sdps' normals 5.9 -> 17.5 (bunny in white fabric), while the normals networks did not mind (the
 # ensemble within 0.25 degrees on 9 objects). A mask pixel never brighter, in any image, than the
 # background around the mask is background: LCNet and the light fit read the mask without such pixels.
+# Where brightness cannot tell (a lit background: a table), one whose shading over the images is the
+# background's, where those pixels look like the background drawn into the mask (shading_snap; since
+# session 70, docs/uncalibrated.md).
 SNAP_QUANTILE = 0.99  # the background's level: this quantile of the peaks outside the mask (noise, specks)
 SNAP_FACTOR = 1.5  # mask pixels whose peak is at most this times that level are background
 SNAP_DARK = 0.15  # ... only where that level is under this share of the kept pixels' median peak (a dark
 # background: before a lit one, a dark part of the object may be no brighter than the table)
 SNAP_KEEP = 0.25  # ... and where they are at least this share of the mask (else the highlights of a
-# shiny object before a lit table, say: the mask as given)
+# shiny object before a lit table, say: the shading snap instead); the shading snap keeps at least this
+# share too (else the mask as given: a coin's flat face around a small relief shades as the table does)
 SNAP_MIN_OUTSIDE = 100  # fewer pixels outside the mask: no background to measure, the mask as given
 SNAP_NOTE = 0.02  # the mask as given where the snap would leave out no more than this share of it (exact
 # enough: the dev split's masks lose 0-0.8%, and bear's 0.8% cost its lights 0.36 degrees), else a note
-
-
 SNAP_MARGIN = 16  # before a lit background, the shading snap's background: the pixels outside the mask
 # within this many of its bounding box (their median profile, as find_object's frame border gives it)
 SNAP_EDGE = 0.5  # ... which leaves out pixels only where they hold at least this share of the mask's edge
@@ -1395,9 +1397,10 @@ SNAP_ALBEDO = 1.5  # ... and their albedo is within this factor of the surroundi
 class MaskEdge:
     """What ``snap_mask`` reads of the images, in one read (``capture_edge``, ``array_edge``):
     ``peak`` [H, W] float32, each pixel's brightest value over the images and channels (as
-    captured, negatives and NaN 0); ``profiles`` [N, h, w] float32, grey samples (``block_samples``,
-    a pixel of each ``grid`` x ``grid`` block) of ``box``, the mask's bounding box grown by
-    SNAP_MARGIN (``edge_box``)."""
+    captured; NaN and negatives 0, inf kept); ``profiles`` [N, h, w] float32, grey samples
+    (``block_samples``, a pixel of each ``grid`` x ``grid`` block) of ``box``, the mask's bounding
+    box grown by SNAP_MARGIN (``edge_box``), as decoded (``snap_mask`` and ``shading_snap`` read
+    non-finite values and negatives as 0)."""
     peak: np.ndarray
     profiles: np.ndarray
     box: tuple[slice, slice]
@@ -1561,15 +1564,16 @@ def capture_edge(capture: "Capture", mask: np.ndarray, progress: "ProgressFactor
 
 def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress: "ProgressFactory | None" = None,
                    memo: "DecodeMemo | None" = None,
-                   reader: str = "lights") -> tuple[np.ndarray, dict, FoundObject | None, str | None]:
+                   reader: str = "lights", snap: bool = True) -> tuple[np.ndarray, dict, FoundObject | None, str | None]:
     """What LCNet and the light fit read of a capture: (mask, LCNet's config, found, the snap's
     note). With a mask file, ``mask`` snapped to the object (``snap_mask`` of one read's
     ``capture_edge``, with its note or None), ``config`` as given and None; without one, the object ``find_object``
     finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
     keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
-    whole frame (``mask``), and no note here (``found.notes``). ``reader``: as ``find_object``'s."""
+    whole frame (``mask``), and no note here (``found.notes``). ``reader``: as ``find_object``'s.
+    ``snap`` False: a mask file as given (no read)."""
     if capture.mask_path is not None:  # (no read where snap_mask could not measure the background)
-        if np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
+        if not snap or np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
             return mask, config, None, None
         snapped, note = snap_mask(capture_edge(capture, mask, progress), mask)
         return snapped, config, None, note
@@ -1642,7 +1646,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                refine: bool = True, normals_weights: str | os.PathLike | None = None,
                falloff: str | None = None, roll: bool | None = None, encoding: str = "auto",
                light_distance: float | None = None, precision: str = "float32",
-               arrays: dict | None = None) -> dict:
+               arrays: dict | None = None, snap: bool = True) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
@@ -1658,6 +1662,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     file, the found object's) along the estimated directions, and the refinement reads the images with their falloff divided out
     (``psctl.nearlight``; LCNet reads them as captured). ``precision`` (float32, bf16, fp16): the
     refinement's normals network's arithmetic (LCNet runs in float32), as ``psctl.run_normals``'.
+    ``snap`` (True): LCNet and the light fit read a mask file snapped to the object
+    (``snap_mask``, noted when it leaves out over 2%); False: as given (--no-snap).
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,
@@ -1682,6 +1688,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                                f"{type(arrays).__name__}")
     fit = refine_config(falloff, roll)
     write, refine = check_bool("write", write), check_bool("refine", refine)  # "no" is truthy: never a yes
+    snap = check_bool("snap", snap)
     progress = check_progress(progress)
     from psctl.symmetry import check_views
 
@@ -1744,7 +1751,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         raise no_weights_error("lcnet", "--weights")
     # what LCNet and the light fit read: the mask, or the object found without one
     fit_mask, lc_cfg, found, snapped = capture_object(cap, mask, {"device": device, "decode": decode,
-                                                                  "views": views}, progress, memo)
+                                                                  "views": views}, progress, memo, snap=snap)
     picked += [] if found is None else [NO_MASK_PREFIX + n for n in found.notes]
     picked += [f"mask: {snapped}"] if snapped else []
     shown = found is not None and found.mask is not None  # read in the mask's place (and written for the user)

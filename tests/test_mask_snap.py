@@ -286,6 +286,45 @@ def test_a_folder_before_a_lit_table_reads_its_mask_snapped_by_shading(tmp_path,
     assert not any("shade over the images" in n for n in exact["notes"])
 
 
+def test_no_snap_reads_the_mask_as_given(tmp_path, fake_weights, monkeypatch):
+    """snap=False (--no-snap): the mask as given, no read of its edge and no note, in psctl
+    lights and sdps (folders, from the command line too) and estimate_lights / sdps (arrays)."""
+    import psctl
+    import psctl.lights
+    from psctl.cli import app
+    from psctl.io.images import write_image
+    from typer.testing import CliRunner
+
+    data = write_capture(tmp_path / "widePNG", n=12, size=48)
+    wide = ndimage.binary_dilation(data["mask"], iterations=3)
+    write_image(tmp_path / "widePNG" / "mask.png", wide.astype(np.float32), "uint8", kind="data")
+    with weights_in(fake_weights):
+        snapped = psctl.lights.run_lights(tmp_path / "widePNG", write=False, device="cpu", refine=False)
+        assert any(n.startswith("mask: ") for n in snapped["notes"])
+
+        def never(*args, **kwargs):
+            raise AssertionError("the mask was snapped")
+        monkeypatch.setattr(psctl.lights, "capture_edge", never)
+        monkeypatch.setattr(psctl.lights, "array_snap", never)
+        given = psctl.lights.run_lights(tmp_path / "widePNG", write=False, device="cpu", refine=False, snap=False)
+        assert not any(n.startswith("mask: ") for n in given["notes"])
+        assert given["light_mae"] != snapped["light_mae"]  # (LCNet read the wider mask)
+        r = CliRunner().invoke(app, ["lights", str(tmp_path / "widePNG"), "-o", str(tmp_path / "out"), "--no-snap",
+                                     "--no-refine", "--device", "cpu", "--json", "-q"])
+        assert r.exit_code == 0, r.output
+        assert json.loads(r.stdout)["light_mae"] == given["light_mae"]
+        r = CliRunner().invoke(app, ["normals", str(tmp_path / "widePNG"), "-m", "sdps", "-o", str(tmp_path / "n"),
+                                     "--no-snap", "--no-refine", "--device", "cpu", "--json", "-q"])
+        assert r.exit_code == 0, r.output
+        assert not any(n.startswith("mask: ") for n in json.loads(r.stdout)["notes"])
+        images = data["images"] * np.ones((1, 1, 1, 1), np.float32)
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            psctl.estimate_lights(images, wide, device="cpu", refine=False, snap=False)
+            psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", refine=False, snap=False)
+        assert not any(": mask: " in str(w.message) for w in got)
+
+
 def test_point_lights_sit_about_the_users_mask_as_psctl_normals_takes_it(tmp_path, fake_weights):
     """--light-distance: the lights' centre is the user's mask's, snapped or not, so that psctl
     lights and psctl normals -m ps-fcn on one folder put the lights in one place."""
