@@ -1463,7 +1463,8 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
            "shade over the images as the background around it does")
     return obj, (f"{total - kept} of the mask's {total} pixels ({(total - kept) / total:.0%}) {why} (or are specks "
                  f"apart from the object): LCNet and the light fit read the mask without them (LCNet learnt exact "
-                 f"masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off)")
+                 f"masks: on a synthetic bunny one 3 px wider put its lights 3.9 -> 10.5 degrees off); --no-snap "
+                 f"(snap=False) reads it as given")
 
 
 def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
