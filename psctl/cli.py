@@ -405,6 +405,7 @@ def evaluate(
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
     light_distance: LightDistanceOpt = None,
+    snap: SnapOpt = True,
     albedo: Annotated[bool, _flag("--albedo", help="With --out: each object's albedo maps too, as psctl normals --albedo writes them.")] = False,
     markdown: Annotated[bool, _flag("--markdown", help="Print the table as Markdown on stdout (for a README or a paper's draft); notes go to stderr.")] = False,
     json_out: Json = False,
@@ -423,7 +424,7 @@ def evaluate(
         methods = method_names(method or ["auto"])  # -m a -m b and -m a,b alike; a name given twice runs once
         options = dict(n_images=images, seed=seed, out=out, weights=weights, device=device, lcnet=lcnet, views=views,
                        refine=refine, falloff=falloff, roll=roll, encoding=encoding, light_distance=light_distance,
-                       downsample=downsample, precision=precision, albedo=albedo)
+                       downsample=downsample, precision=precision, albedo=albedo, snap=snap)
         if len(methods) == 1:
             _run(lambda progress: run_benchmark(benchmark, root=root, method=methods[0], progress=progress, **options),
                  json_out, quiet, render_benchmark_markdown if markdown else render_benchmark)

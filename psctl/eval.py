@@ -73,7 +73,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   device: str = "auto", lcnet: str | os.PathLike | None = None, views: int = 1,
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                   encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
-                  precision: str = "float32", albedo: bool = False, batch: OutputBatch | None = None) -> dict:
+                  precision: str = "float32", albedo: bool = False, batch: OutputBatch | None = None,
+                  snap: bool = True) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
@@ -87,7 +88,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     maps, and the ensemble's spread maps, ``psctl.io.report.benchmark_sheet``)
     and out/eval.json (this result) join them; the result then has "outputs".
     ``weights`` (a file), ``device``, ``views``, ``downsample`` and ``precision`` are passed on to the network methods, ``lcnet``,
-    ``refine``, ``falloff`` and ``roll`` to sdps; ``encoding`` and ``light_distance`` (pixels,
+    ``refine``, ``falloff``, ``roll`` and ``snap`` to sdps; ``encoding`` and ``light_distance`` (pixels,
     near point lights: ``psctl.api.run_normals``) to every object's capture.
     sdps also gives each object's "light_mae" and "intensity_re" (the lights used, refined or
     not), "lcnet_light_mae" and "lcnet_intensity_re" (LCNet's own) and "lights_refined", the
@@ -111,7 +112,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     views, downsample = check_views(views), check_downsample(downsample)  # ints: eval.json must serialise them
     precision = check_precision(precision)
     check_progress(progress)
-    albedo = check_bool("albedo", albedo)
+    albedo, snap = check_bool("albedo", albedo), check_bool("snap", snap)
     for name, value in (("root", root), ("out", out), ("weights", weights), ("lcnet", lcnet)):
         check_path(name, value, optional=True)
     benchmark, root, caps, names = _benchmark_objects(benchmark, root, encoding)
@@ -135,7 +136,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
                             light_distance=light_distance, arrays=arrays, downsample=downsample,
-                            precision=precision, albedo=albedo and out is not None)
+                            precision=precision, albedo=albedo and out is not None, snap=snap)
             _collect(objects, used, r)
             precisions.append(r["precision"])  # float32 for l2 (float64), whatever was asked
             used_views.add(r["views"])  # 1 for l2, whatever was asked
