@@ -14,7 +14,11 @@ captured with that mask as given (``psctl.lights.snap_mask`` made the identity f
 snapped (as estimate_lights does since session 69; before a lit background since session 70).
 Prints the mean light direction error (degrees) per set, scene, growth and variant, with the
 snapped mask's overlap with the true one, then one JSON line. ``--dev``: the same on the
-DiLiGenT dev split's images as captured with their masks (no background added), reported only.
+DiLiGenT dev split's images as captured with their masks (no background added), reported only;
+``--dev-lit``: with their background (outside the true mask) replaced by a Lambertian plane facing
+the camera, lit by the capture's own lights and intensities, its albedo set so that its median
+is half the object's (``lit_dev``; no shadows or light from the object on it), reported only;
+``--dev-objects``: some of them.
 
 The rule, written before the first run (session 69): snapping is adopted if, on each synthetic
 set before the dark plane, the mean error with the true masks (0 px) is at most 0.05 above the
@@ -86,12 +90,28 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
     return out
 
 
+def lit_dev(cap, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+    """A dev-split object before a lit plane: images [N, H, W, 3] as captured with the pixels
+    outside its mask replaced by a Lambertian plane facing the camera under the capture's lights
+    (directions and intensities) plus |N(0, 0.002)| noise; its mask; the plane's albedo."""
+    from psctl.io.capture import load_images, load_mask
+
+    images, mask = load_images(cap, as_captured=True), load_mask(cap)
+    shade = np.clip(cap.lights[:, 2], 0, None)[:, None] * cap.intensities  # [N, 3]
+    albedo = 0.5 * float(np.median(images[:, mask])) / float(np.median(shade))
+    back = albedo * shade[:, None, None, :] + np.abs(rng.normal(0, 0.002, images.shape))
+    images[:, ~mask] = back.astype(np.float32)[:, ~mask]
+    return images, mask, albedo
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("roots", type=Path, nargs="+", help="psctl synth --preset syntest folders")
+    ap.add_argument("roots", type=Path, nargs="*", help="psctl synth --preset syntest folders")
     ap.add_argument("--scenes", default="plane:0.01,plane:0.3", help="comma-separated plane:ALBEDO or texture:GAP")
     ap.add_argument("--variants", default="given,snapped", help="given, snapped or both")
     ap.add_argument("--dev", type=Path, help="the DiLiGenT dev split (reported only)")
+    ap.add_argument("--dev-lit", action="store_true", help="--dev before a lit plane (lit_dev)")
+    ap.add_argument("--dev-objects", help="comma-separated names: only these of --dev")
     args = ap.parse_args()
 
     from psctl.io.capture import find_objects, load_images, load_mask, open_capture
@@ -118,9 +138,17 @@ def main() -> None:
             print(key, json.dumps(summary[key]), flush=True)
     if args.dev is not None:
         rows = []
+        rng = np.random.default_rng(0)
         for folder in find_objects(args.dev):
             cap = open_capture(folder)
-            rows.append(errors(load_images(cap, as_captured=True), cap.lights, load_mask(cap), variants))
+            if args.dev_objects and cap.name not in args.dev_objects.split(","):
+                continue
+            if args.dev_lit:
+                images, mask, albedo = lit_dev(cap, rng)
+                print(cap.name, "plane albedo", round(albedo, 4), flush=True)
+            else:
+                images, mask = load_images(cap, as_captured=True), load_mask(cap)
+            rows.append(errors(images, cap.lights, mask, variants))
             print(cap.name, json.dumps({g: {k: round(v, 3) for k, v in r.items()} for g, r in rows[-1].items()}), flush=True)
         summary["dev"] = {f"{g}px {v}": round(float(np.mean([r[g][v] for r in rows])), 3) for g in GROW for v in keys}
         print("dev", json.dumps(summary["dev"]), flush=True)
