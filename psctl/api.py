@@ -293,7 +293,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     from psctl.symmetry import check_views
 
     fit = refine_config(falloff, roll)  # a bad value stops before any work, whatever the method
-    refine = check_bool("refine", refine)
+    refine, snap = check_bool("refine", refine), check_bool("snap", snap)
     check_device_name(device)  # typos are errors for l2 too, which uses neither
     precision = check_precision(precision)
     views = check_views(views)

@@ -323,6 +323,12 @@ def test_no_snap_reads_the_mask_as_given(tmp_path, fake_weights, monkeypatch):
             psctl.estimate_lights(images, wide, device="cpu", refine=False, snap=False)
             psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", refine=False, snap=False)
         assert not any(": mask: " in str(w.message) for w in got)
+    from psctl.errors import PsctlError
+
+    for call in (lambda: psctl.estimate_lights(images, wide, device="cpu", snap="no"),
+                 lambda: psctl.estimate_normals(images, None, wide, method="sdps", device="cpu", snap="no")):
+        with pytest.raises(PsctlError, match="snap must be True or False"):  # "no" is truthy: never a yes
+            call()
 
 
 def test_point_lights_sit_about_the_users_mask_as_psctl_normals_takes_it(tmp_path, fake_weights):
