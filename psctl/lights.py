@@ -1411,13 +1411,7 @@ def edge_box(mask: np.ndarray, n: int) -> tuple[tuple[slice, slice], int]:
     """The box and grid of ``n`` images' profiles for the snap: the mask's bounding box grown by
     SNAP_MARGIN (the whole frame for an empty mask), every pixel where n x its pixels fit in
     FOUND_PROFILE_ELEMENTS, else a pixel of each f x f block."""
-    h, w = mask.shape
-    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
-    if rows.size == 0:
-        box = (slice(0, h), slice(0, w))
-    else:
-        box = (slice(max(0, int(rows[0]) - SNAP_MARGIN), min(h, int(rows[-1]) + SNAP_MARGIN + 1)),
-               slice(max(0, int(cols[0]) - SNAP_MARGIN), min(w, int(cols[-1]) + SNAP_MARGIN + 1)))
+    box = crop_box(mask, SNAP_MARGIN) if mask.any() else (slice(0, mask.shape[0]), slice(0, mask.shape[1]))
     bh, bw = box[0].stop - box[0].start, box[1].stop - box[1].start
     f = 1
     while n * math.ceil(bh / f) * math.ceil(bw / f) > FOUND_PROFILE_ELEMENTS:
@@ -1442,10 +1436,10 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
+    if not snappable(mask):
+        return mask, None
     p = np.where(np.isfinite(edge.peak), np.maximum(edge.peak, 0.0), 0.0)
     outside = p[~mask]
-    if outside.size < SNAP_MIN_OUTSIDE or not mask.any():
-        return mask, None
     level = float(np.quantile(outside, SNAP_QUANTILE))
     bright = mask & (p > SNAP_FACTOR * level)
     n = int(np.count_nonzero(bright))
@@ -1539,13 +1533,18 @@ def array_edge(images: np.ndarray, mask: np.ndarray) -> MaskEdge:
     return _edge(images, len(images), np.asarray(mask, bool))
 
 
+def snappable(mask: np.ndarray) -> bool:
+    """Whether ``snap_mask`` can measure a background around ``mask`` (SNAP_MIN_OUTSIDE pixels
+    outside it, and some in it): where not, the images need not be read for it."""
+    mask = np.asarray(mask, bool)
+    return bool(mask.any()) and np.count_nonzero(~mask) >= SNAP_MIN_OUTSIDE
+
+
 def array_snap(images: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray | None, str | None]:
     """``snap_mask`` of in-memory images with ``mask`` (None: (None, None)), as a folder's mask file
     is snapped; the edge read only where the snap can measure the background."""
-    if mask is None:
-        return None, None
-    if np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
-        return np.asarray(mask, bool), None
+    if mask is None or not snappable(mask):
+        return mask, None
     return snap_mask(array_edge(images, mask), mask)
 
 
@@ -1574,7 +1573,7 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
     whole frame (``mask``), and no note here (``found.notes``). ``reader``: as ``find_object``'s.
     ``snap`` False: a mask file as given (no read)."""
     if capture.mask_path is not None:  # (no read where snap_mask could not measure the background)
-        if not snap or np.count_nonzero(~np.asarray(mask, bool)) < SNAP_MIN_OUTSIDE:
+        if not snap or not snappable(mask):
             return mask, config, None, None
         snapped, note = snap_mask(capture_edge(capture, mask, progress), mask)
         return snapped, config, None, note
