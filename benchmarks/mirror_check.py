@@ -13,7 +13,8 @@ from __future__ import annotations
 import sys
 
 from psctl.api import estimate_normals
-from psctl.io.capture import bounding_box, load_ground_truth, load_images, load_mask, open_capture
+from psctl.arrays import bounding_box
+from psctl.io.capture import load_ground_truth, load_images, load_mask, open_capture
 from psctl.lights import mirror_ratio
 
 

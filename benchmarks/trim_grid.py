@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from psctl.classic import GREY, l2_result, trimmed_l2_solve
-from psctl.io.capture import bounding_box, find_objects, load_ground_truth, load_images, load_mask, open_capture
+from psctl.arrays import bounding_box
+from psctl.io.capture import find_objects, load_ground_truth, load_images, load_mask, open_capture
 from psctl.metrics import angular_error
 
 LOWS = (0.0, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7)

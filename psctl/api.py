@@ -539,7 +539,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, SDPS_FILES, refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
-    from psctl.io.capture import (bounding_box, capture_notes, load_ground_truth, load_mask, open_capture,
+    from psctl.arrays import bounding_box
+    from psctl.io.capture import (capture_notes, load_ground_truth, load_mask, open_capture,
                                   select_images, selection_notes)
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map

@@ -205,3 +205,14 @@ def check_not_black(images: np.ndarray, mask: np.ndarray | None) -> None:
     inside = images if mask is None else images[:, mask]
     if not (inside > 0).any():
         raise PsctlError(None, "all images are black inside the mask")
+
+
+def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
+    """Rows/cols slices of the mask's bounding box grown by ``margin`` (clipped to the image)."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+
+    def span(lo: int, hi: int, size: int) -> slice:
+        return slice(max(int(lo) - margin, 0), min(int(hi) + 1 + margin, size))
+
+    return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)

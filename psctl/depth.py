@@ -703,7 +703,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     ``psctl.io.capture.open_capture`` says for ``encoding``, ambient image subtracted.
     """
     from psctl.io.atomic import check_output_dir, output_folder
-    from psctl.io.capture import bounding_box, capture_notes, check_not_capture, iter_images, open_capture
+    from psctl.arrays import bounding_box
+    from psctl.io.capture import capture_notes, check_not_capture, iter_images, open_capture
 
     t0 = time.perf_counter()
     for name, value in (("path", path), ("normals", normals), ("out", out)):

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from psctl.arrays import bounding_box
 from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 from psctl.infer import NO_MASK_NETWORKS_WHY
@@ -134,14 +135,6 @@ def load_lcnet(weights: str | os.PathLike | None = None, flag: str = "--weights"
     return model, w
 
 
-def crop_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
-    """The mask's bounding box grown by ``margin`` pixels, clipped to the image."""
-    ys, xs = np.nonzero(mask)
-    h, w = mask.shape
-    return (slice(max(int(ys.min()) - margin, 0), min(int(ys.max()) + 1 + margin, h)),
-            slice(max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)))
-
-
 def pad_square(x: "torch.Tensor") -> "torch.Tensor":
     """Zero-pad [..., H, W] to [..., S, S], S = max(H, W), centred: resizing then keeps the
     object's aspect ratio (a stretched sphere no longer looks like a sphere to LCNet)."""
@@ -187,7 +180,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     model = model.to(device).eval()
     dtype = next(model.parameters()).dtype
     size = int(model.config["size"])
-    box = crop_box(mask, int(cfg["margin"]))
+    box = bounding_box(mask, int(cfg["margin"]))
     h, w = box[0].stop - box[0].start, box[1].stop - box[1].start
     crop_mask = mask[box].astype(np.float32)
     chunk = int(cfg["chunk"] or (64 if device.type == "cuda" else 8))
@@ -391,7 +384,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
     cfg = {**DEFAULT_LIGHTS, **(config or {})}
     mask = np.asarray(mask, bool)
     on = mask.any() and mask.shape == (capture.height, capture.width)
-    box = crop_box(mask, int(cfg["margin"])) if on else None
+    box = bounding_box(mask, int(cfg["margin"])) if on else None
     # decoded once for both passes: the smallest box holding LCNet's crop and the later pass's
     read = box if box is None or keep_box is None or memo is None else (
         slice(min(box[0].start, keep_box[0].start), max(box[0].stop, keep_box[0].stop)),
@@ -629,8 +622,6 @@ def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.
 
     ``reader(start, box)`` yields the images as captured (see ``psctl.infer.Reader``); they are
     read once, and only the sampled pixels are kept (P values per image)."""
-    from psctl.io.capture import bounding_box
-
     cfg = {**DEFAULT_REFINE, **(config or {})}
     mask = np.asarray(mask, bool) & (np.linalg.norm(normals, axis=-1) > 0.5)
     if not mask.any():
@@ -1411,7 +1402,7 @@ def edge_box(mask: np.ndarray, n: int) -> tuple[tuple[slice, slice], int]:
     """The box and grid of ``n`` images' profiles for the snap: the mask's bounding box grown by
     SNAP_MARGIN (the whole frame for an empty mask), every pixel where n x its pixels fit in
     FOUND_PROFILE_ELEMENTS, else a pixel of each f x f block."""
-    box = crop_box(mask, SNAP_MARGIN) if mask.any() else (slice(0, mask.shape[0]), slice(0, mask.shape[1]))
+    box = bounding_box(mask, SNAP_MARGIN) if mask.any() else (slice(0, mask.shape[0]), slice(0, mask.shape[1]))
     bh, bw = box[0].stop - box[0].start, box[1].stop - box[1].start
     f = 1
     while n * math.ceil(bh / f) * math.ceil(bw / f) > FOUND_PROFILE_ELEMENTS:

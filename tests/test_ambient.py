@@ -155,7 +155,8 @@ def test_later_passes_take_the_ambient_image_from_the_memo(tmp_path, monkeypatch
     import os
 
     import psctl.io.capture as capture_mod
-    from psctl.io.capture import DecodeMemo, bounding_box, iter_images
+    from psctl.arrays import bounding_box
+    from psctl.io.capture import DecodeMemo, iter_images
 
     folder = tmp_path / "roomPNG"
     data = _with_ambient(folder)

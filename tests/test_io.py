@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from psctl.errors import PsctlError
-from psctl.io.capture import (bounding_box, find_objects, load_ground_truth, load_images, load_mask, object_name, read_matrix,
+from psctl.arrays import bounding_box
+from psctl.io.capture import (find_objects, load_ground_truth, load_images, load_mask, object_name, read_matrix,
                               open_capture, select_images)
 from psctl.io.images import read_image, write_image
 from psctl.io.normals import read_normal_map, write_normal_map

@@ -199,9 +199,10 @@ def scene(n: int = 11, h: int = 50, w: int = 70, seed: int = 0):
 
 def all_at_once(net: LCNet, images: np.ndarray, mask: np.ndarray, margin: int = 15, square: bool = False) -> dict:
     """The straightforward computation: crop, (pad to a square,) resize every image, one forward pass."""
-    from psctl.lights import crop_box, pad_square
+    from psctl.arrays import bounding_box
+    from psctl.lights import pad_square
 
-    box = crop_box(mask, margin)
+    box = bounding_box(mask, margin)
     dtype = next(net.parameters()).dtype
     x = torch.from_numpy(images[:, box[0], box[1]] * mask[box][..., None]).permute(0, 3, 1, 2).to(dtype)
     m = torch.from_numpy(mask[box].astype(np.float32))[None, None].to(dtype).expand(len(images), 1, *x.shape[-2:])

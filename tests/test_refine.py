@@ -731,14 +731,15 @@ def _small_object_capture(folder, seed: int, cx: int):
     from psctl.infer import first_read_box
     from psctl.io.capture import load_mask, open_capture
     from psctl.io.images import write_image
-    from psctl.lights import DEFAULT_LIGHTS, crop_box
+    from psctl.arrays import bounding_box
+    from psctl.lights import DEFAULT_LIGHTS
 
     write_capture(folder, n=12, size=120, seed=seed)
     yy, xx = np.mgrid[:120, :120]
     write_image(folder / "mask.png", ((yy - 60) ** 2 + (xx - cx) ** 2 < 400).astype(np.float32), "uint8")
     cap = open_capture(folder)
     mask = load_mask(cap)
-    lc, net = crop_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
+    lc, net = bounding_box(mask, DEFAULT_LIGHTS["margin"]), first_read_box(cap, mask)
     assert lc != net and all(n.start < c.start and c.stop < n.stop for c, n in zip(lc, net))  # two boxes: one held
     return cap, mask, lc, net
 

@@ -941,17 +941,6 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
     return unit_vectors(gt, 1e-6)[0].astype(np.float32)
 
 
-def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
-    """Rows/cols slices of the mask's bounding box grown by ``margin`` (clipped to the image)."""
-    ys, xs = np.nonzero(mask)
-    h, w = mask.shape
-
-    def span(lo: int, hi: int, size: int) -> slice:
-        return slice(max(lo - margin, 0), min(hi + 1 + margin, size))
-
-    return span(ys.min(), ys.max(), h), span(xs.min(), xs.max(), w)
-
-
 def minus_ambient(rgb: np.ndarray, ambient: np.ndarray, capture: Capture, name: str,
                   check: "bool | tuple[slice, slice]" = True) -> np.ndarray:
     """Image ``name`` (linear) less the ambient image, clipped at 0; one that this turns black

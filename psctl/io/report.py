@@ -294,7 +294,7 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     normals [H, W, 3], error and spread [H, W] degrees, mask [H, W] bool
     -> {"name", "mae", "normals", "error", "spread", "unscored", "height"} (unscored: grey in its
     error map; height: the nominal one, its row's)."""
-    from psctl.io.capture import bounding_box
+    from psctl.arrays import bounding_box
 
     mask = np.asarray(mask, bool)
     box = bounding_box(mask, margin=4) if mask.any() else (slice(None), slice(None))

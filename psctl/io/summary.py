@@ -33,7 +33,8 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     import time
 
     from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
-    from psctl.io.capture import ImageCheck, bounding_box, has_top_code, load_ground_truth, minus_ambient, saturated_map
+    from psctl.arrays import bounding_box
+    from psctl.io.capture import ImageCheck, has_top_code, load_ground_truth, minus_ambient, saturated_map
     from psctl.io.images import read_image, to_rgb
 
     t0 = time.perf_counter()
