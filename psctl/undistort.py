@@ -312,8 +312,12 @@ def _check_capture(cap: "Capture", images: list[Path]) -> bool:
     whether the image list names every image bare (else it is written again with bare names)."""
     from psctl.io.images import image_info
 
+    # (open_capture read every header; image_info only where it kept none)
+    infos = dict(zip(cap.image_paths, cap.infos or ()))
+    if cap.ambient_info is not None:
+        infos[cap.ambient_path] = cap.ambient_info
     for p in images:
-        fmt = image_info(p).format
+        fmt = (infos.get(p) or image_info(p)).format
         want = _EXT_FORMAT.get(p.suffix.lower())
         if want is not None and fmt and fmt != want:
             raise PsctlError(p, f"holds {fmt} data under a {p.suffix} name; it would be written as {want}: rename it")

@@ -1310,7 +1310,8 @@ def capture_notes(capture: Capture) -> list[str]:
         decoded = "" if how is None else " (decoded from sRGB)" if isinstance(how, str) else \
             f" (decoded through its ICC profile's tone curves: {how.describe()})"
         notes.append(f"ambient: {capture.ambient_path.name}{decoded} subtracted from every image")
-        if image_info(capture.ambient_path).dtype in ("half", "float", "double"):  # (only floats go below 0)
+        info = capture.ambient_info or image_info(capture.ambient_path)  # (open_capture read its header)
+        if info.dtype in ("half", "float", "double"):  # (only floats go below 0)
             amb = read_image(capture.ambient_path, allow_nonfinite=True)[0]
             below = np.isfinite(amb) & (amb < 0)
             if below.any():  # subtracted, a negative ambient adds light (a dark frame's noise about 0?)
