@@ -44,6 +44,17 @@ the mask and the mask's cells on the frame's edge): on sets the first run did no
 syntest_dl64 before the lit plane (plane:0.3) and syntest_exposure before the texture with the
 object's shadows (texture:0.25), adopted if the mean error with the true masks is at most 0.05
 above the mask as given, and with masks grown by 3 and by 8 px at least 1 degree below it.
+
+Session 71's rule, written before its lights ran, for the shading snap's "surroundings unlike"
+guard (the mask as given where over half of the cells around it are unlike their own median: no
+one background). Scenes with a lit background that is not one plane under distant lights:
+near:500, near:1000, near:2000 (a plane of albedo 0.3 under point lights that far, in pixels,
+from the object's centroid) and cylinder:15, cylinder:25, cylinder:40 (a backdrop whose normal
+turns by that many degrees either side across the frame), on syntest_dl and syntest_dl64, masks
+grown by 0, 3 and 8 px. ``--masks-only`` first finds the cells where the snap without the guard
+("unguarded") gives another mask (it measures no lights). The guard is dropped if, over those
+cells, the unguarded mean light error is below the guarded ("snapped") one and no cell is worse by
+over 0.25 degrees; else it stays. Where no cell differs it stays, and a test holds what it does.
 """
 
 from __future__ import annotations
@@ -63,27 +74,44 @@ from auto_mask_lights import scene  # noqa: E402
 GROW = (0, 3, 8)
 
 
-def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: tuple[str, ...]) -> dict:
-    """{growth: {variant: error, "iou"}}: light errors of the mask grown, as given and snapped."""
+def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: tuple[str, ...],
+           masks_only: bool = False) -> dict:
+    """{growth: {variant: error, "iou"}}: light errors of the mask grown, as given, snapped and
+    snapped without the "surroundings unlike" guard ("unguarded": run only where its mask is not
+    the snapped one's; else the snapped error). ``masks_only``: no lights, only "differs" (whether
+    the unguarded mask is not the snapped one) and the two masks' pixels off the true mask."""
     from scipy import ndimage
 
     import psctl
     import psctl.lights
     from psctl.metrics import light_direction_error
 
-    snap = psctl.lights.snap_mask
+    snap, shading = psctl.lights.snap_mask, psctl.lights.shading_snap
+    loose = unguarded_snap() if "unguarded" in variants or masks_only else None
     out = {}
     for g in GROW:
         grown = ndimage.binary_dilation(mask, iterations=g) if g else mask
         snapped = psctl.lights.array_snap(images, grown)[0]
         row = {}
-        for label in variants:
+        if loose is not None:
+            psctl.lights.shading_snap = loose
+            try:
+                other = psctl.lights.array_snap(images, grown)[0]
+            finally:
+                psctl.lights.shading_snap = shading
+            row["differs"] = float(not np.array_equal(other, snapped))
+            row["off_snapped"], row["off_unguarded"] = float((snapped ^ mask).sum()), float((other ^ mask).sum())
+        for label in () if masks_only else variants:
+            if label == "unguarded" and not row["differs"]:
+                row[label] = row["snapped"]
+                continue
             # estimate_lights snaps the mask itself; "given": with snap_mask made the identity
-            psctl.lights.snap_mask = snap if label == "snapped" else (lambda edge, m: (np.asarray(m, bool), None))
+            psctl.lights.snap_mask = (lambda edge, m: (np.asarray(m, bool), None)) if label == "given" else snap
+            psctl.lights.shading_snap = loose if label == "unguarded" else shading
             try:
                 d, _ = psctl.estimate_lights(images, grown, device="cpu")
             finally:
-                psctl.lights.snap_mask = snap
+                psctl.lights.snap_mask, psctl.lights.shading_snap = snap, shading
             row[label] = float(light_direction_error(d, lights).mean())
         row["iou"] = float((snapped & mask).sum() / (snapped | mask).sum())
         out[g] = row
@@ -104,11 +132,44 @@ def lit_dev(cap, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, floa
     return images, mask, albedo
 
 
+def cylinder(cap, span: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The synthetic object of ``cap`` before a curved backdrop: a Lambertian cylinder (albedo 0.3)
+    whose normal turns about the vertical axis from -``span`` to +``span`` degrees across the frame,
+    lit by the same lights, plus |N(0, 0.002)| noise: images [N, H, W, 3], lights [N, 3], mask."""
+    from psctl.io.capture import load_images, load_mask
+
+    images, lights, mask = load_images(cap, as_captured=True), cap.lights, load_mask(cap)
+    w = mask.shape[1]
+    a = np.deg2rad(((np.arange(w) + 0.5) / w * 2 - 1) * span)
+    normal = np.stack([np.sin(a), np.zeros_like(a), np.cos(a)], -1)  # [W, 3], the same down each column
+    shade = 0.3 * np.clip(lights @ normal.T, 0, None)[:, None, :].repeat(mask.shape[0], 1)  # [N, H, W]
+    back = shade[..., None] + np.abs(rng.normal(0, 0.002, images.shape))
+    images[:, ~mask] = back.astype(np.float32)[:, ~mask]
+    return images, lights, mask
+
+
+def unguarded_snap():
+    """psctl.lights.shading_snap without its "surroundings unlike" guard (the cells around the
+    mask, over half of them unlike their own median: no one background), for session 71's rule."""
+    import inspect
+
+    import psctl.lights
+
+    src = inspect.getsource(psctl.lights.shading_snap)
+    guard = "if unlike[~cells].mean() > 0.5:"
+    assert src.count(guard) == 1
+    ns = dict(vars(psctl.lights))
+    exec(src.replace(guard, "if False:"), ns)
+    return ns["shading_snap"]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("roots", type=Path, nargs="*", help="psctl synth --preset syntest folders")
-    ap.add_argument("--scenes", default="plane:0.01,plane:0.3", help="comma-separated plane:ALBEDO or texture:GAP")
-    ap.add_argument("--variants", default="given,snapped", help="given, snapped or both")
+    ap.add_argument("--scenes", default="plane:0.01,plane:0.3",
+                    help="comma-separated plane:ALBEDO, texture:GAP, near:DISTANCE (px) or cylinder:SPAN (degrees)")
+    ap.add_argument("--variants", default="given,snapped", help="given, snapped, unguarded (comma-separated)")
+    ap.add_argument("--masks-only", action="store_true", help="no lights: where the unguarded snap differs")
     ap.add_argument("--dev", type=Path, help="the DiLiGenT dev split (reported only)")
     ap.add_argument("--dev-lit", action="store_true", help="--dev before a lit plane (lit_dev)")
     ap.add_argument("--dev-objects", help="comma-separated names: only these of --dev")
@@ -118,7 +179,7 @@ def main() -> None:
 
     warnings.simplefilter("ignore")  # the notes, once per run
     variants = tuple(args.variants.split(","))
-    keys = (*variants, "iou")
+    keys = (*(() if args.masks_only else variants), "iou", *(("differs",) if args.masks_only or "unguarded" in variants else ()))
     summary = {}
     for root in args.roots:
         for sc in args.scenes.split(","):
@@ -128,9 +189,13 @@ def main() -> None:
             for name in (root / "objects.txt").read_text().split():
                 if kind == "plane":
                     images, lights, mask = scene(open_capture(root / name), "plane", float(value), None, None, rng)
+                elif kind == "near":
+                    images, lights, mask = scene(open_capture(root / name), "plane", 0.3, None, float(value), rng)
+                elif kind == "cylinder":
+                    images, lights, mask = cylinder(open_capture(root / name), float(value), rng)
                 else:
                     images, lights, mask = scene(open_capture(root / name), "texture", 0.0, float(value), None, rng)
-                rows.append(errors(images, lights, mask, variants))
+                rows.append(errors(images, lights, mask, variants, args.masks_only))
                 print(name, sc, json.dumps({g: {k: round(v, 3) for k, v in r.items()} for g, r in rows[-1].items()}),
                       flush=True)
             key = f"{root.name} {sc}"
@@ -148,7 +213,7 @@ def main() -> None:
                 print(cap.name, "plane albedo", round(albedo, 4), flush=True)
             else:
                 images, mask = load_images(cap, as_captured=True), load_mask(cap)
-            rows.append(errors(images, cap.lights, mask, variants))
+            rows.append(errors(images, cap.lights, mask, variants, args.masks_only))
             print(cap.name, json.dumps({g: {k: round(v, 3) for k, v in r.items()} for g, r in rows[-1].items()}), flush=True)
         summary["dev"] = {f"{g}px {v}": round(float(np.mean([r[g][v] for r in rows])), 3) for g in GROW for v in keys}
         print("dev", json.dumps(summary["dev"]), flush=True)
