@@ -75,11 +75,12 @@ GROW = (0, 3, 8)
 
 
 def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: tuple[str, ...],
-           masks_only: bool = False) -> dict:
+           masks_only: bool = False, differing: bool = False) -> dict:
     """{growth: {variant: error, "iou"}}: light errors of the mask grown, as given, snapped and
     snapped without the "surroundings unlike" guard ("unguarded": run only where its mask is not
     the snapped one's; else the snapped error). ``masks_only``: no lights, only "differs" (whether
-    the unguarded mask is not the snapped one) and the two masks' pixels off the true mask."""
+    the unguarded mask is not the snapped one) and the two masks' pixels off the true mask.
+    ``differing``: lights only where the unguarded mask differs (NaN elsewhere)."""
     from scipy import ndimage
 
     import psctl
@@ -87,7 +88,7 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
     from psctl.metrics import light_direction_error
 
     snap, shading = psctl.lights.snap_mask, psctl.lights.shading_snap
-    loose = unguarded_snap() if "unguarded" in variants or masks_only else None
+    loose = unguarded_snap() if "unguarded" in variants or masks_only or differing else None
     out = {}
     for g in GROW:
         grown = ndimage.binary_dilation(mask, iterations=g) if g else mask
@@ -103,7 +104,10 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
             row["off_snapped"], row["off_unguarded"] = float((snapped ^ mask).sum()), float((other ^ mask).sum())
         for label in () if masks_only else variants:
             if label == "unguarded" and not row["differs"]:
-                row[label] = row["snapped"]
+                row[label] = row.get("snapped", float("nan"))
+                continue
+            if differing and not row["differs"]:
+                row[label] = float("nan")  # (left out of the means)
                 continue
             # estimate_lights snaps the mask itself; "given": with snap_mask made the identity
             psctl.lights.snap_mask = (lambda edge, m: (np.asarray(m, bool), None)) if label == "given" else snap
@@ -170,6 +174,7 @@ def main() -> None:
                     help="comma-separated plane:ALBEDO, texture:GAP, near:DISTANCE (px) or cylinder:SPAN (degrees)")
     ap.add_argument("--variants", default="given,snapped", help="given, snapped, unguarded (comma-separated)")
     ap.add_argument("--masks-only", action="store_true", help="no lights: where the unguarded snap differs")
+    ap.add_argument("--differing", action="store_true", help="lights only where the unguarded snap differs")
     ap.add_argument("--dev", type=Path, help="the DiLiGenT dev split (reported only)")
     ap.add_argument("--dev-lit", action="store_true", help="--dev before a lit plane (lit_dev)")
     ap.add_argument("--dev-objects", help="comma-separated names: only these of --dev")
@@ -195,11 +200,12 @@ def main() -> None:
                     images, lights, mask = cylinder(open_capture(root / name), float(value), rng)
                 else:
                     images, lights, mask = scene(open_capture(root / name), "texture", 0.0, float(value), None, rng)
-                rows.append(errors(images, lights, mask, variants, args.masks_only))
+                rows.append(errors(images, lights, mask, variants, args.masks_only, args.differing))
                 print(name, sc, json.dumps({g: {k: round(v, 3) for k, v in r.items()} for g, r in rows[-1].items()}),
                       flush=True)
             key = f"{root.name} {sc}"
-            summary[key] = {f"{g}px {v}": round(float(np.mean([r[g][v] for r in rows])), 3) for g in GROW for v in keys}
+            summary[key] = {f"{g}px {v}": round(float(np.nanmean([r[g][v] for r in rows])), 3)
+                            for g in GROW for v in keys if not np.isnan([r[g][v] for r in rows]).all()}
             print(key, json.dumps(summary[key]), flush=True)
     if args.dev is not None:
         rows = []
@@ -213,7 +219,7 @@ def main() -> None:
                 print(cap.name, "plane albedo", round(albedo, 4), flush=True)
             else:
                 images, mask = load_images(cap, as_captured=True), load_mask(cap)
-            rows.append(errors(images, cap.lights, mask, variants, args.masks_only))
+            rows.append(errors(images, cap.lights, mask, variants, args.masks_only, args.differing))
             print(cap.name, json.dumps({g: {k: round(v, 3) for k, v in r.items()} for g, r in rows[-1].items()}), flush=True)
         summary["dev"] = {f"{g}px {v}": round(float(np.mean([r[g][v] for r in rows])), 3) for g in GROW for v in keys}
         print("dev", json.dumps(summary["dev"]), flush=True)
