@@ -58,7 +58,7 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
     check_path("lcnet", lcnet, optional=True)
     method = method.lower()
     if method not in METHODS:
-        raise PsctlError(None, f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        raise PsctlError(None, f"unknown --method {method!r}; choose from {', '.join(METHODS)}")
     if lcnet is not None and method not in ("sdps", "auto"):
         raise PsctlError(lcnet, f"--lcnet is for --method sdps (or auto), not {method}")
     if method == "auto" and weights is not None:

@@ -225,11 +225,11 @@ def method_names(given: Sequence[str]) -> list[str]:
     names = []
     for g in given:
         if not isinstance(g, str):
-            raise PsctlError(None, f"unknown method {g!r}; choose from {', '.join(METHODS)}")
+            raise PsctlError(None, f"unknown --method {g!r}; choose from {', '.join(METHODS)}")
         names += [m.strip().lower() for m in g.split(",")]
     for m in names:
         if m not in METHODS:
-            raise PsctlError(None, f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+            raise PsctlError(None, f"unknown --method {m!r}; choose from {', '.join(METHODS)}")
     return list(dict.fromkeys(names))
 
 

@@ -90,7 +90,7 @@ def test_options_are_checked_for_l2_too(data):
     ("run_benchmark(5)", "benchmark must be one of"),
     ("compare_methods('diligent', ['l2', 'ps-fcn'], root=5)", "root must be a path"),
     ("compare_methods('diligent', 'l2')", "methods must be a list"),
-    ("compare_methods('diligent', ['l2', 3])", "unknown method 3"),
+    ("compare_methods('diligent', ['l2', 3])", "unknown --method 3"),
     ("compare_methods('diligent', ['l2', 'ps-fcn'], out=5)", "out must be a path"),
     ("compare_methods('diligent', ['l2', 'ps-fcn'], weights=5)", "weights must be a path"),
     ("run_depth(FOLDER, normals=3)", "normals must be a path"),

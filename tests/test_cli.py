@@ -720,12 +720,21 @@ def test_output_folder_read_only(capture, tmp_path):
 @pytest.mark.parametrize("args,needle", [
     (["normals", "/nonexistent/folderPNG"], "does not exist"),
     (["normals", "{capture}", "--format", "png16,tiff"], "--format"),
-    (["normals", "{capture}", "--method", "magic"], "unknown method"),
+    (["normals", "{capture}", "--method", "magic"], "unknown --method 'magic'"),
     (["info", "{capture}/001.png"], "not a folder"),
 ])
 def test_other_user_errors(args, needle, capture):
     proc = cli(*[a.replace("{capture}", str(capture)) for a in args])
     assert proc.returncode == 2 and needle in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_an_unknown_option_suggests_only_options_spelt_like_it(capture):
+    """click compares option names with their dashes, which alone made '--bogus' suggest '--out'."""
+    proc = cli("normals", capture, "--bogus")
+    assert proc.returncode == 2 and "No such option: --bogus" in proc.stderr and "--out" not in proc.stderr
+    proc = cli("normals", capture, "--methd", "l2")
+    assert proc.returncode == 2 and "--method" in proc.stderr and "--seed" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
@@ -1924,7 +1933,7 @@ def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
     calls = []
     real = ev.run_benchmark
     monkeypatch.setattr(ev, "run_benchmark", lambda *a, **k: calls.append(k["method"]) or real(*a, **k))
-    with pytest.raises(PsctlError, match="unknown method 'bogus'"):
+    with pytest.raises(PsctlError, match="unknown --method 'bogus'"):
         ev.compare_methods("diligent", ["l2", "bogus"], root=root, out=out)
     with pytest.raises(PsctlError, match="names one network's file"):
         ev.compare_methods("diligent", ["l2", "ps-fcn"], root=root, out=out, weights=tmp_path / "w.pt")
@@ -1951,7 +1960,7 @@ def test_eval_comparison_refuses_before_any_method_runs(tmp_path, monkeypatch):
     assert r["methods"] == ["l2"] and len(r["runs"]) == 2 - 1
     assert any(n.startswith("methods: auto runs what l2 runs") for n in r["notes"])
     proc = cli("eval", "--root", root, "-m", "l2,", "--out", out)  # an empty name: one line, exit 2
-    assert proc.returncode == 2 and "unknown method ''" in proc.stderr and not out.exists()
+    assert proc.returncode == 2 and "unknown --method ''" in proc.stderr and not out.exists()
 
 
 def test_train_in_a_log_says_its_start_line_only_for_a_run_that_starts(tmp_path):

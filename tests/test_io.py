@@ -2155,3 +2155,22 @@ def test_images_whose_exif_exposures_differ_get_a_note(tmp_path):
     assert 1.03 < relative_exposures(cap).max() / relative_exposures(cap).min() < 1.05
     assert not any("exposures" in n for n in capture_notes(cap))
     assert relative_exposures(open_capture(write_capture(tmp_path / "d", n=4, size=24) and tmp_path / "d")) is None
+
+
+def test_the_picture_font_tells_method_names_apart():
+    """A QA round read "l2" on error.png and compare.png as "12" and "qa_root" as "9a_root": l and
+    1 (and I) differ by at least 4 pixels however they are shifted by a pixel, and q has a straight
+    stem where 9 has a round top."""
+    from psctl.io.report import _FONT
+
+    def glyph(c):
+        return np.array([[x == "#" for x in row] for row in _FONT[c]])
+
+    def apart(a, b, k=1):
+        pa, pb = np.pad(glyph(a), k), np.pad(glyph(b), k)
+        return min(int((pa ^ np.roll(np.roll(pb, dy, 0), dx, 1)).sum())
+                   for dy in range(-k, k + 1) for dx in range(-k, k + 1))
+
+    assert apart("l", "1") >= 4 and apart("l", "I") >= 4 and apart("l", "|") >= 3
+    q = glyph("q")
+    assert q[2:, 4].all() and not q[:2].any()  # the stem, from the body's top to the tail's end

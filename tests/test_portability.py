@@ -123,3 +123,22 @@ def test_text_inputs_are_read_as_utf8_whatever_the_locale(tmp_path):
     env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
     p = subprocess.run([sys.executable, "-c", code, str(config)], capture_output=True, env=env)
     assert p.returncode == 0, p.stderr.decode("utf-8", "replace")
+
+
+def test_a_line_printed_into_a_pipe_stays_one_line(monkeypatch):
+    """Into a pipe or a file a note stays on one line, for grep (Rich broke it at 80 columns); the
+    summary's object notes too (a QA round: pot2's "scoring:" note in `psctl eval | cat`)."""
+    import io
+
+    from psctl.errors import console
+    from psctl.io.summary import _object_notes, print_notes
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    con = console()
+    con.file = io.StringIO()
+    note = "scoring: " + " ".join(["word"] * 60)
+    print_notes(con, [note])
+    _object_notes(con, [{"objects": [{"name": "pot2", "notes": [note]}]}])
+    con.print("a plain line " + "x " * 80, highlight=False)
+    lines = con.file.getvalue().splitlines()
+    assert len(lines) == 3 and lines[1] == f"  pot2: {note}", lines
