@@ -55,6 +55,8 @@ grown by 0, 3 and 8 px. ``--masks-only`` first finds the cells where the snap wi
 ("unguarded") gives another mask (it measures no lights). The guard is dropped if, over those
 cells, the unguarded mean light error is below the guarded ("snapped") one and no cell is worse by
 over 0.25 degrees; else it stays. Where no cell differs it stays, and a test holds what it does.
+Run (2026-12-01): 31 cells differ (cylinder:15 and near:1000 only, no true mask), 21.13 -> 6.51
+degrees, every cell better (by 2.90 to 23.99): the guard is dropped (docs/uncalibrated.md).
 """
 
 from __future__ import annotations
@@ -161,7 +163,9 @@ def unguarded_snap():
 
     src = inspect.getsource(psctl.lights.shading_snap)
     guard = "if unlike[~cells].mean() > 0.5:"
-    assert src.count(guard) == 1
+    if src.count(guard) != 1:  # (dropped by the rule's outcome)
+        raise SystemExit("the 'surroundings unlike' guard is gone since session 71 (its rule): check out ba5a327 "
+                         "to run the 'unguarded' variant again")
     ns = dict(vars(psctl.lights))
     exec(src.replace(guard, "if False:"), ns)
     return ns["shading_snap"]
