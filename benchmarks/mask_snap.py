@@ -56,7 +56,9 @@ grown by 0, 3 and 8 px. ``--masks-only`` first finds the cells where the snap wi
 cells, the unguarded mean light error is below the guarded ("snapped") one and no cell is worse by
 over 0.25 degrees; else it stays. Where no cell differs it stays, and a test holds what it does.
 Run (2026-12-01): 31 cells differ (cylinder:15 and near:1000 only, no true mask), 21.13 -> 6.51
-degrees, every cell better (by 2.90 to 23.99): the guard is dropped (docs/uncalibrated.md).
+degrees, every cell better (by 2.90 to 23.99): the rule held and the guard was dropped (739203a);
+a review then found a flat face (a coin's, before a curved backdrop) that the snap without it cut
+away, which none of these sets has, and the guard is back (docs/uncalibrated.md).
 """
 
 from __future__ import annotations
@@ -164,8 +166,7 @@ def unguarded_snap():
     src = inspect.getsource(psctl.lights.shading_snap)
     guard = "if unlike[~cells].mean() > 0.5:"
     if src.count(guard) != 1:  # (dropped by the rule's outcome)
-        raise SystemExit("the 'surroundings unlike' guard is gone since session 71 (its rule): check out ba5a327 "
-                         "to run the 'unguarded' variant again")
+        raise SystemExit("psctl.lights.shading_snap no longer has the 'surroundings unlike' guard this variant drops")
     ns = dict(vars(psctl.lights))
     exec(src.replace(guard, "if False:"), ns)
     return ns["shading_snap"]

@@ -1457,8 +1457,9 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     the mask's cells whose shading differs from that of the cells around it (``unlike_background``,
     the reference being the box's cells outside the mask) and its cells on the frame's edge (the
     object may run on past it), holes filled, parts under a tenth of the largest dropped -> [H, W]
-    bool within the mask. None (the mask as given) where the images do not light the cells around
-    the mask (FOUND_MIN_IMAGES), and where what would be left out does not look like the background drawn
+    bool within the mask. None (the mask as given) where the cells around the mask do not agree on
+    one background (over half of them unlike it), where the images do not light it
+    (FOUND_MIN_IMAGES), and where what would be left out does not look like the background drawn
     into the mask: it holds under SNAP_EDGE of the mask's edge (a wider mask's margin runs all
     along it; a few patches of an exact mask's object that shade like the background, a dragon's
     hollows, do not), or its albedo is not the surroundings' (within SNAP_ALBEDO: a coin's flat
@@ -1479,9 +1480,8 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     if found is None:
         return None
     unlike, level = found
-    # (no test that the cells around the mask agree on one background: before a curved backdrop or
-    # near lights they do not, and the margin that shades as their median does was still better
-    # left out: session 71's rule, docs/uncalibrated.md)
+    if unlike[~cells].mean() > 0.5:
+        return None
     h, w = mask.shape
     rim = np.zeros_like(cells)  # the cells on the frame's edge
     rim[0, :] |= rows.start == 0
