@@ -81,12 +81,13 @@ def _refuse_empty(argv: list[str]) -> None:
         sys.exit(2)
 
 
-def _close_options(name: str, command: "_click.Command") -> list[str]:
-    """The command's options spelt like ``name``, compared without their dashes: click compares
-    them with, and the dashes alone make '--bogus' look like '--out'."""
+def _close_options(name: str, params: "list[_click.Parameter]") -> list[str]:
+    """The options (of a command's ``params``, --help among them) spelt like ``name``, compared
+    without their dashes: click compares them with, and the dashes alone make '--bogus' look like
+    '--out'."""
     import difflib
 
-    opts = [o for p in command.params for o in (*p.opts, *p.secondary_opts) if o.startswith("--")]
+    opts = [o for p in params for o in (*p.opts, *p.secondary_opts) if o.startswith("--")]
     bare = {o[2:]: o for o in opts}
     return [bare[m] for m in difflib.get_close_matches(name.lstrip("-"), list(bare), n=3)]
 
@@ -110,7 +111,7 @@ class _Root(_Group):
                     f"psctl {argv[0]}" if argv and argv[0] in self.commands else "psctl")
                 where, hint = f"{path}: ", f"; see '{path} --help'"
                 if isinstance(e, _click.exceptions.NoSuchOption) and ctx is not None:
-                    e.possibilities = _close_options(e.option_name, ctx.command)
+                    e.possibilities = _close_options(e.option_name, ctx.command.get_params(ctx))
                 _eprint(f"{where}{e.format_message().rstrip('.')}{hint}")
             sys.exit(e.exit_code)
         except typer.Abort:  # (typer's own name: its copy of click keeps Abort elsewhere)

@@ -36,9 +36,12 @@ def _console_class() -> type:
 
     class _Console(Console):
         def print(self, *objects: Any, **kwargs: Any) -> None:
-            if not self.is_terminal and objects and all(isinstance(o, str) for o in objects):
+            isatty = getattr(self.file, "isatty", None)
+            if not (isatty and isatty()) and not os.environ.get("COLUMNS") and objects and \
+                    all(isinstance(o, str) for o in objects):
                 # into a pipe or a file a line stays one line (Rich would break it at 80 columns,
-                # and a grep for a note's words would miss it); a terminal wraps it at words
+                # and a grep for a note's words would miss it), FORCE_COLOR or not, unless COLUMNS
+                # asks for a width; a terminal wraps it at words
                 kwargs.setdefault("soft_wrap", True)
             super().print(*(visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
 

@@ -736,6 +736,8 @@ def test_an_unknown_option_suggests_only_options_spelt_like_it(capture):
     proc = cli("normals", capture, "--methd", "l2")
     assert proc.returncode == 2 and "--method" in proc.stderr and "--seed" not in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+    proc = cli("normals", capture, "--hepl")  # --help is an option too (a review: it was no longer suggested)
+    assert proc.returncode == 2 and "Possible options: --help)" in proc.stderr, proc.stderr
 
 
 @pytest.mark.parametrize("args,needle", [

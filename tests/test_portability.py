@@ -134,6 +134,7 @@ def test_a_line_printed_into_a_pipe_stays_one_line(monkeypatch):
     from psctl.io.summary import _object_notes, print_notes
 
     monkeypatch.delenv("COLUMNS", raising=False)
+    monkeypatch.setenv("FORCE_COLOR", "1")  # (Rich then takes any file for a terminal: a review's case)
     con = console()
     con.file = io.StringIO()
     note = "scoring: " + " ".join(["word"] * 60)
