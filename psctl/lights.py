@@ -1440,7 +1440,7 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
     else:  # a lit background (or nothing brighter than it): its shading, where it is one background
         obj, by = shading_snap(edge, mask), "shading"
         if obj is None:
-            return mask, None
+            return mask, unsure_note(edge, mask)
     total, kept = int(np.count_nonzero(mask)), int(obj.sum())
     if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total if by == "shading" else 0) or kept >= (1.0 - SNAP_NOTE) * total:
         return mask, None
@@ -1452,7 +1452,25 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
                  f"(snap=False) reads it as given")
 
 
-def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
+def unsure_note(edge: MaskEdge, mask: np.ndarray) -> str | None:
+    """The note for a mask left as given because the background around it is not one background
+    (a curved backdrop, near lights), where its edge shades as that background's middle does and
+    would have been cut without that guard (every other guard passed): such a mask is likely
+    drawn wider than the object, and LCNet reads its edge as the object's outline. None otherwise."""
+    loose = shading_snap(edge, mask, one_background=False)
+    if loose is None:
+        return None
+    total, kept = int(np.count_nonzero(mask)), int(loose.sum())
+    if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total) or kept >= (1.0 - SNAP_NOTE) * total:
+        return None
+    return (f"{total - kept} of the mask's {total} pixels, along its edge, shade over the images as the middle of "
+            f"the background around it does, but that background is not one plane under distant lights (a curved "
+            f"backdrop, near lights?), where a face turned to the camera can shade so too: the mask is read as "
+            f"given. If it is wider than the object, draw it tight: LCNet reads its edge as the object's outline "
+            f"(on 31 such synthetic cases with masks 3-8 px wider, lights 21 degrees off on average)")
+
+
+def shading_snap(edge: MaskEdge, mask: np.ndarray, one_background: bool = True) -> np.ndarray | None:
     """The object within ``mask`` [H, W] bool where its brightness cannot tell (a lit background):
     the mask's cells whose shading differs from that of the cells around it (``unlike_background``,
     the reference being the box's cells outside the mask) and its cells on the frame's edge (the
@@ -1464,7 +1482,9 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     along it; a few patches of an exact mask's object that shade like the background, a dragon's
     hollows, do not), or its albedo is not the surroundings' (within SNAP_ALBEDO: a coin's flat
     face, which shades as the table does, is not the table). No opening, unlike ``shading_object``:
-    at a pixel's grain it would cut an object's thin parts."""
+    at a pixel's grain it would cut an object's thin parts. ``one_background`` False: without the
+    first guard (for ``snap_mask``'s note only: before a curved backdrop that cut took a coin's
+    flat face, docs/uncalibrated.md, "Session 71")."""
     from scipy import ndimage
 
     rows, cols = edge.box
@@ -1480,7 +1500,7 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     if found is None:
         return None
     unlike, level = found
-    if unlike[~cells].mean() > 0.5:
+    if one_background and unlike[~cells].mean() > 0.5:
         return None
     h, w = mask.shape
     rim = np.zeros_like(cells)  # the cells on the frame's edge

@@ -373,7 +373,7 @@ def test_snap_mask_before_a_curved_backdrop_keeps_a_flat_face():
     middle shades as a coin's flat face turned to the camera does: without that guard a mask 8 px
     wider lost the coin's whole face (2205 of 3004 pixels left out, the relief and two crescents
     of backdrop kept; helper-143's review). Session 71 measured what the guard costs where the
-    cut would be right (docs/uncalibrated.md): it stays."""
+    cut would be right (docs/uncalibrated.md): it stays, and the note says to draw the mask tight."""
     from psctl.lights import array_snap
 
     coin = _dome(32, 32, 24)[1]
@@ -382,4 +382,25 @@ def test_snap_mask_before_a_curved_backdrop_keeps_a_flat_face():
     images = _before_a_curved_backdrop(normals, coin)
     wide = ndimage.binary_dilation(coin, iterations=8)
     got, note = array_snap(images, wide)
-    assert np.array_equal(got, wide) and note is None
+    assert np.array_equal(got, wide) and "the mask is read as given" in note  # (the note: next test)
+
+
+def test_a_wider_mask_kept_before_a_curved_backdrop_gets_a_note():
+    """The mask a curved backdrop leaves as given says so where its edge shades as the backdrop's
+    middle does (it is likely drawn wider than the object): a sphere's mask 3 or 8 px wider gets
+    the note, its exact mask does not; before a plane the snap cuts and its own note says so."""
+    from psctl.lights import array_snap
+
+    from tests.conftest import sphere
+
+    normals, m = sphere(64, 0.7)
+    images = _before_a_curved_backdrop(normals, m)
+    for grow in (3, 8):
+        wide = ndimage.binary_dilation(m, iterations=grow)
+        got, note = array_snap(images, wide)
+        assert np.array_equal(got, wide) and "draw it tight" in note and "not one plane" in note, grow
+    got, note = array_snap(images, m)
+    assert np.array_equal(got, m) and note is None
+    flat = _before_a_curved_backdrop(normals, m, span=0.0)  # a plane: snapped, with the snap's note
+    got, note = array_snap(flat, ndimage.binary_dilation(m, iterations=3))
+    assert np.count_nonzero(got ^ m) <= 3 and "draw it tight" not in note
