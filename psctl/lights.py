@@ -1423,7 +1423,8 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
     around it does (``shading_snap``, with its guards), where at least SNAP_KEEP of the mask is kept.
     The mask as given where fewer than SNAP_MIN_OUTSIDE pixels lie outside it, where neither can
     tell, where under FOUND_MIN_PIXELS would be kept, and where it would leave out no more than
-    SNAP_NOTE of the mask (every snap gets a note)."""
+    SNAP_NOTE of the mask (every snap gets a note; a mask kept as given before a background that is
+    not one plane gets ``unsure_note``'s, where its edge shades as that background's middle does)."""
     from scipy import ndimage
 
     mask = np.asarray(mask, bool)
