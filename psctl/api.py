@@ -183,7 +183,8 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             (as ``estimate_normals``); LCNet runs in float32.
         snap: LCNet and the light fit read ``mask`` snapped to the object (``psctl.lights.snap_mask``:
             a mask drawn wider than the object puts LCNet's lights far off), with a warning when
-            it leaves out over 2% of it; False: the mask as given (an exact mask whose object
+            it leaves out over 2% of it, or when it keeps a mask as given that looks drawn wider
+            before a background that is not one plane (``psctl.lights.unsure_note``); False: the mask as given (an exact mask whose object
             has a face that shades as the background does; docs/uncalibrated.md).
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and

@@ -1439,9 +1439,12 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
             level <= SNAP_DARK * float(np.median(p[bright])):
         obj, by = object_parts(ndimage.binary_fill_holes(bright) & mask), "brightness"  # (a mask's own holes stay)
     else:  # a lit background (or nothing brighter than it): its shading, where it is one background
-        obj, by = shading_snap(edge, mask), "shading"
+        obj, one = shading_cut(edge, mask)
+        by = "shading"
+        if not one:  # not one background: the mask as given (what would be cut can be a face)
+            return mask, unsure_note(obj, mask)
         if obj is None:
-            return mask, unsure_note(edge, mask)
+            return mask, None
     total, kept = int(np.count_nonzero(mask)), int(obj.sum())
     if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total if by == "shading" else 0) or kept >= (1.0 - SNAP_NOTE) * total:
         return mask, None
@@ -1453,25 +1456,26 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
                  f"(snap=False) reads it as given")
 
 
-def unsure_note(edge: MaskEdge, mask: np.ndarray) -> str | None:
-    """The note for a mask left as given because the background around it is not one background
-    (a curved backdrop, near lights), where its edge shades as that background's middle does and
-    would have been cut without that guard (every other guard passed): such a mask is likely
-    drawn wider than the object, and LCNet reads its edge as the object's outline. None otherwise."""
-    loose = shading_snap(edge, mask, one_background=False)
+def unsure_note(loose: np.ndarray | None, mask: np.ndarray) -> str | None:
+    """The note for a mask left as given because the cells around it do not agree on one
+    background (a curved backdrop, near lights), where ``shading_cut`` would have left out pixels
+    holding at least half of its edge, every other guard passing (``loose``: that cut): a mask
+    likely drawn wider than the object, as LCNet reads its edge as the object's outline (an exact
+    mask of a flat face turned to the camera can get it too: the note says so). None otherwise."""
     if loose is None:
         return None
     total, kept = int(np.count_nonzero(mask)), int(loose.sum())
     if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total) or kept >= (1.0 - SNAP_NOTE) * total:
         return None
-    return (f"{total - kept} of the mask's {total} pixels, along its edge, shade over the images as the middle of "
-            f"the background around it does, but that background is not one plane under distant lights (a curved "
-            f"backdrop, near lights?), where a face turned to the camera can shade so too: the mask is read as "
-            f"given. If it is wider than the object, draw it tight: LCNet reads its edge as the object's outline "
-            f"(on 31 such synthetic cases with masks 3-8 px wider, lights 21 degrees off on average)")
+    return (f"{total - kept} of the mask's {total} pixels, most of its edge among them, shade over the images as "
+            f"the middle of the background around it does, but that background is not one plane under distant "
+            f"lights (a curved backdrop, near lights?), where a face turned to the camera can shade so too: the "
+            f"mask is read as given. If it is wider than the object, draw it tight: LCNet reads its edge as the "
+            f"object's outline (on 31 such synthetic cases with masks 3-8 px wider, lights 21 degrees off on "
+            f"average)")
 
 
-def shading_snap(edge: MaskEdge, mask: np.ndarray, one_background: bool = True) -> np.ndarray | None:
+def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
     """The object within ``mask`` [H, W] bool where its brightness cannot tell (a lit background):
     the mask's cells whose shading differs from that of the cells around it (``unlike_background``,
     the reference being the box's cells outside the mask) and its cells on the frame's edge (the
@@ -1483,9 +1487,15 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray, one_background: bool = True) 
     along it; a few patches of an exact mask's object that shade like the background, a dragon's
     hollows, do not), or its albedo is not the surroundings' (within SNAP_ALBEDO: a coin's flat
     face, which shades as the table does, is not the table). No opening, unlike ``shading_object``:
-    at a pixel's grain it would cut an object's thin parts. ``one_background`` False: without the
-    first guard (for ``snap_mask``'s note only: before a curved backdrop that cut took a coin's
-    flat face, docs/uncalibrated.md, "Session 71")."""
+    at a pixel's grain it would cut an object's thin parts."""
+    obj, one = shading_cut(edge, mask)
+    return obj if one else None
+
+
+def shading_cut(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray | None, bool]:
+    """``shading_snap`` without its first guard -> (its cut or None, whether the cells around the
+    mask agree on one background): where they do not, the cut serves ``unsure_note`` only (before
+    a curved backdrop it took a coin's flat face, docs/uncalibrated.md, "Session 71")."""
     from scipy import ndimage
 
     rows, cols = edge.box
@@ -1493,16 +1503,15 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray, one_background: bool = True) 
     inner = np.asarray(mask, bool)[rows, cols]
     cells = block_samples(inner, f).astype(bool)  # whether each cell's sampled pixel is in the mask
     if np.count_nonzero(~cells) * f * f < SNAP_MIN_OUTSIDE:
-        return None
+        return None, True
     p = np.nan_to_num(np.asarray(edge.profiles, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     np.maximum(p, 0.0, out=p)
     found = unlike_background(p, ~cells)
     del p
     if found is None:
-        return None
+        return None, True
     unlike, level = found
-    if one_background and unlike[~cells].mean() > 0.5:
-        return None
+    one = bool(unlike[~cells].mean() <= 0.5)
     h, w = mask.shape
     rim = np.zeros_like(cells)  # the cells on the frame's edge
     rim[0, :] |= rows.start == 0
@@ -1513,14 +1522,14 @@ def shading_snap(edge: MaskEdge, mask: np.ndarray, one_background: bool = True) 
     out_cells = cells & ~obj
     border = cells & ~ndimage.binary_erosion(cells, border_value=1) & ~rim  # the mask's edge, in the frame
     if not out_cells.any() or not border.any() or out_cells[border].mean() < SNAP_EDGE:
-        return None
+        return None, one
     around, left = float(np.median(level[~cells])), float(np.median(level[out_cells]))
     if not (around > 0 and left > 0 and 1 / SNAP_ALBEDO <= left / around <= SNAP_ALBEDO):
-        return None
+        return None, one
     px = obj[np.arange(inner.shape[0]) // f][:, np.arange(inner.shape[1]) // f] & inner  # (a mask's own holes stay)
     out = np.zeros(mask.shape, bool)
     out[rows, cols] = px
-    return out
+    return out, one
 
 
 def _edge(images: Iterable[np.ndarray], n: int, mask: np.ndarray,
@@ -1675,7 +1684,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     (``psctl.nearlight``; LCNet reads them as captured). ``precision`` (float32, bf16, fp16): the
     refinement's normals network's arithmetic (LCNet runs in float32), as ``psctl.run_normals``'.
     ``snap`` (True): LCNet and the light fit read a mask file snapped to the object
-    (``snap_mask``, noted when it leaves out over 2%); False: as given (--no-snap).
+    (``snap_mask``, noted when it leaves out over 2%, or when a mask kept as given looks drawn
+    wider, ``unsure_note``); False: as given (--no-snap).
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,

@@ -382,7 +382,7 @@ def test_snap_mask_before_a_curved_backdrop_keeps_a_flat_face():
     images = _before_a_curved_backdrop(normals, coin)
     wide = ndimage.binary_dilation(coin, iterations=8)
     got, note = array_snap(images, wide)
-    assert np.array_equal(got, wide) and "the mask is read as given" in note  # (the note: next test)
+    assert np.array_equal(got, wide) and note is not None and "the mask is read as given" in note  # (next test)
 
 
 def test_a_wider_mask_kept_before_a_curved_backdrop_gets_a_note():
@@ -398,7 +398,8 @@ def test_a_wider_mask_kept_before_a_curved_backdrop_gets_a_note():
     for grow in (3, 8):
         wide = ndimage.binary_dilation(m, iterations=grow)
         got, note = array_snap(images, wide)
-        assert np.array_equal(got, wide) and "draw it tight" in note and "not one plane" in note, grow
+        assert np.array_equal(got, wide) and note is not None and "draw it tight" in note, (grow, note)
+        assert "not one plane" in note
     got, note = array_snap(images, m)
     assert np.array_equal(got, m) and note is None
     flat = _before_a_curved_backdrop(normals, m, span=0.0)  # a plane: snapped, with the snap's note
