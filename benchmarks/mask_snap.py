@@ -91,7 +91,7 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
     import psctl.lights
     from psctl.metrics import light_direction_error
 
-    snap, shading = psctl.lights.snap_mask, psctl.lights.shading_cut
+    snap, shading = psctl.lights.snap_mask, psctl.lights.shading_snap
     loose = unguarded_snap() if "unguarded" in variants or masks_only or differing else None
     out = {}
     for g in GROW:
@@ -99,11 +99,11 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
         snapped = psctl.lights.array_snap(images, grown)[0]
         row = {}
         if loose is not None:
-            psctl.lights.shading_cut = loose
+            psctl.lights.shading_snap = loose
             try:
                 other = psctl.lights.array_snap(images, grown)[0]
             finally:
-                psctl.lights.shading_cut = shading
+                psctl.lights.shading_snap = shading
             row["differs"] = float(not np.array_equal(other, snapped))
             row["off_snapped"], row["off_unguarded"] = float((snapped ^ mask).sum()), float((other ^ mask).sum())
         for label in () if masks_only else variants:
@@ -115,11 +115,11 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
                 continue
             # estimate_lights snaps the mask itself; "given": with snap_mask made the identity
             psctl.lights.snap_mask = (lambda edge, m: (np.asarray(m, bool), None)) if label == "given" else snap
-            psctl.lights.shading_cut = loose if label == "unguarded" else shading
+            psctl.lights.shading_snap = loose if label == "unguarded" else shading
             try:
                 d, _ = psctl.estimate_lights(images, grown, device="cpu")
             finally:
-                psctl.lights.snap_mask, psctl.lights.shading_cut = snap, shading
+                psctl.lights.snap_mask, psctl.lights.shading_snap = snap, shading
             row[label] = float(light_direction_error(d, lights).mean())
         row["iou"] = float((snapped & mask).sum() / (snapped | mask).sum())
         out[g] = row
@@ -157,12 +157,12 @@ def cylinder(cap, span: float, rng: np.random.Generator) -> tuple[np.ndarray, np
 
 
 def unguarded_snap():
-    """psctl.lights.shading_cut as if the cells around the mask always agreed on one background:
+    """psctl.lights.shading_snap as if the cells around the mask always agreed on one background:
     the shading snap without its "surroundings unlike" guard, for session 71's rule (snap_mask
     takes the cut it returns)."""
     import psctl.lights
 
-    cut = psctl.lights.shading_cut
+    cut = psctl.lights.shading_snap
     return lambda edge, mask: (cut(edge, mask)[0], True)
 
 

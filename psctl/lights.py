@@ -1439,15 +1439,14 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
             level <= SNAP_DARK * float(np.median(p[bright])):
         obj, by = object_parts(ndimage.binary_fill_holes(bright) & mask), "brightness"  # (a mask's own holes stay)
     else:  # a lit background (or nothing brighter than it): its shading, where it is one background
-        obj, one = shading_cut(edge, mask)
-        by = "shading"
-        if not one:  # not one background: the mask as given (what would be cut can be a face)
-            return mask, unsure_note(obj, mask)
+        (obj, one), by = shading_snap(edge, mask), "shading"
         if obj is None:
             return mask, None
     total, kept = int(np.count_nonzero(mask)), int(obj.sum())
     if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total if by == "shading" else 0) or kept >= (1.0 - SNAP_NOTE) * total:
         return mask, None
+    if by == "shading" and not one:  # not one background: the mask as given (what would be cut can be a face)
+        return mask, unsure_note(total - kept, total)
     why = ("are never brighter than the background around it" if by == "brightness" else
            "shade over the images as the background around it does")
     return obj, (f"{total - kept} of the mask's {total} pixels ({(total - kept) / total:.0%}) {why} (or are specks "
@@ -1456,18 +1455,13 @@ def snap_mask(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray, str | None]
                  f"(snap=False) reads it as given")
 
 
-def unsure_note(loose: np.ndarray | None, mask: np.ndarray) -> str | None:
+def unsure_note(left: int, total: int) -> str:
     """The note for a mask left as given because the cells around it do not agree on one
-    background (a curved backdrop, near lights), where ``shading_cut`` would have left out pixels
-    holding at least half of its edge, every other guard passing (``loose``: that cut): a mask
-    likely drawn wider than the object, as LCNet reads its edge as the object's outline (an exact
-    mask of a flat face turned to the camera can get it too: the note says so). None otherwise."""
-    if loose is None:
-        return None
-    total, kept = int(np.count_nonzero(mask)), int(loose.sum())
-    if kept < max(FOUND_MIN_PIXELS, SNAP_KEEP * total) or kept >= (1.0 - SNAP_NOTE) * total:
-        return None
-    return (f"{total - kept} of the mask's {total} pixels, most of its edge among them, shade over the images as "
+    background (a curved backdrop, near lights), where ``shading_snap`` would have left out
+    ``left`` of its ``total`` pixels, holding at least half of its edge, every other guard passing:
+    a mask likely drawn wider than the object, as LCNet reads its edge as the object's outline (an
+    exact mask of a flat face turned to the camera can get it too: the note says so)."""
+    return (f"{left} of the mask's {total} pixels, most of its edge among them, shade over the images as "
             f"the middle of the background around it does, but that background is not one plane under distant "
             f"lights (a curved backdrop, near lights?), where a face turned to the camera can shade so too: the "
             f"mask is read as given. If it is wider than the object, draw it tight: LCNet reads its edge as the "
@@ -1475,27 +1469,21 @@ def unsure_note(loose: np.ndarray | None, mask: np.ndarray) -> str | None:
             f"average)")
 
 
-def shading_snap(edge: MaskEdge, mask: np.ndarray) -> np.ndarray | None:
+def shading_snap(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray | None, bool]:
     """The object within ``mask`` [H, W] bool where its brightness cannot tell (a lit background):
     the mask's cells whose shading differs from that of the cells around it (``unlike_background``,
     the reference being the box's cells outside the mask) and its cells on the frame's edge (the
-    object may run on past it), holes filled, parts under a tenth of the largest dropped -> [H, W]
-    bool within the mask. None (the mask as given) where the cells around the mask do not agree on
-    one background (over half of them unlike it), where the images do not light it
-    (FOUND_MIN_IMAGES), and where what would be left out does not look like the background drawn
-    into the mask: it holds under SNAP_EDGE of the mask's edge (a wider mask's margin runs all
-    along it; a few patches of an exact mask's object that shade like the background, a dragon's
-    hollows, do not), or its albedo is not the surroundings' (within SNAP_ALBEDO: a coin's flat
-    face, which shades as the table does, is not the table). No opening, unlike ``shading_object``:
-    at a pixel's grain it would cut an object's thin parts."""
-    obj, one = shading_cut(edge, mask)
-    return obj if one else None
-
-
-def shading_cut(edge: MaskEdge, mask: np.ndarray) -> tuple[np.ndarray | None, bool]:
-    """``shading_snap`` without its first guard -> (its cut or None, whether the cells around the
-    mask agree on one background): where they do not, the cut serves ``unsure_note`` only (before
-    a curved backdrop it took a coin's flat face, docs/uncalibrated.md, "Session 71")."""
+    object may run on past it), holes filled, parts under a tenth of the largest dropped -> ([H, W]
+    bool within the mask or None, whether the cells around the mask agree on one background: over
+    half of them like it). ``snap_mask`` takes the cut only where they agree (before a curved
+    backdrop it took a coin's flat face, docs/uncalibrated.md, "Session 71"; else ``unsure_note``).
+    None (the mask as given) where the images do not light the surroundings (FOUND_MIN_IMAGES), and
+    where what would be left out does not look like the background drawn into the mask: it holds
+    under SNAP_EDGE of the mask's edge (a wider mask's margin runs all along it; a few patches of an
+    exact mask's object that shade like the background, a dragon's hollows, do not), or its albedo
+    is not the surroundings' (within SNAP_ALBEDO: a coin's flat face, which shades as the table
+    does, is not the table). No opening, unlike ``shading_object``: at a pixel's grain it would cut
+    an object's thin parts."""
     from scipy import ndimage
 
     rows, cols = edge.box
