@@ -12,7 +12,7 @@ albedo --level (0.01: dark, as a photometric stereo capture's black cloth; 0.3 o
 grey or white table), or "texture" (a smooth random albedo in [0.05, 0.6]). ``--shadows GAP``:
 the object also casts shadows on it, as an object on a table does. Then
 ``psctl.estimate_lights`` (the defaults: LCNet, 8 views, refinement with the installed normals
-network) runs with the true mask ("mask"), with mask=None ("found": psctl.lights.find_object's
+network) runs with the true mask ("mask"), with mask=None ("found": psctl.masks.find_object's
 object; before a lit background, by shading since session 64), with the object found by
 brightness alone as its mask ("brightness": session 63's mask=None) and with a mask of the
 whole frame ("frame": what mask=None meant before session 63); ``--only`` picks some. Prints
@@ -53,7 +53,7 @@ def main() -> None:
 
     import psctl
     from psctl.io.capture import open_capture
-    from psctl.lights import array_shading, find_object
+    from psctl.masks import array_shading, find_object
     from psctl.metrics import light_direction_error
 
     warnings.simplefilter("ignore")  # the no-mask warnings, once per run

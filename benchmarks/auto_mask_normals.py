@@ -11,7 +11,7 @@ Each synthetic object is put in front of the background of ``benchmarks/auto_mas
 
 - mask: the true mask (what a mask.png gives);
 - frame: ``mask=None``, the whole frame (psctl's rule for the networks until session 65);
-- found: the object ``psctl.lights.find_object`` finds (what ``psctl lights`` reads);
+- found: the object ``psctl.masks.find_object`` finds (what ``psctl lights`` reads);
 - found+K: that object grown by K pixels (``--grow``) for the network's input and output;
 - found>K: the network reads the found object, its normals kept on it grown by K pixels
   (``--keep``; the inference setting ``grow``: one run with the largest K, cut to each).
@@ -58,7 +58,7 @@ def main() -> None:
 
     from psctl.infer import array_normals, grow_mask
     from psctl.io.capture import load_ground_truth, open_capture
-    from psctl.lights import array_shading, find_object
+    from psctl.masks import array_shading, find_object
     from psctl.metrics import angular_error
 
     warnings.simplefilter("ignore")  # the no-mask warnings, once per run

@@ -3,7 +3,7 @@
     python benchmarks/direction_consistency.py OBJ [OBJ ...] [--pixels 20000] [--json FILE]
         [--trim LO HI] [--margin M] [--falloff lambertian|shifted] [--iters K]
 
-With the ground-truth normals, psctl's robust light fit (psctl.lights.refine_lights, the sdps
+With the ground-truth normals, psctl's robust light fit (psctl.refine.refine_lights, the sdps
 refinement with its default falloff, "shifted" since session 20, or `--falloff lambertian`; here
 always applied: no gate, no max change) is started at the listed
 lights; printed per object: the fit's relative residual q, the mean angle (degrees) between the
@@ -12,7 +12,7 @@ further from the view axis), the mean of what is not along the zenith, and the a
 rotation from listed to fitted (a rig turned as a whole). On a synthetic object (exact lights)
 the same numbers measure the fit's own bias; on a real one, what is beyond that is the file's
 error (or the surface's departure from Lambertian where it is lit: compare q). `--trim`,
-`--margin`, `--falloff` and `--iters` override the fit's (psctl.lights.DEFAULT_REFINE) to see what they do to that bias; the
+`--margin`, `--falloff` and `--iters` override the fit's (psctl.refine.DEFAULT_REFINE) to see what they do to that bias; the
 last line is the mean angle over the objects the sdps gate would refine (q < its upper end).
 """
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from psctl.io.capture import load_ground_truth, load_mask, open_capture
 from psctl.io.images import read_image, to_rgb
-from psctl.lights import DEFAULT_REFINE, FALLOFFS, refine_lights
+from psctl.refine import DEFAULT_REFINE, FALLOFFS, refine_lights
 
 
 def measure(path: str, pixels: int = 20000, fit: dict | None = None) -> dict:

@@ -3,7 +3,7 @@
     python benchmarks/light_rotation.py OBJ [OBJ ...] [--json]
 
 For each capture folder with ground-truth lights: LCNet's lights (sdps' settings), PS-FCN's
-normals from them, the refined lights (psctl.lights.refine_capture), and for both the mean
+normals from them, the refined lights (psctl.refine.refine_capture), and for both the mean
 direction error before and after the best single rotation of all the lights onto the true ones
 (orthogonal Procrustes, no reflection). A refit (Lambertian or shifted falloff) against normals estimated from
 rotated lights cannot remove a rotation shared by all the lights (turning the normals and the
@@ -20,7 +20,8 @@ import numpy as np
 
 from psctl.infer import capture_normals
 from psctl.io.capture import load_mask, open_capture
-from psctl.lights import capture_lights, lit_capture, refine_capture
+from psctl.lights import capture_lights, lit_capture
+from psctl.refine import refine_capture
 from psctl.metrics import light_direction_error
 from psctl.sdps import sdps_lcnet_config, sdps_second_stage
 

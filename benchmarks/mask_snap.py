@@ -10,7 +10,7 @@ by the same lights plus noise (``benchmarks/auto_mask_lights.py``'s ``scene``), 
 albedo in [0.05, 0.6] on which the object casts shadows (a plane GAP times its half-width below
 it). Its true mask is grown by 0, 3 and 8 px (a mask drawn around the object), and
 ``psctl.estimate_lights`` (its defaults: LCNet, 8 views, refinement) runs on the images as
-captured with that mask as given (``psctl.lights.snap_mask`` made the identity for the call) and
+captured with that mask as given (``psctl.masks.snap_mask`` made the identity for the call) and
 snapped (as estimate_lights does since session 69; before a lit background since session 70).
 Prints the mean light direction error (degrees) per set, scene, growth and variant, with the
 snapped mask's overlap with the true one, then one JSON line. ``--dev``: the same on the
@@ -26,7 +26,7 @@ mask as given and with masks grown by 3 and by 8 px below it; and before the lit
 0.05 above the mask as given at every growth. The dev split does not decide.
 
 Session 70's rule, written before its first run, for snapping by shading before a lit background
-(``psctl.lights.shading_snap``, where the brightness test cannot tell): adopted if, on syntest_dl
+(``psctl.masks.shading_snap``, where the brightness test cannot tell): adopted if, on syntest_dl
 before the texture with the object's shadows (texture:0.25) and on both sets before the lit plane
 (plane:0.3), the mean error with the true masks is at most 0.05 above the mask as given, and with
 masks grown by 3 and by 8 px at least 1 degree below it; the lit plane's "given" numbers are
@@ -88,22 +88,22 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
     from scipy import ndimage
 
     import psctl
-    import psctl.lights
+    import psctl.masks
     from psctl.metrics import light_direction_error
 
-    snap, shading = psctl.lights.snap_mask, psctl.lights.shading_snap
+    snap, shading = psctl.masks.snap_mask, psctl.masks.shading_snap
     loose = unguarded_snap() if "unguarded" in variants or masks_only or differing else None
     out = {}
     for g in GROW:
         grown = ndimage.binary_dilation(mask, iterations=g) if g else mask
-        snapped = psctl.lights.array_snap(images, grown)[0]
+        snapped = psctl.masks.array_snap(images, grown)[0]
         row = {}
         if loose is not None:
-            psctl.lights.shading_snap = loose
+            psctl.masks.shading_snap = loose
             try:
-                other = psctl.lights.array_snap(images, grown)[0]
+                other = psctl.masks.array_snap(images, grown)[0]
             finally:
-                psctl.lights.shading_snap = shading
+                psctl.masks.shading_snap = shading
             row["differs"] = float(not np.array_equal(other, snapped))
             row["off_snapped"], row["off_unguarded"] = float((snapped ^ mask).sum()), float((other ^ mask).sum())
         for label in () if masks_only else variants:
@@ -114,12 +114,12 @@ def errors(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, variants: t
                 row[label] = float("nan")  # (left out of the means)
                 continue
             # estimate_lights snaps the mask itself; "given": with snap_mask made the identity
-            psctl.lights.snap_mask = (lambda edge, m: (np.asarray(m, bool), None)) if label == "given" else snap
-            psctl.lights.shading_snap = loose if label == "unguarded" else shading
+            psctl.masks.snap_mask = (lambda edge, m: (np.asarray(m, bool), None)) if label == "given" else snap
+            psctl.masks.shading_snap = loose if label == "unguarded" else shading
             try:
                 d, _ = psctl.estimate_lights(images, grown, device="cpu")
             finally:
-                psctl.lights.snap_mask, psctl.lights.shading_snap = snap, shading
+                psctl.masks.snap_mask, psctl.masks.shading_snap = snap, shading
             row[label] = float(light_direction_error(d, lights).mean())
         row["iou"] = float((snapped & mask).sum() / (snapped | mask).sum())
         out[g] = row
@@ -157,12 +157,12 @@ def cylinder(cap, span: float, rng: np.random.Generator) -> tuple[np.ndarray, np
 
 
 def unguarded_snap():
-    """psctl.lights.shading_snap as if the cells around the mask always agreed on one background:
+    """psctl.masks.shading_snap as if the cells around the mask always agreed on one background:
     the shading snap without its "surroundings unlike" guard, for session 71's rule (snap_mask
     takes the cut it returns)."""
-    import psctl.lights
+    import psctl.masks
 
-    cut = psctl.lights.shading_snap
+    cut = psctl.masks.shading_snap
     return lambda edge, mask: (cut(edge, mask)[0], True)
 
 

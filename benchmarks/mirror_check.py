@@ -1,4 +1,4 @@
-"""How well psctl.lights.mirror_ratio tells a light file with y flipped (run by hand).
+"""How well psctl.refine.mirror_ratio tells a light file with y flipped (run by hand).
 
     python benchmarks/mirror_check.py l2,ps-fcn OBJ [OBJ ...]
 
@@ -15,7 +15,7 @@ import sys
 from psctl.api import estimate_normals
 from psctl.arrays import bounding_box
 from psctl.io.capture import load_ground_truth, load_images, load_mask, open_capture
-from psctl.lights import mirror_ratio
+from psctl.refine import mirror_ratio
 
 
 def main() -> None:

@@ -4,8 +4,8 @@
 
 Each synthetic object of each set (``psctl synth --preset syntest`` folders) before each of
 ``--scenes`` (``benchmarks/mask_snap.py``'s: plane:ALBEDO, texture:GAP, near:DISTANCE,
-cylinder:SPAN), its true mask grown by 0, 3 and 8 px, through ``psctl.lights.array_snap``. Prints,
-per set, scene and growth, how many masks were [left as given with psctl.lights.unsure_note's
+cylinder:SPAN), its true mask grown by 0, 3 and 8 px, through ``psctl.masks.array_snap``. Prints,
+per set, scene and growth, how many masks were [left as given with psctl.masks.unsure_note's
 note, left as given without it, snapped]. Masks only: no lights run.
 """
 
@@ -29,7 +29,7 @@ SCENES = "near:500,near:1000,near:2000,cylinder:15,cylinder:25,cylinder:40,plane
 def main() -> None:
     from scipy import ndimage
 
-    import psctl.lights
+    import psctl.masks
     from psctl.io.capture import open_capture
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -53,7 +53,7 @@ def main() -> None:
                     images, _, mask = scene(cap, "texture", 0.0, float(value), None, rng)
                 for g in GROW:
                     grown = ndimage.binary_dilation(mask, iterations=g) if g else mask
-                    got, note = psctl.lights.array_snap(images, grown)
+                    got, note = psctl.masks.array_snap(images, grown)
                     counts[g][2 if not np.array_equal(got, grown) else 0 if note and "draw it tight" in note else 1] += 1
             print(root.name, sc, json.dumps(counts), flush=True)
 

@@ -31,7 +31,8 @@ if TYPE_CHECKING:
 
     from psctl.albedo import AlbedoResult
     from psctl.io.capture import Capture, DecodeMemo
-    from psctl.lights import FoundObject, LightEstimate
+    from psctl.lights import LightEstimate
+    from psctl.masks import FoundObject
     from psctl.nearlight import NearLights
 
 METHODS = ("auto", "l2", "ps-fcn", "ps-fcn-n", "ensemble", "ups-fcn", "sdps")
@@ -163,7 +164,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             docs/uncalibrated.md).
         mask: [H, W] bool or numbers (above 0.5 is the object; None: LCNet and the light fit
             read the object found without it (by brightness, or by shading before a lit
-            background: ``psctl.lights.find_object``), and a warning
+            background: ``psctl.masks.find_object``), and a warning
             says so).
         weights: an LCNet weights file (default: the installed weights/lcnet.pt).
         decode: "soft" (soft-argmax over the classes, the default) or "argmax" (the paper's: bin centres).
@@ -173,25 +174,27 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             single pass; docs/uncalibrated.md).
         refine: when a normals network is installed (PS-FCN†, PS-FCN or PS-FCN+N), refine
             LCNet's lights against the normals it gives from them (as ``psctl lights``;
-            ``psctl.lights.refine_lights``); without one, LCNet's lights.
+            ``psctl.refine.refine_lights``); without one, LCNet's lights.
         falloff: the refinement's shading model, "shifted" or "lambertian" (None: the default,
-            ``psctl.lights.DEFAULT_REFINE``; docs/uncalibrated.md, "Falloff").
+            ``psctl.refine.DEFAULT_REFINE``; docs/uncalibrated.md, "Falloff").
         roll: turn the refined lights about the view axis by the roll that makes the normals they
-            give most integrable (``psctl.lights.roll_estimate``; None: the default,
+            give most integrable (``psctl.refine.roll_estimate``; None: the default,
             ``DEFAULT_REFINE["roll"]``; docs/uncalibrated.md, "Roll from integrability").
         precision: the refinement's normals network: "float32" (the default), "bf16" or "fp16"
             (as ``estimate_normals``); LCNet runs in float32.
-        snap: LCNet and the light fit read ``mask`` snapped to the object (``psctl.lights.snap_mask``:
+        snap: LCNet and the light fit read ``mask`` snapped to the object (``psctl.masks.snap_mask``:
             a mask drawn wider than the object puts LCNet's lights far off), with a warning when
             it leaves out over 2% of it, or when it keeps a mask as given that looks drawn wider
-            before a background that is not one plane (``psctl.lights.unsure_note``); False: the mask as given (an exact mask whose object
+            before a background that is not one plane (``psctl.masks.unsure_note``); False: the mask as given (an exact mask whose object
             has a face that shades as the background does; docs/uncalibrated.md).
     Returns:
         directions [N, 3] float32 unit vectors (x right, y up, z toward the camera) and
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, array_shading, array_snap, few_lights_note, find_object, refine_config
+    from psctl.lights import array_lights, few_lights_note
+    from psctl.masks import array_shading, array_snap, find_object
+    from psctl.refine import refine_config
     from psctl.models.weights import installed_path
     from psctl.sdps import array_source, second_stage
 
@@ -252,7 +255,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             (None for ups-fcn and sdps, which do not use them).
         mask: [H, W] bool, or numbers (above 0.5 is the object); normals outside are 0. None:
             l2 the whole image (a pixel dark in every image, as a black background's, gets
-            (0, 0, 1): facing the camera); the network methods read the object ``psctl.lights.find_object``
+            (0, 0, 1): facing the camera); the network methods read the object ``psctl.masks.find_object``
             finds by brightness before a dark background (``FoundObject.normals_mask``) and give
             normals on it and ``psctl.infer.FOUND_GROW`` pixels around it (0 beyond), else the
             whole image (warnings say which); sdps' LCNet and light fit read any object found.
@@ -265,11 +268,11 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         views: network methods: average 1, 2, 4 or 8 symmetric views of the capture (turned and
             mirrored about the view axis; ``views`` times the work; docs/models.md).
         refine: sdps: refine LCNet's lights against the first normals and run the second stage
-            again (``psctl.lights.refine_lights``; docs/uncalibrated.md, "Light refinement").
+            again (``psctl.refine.refine_lights``; docs/uncalibrated.md, "Light refinement").
         falloff: sdps: the refinement's shading model, "shifted" or "lambertian" (None: the
-            default, ``psctl.lights.DEFAULT_REFINE``).
+            default, ``psctl.refine.DEFAULT_REFINE``).
         roll: sdps: turn the refined lights and the normals about the view axis by the normals'
-            roll (``psctl.lights.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
+            roll (``psctl.refine.roll_estimate``; None: the default, ``DEFAULT_REFINE["roll"]``).
         light_distance: l2, ps-fcn, ps-fcn-n, ensemble: the lights are points this many pixels
             from the mask's centroid (mask=None: the networks' object found, else the frame's) along ``lights``; each image is divided by its light's
             falloff first (``psctl.nearlight``, docs/near-lights.md).
@@ -287,7 +290,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     Returns:
         [H, W, 3] float32 unit normals.
     """
-    from psctl.lights import refine_config
+    from psctl.refine import refine_config
 
     from psctl.arrays import as_images, as_lights, as_mask, check_not_black, lights_behind, n_rows
     from psctl.models import check_downsample, check_precision, precision_autocast
@@ -322,7 +325,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     level = caller_level()
     found = None  # mask=None: the object the networks (sdps: LCNet and the light fit too) read
     if mask is None and method != "l2":
-        from psctl.lights import array_shading, find_object
+        from psctl.masks import array_shading, find_object
 
         found = find_object(*array_shading(images), reader="normals" if method != "sdps" else "sdps")
         _warn_found(found, method, level)
@@ -352,7 +355,8 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
                       PsctlWarning, stacklevel=level)
     if method == "sdps":
-        from psctl.lights import array_lights, array_snap, few_lights_note
+        from psctl.lights import array_lights, few_lights_note
+        from psctl.masks import array_snap
         from psctl.sdps import array_source, sdps_lcnet_config, second_stage
 
         second = sdps_second_stage(weights)[0]
@@ -497,11 +501,11 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     (``psctl.infer.run_downsampled``). ``precision`` (the network methods; sdps: its second stage):
     "float32" (the default), "bf16" (an Ampere or newer GPU, or a CPU with native bf16) or "fp16"
     (CUDA), as ``psctl.estimate_normals``. ``refine`` (sdps): LCNet's lights are refined against the first
-    normals and the second stage runs again (``psctl.lights.refine_lights``); the report's
+    normals and the second stage runs again (``psctl.refine.refine_lights``); the report's
     light_mae is then the refined lights' and lcnet_light_mae LCNet's own; ``falloff``
     ("shifted" or "lambertian", None: the default) is the refinement's shading model; ``roll``
     (None: the default) turns the refined lights and the normals about the view axis by the
-    normals' roll (``psctl.lights.roll_estimate``). ``batch`` (``psctl.io.atomic.OutputBatch``):
+    normals' roll (``psctl.refine.roll_estimate``). ``batch`` (``psctl.io.atomic.OutputBatch``):
     stage the files there, to appear with the other runs of the batch (``psctl eval --out``).
     The out folder holds one run's outputs: the files an earlier run of psctl normals wrote there
     (its list, OUTPUTS_LIST) that this run does not write (another ``formats``, no ground truth)
@@ -514,7 +518,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     centroid of the object LCNet reads, found without a mask file, ``find_object``); each image is
     divided by its light's falloff (``psctl.nearlight``, docs/near-lights.md). sdps' LCNet reads
     the images as captured. Without a mask file the network methods (all but l2) read the object
-    ``psctl.lights.find_object`` finds by brightness before a dark background and give normals
+    ``psctl.masks.find_object`` finds by brightness before a dark background and give normals
     on it and ``psctl.infer.FOUND_GROW`` pixels around it, else the whole frame (docs/models.md,
     "Without a mask"); it is written as ``mask_found.png`` and
     is the report's ``found_object``. ``arrays`` (a dict) receives the arrays behind the outputs: "normals"
@@ -531,13 +535,15 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     (``albedo.png``: an sRGB picture scaled to the report's ``albedo.png_scale``; ``albedo.exr``
     and ``albedo.npy``: linear values), and the report's "albedo" (None without it).
     ``snap`` (sdps; True): its LCNet and light fit read a mask file snapped to the object
-    (``psctl.lights.snap_mask``); False: as given (--no-snap). The other methods read it as given.
+    (``psctl.masks.snap_mask``); False: as given (--no-snap). The other methods read it as given.
     """
     from dataclasses import replace
 
     from psctl.classic import lights_problem
     from psctl.models import check_downsample, check_precision, precision_autocast
-    from psctl.lights import FOUND_FILE, NO_MASK_PREFIX, SDPS_FILES, refine_config
+    from psctl.lights import SDPS_FILES
+    from psctl.masks import FOUND_FILE, NO_MASK_PREFIX
+    from psctl.refine import refine_config
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
     from psctl.arrays import bounding_box
@@ -616,7 +622,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     if cap.mask_path is None and method in (*NETWORKS, "ensemble"):
         from psctl.infer import DEFAULT_INFER
         from psctl.io.capture import DecodeMemo
-        from psctl.lights import capture_object
+        from psctl.masks import capture_object
 
         if memo is None:  # the networks' pass takes the images the search decoded, where they fit
             memo = DecodeMemo(DEFAULT_INFER["cache_mb"] << 20)
@@ -796,7 +802,8 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
     from psctl.io.atomic import check_inputs_kept, check_output_dir
     from psctl.io.capture import check_not_capture
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS
-    from psctl.lights import FOUND_FILE, SDPS_FILES
+    from psctl.lights import SDPS_FILES
+    from psctl.masks import FOUND_FILE
 
     notes: list[str] = []
     # report.json always: without ground truth it still records the method, notes and timings
@@ -847,7 +854,7 @@ def _found_file_notes(written: bool, stale: Callable[[], list[str]], out_dir: "P
     """The notes on mask_found.png that _normals_outputs leaves to after the object search:
     replacing a user's own file of that name (``written``), or removing an earlier run's."""
     from psctl.io.atomic import replaced_notes
-    from psctl.lights import FOUND_FILE
+    from psctl.masks import FOUND_FILE
 
     if written:  # one psctl lights wrote there is psctl's too (the same search): replaced without a word
         listed = read_outputs_list(out_dir, "normals") + read_outputs_list(out_dir, "lights")
@@ -906,7 +913,7 @@ class _SdpsRun:
 
 
 def _warn_found(found: "FoundObject", who: str, level: int) -> None:
-    """mask=None on arrays: what ``psctl.lights.find_object`` found for LCNet and the light fit,
+    """mask=None on arrays: what ``psctl.masks.find_object`` found for LCNet and the light fit,
     warned as ``who``'s (a folder's report notes it)."""
     for note in found.notes:
         warnings.warn(f"{who}: mask=None: {note}", PsctlWarning, stacklevel=level + 1)
@@ -923,7 +930,9 @@ def _sdps_normals(cap: "Capture", mask: np.ndarray, light_distance: float | None
 
     from psctl.infer import DEFAULT_INFER, first_read_box
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import NO_MASK_PREFIX, capture_lights, capture_object, light_errors, lights_changed
+    from psctl.lights import capture_lights, light_errors
+    from psctl.masks import NO_MASK_PREFIX, capture_object
+    from psctl.refine import lights_changed
     from psctl.nearlight import near_lights, near_note
     from psctl.sdps import capture_source, sdps_lcnet_config, second_stage
 
@@ -968,7 +977,7 @@ def _networks_read(found: "FoundObject | None", mask: np.ndarray | None) -> np.n
 
 
 def _found_config(found: "FoundObject | None") -> dict:
-    """The networks' settings for the object found without a mask (``psctl.lights.find_object``):
+    """The networks' settings for the object found without a mask (``psctl.masks.find_object``):
     its mean for PS-FCN's exposure, as a mask's, and normals FOUND_GROW pixels beyond it; {} with
     a mask, or where none was found (the whole frame)."""
     from psctl.infer import FOUND_GROW
@@ -987,7 +996,7 @@ def _normals_domain(read: np.ndarray, config: dict) -> np.ndarray:
 def _found_file_note(write: bool) -> str:
     """What the normals of a capture without a mask file cover, and where the object found is."""
     from psctl.infer import FOUND_GROW
-    from psctl.lights import FOUND_FILE
+    from psctl.masks import FOUND_FILE
 
     return (f"the normals cover the object found and {FOUND_GROW} pixels around it (its dark rim, "
             f"which the search can miss; the networks answer there from the object beside it)" +
@@ -1140,9 +1149,9 @@ MIRROR_NOTE = 0.5
 
 def mirror_notes(normals: np.ndarray, mask: np.ndarray) -> list[str]:
     """A note when the normals' mirror image is far more integrable than they are
-    (``psctl.lights.mirror_ratio`` below MIRROR_NOTE): the light directions probably have an axis
+    (``psctl.refine.mirror_ratio`` below MIRROR_NOTE): the light directions probably have an axis
     flipped."""
-    from psctl.lights import mirror_ratio
+    from psctl.refine import mirror_ratio
 
     r = mirror_ratio(normals, mask)
     if r is None or r >= MIRROR_NOTE:

@@ -919,7 +919,7 @@ def found_beside(normals: Path, shape: tuple[int, int]) -> np.ndarray | None:
 
     from psctl.io.atomic import read_small_text
     from psctl.io.images import read_image
-    from psctl.lights import FOUND_FILE
+    from psctl.masks import FOUND_FILE
 
     try:
         written = json.loads(read_small_text(normals.parent / "report.json", 64 << 20)).get("written")

@@ -105,7 +105,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     from psctl.io.images import write_image
     from psctl.io.report import benchmark_sheet, object_panel, sheet_layout, write_json
     from psctl.models import check_downsample, check_precision
-    from psctl.lights import refine_config
+    from psctl.refine import refine_config
     from psctl.symmetry import check_views
 
     refine_config(falloff, roll)  # a bad value stops before any object runs

@@ -947,7 +947,7 @@ NO_MASK_NETWORKS_WHY = ("the networks read the whole frame as the object, the ba
                         "the ensemble 6.04 degrees against 5.66 with its masks, PS-FCN+N 6.00 against 5.59, "
                         "PS-FCN 6.35 against 6.01)")
 ENSEMBLE = ("ps-fcn", "ps-fcn-n")
-# Without a mask the networks read the object psctl.lights.find_object finds, not the whole frame: the
+# Without a mask the networks read the object psctl.masks.find_object finds, not the whole frame: the
 # background beside the object, put through +N's per-pixel normalisation or PS-FCN's exposure, spoils
 # the normals along its outline. The object found misses part of its dark rim (its pixels are lit in
 # few images), so the normals are also given FOUND_GROW pixels beyond it, where the network answers

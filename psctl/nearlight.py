@@ -75,7 +75,7 @@ def near_lights(distance: float | None, mask: np.ndarray, mask_path: Path | None
     lights). A distance that is not a positive number, or that does not clear the object (a
     light inside it), is a user error; the latter names ``mask_path``, the file the mask came
     from (None: no file, e.g. a mask given as an array, or none at all). ``found``: ``mask`` is
-    the object ``psctl.lights.find_object`` found (no mask file), which the error says."""
+    the object ``psctl.masks.find_object`` found (no mask file), which the error says."""
     d = check_light_distance(distance)
     if d is None:
         return None

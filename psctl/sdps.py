@@ -25,7 +25,8 @@ if TYPE_CHECKING:
     from psctl.lights import LightEstimate
 
 # sdps (uncalibrated): LCNet estimates the lights (weights/lcnet.pt or --lcnet FILE), then PS-FCN†
-# estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); LCNet's part is psctl/lights.py.
+# estimates the normals (weights/ps_fcn_dagger.pt or --weights FILE); LCNet's part is psctl/lights.py, the refinement's
+# psctl/refine.py.
 SDPS_NOTE = "sdps: lights estimated by LCNet, then normals by PS-FCN† (a light_directions.txt only scores the lights)"
 # sdps's second stage, in order of preference: PS-FCN† was trained on LCNet's lights (the
 # paper's choice); without it, a calibrated network runs on the estimated lights instead, PS-FCN
@@ -143,9 +144,9 @@ class Source:
     normals(est) -> InferResult: the second stage on the images divided by est's intensities,
         with est's directions.
     refine(est, normals [H, W, 3], config) -> LightEstimate: est refined against the normals
-        (``psctl.lights.refine_estimate``; config over DEFAULT_REFINE).
+        (``psctl.refine.refine_estimate``; config over DEFAULT_REFINE).
     mask: [H, W] bool or None (the whole image), where the light fit and the roll read the
-        normals (the object: without a mask, the one ``psctl.lights.find_object`` found).
+        normals (the object: without a mask, the one ``psctl.masks.find_object`` found).
     """
     normals: Callable[["LightEstimate"], "InferResult"]
     refine: Callable[["LightEstimate", np.ndarray, "dict | None"], "LightEstimate"]
@@ -163,7 +164,7 @@ def array_source(images: np.ndarray, mask: np.ndarray | None, method: str, weigh
     in a capture without a mask."""
     fit_mask = mask if fit_mask is None else fit_mask
     from psctl.infer import array_normals
-    from psctl.lights import refine_arrays
+    from psctl.refine import refine_arrays
 
     def normals(est: "LightEstimate") -> "InferResult":
         return array_normals(images / est.intensities[:, None, None, None], est.directions, mask, method, weights,
@@ -185,7 +186,8 @@ def capture_source(capture: "Capture", mask: np.ndarray, method: str, weights: s
     fit_mask = mask if fit_mask is None else fit_mask
     from psctl.infer import DEFAULT_INFER, capture_normals
     from psctl.io.capture import DecodeMemo
-    from psctl.lights import lit_capture, refine_capture
+    from psctl.lights import lit_capture
+    from psctl.refine import refine_capture
 
     if memo is None:
         memo = DecodeMemo({**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
@@ -211,7 +213,7 @@ def second_stage(source: Source, est: "LightEstimate", refine: bool = True, conf
     Returns (lights, the second stage's result for them, its normals turned with the lights; None
     with ``normals=False``).
     """
-    from psctl.lights import roll_estimate, wants_roll
+    from psctl.refine import roll_estimate, wants_roll
 
     net = source.normals(est)
     if refine:

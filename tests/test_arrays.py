@@ -672,7 +672,7 @@ def test_lights_and_sdps_on_arrays_without_a_mask_read_the_object_found(data, fa
 
     from psctl.api import _found_file_note
     from psctl.infer import FOUND_GROW, grow_mask
-    from psctl.lights import find_object
+    from psctl.masks import find_object
     from tests.conftest import weights_in
 
     import psctl.lights as pl
@@ -710,7 +710,7 @@ def test_find_object_fills_shadows_and_gives_up_on_a_lit_frame():
     """find_object: the lit pixels with their holes filled (a part shadowed in every image is
     still the object); the whole frame (None) when nothing is lit or the region covers nearly
     all of it; a note when the unlit part is not dark (a lit background)."""
-    from psctl.lights import FOUND_MAX_FRACTION, find_object
+    from psctl.masks import FOUND_MAX_FRACTION, find_object
 
     b = np.zeros((40, 50))
     yy, xx = np.mgrid[:40, :50]
@@ -739,7 +739,7 @@ def test_a_black_background_is_dark_whatever_the_objects_dim_rim():
     rim is too dim for Otsu's lit part, so the unlit part is the black background plus that rim.
     Its mean over the lit part's was 0.17 ("the background is not dark", an audit's false note);
     the median, the background's own level, is 0."""
-    from psctl.lights import find_object
+    from psctl.masks import find_object
 
     h = 32
     yy, xx = np.mgrid[:h, :h]
@@ -766,7 +766,7 @@ def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weight
 
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
-    from psctl.lights import array_shading, capture_shading, find_object
+    from psctl.masks import array_shading, capture_shading, find_object
     from tests.conftest import render_lambertian
 
     normals, mask = sphere(48, radius=0.55)
@@ -795,11 +795,12 @@ def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weight
     assert np.array_equal(find_object(brightness, profiles).mask, found.mask)
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))  # psctl lights and sdps read it so
     import psctl.lights
+    import psctl.refine
     from psctl.api import run_normals
 
     fits = []
-    fit = psctl.lights.refine_capture
-    monkeypatch.setattr(psctl.lights, "refine_capture", lambda c, m, *a, **k: fits.append(m) or fit(c, m, *a, **k))
+    fit = psctl.refine.refine_capture
+    monkeypatch.setattr(psctl.refine, "refine_capture", lambda c, m, *a, **k: fits.append(m) or fit(c, m, *a, **k))
     report = psctl.lights.run_lights(tmp_path, write=False, device="cpu")
     assert report["found_object"] == found.info and np.array_equal(fits[-1], found.mask)
     assert run_normals(tmp_path, method="sdps", write=False, device="cpu")["found_object"] == found.info
@@ -813,9 +814,9 @@ def test_find_object_tells_a_lit_background_by_its_shading(tmp_path, fake_weight
     assert find_object(dark.sum((0, 3))).mask is None  # the lit region: nearly all of the frame
     white = find_object(*array_shading(dark))
     assert white.info["by"] == "shading" and iou(white.mask) > 0.95, iou(white.mask)
-    import psctl.lights
+    import psctl.masks
 
-    monkeypatch.setattr(psctl.lights, "FOUND_PROFILE_SIDE", 16)  # 3 x 3 blocks: each pixel takes its cell's answer
+    monkeypatch.setattr(psctl.masks, "FOUND_PROFILE_SIDE", 16)  # 3 x 3 blocks: each pixel takes its cell's answer
     coarse = find_object(*array_shading(images))
     assert coarse.info["by"] == "shading" and not np.array_equal(coarse.mask, found.mask)
     # each pixel takes its block's answer (its centre pixel's): the outline within a block of the object's
@@ -862,7 +863,7 @@ def test_networks_without_a_mask_read_the_object_found(data, tmp_path):
     from psctl.infer import FOUND_GROW, NO_MASK_NETWORKS_WHY, grow_mask
     from psctl.io.images import read_image
     from psctl.io.capture import load_mask, open_capture
-    from psctl.lights import FOUND_FILE, FOUND_NORMALS_BORDER, NO_MASK_PREFIX, array_shading, find_object, for_normals
+    from psctl.masks import FOUND_FILE, FOUND_NORMALS_BORDER, NO_MASK_PREFIX, array_shading, find_object, for_normals
     from psctl.metrics import angular_error
     from tests.conftest import write_capture
 

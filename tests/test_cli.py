@@ -1573,7 +1573,7 @@ def test_train_and_synth_names_in_any_case(tmp_path):
                "--size", "32", "--lights", "8", "--materials", "1", "-q")
     assert proc.returncode == 0 and (tmp_path / "s" / "objects.txt").is_file(), proc.stderr
     from psctl.errors import PsctlError
-    from psctl.lights import refine_config
+    from psctl.refine import refine_config
 
     assert refine_config("Lambertian") == {"falloff": "lambertian"}
     with pytest.raises(PsctlError, match="--falloff must be shifted or lambertian, not 'lambert'"):

@@ -183,9 +183,9 @@ def test_a_flipped_light_axis_is_noted(tmp_path):
 
 def test_the_mirror_note_is_for_methods_that_read_the_light_file(capture, monkeypatch):
     """UPS-FCN never reads light_directions.txt: however its normals look, no such note."""
-    import psctl.lights
+    import psctl.refine
 
-    monkeypatch.setattr(psctl.lights, "mirror_ratio", lambda normals, mask=None, erode=3: 0.01)
+    monkeypatch.setattr(psctl.refine, "mirror_ratio", lambda normals, mask=None, erode=3: 0.01)
     assert any("mirror image" in n for n in run_normals(capture, method="l2", write=False)["notes"])
     ups = run_normals(capture, method="ups-fcn", write=False, device="cpu")
     assert not any("mirror image" in n for n in ups["notes"])

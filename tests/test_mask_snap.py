@@ -1,5 +1,5 @@
 """A mask wider than the object: LCNet and the light fit read it snapped to the object
-(psctl.lights.snap_mask), since LCNet learnt exact masks and reads the mask's edge as the
+(psctl.masks.snap_mask), since LCNet learnt exact masks and reads the mask's edge as the
 object's contour."""
 
 from __future__ import annotations
@@ -25,20 +25,20 @@ def _disc(size: int = 64, radius: float = 20.0) -> tuple[np.ndarray, np.ndarray]
 
 def _edge(peak: np.ndarray):
     """A MaskEdge of ``peak`` with no shading to read (every profile 0): brightness alone."""
-    from psctl.lights import MaskEdge
+    from psctl.masks import MaskEdge
 
     h, w = peak.shape
     return MaskEdge(peak, np.zeros((8, h, w), np.float32), (slice(0, h), slice(0, w)), 1)
 
 
 def _snapped(peak: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    from psctl.lights import snap_mask
+    from psctl.masks import snap_mask
 
     return snap_mask(_edge(peak), mask)[0]
 
 
 def test_snap_mask_keeps_the_object_within_a_wider_mask():
-    from psctl.lights import snap_mask
+    from psctl.masks import snap_mask
 
     peak, disc = _disc()
     wide = ndimage.binary_dilation(disc, iterations=5)
@@ -106,7 +106,7 @@ def test_snap_mask_before_a_lit_background_reads_the_shading():
     """The sphere's own shading differs from the table's (one profile over the images wherever
     the table is, its albedo apart): a mask 3 or 8 px wider snaps to the sphere, within 3 of its
     1568 pixels (its rim's), with a note that says how; a true mask is left as given."""
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     images, m = _before_a_lit_table()
     assert float(np.median(images.max(axis=(0, 3))[~m])) > 0.15 * float(np.median(images.max(axis=(0, 3))[m]))
@@ -119,7 +119,7 @@ def test_snap_mask_before_a_lit_background_reads_the_shading():
 
 
 def test_snap_mask_before_a_lit_background_leaves_it_where_it_cannot_tell():
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     images, m = _before_a_lit_table()
     wide = ndimage.binary_dilation(m, iterations=3)
@@ -176,7 +176,7 @@ def test_snap_mask_before_a_lit_background_keeps_faces_that_shade_as_it_does():
     """A face turned to the camera shades as the table does: a coin's flat face around a relief is
     not the table (its albedo is not the table's), and a dome running off the frame keeps its cap
     (the mask's cells on the frame's edge are the object's); each is kept, not cut."""
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     coin = _dome(32, 32, 24)[1]
     normals, relief = _dome(32, 32, 9)  # a flat face (normal to the camera) with a dome in its middle
@@ -199,7 +199,7 @@ def test_snap_mask_before_a_lit_background_guards(case):
     mask's edge (SNAP_EDGE); a coin's flat face around a wide relief is brighter than the table
     (SNAP_ALBEDO); around a small relief on a table of the coin's albedo it would leave out over
     three quarters of the mask (SNAP_KEEP)."""
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     from tests.conftest import sphere
 
@@ -223,15 +223,15 @@ def test_snap_mask_before_a_lit_background_guards(case):
 def test_snap_mask_reads_brightness_first_and_a_coarse_grid(monkeypatch):
     """Before a dark table the brightness test decides (its note), and on a grid of 2 x 2 blocks
     (many or large images) the shading snap still finds the sphere, to a cell about its rim."""
-    import psctl.lights
-    from psctl.lights import array_snap, edge_box
+    import psctl.masks
+    from psctl.masks import array_snap, edge_box
 
     images, m = _before_a_lit_table(table_albedo=(0.005, 0.01))
     got, note = array_snap(images, ndimage.binary_dilation(m, iterations=3))
     assert np.array_equal(got, m) and "never brighter than the background" in note
     images, m = _before_a_lit_table()
     wide = ndimage.binary_dilation(m, iterations=4)
-    monkeypatch.setattr(psctl.lights, "FOUND_PROFILE_ELEMENTS", 16 * 64 * 64 // 4)
+    monkeypatch.setattr(psctl.masks, "FOUND_PROFILE_ELEMENTS", 16 * 64 * 64 // 4)
     assert edge_box(wide, 16)[1] == 2
     got, note = array_snap(images, wide)
     band = ndimage.binary_dilation(m, iterations=2) & ~ndimage.binary_erosion(m, iterations=3)
@@ -241,7 +241,7 @@ def test_snap_mask_reads_brightness_first_and_a_coarse_grid(monkeypatch):
 
 def test_arrays_before_a_lit_table_with_a_wider_mask_get_the_exact_masks_lights(fake_weights):
     import psctl
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     images, m = _before_a_lit_table()
     wide = ndimage.binary_dilation(m, iterations=3)
@@ -263,7 +263,8 @@ def test_a_folder_before_a_lit_table_reads_its_mask_snapped_by_shading(tmp_path,
     so the folder's one read (capture_edge) sees what the arrays' does, and a note."""
     from psctl.io.capture import load_images, open_capture
     from psctl.io.images import write_image
-    from psctl.lights import array_snap, run_lights
+    from psctl.lights import run_lights
+    from psctl.masks import array_snap
 
     images, m = _before_a_lit_table()
     wide = ndimage.binary_dilation(m, iterations=3)
@@ -291,6 +292,7 @@ def test_no_snap_reads_the_mask_as_given(tmp_path, fake_weights, monkeypatch):
     lights and sdps (folders, from the command line too) and estimate_lights / sdps (arrays)."""
     import psctl
     import psctl.lights
+    import psctl.masks
     from psctl.cli import app
     from psctl.io.images import write_image
     from typer.testing import CliRunner
@@ -304,8 +306,8 @@ def test_no_snap_reads_the_mask_as_given(tmp_path, fake_weights, monkeypatch):
 
         def never(*args, **kwargs):
             raise AssertionError("the mask was snapped")
-        monkeypatch.setattr(psctl.lights, "capture_edge", never)
-        monkeypatch.setattr(psctl.lights, "array_snap", never)
+        monkeypatch.setattr(psctl.masks, "capture_edge", never)
+        monkeypatch.setattr(psctl.masks, "array_snap", never)
         given = psctl.lights.run_lights(tmp_path / "widePNG", write=False, device="cpu", refine=False, snap=False)
         assert not any(n.startswith("mask: ") for n in given["notes"])
         assert given["light_mae"] != snapped["light_mae"]  # (LCNet read the wider mask)
@@ -374,7 +376,7 @@ def test_snap_mask_before_a_curved_backdrop_keeps_a_flat_face():
     wider lost the coin's whole face (2205 of 3004 pixels left out, the relief and two crescents
     of backdrop kept; helper-143's review). Session 71 measured what the guard costs where the
     cut would be right (docs/uncalibrated.md): it stays, and the note says to draw the mask tight."""
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     coin = _dome(32, 32, 24)[1]
     normals, relief = _dome(32, 32, 10)
@@ -389,7 +391,7 @@ def test_a_wider_mask_kept_before_a_curved_backdrop_gets_a_note():
     """The mask a curved backdrop leaves as given says so where its edge shades as the backdrop's
     middle does (it is likely drawn wider than the object): a sphere's mask 3 or 8 px wider gets
     the note, its exact mask does not; before a plane the snap cuts and its own note says so."""
-    from psctl.lights import array_snap
+    from psctl.masks import array_snap
 
     from tests.conftest import sphere
 

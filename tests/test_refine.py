@@ -1,4 +1,4 @@
-"""Light refinement (psctl.lights.refine_lights): LCNet's lights refitted against known normals."""
+"""Light refinement (psctl.refine.refine_lights): LCNet's lights refitted against known normals."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from psctl.errors import PsctlError
-from psctl.lights import DEFAULT_REFINE, LightEstimate, refine_estimate, refine_lights, sample_observations
+from psctl.lights import LightEstimate
+from psctl.refine import DEFAULT_REFINE, refine_estimate, refine_lights, sample_observations
 from psctl.metrics import light_direction_error
 from tests.conftest import hemisphere_lights, sphere, write_capture, weights_in
 from tests.test_cli import cli
@@ -284,11 +285,11 @@ def test_falloff_option_reaches_the_fit(tmp_path, fake_weights, stand_in_network
 
 def test_sdps_runs_the_second_stage_once_when_the_gate_keeps_lcnets_lights(tmp_path, fake_weights, stand_in_networks,
                                                                            monkeypatch):
-    import psctl.lights
+    import psctl.refine
     from psctl.api import run_normals
 
     write_capture(tmp_path / "aPNG", n=12, size=48, seed=1)
-    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "gate", (-2.0, -1.0))  # every fit counts as bad
+    monkeypatch.setitem(psctl.refine.DEFAULT_REFINE, "gate", (-2.0, -1.0))  # every fit counts as bad
     with weights_in(fake_weights):
         r = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
     assert r["lights_refined"]["weight"] == 0.0 and len(stand_in_networks) == 1
@@ -301,6 +302,7 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     second stage again on the refined lights (stand-ins for both networks)."""
     import psctl.infer
     import psctl.lights
+    import psctl.refine
     from psctl.api import estimate_normals
     from tests.conftest import render_lambertian
 
@@ -328,8 +330,8 @@ def test_array_sdps_refines_too(monkeypatch, fake_weights):
     assert np.ptp(ratio) < 0.2 * ratio.mean()  # (about 1.0 with LCNet's intensities of 1)
     # the caller's shading model reaches the fit (mutation review, session 39: dropping it went unseen)
     fits = []
-    real = psctl.lights.refine_arrays
-    monkeypatch.setattr(psctl.lights, "refine_arrays", lambda *a: fits.append(a[5]) or real(*a))  # (.., config, saturated)
+    real = psctl.refine.refine_arrays
+    monkeypatch.setattr(psctl.refine, "refine_arrays", lambda *a: fits.append(a[5]) or real(*a))  # (.., config, saturated)
     with weights_in(fake_weights):
         estimate_normals(images, None, mask, method="sdps", device="cpu", falloff="lambertian")
     assert fits and all(f is not None and f["falloff"] == "lambertian" for f in fits)
@@ -351,7 +353,7 @@ def bumps(size: int = 64) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("shape", ["bumps", "sphere"])
 def test_integrability_roll_undoes_a_turn_about_the_view_axis(shape):
-    from psctl.lights import integrability_roll, turn_about_view_axis
+    from psctl.refine import integrability_roll, turn_about_view_axis
 
     normals, mask = bumps() if shape == "bumps" else sphere(64)
     t0, gain0, k = integrability_roll(normals, mask)
@@ -375,7 +377,7 @@ def test_integrability_roll_undoes_a_turn_about_the_view_axis(shape):
 
 
 def test_roll_estimate_turns_lights_and_normals_together():
-    from psctl.lights import integrability_roll, roll_estimate, turn_about_view_axis
+    from psctl.refine import integrability_roll, roll_estimate, turn_about_view_axis
 
     normals, mask = bumps()
     lights = hemisphere_lights(12, 35.0, 0)
@@ -407,9 +409,11 @@ def test_sdps_and_lights_apply_the_roll_when_it_is_on(tmp_path, fake_weights, mo
     the view axis (the rotation the fit cannot see)."""
     import psctl.infer
     import psctl.lights
+    import psctl.refine
     from psctl.api import run_normals
     from psctl.io.capture import load_ground_truth
-    from psctl.lights import run_lights, turn_about_view_axis
+    from psctl.lights import run_lights
+    from psctl.refine import turn_about_view_axis
 
     def capture_lights(capture, mask, weights=None, config=None, progress=None, flag="--weights", memo=None,
                        keep_box=None):
@@ -428,9 +432,9 @@ def test_sdps_and_lights_apply_the_roll_when_it_is_on(tmp_path, fake_weights, mo
     monkeypatch.setattr(psctl.infer, "capture_normals", capture_normals)
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
     write_capture(tmp_path / "aPNG", n=24, size=64, seed=1)
-    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "roll", False)
+    monkeypatch.setitem(psctl.refine.DEFAULT_REFINE, "roll", False)
     off = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
-    monkeypatch.setitem(psctl.lights.DEFAULT_REFINE, "roll", True)
+    monkeypatch.setitem(psctl.refine.DEFAULT_REFINE, "roll", True)
     calls.clear()
     on = run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu")
     assert len(calls) == 2  # the roll needs no third pass: the normals are turned as the lights are
@@ -490,7 +494,7 @@ def test_array_api_applies_the_roll(monkeypatch, fake_weights):
     import psctl.infer
     import psctl.lights
     from psctl.api import estimate_lights, estimate_normals
-    from psctl.lights import turn_about_view_axis
+    from psctl.refine import turn_about_view_axis
     from tests.conftest import render_lambertian
 
     normals, mask = bumps()
@@ -523,7 +527,7 @@ def test_second_stage_runs_the_network_only_when_needed(weight):
     """psctl.sdps.second_stage over a stand-in Source: how often the second stage runs, and what
     comes back, for sdps (normals) and psctl lights (lights alone), with the roll on and off."""
     import psctl.infer
-    from psctl.lights import turn_about_view_axis
+    from psctl.refine import turn_about_view_axis
     from psctl.sdps import Source, second_stage
 
     normals, mask = bumps()
@@ -562,15 +566,15 @@ def test_second_stage_runs_the_network_only_when_needed(weight):
 
 def test_refine_blocks_of_pixels_give_the_one_block_answer(monkeypatch):
     """refine_lights works on blocks of pixels (memory); block edges must not change the fit."""
-    import psctl.lights as lights_mod
+    import psctl.refine as refine_mod
 
     obs, nrm, lights, ints = scene(size=64, specular=0.3, noise=0.05)  # ~3,200 pixels
     obs[:, 5] = np.nan  # a dropped pixel moves the block edges against the pixel indices
     start = rotate_randomly(lights, 5.0, seed=3)
-    monkeypatch.setattr(lights_mod, "_REFINE_BLOCK", 10 ** 9)
+    monkeypatch.setattr(refine_mod, "_REFINE_BLOCK", 10 ** 9)
     whole = refine_lights(obs, nrm, start, ints)
     for block in (2048, 333, 7):
-        monkeypatch.setattr(lights_mod, "_REFINE_BLOCK", block)
+        monkeypatch.setattr(refine_mod, "_REFINE_BLOCK", block)
         part = refine_lights(obs, nrm, start, ints)
         assert part.status == whole.status and part.weight == whole.weight
         assert part.quality == pytest.approx(whole.quality, rel=1e-12)
@@ -619,11 +623,11 @@ def test_refine_leaves_undetermined_rigs_alone():
 
 
 def test_erode_mask_is_scipys_binary_erosion():
-    """psctl.lights.erode_mask replaces scipy.ndimage.binary_erosion (its import cost every
+    """psctl.refine.erode_mask replaces scipy.ndimage.binary_erosion (its import cost every
     calibrated run 0.17 s): the same masks, borders included, for random shapes and iterations."""
     from scipy.ndimage import binary_erosion
 
-    from psctl.lights import erode_mask
+    from psctl.refine import erode_mask
 
     rng = np.random.default_rng(3)
     for _ in range(200):
@@ -847,7 +851,7 @@ def test_saturated_observations_left_out_of_the_fit():
 def test_refine_capture_marks_the_saturated_observations(tmp_path, monkeypatch):
     """refine_capture hands refine_lights NaN exactly where an integer image is at its top code
     (in any channel), and the other observations as read."""
-    import psctl.lights as pl
+    import psctl.refine as pr
     from psctl.io.capture import load_images, load_mask, open_capture
     from psctl.io.images import write_image
 
@@ -860,11 +864,11 @@ def test_refine_capture_marks_the_saturated_observations(tmp_path, monkeypatch):
 
     def spy(obs, nrm, d, e, config=None):
         seen["obs"] = obs
-        return pl.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
+        return pr.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
 
-    monkeypatch.setattr(pl, "refine_lights", spy)
+    monkeypatch.setattr(pr, "refine_lights", spy)
     est = LightEstimate(arrays["lights"].astype(np.float32), np.ones(8, np.float32), {})
-    pl.refine_capture(cap, mask, est, arrays["normals"])
+    pr.refine_capture(cap, mask, est, arrays["normals"])
     imgs = load_images(cap)[:, mask]  # [N, P, 3], as read (intensities 1)
     top = (imgs >= 1.0).any(-1)
     assert 0.05 < top.mean() < 0.95
@@ -883,7 +887,8 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
-    from psctl.lights import NO_MASK_PREFIX, capture_shading, find_object, run_lights
+    from psctl.lights import run_lights
+    from psctl.masks import NO_MASK_PREFIX, capture_shading, find_object
 
     arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
     found = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0])
@@ -892,12 +897,12 @@ def test_lights_and_sdps_without_a_mask_read_the_object_found(tmp_path, fake_wei
     write_capture(tmp_path / "cPNG", n=6, size=32, seed=1, mask=False)
     write_image(tmp_path / "cPNG" / "mask.png", found.mask.astype(np.float32), "uint8")
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))
-    import psctl.lights as pl
+    import psctl.refine as pr
 
     read = []  # the masks the light fit and the roll read (the fake network's fit may not move the lights)
-    fit, roll = pl.refine_capture, pl.roll_estimate
-    monkeypatch.setattr(pl, "refine_capture", lambda cap, mask, *a, **k: read.append(mask) or fit(cap, mask, *a, **k))
-    monkeypatch.setattr(pl, "roll_estimate", lambda est, n, mask, *a: read.append(mask) or roll(est, n, mask, *a))
+    fit, roll = pr.refine_capture, pr.roll_estimate
+    monkeypatch.setattr(pr, "refine_capture", lambda cap, mask, *a, **k: read.append(mask) or fit(cap, mask, *a, **k))
+    monkeypatch.setattr(pr, "roll_estimate", lambda est, n, mask, *a: read.append(mask) or roll(est, n, mask, *a))
     for refine in (False, True):
         b, c = ({}, {})
         rb = run_lights(tmp_path / "bPNG", write=False, device="cpu", refine=refine, arrays=b)
@@ -960,7 +965,8 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     from psctl.api import run_normals
     from psctl.io.capture import load_mask, open_capture
     from psctl.io.images import read_image
-    from psctl.lights import FOUND_FILE, capture_shading, find_object, run_lights
+    from psctl.lights import run_lights
+    from psctl.masks import FOUND_FILE, capture_shading, find_object
 
     write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
     found = find_object(capture_shading(open_capture(tmp_path / "bPNG"))[0]).mask
@@ -1036,7 +1042,8 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
     from psctl.infer import FOUND_GROW, grow_mask
     from psctl.io.capture import open_capture
     from psctl.io.images import write_image
-    from psctl.lights import capture_shading, find_object, run_lights
+    from psctl.lights import run_lights
+    from psctl.masks import capture_shading, find_object
     from psctl.nearlight import near_lights
 
     arrays = write_capture(tmp_path / "bPNG", n=6, size=32, seed=1, mask=False)
@@ -1086,7 +1093,7 @@ def test_near_lights_without_a_mask_sit_about_the_object_found(tmp_path, fake_we
 def test_integer_arrays_leave_their_top_code_out_of_the_fit(monkeypatch):
     """estimate_lights / estimate_normals(sdps) given uint8 or uint16 arrays mark the top code as a
     capture folder's reader does (a review finding: only the folder path did)."""
-    import psctl.lights as pl
+    import psctl.refine as pr
     from psctl.api import _saturated
 
     rng = np.random.default_rng(0)
@@ -1098,14 +1105,14 @@ def test_integer_arrays_leave_their_top_code_out_of_the_fit(monkeypatch):
 
     def spy(obs, nrm, d, e, config=None):
         seen["obs"] = obs
-        return pl.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
+        return pr.Refinement(d.astype(np.float32), e.astype(np.float32), 0.0, 1.0)
 
-    monkeypatch.setattr(pl, "refine_lights", spy)
+    monkeypatch.setattr(pr, "refine_lights", spy)
     images = raw.astype(np.float32) / 255
     normals = np.zeros((6, 5, 3), np.float32)
     normals[..., 2] = 1
     est = LightEstimate(np.tile(np.float32([0, 0, 1]), (4, 1)), np.ones(4, np.float32), {})
-    pl.refine_arrays(images, None, est, normals, saturated=top)
+    pr.refine_arrays(images, None, est, normals, saturated=top)
     assert np.array_equal(np.isnan(seen["obs"]), top.reshape(4, -1))
 
 
