@@ -195,7 +195,7 @@ def _check_camera(key: str, value: object) -> "float | tuple[float, float] | Non
     except (TypeError, ValueError, OverflowError):
         xy = []
     if len(xy) != 2 or not all(np.isfinite(xy)) or max(map(abs, xy)) > 1e7:
-        raise PsctlError(None, f"principal must be the principal point as X,Y in pixels (two numbers), not "
+        raise PsctlError(None, f"--principal must be the principal point as X,Y in pixels (two numbers), not "
                                f"{_short(value)}")
     return xy[0], xy[1]
 
@@ -901,15 +901,24 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
                                    "--principal")
         cfg["focal"], cfg["principal"], K_from = camera_from_K(K)
     given = None if circle is None else check_circle(circle)
-    try:
-        cap = open_capture(path, encoding)
-        unread = []
-    except PsctlError as e:  # the folder's own light files are only compared with: damaged, they are skipped
-        if e.path is None or Path(e.path).name.lower() not in (LIGHTS_FILE, INTENSITIES_FILE):
-            raise
-        cap = open_capture(path, encoding, light_files=False)
-        unread = [f"light files: {Path(e.path).name} is not read ({e.message}); these lights are not compared "
-                  "with the folder's"]
+    # the folder's own light files are only compared with: a damaged one is skipped, with a note (a
+    # damaged intensity file alone still leaves the directions to compare with)
+    unread, kept = [], {"light_files": True, "intensity_file": True}
+    while True:
+        try:
+            cap = open_capture(path, encoding, **kept)
+            break
+        except PsctlError as e:
+            name = None if e.path is None else Path(e.path).name.lower()
+            if name == INTENSITIES_FILE and kept["intensity_file"]:
+                kept["intensity_file"] = False
+                what = "the intensities are not compared with the folder's"
+            elif name in (LIGHTS_FILE, INTENSITIES_FILE) and kept["light_files"]:
+                kept["light_files"] = False
+                what = "these lights are not compared with the folder's"
+            else:
+                raise
+            unread.append(f"light files: {Path(e.path).name} is not read ({e.message}); {what}")
     notes = unread + capture_notes(cap)
     focal_from = None
     if cfg["focal"] == EXIF:

@@ -178,6 +178,13 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
     return res.depth
 
 
+def has_normal(normals: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the pixels of a normal map [H, W, 3] that hold a normal when there is no mask.
+    Zero or NaN (as many tools write the background) is no normal; an infinite or otherwise unusable
+    one stays in, to be counted as rejected."""
+    return ~np.isnan(normals).any(axis=-1) & ~(normals == 0).all(axis=-1)
+
+
 def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str = "poisson",
               K: np.ndarray | None = None, config: dict | None = None,
               progress: ProgressFactory | None = None,
@@ -199,7 +206,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     if mask is None:
         # without a mask, a pixel with no normal (zero, or NaN as many tools write the background) is
         # background: a NaN background was counted as thousands of rejected "mask pixels" (a QA helper)
-        mask = ~np.isnan(normals).any(axis=-1) & ~(normals == 0).all(axis=-1)  # infinite ones stay (rejected)
+        mask = has_normal(normals)
         if not mask.any():
             raise PsctlError(None, "the normal map has no normal (every pixel is zero or NaN) and there is no mask")
     else:  # numbers read as estimate_normals reads them (above 0.5; 0/255 and labels work; NaN refused)
@@ -237,7 +244,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     if check_facing is not None:
         check_facing(n_facing, n_facing + int(valid.sum()))
     if not valid.any():
-        raise PsctlError(None, f"no usable normal inside the mask ({n_nan} NaN or zero, "
+        raise PsctlError(None, f"no usable normal inside the mask ({n_nan} NaN, infinite or zero, "
                                f"{n_facing} facing away from the camera)")
     tu, tv = -nx, ny  # s * dz/dcol = -nx and s * dz/drow = +ny, in both projections
 
@@ -688,6 +695,26 @@ def encoding_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str
             f"(n + 1) / 2 as in a PNG? A float map holds the vectors themselves (docs/formats.md)"]
 
 
+def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str]:
+    """A note when a given map's mirror image is far more integrable than the map (its y axis down,
+    as image rows, in some tools' convention): it would integrate to a wrong surface without a word
+    (a review: the bumpy sphere's map with y flipped came out saddle-like). psctl normals' own maps
+    are checked against their light files instead (``psctl.api.mirror_notes``). On the DiLiGenT dev
+    split's ground truth the ratio (``psctl.refine.mirror_ratio``) is 3.1-987 as given and
+    0.001-0.33 with y flipped."""
+    from psctl.api import MIRROR_NOTE
+    from psctl.refine import mirror_ratio
+
+    step = max(1, int(np.sqrt(mask.size / 1_000_000)))  # a sample of the map: 3.4 s -> 0.5 s on a 9 MP sphere
+    sub = nmap[::step, ::step]
+    r = mirror_ratio(np.where(np.isfinite(sub), sub, 0), mask[::step, ::step])
+    if r is None or r >= MIRROR_NOTE:
+        return []
+    return [f"normals: {source.name} is {1 / r:.1f} times less integrable than its mirror image: is an axis flipped "
+            f"(y down, as image rows, in some tools)? psctl reads x right, y up, z toward the camera "
+            f"(docs/formats.md); flip it first"]
+
+
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",
               out: str | os.PathLike | None = None, K: str | os.PathLike | np.ndarray | None = None,
               write: bool = True, binary_ply: bool = True, config: dict | None = None,
@@ -762,9 +789,10 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
             raise PsctlError(source, f"normal map is {nmap.shape[1]}x{nmap.shape[0]} but the capture's images "
                                      f"{'and mask ' if cap.mask_path else ''}are {cap.width}x{cap.height}")
         if mask is None:
-            mask = ~(nmap == 0).all(axis=-1)
+            mask = has_normal(nmap)  # as integrate's: a NaN background too (a review: 5692 "rejected" pixels)
             if not mask.any():
-                raise PsctlError(source, "normal map is all zero (no foreground) and the folder has no mask")
+                raise PsctlError(source, "normal map has no normal (every pixel is zero or NaN) and the folder has "
+                                         "no mask")
             found = found_beside(source, mask.shape)
             if found is not None and (found & mask).any():  # the object, not the ring of normals around it
                 mask &= found
@@ -772,7 +800,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
                              f"pixels, mask_found.png beside {source.name}), without the pixels around it its "
                              f"normals also cover")
         normals_source = os.path.abspath(source)
-        notes += encoding_notes(nmap, mask, source)
+        notes += encoding_notes(nmap, mask, source) + mirror_map_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import resolve_method, run_normals
 
@@ -820,7 +848,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     except PsctlError as e:
         raise PsctlError(e.path or source, e.message) from None
     if res.n_rejected:
-        notes.append(f"{res.n_rejected} mask pixels have no usable normal ({res.n_rejected_nan} NaN or zero, "
+        notes.append(f"{res.n_rejected} mask pixels have no usable normal ({res.n_rejected_nan} NaN, infinite or zero, "
                      f"{res.n_rejected_facing} facing away from the camera): they get no depth")
     if res.n_components > 1:
         notes.append(f"{res.n_components} separate regions: each has its own unknown depth offset")

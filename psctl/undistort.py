@@ -158,13 +158,25 @@ def camera_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, tuple[
                                "rational_polynomial)")
 
     def value(n: str) -> np.ndarray:
-        v = keys[n]
+        v, shape = keys[n], (None, None)
         if isinstance(v, dict) and "data" in v:  # an opencv-matrix node (YAML tag or JSON type_id)
+            shape = v.get("rows"), v.get("cols")
             v = v["data"]
         try:
-            return np.asarray(v, dtype=np.float64).ravel()
+            out = np.asarray(v, dtype=np.float64).ravel()
         except (TypeError, ValueError):
             raise PsctlError(path, f"{spelt[n]} is not a list of numbers") from None
+        # rows x cols must be the data's count, as OpenCV's reader requires (a review: 2 x 3 over 9 numbers
+        # was read as a 3 x 3 matrix)
+        if shape != (None, None):
+            try:
+                rows, cols = (int(x) for x in shape)
+                if (rows, cols) != tuple(shape) or rows * cols != out.size:
+                    raise ValueError
+            except (TypeError, ValueError):
+                raise PsctlError(path, f"{spelt[n]} says rows: {shape[0]}, cols: {shape[1]} but holds {out.size} "
+                                       f"numbers") from None
+        return out
 
     def find(names: Sequence[str], what: str) -> np.ndarray:
         found = [n for n in names if n in keys]

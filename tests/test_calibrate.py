@@ -552,8 +552,18 @@ def test_damaged_light_files_in_the_sphere_folder_are_skipped(tmp_path):
                for n in r["notes"])
     (folder / "light_directions.txt").write_text("\n".join(rows) + "\n")
     (folder / "light_intensities.txt").write_text("1 1 1\n" * 3)
+    r = run_calibrate(folder, "chrome", write=False)  # the directions are still compared (a review's finding)
+    assert r["light_mae"] < 1.5 and r["intensity_re"] is None
+    said = [n for n in r["notes"] if n.startswith("light files:")]
+    assert len(said) == 1 and said[0].startswith("light files: light_intensities.txt is not read (3 intensity rows "
+                                                 "but 10 images") and said[0].endswith(
+        "; the intensities are not compared with the folder's"), r["notes"]
+    (folder / "light_directions.txt").write_text("\n".join(rows[:9]) + "\n")  # both damaged: neither compared
     r = run_calibrate(folder, "chrome", write=False)
-    assert r["light_mae"] is None and any("light_intensities.txt is not read" in n for n in r["notes"])
+    assert r["light_mae"] is None and r["intensity_re"] is None
+    said = [n for n in r["notes"] if n.startswith("light files:")]
+    assert len(said) == 1 and said[0].startswith("light files: light_directions.txt is not read (9 light rows") \
+        and said[0].endswith("; these lights are not compared with the folder's"), r["notes"]
 
 
 def test_a_sphere_off_the_optical_axis_gets_a_note(tmp_path):
@@ -648,7 +658,7 @@ def test_focal_models_a_sphere_off_the_optical_axis(tmp_path):
     assert angular_error(np.loadtxt(tmp_path / "f" / "light_directions.txt"), lights).mean() < 0.1
     for args, words in ((["--focal", "-5"], "focal must be the camera's focal length in pixels"),
                         (["--principal", "1,2"], "--principal needs --focal"),
-                        (["--focal", "260", "--principal", "1;2"], "principal must be the principal point as X,Y")):
+                        (["--focal", "260", "--principal", "1;2"], "--principal must be the principal point as X,Y")):
         bad = cli("calibrate", folder, "-s", "matte", *args, "--out", tmp_path / "x")
         assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert not (tmp_path / "x").exists()

@@ -716,3 +716,48 @@ def test_a_map_facing_away_is_refused_before_the_solve(capture, tmp_path, monkey
     with pytest.raises(PsctlError, match="stop"):  # the library's hook: the mask's counts, before the solve
         depth.integrate(away, check_facing=stop)
     assert seen == [(int((away[..., 2] < 0).sum()), int((np.abs(away).sum(-1) > 0).sum()))]
+
+
+def test_run_depth_without_a_mask_reads_nan_and_mid_grey_backgrounds_as_background(tmp_path):
+    """Other tools write the background of a normal map as NaN (float) or mid-grey (a PNG's (n + 1) / 2
+    of the zero vector). Without a mask both are background, as a zero one is: a NaN background
+    was counted as thousands of rejected mask pixels, and a grey one was normalised to (1, 1, 1) /
+    sqrt(3) and integrated into a tilted plane around the object (a review's findings)."""
+    from psctl.depth import run_depth
+    from psctl.io.images import write_image
+    from psctl.io.normals import write_normal_map
+
+    data = write_capture(tmp_path / "cap", n=6, size=32, mask=False)
+    n, m = data["normals"].astype(np.float32), data["mask"]
+    write_normal_map(tmp_path / "zero.exr", n, m, "exr")
+    np.save(tmp_path / "nan.npy", np.where(m[..., None], n, np.nan).astype(np.float32))
+    for bits in ("uint8", "uint16"):
+        write_image(tmp_path / f"grey_{bits}.png", np.where(m[..., None], (n + 1) / 2, 0.5), bits, kind="data")
+    ref = run_depth(tmp_path / "cap", normals=tmp_path / "zero.exr", write=False)
+    assert ref["n_mask_pixels"] == int(m.sum()) and ref["n_rejected"] == 0
+    for f in ("nan.npy", "grey_uint8.png", "grey_uint16.png"):
+        r = run_depth(tmp_path / "cap", normals=tmp_path / f, write=False)
+        assert (r["n_mask_pixels"], r["n_rejected"]) == (int(m.sum()), 0), (f, r)
+        assert not any("no usable normal" in x for x in r["notes"]), r["notes"]
+        assert abs(r["z_max"] - ref["z_max"]) < 0.05 * (ref["z_max"] - ref["z_min"]), (f, r["z_max"], ref["z_max"])
+
+
+def test_a_given_map_with_an_axis_flipped_gets_a_note(tmp_path):
+    """A normal map with y down (as image rows, some tools' convention) integrates to a wrong surface:
+    a note says its mirror image is far more integrable. The map as written gets none, nor does a
+    perspective sphere's (checked orthographically, it is still far more integrable than its mirror)."""
+    from pathlib import Path
+
+    from psctl.depth import mirror_map_notes, run_depth
+
+    data = write_capture(tmp_path / "cap", n=6, size=32)
+    n, m = data["normals"].astype(np.float32), data["mask"]
+    np.save(tmp_path / "ok.npy", np.where(m[..., None], n, 0).astype(np.float32))
+    np.save(tmp_path / "flip.npy", np.where(m[..., None], n * np.float32([1, -1, 1]), 0).astype(np.float32))
+    said = lambda f: [x for x in run_depth(tmp_path / "cap", normals=tmp_path / f, write=False)["notes"]  # noqa: E731
+                      if "less integrable than its mirror image" in x]
+    assert said("ok.npy") == []
+    assert len(said("flip.npy")) == 1 and said("flip.npy")[0].startswith("normals: flip.npy is "), said("flip.npy")
+    normals, mask, _, _ = perspective_sphere()
+    assert mirror_map_notes(normals, mask, Path("p.exr")) == []
+    assert mirror_map_notes(normals * np.float32([-1, 1, 1]), mask, Path("p.exr")) != []

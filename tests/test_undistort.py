@@ -385,6 +385,11 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
                         "tilt"),
            "nan.yml": ("K: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nDist: [.Nan, 0, 0, 0]\n", "Dist is not a list of numbers"),
            # two names for K with different values (the first was taken without a word, a QA helper)
+           # rows x cols not the data's count: OpenCV refuses it (it was read as 3 x 3, a review)
+           "shape.yml": (OPENCV_YAML.replace("rows: 3", "rows: 2"), "camera_matrix says rows: 2, cols: 3 but holds 9 "
+                                                                    "numbers"),
+           "shape.json": (OPENCV_JSON.replace('"cols": 5', '"cols": 4'), "distortion_coefficients says rows: 1, "
+                                                                         "cols: 4 but holds 5 numbers"),
            "twice.yml": ("camera_matrix: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nK: [2, 0, 1, 0, 2, 1, 0, 0, 1]\nD: [0, 0, 0, 0]\n",
                          "gives the camera matrix twice, as camera_matrix and K, with different values")}
     for name, (text, words) in bad.items():

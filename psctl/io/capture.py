@@ -594,7 +594,8 @@ def _is_benchmark_root(path: Path, entries: list[Path]) -> bool:
     return not _is_capture(path, entries) and any(p.is_dir() and is_capture_folder(p) for p in entries)
 
 
-def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: bool = True) -> Capture:
+def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: bool = True,
+                 intensity_file: bool = True) -> Capture:
     """Validate a capture folder without decoding pixels.
 
     Checks: images exist and share one size, light and intensity rows match the image count and
@@ -603,7 +604,8 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     file with an embedded ICC profile through its tone curves (as stored when they are linear),
     else JPEGs from sRGB, and reads every other file as linear. ``light_files`` False: the folder's light
     files are not read (an uncalibrated capture; psctl calibrate, which writes new ones, when
-    the old ones are damaged).
+    the old ones are damaged); ``intensity_file`` False: only light_intensities.txt is not read
+    (psctl calibrate, when only that one is damaged: its directions are still compared).
     """
     if not isinstance(encoding, str) or encoding.lower() not in ENCODINGS:
         raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
@@ -710,7 +712,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         check_lights_face_camera(lights, lights_path)
     intensities = np.ones((n, 3), np.float32)
     intensities_path = _first_existing(path, entries, [INTENSITIES_FILE], "light intensity files") \
-        if light_files else None
+        if light_files and intensity_file else None
     given = intensities_path is not None
     if given:
         intensities = read_intensities(intensities_path)

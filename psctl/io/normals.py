@@ -2,7 +2,8 @@
 albedo map's, in the same formats (``write_albedo_map``).
 
 Convention everywhere: x right, y up, z toward the camera; row 0 is the top of the image.
-Pixels outside the mask are 0 in every encoding (PNG 0 decodes to "no normal").
+Pixels outside the mask are 0 in every encoding (PNG 0 decodes to "no normal"; so does a PNG's
+mid-grey, the zero vector's (n + 1) / 2, which some tools write as the background).
 """
 
 from __future__ import annotations
@@ -40,18 +41,25 @@ def encode_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
 NOT_UNIT = (0.1, 0.5)
 
 
+# an integer pixel whose 2 v - 1 is shorter than this is no normal: mid-grey, the zero vector's (n + 1) / 2, as
+# some tools write the background (a unit normal's is within 0.01 of 1 in 8 bits); normalised, it was
+# (1, 1, 1) / sqrt(3), and psctl depth without a mask put a tilted plane around the object (a review)
+NO_NORMAL_LENGTH = 0.5
+
+
 def decode_normal_pixels(pixels: np.ndarray, info: ImageInfo | None = None) -> np.ndarray:
     """Inverse of the encodings: integer images hold (n + 1) / 2, float images hold n.
 
-    All-zero pixels (outside the mask) decode to 0.
+    All-zero pixels (outside the mask) decode to 0, as do integer pixels that hold a vector
+    shorter than NO_NORMAL_LENGTH (mid-grey: the zero vector).
     """
     rgb = pixels[..., :3].astype(np.float32)
     is_float = info is not None and info.dtype in ("half", "float", "double")
     if is_float:
         return rgb
-    empty = (rgb == 0).all(axis=-1, keepdims=True)
     n = rgb * 2.0 - 1.0
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    empty = (rgb == 0).all(axis=-1, keepdims=True) | (norm < NO_NORMAL_LENGTH)
     n = n / np.maximum(norm, 1e-6)
     return np.where(empty, 0.0, n).astype(np.float32)
 
