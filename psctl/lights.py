@@ -27,10 +27,10 @@ The pipeline (psctl.models.lcnet has the network and the discretisation):
    of the views is the estimate, the intensities their mean. Exact for an orthographic camera
    and isotropic materials; it costs ``views`` times the network work.
 6. Refinement (``run_lights(refine=True)``, sdps; ``psctl.refine``): a normals network turns the lights into
-   normals and ``refine_lights`` refits each light by a robust fit of a diffuse model (a cosine
+   normals and ``psctl.refine.refine_lights`` refits each light by a robust fit of a diffuse model (a cosine
    that may fall to zero before the terminator) against them, gated by how well that fit
    explains the pixels. Then (``roll``, on by default) the lights are turned about the view axis
-   by the roll that makes the normals from them most integrable (``integrability_roll``).
+   by the roll that makes the normals from them most integrable (``psctl.refine.integrability_roll``).
 
 The mask LCNet and the fit read is the mask file snapped to the object, or without one the
 object found by brightness or shading (``psctl.masks``).
@@ -683,16 +683,16 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
 
     ``refine``: when a network that estimates normals from lights is installed (sdps' second
     stage, or ``normals_weights``), LCNet's lights are refined against its normals
-    (``refine_estimate``; off with refine=False or when none is installed, which a note says);
+    (``psctl.refine.refine_estimate``; off with refine=False or when none is installed, which a note says);
     ``falloff`` "shifted" or "lambertian" and ``roll`` (turn the refined lights by the roll of the
-    normals they give, ``roll_estimate``) override DEFAULT_REFINE's. ``light_distance`` (pixels,
+    normals they give, ``psctl.refine.roll_estimate``) override ``psctl.refine.DEFAULT_REFINE``'s. ``light_distance`` (pixels,
     with ``refine``): the lights are points that far from the mask's centroid (without a mask
     file, the found object's) along the estimated directions, and the refinement reads the images with their falloff divided out
     (``psctl.nearlight``; LCNet reads them as captured). ``precision`` (float32, bf16, fp16): the
     refinement's normals network's arithmetic (LCNet runs in float32), as ``psctl.run_normals``'.
     ``snap`` (True): LCNet and the light fit read a mask file snapped to the object
-    (``snap_mask``, noted when it leaves out over 2%, or when a mask kept as given looks drawn
-    wider, ``unsure_note``); False: as given (--no-snap).
+    (``psctl.masks.snap_mask``, noted when it leaves out over 2%, or when a mask kept as given looks drawn
+    wider, ``psctl.masks.unsure_note``); False: as given (--no-snap).
 
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,

@@ -11,7 +11,7 @@ one. With a mask, LCNet learnt exact masks and reads the mask's edge as the obje
 so ``snap_mask`` leaves out the pixels of a wider mask that are background (by brightness before
 a dark background, by shading before a lit plane), and leaves the mask as given where it cannot
 tell (``unsure_note``). The calibrated networks barely mind a wider mask and read it as given.
-``psctl.lights`` (``run_lights``), ``psctl.api`` and ``psctl.sdps`` call them;
+``psctl.lights`` (``run_lights``) and ``psctl.api`` call them;
 docs/uncalibrated.md ("Without a mask", "A mask wider than the object", "Before a lit
 background") has the measurements behind every threshold.
 """
@@ -27,7 +27,7 @@ import numpy as np
 
 from psctl.arrays import bounding_box
 from psctl.errors import ProgressFactory
-from psctl.infer import NO_MASK_NETWORKS_WHY
+from psctl.infer import NO_MASK_NETWORKS_WHY, lit_pixels
 
 if TYPE_CHECKING:
     from psctl.io.capture import Capture, DecodeMemo
@@ -206,8 +206,6 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     (``FOUND_READERS``: "lights", LCNet and the light fit; "normals", the normals networks;
     "sdps", all three)."""
     from scipy import ndimage
-
-    from psctl.infer import lit_pixels
 
     who, whole, off = FOUND_READERS[reader]
     b = np.asarray(brightness, np.float64)

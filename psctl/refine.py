@@ -10,6 +10,10 @@ that makes those normals most integrable.
 ``refine_arrays`` run it on a ``psctl.lights.LightEstimate`` over a capture folder's or an array's
 pixels; ``roll_estimate`` applies the roll. ``psctl.sdps`` drives them; docs/uncalibrated.md
 ("Light refinement", "Falloff", "Roll from integrability") says how each was chosen.
+
+The same curl terms give ``mirror_ratio``: how much more integrable a normal map's mirror image is,
+the check behind the note on a light file (``psctl.api.mirror_notes``) or a given normal map
+(``psctl.depth.mirror_map_notes``) with an axis flipped.
 """
 
 from __future__ import annotations
