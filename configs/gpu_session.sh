@@ -148,7 +148,7 @@ echo "training $left more minutes ($SECONDS s since the start)"
 launch $left; rc=$?
 for r in $RUNS; do tail -n 3 runs/${r##*:}.out; done
 # a run SIGKILLed (timeout -k) inside a checkpoint's commit: carry it out, so the files packed are one checkpoint's
-for r in $RUNS; do [ -d runs/${r##*:} ] && python3 -c 'import sys; from pathlib import Path; from psctl.train import finish_checkpoint; finish_checkpoint(Path(sys.argv[1]))' runs/${r##*:}; done
+for r in $RUNS; do [ -d runs/${r##*:} ] && python3 -c 'import sys; from pathlib import Path; from psctl.checkpoint import finish_checkpoint; finish_checkpoint(Path(sys.argv[1]))' runs/${r##*:}; done
 files="model.pt state.json stream.pt log.jsonl"
 [ -n "$FINAL" ] && files="best.pt $files"  # the Adam state only with OPTIM=1: two runs with it pass the 64 MiB the device tool returns (session 33)
 [ -n "$FINAL" ] && [ "${OPTIM:-0}" = 1 ] && files="$files optim.0.pt optim.1.pt optim.2.pt optim.3.pt"

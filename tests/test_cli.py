@@ -1307,6 +1307,7 @@ def test_train_says_how_it_stopped(tmp_path, monkeypatch):
     import signal
 
     import psctl.train as T
+    from psctl.checkpoint import Stop
 
     cfg = Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml"
     for bad in ("-1", "nan", "0"):
@@ -1317,7 +1318,7 @@ def test_train_says_how_it_stopped(tmp_path, monkeypatch):
                env={"PSCTL_WEIGHTS": str(tmp_path / "wfile")})
     assert proc.returncode == 2 and "is not a folder: --install writes" in proc.stderr, proc.stderr
     assert not (tmp_path / "r").exists()
-    stop = T._Stop()
+    stop = Stop()
     with stop:
         stop._handle(signal.SIGINT, None)
     assert stop.requested and stop.signal == signal.SIGINT

@@ -757,9 +757,9 @@ def test_a_second_ctrl_c_waits_for_the_checkpoint_being_written():
     halfway through writing it (optimiser files without state.json: a run --resume refuses)."""
     import signal
 
-    from psctl.train import _Stop
+    from psctl.checkpoint import Stop
 
-    stop = _Stop()
+    stop = Stop()
     written = []
     with pytest.raises(KeyboardInterrupt):
         with stop.whole():
