@@ -701,8 +701,11 @@ def train(
                "Ctrl-C (SIGINT)" if st["signal"] == signal.SIGINT else _signal_name(st["signal"]))
         state = "finished" if st["finished"] else f"stopped by {why} (continue with --resume {run_dir})"
         what = "light direction error" if method == "lcnet" else "MAE"
-        said = (f"best synthetic validation {what} {st['best_val']:.2f}°; weights {Path(run_dir) / 'best.pt'}"
-                if st["best_val"] is not None else "no validation yet, so no best.pt")
+        best = Path(run_dir) / "best.pt"
+        said = ("no validation yet, so no best.pt" if st["best_val"] is None else
+                f"best synthetic validation {what} {st['best_val']:.2f}°; weights {best}" if best.is_file() else
+                f"best synthetic validation {what} {st['best_val']:.2f}°, but {best} is missing (removed after that "
+                f"validation; later ones were not better)")
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; {said}",
                   highlight=False, soft_wrap=True, markup=False)
         if install and st["finished"]:

@@ -128,6 +128,9 @@ _CHOICES = {("train", "amp"): ("bf16", "fp16", "none"), ("model", "fuse"): ("max
             ("lcnet", "decode"): ("argmax", "soft")}
 
 
+MAX_CLASSES = 3600  # LCNet's classes per head at most (0.05 degrees a direction class; the paper: 36 and 20)
+
+
 def check_method(method: str, verb: str = "train") -> str:
     """A method ``psctl train`` trains (psctl.models.WEIGHTS_METHODS), in lower case as the
     command line takes it (PS-FCN is ps-fcn), or a one-line error ("cannot ``verb`` ...")."""
@@ -183,8 +186,9 @@ def check_recipe(config: dict) -> dict:
             and 0 < lo_hi[0] < lo_hi[1] and math.isfinite(lo_hi[1])):  # reversed, the classes would run backwards
         raise PsctlError(None, f"config 'lcnet.ints_range' must be two intensities 0 < low < high, not {lo_hi!r}")
     for key in ("dirs_cls", "ints_cls"):  # one class cannot tell anything apart (and bin centres need two)
-        if lc[key] < 2:
-            raise PsctlError(None, f"config 'lcnet.{key}' must be at least 2 classes, not {lc[key]!r}")
+        # ... and a typo's millions would be heads of gigabytes, past the memory guard (a review)
+        if not 2 <= lc[key] <= MAX_CLASSES:
+            raise PsctlError(None, f"config 'lcnet.{key}' must be 2 to {MAX_CLASSES:,} classes, not {lc[key]!r}")
     betas = config["train"]["betas"]
     if not all(0 <= b < 1 for b in betas):
         raise PsctlError(None, f"config 'train.betas' must be two numbers in [0, 1) (Adam's decay rates), not {betas!r}")
@@ -783,6 +787,18 @@ def _resumed_state(state_file: Path, method: str, config: dict | None,
     return saved, config
 
 
+def _run_log(path: Path) -> bool:
+    """Whether ``path`` reads as a run's log.jsonl: each whole line a JSON object (a line cut short
+    by a kill may end it)."""
+    try:
+        with open(path, "rb") as f:
+            text = f.read(64 << 20)
+        lines = text.split(b"\n")[:-1]  # the last piece: "" after a whole line, else a cut one
+        return all(isinstance(json.loads(line), dict) for line in lines if line.strip())
+    except (OSError, ValueError):
+        return False
+
+
 def _data_sources(stream: Any) -> tuple[list[str], list[list]]:
     """What the stream says it left out (its notes), and its geometry sources with their weights
     (not where the meshes are, which may differ between machines)."""
@@ -863,6 +879,9 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             p.name in ("log.jsonl", "best.pt") or p.name.startswith(STAGED) or TEMP_FILE.fullmatch(p.name)
             for p in run.iterdir()):
         finish_checkpoint(run)
+    if not resume and (run / "log.jsonl").is_file() and not _run_log(run / "log.jsonl"):  # appended to (a review)
+        raise PsctlError(run / "log.jsonl", "is not a psctl training log (a line that is not a JSON record); a new "
+                                            "run needs a new or empty folder")
     if not resume and run.is_dir() and [p.name for p in run.iterdir()] not in ([], ["log.jsonl"]):
         if sorted(p.name for p in run.iterdir()) == ["best.pt", "log.jsonl"]:  # kept by no_half_run
             raise PsctlError(run, "holds the best.pt of a run that failed before its first checkpoint (nothing to "

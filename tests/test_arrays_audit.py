@@ -179,9 +179,14 @@ def test_load_images_checks_its_arguments():
     for kwargs, needle in (({"as_captured": "yes"}, "as_captured must be True or False"),
                            ({"box": (slice(0.5, 10), slice(None))}, "rows must be a slice of whole numbers"),
                            ({"box": (slice(None), slice(0, 10, 2))}, "columns must be a slice of whole numbers"),
-                           ({"box": (slice(20, 10), slice(None))}, "holds none of the image's 128 rows")):
+                           ({"box": (slice(20, 10), slice(None))}, "holds none of the image's 128 rows"),
+                           # a factory's True: "'bool' object is not callable" mid-read (a review)
+                           ({"progress": True}, r"progress must be None or a callable advance\(k\)")):
         with pytest.raises(PsctlError, match=needle):
             psctl.load_images(cap, **kwargs)
+    for kwargs in ({"light_files": "no"}, {"intensity_file": 0}):  # "no" is truthy: its light files were read
+        with pytest.raises(PsctlError, match=f"{next(iter(kwargs))} must be True or False"):
+            psctl.open_capture(ROOT / "examples" / "bumpy_sphere", **kwargs)
     assert psctl.load_images(cap, box=(slice(np.int64(0), 10), slice(5, None))).shape == (24, 10, 123, 3)
 
 

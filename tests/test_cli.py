@@ -1333,6 +1333,15 @@ def test_train_says_how_it_stopped(tmp_path, monkeypatch):
         stopped["signal"] = None if sig is None else int(sig)
         proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q")
         assert proc.returncode == exit_code and said in proc.stderr, proc.stderr
+    # a best validation whose best.pt was removed since: not named as the weights (a review's finding)
+    stopped.update(signal=None, finished=True, best_val=12.5)
+    proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q")
+    said = " ".join(proc.stderr.split())
+    assert proc.returncode == 0 and f"12.50°, but {tmp_path / 'r' / 'best.pt'} is missing" in said, said
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "best.pt").write_bytes(b"weights")
+    said = " ".join(cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q").stderr.split())
+    assert f"12.50°; weights {tmp_path / 'r' / 'best.pt'}" in said, said
 
 
 def test_train_install_refuses_to_replace_a_release_file(tmp_path):

@@ -594,6 +594,12 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     with pytest.raises(PsctlError, match="is not empty and holds no run"):
         train("ps-fcn", tiny(8), theirs, device="cpu")
     assert sorted(p.name for p in theirs.iterdir()) == ["optim.backup.pt"]
+    foreign = tmp_path / "foreign"  # a log.jsonl that is not a run's: not appended to (a review's finding)
+    foreign.mkdir()
+    (foreign / "log.jsonl").write_text("my own log line 1\nline 2\n")
+    with pytest.raises(PsctlError, match="log.jsonl: is not a psctl training log"):
+        train("ps-fcn", tiny(8), foreign, device="cpu")
+    assert (foreign / "log.jsonl").read_text() == "my own log line 1\nline 2\n"
     stopped = tmp_path / "stopped"  # only the log of a run that never checkpointed: started again
     stopped.mkdir()
     (stopped / "log.jsonl").write_text('{"step": 1}\n')
@@ -1020,8 +1026,10 @@ def test_a_tampered_run_is_one_error_on_resume(tmp_path):
 @pytest.mark.parametrize("lcnet, needle", [
     ({"ints_range": [2.0, 0.2]}, "lcnet.ints_range' must be two intensities 0 < low < high"),
     ({"ints_range": [0.0, 2.0]}, "lcnet.ints_range' must be two intensities 0 < low < high"),
-    ({"dirs_cls": 1}, "lcnet.dirs_cls' must be at least 2 classes"),
-    ({"ints_cls": 1}, "lcnet.ints_cls' must be at least 2 classes"),
+    ({"dirs_cls": 1}, "lcnet.dirs_cls' must be 2 to 3,600 classes, not 1"),
+    ({"ints_cls": 1}, "lcnet.ints_cls' must be 2 to 3,600 classes"),
+    # a typo's millions: heads of gigabytes that the memory guard did not count (a review)
+    ({"dirs_cls": 10_000_000}, "lcnet.dirs_cls' must be 2 to 3,600 classes, not 10000000"),
     # an audit: negative weights ran the loss away (-226 -> -1570), zero ones learnt nothing, exit 0
     ({"loss_weights": [-1.0, -1.0, -1.0]}, r"lcnet.loss_weights' must be three weights .* 0 or more and not all 0"),
     ({"loss_weights": [0.0, 0.0, 0.0]}, r"lcnet.loss_weights' must be three weights"),

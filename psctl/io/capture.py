@@ -610,6 +610,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     if not isinstance(encoding, str) or encoding.lower() not in ENCODINGS:
         raise PsctlError(None, f"--encoding must be one of {', '.join(ENCODINGS)}, not {encoding!r}")
     encoding = encoding.lower()  # as --method and --device
+    light_files, intensity_file = check_bool("light_files", light_files), check_bool("intensity_file", intensity_file)
     path = Path(check_path("path", path))
     if not path.exists():
         raise PsctlError(path, "folder does not exist")
@@ -987,6 +988,9 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     images the first pass checked whole; a pair of slices: inside that part of ``box``, the
     part a caller uses of a larger box read for a later pass)."""
     capture = as_capture(capture)
+    if progress is not None and not callable(progress):  # a TypeError mid-read otherwise (a review: True)
+        raise PsctlError(None, f"progress must be None or a callable advance(k), called with 1 per image, not "
+                               f"{progress!r:.40}")
     if box is not None and not (isinstance(box, tuple) and len(box) == 2 and all(isinstance(b, slice) for b in box)):
         raise PsctlError(None, f"box must be (rows, columns), a pair of slices, not {box!r}")
     for part, side, name in zip(box or (), (capture.height, capture.width), ("rows", "columns")):
@@ -1246,7 +1250,9 @@ class ImageCheck:
 def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
                 progress: Progress | None = None, as_captured: bool = False) -> np.ndarray:
     """All images at once: float32 [N, h, w, 3], divided by their light intensities (as
-    ``iter_images``), or with ``as_captured`` not (what ``psctl.estimate_lights`` takes). Prefer
+    ``iter_images``), or with ``as_captured`` not (what ``psctl.estimate_lights`` takes). ``box``:
+    a crop, (rows, columns) as two slices (``bounding_box`` of the mask gives one; None: the whole
+    frame); ``progress``: None or a callable advance(k), called with 1 after each image. Prefer
     ``iter_images`` for large captures."""
     capture = as_capture(capture)
     if check_bool("as_captured", as_captured):
