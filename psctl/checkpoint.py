@@ -36,6 +36,11 @@ import torch
 from psctl.errors import PsctlError
 from psctl.models.weights import file_sha256, save_torch
 
+__all__ = ["OPTIM_PART_BYTES", "OPTIM_PART", "no_half_run", "Stop", "save_optimizer", "JOURNAL", "STAGED", "TEMP_FILE",
+           "commit_checkpoint", "finish_checkpoint", "load_optimizer", "adam_steps",
+           "drop_lines_after_checkpoint", "check_state", "restore_checkpoint", "restore_stream"]
+
+
 OPTIM_PART_BYTES = 12 * 2**20
 OPTIM_PART = re.compile(r"optim\.\d+\.pt")
 
@@ -50,6 +55,8 @@ def no_half_run(run: Path) -> Iterator[Any]:
     folders this call made are removed, so that the same --out starts again."""
     made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
     run.mkdir(parents=True, exist_ok=True)
+    if (run / "log.jsonl").is_file():
+        _cut_partial_line(run / "log.jsonl")
     log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0
     log = open(run / "log.jsonl", "a")
     try:
@@ -78,6 +85,24 @@ def no_half_run(run: Path) -> Iterator[Any]:
                         break
         raise
     log.close()
+
+
+def _cut_partial_line(log: Path) -> None:
+    """End ``log`` at its last whole line: a record cut by a kill (a full disk, a lost machine)
+    would otherwise have the next run's first record glued to it, a line no reader can parse (a
+    review: the start after that was then refused as a foreign log)."""
+    size = log.stat().st_size
+    if size == 0:
+        return
+    with open(log, "rb") as f:
+        f.seek(max(0, size - (1 << 20)))
+        tail = f.read()
+    if tail.endswith(b"\n"):
+        return
+    cut = tail.rfind(b"\n")
+    if cut < 0 and size > len(tail):  # a line of over 1 MB: no record of ours; left for _run_log to refuse
+        return
+    os.truncate(log, size - len(tail) + cut + 1)
 
 
 class Stop:

@@ -704,8 +704,8 @@ def train(
         best = Path(run_dir) / "best.pt"
         said = ("no validation yet, so no best.pt" if st["best_val"] is None else
                 f"best synthetic validation {what} {st['best_val']:.2f}°; weights {best}" if best.is_file() else
-                f"best synthetic validation {what} {st['best_val']:.2f}°, but {best} is missing (removed after that "
-                f"validation; later ones were not better)")
+                f"best synthetic validation {what} {st['best_val']:.2f}°, but {best}, which held it, is missing "
+                f"(removed since)")
         con.print(f"{state}: {st['samples']:,} samples in {st['seconds'] / 60:.1f} min; {said}",
                   highlight=False, soft_wrap=True, markup=False)
         if install and st["finished"]:

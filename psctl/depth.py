@@ -181,7 +181,8 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
 def has_normal(normals: np.ndarray) -> np.ndarray:
     """[H, W] bool: the pixels of a normal map [H, W, 3] that hold a normal when there is no mask.
     Zero or NaN (as many tools write the background) is no normal; an infinite or otherwise unusable
-    one stays in, to be counted as rejected."""
+    one stays in, to be counted as rejected. (A file's infinite components are NaN once read:
+    ``read_normal_map``; so psctl depth without a mask reads them as background too.)"""
     return ~np.isnan(normals).any(axis=-1) & ~(normals == 0).all(axis=-1)
 
 
@@ -698,10 +699,11 @@ def encoding_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str
 def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[str]:
     """A note when a given map's mirror image is far more integrable than the map (its y axis down,
     as image rows, in some tools' convention): it would integrate to a wrong surface without a word
-    (a review: the bumpy sphere's map with y flipped came out saddle-like). psctl normals' own maps
-    are checked against their light files instead (``psctl.api.mirror_notes``). On the DiLiGenT dev
+    (a review: the bumpy sphere's map with y flipped came out saddle-like). psctl normals notes its
+    own maps when it writes them (``psctl.api.mirror_notes``). On the DiLiGenT dev
     split's ground truth the ratio (``psctl.refine.mirror_ratio``) is 3.1-987 as given and
-    0.001-0.33 with y flipped."""
+    0.001-0.33 with y flipped. A map that psctl normals wrote (its report.json beside says so)
+    follows its light file: the note then names that file (a review: it said to flip the map)."""
     from psctl.api import MIRROR_NOTE
     from psctl.refine import mirror_ratio
 
@@ -710,9 +712,28 @@ def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[s
     r = mirror_ratio(np.where(np.isfinite(sub), sub, 0), mask[::step, ::step])
     if r is None or r >= MIRROR_NOTE:
         return []
+    if written_by_normals(source):
+        return [f"normals: {source.name} is {1 / r:.1f} times less integrable than its mirror image: psctl normals "
+                f"estimated it from the capture's light_directions.txt; is an axis of that file flipped (y down, as "
+                f"image rows)? Fix the file and run psctl normals again"]
     return [f"normals: {source.name} is {1 / r:.1f} times less integrable than its mirror image: is an axis flipped "
             f"(y down, as image rows, in some tools)? psctl reads x right, y up, z toward the camera "
             f"(docs/formats.md); flip it first"]
+
+
+def written_by_normals(path: Path) -> bool:
+    """Whether ``path`` is as the psctl normals run whose report.json lies beside it wrote it (its
+    size and modification time as the report's "written" recorded them)."""
+    import json
+
+    from psctl.io.atomic import read_small_text
+
+    try:
+        written = json.loads(read_small_text(path.parent / "report.json", 64 << 20)).get("written")
+        st = path.stat()
+    except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
+        return False
+    return isinstance(written, dict) and written.get(path.name) == [st.st_size, st.st_mtime_ns]
 
 
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",

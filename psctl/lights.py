@@ -928,3 +928,17 @@ def render_lights(r: dict) -> None:
         line += f", intensity relative error [bold]{r['intensity_re']:.3f}[/]"
     con.print(line, highlight=False, soft_wrap=True)
     print_written(con, r["outputs"])
+
+
+def __getattr__(name: str) -> object:
+    """A name that moved out of this module on 2026-12-01 (psctl.masks and psctl.refine) is still found
+    here, with a DeprecationWarning, for code written against the one module."""
+    import importlib
+    import warnings
+
+    for module in ("psctl.masks", "psctl.refine"):
+        mod = importlib.import_module(module)
+        if name in mod.__all__:
+            warnings.warn(f"psctl: {__name__}.{name} is now {module}.{name}", DeprecationWarning, stacklevel=2)
+            return getattr(mod, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

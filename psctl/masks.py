@@ -32,6 +32,17 @@ from psctl.infer import NO_MASK_NETWORKS_WHY, lit_pixels
 if TYPE_CHECKING:
     from psctl.io.capture import Capture, DecodeMemo
 
+__all__ = ["FOUND_FILE", "FOUND_MAX_FRACTION", "FOUND_MIN_PIXELS", "FOUND_DARK_CONTRAST", "FOUND_NORMALS_BORDER",
+           "FOUND_PROFILE_ELEMENTS", "FOUND_PROFILE_SIDE", "FOUND_BORDER", "FOUND_LEVEL", "FOUND_BAND",
+           "FOUND_MID", "FOUND_RELIABLE", "FOUND_MIN_IMAGES", "profile_grid", "block_samples",
+           "border_ring", "FOUND_REFERENCE_MAX", "unlike_background", "shading_object", "object_parts",
+           "FoundObject", "for_normals", "find_object", "SNAP_QUANTILE", "SNAP_FACTOR", "SNAP_DARK",
+           "SNAP_KEEP", "SNAP_MIN_OUTSIDE", "SNAP_NOTE", "SNAP_MARGIN", "SNAP_EDGE", "SNAP_ALBEDO",
+           "MaskEdge", "edge_box", "snap_mask", "unsure_note", "shading_snap", "array_edge", "snappable",
+           "array_snap", "capture_edge", "capture_object", "capture_shading", "array_shading",
+           "NO_MASK_WHY", "NO_MASK_PREFIX", "FOUND_READERS"]
+
+
 # without a mask: the object found for LCNet and the light fit, 0 / 255 as a mask.png, to look at, or
 # to copy into the capture folder as mask.png (named mask_*: never read as one of its images)
 FOUND_FILE = "mask_found.png"

@@ -33,6 +33,11 @@ if TYPE_CHECKING:
     from psctl.io.capture import Capture, DecodeMemo
     from psctl.lights import LightEstimate
 
+__all__ = ["FALLOFFS", "DEFAULT_REFINE", "Refinement", "refine_lights", "sample_observations", "refine_estimate",
+           "integrability_roll", "erode_mask", "mirror_ratio", "turn_about_view_axis", "lights_changed",
+           "wants_roll", "roll_estimate", "refine_config", "refine_capture", "refine_arrays"]
+
+
 
 # --- the fit ---------------------------------------------------------------------------------
 

@@ -1250,6 +1250,11 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     method = check_method(method, "install")
     src = Path(run_dir) / "best.pt"
     if not src.is_file():
+        validated = False  # which of the two: the run's state says
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            validated = json.loads((Path(run_dir) / "state.json").read_text(encoding="utf-8")).get("best_val") is not None
+        if validated:
+            raise PsctlError(src, "is missing: the run's best validation was saved there, and the file was removed since")
         raise PsctlError(src, "no best weights in this run yet")
     w = read_weights(src)
     if w.method != method:
@@ -1274,3 +1279,17 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
             raise PsctlError(src, f"needs {tmp.stat().st_size / 1e6:.1f} MB even in float16 "
                                   f"(limit {RELEASE_MAX_BYTES / 1e6:.0f} MB per release file)")
     return dst
+
+
+def __getattr__(name: str) -> object:
+    """A name that moved out of this module on 2026-12-01 (psctl.checkpoint) is still found
+    here, with a DeprecationWarning, for code written against the one module."""
+    import importlib
+    import warnings
+
+    for module in ("psctl.checkpoint",):
+        mod = importlib.import_module(module)
+        if name in mod.__all__:
+            warnings.warn(f"psctl: {__name__}.{name} is now {module}.{name}", DeprecationWarning, stacklevel=2)
+            return getattr(mod, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

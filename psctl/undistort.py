@@ -23,6 +23,7 @@ output's corners have no source in the photo and are left out of the written mas
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -158,9 +159,10 @@ def camera_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, tuple[
                                "rational_polynomial)")
 
     def value(n: str) -> np.ndarray:
-        v, shape = keys[n], (None, None)
+        v, shape, channels = keys[n], (None, None), 1
         if isinstance(v, dict) and "data" in v:  # an opencv-matrix node (YAML tag or JSON type_id)
             shape = v.get("rows"), v.get("cols")
+            channels = int(re.match(r"\s*(\d*)", str(v.get("dt", ""))).group(1) or 1)  # "5d": 5 channels
             v = v["data"]
         try:
             out = np.asarray(v, dtype=np.float64).ravel()
@@ -169,13 +171,13 @@ def camera_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, tuple[
         # rows x cols must be the data's count, as OpenCV's reader requires (a review: 2 x 3 over 9 numbers
         # was read as a 3 x 3 matrix)
         if shape != (None, None):
-            try:
-                rows, cols = (int(x) for x in shape)
-                if (rows, cols) != tuple(shape) or rows * cols != out.size:
-                    raise ValueError
-            except (TypeError, ValueError):
-                raise PsctlError(path, f"{spelt[n]} says rows: {shape[0]}, cols: {shape[1]} but holds {out.size} "
-                                       f"numbers") from None
+            if not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in shape):
+                raise PsctlError(path, f"{spelt[n]}'s rows and cols must be two whole numbers, not "
+                                       f"{shape[0]!r} and {shape[1]!r}")
+            if shape[0] * shape[1] * channels != out.size:
+                raise PsctlError(path, f"{spelt[n]} says rows: {shape[0]}, cols: {shape[1]}"
+                                       f"{f' of {channels} channels' if channels > 1 else ''} but holds {out.size} "
+                                       f"numbers")
         return out
 
     def find(names: Sequence[str], what: str) -> np.ndarray:

@@ -1337,7 +1337,7 @@ def test_train_says_how_it_stopped(tmp_path, monkeypatch):
     stopped.update(signal=None, finished=True, best_val=12.5)
     proc = cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q")
     said = " ".join(proc.stderr.split())
-    assert proc.returncode == 0 and f"12.50°, but {tmp_path / 'r' / 'best.pt'} is missing" in said, said
+    assert proc.returncode == 0 and f"12.50°, but {tmp_path / 'r' / 'best.pt'}, which held it, is missing" in said, said
     (tmp_path / "r").mkdir()
     (tmp_path / "r" / "best.pt").write_bytes(b"weights")
     said = " ".join(cli("train", "ps-fcn", "--config", cfg, "--out", tmp_path / "r", "-q").stderr.split())

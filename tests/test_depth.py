@@ -758,6 +758,14 @@ def test_a_given_map_with_an_axis_flipped_gets_a_note(tmp_path):
                       if "less integrable than its mirror image" in x]
     assert said("ok.npy") == []
     assert len(said("flip.npy")) == 1 and said("flip.npy")[0].startswith("normals: flip.npy is "), said("flip.npy")
+    # psctl normals' own map from a light file with y flipped: the note names the file, not the map (a review)
+    from psctl.api import run_normals
+
+    lights = np.loadtxt(tmp_path / "cap" / "light_directions.txt")
+    np.savetxt(tmp_path / "cap" / "light_directions.txt", lights * [1, -1, 1])
+    run_normals(tmp_path / "cap", method="l2")
+    own = [x for x in run_depth(tmp_path / "cap", write=False)["notes"] if "than its mirror image" in x]
+    assert len(own) == 1 and "estimated it from the capture's light_directions.txt" in own[0], own
     normals, mask, _, _ = perspective_sphere()
     assert mirror_map_notes(normals, mask, Path("p.exr")) == []
     assert mirror_map_notes(normals * np.float32([-1, 1, 1]), mask, Path("p.exr")) != []

@@ -482,6 +482,12 @@ def test_install_refuses_a_file_without_its_validation(tmp_path, monkeypatch):
         T.average_weights([run / "best.pt", twin], tmp_path / "avg_bad", config=merge(tiny(16), {"data": {"batch_size": 8}}))
     T.average_weights([run / "best.pt", twin], tmp_path / "avg_val", config=tiny(16))
     assert T.install_weights(tmp_path / "avg_val", "ps-fcn").is_file()
+    (run / "best.pt").unlink()  # validated, then removed: said so, not "no best weights yet" (a review)
+    with pytest.raises(PsctlError, match="best.pt: is missing: the run's best validation was saved there"):
+        T.install_weights(run, "ps-fcn", replace=True)
+    (tmp_path / "fresh").mkdir()
+    with pytest.raises(PsctlError, match="best.pt: no best weights in this run yet"):
+        T.install_weights(tmp_path / "fresh", "ps-fcn", replace=True)  # (no state.json there)
 
 
 _FAULTS_AFTER_FREE = """
@@ -600,6 +606,12 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     with pytest.raises(PsctlError, match="log.jsonl: is not a psctl training log"):
         train("ps-fcn", tiny(8), foreign, device="cpu")
     assert (foreign / "log.jsonl").read_text() == "my own log line 1\nline 2\n"
+    cut = tmp_path / "cut"  # a stopped run's log whose last record a kill cut short: started again, and the
+    cut.mkdir()  # cut record dropped (the new first one was glued to it, and the next start refused it: a review)
+    (cut / "log.jsonl").write_text('{"samples": 8, "loss": 0.5}\n{"samples": 16, "lo')
+    train("ps-fcn", tiny(8), cut, device="cpu")
+    lines = (cut / "log.jsonl").read_text().splitlines()
+    assert lines[0] == '{"samples": 8, "loss": 0.5}' and all(isinstance(json.loads(x), dict) for x in lines), lines
     stopped = tmp_path / "stopped"  # only the log of a run that never checkpointed: started again
     stopped.mkdir()
     (stopped / "log.jsonl").write_text('{"step": 1}\n')

@@ -366,7 +366,9 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
     files = {"cv.yml": OPENCV_YAML, "nd.yml": OPENCV_YAML + nd,  # other OpenCV nodes beside
              "flow.yaml": "{K: [812.5, 0, 319.5, 0, 810.25, 241, 0, 0, 1], D: [-0.28, 0.09, 0.0012, -0.0007, -0.015],"
                           " distortion_model: plumb_bob}\n", "cv1.yml": OPENCV_YAML.replace("%YAML 1.2", "%YAML:1.0"),  # older OpenCV
-             "cv.json": OPENCV_JSON, "plain.yaml": "K: [[812.5, 0, 319.5], [0, 810.25, 241], [0, 0, 1]]\n"
+             "cv.json": OPENCV_JSON,  # a 1 x 1 node of 5 channels, which OpenCV reads too (a review)
+             "channels.yml": OPENCV_YAML.replace("rows: 1\n   cols: 5\n   dt: d", "rows: 1\n   cols: 1\n   dt: 5d"),
+             "plain.yaml": "K: [[812.5, 0, 319.5], [0, 810.25, 241], [0, 0, 1]]\n"
              "D: [-0.28, 0.09, 0.0012, -0.0007, -0.015]\n"}
     for name, text in files.items():
         (tmp_path / name).write_text(text)
@@ -390,6 +392,8 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
                                                                     "numbers"),
            "shape.json": (OPENCV_JSON.replace('"cols": 5', '"cols": 4'), "distortion_coefficients says rows: 1, "
                                                                          "cols: 4 but holds 5 numbers"),
+           "quoted.json": (OPENCV_JSON.replace('"rows": 3', '"rows": "3"'), "camera_matrix's rows and cols must be "
+                                                                           "two whole numbers, not '3' and 3"),
            "twice.yml": ("camera_matrix: [1, 0, 1, 0, 1, 1, 0, 0, 1]\nK: [2, 0, 1, 0, 2, 1, 0, 0, 1]\nD: [0, 0, 0, 0]\n",
                          "gives the camera matrix twice, as camera_matrix and K, with different values")}
     for name, (text, words) in bad.items():
