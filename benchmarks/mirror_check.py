@@ -4,7 +4,7 @@
 
 For each capture folder and method: the ratio (mirror image's curl residual over the normals')
 of the normals from the lights as given and from the lights with y negated, and of the ground
-truth when present. psctl normals notes ratios below psctl.api.MIRROR_NOTE (docs/usage.md,
+truth when present. psctl normals notes ratios below psctl.refine.MIRROR_NOTE (docs/usage.md,
 "A flipped light axis").
 """
 

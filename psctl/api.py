@@ -1140,18 +1140,11 @@ def spread_stats(spread: np.ndarray, mask: np.ndarray, error: np.ndarray | None 
     return out
 
 
-# A light file with one axis flipped (y down, as image rows, is the usual case) gives the mirror
-# image of the normals, which is far less integrable than the true field. On the DiLiGenT dev
-# split the ratio was 1.1-8.8 with the files as given and 0.2-0.9 with y flipped (L2 and PS-FCN;
-# the ball, a sphere, is the weak case), on syntest and syntest_dl see docs/usage.md
-MIRROR_NOTE = 0.5
-
-
 def mirror_notes(normals: np.ndarray, mask: np.ndarray) -> list[str]:
     """A note when the normals' mirror image is far more integrable than they are
     (``psctl.refine.mirror_ratio`` below MIRROR_NOTE): the light directions probably have an axis
     flipped."""
-    from psctl.refine import mirror_ratio
+    from psctl.refine import MIRROR_NOTE, mirror_ratio
 
     r = mirror_ratio(normals, mask)
     if r is None or r >= MIRROR_NOTE:

@@ -704,8 +704,7 @@ def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[s
     split's ground truth the ratio (``psctl.refine.mirror_ratio``) is 3.1-987 as given and
     0.001-0.33 with y flipped. A map that psctl normals wrote (its report.json beside says so)
     follows its light file: the note then names that file (a review: it said to flip the map)."""
-    from psctl.api import MIRROR_NOTE
-    from psctl.refine import mirror_ratio
+    from psctl.refine import MIRROR_NOTE, mirror_ratio
 
     step = max(1, int(np.sqrt(mask.size / 1_000_000)))  # a sample of the map: 3.4 s -> 0.5 s on a 9 MP sphere
     sub = nmap[::step, ::step]
@@ -964,18 +963,12 @@ def found_beside(normals: Path, shape: tuple[int, int]) -> np.ndarray | None:
     """[H, W] bool, the object found without a mask (``mask_found.png``) that the psctl normals run
     which wrote the normal map ``normals`` wrote beside it: both files as that run's report.json
     recorded them ("written"), the mask of ``shape``; else None (no such run, a file replaced since)."""
-    import json
-
-    from psctl.io.atomic import read_small_text
     from psctl.io.images import read_image
     from psctl.masks import FOUND_FILE
 
+    if not (written_by_normals(normals) and written_by_normals(normals.parent / FOUND_FILE)):
+        return None
     try:
-        written = json.loads(read_small_text(normals.parent / "report.json", 64 << 20)).get("written")
-        stamps = {n: [(normals.parent / n).stat().st_size, (normals.parent / n).stat().st_mtime_ns]
-                  for n in (normals.name, FOUND_FILE)}
-        if not isinstance(written, dict) or any(written.get(n) != v for n, v in stamps.items()):
-            return None
         found = read_image(normals.parent / FOUND_FILE)[0]
     except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
         return None

@@ -289,3 +289,21 @@ def python_wording(text: str) -> str:
 
     value = rf"(?: ({_WORDS}|[A-Z]+|-?\d+(?:\.\d+)?)(?![\w-]))?"
     return re.sub(rf"{alone}({flags})(?![\w-]){value}", one, text)
+
+
+def moved_names(old: str, *new: str) -> Callable[[str], Any]:
+    """A module ``__getattr__`` for ``old`` that finds the names (in their ``__all__``) that moved
+    from it to the ``new`` modules, the same objects, with a DeprecationWarning: code written
+    against the old module keeps working, and says where to look."""
+    def __getattr__(name: str) -> Any:
+        import importlib
+        import warnings
+
+        for module in new:
+            mod = importlib.import_module(module)
+            if name in mod.__all__:
+                warnings.warn(f"psctl: {old}.{name} is now {module}.{name}", DeprecationWarning, stacklevel=2)
+                return getattr(mod, name)
+        raise AttributeError(f"module {old!r} has no attribute {name!r}")
+
+    return __getattr__

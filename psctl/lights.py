@@ -54,7 +54,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import bounding_box
-from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, naming
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_path, check_progress, moved_names, naming
 from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
 from psctl.masks import FOUND_FILE, NO_MASK_PREFIX, capture_object
 from psctl.refine import lights_changed, refine_config
@@ -930,15 +930,5 @@ def render_lights(r: dict) -> None:
     print_written(con, r["outputs"])
 
 
-def __getattr__(name: str) -> object:
-    """A name that moved out of this module on 2026-12-01 (psctl.masks and psctl.refine) is still found
-    here, with a DeprecationWarning, for code written against the one module."""
-    import importlib
-    import warnings
-
-    for module in ("psctl.masks", "psctl.refine"):
-        mod = importlib.import_module(module)
-        if name in mod.__all__:
-            warnings.warn(f"psctl: {__name__}.{name} is now {module}.{name}", DeprecationWarning, stacklevel=2)
-            return getattr(mod, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# names that moved to psctl.masks and psctl.refine on 2026-12-01, still found here (with a warning)
+__getattr__ = moved_names(__name__, "psctl.masks", "psctl.refine")

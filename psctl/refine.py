@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from psctl.lights import LightEstimate
 
 __all__ = ["FALLOFFS", "DEFAULT_REFINE", "Refinement", "refine_lights", "sample_observations", "refine_estimate",
-           "integrability_roll", "erode_mask", "mirror_ratio", "turn_about_view_axis", "lights_changed",
+           "integrability_roll", "erode_mask", "MIRROR_NOTE", "mirror_ratio", "turn_about_view_axis", "lights_changed",
            "wants_roll", "roll_estimate", "refine_config", "refine_capture", "refine_arrays"]
 
 
@@ -379,6 +379,14 @@ def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
         a0, a90 = curl(nx, ny, nz), curl(-ny, nx, nz)  # turned by 90 degrees: (nx, ny) -> (-ny, nx)
         sums.append((float(a0 @ a0), float(a0 @ a90), float(a90 @ a90)))
     return sums, k
+
+
+# A light file with one axis flipped (y down, as image rows, is the usual case) gives the mirror
+# image of the normals, which is far less integrable than the true field. On the DiLiGenT dev
+# split the ratio was 1.1-8.8 with the files as given and 0.2-0.9 with y flipped (L2 and PS-FCN;
+# the ball, a sphere, is the weak case), on syntest and syntest_dl see docs/usage.md.
+# Below this ratio psctl normals (psctl.api.mirror_notes) and psctl depth (a given map) say so
+MIRROR_NOTE = 0.5
 
 
 def mirror_ratio(normals: np.ndarray, mask: np.ndarray | None = None, erode: int = 3) -> float | None:

@@ -50,7 +50,7 @@ import torch
 from psctl.checkpoint import (JOURNAL, OPTIM_PART, STAGED, TEMP_FILE, Stop, adam_steps, check_state, commit_checkpoint,
                               drop_lines_after_checkpoint, finish_checkpoint, no_half_run, restore_checkpoint,
                               restore_stream, save_optimizer)
-from psctl.errors import PsctlError, few, like_default, naming, not_a_file
+from psctl.errors import PsctlError, few, like_default, moved_names, naming, not_a_file
 from psctl.models.weights import file_sha256, normalization_allowed, save_torch
 from psctl.synth.stream import MAX_SEED
 
@@ -1281,15 +1281,5 @@ def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = Fal
     return dst
 
 
-def __getattr__(name: str) -> object:
-    """A name that moved out of this module on 2026-12-01 (psctl.checkpoint) is still found
-    here, with a DeprecationWarning, for code written against the one module."""
-    import importlib
-    import warnings
-
-    for module in ("psctl.checkpoint",):
-        mod = importlib.import_module(module)
-        if name in mod.__all__:
-            warnings.warn(f"psctl: {__name__}.{name} is now {module}.{name}", DeprecationWarning, stacklevel=2)
-            return getattr(mod, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# names that moved to psctl.checkpoint on 2026-12-01, still found here (with a warning)
+__getattr__ = moved_names(__name__, "psctl.checkpoint")
