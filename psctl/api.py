@@ -626,7 +626,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
 
         if memo is None:  # the networks' pass takes the images the search decoded, where they fit
             memo = DecodeMemo(DEFAULT_INFER["cache_mb"] << 20)
-        found = capture_object(cap, mask, {}, progress, memo, reader="normals")[2]
+        # (the search reads ahead as the networks' pass would)
+        found = capture_object(cap, mask, {"prefetch_mb": DEFAULT_INFER["prefetch_mb"]}, progress, memo,
+                               reader="normals")[2]
     read = _networks_read(found, mask)
     box = bounding_box(mask)
     near = None

@@ -483,18 +483,19 @@ def array_snap(images: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray 
     return snap_mask(array_edge(images, mask), mask)
 
 
-def capture_edge(capture: "Capture", mask: np.ndarray, progress: "ProgressFactory | None" = None) -> MaskEdge:
+def capture_edge(capture: "Capture", mask: np.ndarray, progress: "ProgressFactory | None" = None,
+                 prefetch_mb: int | None = None) -> MaskEdge:
     """``MaskEdge`` of a capture's images, as captured (its light_intensities.txt not applied),
     for ``snap_mask``: one read of the images. Nothing kept in a decode memo: whole frames there
-    would crowd out the crops the later passes keep."""
+    would crowd out the crops the later passes keep. ``prefetch_mb``: the read-ahead's bound
+    (``psctl.io.prefetch``; None: LCNet's, ``psctl.lights.DEFAULT_LIGHTS``)."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
-    from psctl.lights import DEFAULT_LIGHTS  # the same read-ahead as LCNet's pass
 
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     box = (slice(0, capture.height), slice(0, capture.width))
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: reading the mask's edge", capture.n_images)
-    with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
+    with prefetch(capture.image_paths, box, (capture.width, capture.height), _prefetch_mb(prefetch_mb)) as pf:
         return _edge(iter_images(raw, box, decoded=pf), capture.n_images, np.asarray(mask, bool), advance)
 
 
@@ -507,35 +508,45 @@ def capture_object(capture: "Capture", mask: np.ndarray, config: dict, progress:
     finds in one read of the images (``capture_shading``: brightness and profiles; ``memo``
     keeps them), with LCNet's exposure guard reading it as a mask, or where none is found the
     whole frame (``mask``), and no note here (``found.notes``). ``reader``: as ``find_object``'s.
-    ``snap`` False: a mask file as given (no read)."""
+    ``snap`` False: a mask file as given (no read). The read's read-ahead: ``config``'s
+    "prefetch_mb", else LCNet's default."""
     if capture.mask_path is not None:  # (no read where snap_mask could not measure the background)
         if not snap or not snappable(mask):
             return mask, config, None, None
-        snapped, note = snap_mask(capture_edge(capture, mask, progress), mask)
+        snapped, note = snap_mask(capture_edge(capture, mask, progress, config.get("prefetch_mb")), mask)
         return snapped, config, None, note
-    found = find_object(*capture_shading(capture, progress, memo), reader=reader)
+    found = find_object(*capture_shading(capture, progress, memo, config.get("prefetch_mb")), reader=reader)
     if found.mask is None:
         return mask, config, found, None
     return found.mask, {**config, "exposure_pixels": "found"}, found, None  # its mean, as a mask's (words apart)
 
 
 def capture_shading(capture: "Capture", progress: "ProgressFactory | None" = None,
-                    memo: "DecodeMemo | None" = None) -> tuple[np.ndarray, np.ndarray]:
+                    memo: "DecodeMemo | None" = None, prefetch_mb: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What ``find_object`` reads of a capture, in one read of its images: (brightness [H, W]
     float64, each pixel's sum over the images and channels as captured, its light_intensities.txt
     not applied; the profiles it tells a lit background by, [N, h, w] float32 grey, a pixel of
     each block: ``profile_grid``, ``block_samples``). ``memo`` keeps the decoded images (the whole
-    frame) for the passes after, where they fit."""
+    frame) for the passes after, where they fit. ``prefetch_mb``: as ``capture_edge``'s."""
     from psctl.io.capture import iter_images
     from psctl.io.prefetch import prefetch
-    from psctl.lights import DEFAULT_LIGHTS  # the same read-ahead as LCNet's pass
 
     raw = replace(capture, intensities=np.ones_like(capture.intensities))
     box = (slice(0, capture.height), slice(0, capture.width))
     advance = (progress or (lambda d, t: (lambda k: None)))(f"{capture.name}: finding the object", capture.n_images)
-    with prefetch(capture.image_paths, box, (capture.width, capture.height), DEFAULT_LIGHTS["prefetch_mb"]) as pf:
+    with prefetch(capture.image_paths, box, (capture.width, capture.height), _prefetch_mb(prefetch_mb)) as pf:
         return _shading(iter_images(raw, box, decoded=pf, memo=memo), capture.n_images, capture.height,
                         capture.width, advance)
+
+
+def _prefetch_mb(mb: int | None) -> int:
+    """The read-ahead bound of a mask's read: ``mb``, or where None LCNet's (read at the call, so
+    that a change to ``psctl.lights.DEFAULT_LIGHTS`` holds)."""
+    if mb is not None:
+        return mb
+    from psctl.lights import DEFAULT_LIGHTS
+
+    return DEFAULT_LIGHTS["prefetch_mb"]
 
 
 def array_shading(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -407,3 +407,44 @@ def test_a_wider_mask_kept_before_a_curved_backdrop_gets_a_note():
     flat = _before_a_curved_backdrop(normals, m, span=0.0)  # a plane: snapped, with the snap's note
     got, note = array_snap(flat, ndimage.binary_dilation(m, iterations=3))
     assert np.count_nonzero(got ^ m) <= 3 and "draw it tight" not in note
+
+
+def test_the_mask_reads_ahead_as_their_caller_says(tmp_path, monkeypatch):
+    """The object search and the mask's edge read ahead (psctl.io.prefetch) as much as their
+    caller's config says ("prefetch_mb"), else as LCNet's DEFAULT_LIGHTS says at the call; psctl
+    normals' search as the networks' pass (DEFAULT_INFER). They took LCNet's default always."""
+    import psctl.io.prefetch as pp
+    from psctl.api import run_normals
+    from psctl.infer import DEFAULT_INFER
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.lights import DEFAULT_LIGHTS
+    from psctl.masks import capture_object
+
+    asked, real = [], pp.prefetch
+    monkeypatch.setattr(pp, "prefetch", lambda paths, box, size, mb: asked.append(mb) or real(paths, None, size, 0))
+    write_capture(tmp_path / "maskPNG", n=6, size=32)
+    write_capture(tmp_path / "barePNG", n=6, size=32, mask=False)
+    masked, bare = open_capture(tmp_path / "maskPNG"), open_capture(tmp_path / "barePNG")
+    monkeypatch.setitem(DEFAULT_LIGHTS, "prefetch_mb", 3)
+    monkeypatch.setitem(DEFAULT_INFER, "prefetch_mb", 5)
+    wide = ndimage.binary_dilation(load_mask(masked), iterations=3)
+    for cap, mask in ((masked, wide), (bare, load_mask(bare))):
+        asked.clear()
+        capture_object(cap, mask, {}, reader="sdps")
+        capture_object(cap, mask, {"prefetch_mb": 7}, reader="sdps")
+        assert asked == [3, 7], cap.name
+    asked.clear()
+    run_normals(tmp_path / "barePNG", method="l2", write=False)  # l2 searches for nothing
+    assert asked == []
+    import psctl.infer
+
+    class Searched(Exception):
+        pass
+
+    def network(*args, **kwargs):  # the search is what is asked here, not the network
+        raise Searched
+
+    monkeypatch.setattr(psctl.infer, "capture_normals", network)
+    with pytest.raises(Searched):
+        run_normals(tmp_path / "barePNG", method="ps-fcn-n", write=False, device="cpu")
+    assert asked == [5]
