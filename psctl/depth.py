@@ -27,8 +27,9 @@ ray). Scaling by s keeps the residuals bounded where the surface is steep; nz is
 degrees: rim normals are unreliable).
 Each image edge (i, j) then carries c = sum of w s^2 and b = sum of w s t over its two
 one-sided terms, and the normal equations are a weighted graph Laplacian L z = rhs, solved by
-conjugate gradients with a small smoothed-aggregation multigrid preconditioner (scipy has no
-sparse Cholesky, and its sparse LU is slow and memory-hungry at millions of unknowns).
+conjugate gradients with a small smoothed-aggregation multigrid preconditioner
+(``psctl.poisson``; scipy has no sparse Cholesky, and its sparse LU is slow and memory-hungry
+at millions of unknowns).
 
 * ``poisson``: all weights 1/2: weighted least squares of the gradient field (-nx/nz, -ny/nz),
   one linear solve.
@@ -60,6 +61,7 @@ import numpy as np
 from psctl.arrays import as_mask, check_vector_dtype, plain, unit_vectors
 from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
+from psctl.poisson import solve_laplacian
 
 if TYPE_CHECKING:
     from psctl.io.mesh import Mesh
@@ -277,7 +279,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         sf, sb = s_all[fwd], s_all[bwd]
         c = 0.5 * (sf * sf + sb * sb)
         b = 0.5 * (sf * t_all[fwd] + sb * t_all[bwd])
-        z, its, _, converged = _solve(npix, ei, ej, c, b, pins, coords, None, cfg)
+        z, its, _, converged = solve_laplacian(npix, ei, ej, c, b, pins, coords, None, cfg)
         rounds, total_its = 1, its
     else:
         z, rounds, total_its, kept, converged = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
@@ -350,7 +352,7 @@ def read_intrinsics(path: str | os.PathLike) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------
-# Solvers
+# The pixel graph and bilateral's reweighting (the linear solve: psctl.poisson)
 # ----------------------------------------------------------------------------------------------
 
 def _adjacency(npix: int, ei: np.ndarray, ej: np.ndarray):
@@ -391,7 +393,7 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
         w_bwd = 1.0 - wt[bwd]
         c = w_fwd * sf * sf + w_bwd * sb * sb
         b = w_fwd * sf * tf + w_bwd * sb * tb
-        z, its, amg, converged = _solve(npix, ei, ej, c, b, pins, coords, z, cfg, amg)
+        z, its, amg, converged = solve_laplacian(npix, ei, ej, c, b, pins, coords, z, cfg, amg)
         total += its
         dz = z[ej] - z[ei]
         energy, old = float(np.sum(w_fwd * (sf * dz - tf) ** 2 + w_bwd * (sb * dz - tb) ** 2)), energy
@@ -405,160 +407,6 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
             break
     kept = (wt[fwd] * sf * sf + (1.0 - wt[bwd]) * sb * sb) / (0.5 * (sf * sf + sb * sb))
     return z, rounds, total, kept, converged
-
-
-def _solve(npix, ei, ej, c, b, pins, coords, x0, cfg, amg=None):
-    """min sum_e c_e (z_j - z_i)^2 - 2 b_e (z_j - z_i), one pinned pixel per component.
-
-    ``amg``: a preconditioner built for an earlier matrix of the same graph (any SPD
-    preconditioner keeps CG correct; a stale one only costs iterations). Returns
-    (z, cg iterations, preconditioner used, whether CG met cg_rtol)."""
-    if len(ei) == 0:  # isolated pixels only
-        return np.zeros(npix), 0, None, True
-    L = _laplacian(npix, ei, ej, c, pins)
-    rhs = np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
-    if npix <= cfg["amg_max_coarse"]:
-        import scipy.linalg
-
-        return scipy.linalg.solve(L.toarray(), rhs, assume_a="pos"), 0, None, True
-    its = 0
-    if amg is not None:  # try the old preconditioner for a few iterations first
-        x0, its, done = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["amg_rebuild_iters"])
-        if done:
-            return x0, its, amg, True
-    amg = _SmoothedAggregation(L, coords, cfg)
-    z, more, done = _pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
-    return z, its + more, amg, done
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    # einsum, not np.dot: OpenBLAS threads its dot product, and on a busy 2-core machine that is
-    # 10x slower than a plain loop
-    return float(np.einsum("i,i->", a, b))
-
-
-def _pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
-         maxiter: int) -> tuple[np.ndarray, int, bool]:
-    """Preconditioned conjugate gradients until max_i |r_i| / a_ii <= rtol max_i |b_i| / a_ii.
-
-    The stopping rule is per unknown (r_i / a_ii is how far a Jacobi step would move z_i), not
-    on |r|: a pixel that bilateral weights have nearly cut loose has a tiny row, and a global
-    residual norm would stop before that pixel has settled. Returns (x, iterations, converged).
-    """
-    dinv = 1.0 / A.diagonal()
-    x = np.zeros_like(b) if x0 is None else x0.copy()
-    r = b - A @ x
-    tmp = np.empty_like(b)
-
-    def scaled_max(v: np.ndarray) -> float:
-        np.multiply(v, dinv, out=tmp)
-        return float(np.max(np.abs(tmp, out=tmp)))
-
-    stop = rtol * scaled_max(b)
-    if scaled_max(r) <= stop:
-        return x, 0, True
-    y = M(r)
-    p = y.copy()
-    ry = _dot(r, y)
-    for it in range(1, maxiter + 1):
-        q = A @ p
-        alpha = ry / _dot(p, q)
-        x += np.multiply(p, alpha, out=tmp)
-        r -= np.multiply(q, alpha, out=tmp)
-        if scaled_max(r) <= stop:
-            return x, it, True
-        y = M(r)
-        ry, ry_old = _dot(r, y), ry
-        p *= ry / ry_old
-        p += y
-    return x, maxiter, False
-
-
-def _laplacian(npix, ei, ej, c, pins):
-    """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree)."""
-    import scipy.sparse as sp
-
-    diag = np.bincount(ei, c, npix) + np.bincount(ej, c, npix)
-    diag[pins] += max(float(diag.mean()), 1e-12)
-    diag = np.maximum(diag, 1e-300)  # isolated pixels are pinned, so only a guard
-    rows = np.concatenate([ei, ej, np.arange(npix)])
-    cols = np.concatenate([ej, ei, np.arange(npix)])
-    return sp.csr_matrix((np.concatenate([-c, -c, diag]), (rows, cols)), shape=(npix, npix))
-
-
-class _SmoothedAggregation:
-    """A V-cycle of smoothed-aggregation multigrid, used as the CG preconditioner.
-
-    Aggregates: within each 3 x 3 block of a level's grid, the nodes joined by strong couplings
-    (so a depth jump that bilateral weights have cut is never averaged over). Prolongation
-    P = (I - omega D^-1 A) P0 with P0 the aggregates' indicator; coarse A = P^T A P; damped
-    Jacobi smoothing (symmetric, so the V-cycle is a valid CG preconditioner).
-    ``coords``: (row, col) of each unknown on the pixel grid.
-    """
-
-    def __init__(self, A, coords: tuple[np.ndarray, np.ndarray], cfg: dict):
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as sla
-
-        self.sweeps = cfg["amg_sweeps"]
-        self.levels = []
-        while A.shape[0] > cfg["amg_max_coarse"]:
-            n = A.shape[0]
-            agg, coarse_coords = _aggregate(A, coords, cfg["amg_strength"])
-            nc = int(agg.max()) + 1
-            if nc > 0.8 * n:  # coarsening has stalled (very sparse or cut-up graph): stop here
-                break
-            dinv = 1.0 / A.diagonal()
-            omega = (4.0 / 3.0) / _jacobi_radius_bound(A, dinv)
-            P0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, nc))
-            P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr()
-            R = P.T.tocsr()
-            self.levels.append((A, omega * dinv, P, R))
-            A, coords = (R @ (A @ P)).tocsr(), coarse_coords
-        # sparse LU: single-threaded and tiny here (a dense Cholesky calls multithreaded BLAS,
-        # which is slow on a busy 2-core machine); also copes when coarsening stalled early
-        self.coarse = sla.splu(A.tocsc()).solve
-
-    def __call__(self, b: np.ndarray) -> np.ndarray:
-        return self._vcycle(0, b)
-
-    def _vcycle(self, k: int, b: np.ndarray) -> np.ndarray:
-        if k == len(self.levels):
-            return self.coarse(b)
-        A, wd, P, R = self.levels[k]
-        x = wd * b
-        for _ in range(self.sweeps - 1):
-            x += wd * (b - A @ x)
-        x += P @ self._vcycle(k + 1, R @ (b - A @ x))
-        for _ in range(self.sweeps):
-            x += wd * (b - A @ x)
-        return x
-
-
-def _jacobi_radius_bound(A, dinv: np.ndarray) -> float:
-    """Gershgorin bound on the spectral radius of D^-1 A (2 for a graph Laplacian)."""
-    absrow = np.asarray(abs(A).sum(axis=1)).ravel()
-    return float(np.max(absrow * dinv))
-
-
-def _aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
-    """Aggregates: connected groups of strongly coupled nodes (-a_ij >= theta sqrt(a_ii a_jj))
-    inside each 3 x 3 block of the nodes' (row, col) grid coordinates.
-
-    Returns (aggregate of each node, (row, col) of each aggregate on the next, coarser grid)."""
-    import scipy.sparse as sp
-    import scipy.sparse.csgraph as csgraph
-
-    r, c = coords
-    A = A.tocoo()
-    i, j, v = A.row, A.col, A.data
-    d = A.diagonal()
-    keep = (i != j) & (-v >= theta * np.sqrt(d[i] * d[j])) & (r[i] // 3 == r[j] // 3) & (c[i] // 3 == c[j] // 3)
-    n = A.shape[0]
-    graph = sp.csr_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(n, n))
-    _, agg = csgraph.connected_components(graph, directed=False)
-    first = np.unique(agg, return_index=True)[1]
-    return agg, (r[first] // 3, c[first] // 3)
 
 
 # ----------------------------------------------------------------------------------------------

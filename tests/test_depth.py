@@ -703,7 +703,7 @@ def test_a_map_facing_away_is_refused_before_the_solve(capture, tmp_path, monkey
     write_image(tmp_path / "away.exr", away, "float")
     if perspective:
         (capture / "K.txt").write_text("3000 0 20\n0 3000 20\n0 0 1\n")
-    monkeypatch.setattr(depth, "_solve", lambda *a, **k: pytest.fail("solved a map it refuses"))
+    monkeypatch.setattr(depth, "solve_laplacian", lambda *a, **k: pytest.fail("solved a map it refuses"))
     with pytest.raises(PsctlError, match="normals face away from the camera" +
                        (" along the rays of the intrinsics K.txt" if perspective else ": not a normal map")):
         depth.run_depth(capture, normals=tmp_path / "away.exr", write=False)
@@ -769,3 +769,32 @@ def test_a_given_map_with_an_axis_flipped_gets_a_note(tmp_path):
     normals, mask, _, _ = perspective_sphere()
     assert mirror_map_notes(normals, mask, Path("p.exr")) == []
     assert mirror_map_notes(normals * np.float32([-1, 1, 1]), mask, Path("p.exr")) != []
+
+
+def test_the_laplacian_solve_is_the_dense_one():
+    """psctl.poisson.solve_laplacian (CG with the multigrid V-cycle, and again from a stale
+    preconditioner as bilateral reuses one) gives the dense solution of the same pinned system,
+    on a 50 x 50 grid of random weights cut into two components."""
+    from psctl.depth import DEFAULT_CONFIG
+    from psctl.poisson import laplacian, solve_laplacian
+
+    rng = np.random.default_rng(3)
+    h = w = 50
+    index = np.arange(h * w).reshape(h, w)
+    ei = np.concatenate([index[:, :-1].ravel(), index[:-1, :].ravel()])
+    ej = np.concatenate([index[:, 1:].ravel(), index[1:, :].ravel()])
+    split = (ei % w < 20) == (ej % w < 20)  # no edge across column 20: two components
+    ei, ej = ei[split], ej[split]
+    c, b = rng.uniform(0.01, 2.0, len(ei)), rng.normal(size=len(ei))
+    pins = np.array([0, 20])
+    coords = np.divmod(np.arange(h * w), w)
+    cfg = {**DEFAULT_CONFIG, "cg_rtol": 1e-10}
+    exact = np.linalg.solve(laplacian(h * w, ei, ej, c, pins).toarray(),
+                            np.bincount(ej, b, h * w) - np.bincount(ei, b, h * w))
+    z, its, amg, done = solve_laplacian(h * w, ei, ej, c, b, pins, coords, None, cfg)
+    assert done and its > 0 and amg is not None and np.abs(z - exact).max() < 1e-6 * np.abs(exact).max()
+    c2 = c * rng.uniform(0.5, 2.0, len(c))  # bilateral's next round: new weights, the old V-cycle first
+    exact2 = np.linalg.solve(laplacian(h * w, ei, ej, c2, pins).toarray(),
+                             np.bincount(ej, b, h * w) - np.bincount(ei, b, h * w))
+    z2, _, _, done2 = solve_laplacian(h * w, ei, ej, c2, b, pins, coords, z, cfg, amg)
+    assert done2 and np.abs(z2 - exact2).max() < 1e-6 * np.abs(exact2).max()

@@ -1,0 +1,178 @@
+"""The linear solve behind normal integration (``psctl.depth``): a weighted graph Laplacian over
+the valid pixels, one pinned pixel per connected component, solved by conjugate gradients with a
+small smoothed-aggregation multigrid V-cycle as preconditioner.
+
+Why not a direct solver: scipy has no sparse Cholesky, and its sparse LU is slow and
+memory-hungry at millions of unknowns. Pure functions of arrays and a config dict (the keys of
+``psctl.depth.DEFAULT_CONFIG``: cg_rtol, cg_maxiter, amg_*); scipy is imported where used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["solve_laplacian", "laplacian", "pcg", "SmoothedAggregation"]
+
+
+def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b: np.ndarray, pins: np.ndarray,
+                    coords: tuple[np.ndarray, np.ndarray], x0: np.ndarray | None, cfg: dict,
+                    amg: "SmoothedAggregation | None" = None
+                    ) -> tuple[np.ndarray, int, "SmoothedAggregation | None", bool]:
+    """min sum_e c_e (z_j - z_i)^2 - 2 b_e (z_j - z_i), one pinned pixel per component.
+
+    ``npix`` unknowns; edge e joins pixels ``ei[e]`` -> ``ej[e]`` [E] with weight ``c[e]`` and
+    right-hand side ``b[e]`` [E]; ``pins``: one pixel per connected component (z_p = 0 there);
+    ``coords``: (row, col) of each unknown [npix], for the multigrid's aggregates; ``x0``: a
+    starting point [npix] or None.
+
+    ``amg``: a preconditioner built for an earlier matrix of the same graph (any SPD
+    preconditioner keeps CG correct; a stale one only costs iterations). Returns
+    (z, cg iterations, preconditioner used, whether CG met cg_rtol)."""
+    if len(ei) == 0:  # isolated pixels only
+        return np.zeros(npix), 0, None, True
+    L = laplacian(npix, ei, ej, c, pins)
+    rhs = np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
+    if npix <= cfg["amg_max_coarse"]:
+        import scipy.linalg
+
+        return scipy.linalg.solve(L.toarray(), rhs, assume_a="pos"), 0, None, True
+    its = 0
+    if amg is not None:  # try the old preconditioner for a few iterations first
+        x0, its, done = pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["amg_rebuild_iters"])
+        if done:
+            return x0, its, amg, True
+    amg = SmoothedAggregation(L, coords, cfg)
+    z, more, done = pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
+    return z, its + more, amg, done
+
+
+def dot(a: np.ndarray, b: np.ndarray) -> float:
+    # einsum, not np.dot: OpenBLAS threads its dot product, and on a busy 2-core machine that is
+    # 10x slower than a plain loop
+    return float(np.einsum("i,i->", a, b))
+
+
+def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
+         maxiter: int) -> tuple[np.ndarray, int, bool]:
+    """Preconditioned conjugate gradients until max_i |r_i| / a_ii <= rtol max_i |b_i| / a_ii.
+
+    The stopping rule is per unknown (r_i / a_ii is how far a Jacobi step would move z_i), not
+    on |r|: a pixel that bilateral weights have nearly cut loose has a tiny row, and a global
+    residual norm would stop before that pixel has settled. Returns (x, iterations, converged).
+    """
+    dinv = 1.0 / A.diagonal()
+    x = np.zeros_like(b) if x0 is None else x0.copy()
+    r = b - A @ x
+    tmp = np.empty_like(b)
+
+    def scaled_max(v: np.ndarray) -> float:
+        np.multiply(v, dinv, out=tmp)
+        return float(np.max(np.abs(tmp, out=tmp)))
+
+    stop = rtol * scaled_max(b)
+    if scaled_max(r) <= stop:
+        return x, 0, True
+    y = M(r)
+    p = y.copy()
+    ry = dot(r, y)
+    for it in range(1, maxiter + 1):
+        q = A @ p
+        alpha = ry / dot(p, q)
+        x += np.multiply(p, alpha, out=tmp)
+        r -= np.multiply(q, alpha, out=tmp)
+        if scaled_max(r) <= stop:
+            return x, it, True
+        y = M(r)
+        ry, ry_old = dot(r, y), ry
+        p *= ry / ry_old
+        p += y
+    return x, maxiter, False
+
+
+def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np.ndarray):
+    """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree)."""
+    import scipy.sparse as sp
+
+    diag = np.bincount(ei, c, npix) + np.bincount(ej, c, npix)
+    diag[pins] += max(float(diag.mean()), 1e-12)
+    diag = np.maximum(diag, 1e-300)  # isolated pixels are pinned, so only a guard
+    rows = np.concatenate([ei, ej, np.arange(npix)])
+    cols = np.concatenate([ej, ei, np.arange(npix)])
+    return sp.csr_matrix((np.concatenate([-c, -c, diag]), (rows, cols)), shape=(npix, npix))
+
+
+class SmoothedAggregation:
+    """A V-cycle of smoothed-aggregation multigrid, used as the CG preconditioner.
+
+    Aggregates: within each 3 x 3 block of a level's grid, the nodes joined by strong couplings
+    (so a depth jump that bilateral weights have cut is never averaged over). Prolongation
+    P = (I - omega D^-1 A) P0 with P0 the aggregates' indicator; coarse A = P^T A P; damped
+    Jacobi smoothing (symmetric, so the V-cycle is a valid CG preconditioner).
+    ``coords``: (row, col) of each unknown on the pixel grid.
+    """
+
+    def __init__(self, A, coords: tuple[np.ndarray, np.ndarray], cfg: dict):
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as sla
+
+        self.sweeps = cfg["amg_sweeps"]
+        self.levels = []
+        while A.shape[0] > cfg["amg_max_coarse"]:
+            n = A.shape[0]
+            agg, coarse_coords = aggregate(A, coords, cfg["amg_strength"])
+            nc = int(agg.max()) + 1
+            if nc > 0.8 * n:  # coarsening has stalled (very sparse or cut-up graph): stop here
+                break
+            dinv = 1.0 / A.diagonal()
+            omega = (4.0 / 3.0) / jacobi_radius_bound(A, dinv)
+            P0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, nc))
+            P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr()
+            R = P.T.tocsr()
+            self.levels.append((A, omega * dinv, P, R))
+            A, coords = (R @ (A @ P)).tocsr(), coarse_coords
+        # sparse LU: single-threaded and tiny here (a dense Cholesky calls multithreaded BLAS,
+        # which is slow on a busy 2-core machine); also copes when coarsening stalled early
+        self.coarse = sla.splu(A.tocsc()).solve
+
+    def __call__(self, b: np.ndarray) -> np.ndarray:
+        return self._vcycle(0, b)
+
+    def _vcycle(self, k: int, b: np.ndarray) -> np.ndarray:
+        if k == len(self.levels):
+            return self.coarse(b)
+        A, wd, P, R = self.levels[k]
+        x = wd * b
+        for _ in range(self.sweeps - 1):
+            x += wd * (b - A @ x)
+        x += P @ self._vcycle(k + 1, R @ (b - A @ x))
+        for _ in range(self.sweeps):
+            x += wd * (b - A @ x)
+        return x
+
+
+def jacobi_radius_bound(A, dinv: np.ndarray) -> float:
+    """Gershgorin bound on the spectral radius of D^-1 A (2 for a graph Laplacian)."""
+    absrow = np.asarray(abs(A).sum(axis=1)).ravel()
+    return float(np.max(absrow * dinv))
+
+
+def aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
+    """Aggregates: connected groups of strongly coupled nodes (-a_ij >= theta sqrt(a_ii a_jj))
+    inside each 3 x 3 block of the nodes' (row, col) grid coordinates.
+
+    Returns (aggregate of each node, (row, col) of each aggregate on the next, coarser grid)."""
+    import scipy.sparse as sp
+    import scipy.sparse.csgraph as csgraph
+
+    r, c = coords
+    A = A.tocoo()
+    i, j, v = A.row, A.col, A.data
+    d = A.diagonal()
+    keep = (i != j) & (-v >= theta * np.sqrt(d[i] * d[j])) & (r[i] // 3 == r[j] // 3) & (c[i] // 3 == c[j] // 3)
+    n = A.shape[0]
+    graph = sp.csr_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(n, n))
+    _, agg = csgraph.connected_components(graph, directed=False)
+    first = np.unique(agg, return_index=True)[1]
+    return agg, (r[first] // 3, c[first] // 3)
