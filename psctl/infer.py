@@ -454,7 +454,7 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
 
     cfg = {**DEFAULT_INFER, **(config or {})}
     t_start = time.perf_counter()
-    where = exposure_where(cfg["exposure_pixels"])
+    exposure_where(cfg["exposure_pixels"])  # an unknown rule is an error before any work
     if n < 1:
         raise PsctlError(None, "no images")
     if model.uses_lights:
@@ -488,45 +488,12 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     advance = (progress or (lambda d, t: (lambda k: None)))(label, n * passes)
     stream = _RegionImages(reader, n, box, mask, cfg["cache_mb"] << 20, advance)
 
-    # +N, pass 1: per-pixel sum of squares over the images -> one scale per pixel (and channel).
-    scale = None
+    # pass 1 where asked: +N's factor per pixel (and channel), or one exposure factor for the capture
+    scale, exposure = None, None
     if normalization != "none":
-        # float64: the sum (so the result) does not depend on the order of the images
-        # (squared in float64 too: float32 squares of values below 1e-19 or above 1e19 leave its range)
-        sumsq = np.zeros((h, w, 3 if normalization == "per-channel" else 1), np.float64)
-        for img in stream:
-            sq = np.square(img, dtype=np.float64)
-            sumsq += sq if normalization == "per-channel" else sq.sum(-1, keepdims=True)
-        scale = np.sqrt(sumsq, out=sumsq)  # in place: for a large region these maps are big
-        lit = scale > 0
-        # the authors' epsilon, relative to the capture's level so that its units do not matter (an
-        # absolute 1e-10 swamped the norms of a capture scaled by 1e-10 or less, session 38)
-        top = float(scale.max())
-        scale += NORM_EPS * (top if top > 0 else 1.0)
-        np.divide(math.sqrt(n / train_images), scale, out=scale)
-        scale[~lit] = 0.0  # observations all 0 there: any factor gives 0
-        if float(scale.max()) > float(np.finfo(np.float32).max):
-            raise PsctlError(None, f"the images are too dark to normalise in float32 (largest per-pixel norm "
-                                   f"{top:.3g}): rescale them")
-        del sumsq
-    # exposure, pass 1: one factor for the whole capture (keeps albedo and shading ratios)
-    exposure = None
-    if input_mean is not None:
-        lit = cfg["exposure_pixels"] == "lit"
-        if lit:  # no mask: the lit pixels' mean, not the dark background's too
-            pixel_sum = np.zeros(stream.shape, np.float64)
-            for img in stream:
-                pixel_sum += img.sum(-1, dtype=np.float64)
-            mean = lit_mean(pixel_sum[: stream.rh, : stream.rw], n)  # not the zero padding (the stream is masked)
-            black = mean == 0  # no pixel above 0
-            del pixel_sum
-        else:
-            total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
-            mean, black = total / (float(stream.mask.sum()) * 3 * n), total == 0
-        if not mean > 0:
-            raise PsctlError(None, f"all images are black{'' if lit else ' inside the mask'}" if black else
-                             f"the images' mean {where} is {mean:.3g}: linear images are not negative")
-        exposure = check_float32_scale(input_mean / mean, mean, where)
+        scale = _observation_scale(stream, normalization, n, train_images)
+    elif input_mean is not None:  # (+N removes any global scale: input_mean is None with it)
+        exposure = _exposure_scale(stream, n, input_mean, cfg["exposure_pixels"])
         scale = np.full((1, 1, 1), exposure, np.float32)
 
     out = np.zeros((h, w, 3), np.float32)
@@ -609,6 +576,56 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
     if not (stream.peak[: stream.rh, : stream.rw][inside] > 0).any():  # PS-FCN+N would answer anyway
         raise PsctlError(None, "all images are black inside the mask")
     return InferResult(normals, dark, info)
+
+
+def _observation_scale(stream: "_RegionImages", normalization: str, n: int, train_images: int) -> np.ndarray:
+    """+N's factor, from one pass over the ``n`` images [h, w, 3] of ``stream`` (h, w: its shape):
+    sqrt(t / q) / ||observations|| per pixel [h, w, 1] ("per-pixel") or per pixel and channel
+    [h, w, 3] ("per-channel"), 0 where every observation is 0 (t = ``n``, q = ``train_images``).
+    Multiplying each image by it is ``psctl.models.ps_fcn.normalize_observations`` times
+    sqrt(t / q), without holding the images."""
+    h, w = stream.shape
+    # float64: the sum (so the result) does not depend on the order of the images
+    # (squared in float64 too: float32 squares of values below 1e-19 or above 1e19 leave its range)
+    sumsq = np.zeros((h, w, 3 if normalization == "per-channel" else 1), np.float64)
+    for img in stream:
+        sq = np.square(img, dtype=np.float64)
+        sumsq += sq if normalization == "per-channel" else sq.sum(-1, keepdims=True)
+    scale = np.sqrt(sumsq, out=sumsq)  # in place: for a large region these maps are big
+    lit = scale > 0
+    # the authors' epsilon, relative to the capture's level so that its units do not matter (an
+    # absolute 1e-10 swamped the norms of a capture scaled by 1e-10 or less, session 38)
+    top = float(scale.max())
+    scale += NORM_EPS * (top if top > 0 else 1.0)
+    np.divide(math.sqrt(n / train_images), scale, out=scale)
+    scale[~lit] = 0.0  # observations all 0 there: any factor gives 0
+    if float(scale.max()) > float(np.finfo(np.float32).max):
+        raise PsctlError(None, f"the images are too dark to normalise in float32 (largest per-pixel norm "
+                               f"{top:.3g}): rescale them")
+    return scale
+
+
+def _exposure_scale(stream: "_RegionImages", n: int, input_mean: float, exposure_pixels: str) -> float:
+    """The one factor that brings the ``n`` images' mean to ``input_mean`` (the exposure the
+    network was trained at), from one pass over ``stream``: the mean over its mask (all images and
+    channels), or with ``exposure_pixels`` "lit" over the lit pixels (``lit_mean``). One factor
+    for the whole capture keeps albedo and shading ratios."""
+    where = exposure_where(exposure_pixels)
+    lit = exposure_pixels == "lit"
+    if lit:  # no mask: the lit pixels' mean, not the dark background's too
+        pixel_sum = np.zeros(stream.shape, np.float64)
+        for img in stream:
+            pixel_sum += img.sum(-1, dtype=np.float64)
+        mean = lit_mean(pixel_sum[: stream.rh, : stream.rw], n)  # not the zero padding (the stream is masked)
+        black = mean == 0  # no pixel above 0
+        del pixel_sum
+    else:
+        total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
+        mean, black = total / (float(stream.mask.sum()) * 3 * n), total == 0
+    if not mean > 0:
+        raise PsctlError(None, f"all images are black{'' if lit else ' inside the mask'}" if black else
+                         f"the images' mean {where} is {mean:.3g}: linear images are not negative")
+    return check_float32_scale(input_mean / mean, mean, where)
 
 
 def run_views(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | None, mask: np.ndarray,
