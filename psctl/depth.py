@@ -568,19 +568,46 @@ def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[s
             f"(docs/formats.md); flip it first"]
 
 
-def written_by_normals(path: Path) -> bool:
-    """Whether ``path`` is as the psctl normals run whose report.json lies beside it wrote it (its
-    size and modification time as the report's "written" recorded them)."""
+def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
+    """The normal map psctl depth reads in a psctl normals output ``folder``: the first of
+    NORMAL_FILES there that the run whose report.json lies beside it wrote (``written_by_normals``),
+    else the first there, with a note when report.json names other files (a map an earlier run
+    or the user left: it was read without a word, an interruption audit); (None, None) where none is."""
+    there = [folder / n for n in NORMAL_FILES if (folder / n).is_file()]
+    if not there:
+        return None, None
+    for p in there:
+        if written_by_normals(p):
+            return p, None
+    listed = [n for n in NORMAL_FILES if n in _written(folder / "report.json")]
+    if not listed:
+        return there[0], None
+    return there[0], (f"normals: {there[0].name} in {folder} is not a map the psctl normals run whose report.json is "
+                      f"there wrote (it wrote {', '.join(listed)}, since changed or removed): read all the same; "
+                      f"name the map with --normals")
+
+
+def _written(report: Path) -> dict:
+    """A psctl normals report's "written" ({file: [bytes, mtime ns]}), {} where it has none."""
     import json
 
     from psctl.io.atomic import read_small_text
 
     try:
-        written = json.loads(read_small_text(path.parent / "report.json", 64 << 20)).get("written")
-        st = path.stat()
+        written = json.loads(read_small_text(report, 64 << 20)).get("written")
     except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
+        return {}
+    return written if isinstance(written, dict) else {}
+
+
+def written_by_normals(path: Path) -> bool:
+    """Whether ``path`` is as the psctl normals run whose report.json lies beside it wrote it (its
+    size and modification time as the report's "written" recorded them)."""
+    try:
+        st = path.stat()
+    except OSError:
         return False
-    return isinstance(written, dict) and written.get(path.name) == [st.st_size, st.st_mtime_ns]
+    return _written(path.parent / "report.json").get(path.name) == [st.st_size, st.st_mtime_ns]
 
 
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",
@@ -591,7 +618,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     and depth_report.json (in ``out``, default PATH/psctl; all files or none).
 
     Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else the first of NORMAL_FILES in
-    PATH/psctl (normal.exr, normal.npy, normal.png, normal_8bit.png), else estimated from the images (``psctl normals --method auto``). Mask: the
+    PATH/psctl (normal.exr, normal.npy, normal.png, normal_8bit.png) that the psctl normals run
+    there wrote (``pick_normal_file``), else estimated from the images (``psctl normals --method auto``). Mask: the
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     The images (for estimated normals and the mesh's vertex colours) are read as
@@ -639,10 +667,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     estimated: dict | None = None  # and its report
     inputs: list = []  # (file, input_stamp): read here, to be unchanged when the outputs are written
     if normals is None:
-        for name in NORMAL_FILES:
-            if (cap.path / "psctl" / name).is_file():
-                normals = cap.path / "psctl" / name
-                break
+        normals, picked_note = pick_normal_file(cap.path / "psctl")
+        notes += [picked_note] if picked_note else []
     if normals is not None:
         from psctl.io.normals import read_normal_map
 

@@ -2224,3 +2224,76 @@ def test_readme_and_docs_link_to_files_that_exist():
                 missing.append(f"{doc.relative_to(root)}: {target}")
     assert not missing, missing
     assert (root / "docs" / "img" / "dev_split_l2_vs_ensemble.png").is_file()
+
+
+_KILL_AT_RENAME = """
+import os, signal, sys
+import psctl.io.atomic as atomic
+from psctl.api import run_normals
+
+count, real = [0], os.replace
+
+def replace(a, b, *args, **kwargs):  # kill -9 at the N-th rename of the commit
+    if ".psctl-staging" in str(a) + str(b):
+        count[0] += 1
+        if count[0] == int(sys.argv[1]):
+            os.kill(os.getpid(), signal.SIGKILL)
+    return real(a, b, *args, **kwargs)
+
+atomic.os.replace = replace
+run_normals(sys.argv[2], method="l2", out=sys.argv[3], formats=["png16", "npy"])
+print(count[0])
+"""
+
+
+def test_a_run_killed_between_two_renames_leaves_a_list_of_psctls_files(capture, tmp_path):
+    """kill -9 at each rename of a commit (-f png16,npy after an -f exr run), then a -f png16 run:
+    the folder holds that run's files, neither the first run's normal.exr nor the killed run's
+    normal.npy (the old list went aside first, so the next run did not know normal.exr was
+    psctl's, and psctl depth then read the stale map: an interruption audit), with a note where
+    earlier files were set aside."""
+    from psctl.api import run_normals
+
+    n = 1
+    while True:
+        out = tmp_path / f"out{n}"
+        run_normals(capture, method="l2", out=out, formats=["exr"], n_images=4)
+        r = subprocess.run([sys.executable, "-c", _KILL_AT_RENAME, str(n), str(capture), str(out)],
+                           capture_output=True, text=True)
+        done = r.returncode == 0  # past the last rename: nothing killed
+        assert done or r.returncode == -9, r.stderr
+        again = run_normals(capture, method="l2", out=out, formats=["png16"])
+        assert sorted(f for f in os.listdir(out) if not f.startswith(".")) == \
+            ["error.png", "normal.png", "report.json"], n
+        aside = [d for d in out.glob(".psctl-staging.*/.replaced") if any(d.iterdir())]
+        assert bool(aside) == any("set aside by a run stopped" in m for m in again["notes"]), n
+        if done:
+            assert n > 6 and not aside  # every rename was tried
+            break
+        n += 1
+
+
+def test_depth_reads_the_map_the_run_there_wrote(capture, tmp_path):
+    """psctl depth in PATH/psctl picks the map the psctl normals run whose report.json is there
+    wrote, not a normal.exr left by another (first in its order); where that map has changed
+    since, the first there is read, with a note."""
+    from psctl.api import run_normals
+    from psctl.depth import pick_normal_file, run_depth
+    from psctl.io.images import write_image
+
+    run_normals(capture, method="l2", formats=["png16"])
+    folder = capture / "psctl"
+    flat = np.zeros((40, 40, 3), np.float32)
+    flat[..., 2] = 1
+    write_image(folder / "normal.exr", flat, "float32", kind="data")  # someone else's map
+    assert pick_normal_file(folder) == (folder / "normal.png", None)
+    r = run_depth(capture, write=False)
+    assert r["normals"] == os.path.abspath(folder / "normal.png")
+    assert not any(m.startswith("normals: ") for m in r["notes"])
+    os.utime(folder / "normal.png", ns=(1, 1))  # changed since the run
+    picked, note = pick_normal_file(folder)
+    assert picked == folder / "normal.exr" and "it wrote normal.png, since changed or removed" in note
+    r = run_depth(capture, write=False)
+    assert r["normals"] == os.path.abspath(folder / "normal.exr") and note in r["notes"]
+    (folder / "report.json").unlink()
+    assert pick_normal_file(folder) == (folder / "normal.exr", None)  # no report: the first there, as before

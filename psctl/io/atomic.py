@@ -133,9 +133,12 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+LIST_PREFIX = ".psctl-"  # an output list's name: LIST_PREFIX + command
+
+
 def outputs_list(command: str) -> str:
     """The hidden file in an output folder listing what ``psctl COMMAND`` wrote there last."""
-    return f".psctl-{command}"
+    return f"{LIST_PREFIX}{command}"
 
 
 def read_small_text(path: str | os.PathLike, limit: int = 1 << 20) -> str:
@@ -396,12 +399,17 @@ class Staging:
         new, stale = self._names()
         old = self.path / ".replaced"
         old.mkdir(exist_ok=True)
+        # the folder's list of psctl's files (.psctl-COMMAND) goes aside last and the new one comes in
+        # first: a run killed between two renames (kill -9) leaves a list naming every psctl file
+        # there, so the next run still removes the stale ones (the old list went first, and a
+        # later run kept an earlier normal.exr that psctl depth then read: an interruption audit)
+        listed = [n for n in new + stale if n.startswith(LIST_PREFIX)]
         try:
-            for name in new + stale:  # what is there now goes aside first, so that it can come back
+            for name in [n for n in new + stale if n not in listed] + listed:  # aside first, so it can come back
                 if os.path.lexists(self.out_dir / name):
                     os.replace(self.out_dir / name, old / name)
                     self._moved.append(name)
-            for name in new:
+            for name in [n for n in new if n in listed] + [n for n in new if n not in listed]:
                 os.replace(self.path / name, self.out_dir / name)
                 self._placed.append(name)
         except BaseException as e:  # OSError, and Ctrl-C between two renames
