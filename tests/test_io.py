@@ -2174,3 +2174,45 @@ def test_the_picture_font_tells_method_names_apart():
     assert apart("l", "1") >= 4 and apart("l", "I") >= 4 and apart("l", "|") >= 3
     q = glyph("q")  # (the old q's bowl closed into its stem at the top, as 9's loop does)
     assert q[2:, 4].all() and not q[2, 3] and not q[:2].any()  # a stem apart from the bowl's top
+
+
+def test_a_damaged_exr_header_is_one_line(tmp_path):
+    """An EXR whose header holds bytes that are not UTF-8 (a channel list's type name damaged):
+    OpenImageIO's message quotes them and its binding raised UnicodeDecodeError (a traceback);
+    now one line naming the file, the bytes replaced, for the header's read and the pixels'."""
+    from psctl.io.images import image_info
+
+    img = np.random.default_rng(0).uniform(0, 1, (8, 8, 3)).astype(np.float32)
+    for name, field in (("chl.exr", b"chlist"), ("str.exr", b"string")):
+        write_image(tmp_path / name, img, "float32", kind="data")
+        b = (tmp_path / name).read_bytes()
+        i = b.index(field)
+        (tmp_path / name).write_bytes(b[:i + 3] + b"\xfe" + b[i + 4:])
+    with pytest.raises(PsctlError, match=r"chl\.exr: cannot open image \(.*\ufffd") as e:
+        image_info(tmp_path / "chl.exr")
+    assert "\n" not in str(e.value)
+    damaged = []  # the other file's damage shows at the header's read or at the pixels'
+    for read in (image_info, read_image):
+        try:
+            read(tmp_path / "str.exr")
+        except PsctlError as err:
+            damaged.append(str(err))
+    assert damaged and all(m.startswith(str(tmp_path / "str.exr")) and "\n" not in m for m in damaged)
+
+
+def test_a_png_page_offset_does_not_shift_its_pixels(tmp_path):
+    """A PNG with an oFFs chunk (ImageMagick's -crop without +repage) is read as viewers show it:
+    OpenImageIO gives its offset as the pixels' origin in a frame at 0, and psctl placed the
+    pixels 4 px down and right (l2 29.7 deg instead of 0.1 on a capture-reading audit's sphere)."""
+    import struct
+    import zlib
+
+    img = np.random.default_rng(1).uniform(0, 1, (12, 10, 3)).astype(np.float32)
+    write_image(tmp_path / "a.png", img, "uint16", kind="linear")
+    b = (tmp_path / "a.png").read_bytes()
+    body = b"oFFs" + struct.pack(">iiB", 4, 4, 0)
+    offs = struct.pack(">I", 9) + body + struct.pack(">I", zlib.crc32(body) & 0xFFFFFFFF)
+    (tmp_path / "b.png").write_bytes(b[:33] + offs + b[33:])  # after the signature and IHDR
+    a, _ = read_image(tmp_path / "a.png")
+    shifted, info = read_image(tmp_path / "b.png")
+    assert np.array_equal(a, shifted) and info.window is None

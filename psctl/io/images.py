@@ -165,7 +165,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
                                f"{RAW_HINT.format(name=path.name)}")
     with _quiet_stderr():  # libpng prints its own line for a garbage file; the error below says it
         inp = oiio.ImageInput.open(name)
-        err = oiio.geterror() if inp is None else ""
+        err = _geterror(oiio) if inp is None else ""
     if inp is None:
         raise PsctlError(path, f"cannot open image ({_clean(err)})")
     try:
@@ -192,7 +192,9 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         fw, fh = (spec.full_width, spec.full_height) if spec.full_width > 0 and spec.full_height > 0 else (
             spec.width, spec.height)
         window = (spec.x - spec.full_x, spec.y - spec.full_y, spec.width, spec.height)
-        window = None if window == (0, 0, fw, fh) else window
+        # an EXR's only: OpenImageIO reads a PNG's oFFs chunk (ImageMagick's crop without +repage)
+        # as an origin in a frame at 0, and the images came out shifted by it (a capture-reading audit)
+        window = None if window == (0, 0, fw, fh) or inp.format_name() != "openexr" else window
         w, h = (fh, fw) if orientation >= 5 else (fw, fh)
         color_space = spec.get_string_attribute("oiio:ColorSpace", "")
         pages = 1
@@ -320,7 +322,7 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
     with _quiet_stderr():
         inp = oiio.ImageInput.open(_oiio_name(path))
     if inp is None:
-        raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+        raise PsctlError(path, f"cannot open image ({_clean(_geterror(oiio))})")
     try:
         spec = inp.spec()
         w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
@@ -388,12 +390,12 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     with _quiet_stderr():
         inp = oiio.ImageInput.open(_oiio_name(path), config)
         if inp is None:
-            raise PsctlError(path, f"cannot open image ({_clean(oiio.geterror())})")
+            raise PsctlError(path, f"cannot open image ({_clean(_geterror(oiio))})")
         try:
             # OpenImageIO converts integer samples to float by dividing by the type's maximum.
             stored_channels = inp.spec().nchannels
             pixels = inp.read_image(0, 0, 0, stored_channels, "float")
-            err = inp.geterror()
+            err = _geterror(inp)
         finally:
             inp.close()
     if pixels is None or err:
@@ -506,10 +508,10 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
-            raise PsctlError(path, f"cannot write image ({_clean(oiio.geterror())})")
+            raise PsctlError(path, f"cannot write image ({_clean(_geterror(oiio))})")
         try:
             ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(arr))
-            err = out.geterror()
+            err = _geterror(out)
             ok = out.close() and ok
         except BaseException:  # Ctrl-C mid-write: the writer, closed half-way, complains on fd 2
             with _quiet_stderr():  # (libpng: "No IDATs written into file") beside the one line
@@ -517,7 +519,7 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "uint1
                 out = None  # freed here, inside the silence
             raise
         # the first of the writer's messages (a PNG's repeats per block), named by the output
-        err = _clean((err or out.geterror()).replace(str(tmp), str(path))).split("; ")[0]
+        err = _clean((err or _geterror(out)).replace(str(tmp), str(path))).split("; ")[0]
         if not ok or err.startswith("Write error"):  # libpng's: a file that lost only its end reads back
             raise PsctlError(path, f"cannot write image ({err or 'the writer gave no reason'}{_no_room(tmp, arr)})")
         # with ok, a message may be a failed write() (PNG) or harmless (TIFF's Exif block): the
@@ -546,7 +548,7 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
     with _quiet_stderr():
         inp = oiio.ImageInput.open(str(tmp))
         if inp is None:
-            err = oiio.geterror()
+            err = _geterror(oiio)
         else:
             spec = inp.spec()
             if spec.tile_width:  # psctl writes scanline files; a tiled one is read whole
@@ -559,7 +561,7 @@ def _check_written(tmp: Path, path: Path, shape: tuple[int, ...], writer_error: 
                     if strip is None:
                         break
                     got += np.asarray(strip).size
-            err = inp.geterror()
+            err = _geterror(inp)
             inp.close()
     if err or got != int(np.prod(shape)):
         size = tmp.stat().st_size if tmp.exists() else 0
@@ -616,6 +618,17 @@ def _quiet_stderr() -> Iterator[None]:
                 os.dup2(_QUIET["saved"], _QUIET["fd"])
                 os.close(_QUIET["saved"])
                 _QUIET["saved"] = None
+
+
+def _geterror(source) -> str:
+    """``source.geterror()`` (OpenImageIO's module, an ImageInput or an ImageOutput), whatever bytes
+    it holds: a damaged EXR's message quotes the file's raw bytes, which the binding decodes as
+    strict UTF-8 (a UnicodeDecodeError and a traceback instead of the file's one line; 157 of 1500
+    fuzzed EXR headers, a capture-reading audit)."""
+    try:
+        return source.geterror()
+    except UnicodeDecodeError as e:
+        return e.object.decode("utf-8", "replace") if isinstance(e.object, bytes) else str(e)
 
 
 def _clean(msg: str | None) -> str:
