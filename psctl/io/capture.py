@@ -638,43 +638,11 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
 
     list_file = _first_existing(path, entries, LIST_FILES, "image lists")
     if list_file is not None:
-        image_paths = [_same_name(path / n) for n in _read_list(list_file)]
-        for p in image_paths:
-            if p.is_dir():
-                raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
-            if not p.is_file() and p.is_symlink():  # dangling (or a loop): the entry is there, its target not
-                raise PsctlError(p, f"listed in {list_file.name} but is a broken link (to {os.readlink(p)})")
-            if os.path.lexists(p) and not p.is_file():  # a FIFO, a socket, a device: there, but no file
-                raise PsctlError(p, f"listed in {list_file.name} but is not a regular file")
-            if not p.is_file():
-                other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
-                hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
-                raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
-        not_images = {n.lower() for n in GT_FILES if not n.lower().endswith(IMAGE_EXTENSIONS)}
-        for p in image_paths:  # before any header is read: Normal_gt.mat is no image to open
-            if p.name.lower() in not_images:
-                raise PsctlError(p, f"is the ground truth's file name but is listed in {list_file.name} as an "
-                                    f"input image")
+        image_paths = _listed_images(path, list_file)
     else:
         image_paths = _image_files(entries)
         if not image_paths:
-            def some(names: list[str]) -> str:
-                return f"{few(names)} {'is' if len(names) == 1 else 'are'}"
-
-            files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
-            left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
-            # images of other formats (.bmp, .webp): OpenImageIO may read them, once listed
-            other = [n for n in files if n.lower().endswith(_OTHER_IMAGE_SUFFIXES)]
-            said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
-                [f"{some(other)} not read unless listed"] if other else [])
-            hint = [f"{'; '.join(said)}: list the images in {LIST_FILES[0]}"] if said else []
-            raw = [n for n in files if n.lower().endswith(RAW_SUFFIXES)]
-            if raw:  # listing them would not help: say how to convert them
-                them = "them to 16-bit linear TIFFs" if len(raw) > 1 else "it to a 16-bit linear TIFF"
-                hint.append(f"{some(raw)} camera raw, which psctl does not decode: convert {them} first, e.g. "
-                            f"`dcraw -4 -T *{Path(raw[0]).suffix}` (docs/formats.md, 'Camera raw files')")
-            hint = "".join(f"; {h}" for h in hint)
-            raise PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){hint}")
+            raise _no_images(path, entries)
 
     ambient_path = _first_existing(path, entries, AMBIENT_FILES, "ambient images")  # any case (ambient.JPG)
     if ambient_path is not None and list_file is not None and \
@@ -687,17 +655,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
             raise PsctlError(info.path, f"holds no colour channel, only {', '.join(info.names)}: not a photograph "
                                         f"(a depth, alpha or UV pass?)")
     first = infos[0]
-    sizes = [(i.width, i.height) for i in infos]
-    if len(set(sizes)) > 1:  # name the odd one out: the first image of a size most images do not have
-        import collections
-
-        (common, count), = collections.Counter(sizes).most_common(1)
-        if count == 1:  # no majority: the first image, and the first that differs from it
-            common = sizes[0]
-        ref = next(i for i in infos if (i.width, i.height) == common)
-        odd = next(i for i in infos if (i.width, i.height) != common)
-        others = f"the other {count} images'" if count > 1 else f"{ref.path.name}'s"
-        raise PsctlError(odd.path, f"size {size_text(odd)} differs from {others} ({size_text(ref)})")
+    _check_one_size(infos)
     n = len(image_paths)
     found = _pages_note(infos) if list_file is not None else _found_note(entries, image_paths) + _pages_note(infos)
 
@@ -736,22 +694,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     if ambient_info is not None:
         _check_size(ambient_info, first)
     if list_file is not None:  # a listed mask or ground truth would be read as an image
-        # one name twice (a copy-paste slip); two names linked to one file are the user's choice
-        # (benchmarks/bench_infer.py repeats a capture so), and a set keeps 10,000 names quick
-        seen: set[str] = set()
-        for p in image_paths:
-            key = os.path.normcase(os.path.abspath(p))
-            if key in seen:
-                raise PsctlError(p, f"listed twice in {list_file.name}")
-            seen.add(key)
-        listed = {p.resolve() for p in image_paths}
-        for kind, p in (("mask", mask_path), ("ground truth", gt_path)):
-            if p is not None and p.resolve() in listed:
-                raise PsctlError(p, f"is the {kind} but is also listed in {list_file.name} as an input image")
-        named = {n.lower() for n in (*MASK_FILES, *GT_FILES)}
-        for p in image_paths:  # a second mask or ground-truth file, not the one used, is no image either
-            if p.name.lower() in named:
-                raise PsctlError(p, f"is named as a mask or ground truth but is listed in {list_file.name} as an input image")
+        _check_listed(image_paths, list_file, mask_path, gt_path)
 
     return Capture(
         path=path, name=object_name(path), image_paths=tuple(image_paths), height=first.height,
@@ -763,6 +706,88 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )
+
+
+def _listed_images(path: Path, list_file: Path) -> list[Path]:
+    """The images ``list_file`` (filenames.txt) names, in its order, each there as a regular file
+    and none the ground truth's .mat (checked before any header is read); else the error naming
+    the first that is not."""
+    image_paths = [_same_name(path / n) for n in _read_list(list_file)]
+    for p in image_paths:
+        if p.is_dir():
+            raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
+        if not p.is_file() and p.is_symlink():  # dangling (or a loop): the entry is there, its target not
+            raise PsctlError(p, f"listed in {list_file.name} but is a broken link (to {os.readlink(p)})")
+        if os.path.lexists(p) and not p.is_file():  # a FIFO, a socket, a device: there, but no file
+            raise PsctlError(p, f"listed in {list_file.name} but is not a regular file")
+        if not p.is_file():
+            other = [q.name for q in p.parent.iterdir() if q.name.lower() == p.name.lower()] if p.parent.is_dir() else []
+            hint = f" ({other[0]} is there: names in {list_file.name} match exactly)" if other else ""
+            raise PsctlError(p, f"listed in {list_file.name} but missing{hint}")
+    not_images = {n.lower() for n in GT_FILES if not n.lower().endswith(IMAGE_EXTENSIONS)}
+    for p in image_paths:  # Normal_gt.mat is no image to open
+        if p.name.lower() in not_images:
+            raise PsctlError(p, f"is the ground truth's file name but is listed in {list_file.name} as an "
+                                f"input image")
+    return image_paths
+
+
+def _no_images(path: Path, entries: list[Path]) -> PsctlError:
+    """The error of a folder without a list in which no file is taken for an image: what it holds
+    that could be (taken for a mask or an output by name, another format, camera raw) and what to do."""
+    def some(names: list[str]) -> str:
+        return f"{few(names)} {'is' if len(names) == 1 else 'are'}"
+
+    files = sorted(p.name for p in entries if p.is_file() and not p.name.startswith("."))
+    left_out = [n for n in files if n.lower().endswith(IMAGE_EXTENSIONS)]
+    # images of other formats (.bmp, .webp): OpenImageIO may read them, once listed
+    other = [n for n in files if n.lower().endswith(_OTHER_IMAGE_SUFFIXES)]
+    said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
+        [f"{some(other)} not read unless listed"] if other else [])
+    hint = [f"{'; '.join(said)}: list the images in {LIST_FILES[0]}"] if said else []
+    raw = [n for n in files if n.lower().endswith(RAW_SUFFIXES)]
+    if raw:  # listing them would not help: say how to convert them
+        them = "them to 16-bit linear TIFFs" if len(raw) > 1 else "it to a 16-bit linear TIFF"
+        hint.append(f"{some(raw)} camera raw, which psctl does not decode: convert {them} first, e.g. "
+                    f"`dcraw -4 -T *{Path(raw[0]).suffix}` (docs/formats.md, 'Camera raw files')")
+    return PsctlError(path, f"no images found (looked for {', '.join(IMAGE_EXTENSIONS)}){''.join(f'; {h}' for h in hint)}")
+
+
+def _check_one_size(infos: list[ImageInfo]) -> None:
+    """Refuse images of more than one (upright) size, naming the odd one out: the first image of a
+    size most images do not have."""
+    sizes = [(i.width, i.height) for i in infos]
+    if len(set(sizes)) > 1:
+        import collections
+
+        (common, count), = collections.Counter(sizes).most_common(1)
+        if count == 1:  # no majority: the first image, and the first that differs from it
+            common = sizes[0]
+        ref = next(i for i in infos if (i.width, i.height) == common)
+        odd = next(i for i in infos if (i.width, i.height) != common)
+        others = f"the other {count} images'" if count > 1 else f"{ref.path.name}'s"
+        raise PsctlError(odd.path, f"size {size_text(odd)} differs from {others} ({size_text(ref)})")
+
+
+def _check_listed(image_paths: list[Path], list_file: Path, mask_path: Path | None, gt_path: Path | None) -> None:
+    """Refuse a list that names an image twice, or names the mask or ground truth (used or not) as
+    an image."""
+    # one name twice (a copy-paste slip); two names linked to one file are the user's choice
+    # (benchmarks/bench_infer.py repeats a capture so), and a set keeps 10,000 names quick
+    seen: set[str] = set()
+    for p in image_paths:
+        key = os.path.normcase(os.path.abspath(p))
+        if key in seen:
+            raise PsctlError(p, f"listed twice in {list_file.name}")
+        seen.add(key)
+    listed = {p.resolve() for p in image_paths}
+    for kind, p in (("mask", mask_path), ("ground truth", gt_path)):
+        if p is not None and p.resolve() in listed:
+            raise PsctlError(p, f"is the {kind} but is also listed in {list_file.name} as an input image")
+    named = {n.lower() for n in (*MASK_FILES, *GT_FILES)}
+    for p in image_paths:  # a second mask or ground-truth file, not the one used, is no image either
+        if p.name.lower() in named:
+            raise PsctlError(p, f"is named as a mask or ground truth but is listed in {list_file.name} as an input image")
 
 
 def _no_normal_gt(p: Path, held: "Iterable[str]") -> PsctlError:
