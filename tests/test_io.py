@@ -2216,3 +2216,25 @@ def test_a_png_page_offset_does_not_shift_its_pixels(tmp_path):
     a, _ = read_image(tmp_path / "a.png")
     shifted, info = read_image(tmp_path / "b.png")
     assert np.array_equal(a, shifted) and info.window is None
+
+
+def test_signed_image_numbers_get_a_note(tmp_path):
+    """Images named l-2.png .. l3.png without filenames.txt are in natural order with the '-' read
+    as text (l0 .. l3, then l-1, l-2), not as the lights' order: a note says so (a review: l2 52
+    degrees off without a word); none with a list, or where every name has the '-' (img-01)."""
+    from psctl.io.capture import capture_notes, open_capture
+    from tests.conftest import write_capture
+
+    for folder, names in (("signed", [f"l{k}.png" for k in range(-2, 4)]),
+                          ("dashed", [f"img-{k:02d}.png" for k in range(1, 7)])):
+        write_capture(tmp_path / folder, n=6, size=16)
+        for k, name in enumerate(names):
+            (tmp_path / folder / f"{k + 1:03d}.png").rename(tmp_path / folder / name)
+        (tmp_path / folder / "filenames.txt").unlink()
+    cap = open_capture(tmp_path / "signed")
+    assert [p.name for p in cap.image_paths] == ["l0.png", "l1.png", "l2.png", "l3.png", "l-1.png", "l-2.png"]
+    said = [n for n in capture_notes(cap) if "a '-' precedes" in n]
+    assert len(said) == 1 and "l-1.png and l0.png" in said[0] and "filenames.txt" in said[0]
+    assert not any("a '-' precedes" in n for n in capture_notes(open_capture(tmp_path / "dashed")))
+    (tmp_path / "signed" / "filenames.txt").write_text("".join(f"l{k}.png\n" for k in range(-2, 4)))
+    assert not any("a '-' precedes" in n for n in capture_notes(open_capture(tmp_path / "signed")))

@@ -249,6 +249,24 @@ def natural_key(s: str) -> list:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", s)]
 
 
+def _signed_names(names: list[str]) -> str | None:
+    """Two of ``names`` named alike but for a '-' before a number in one (l-5.png, l6.png: a
+    signed index, which natural order puts after the unsigned ones; a silent mismatch with the
+    light rows, a review), as 'A and B'; None where no such pair is (img-01 .. img-10 all alike)."""
+    groups: dict[str, tuple[str | None, str | None]] = {}
+    for n in names:
+        key = re.sub(r"\d+", "#", re.sub(r"-(?=\d)", "", n.lower()))
+        minus, plain = groups.get(key, (None, None))
+        if re.search(r"-\d", n):
+            minus = minus or n
+        else:
+            plain = plain or n
+        if minus and plain:
+            return f"{minus} and {plain}"
+        groups[key] = (minus, plain)
+    return None
+
+
 def _image_files(entries: list[Path]) -> list[Path]:
     """The image files among a folder's entries (``list(folder.iterdir())``), in natural order.
 
@@ -1307,6 +1325,11 @@ def capture_notes(capture: Capture) -> list[str]:
         notes.append(f"light file: {capture.lights_path.name if capture.lights_path else LIGHTS_FILE}'s rows are not "
                      f"unit vectors (lengths {lo:.4g} to {hi:.4g}): each is normalised, and read as a direction (the lights' "
                      f"strengths go in {INTENSITIES_FILE})")
+    signed = None if capture.list_path is not None else _signed_names([p.name for p in capture.image_paths])
+    if signed:
+        notes.append(f"images: named with numbers that a '-' precedes in some names and not in others ({signed}); "
+                     f"without {LIST_FILES[0]} they are in natural order, the '-' read as text, not as a sign (l0 .. l6, "
+                     f"then l-1 .. l-5): if it is a sign, list the images in {LIST_FILES[0]} in the light file's order")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
