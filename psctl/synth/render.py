@@ -6,8 +6,9 @@ depend only on the light, and a pixel needs just n.l, n.h and n.v: shading a bat
 [B, N, P] tensor operations (B samples, N lights, P pixels).
 
 Cast shadows come from the depth map seen as a height field (z toward the camera):
-  * ``march_shadows`` marches from each pixel toward each light and tests the depth map
-    (exact for the height field, used by the folder writer);
+  * ``march_shadows`` marches from each pixel toward each light and tests the depth map at
+    growing distances (``march_distances``: every pixel up to 8, then 12 % further each step,
+    so an occluder thinner than the gap can be missed; used by the folder writer);
   * ``horizon_map`` precomputes, per pixel and for K azimuths, the elevation of the horizon;
     then ``horizon_visibility`` answers any light with two look-ups (used by the training
     stream, where one G-buffer serves many samples). Both only ever darken.
@@ -46,7 +47,9 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         visibility: [B, N, P] in [0, 1] (cast shadows), or None.
         intensities: [B, N] light intensities e, or None for 1.
         texture: [B, 3, P] multiplier of the diffuse albedo, or None.
-        ambient: [B] strength of a light-independent term ambient * kd (added once per image).
+        ambient: [B] strength of a term ambient * kd added once per image, independent of the light
+            and of ``intensities`` (the training stream passes none and scales the image, this term
+            included, by the intensities afterwards: docs/synthetic.md).
         indirect: [B, N, 3, P] irradiance from interreflections (``indirect_irradiance``),
             reflected as kd / pi (times the texture).
         falloff: [B, N, P] irradiance per pixel relative to the lights' intensities (near point

@@ -73,7 +73,7 @@ DEFAULT_CONFIG: dict = {
     "texture": 0.3,  # chance of a random albedo texture
     "shadows": True,
     "horizon_dirs": 32,  # azimuths of the horizon map
-    "ambient": 0.0,  # ambient strength drawn uniformly in [0, ambient]
+    "ambient": 0.0,  # ambient strength drawn uniformly in [0, ambient]; scaled by the intensities with the image (docs/synthetic.md)
     # diffuse interreflections: with chance p a sample's surface also lights itself, as a
     # Lambertian source of albedo a * kd / max(kd), a uniform in `albedo` (the material's own
     # kd only sets the colour: exposure hides absolute albedo, and real objects are often
