@@ -619,7 +619,7 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
 
     Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else the first of NORMAL_FILES in
     PATH/psctl (normal.exr, normal.npy, normal.png, normal_8bit.png) that the psctl normals run
-    there wrote (``pick_normal_file``), else estimated from the images (``psctl normals --method auto``). Mask: the
+    there wrote (``pick_normal_file``), else the first of them there, else estimated from the images (``psctl normals --method auto``). Mask: the
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     The images (for estimated normals and the mesh's vertex colours) are read as

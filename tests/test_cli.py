@@ -2231,44 +2231,49 @@ import os, signal, sys
 import psctl.io.atomic as atomic
 from psctl.api import run_normals
 
-count, real = [0], os.replace
+count, real, kill, fail = [0], os.replace, int(sys.argv[1]), int(sys.argv[4])
 
-def replace(a, b, *args, **kwargs):  # kill -9 at the N-th rename of the commit
+def replace(a, b, *args, **kwargs):  # kill -9 at the N-th rename of the commit (or of its rollback)
     if ".psctl-staging" in str(a) + str(b):
         count[0] += 1
-        if count[0] == int(sys.argv[1]):
+        if count[0] == fail:  # a full disk at a placement: the commit rolls back
+            raise OSError(28, "No space left on device")
+        if count[0] == kill:
             os.kill(os.getpid(), signal.SIGKILL)
     return real(a, b, *args, **kwargs)
 
 atomic.os.replace = replace
 run_normals(sys.argv[2], method="l2", out=sys.argv[3], formats=["png16", "npy"])
-print(count[0])
 """
 
 
-def test_a_run_killed_between_two_renames_leaves_a_list_of_psctls_files(capture, tmp_path):
-    """kill -9 at each rename of a commit (-f png16,npy after an -f exr run), then a -f png16 run:
-    the folder holds that run's files, neither the first run's normal.exr nor the killed run's
-    normal.npy (the old list went aside first, so the next run did not know normal.exr was
-    psctl's, and psctl depth then read the stale map: an interruption audit), with a note where
-    earlier files were set aside."""
+# the 13th rename: 4 files written in the stage (each renamed from its temporary name), 4 earlier
+# files set aside, then the last of the 5 placements
+@pytest.mark.parametrize("fail", [0, 13], ids=["commit", "rollback"])
+def test_a_run_killed_between_two_renames_leaves_a_list_of_psctls_files(capture, tmp_path, fail):
+    """kill -9 at each rename of a commit (-f png16,npy after an -f exr run; or, after a full disk
+    at its last placement, of its rollback), then a -f png16 run: the folder holds that run's files,
+    neither the first run's normal.exr nor the killed run's normal.npy (the old list went aside
+    first, so the next run did not know normal.exr was psctl's, and psctl depth then read the
+    stale map: an interruption audit; the rollback undid in the commit's order: a review), with
+    a note where earlier files were set aside."""
     from psctl.api import run_normals
 
-    n = 1
+    n = fail + 1
     while True:
         out = tmp_path / f"out{n}"
         run_normals(capture, method="l2", out=out, formats=["exr"], n_images=4)
-        r = subprocess.run([sys.executable, "-c", _KILL_AT_RENAME, str(n), str(capture), str(out)],
+        r = subprocess.run([sys.executable, "-c", _KILL_AT_RENAME, str(n), str(capture), str(out), str(fail)],
                            capture_output=True, text=True)
-        done = r.returncode == 0  # past the last rename: nothing killed
-        assert done or r.returncode == -9, r.stderr
+        done = r.returncode != -9  # past the last rename: nothing killed
+        assert not done or r.returncode == (1 if fail else 0), r.stderr
         again = run_normals(capture, method="l2", out=out, formats=["png16"])
         assert sorted(f for f in os.listdir(out) if not f.startswith(".")) == \
             ["error.png", "normal.png", "report.json"], n
         aside = [d for d in out.glob(".psctl-staging.*/.replaced") if any(d.iterdir())]
         assert bool(aside) == any("set aside by a run stopped" in m for m in again["notes"]), n
         if done:
-            assert n > 6 and not aside  # every rename was tried
+            assert n > fail + 6  # every rename was tried
             break
         n += 1
 

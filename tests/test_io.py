@@ -2233,8 +2233,34 @@ def test_signed_image_numbers_get_a_note(tmp_path):
         (tmp_path / folder / "filenames.txt").unlink()
     cap = open_capture(tmp_path / "signed")
     assert [p.name for p in cap.image_paths] == ["l0.png", "l1.png", "l2.png", "l3.png", "l-1.png", "l-2.png"]
-    said = [n for n in capture_notes(cap) if "a '-' precedes" in n]
-    assert len(said) == 1 and "l-1.png and l0.png" in said[0] and "filenames.txt" in said[0]
-    assert not any("a '-' precedes" in n for n in capture_notes(open_capture(tmp_path / "dashed")))
+    said = [n for n in capture_notes(cap) if "'-' or '+' precedes" in n]
+    assert len(said) == 1 and "l0.png and l-1.png" in said[0] and "filenames.txt" in said[0]
+    from psctl.io.capture import _signed_names  # '+' too; no sign after a digit (dates, copies)
+
+    assert _signed_names(["exp+1.png", "exp+2.png", "exp-1.png"]) == "exp+1.png and exp-1.png"
+    assert _signed_names(["2024-01-05_001.png", "20240106_001.png", "IMG_0001.jpg", "IMG_0001-2.jpg"]) is None
+    assert not any("'-' or '+' precedes" in n for n in capture_notes(open_capture(tmp_path / "dashed")))
     (tmp_path / "signed" / "filenames.txt").write_text("".join(f"l{k}.png\n" for k in range(-2, 4)))
-    assert not any("a '-' precedes" in n for n in capture_notes(open_capture(tmp_path / "signed")))
+    assert not any("'-' or '+' precedes" in n for n in capture_notes(open_capture(tmp_path / "signed")))
+
+
+@pytest.mark.parametrize("ext", ["tif", "exr"])
+def test_a_cropped_data_window_is_placed_in_its_frame(tmp_path, ext):
+    """A TIFF (OpenImageIO's full-size tags, as RenderMan crops) or EXR whose data window is
+    smaller than its frame: the pixels at their place, 0 around (a review: with only an EXR's
+    window honoured, a TIFF's failed with a reshape traceback)."""
+    import OpenImageIO as oiio
+
+    p = tmp_path / f"crop.{ext}"
+    spec = oiio.ImageSpec(8, 6, 3, "float" if ext == "exr" else "uint16")
+    spec.x, spec.y = 2, 1
+    spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, 12, 10
+    out = oiio.ImageOutput.create(str(p))
+    out.open(str(p), spec)
+    out.write_image(np.full((6, 8, 3), 0.5, np.float32))
+    out.close()
+    pixels, info = read_image(p)
+    assert pixels.shape == (10, 12, 3) and info.window == (2, 1, 8, 6)
+    want = np.zeros((10, 12, 3), np.float32)
+    want[1:7, 2:10] = 0.5
+    np.testing.assert_allclose(pixels, want, atol=1e-4)

@@ -422,11 +422,13 @@ class Staging:
     def rollback(self) -> None:
         """Undo ``commit``: this run's files back out, the earlier ones back in. What cannot be
         put back stays in the staging folder (``keep``), and a PsctlError names it."""
-        for name in self._placed:
+        # in the reverse order of commit's: the new list goes out last and the old one comes back
+        # first, so that a kill here too leaves a list naming every psctl file in the folder
+        for name in reversed(self._placed):
             with contextlib.suppress(OSError):
                 os.replace(self.out_dir / name, self.path / name)
         lost = []
-        for name in self._moved:
+        for name in reversed(self._moved):
             try:
                 os.replace(self.path / ".replaced" / name, self.out_dir / name)
             except OSError:

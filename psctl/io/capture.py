@@ -250,20 +250,19 @@ def natural_key(s: str) -> list:
 
 
 def _signed_names(names: list[str]) -> str | None:
-    """Two of ``names`` named alike but for a '-' before a number in one (l-5.png, l6.png: a
-    signed index, which natural order puts after the unsigned ones; a silent mismatch with the
-    light rows, a review), as 'A and B'; None where no such pair is (img-01 .. img-10 all alike)."""
-    groups: dict[str, tuple[str | None, str | None]] = {}
-    for n in names:
-        key = re.sub(r"\d+", "#", re.sub(r"-(?=\d)", "", n.lower()))
-        minus, plain = groups.get(key, (None, None))
-        if re.search(r"-\d", n):
-            minus = minus or n
-        else:
-            plain = plain or n
-        if minus and plain:
-            return f"{minus} and {plain}"
-        groups[key] = (minus, plain)
+    """Two of ``names`` named alike but for a sign ('-' or '+' after no digit) before a number in
+    one (l-5.png, l6.png: a signed index, which natural order puts after the unsigned ones, or
+    exp+1, exp-1, exp0; a silent mismatch with the light rows, a review), as 'A and B'; None
+    where no such pair is (img-01 .. img-10 all alike; 2024-01-05_001 beside 20240106_001)."""
+    groups: dict[str, dict[str, str]] = {}
+    for n in names:  # a sign: '-' or '+' before a number and after no digit (not 2024-01-05, 0001-2)
+        key = re.sub(r"\d+", "#", re.sub(r"(?<!\d)[-+](?=\d)", "", n.lower()))
+        sign = re.search(r"(?<!\d)([-+])\d", n)
+        seen = groups.setdefault(key, {})
+        seen.setdefault(sign.group(1) if sign else "", n)
+        if len(seen) > 1:
+            a, b = seen.values()
+            return f"{a} and {b}"
     return None
 
 
@@ -1327,8 +1326,8 @@ def capture_notes(capture: Capture) -> list[str]:
                      f"strengths go in {INTENSITIES_FILE})")
     signed = None if capture.list_path is not None else _signed_names([p.name for p in capture.image_paths])
     if signed:
-        notes.append(f"images: named with numbers that a '-' precedes in some names and not in others ({signed}); "
-                     f"without {LIST_FILES[0]} they are in natural order, the '-' read as text, not as a sign (l0 .. l6, "
+        notes.append(f"images: named with numbers that a '-' or '+' precedes in some names and not in others "
+                     f"({signed}); without {LIST_FILES[0]} they are in natural order, the sign read as text (l0 .. l6, "
                      f"then l-1 .. l-5): if it is a sign, list the images in {LIST_FILES[0]} in the light file's order")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "

@@ -192,9 +192,12 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         fw, fh = (spec.full_width, spec.full_height) if spec.full_width > 0 and spec.full_height > 0 else (
             spec.width, spec.height)
         window = (spec.x - spec.full_x, spec.y - spec.full_y, spec.width, spec.height)
-        # an EXR's only: OpenImageIO reads a PNG's oFFs chunk (ImageMagick's crop without +repage)
-        # as an origin in a frame at 0, and the images came out shifted by it (a capture-reading audit)
-        window = None if window == (0, 0, fw, fh) or inp.format_name() != "openexr" else window
+        # a window that fills its frame is the frame, whatever its origin, in every format but EXR:
+        # OpenImageIO reads a PNG's oFFs chunk (ImageMagick's crop without +repage) as an origin in
+        # a frame at 0, and the images came out shifted by it (a capture-reading audit); a smaller
+        # window (a TIFF's, DPX's or RLA's crop) is placed as an EXR's
+        full = (spec.width, spec.height) == (fw, fh) and inp.format_name() != "openexr"
+        window = None if window == (0, 0, fw, fh) or full else window
         w, h = (fh, fw) if orientation >= 5 else (fw, fh)
         color_space = spec.get_string_attribute("oiio:ColorSpace", "")
         pages = 1
