@@ -549,8 +549,8 @@ def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[s
     as image rows, in some tools' convention): it would integrate to a wrong surface without a word
     (a review: the bumpy sphere's map with y flipped came out saddle-like). psctl normals notes its
     own maps when it writes them (``psctl.api.mirror_notes``). On the DiLiGenT dev
-    split's ground truth the ratio (``psctl.refine.mirror_ratio``) is 3.1-987 as given and
-    0.001-0.33 with y flipped. A map that psctl normals wrote (its report.json beside says so)
+    split's ground truth the ratio (``psctl.refine.mirror_ratio``) is 9.5-877,000 as given and
+    0-0.105 with y flipped. A map that psctl normals wrote (its report.json beside says so)
     follows its light file: the note then names that file (a review: it said to flip the map)."""
     from psctl.refine import MIRROR_NOTE, mirror_ratio
 

@@ -388,8 +388,8 @@ def _curl_terms(normals: np.ndarray, mask: np.ndarray | None, erode: int,
 
 # A light file with one axis flipped (y down, as image rows, is the usual case) gives the mirror
 # image of the normals, which is far less integrable than the true field. On the DiLiGenT dev
-# split the ratio was 1.1-8.8 with the files as given and 0.2-0.9 with y flipped (L2 and PS-FCN;
-# the ball, a sphere, is the weak case), on syntest and syntest_dl see docs/usage.md.
+# split the ratio is 1.3-18.6 with the files as given and 0.12-0.75 with y flipped (L2 and
+# PS-FCN; the ball, a sphere, is the weak case), on syntest and syntest_dl see docs/usage.md.
 # Below this ratio psctl normals (psctl.api.mirror_notes) and psctl depth (a given map) say so
 MIRROR_NOTE = 0.5
 
