@@ -87,7 +87,21 @@ def __getattr__(name: str) -> Any:
             value = _for_python(value)
         globals()[name] = value  # imported once
         return value
-    raise AttributeError(f"module 'psctl' has no attribute {name!r}")
+    return _submodule(__name__, name)
+
+
+def _submodule(package: str, name: str) -> Any:
+    """``package``'s submodule ``name``, imported on first use: after ``import psctl``,
+    ``psctl.infer.array_normals`` and ``psctl.io.capture.iter_images`` work as the docs write them
+    (an AttributeError unless another call had imported the module: a docs check, session 73).
+    Else the AttributeError of a missing attribute."""
+    if not name.startswith("_"):
+        import importlib
+        import importlib.util
+
+        if importlib.util.find_spec(f"{package}.{name}") is not None:
+            return importlib.import_module(f"{package}.{name}")
+    raise AttributeError(f"module {package!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:

@@ -1,1 +1,11 @@
 """Input and output: capture folders, images, normal-map encodings, reports."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+    from psctl import _submodule
+
+    return _submodule(__name__, name)

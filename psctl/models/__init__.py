@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from psctl.errors import PsctlError
@@ -88,3 +90,9 @@ def check_device_name(name: str | None) -> str:
 
 __all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", "check_device_name", "check_precision",
            "precision_autocast"]
+
+
+def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+    from psctl import _submodule
+
+    return _submodule(__name__, name)

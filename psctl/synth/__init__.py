@@ -14,6 +14,8 @@ imported where needed.
 
 from __future__ import annotations
 
+from typing import Any
+
 from psctl.errors import PsctlError
 
 PRESETS = {
@@ -43,3 +45,9 @@ def check_preset(preset: str) -> str:
     if preset not in PRESETS:
         raise PsctlError(None, f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     return preset
+
+
+def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+    from psctl import _submodule
+
+    return _submodule(__name__, name)
