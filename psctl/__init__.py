@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+if TYPE_CHECKING:
+    from types import ModuleType
+
 __version__ = "0.1.0"
 
 _LAZY = {
@@ -90,16 +93,20 @@ def __getattr__(name: str) -> Any:
     return _submodule(__name__, name)
 
 
-def _submodule(package: str, name: str) -> Any:
+def _submodule(package: str, name: str) -> "ModuleType":
     """``package``'s submodule ``name``, imported on first use: after ``import psctl``,
     ``psctl.infer.array_normals`` and ``psctl.io.capture.iter_images`` work as the docs write them
     (an AttributeError unless another call had imported the module: a docs check, session 73).
     Else the AttributeError of a missing attribute."""
-    if not name.startswith("_"):
+    if name.isidentifier() and not name.startswith("_"):  # not "io.capture", "a.b" (a review: an import error)
         import importlib
         import importlib.util
 
-        if importlib.util.find_spec(f"{package}.{name}") is not None:
+        try:
+            found = importlib.util.find_spec(f"{package}.{name}") is not None
+        except (ImportError, ValueError):
+            found = False
+        if found:
             return importlib.import_module(f"{package}.{name}")
     raise AttributeError(f"module {package!r} has no attribute {name!r}")
 

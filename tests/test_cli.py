@@ -552,14 +552,16 @@ def test_submodules_are_found_by_name_after_import_psctl():
     """After a plain `import psctl`, psctl.infer.array_normals, psctl.io.capture.iter_images and
     the other names the docs write resolve (their modules imported then: an AttributeError before
     unless another call had imported them, a docs check); `import psctl` itself imports nothing
-    heavy, and a name that is no submodule stays an AttributeError."""
+    heavy, and a name that is no submodule stays an AttributeError (dotted ones too: an import
+    error before a review)."""
     code = ("import sys\nimport psctl\n"
             "heavy = [m for m in ('torch', 'OpenImageIO', 'scipy', 'psctl.infer') if m in sys.modules]\n"
             "assert not heavy, heavy\n"
             "print(psctl.infer.array_normals.__name__, psctl.eval.compare_methods.__name__, "
             "psctl.io.capture.iter_images.__name__, psctl.classic.L2Accumulator.__name__, "
             "psctl.synth.render.__name__, psctl.models.lcnet.__name__)\n"
-            "for owner, name in ((psctl, 'nothing'), (psctl.io, 'nothing'), (psctl, '_infer')):\n"
+            "for owner, name in ((psctl, 'nothing'), (psctl.io, 'nothing'), (psctl, '_infer'), (psctl, 'a.b'),\n"
+            "                    (psctl, 'io.capture'), (psctl.io, 'x..y'), (psctl, '.')):\n"
             "    try:\n        getattr(owner, name)\n    except AttributeError:\n        pass\n"
             "    else:\n        raise SystemExit(name)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+from types import ModuleType
 
 
-def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+def __getattr__(name: str) -> ModuleType:  # submodules on first use (psctl._submodule)
     from psctl import _submodule
 
     return _submodule(__name__, name)

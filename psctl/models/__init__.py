@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from types import ModuleType
 
 import numpy as np
 
@@ -92,7 +92,7 @@ __all__ = ["LIGHT_METHODS", "NETWORK_METHODS", "PRECISIONS", "WEIGHTS_METHODS", 
            "precision_autocast"]
 
 
-def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+def __getattr__(name: str) -> ModuleType:  # submodules on first use (psctl._submodule)
     from psctl import _submodule
 
     return _submodule(__name__, name)

@@ -14,7 +14,7 @@ imported where needed.
 
 from __future__ import annotations
 
-from typing import Any
+from types import ModuleType
 
 from psctl.errors import PsctlError
 
@@ -47,7 +47,7 @@ def check_preset(preset: str) -> str:
     return preset
 
 
-def __getattr__(name: str) -> Any:  # submodules on first use (psctl._submodule)
+def __getattr__(name: str) -> ModuleType:  # submodules on first use (psctl._submodule)
     from psctl import _submodule
 
     return _submodule(__name__, name)
