@@ -576,10 +576,11 @@ def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
     there = [folder / n for n in NORMAL_FILES if (folder / n).is_file()]
     if not there:
         return None, None
+    written = _written(folder / "report.json")  # read once, not once per map
     for p in there:
-        if written_by_normals(p):
+        if _as_written(p, written):
             return p, None
-    listed = [n for n in NORMAL_FILES if n in _written(folder / "report.json")]
+    listed = [n for n in NORMAL_FILES if n in written]
     if not listed:
         return there[0], None
     return there[0], (f"normals: {there[0].name} in {folder} is not a map the psctl normals run whose report.json is "
@@ -603,11 +604,16 @@ def _written(report: Path) -> dict:
 def written_by_normals(path: Path) -> bool:
     """Whether ``path`` is as the psctl normals run whose report.json lies beside it wrote it (its
     size and modification time as the report's "written" recorded them)."""
+    return _as_written(path, _written(path.parent / "report.json"))
+
+
+def _as_written(path: Path, written: dict) -> bool:
+    """Whether ``path``'s size and modification time are as ``written`` (a report's) records them."""
     try:
         st = path.stat()
     except OSError:
         return False
-    return _written(path.parent / "report.json").get(path.name) == [st.st_size, st.st_mtime_ns]
+    return written.get(path.name) == [st.st_size, st.st_mtime_ns]
 
 
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",

@@ -618,7 +618,6 @@ def _exposure_scale(stream: "_RegionImages", n: int, input_mean: float, exposure
             pixel_sum += img.sum(-1, dtype=np.float64)
         mean = lit_mean(pixel_sum[: stream.rh, : stream.rw], n)  # not the zero padding (the stream is masked)
         black = mean == 0  # no pixel above 0
-        del pixel_sum
     else:
         total = math.fsum(float(img.sum(dtype=np.float64)) for img in stream)
         mean, black = total / (float(stream.mask.sum()) * 3 * n), total == 0

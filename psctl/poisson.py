@@ -48,14 +48,14 @@ def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b:
     return z, its + more, amg, done
 
 
-def dot(a: np.ndarray, b: np.ndarray) -> float:
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
     # einsum, not np.dot: OpenBLAS threads its dot product, and on a busy 2-core machine that is
     # 10x slower than a plain loop
     return float(np.einsum("i,i->", a, b))
 
 
 def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
-         maxiter: int) -> tuple[np.ndarray, int, bool]:
+        maxiter: int) -> tuple[np.ndarray, int, bool]:
     """Preconditioned conjugate gradients until max_i |r_i| / a_ii <= rtol max_i |b_i| / a_ii.
 
     The stopping rule is per unknown (r_i / a_ii is how far a Jacobi step would move z_i), not
@@ -76,16 +76,16 @@ def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray 
         return x, 0, True
     y = M(r)
     p = y.copy()
-    ry = dot(r, y)
+    ry = _dot(r, y)
     for it in range(1, maxiter + 1):
         q = A @ p
-        alpha = ry / dot(p, q)
+        alpha = ry / _dot(p, q)
         x += np.multiply(p, alpha, out=tmp)
         r -= np.multiply(q, alpha, out=tmp)
         if scaled_max(r) <= stop:
             return x, it, True
         y = M(r)
-        ry, ry_old = dot(r, y), ry
+        ry, ry_old = _dot(r, y), ry
         p *= ry / ry_old
         p += y
     return x, maxiter, False
@@ -121,12 +121,12 @@ class SmoothedAggregation:
         self.levels = []
         while A.shape[0] > cfg["amg_max_coarse"]:
             n = A.shape[0]
-            agg, coarse_coords = aggregate(A, coords, cfg["amg_strength"])
+            agg, coarse_coords = _aggregate(A, coords, cfg["amg_strength"])
             nc = int(agg.max()) + 1
             if nc > 0.8 * n:  # coarsening has stalled (very sparse or cut-up graph): stop here
                 break
             dinv = 1.0 / A.diagonal()
-            omega = (4.0 / 3.0) / jacobi_radius_bound(A, dinv)
+            omega = (4.0 / 3.0) / _jacobi_radius_bound(A, dinv)
             P0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, nc))
             P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr()
             R = P.T.tocsr()
@@ -152,13 +152,13 @@ class SmoothedAggregation:
         return x
 
 
-def jacobi_radius_bound(A, dinv: np.ndarray) -> float:
+def _jacobi_radius_bound(A, dinv: np.ndarray) -> float:
     """Gershgorin bound on the spectral radius of D^-1 A (2 for a graph Laplacian)."""
     absrow = np.asarray(abs(A).sum(axis=1)).ravel()
     return float(np.max(absrow * dinv))
 
 
-def aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
+def _aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
     """Aggregates: connected groups of strongly coupled nodes (-a_ij >= theta sqrt(a_ii a_jj))
     inside each 3 x 3 block of the nodes' (row, col) grid coordinates.
 

@@ -48,8 +48,8 @@ def shade(normals: Tensor, lights: Tensor, mat: Material, visibility: Tensor | N
         intensities: [B, N] light intensities e, or None for 1.
         texture: [B, 3, P] multiplier of the diffuse albedo, or None.
         ambient: [B] strength of a term ambient * kd added once per image, independent of the light
-            and of ``intensities`` (the training stream passes none and scales the image, this term
-            included, by the intensities afterwards: docs/synthetic.md).
+            and of ``intensities`` (the training stream passes no intensities and scales the image,
+            this term included, by them afterwards: docs/synthetic.md).
         indirect: [B, N, 3, P] irradiance from interreflections (``indirect_irradiance``),
             reflected as kd / pi (times the texture).
         falloff: [B, N, P] irradiance per pixel relative to the lights' intensities (near point
