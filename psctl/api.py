@@ -839,7 +839,9 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
         check_inputs_kept(out_dir, names, (("--weights", weights), ("--lcnet", lcnet)))
         check_output_dir(out_dir)
         listed = read_outputs_list(out_dir, "normals")  # read once here: for the note on removals and the one below
-        removed = [n for n in stale(listed) if n != FOUND_FILE]  # (whether it is written: after the search)
+        # mask_found.png: where this run may write one, whether it does is known only after the
+        # search (_found_file_notes); otherwise an earlier one goes now and is named here
+        removed = [n for n in stale(listed) if n != FOUND_FILE or FOUND_FILE not in names]
         if removed:
             notes.append(f"outputs: removed {', '.join(removed)}, left in {out_dir} by an earlier psctl run "
                          "(a folder holds one run's outputs)")

@@ -1009,8 +1009,9 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     again = run_lights(tmp_path / "bPNG", out=tmp_path / "out", device="cpu")
     assert again["light_mae"] == r["light_mae"] and not (tmp_path / "out" / FOUND_FILE).exists()
     assert "mask_found" not in again["outputs"] and any(f"removed {FOUND_FILE}" in n for n in again["notes"])
-    run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
-    assert not (tmp_path / "sd" / FOUND_FILE).exists()
+    masked = run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
+    assert not (tmp_path / "sd" / FOUND_FILE).exists()  # removed with a note, as the other files (helper-159)
+    assert any(n.startswith("outputs: removed ") and FOUND_FILE in n for n in masked["notes"]), masked["notes"]
     from psctl.io.images import write_image
 
     (tmp_path / "flat").mkdir()  # no mask and no object found (a lit frame): no file
