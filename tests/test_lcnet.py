@@ -481,6 +481,18 @@ def test_lights_command(tmp_path, fake_weights):
     assert [n for n in notes if n.startswith("outputs:")] == [
         f"outputs: replaced lights.png in {tmp_path / 'mine'}, which no earlier psctl lights run there had listed"]
     assert not any(n.startswith("outputs:") for n in run_lights(tmp_path / "ballPNG", **kw)["notes"])
+    # psctl calibrate's files (it defaults to PATH/psctl too) are named as its, with the ones that stay
+    # beside the new lights (its report describes the replaced ones; helper-159)
+    cal = tmp_path / "cal"
+    cal.mkdir()
+    files = ("light_directions.txt", "lights.png", "sphere.png", "calibration_report.json")
+    for n in files:
+        (cal / n).write_bytes(b"calibrate's")
+    (cal / ".psctl-calibrate").write_text("".join(f"{n}\n" for n in files))
+    notes = run_lights(tmp_path / "ballPNG", **{**kw, "out": cal})["notes"]
+    assert [n for n in notes if n.startswith("outputs:")] == [
+        f"outputs: replaced light_directions.txt, lights.png in {cal}, written there by an earlier psctl calibrate "
+        "run (its sphere.png, calibration_report.json stay)"], notes
 
 
 def test_missing_weights_are_one_clear_line(tmp_path, capture):

@@ -182,11 +182,32 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
              for d in sorted(Path(out_dir).glob(".psctl-staging.*/.replaced")) if d.is_dir() and any(d.iterdir())]
     if listed is None:
         listed = read_outputs_list(out_dir, command)
+    names = list(names)
     foreign = [n for n in names if n not in listed and (Path(out_dir) / n).is_file()]
+    # another command's files (psctl calibrate's light_directions.txt, then psctl lights there:
+    # both default to PATH/psctl) are psctl's, not the user's; its report, left beside them, now
+    # describes files that are gone, so the note says which of its files stay
+    for other in _other_commands(out_dir, command):
+        theirs = read_outputs_list(out_dir, other)
+        mine = [n for n in foreign if n in theirs]
+        if mine:
+            foreign = [n for n in foreign if n not in mine]
+            kept = [n for n in theirs if n not in names and (Path(out_dir) / n).is_file()]
+            notes.append(f"outputs: replaced {', '.join(mine)} in {out_dir}, written there by an earlier psctl {other} "
+                         "run" + (f" (its {', '.join(kept)} stay{'s' if len(kept) == 1 else ''})" if kept else ""))
     if foreign:
         notes.append(f"outputs: replaced {', '.join(foreign)} in {out_dir}, which no earlier psctl {command} run "
                      "there had listed")
     return notes
+
+
+def _other_commands(out_dir: Path, command: str) -> list[str]:
+    """The other psctl commands whose output lists ``out_dir`` holds, sorted."""
+    try:
+        found = [e.name[len(LIST_PREFIX):] for e in os.scandir(out_dir) if e.name.startswith(LIST_PREFIX)]
+    except OSError:
+        return []
+    return sorted(c for c in found if c != command and c.isidentifier() and not c.startswith("staging"))
 
 
 def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: Iterable[tuple[str, object]]) -> None:
