@@ -851,7 +851,28 @@ def _normals_outputs(method: str, cap: "Capture", n_all: int, formats: list[str]
                                               "or choose another --out")
         # not psctl's (or from a psctl without the list); the found object's file: after the search
         notes += replaced_notes(out_dir, [n for n in names if n != FOUND_FILE], "normals", listed)
+        notes += _depth_left_notes(out_dir, names + removed)
     return names, light_files, stale, notes
+
+
+def _depth_left_notes(out_dir: "Path", replaced: list[str]) -> list[str]:
+    """A note when psctl depth's outputs in ``out_dir`` (both commands default to PATH/psctl) were
+    integrated from a normal map this run replaces or removes: they stay, and would read as the
+    surface of the new normals (a helper's finding: an l2 mesh beside ps-fcn-n's normals)."""
+    import json
+
+    from psctl.io.atomic import read_small_text
+
+    depth = [n for n in read_outputs_list(out_dir, "depth") if (out_dir / n).is_file()]
+    try:
+        source = json.loads(read_small_text(out_dir / "depth_report.json", 64 << 20)).get("normals") if depth else None
+    except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
+        return []
+    if not isinstance(source, str):
+        return []
+    hit = [n for n in replaced if os.path.realpath(out_dir / n) == os.path.realpath(source)]
+    return [f"outputs: {', '.join(depth)} in {out_dir} stay, integrated by psctl depth from the earlier {hit[0]}: "
+            f"run psctl depth again for these normals' surface"] if hit else []
 
 
 def _found_file_notes(written: bool, stale: Callable[[], list[str]], out_dir: "Path") -> list[str]:

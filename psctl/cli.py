@@ -552,7 +552,7 @@ def synth(
 
 @app.command(cls=_Command)
 def depth(
-    path: Annotated[Path, typer.Argument(help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png that the psctl normals run there wrote (its report.json), else the first of them there, else estimated (--method auto); after psctl normals -o DIR, pass --normals DIR/normal.exr.")],
+    path: Annotated[Path, typer.Argument(help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png that the psctl normals run there wrote (its report.json), else the first of them there, else estimated (--method auto); with --out DIR, a map a psctl normals run of this capture wrote in DIR comes first.")],
     normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl's 16- or 8-bit PNG, EXR or .npy.")] = None,
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
     out: OutDir = None,

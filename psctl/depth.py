@@ -607,6 +607,23 @@ def written_by_normals(path: Path) -> bool:
     return _as_written(path, _written(path.parent / "report.json"))
 
 
+def _normals_capture(path: Path) -> str | None:
+    """The capture folder (real path) the psctl normals run whose report.json lies beside ``path``
+    estimated it from, where that report records ``path`` as written (else None)."""
+    import json
+
+    from psctl.io.atomic import read_small_text
+
+    try:
+        report = json.loads(read_small_text(path.parent / "report.json", 64 << 20))
+    except (OSError, ValueError, RecursionError, PsctlError):
+        return None
+    if not isinstance(report, dict) or not isinstance(report.get("path"), str) or \
+            not _as_written(path, report.get("written") if isinstance(report.get("written"), dict) else {}):
+        return None
+    return os.path.realpath(report["path"])
+
+
 def _as_written(path: Path, written: dict) -> bool:
     """Whether ``path``'s size and modification time are as ``written`` (a report's) records them."""
     try:
@@ -623,7 +640,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     """Integrate a capture folder's normal map into depth.exr, depth.png, mesh.ply, shading.png
     and depth_report.json (in ``out``, default PATH/psctl; all files or none).
 
-    Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else the first of NORMAL_FILES in
+    Normals: the ``normals`` file (psctl 16-bit PNG, EXR or .npy), else the first of NORMAL_FILES
+    that a psctl normals run of this capture wrote in ``out``, else the first of them in
     PATH/psctl (normal.exr, normal.npy, normal.png, normal_8bit.png) that the psctl normals run
     there wrote (``pick_normal_file``), else the first of them there, else estimated from the images (``psctl normals --method auto``). Mask: the
     folder's mask, else every pixel with a nonzero normal. Intrinsics: ``K`` (a file or a 3 x 3
@@ -673,7 +691,12 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     estimated: dict | None = None  # and its report
     inputs: list = []  # (file, input_stamp): read here, to be unchanged when the outputs are written
     if normals is None:
-        normals, picked_note = pick_normal_file(cap.path / "psctl")
+        # psctl normals -o N then psctl depth -o N: the map that run wrote there for this capture
+        # comes first (a helper found it passed over for PATH/psctl's, or estimated again)
+        picked, picked_note = pick_normal_file(out_dir) if out is not None else (None, None)
+        if picked is None or picked_note or _normals_capture(picked) != os.path.realpath(cap.path):
+            picked, picked_note = pick_normal_file(cap.path / "psctl")
+        normals = picked
         notes += [picked_note] if picked_note else []
     if normals is not None:
         from psctl.io.normals import read_normal_map
@@ -700,6 +723,11 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
                              f"pixels, mask_found.png beside {source.name}), without the pixels around it its "
                              f"normals also cover")
         normals_source = os.path.abspath(source)
+        other = _normals_capture(source)
+        if other is not None and other != os.path.realpath(cap.path):  # the same size, another object?
+            notes.append(f"normals: the report.json beside {source.name} says psctl normals estimated it from "
+                         f"{other}, not from {os.path.abspath(cap.path)} (the wrong --normals? or the capture was "
+                         f"moved since); its mask_found.png and albedo, where used, are that run's too")
         notes += encoding_notes(nmap, mask, source) + mirror_map_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import resolve_method, run_normals

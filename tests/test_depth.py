@@ -444,6 +444,36 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
     assert report["intrinsics"].endswith("k.txt") and report["projection"] == "perspective"
 
 
+def test_depth_reads_the_normals_of_its_out_folder_and_names_another_captures(tmp_path):
+    """psctl normals -o N then psctl depth -o N integrates N's normals (they were passed over for
+    PATH/psctl's, or estimated again); a map another capture's run wrote gets a note; and a later
+    psctl normals over the map depth's outputs came from says they stay (helper-159)."""
+    import shutil
+
+    from psctl.api import run_normals
+    from psctl.depth import run_depth
+
+    write_capture(tmp_path / "a", n=8, size=32, seed=1)
+    write_capture(tmp_path / "b", n=8, size=32, seed=2)
+    run_normals(tmp_path / "a", method="l2", out=tmp_path / "N")
+    shutil.copytree(tmp_path / "N", tmp_path / "a" / "psctl")
+    (tmp_path / "a" / "psctl" / "normal.exr").unlink()  # PATH/psctl holds another map: not the one read
+    r = run_depth(tmp_path / "a", out=tmp_path / "N")
+    assert r["normals"] == str(tmp_path / "N" / "normal.exr"), r["normals"]
+    assert not any("estimated" in n or "report.json beside" in n for n in r["notes"]), r["notes"]
+    # N's normals are a's, not b's: b's depth into N does not take them, and b's own PATH/psctl is empty
+    assert "estimated" in run_depth(tmp_path / "b", out=tmp_path / "N", write=False)["normals"]
+    other = run_depth(tmp_path / "b", normals=tmp_path / "N" / "normal.exr", out=tmp_path / "D")
+    assert any(n.startswith("normals: the report.json beside normal.exr says psctl normals estimated it from "
+                            f"{os.path.realpath(tmp_path / 'a')}, not from {tmp_path / 'b'}") for n in other["notes"]), \
+        other["notes"]
+    again = run_normals(tmp_path / "a", method="l2", out=tmp_path / "N", formats=["npy"])  # removes normal.exr
+    assert any(n.startswith("outputs: depth.exr, depth.png, mesh.ply, shading.png, depth_report.json in ") and
+               "from the earlier normal.exr: run psctl depth again" in n for n in again["notes"]), again["notes"]
+    assert not any("psctl depth" in n for n in run_normals(tmp_path / "a", method="l2", out=tmp_path / "N",
+                                                            formats=["npy"])["notes"])  # depth read normal.exr, gone
+
+
 def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):
     """NaN in a float normal map marks 'no normal': counted and skipped, not a crash."""
     from psctl.io.images import write_image
