@@ -124,8 +124,11 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
                                   f"network), not {method}")
     if (method == "ensemble" or method in NETWORKS and NETWORK_METHODS[method]["lights"]) and not calibrated:
         if lights_file is not None:
+            from psctl.io.capture import missing_lights_hint
+
             raise PsctlError(lights_file, f"missing: {method} needs calibrated light directions; without them "
-                                          "--method sdps estimates the lights (as auto does), or ups-fcn")
+                                          "--method sdps estimates the lights (as auto does), or ups-fcn"
+                                          + missing_lights_hint(os.path.dirname(os.fspath(lights_file))))
         raise PsctlError(None, f"{method} needs light directions (lights=None); method='sdps' estimates them "
                                "(or ups-fcn)")
     return method, None
@@ -597,7 +600,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                "autocast": precision_autocast(precision, device)}
     if method == "l2":
         if not cap.calibrated:
-            raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions")
+            from psctl.io.capture import missing_lights_hint
+
+            raise PsctlError(cap.path / "light_directions.txt", "missing: l2 needs calibrated light directions"
+                                                                + missing_lights_hint(cap.path))
         problem = lights_problem(cap.lights)  # before any image is read
         if problem:
             raise PsctlError(cap.path if cap.n_images < 3 else cap.path / "light_directions.txt", f"l2: {problem}")

@@ -902,7 +902,10 @@ def _capture_member(capture: "Capture", mask: np.ndarray, method: str, weights: 
 
     model, run, note = _prepare_network(method, weights, config)
     if model.uses_lights and not capture.calibrated:
-        raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions")
+        from psctl.io.capture import missing_lights_hint
+
+        raise PsctlError(capture.path / "light_directions.txt", f"missing: {method} needs calibrated light directions"
+                                                                + missing_lights_hint(capture.path))
     unused = []
     if not model.uses_lights:
         # a network without light input (UPS-FCN) is trained on images as captured, under unknown

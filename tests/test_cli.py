@@ -739,6 +739,45 @@ def test_output_folder_read_only(capture, tmp_path):
         ro.chmod(0o700)
 
 
+def test_missing_lights_point_at_psctl_lights_output_beside(tmp_path):
+    """light_directions.txt missing where psctl lights (or calibrate) wrote one into PATH/psctl:
+    the error says it is never read from there and how to use it (helper-159)."""
+    import shutil
+
+    from psctl.api import run_normals
+    from psctl.errors import PsctlError
+
+    write_capture(tmp_path / "c", n=6, size=24)
+    (tmp_path / "c" / "psctl").mkdir()
+    shutil.move(tmp_path / "c" / "light_directions.txt", tmp_path / "c" / "psctl" / "light_directions.txt")
+    for method in ("l2", "ps-fcn"):
+        with pytest.raises(PsctlError) as e:
+            run_normals(tmp_path / "c", method=method, out=tmp_path / "o")
+        assert e.value.path == str(tmp_path / "c" / "light_directions.txt")
+        assert e.value.message.endswith(f"({tmp_path / 'c' / 'psctl' / 'light_directions.txt'} is an output of psctl "
+                                        f"lights or calibrate, never read from there: copy it, and "
+                                        f"light_intensities.txt where there is one, into {tmp_path / 'c'} to use it)")
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_read_only_parent_is_the_folder_named(tmp_path, monkeypatch):
+    """A folder still to be made in a read-only one: the read-only one is named (as root, whom
+    permissions do not stop, os.access is what says so here)."""
+    import psctl.io.atomic as atomic
+    from psctl.errors import PsctlError
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode: False if os.fspath(p) == str(ro) else real(p, mode))
+    with pytest.raises(PsctlError) as e:
+        atomic.check_output_dir(ro / "psctl" / "deeper")
+    assert e.value.path == str(ro / "psctl" / "deeper") and e.value.message == f"cannot create output folder: {ro} is not writable"
+    with pytest.raises(PsctlError) as e:
+        atomic.check_output_dir(ro)
+    assert e.value.message == "output folder is not writable"
+
+
 @pytest.mark.parametrize("args,needle", [
     (["normals", "/nonexistent/folderPNG"], "does not exist"),
     (["normals", "{capture}", "--format", "png16,tiff"], "--format"),

@@ -809,6 +809,17 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
         open_capture(other)
     with pytest.raises(PsctlError, match=r"mask is empty .*uint16 masks are divided by 65535"):
         as_mask(np.full((4, 4), 255, np.uint16), (4, 4))
+    # psctl's own output folder taken for a capture: said so, and where the capture is (helper-159)
+    from psctl.api import run_normals
+
+    run_normals(cap, method="l2")
+    for folder, where in ((cap / "psctl", str(cap)), (tmp_path / "o", "named in its reports")):
+        if folder.name == "o":
+            run_normals(cap, method="l2", out=folder)
+        with pytest.raises(PsctlError) as e:
+            open_capture(folder)
+        assert e.value.message == (f"is an output folder of psctl normals, not a capture (no images); run on the "
+                                   f"capture folder, {where}")
 
 
 def test_a_broken_link_named_as_the_mask_says_so(tmp_path):

@@ -129,7 +129,10 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     if not probe.is_dir():
         raise PsctlError(path, f"cannot create output folder: {probe} is not a folder")
     if not os.access(probe, os.W_OK | os.X_OK):
-        raise PsctlError(path, "output folder is not writable")
+        # a folder still to be made: the one it would be made in is the one to fix (a helper read
+        # "capro/psctl: output folder is not writable" where capro was read-only)
+        raise PsctlError(path, "output folder is not writable" if probe == path else
+                         f"cannot create output folder: {probe} is not writable")
     return path
 
 
