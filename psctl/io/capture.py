@@ -761,6 +761,14 @@ def missing_lights_hint(folder: str | os.PathLike) -> str:
 def _no_images(path: Path, entries: list[Path]) -> PsctlError:
     """The error of a folder without a list in which no file is taken for an image: what it holds
     that could be (taken for a mask or an output by name, another format, camera raw) and what to do."""
+    from psctl.io.atomic import LIST_PREFIX
+
+    ran = sorted(p.name[len(LIST_PREFIX):] for p in entries if p.name.startswith(LIST_PREFIX) and
+                 p.name[len(LIST_PREFIX):].isidentifier() and p.is_file())
+    if ran:  # `psctl info OBJ/psctl`: whose folder it is, not a list to write (a helper's finding)
+        return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); run "
+                                f"on the capture folder, {path.parent if path.name == 'psctl' else 'named in its reports'}")
+
     def some(names: list[str]) -> str:
         return f"{few(names)} {'is' if len(names) == 1 else 'are'}"
 
@@ -771,13 +779,6 @@ def _no_images(path: Path, entries: list[Path]) -> PsctlError:
     said = ([f"{some(left_out)} taken for a mask, normals or outputs by name"] if left_out else []) + (
         [f"{some(other)} not read unless listed"] if other else [])
     hint = [f"{'; '.join(said)}: list the images in {LIST_FILES[0]}"] if said else []
-    from psctl.io.atomic import LIST_PREFIX
-
-    ran = sorted(p.name[len(LIST_PREFIX):] for p in entries if p.name.startswith(LIST_PREFIX) and
-                 p.name[len(LIST_PREFIX):].isidentifier() and p.is_file())
-    if ran:  # `psctl info OBJ/psctl`: whose folder it is, not a list to write (a helper's finding)
-        return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); run "
-                                f"on the capture folder, {path.parent if path.name == 'psctl' else 'named in its reports'}")
     raw = [n for n in files if n.lower().endswith(RAW_SUFFIXES)]
     if raw:  # listing them would not help: say how to convert them
         them = "them to 16-bit linear TIFFs" if len(raw) > 1 else "it to a 16-bit linear TIFF"
