@@ -157,6 +157,16 @@ def test_ps_fcn_forward_fuses_the_images_by_their_maximum():
 
 # --- refine: a shifted falloff's intensity is |s| + b (mutant C03) ---------------------------------
 
+def _refine_scene() -> tuple[np.random.Generator, np.ndarray, np.ndarray]:
+    """(rng, 4000 unit normals facing the camera, 6 unit light directions) for the refinement's tests."""
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(4000, 3))
+    p[:, 2] = np.abs(p[:, 2])
+    dirs = np.array([[0, 0, 1], [0.4, 0, 0.9165], [-0.4, 0.2, 0.8944], [0, -0.45, 0.893],
+                     [0.3, 0.3, 0.9055], [-0.2, -0.35, 0.9151]])
+    return rng, p / np.linalg.norm(p, axis=1, keepdims=True), dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+
+
 def test_refined_intensities_are_the_brightness_facing_the_light_under_a_shifted_falloff():
     """refine_lights' model (its docstring): o = rho max(n . s_j + b_j, 0), b_j <= 0 for the
     "shifted" falloff, and the intensity e_j = |s_j| + b_j (the brightness where n = l), given
@@ -166,13 +176,7 @@ def test_refined_intensities_are_the_brightness_facing_the_light_under_a_shifted
     every intensity 1)."""
     from psctl.refine import refine_lights
 
-    rng = np.random.default_rng(0)
-    p = rng.normal(size=(4000, 3))
-    p[:, 2] = np.abs(p[:, 2])
-    normals = p / np.linalg.norm(p, axis=1, keepdims=True)
-    dirs = np.array([[0, 0, 1], [0.4, 0, 0.9165], [-0.4, 0.2, 0.8944], [0, -0.45, 0.893],
-                     [0.3, 0.3, 0.9055], [-0.2, -0.35, 0.9151]])
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rng, normals, dirs = _refine_scene()
     b = np.array([-0.1, -0.15, -0.2, -0.25, -0.3, -0.35])
     rho = rng.uniform(0.3, 1.0, len(normals))
     obs = (rho[None] * np.maximum(dirs @ normals.T + b[:, None], 0)).astype(np.float32)
@@ -197,13 +201,7 @@ def test_a_fit_that_moves_a_light_beyond_max_change_keeps_the_lights_passed_in(o
     back), 35 is refused (the start comes back). Kills C06 (the limit doubled: 35 accepted)."""
     from psctl.refine import refine_lights
 
-    rng = np.random.default_rng(0)
-    p = rng.normal(size=(4000, 3))
-    p[:, 2] = np.abs(p[:, 2])
-    normals = p / np.linalg.norm(p, axis=1, keepdims=True)
-    dirs = np.array([[0, 0, 1], [0.4, 0, 0.9165], [-0.4, 0.2, 0.8944], [0, -0.45, 0.893],
-                     [0.3, 0.3, 0.9055], [-0.2, -0.35, 0.9151]])
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rng, normals, dirs = _refine_scene()
     rho = rng.uniform(0.3, 1.0, len(normals))
     obs = (rho[None] * np.maximum(dirs @ normals.T, 0)).astype(np.float32)
     t = np.radians(off)
