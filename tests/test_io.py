@@ -957,6 +957,16 @@ def test_benchmark_sheet_draws_each_objects_maps():
     assert np.isclose(mixed, green).all(-1).sum() == (r["spread"][..., 0] > 0).sum() + 2 * bar2
     plain = benchmark_sheet([p, q, p, q], "X", per_row=2)
     assert mixed.shape[0] == plain.shape[0] + 40 + 4
+    # a name wider than its maps takes two lines, split after the shape and cut in the middle; names
+    # cut alike (MERL's endings) are written whole: no two objects share a label (helper-162)
+    kw = dict(normals=normals, error=error, mask=mask, height=40)  # maps 69 px wide: 12 characters a line
+    names = ("sphere_dark-red-paint", "sphere_gold-paint", "bunny_specular-violet-phenolic",
+             "bunny_specular-white-phenolic")
+    long = benchmark_sheet([object_panel(n, 1.0, **kw) for n in names], "X")
+    for text, times in (("sphere_", 2), ("dark-..paint", 1), ("gold-paint", 1), ("bunny_", 2),
+                        ("specular-violet-phenolic", 1), ("specular-white-phenolic", 1), ("specu..nolic", 0)):
+        assert len(_text_at(long, text, 2)) == times, text
+    assert long.shape[0] == benchmark_sheet([object_panel("cat", 1.0, **kw)] * 4, "X").shape[0] + 20  # one more line
 
 
 def test_benchmark_sheet_of_many_objects_stays_roughly_square():

@@ -6,6 +6,7 @@ Drawn with NumPy and a built-in 5 x 7 pixel font, so no plotting library is need
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -322,7 +323,8 @@ def sheet_layout(n: int) -> tuple[int, int]:
 def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row: int | None = None) -> np.ndarray:
     """The picture of a benchmark run (``psctl eval --out``: eval.png): ``title`` on top, then
     the objects (``object_panel``) in rows of ``per_row`` (None: ``sheet_layout``'s): each its
-    name (cut in the middle to the width of its maps, at least 12 characters) and MAE above its normal map, its
+    name (wider than its maps, at least 12 characters: on two lines, split after the shape, each
+    cut in the middle; names cut alike written whole) and MAE above its normal map, its
     error map below, and its spread map below that in rows where any panel has one; one colour
     bar for each kind of map on the right of each row.
     -> [H', W', 3] float32 in [0, 1]."""
@@ -334,16 +336,35 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     line = 7 * s + 6  # one line of text
     char = 6 * s  # one character's advance
 
-    def fit(text: str, width: int) -> str:
+    def fit(text: str, n: int) -> str:
         # cut in the middle: names of a set differ at the end too (armadillo_gold, armadillo_steel)
-        n = max(12, (width + s) // char)
         if len(text) <= n:
             return text
         head = (n - 2 + 1) // 2
         return text[:head] + ".." + text[len(text) - (n - 2 - head):]
 
-    labels = [(fit(p["name"], p["normals"].shape[1]), "" if p["mae"] is None else f"MAE {p['mae']:.2f}°")
-              for p in panels]
+    def name_lines(text: str, n: int) -> tuple[str, ...]:
+        # a name wider than its maps: two lines, split after the shape (psctl synth's
+        # shape_material names) where it can be, each cut in the middle to n characters
+        if len(text) <= n:
+            return (text,)
+        cut = text.find("_") + 1
+        cut = cut if 0 < cut <= n else n
+        return fit(text[:cut], n), fit(text[cut:], n)
+
+    names = [name_lines(p["name"], max(12, (p["normals"].shape[1] + s) // char)) for p in panels]
+    # names that still read alike (MERL's materials end alike: 15 in "paint", 12 in "phenolic")
+    # are written out whole, their panels widened: no two objects share a label (a helper read
+    # "sphere..paint" under both sphere_dark-red-paint and sphere_gold-paint)
+    def whole(text: str) -> tuple[str, ...]:
+        cut = text.find("_") + 1
+        return name_lines(text, max(cut, len(text) - cut) if cut else len(text))
+
+    alike = collections.Counter(names)
+    names = [whole(p["name"]) if alike[nm] > 1 else nm for p, nm in zip(panels, names)]
+    n_lines = max(len(nm) for nm in names)  # name lines above each row's maps, then the MAE
+    labels = [(*nm, *[""] * (n_lines - len(nm)), "" if p["mae"] is None else f"MAE {p['mae']:.2f}°")
+              for p, nm in zip(panels, names)]
     widths = [max(p["normals"].shape[1], *(text_bitmap(t, s).shape[1] for t in lab)) for p, lab in zip(panels, labels)]
     bar_w = 10  # and beside it its labels, or above it its name (SPREAD), whichever is wider
     bar_text = max(text_bitmap(f">{vmax:.0f}°", s).shape[1], text_bitmap("SPREAD", s).shape[1] - bar_w) + 4
@@ -357,7 +378,8 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     # objects has a spread map (a run that mixes methods has rows without)
     n_maps = [3 if any(panels[i].get("spread") is not None for i in r) else 2 for r in rows]
     keyed = any(p.get("unscored") for p in panels)  # grey pixels (no ground truth) keyed at the bottom
-    H = gap + line + sum(gap + 2 * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + (line if keyed else 0)
+    H = gap + line + sum(gap + (n_lines + 1) * line + k * (h + 4) - 4 for h, k in zip(heights, n_maps)) + gap + \
+        (line if keyed else 0)
     W = max(W, 2 * gap + _key_unscored(None, 0, 0, s)) if keyed else W
     canvas = np.full((H, W, 3), BACKGROUND, np.float32)
     _stamp(canvas, text_bitmap(title, s), gap, gap)
@@ -365,11 +387,11 @@ def benchmark_sheet(panels: list[dict], title: str, vmax: float = 45.0, per_row:
     for r, h, k_maps in zip(rows, heights, n_maps):
         y += gap
         x = gap
-        y_maps = y + 2 * line
+        y_maps = y + (n_lines + 1) * line
         for i in r:
-            p, (name, mae) = panels[i], labels[i]
-            _stamp(canvas, text_bitmap(name, s), y, x)
-            _stamp(canvas, text_bitmap(mae, s), y + line, x)
+            p = panels[i]
+            for j, text in enumerate(labels[i]):  # the name's lines, then the MAE
+                _stamp(canvas, text_bitmap(text, s), y + j * line, x)
             ph, pw = p["normals"].shape[:2]
             dy = (h - ph) // 2  # a panel lower than the row (a wide strip): centred in its slot
             canvas[y_maps + dy:y_maps + dy + ph, x:x + pw] = p["normals"]
