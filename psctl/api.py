@@ -874,7 +874,7 @@ def _depth_left_notes(out_dir: "Path", replaced: list[str]) -> list[str]:
         source = json.loads(read_small_text(out_dir / "depth_report.json", 64 << 20)).get("normals") if depth else None
     except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
         return []
-    if not isinstance(source, str):
+    if not isinstance(source, str) or "\0" in source:  # (realpath raises on a NUL byte)
         return []
     hit = [n for n in replaced if os.path.realpath(out_dir / n) == os.path.realpath(source)]
     return [f"outputs: {', '.join(depth)} in {out_dir} stay, integrated by psctl depth from the earlier {hit[0]}: "

@@ -618,9 +618,9 @@ def _normals_capture(path: Path) -> str | None:
         report = json.loads(read_small_text(path.parent / "report.json", 64 << 20))
     except (OSError, ValueError, RecursionError, PsctlError):
         return None
-    if not isinstance(report, dict) or not isinstance(report.get("path"), str) or \
+    if not isinstance(report, dict) or not isinstance(report.get("path"), str) or "\0" in report["path"] or \
             not _as_written(path, report.get("written") if isinstance(report.get("written"), dict) else {}):
-        return None
+        return None  # (a NUL byte: realpath's ValueError, a review's traceback)
     return os.path.realpath(report["path"])
 
 
@@ -693,9 +693,19 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     if normals is None:
         # psctl normals -o N then psctl depth -o N: the map that run wrote there for this capture
         # comes first (a helper found it passed over for PATH/psctl's, or estimated again)
-        picked, picked_note = pick_normal_file(out_dir) if out is not None else (None, None)
-        if picked is None or picked_note or _normals_capture(picked) != os.path.realpath(cap.path):
-            picked, picked_note = pick_normal_file(cap.path / "psctl")
+        default = cap.path / "psctl"
+        mine = out is not None and os.path.realpath(out_dir) != os.path.realpath(default)
+        picked, picked_note = pick_normal_file(out_dir) if mine else (None, None)
+        if picked is not None:
+            made_from = _normals_capture(picked)
+            if made_from != os.path.realpath(cap.path):  # passed over, with a word (a review: silently)
+                notes.append(f"normals: {picked} passed over: " + (
+                    "no report.json there records it as written (changed, or copied without its files' times?)"
+                    if made_from is None else f"its report.json says psctl normals estimated it from {made_from}") +
+                    "; give it with --normals to integrate it")
+                picked = None
+        if picked is None:
+            picked, picked_note = pick_normal_file(default)
         normals = picked
         notes += [picked_note] if picked_note else []
     if normals is not None:
@@ -726,8 +736,8 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
         other = _normals_capture(source)
         if other is not None and other != os.path.realpath(cap.path):  # the same size, another object?
             notes.append(f"normals: the report.json beside {source.name} says psctl normals estimated it from "
-                         f"{other}, not from {os.path.abspath(cap.path)} (the wrong --normals? or the capture was "
-                         f"moved since); its mask_found.png and albedo, where used, are that run's too")
+                         f"{other}, not from {os.path.abspath(cap.path)} (another capture's map? or this capture was "
+                         f"moved or copied since); its mask_found.png and albedo, where used, are that run's too")
         notes += encoding_notes(nmap, mask, source) + mirror_map_notes(nmap, mask, source)
     else:  # exactly what psctl normals --method auto gives (its crop, its notes), nothing written
         from psctl.api import resolve_method, run_normals

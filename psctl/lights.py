@@ -856,14 +856,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
         report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
         report["seed"] = seed
     if write:
-        from psctl.io.atomic import read_outputs_list, replaced_notes, write_outputs_list
+        from psctl.io.atomic import own_outputs, read_outputs_list, replaced_notes, write_outputs_list
         from psctl.io.report import write_json
 
         report["outputs"] = {k: os.path.abspath(out_dir / v) for k, v in OUTPUT_FILES.items()}
         names = [*OUTPUT_FILES.values(), *([SUBSET_FILE] if subset else []), *([FOUND_FILE] if shown else []),
                  REPORT_FILE]
         # a same-named file of the user's (a mask_found.png psctl normals wrote there is psctl's: no word)
-        ours = read_outputs_list(out_dir, "lights") + [n for n in read_outputs_list(out_dir, "normals") if n == FOUND_FILE]
+        ours = own_outputs(out_dir, "lights") + [n for n in read_outputs_list(out_dir, "normals") if n == FOUND_FILE]
         report["notes"] += replaced_notes(out_dir, names, "lights", ours)
         if subset:
             report["outputs"]["light_images"] = os.path.abspath(out_dir / SUBSET_FILE)

@@ -760,6 +760,19 @@ def test_missing_lights_point_at_psctl_lights_output_beside(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+def test_replaced_notes_name_only_psctl_commands_lists(tmp_path):
+    """A stray .psctl-foo (a backup, say) names no psctl command; psctl lights' list does (helper-161)."""
+    from psctl.io.atomic import replaced_notes
+
+    (tmp_path / "depth.png").write_bytes(b"x")
+    (tmp_path / ".psctl-foo").write_text("depth.png\n")
+    assert replaced_notes(tmp_path, ["depth.png"], "depth") == [
+        f"outputs: replaced depth.png in {tmp_path}, which no earlier psctl depth run there had listed"]
+    (tmp_path / ".psctl-lights").write_text("depth.png\n/etc/passwd\n")
+    assert replaced_notes(tmp_path, ["depth.png"], "depth") == [
+        f"outputs: replaced depth.png in {tmp_path}, written there by an earlier psctl lights run"]
+
+
 def test_a_read_only_parent_is_the_folder_named(tmp_path, monkeypatch):
     """A folder still to be made in a read-only one: the read-only one is named (as root, whom
     permissions do not stop, os.access is what says so here)."""

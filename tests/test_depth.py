@@ -446,7 +446,7 @@ def test_run_depth_prefers_the_normal_map_psctl_wrote(capture):
 
 def test_depth_reads_the_normals_of_its_out_folder_and_names_another_captures(tmp_path):
     """psctl normals -o N then psctl depth -o N integrates N's normals (they were passed over for
-    PATH/psctl's, or estimated again); a map another capture's run wrote gets a note; and a later
+    PATH/psctl's, or estimated again); a map another capture's run wrote is passed over with a note; and a later
     psctl normals over the map depth's outputs came from says they stay (helper-159)."""
     import shutil
 
@@ -462,7 +462,17 @@ def test_depth_reads_the_normals_of_its_out_folder_and_names_another_captures(tm
     assert r["normals"] == str(tmp_path / "N" / "normal.exr"), r["normals"]
     assert not any("estimated" in n or "report.json beside" in n for n in r["notes"]), r["notes"]
     # N's normals are a's, not b's: b's depth into N does not take them, and b's own PATH/psctl is empty
-    assert "estimated" in run_depth(tmp_path / "b", out=tmp_path / "N", write=False)["normals"]
+    b_in_n = run_depth(tmp_path / "b", out=tmp_path / "N", write=False)
+    assert "estimated" in b_in_n["normals"]
+    assert f"normals: {tmp_path / 'N' / 'normal.exr'} passed over: its report.json says psctl normals estimated it " \
+           f"from {os.path.realpath(tmp_path / 'a')}; give it with --normals to integrate it" in b_in_n["notes"]
+    for name in ("normal.exr", "normal.png"):  # touched: no longer as that run wrote them (helper-161)
+        os.utime(tmp_path / "N" / name, ns=(0, 10**9))
+    touched = run_depth(tmp_path / "a", out=tmp_path / "N", write=False)
+    assert touched["normals"] == str(tmp_path / "a" / "psctl" / "normal.png")  # PATH/psctl's, as without -o
+    assert any("passed over: no report.json there records it as written" in n
+                                                     for n in touched["notes"]), touched["notes"]
+    run_normals(tmp_path / "a", method="l2", out=tmp_path / "N")
     other = run_depth(tmp_path / "b", normals=tmp_path / "N" / "normal.exr", out=tmp_path / "D")
     assert any(n.startswith("normals: the report.json beside normal.exr says psctl normals estimated it from "
                             f"{os.path.realpath(tmp_path / 'a')}, not from {tmp_path / 'b'}") for n in other["notes"]), \
@@ -472,6 +482,14 @@ def test_depth_reads_the_normals_of_its_out_folder_and_names_another_captures(tm
                "from the earlier normal.exr: run psctl depth again" in n for n in again["notes"]), again["notes"]
     assert not any("psctl depth" in n for n in run_normals(tmp_path / "a", method="l2", out=tmp_path / "N",
                                                             formats=["npy"])["notes"])  # depth read normal.exr, gone
+    # a NUL byte in a report's path is no path (realpath's ValueError was a traceback; helper-161)
+    run_depth(tmp_path / "a", out=tmp_path / "N")
+    for name, key in (("report.json", "path"), ("depth_report.json", "normals")):
+        r = json.loads((tmp_path / "N" / name).read_text())
+        (tmp_path / "N" / name).write_text(json.dumps({**r, key: r[key] + "\0"}))
+    assert run_depth(tmp_path / "a", normals=tmp_path / "N" / "normal.npy", write=False)["n_pixels"] > 0
+    assert not any("psctl depth" in n for n in run_normals(tmp_path / "a", method="l2", out=tmp_path / "N",
+                                                            formats=["npy"])["notes"])
 
 
 def test_cli_depth_counts_nan_normals_in_an_exr(capture, tmp_path):

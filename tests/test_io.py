@@ -813,13 +813,15 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
     from psctl.api import run_normals
 
     run_normals(cap, method="l2")
-    for folder, where in ((cap / "psctl", str(cap)), (tmp_path / "o", "named in its reports")):
-        if folder.name == "o":
-            run_normals(cap, method="l2", out=folder)
+    run_normals(cap, method="l2", out=tmp_path / "o" / "psctl")  # named psctl, in no capture: read, not guessed
+    for folder in (cap / "psctl", tmp_path / "o" / "psctl"):
         with pytest.raises(PsctlError) as e:
             open_capture(folder)
         assert e.value.message == (f"is an output folder of psctl normals, not a capture (no images); run on the "
-                                   f"capture folder, {where}")
+                                   f"capture folder it was made from, {cap}")
+    (tmp_path / "o" / "psctl" / "report.json").unlink()
+    with pytest.raises(PsctlError, match=r"not a capture \(no images\); run on the capture folder it was made from$"):
+        open_capture(tmp_path / "o" / "psctl")
 
 
 def test_a_broken_link_named_as_the_mask_says_so(tmp_path):

@@ -493,6 +493,16 @@ def test_lights_command(tmp_path, fake_weights):
     assert [n for n in notes if n.startswith("outputs:")] == [
         f"outputs: replaced light_directions.txt, lights.png in {cal}, written there by an earlier psctl calibrate "
         "run (its sphere.png, calibration_report.json stay)"], notes
+    # and once more after calibrate wrote there again: the newer list owns the files both name
+    # (lights, calibrate, lights replaced the calibrated directions without a word; helper-161)
+    (cal / "light_directions.txt").write_bytes(b"calibrate's again")
+    (cal / ".psctl-calibrate").write_text("light_directions.txt\nsphere.png\ncalibration_report.json\n")
+    later = os.stat(cal / ".psctl-lights").st_mtime_ns + 10**9
+    os.utime(cal / ".psctl-calibrate", ns=(later, later))
+    notes = run_lights(tmp_path / "ballPNG", **{**kw, "out": cal})["notes"]
+    assert [n for n in notes if n.startswith("outputs:")] == [
+        f"outputs: replaced light_directions.txt in {cal}, written there by an earlier psctl calibrate run (its "
+        "sphere.png, calibration_report.json stay)"], notes
 
 
 def test_missing_weights_are_one_clear_line(tmp_path, capture):

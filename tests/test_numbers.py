@@ -44,7 +44,8 @@ def test_intensity_error_of_rgb_averages_the_channels():
 
 def test_mae_missing_as_90_counts_every_mask_pixel():
     # kills M17 (api._evaluate divided by the scored pixels instead of the mask's). 4 mask pixels:
-    # errors 30, 0, 0 and one without ground truth: mae 10, as the paper (30 + 0 + 0 + 90) / 4 = 30.
+    # errors 30, 0, 0 and one without ground truth: mae (30 + 0 + 0) / 3 = 10; as the paper scores,
+    # (30 + 0 + 0 + 90) / 4 = 30.
     from psctl.api import _evaluate
     mask = np.ones((1, 4), bool)
     gt = np.zeros((1, 4, 3), np.float32)

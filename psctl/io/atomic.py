@@ -184,7 +184,7 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
              "in (kill -9?); move back what you need and remove that folder"
              for d in sorted(Path(out_dir).glob(".psctl-staging.*/.replaced")) if d.is_dir() and any(d.iterdir())]
     if listed is None:
-        listed = read_outputs_list(out_dir, command)
+        listed = own_outputs(out_dir, command)
     names = list(names)
     foreign = [n for n in names if n not in listed and (Path(out_dir) / n).is_file()]
     # another command's files (psctl calibrate's light_directions.txt, then psctl lights there:
@@ -195,7 +195,7 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
         mine = [n for n in foreign if n in theirs]
         if mine:
             foreign = [n for n in foreign if n not in mine]
-            kept = [n for n in theirs if n not in names and (Path(out_dir) / n).is_file()]
+            kept = [n for n in theirs if n not in names and os.sep not in n and (Path(out_dir) / n).is_file()]
             notes.append(f"outputs: replaced {', '.join(mine)} in {out_dir}, written there by an earlier psctl {other} "
                          "run" + (f" (its {', '.join(kept)} stay{'s' if len(kept) == 1 else ''})" if kept else ""))
     if foreign:
@@ -204,13 +204,35 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
     return notes
 
 
+LISTING_COMMANDS = ("normals", "lights", "calibrate", "depth", "eval", "compare", "undistort")  # keep a list
+
+
 def _other_commands(out_dir: Path, command: str) -> list[str]:
-    """The other psctl commands whose output lists ``out_dir`` holds, sorted."""
+    """The other psctl commands whose output lists ``out_dir`` holds, in LISTING_COMMANDS' order
+    (a stray .psctl-foo names no command)."""
+    return [c for c in LISTING_COMMANDS if c != command and (Path(out_dir) / outputs_list(c)).is_file()]
+
+
+def _list_time(out_dir: Path, command: str) -> int | None:
     try:
-        found = [e.name[len(LIST_PREFIX):] for e in os.scandir(out_dir) if e.name.startswith(LIST_PREFIX)]
+        return os.stat(Path(out_dir) / outputs_list(command)).st_mtime_ns
     except OSError:
-        return []
-    return sorted(c for c in found if c != command and c.isidentifier() and not c.startswith("staging"))
+        return None
+
+
+def own_outputs(out_dir: Path, command: str) -> list[str]:
+    """The files ``psctl COMMAND``'s list in ``out_dir`` names that no other command's newer list
+    names: a file two commands write (light_directions.txt: psctl lights and psctl calibrate, both
+    into PATH/psctl by default) is its last writer's (a review: lights, calibrate, lights there
+    replaced the calibrated directions without a word)."""
+    listed, t = read_outputs_list(out_dir, command), _list_time(out_dir, command)
+    if not listed or t is None:
+        return listed
+    claimed: set[str] = set()
+    for other in _other_commands(out_dir, command):
+        if (_list_time(out_dir, other) or 0) > t:
+            claimed.update(read_outputs_list(out_dir, other))
+    return [n for n in listed if n not in claimed]
 
 
 def check_inputs_kept(out_dir: str | os.PathLike, names: Iterable[str], inputs: Iterable[tuple[str, object]]) -> None:

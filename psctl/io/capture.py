@@ -754,8 +754,31 @@ def missing_lights_hint(folder: str | os.PathLike) -> str:
     one into the capture's default output folder, which is never read as an input (a helper
     looked for a hint)."""
     found = Path(folder) / "psctl" / "light_directions.txt"
+    try:
+        there = found.is_file()
+    except OSError:  # a folder psctl cannot search: no hint, and the error it adds to stands
+        return ""
     return (f" ({found} is an output of psctl lights or calibrate, never read from there: copy it, and "
-            f"light_intensities.txt where there is one, into {folder} to use it)") if found.is_file() else ""
+            f"light_intensities.txt where there is one, into {folder} to use it)") if there else ""
+
+
+def _made_from(folder: Path) -> str:
+    """What to run on instead of psctl's output ``folder``: the capture (or benchmark root) its
+    reports name (read, not guessed from the folder's name: a review's res/psctl was no capture)."""
+    import json
+
+    from psctl.io.atomic import read_small_text
+
+    for report, key in (("report.json", "path"), ("lights_report.json", "path"), ("depth_report.json", "path"),
+                        ("calibration_report.json", "path"), ("eval.json", "root"), ("compare.json", "root")):
+        try:
+            where = json.loads(read_small_text(folder / report)).get(key)
+        except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
+            continue
+        if isinstance(where, str) and "\0" not in where:
+            return (f"run on the capture folder it was made from, {where}" if key == "path" else
+                    f"psctl eval reads the benchmark root it was made from, {where}")
+    return "run on the capture folder it was made from"
 
 
 def _no_images(path: Path, entries: list[Path]) -> PsctlError:
@@ -766,8 +789,8 @@ def _no_images(path: Path, entries: list[Path]) -> PsctlError:
     ran = sorted(p.name[len(LIST_PREFIX):] for p in entries if p.name.startswith(LIST_PREFIX) and
                  p.name[len(LIST_PREFIX):].isidentifier() and p.is_file())
     if ran:  # `psctl info OBJ/psctl`: whose folder it is, not a list to write (a helper's finding)
-        return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); run "
-                                f"on the capture folder, {path.parent if path.name == 'psctl' else 'named in its reports'}")
+        return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); "
+                                + _made_from(path))
 
     def some(names: list[str]) -> str:
         return f"{few(names)} {'is' if len(names) == 1 else 'are'}"
