@@ -580,19 +580,29 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
         e = e / e.mean()  # only relative intensities mean anything (LCNet's have no scale): colour them about 1
     dot = (1.0, 0.6, 0.2)  # the legend's
     colours = np.tile(dot, (len(d), 1)) if intensities is None else jet((e - lo) / span)  # clipped to the bar's ends
+    g = None if gt_directions is None else np.asarray(gt_directions, np.float64).reshape(-1, 3)
     if gt_directions is not None:
-        g = np.asarray(gt_directions, np.float64).reshape(-1, 3)
         for k in range(len(d)):
             _segment(canvas, at(d[k]), at(g[k]), 0.6)
         for k in range(len(g)):
             _disk(canvas, *at(g[k]), 5.0, 1.0, ring=1.5)
     for k in range(len(d)):
         _disk(canvas, *at(d[k]), 3.5, colours[k])
-    # each ring's angle from the view axis, where it crosses the lower-left diagonal: drawn last, in a
-    # dark outline, since DiLiGenT's lights cover the 30-degree label (a QA helper found it unreadable)
+    # each ring's angle from the view axis, just outside the ring where the fewest markers are near
+    # (lower left first), drawn last in a dark outline: over DiLiGenT's lights the label was
+    # unreadable (a QA helper), and at a fixed place it hid a light (helper-162)
+    marks = np.array([at(v) for v in (*d, *(() if g is None else g))], np.float64).reshape(-1, 2)
     for zenith in (30.0, 60.0):
-        r = radius * np.sin(np.radians(zenith)) / np.sqrt(2)
-        bm, y, x = text_bitmap(f"{zenith:.0f}°", s), int(cy + r) + 2 * s, int(cx - r) - 20 * s
+        bm = text_bitmap(f"{zenith:.0f}°", s)
+        h, w = bm.shape
+        reach = radius * np.sin(np.radians(zenith)) + 0.5 * np.hypot(h, w) + 2  # the box's centre
+        spots = []
+        for a in np.radians(225.0 + np.array([0, 15, -15, 30, -30, 45, -45, 60, -60, 75, -75, 90, -90, 105, -105,
+                                              120, -120, 135, -135, 150, -150, 165, -165, 180])):
+            y, x = int(round(cy - reach * np.sin(a) - h / 2)), int(round(cx + reach * np.cos(a) - w / 2))
+            near = (marks[:, 0] > y - 6) & (marks[:, 0] < y + h + 6) & (marks[:, 1] > x - 6) & (marks[:, 1] < x + w + 6)
+            spots.append((int(near.sum()), len(spots), y, x))
+        _, _, y, x = min(spots)
         for dy in (-s, 0, s):
             for dx in (-s, 0, s):
                 _stamp(canvas, bm, y + dy, x + dx, (0.05, 0.05, 0.05))

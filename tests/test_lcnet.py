@@ -955,6 +955,21 @@ def test_intensity_relative_error_fits_the_scale_by_least_squares():
     assert intensity_relative_error(np.array([1.0, 2.0, 2.0]), np.array([1.0, 2.0, 4.0])) == pytest.approx(7 / 18)
 
 
+def test_lights_plot_ring_labels_hide_no_light():
+    """The 30 and 60 degree labels go just outside their ring where no marker is near: at a fixed
+    place the 30 degree label hid one of DiLiGenT's lights (helper-162). A DiLiGenT-like grid of 96
+    lights: every dot's centre keeps its colour."""
+    from psctl.io.report import jet
+
+    x, y = np.meshgrid(np.linspace(-0.5, 0.5, 12), np.linspace(-0.42, 0.42, 8))
+    d = np.stack([x.ravel(), y.ravel(), np.sqrt(1 - x.ravel() ** 2 - y.ravel() ** 2)], 1)
+    canvas = lights_plot(d, np.ones(len(d)), d, radius=230)
+    colour = jet(np.float32((1.0 - 0.2) / 1.8))
+    top, cx = 40 + 12 + 230, 12 + 230  # lights_plot's layout: the disk's centre (rows, columns)
+    for v in d:
+        assert np.allclose(canvas[int(round(top - v[1] * 230)), int(round(cx + v[0] * 230))], colour, atol=1e-6), v
+
+
 def test_lights_plot_small_or_degenerate_inputs_still_draw():
     """A small disk put the ring labels left of the canvas (an IndexError), and a range of one
     intensity divided by zero: both draw now."""
