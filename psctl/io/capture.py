@@ -784,10 +784,9 @@ def _made_from(folder: Path) -> str:
 def _no_images(path: Path, entries: list[Path]) -> PsctlError:
     """The error of a folder without a list in which no file is taken for an image: what it holds
     that could be (taken for a mask or an output by name, another format, camera raw) and what to do."""
-    from psctl.io.atomic import LIST_PREFIX
+    from psctl.io.atomic import LISTING_COMMANDS, outputs_list
 
-    ran = sorted(p.name[len(LIST_PREFIX):] for p in entries if p.name.startswith(LIST_PREFIX) and
-                 p.name[len(LIST_PREFIX):].isidentifier() and p.is_file())
+    ran = [c for c in LISTING_COMMANDS if (path / outputs_list(c)).is_file()]  # (a stray .psctl-foo: none)
     if ran:  # `psctl info OBJ/psctl`: whose folder it is, not a list to write (a helper's finding)
         return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); "
                                 + _made_from(path))
