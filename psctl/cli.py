@@ -151,7 +151,7 @@ RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCN
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
 RollOpt = Annotated[Optional[bool], _flag("--roll/--no-roll", help="sdps and psctl lights: after the light refinement, turn the lights (and sdps' normals) about the view axis by the roll that makes the normals from them most integrable (default: on; docs/uncalibrated.md, 'Roll from integrability').")]
 SnapOpt = Annotated[bool, _flag("--snap/--no-snap", help="sdps and psctl lights: LCNet and the light fit read mask.png snapped to the object (a mask drawn wider puts LCNet's lights far off; a note says what was left out, or where a mask read as given looks drawn wider); --no-snap: as given (an exact mask whose object has a face that shades as the background does; docs/uncalibrated.md, 'A mask wider than the object').")]
-ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work).")]
+ViewsOpt = Annotated[int, typer.Option(help="Network methods: average 1, 2, 4 or 8 symmetric views (the capture turned and mirrored about the view axis; that many times the work). sdps: its normals network; its LCNet always averages 8 (psctl lights --views sets LCNet's).")]
 DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the capture shrunk by this whole factor (each K x K block's mean), normals interpolated back to full size: about 1/K^2 of the network's work, for a quick look; detail is lost (docs/models.md, 'Downsampling'). 1: full size.")]
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (a file with an ICC profile is decoded through its tone curves; else JPEGs are decoded from sRGB, other files read as linear) | linear (all as stored) | srgb (all decoded from sRGB).")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
@@ -530,7 +530,7 @@ def synth(
     light_dist: Annotated[str, typer.Option("--light-dist", help="Zenith band of the lights: hemisphere (0-90 degrees) | diligent (0-45, like DiLiGenT's rig) | poles (0-30) | equator (60-90).")] = "hemisphere",
     intensities: Annotated[str, typer.Option("--intensities", help="Light intensities, drawn per object: unit | random (uniform in [0.2, 2], independent per image) | directional (a smooth function of the light direction, as rigs whose LEDs dim towards the rim) | mixed.")] = "unit",
     materials: Annotated[Optional[int], typer.Option("--materials", "-k", help="K: MERL materials per shape (syntest, default 4), material pairs (dragon-svbrdf, 1), shapes (blobby, 8).")] = None,
-    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none; at most 100).")] = 0,
+    interreflections: Annotated[int, typer.Option("--interreflections", help="Diffuse interreflection bounces to add (0: none; at most 100; not with --light-distance).")] = 0,
     ir_albedo: Annotated[Optional[float], typer.Option("--ir-albedo", help="With --interreflections: the surface lights itself as a source of albedo A * kd / max(kd) (default: kd).")] = None,
     light_distance: Annotated[Optional[float], typer.Option("--light-distance", help="Point lights this many pixels from each object's centre along its light directions (falloff and per-pixel directions; docs/near-lights.md). Default: distant lights.")] = None,
     preview: Annotated[bool, _flag("--preview", help="Also write OUT/preview.png, a contact sheet.")] = False,
@@ -576,7 +576,7 @@ def train(
     config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/; without it: the paper's schedule, 2.5 M samples from scratch).")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run, new or empty (default: runs/METHOD with _ for -, e.g. runs/ps_fcn_n).")] = None,
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
-    device: Annotated[str, typer.Option(help="auto | cpu | cuda")] = "auto",
+    device: Annotated[str, typer.Option(help="auto | cpu | cuda | cuda:N")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
     install: Annotated[bool, _flag(help="When finished, copy the best weights to the weights folder ($PSCTL_WEIGHTS, else the checkout's weights/); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
@@ -605,7 +605,8 @@ def train(
                                               "the recipe's validation set)" + (", not --resume" if resume else ""))
             if max_minutes is not None or lcnet is not None:  # averaging trains nothing: they would do nothing
                 raise PsctlError("--max-minutes" if max_minutes is not None else "--lcnet",
-                                 "is for training; --average only averages (the members keep their own LCNet)")
+                                 "is for training; --average only averages" +
+                                 (" (the members keep their own LCNet)" if max_minutes is None else ""))
             from psctl.infer import pick_device
 
             pick_device(device)  # --device tpu, or cuda without CUDA: refused even when nothing is measured

@@ -1637,7 +1637,7 @@ def test_average_refuses_training_options_and_bad_devices(tmp_path):
     for name in ("a.pt", "b.pt"):
         save_weights(tmp_path / name, PSFCN(), {"method": "ps-fcn", "train_images": 8})
     base = ("train", "ps-fcn", "--average", tmp_path / "a.pt", "--average", tmp_path / "b.pt", "--out", tmp_path / "o")
-    for extra, words in ((["--max-minutes", "1"], "--max-minutes: is for training"),
+    for extra, words in ((["--max-minutes", "1"], "--max-minutes: is for training; --average only averages\n"),
                          (["--lcnet", tmp_path / "a.pt"], "--lcnet: is for training"),
                          (["--device", "tpu"], "tpu")):
         proc = cli(*base, *extra)
