@@ -197,6 +197,25 @@ def test_info(capture):
     assert "the networks and psctl lights find the object" in " ".join(cli("info", capture, check=True).stdout.split())
 
 
+def test_info_says_what_psctl_normals_would_run(tmp_path, capture, fake_weights):
+    """info names the method --method auto would run with the weights installed, or why it would
+    stop, and notes fewer than 3 images before a run does (helper-163)."""
+    env = {"PSCTL_WEIGHTS": str(fake_weights)}  # lcnet and ps_fcn_dagger only: calibrated folders get l2
+    r = json.loads(cli("info", capture, "--json", env=env, check=True).stdout)
+    assert r["auto_method"] == "l2" and r["auto_note"].startswith("auto: no trained network weights are installed")
+    assert "--method auto runs l2" in cli("info", capture, env=env, check=True).stdout
+    (tmp_path / "none").mkdir()
+    (capture / "light_directions.txt").unlink()
+    assert json.loads(cli("info", capture, "--json", env=env, check=True).stdout)["auto_method"] == "sdps"
+    r = json.loads(cli("info", capture, "--json", env={"PSCTL_WEIGHTS": str(tmp_path / "none")}, check=True).stdout)
+    assert r["auto_method"] is None and "lcnet" in r["auto_note"]
+    proc = cli("normals", capture, "-o", tmp_path / "o", env={"PSCTL_WEIGHTS": str(tmp_path / "none")})
+    assert proc.returncode == 2 and r["auto_note"] in proc.stderr  # what normals then says
+    write_capture(tmp_path / "two", n=2, size=16)
+    notes = json.loads(cli("info", tmp_path / "two", "--json", check=True).stdout)["notes"]
+    assert any(n.startswith("images: 2 of them: l2 needs at least 3") for n in notes), notes
+
+
 def test_info_check_decodes_every_file(tmp_path):
     folder = tmp_path / "o"
     truth = write_capture(folder, n=6)

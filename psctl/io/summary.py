@@ -179,11 +179,28 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         # the folder's K.txt (psctl depth's pinhole; psctl calibrate --K), or None
         "intrinsics": _intrinsics(cap.path),
         "notes": capture_notes(cap) + _mat_gt_notes(cap),  # what normals, lights and depth will say about how they read it
+        **_auto_method(cap),
     }
+    if cap.n_images < 3:  # said before a run, not only by it (a helper's finding)
+        report["notes"].append(f"images: {cap.n_images} of them: l2 needs at least 3, and fewer than 3 leave the "
+                               "networks' normals undetermined (expect large errors)")
     if check:
         bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
         report["check"] = check_pixels(cap, mask, bar)
     return report
+
+
+def _auto_method(cap: "Capture") -> dict:
+    """What ``psctl normals PATH`` (--method auto) would run with the weights installed now:
+    {"auto_method": name or None where it would stop, "auto_note": its note or error, or None}
+    (a helper's finding: info passed a folder that normals then refused for want of weights)."""
+    from psctl.api import resolve_method
+
+    try:
+        method, note = resolve_method("auto", cap.calibrated, lights_file=cap.path / "light_directions.txt")
+    except PsctlError as e:
+        return {"auto_method": None, "auto_note": e.message}
+    return {"auto_method": method, "auto_note": note}
 
 
 def _mat_gt_notes(cap: "Capture") -> list[str]:
@@ -339,6 +356,9 @@ def render_info(report: dict) -> None:
                              f"none: the networks and psctl lights find the object (l2: the whole image, "
                              f"{r['mask_pixels']} pixels)"))
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
+    if "auto_method" in r:
+        t.add_row("normals", escape(f"--method auto runs {r['auto_method']}" if r["auto_method"] else
+                                          f"--method auto stops: {r['auto_note']}"))
     if r.get("camera"):
         t.add_row("camera", escape(f"focal length {r['camera']['focal']:,.0f} pixels ({r['camera']['from']}; "
                                    "psctl calibrate --focal exif uses it)"))
