@@ -372,6 +372,15 @@ def test_info_reports_mixed_bit_depths(tmp_path):
     write_image(folder / "003.png", img, "uint8")
     r = describe(folder)
     assert r["bit_depth"] == 16 and r["bit_depths"] == [8, 16] and r["sample_types"] == ["uint8", "uint16"]
+    assert not any("darker" in n for n in describe(folder, check=True)["check"]["notes"])  # alike: no note
+    # 8-bit codes saved in a 16-bit file among 8-bit images: 257 times darker, and --check says so
+    # (a helper's repro on ball; the opening note promised the comparison)
+    for k in range(1, 7):
+        img, _ = read_image(folder / f"{k:03d}.png")
+        write_image(folder / f"{k:03d}.png", img / 257 if k == 5 else img, "uint16" if k == 5 else "uint8")
+    notes = describe(folder, check=True)["check"]["notes"]
+    assert any(n.startswith("images: the 16-bit image (005.png) is ") and
+               "times darker over the object than the 8-bit ones" in n for n in notes), notes  # (257 times its codes)
 
 
 def test_select_images_refuses_a_negative_seed_and_notes_what_it_did():
@@ -567,8 +576,8 @@ def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):
     write_image(tmp_path / "cap" / "002.png", img, "uint8")
     write_image(tmp_path / "cap" / "003.png", img[..., :1], "uint16")
     notes = run_normals(tmp_path / "cap", method="l2", write=False)["notes"]
-    assert "images: of mixed sample types (5 16-bit, 1 8-bit); each is read with its own full scale as 1 " \
-           "(psctl info --check compares their brightness)" in notes, notes
+    assert "images: of mixed sample types (5 16-bit, 1 8-bit: 002.png the rarer); each is read with its own full " \
+           "scale as 1 (psctl info --check compares their brightness)" in notes, notes
     assert any(n.startswith("images: of mixed channel counts (5 of 3 channels, 1 of 1 channel)") for n in notes)
     plain = run_normals(write_capture(tmp_path / "plain", n=6, size=16) and tmp_path / "plain", method="l2",
                         write=False)["notes"]

@@ -1392,8 +1392,12 @@ def capture_notes(capture: Capture) -> list[str]:
 
     kinds = collections.Counter(f"{b}-bit" if t.startswith(("uint", "int")) else t for b, t in capture.kinds)
     if len(kinds) > 1:
-        notes.append(f"images: of mixed sample types ({', '.join(f'{n} {k}' for k, n in kinds.most_common())}); "
-                     f"each is read with its own full scale as 1 (psctl info --check compares their brightness)")
+        odd = [k for k, _ in kinds.most_common()[1:]]  # the rarer types' files named (a helper's finding)
+        names = few([p.name for p, (b, t) in zip(capture.image_paths, capture.kinds)
+                     if (f"{b}-bit" if t.startswith(("uint", "int")) else t) in odd])
+        notes.append(f"images: of mixed sample types ({', '.join(f'{n} {k}' for k, n in kinds.most_common())}: {names} "
+                     f"the rarer); each is read with its own full scale as 1 (psctl info --check compares their "
+                     f"brightness)")
     channels = collections.Counter(capture.channel_counts)
     if len(channels) > 1:
         counts = ", ".join(f"{n} of {c} channel" + "s" * (c > 1) for c, n in channels.most_common())

@@ -108,8 +108,34 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         "images": per_image,
         "mean_range": [float(min(means)), float(np.median(means)), float(max(means))],
         "saturated_images": [r["image"] for r in over],  # above SATURATED_SHARE of the object
-        "notes": check.notes() + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths]),
+        "notes": check.notes() + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths]) +
+                 _mixed_type_notes(cap, means),
     }
+
+
+MIXED_DARKER = 16.0  # a sample type's median image this many times darker than another's: a note
+
+
+def _mixed_type_notes(cap: "Capture", means: list[float]) -> list[str]:
+    """Images of mixed sample types compared by brightness over the object, as the notes on
+    opening promise: 8-bit values saved in a 16-bit file read 257 times darker than their 8-bit
+    neighbours (a helper's repro: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees)."""
+    groups: dict[str, list[int]] = {}
+    for k, (b, t) in enumerate(cap.kinds):
+        groups.setdefault(f"{b}-bit" if t.startswith(("uint", "int")) else t, []).append(k)
+    if len(groups) < 2:
+        return []
+    med = {g: float(np.median([means[k] for k in ks])) for g, ks in groups.items()}
+    top = max(med, key=med.get)
+    notes = []
+    for g, ks in groups.items():
+        if 0 < med[g] * MIXED_DARKER < med[top]:
+            names = few([cap.image_paths[k].name for k in ks])
+            one = len(ks) == 1
+            notes.append(f"images: the {g} {'image' if one else 'ones'} ({names}) {'is' if one else 'are'} "
+                         f"{med[top] / med[g]:.0f} times darker over the object than the {top} ones (medians): "
+                         f"values of another depth saved in {'it' if one else 'them'}? Convert them alike")
+    return notes
 
 
 def _in_rows(note: str) -> bool:
