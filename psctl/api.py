@@ -865,15 +865,10 @@ def _depth_left_notes(out_dir: "Path", replaced: list[str]) -> list[str]:
     """A note when psctl depth's outputs in ``out_dir`` (both commands default to PATH/psctl) were
     integrated from a normal map this run replaces or removes: they stay, and would read as the
     surface of the new normals (a helper's finding: an l2 mesh beside ps-fcn-n's normals)."""
-    import json
-
-    from psctl.io.atomic import read_small_text
+    from psctl.io.atomic import read_report
 
     depth = [n for n in read_outputs_list(out_dir, "depth") if (out_dir / n).is_file()]
-    try:
-        source = json.loads(read_small_text(out_dir / "depth_report.json", 64 << 20)).get("normals") if depth else None
-    except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
-        return []
+    source = (read_report(out_dir / "depth_report.json") or {}).get("normals") if depth else None
     if not isinstance(source, str) or "\0" in source:  # (realpath raises on a NUL byte)
         return []
     hit = [n for n in replaced if os.path.realpath(out_dir / n) == os.path.realpath(source)]

@@ -590,14 +590,9 @@ def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
 
 def _written(report: Path) -> dict:
     """A psctl normals report's "written" ({file: [bytes, mtime ns]}), {} where it has none."""
-    import json
+    from psctl.io.atomic import read_report
 
-    from psctl.io.atomic import read_small_text
-
-    try:
-        written = json.loads(read_small_text(report, 64 << 20)).get("written")
-    except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
-        return {}
+    written = (read_report(report) or {}).get("written")
     return written if isinstance(written, dict) else {}
 
 
@@ -610,18 +605,13 @@ def written_by_normals(path: Path) -> bool:
 def _normals_capture(path: Path) -> str | None:
     """The capture folder (real path) the psctl normals run whose report.json lies beside ``path``
     estimated it from, where that report records ``path`` as written (else None)."""
-    import json
+    from psctl.io.atomic import read_report
 
-    from psctl.io.atomic import read_small_text
-
-    try:
-        report = json.loads(read_small_text(path.parent / "report.json", 64 << 20))
-    except (OSError, ValueError, RecursionError, PsctlError):
-        return None
-    if not isinstance(report, dict) or not isinstance(report.get("path"), str) or "\0" in report["path"] or \
-            not _as_written(path, report.get("written") if isinstance(report.get("written"), dict) else {}):
+    report = read_report(path.parent / "report.json") or {}
+    made_from, written = report.get("path"), report.get("written")
+    if not isinstance(made_from, str) or "\0" in made_from or not _as_written(path, written if isinstance(written, dict) else {}):
         return None  # (a NUL byte: realpath's ValueError, a review's traceback)
-    return os.path.realpath(report["path"])
+    return os.path.realpath(made_from)
 
 
 def _as_written(path: Path, written: dict) -> bool:

@@ -597,8 +597,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
         h, w = bm.shape
         reach = radius * np.sin(np.radians(zenith)) + 0.5 * np.hypot(h, w) + 2  # the box's centre
         spots = []
-        for a in np.radians(225.0 + np.array([0, 15, -15, 30, -30, 45, -45, 60, -60, 75, -75, 90, -90, 105, -105,
-                                              120, -120, 135, -135, 150, -150, 165, -165, 180])):
+        for a in np.radians(225.0 + np.array(sorted(range(-165, 195, 15), key=lambda v: (abs(v), -v)))):  # 0, 15, -15, ..
             y, x = int(round(cy - reach * np.sin(a) - h / 2)), int(round(cx + reach * np.cos(a) - w / 2))
             near = (marks[:, 0] > y - 6) & (marks[:, 0] < y + h + 6) & (marks[:, 1] > x - 6) & (marks[:, 1] < x + w + 6)
             spots.append((int(near.sum()), len(spots), y, x))

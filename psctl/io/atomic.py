@@ -161,6 +161,18 @@ def read_small_text(path: str | os.PathLike, limit: int = 1 << 20) -> str:
     return data.decode("utf-8")
 
 
+def read_report(path: str | os.PathLike, limit: int = 64 << 20) -> dict | None:
+    """A JSON report psctl wrote (report.json, depth_report.json, ...) as a dict, read as
+    ``read_small_text`` reads; None where it is missing, unreadable, not JSON or not an object."""
+    import json
+
+    try:
+        report = json.loads(read_small_text(path, limit))
+    except (OSError, ValueError, RecursionError):  # (UnicodeDecodeError and JSONDecodeError are ValueErrors)
+        return None
+    return report if isinstance(report, dict) else None
+
+
 def read_outputs_list(out_dir: Path, command: str) -> list[str]:
     """The files the last ``psctl COMMAND`` run wrote into ``out_dir`` (none without its list)."""
     try:
@@ -190,7 +202,7 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
     # another command's files (psctl calibrate's light_directions.txt, then psctl lights there:
     # both default to PATH/psctl) are psctl's, not the user's; its report, left beside them, now
     # describes files that are gone, so the note says which of its files stay
-    for other in _other_commands(out_dir, command):
+    for other in (c for c in commands_listed(out_dir) if c != command):
         theirs = read_outputs_list(out_dir, other)
         mine = [n for n in foreign if n in theirs]
         if mine:
@@ -207,10 +219,10 @@ def replaced_notes(out_dir: Path, names: Iterable[str], command: str, listed: li
 LISTING_COMMANDS = ("normals", "lights", "calibrate", "depth", "eval", "compare", "undistort")  # keep a list
 
 
-def _other_commands(out_dir: Path, command: str) -> list[str]:
-    """The other psctl commands whose output lists ``out_dir`` holds, in LISTING_COMMANDS' order
-    (a stray .psctl-foo names no command)."""
-    return [c for c in LISTING_COMMANDS if c != command and (Path(out_dir) / outputs_list(c)).is_file()]
+def commands_listed(folder: Path) -> list[str]:
+    """The psctl commands whose output lists ``folder`` holds, in LISTING_COMMANDS' order (a stray
+    .psctl-foo names no command)."""
+    return [c for c in LISTING_COMMANDS if (Path(folder) / outputs_list(c)).is_file()]
 
 
 def _list_time(out_dir: Path, command: str) -> int | None:
@@ -229,7 +241,7 @@ def own_outputs(out_dir: Path, command: str) -> list[str]:
     if not listed or t is None:
         return listed
     claimed: set[str] = set()
-    for other in _other_commands(out_dir, command):
+    for other in (c for c in commands_listed(out_dir) if c != command):
         if (_list_time(out_dir, other) or 0) > t:
             claimed.update(read_outputs_list(out_dir, other))
     return [n for n in listed if n not in claimed]

@@ -98,6 +98,11 @@ class Capture:
         return tuple((i.bits, i.dtype) for i in self.infos)
 
     @property
+    def sample_kinds(self) -> tuple[str, ...]:
+        """Each image's sample type as the notes name it: "8-bit", "16-bit" (integers) or "half", "float"."""
+        return tuple(f"{b}-bit" if t.startswith(("uint", "int")) else t for b, t in self.kinds)
+
+    @property
     def channel_counts(self) -> tuple[int, ...]:
         return tuple(i.channels for i in self.infos)
 
@@ -765,16 +770,11 @@ def missing_lights_hint(folder: str | os.PathLike) -> str:
 def _made_from(folder: Path) -> str:
     """What to run on instead of psctl's output ``folder``: the capture (or benchmark root) its
     reports name (read, not guessed from the folder's name: a review's res/psctl was no capture)."""
-    import json
-
-    from psctl.io.atomic import read_small_text
+    from psctl.io.atomic import read_report
 
     for report, key in (("report.json", "path"), ("lights_report.json", "path"), ("depth_report.json", "path"),
                         ("calibration_report.json", "path"), ("eval.json", "root"), ("compare.json", "root")):
-        try:
-            where = json.loads(read_small_text(folder / report)).get(key)
-        except (OSError, ValueError, RecursionError, AttributeError, PsctlError):
-            continue
+        where = (read_report(folder / report) or {}).get(key)
         if isinstance(where, str) and "\0" not in where:
             return (f"run on the capture folder it was made from, {where}" if key == "path" else
                     f"psctl eval reads the benchmark root it was made from, {where}")
@@ -784,9 +784,9 @@ def _made_from(folder: Path) -> str:
 def _no_images(path: Path, entries: list[Path]) -> PsctlError:
     """The error of a folder without a list in which no file is taken for an image: what it holds
     that could be (taken for a mask or an output by name, another format, camera raw) and what to do."""
-    from psctl.io.atomic import LISTING_COMMANDS, outputs_list
+    from psctl.io.atomic import commands_listed
 
-    ran = [c for c in LISTING_COMMANDS if (path / outputs_list(c)).is_file()]  # (a stray .psctl-foo: none)
+    ran = commands_listed(path)
     if ran:  # `psctl info OBJ/psctl`: whose folder it is, not a list to write (a helper's finding)
         return PsctlError(path, f"is an output folder of psctl {' and '.join(ran)}, not a capture (no images); "
                                 + _made_from(path))
@@ -1390,11 +1390,10 @@ def capture_notes(capture: Capture) -> list[str]:
     # one capture's images come from one camera setting: a mix is worth a look (psctl info)
     import collections
 
-    kinds = collections.Counter(f"{b}-bit" if t.startswith(("uint", "int")) else t for b, t in capture.kinds)
+    kinds = collections.Counter(capture.sample_kinds)
     if len(kinds) > 1:
         odd = [k for k, _ in kinds.most_common()[1:]]  # the rarer types' files named (a helper's finding)
-        names = few([p.name for p, (b, t) in zip(capture.image_paths, capture.kinds)
-                     if (f"{b}-bit" if t.startswith(("uint", "int")) else t) in odd])
+        names = few([p.name for p, k in zip(capture.image_paths, capture.sample_kinds) if k in odd])
         notes.append(f"images: of mixed sample types ({', '.join(f'{n} {k}' for k, n in kinds.most_common())}: {names} "
                      f"the rarer); each is read with its own full scale as 1 (psctl info --check compares their "
                      f"brightness)")

@@ -121,8 +121,8 @@ def _mixed_type_notes(cap: "Capture", means: list[float]) -> list[str]:
     opening promise: 8-bit values saved in a 16-bit file read 257 times darker than their 8-bit
     neighbours (a helper's repro: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees)."""
     groups: dict[str, list[int]] = {}
-    for k, (b, t) in enumerate(cap.kinds):
-        groups.setdefault(f"{b}-bit" if t.startswith(("uint", "int")) else t, []).append(k)
+    for k, kind in enumerate(cap.sample_kinds):
+        groups.setdefault(kind, []).append(k)
     if len(groups) < 2:
         return []
     med = {g: float(np.median([means[k] for k in ks])) for g, ks in groups.items()}
@@ -384,7 +384,7 @@ def render_info(report: dict) -> None:
     t.add_row("ground truth", escape(r["ground_truth"] or "none"))
     if "auto_method" in r:
         t.add_row("normals", escape(f"--method auto runs {r['auto_method']}" if r["auto_method"] else
-                                          f"--method auto stops: {r['auto_note']}"))
+                                    f"--method auto stops: {r['auto_note']}"))
     if r.get("camera"):
         t.add_row("camera", escape(f"focal length {r['camera']['focal']:,.0f} pixels ({r['camera']['from']}; "
                                    "psctl calibrate --focal exif uses it)"))
