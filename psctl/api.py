@@ -550,7 +550,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
     from psctl.arrays import bounding_box
-    from psctl.io.capture import (capture_notes, load_ground_truth, load_mask, open_capture,
+    from psctl.io.capture import (capture_notes, ground_truth_error, load_ground_truth, load_mask, open_capture,
                                   select_images, selection_notes)
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
@@ -617,7 +617,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     notes += out_notes
 
     mask = load_mask(cap)
-    gt = load_ground_truth(cap)
+    try:
+        gt = load_ground_truth(cap)
+        if gt is not None and not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():  # before the work
+            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
+    except PsctlError as e:  # a user without a good ground truth still wants the normals: say how
+        raise ground_truth_error(e) from None
     memo = None  # the albedo's pass takes the images this one decodes, where they fit
     if want_albedo:
         from psctl.albedo import DEFAULT_ALBEDO

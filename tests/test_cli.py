@@ -2290,6 +2290,8 @@ def test_info_check_refuses_ground_truth_that_psctl_normals_refuses(tmp_path):
     stopped psctl normals (a QA helper's finding): --check now gives normals' one line."""
     import scipy.io
 
+    from psctl.io.capture import GT_HINT
+
     folder = tmp_path / "nan"
     write_capture(folder, n=4)
     gt = folder / "Normal_gt.mat"
@@ -2298,7 +2300,47 @@ def test_info_check_refuses_ground_truth_that_psctl_normals_refuses(tmp_path):
     for args in (("info", folder, "--check"), ("normals", folder, "-m", "l2", "-o", tmp_path / "o")):
         proc = cli(*args)
         assert proc.returncode == 2 and proc.stderr.strip() == \
-            f"error: {gt}: ground truth has no valid normal inside the mask", (args, proc.stderr)
+            f"error: {gt}: ground truth has no valid normal inside the mask; {GT_HINT}", (args, proc.stderr)
+
+
+def test_a_bad_ground_truth_says_how_to_run_without_it(tmp_path):
+    """Ground truth only scores the normals, yet a bad one stops the commands that open the
+    folder (helper-163): their one line says how to run without it. psctl info without --check
+    notes ground truth with no normal inside the mask (it noted only a .mat's problems), and
+    psctl normals refuses that before its work, not after it."""
+    import OpenImageIO as oiio
+
+    from psctl.io.capture import GT_HINT
+
+    folder = tmp_path / "c"
+    write_capture(folder, n=4)
+    gt = folder / "Normal_gt.png"
+    (folder / "Normal_gt.mat").unlink()
+    gt.write_bytes(b"not a png")
+    for args in (("normals", folder, "-m", "l2", "-o", tmp_path / "o"), ("lights", folder, "-o", tmp_path / "o")):
+        proc = cli(*args)
+        assert proc.returncode == 2 and proc.stderr.startswith(f"error: {gt}: ") and \
+            proc.stderr.strip().endswith(f"; {GT_HINT}"), (args, proc.stderr)
+    assert not (tmp_path / "o").exists()
+    # a ground truth of normals outside the mask only
+    codes = np.zeros((40, 40, 3), np.uint16)
+    codes[:2] = 32768
+    codes[:2, :, 2] = 65535
+    buf = oiio.ImageBuf(oiio.ImageSpec(40, 40, 3, oiio.UINT16))
+    buf.set_pixels(oiio.ROI(), codes)
+    gt.unlink()
+    assert buf.write(str(gt))
+    mask = np.zeros((40, 40, 1), np.uint8)
+    mask[10:30, 10:30] = 255
+    buf = oiio.ImageBuf(oiio.ImageSpec(40, 40, 1, oiio.UINT8))
+    buf.set_pixels(oiio.ROI(), mask)
+    assert buf.write(str(folder / "mask.png"))
+    proc = cli("info", folder, "--json")
+    assert proc.returncode == 0 and "Normal_gt.png: ground truth has no valid normal inside the mask (psctl normals " \
+        "and eval stop on it)" in json.loads(proc.stdout)["notes"], proc.stdout
+    proc = cli("normals", folder, "-m", "l2", "-o", tmp_path / "o")  # (after the work, it came without the hint)
+    assert proc.returncode == 2 and proc.stderr.strip() == \
+        f"error: {gt}: ground truth has no valid normal inside the mask; {GT_HINT}", proc.stderr
 
 
 def test_readme_and_docs_link_to_files_that_exist():

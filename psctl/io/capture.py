@@ -705,13 +705,17 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     if mask_path is not None:
         _check_size(image_info(mask_path), first)
     gt_path = _first_existing(path, entries, GT_FILES)
-    if gt_path is not None and gt_path.suffix.lower() != ".mat":
-        gt_info = image_info(gt_path)
-        _check_size(gt_info, first)
-        if gt_info.channels < 3:
-            raise PsctlError(gt_path, f"ground truth needs 3 channels (nx, ny, nz), this image has {gt_info.channels}")
-    elif gt_path is not None:
-        _check_mat_header(gt_path, first)
+    try:
+        if gt_path is not None and gt_path.suffix.lower() != ".mat":
+            gt_info = image_info(gt_path)
+            _check_size(gt_info, first)
+            if gt_info.channels < 3:
+                raise PsctlError(gt_path, f"ground truth needs 3 channels (nx, ny, nz), this image has "
+                                          f"{gt_info.channels}")
+        elif gt_path is not None:
+            _check_mat_header(gt_path, first)
+    except PsctlError as e:
+        raise ground_truth_error(e) from None
     ambient_info = None if ambient_path is None else image_info(ambient_path)
     if ambient_info is not None:
         _check_size(ambient_info, first)
@@ -989,6 +993,15 @@ def load_mask(capture: Capture | str | os.PathLike) -> np.ndarray:
         raise PsctlError(capture.mask_path, "mask is empty (no foreground pixel" + (
             ": no white pixel is opaque in its alpha channel)" if top > 0.5 else ")"))
     return mask
+
+
+GT_HINT = "it only scores normals: move it out of the folder to run without it"
+
+
+def ground_truth_error(e: PsctlError) -> PsctlError:
+    """A ground-truth file's problem, with the way on: it stops every command that opens the
+    folder, though only the score reads it."""
+    return e if e.message.endswith(GT_HINT) else PsctlError(e.path, f"{e.message}; {GT_HINT}")
 
 
 def load_ground_truth(capture: Capture) -> np.ndarray | None:

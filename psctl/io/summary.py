@@ -34,7 +34,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
 
     from psctl.hotpixels import clamp_hot_pixels, hot_pixel_notes
     from psctl.arrays import bounding_box
-    from psctl.io.capture import ImageCheck, has_top_code, load_ground_truth, minus_ambient, saturated_map
+    from psctl.io.capture import ImageCheck, ground_truth_error, has_top_code, minus_ambient, saturated_map
     from psctl.io.images import read_image, to_rgb
 
     t0 = time.perf_counter()
@@ -98,9 +98,8 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         raise blacked_out
     if not check.lit:  # as psctl normals: nothing to estimate from
         raise PsctlError(cap.path, "all images are black inside the mask")
-    gt = load_ground_truth(cap)
-    if gt is not None and not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():  # as psctl normals refuses it
-        raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
+    for e in _gt_problems(cap, mask):  # as psctl normals refuses it, in its words
+        raise ground_truth_error(e)
     means = [r["mean"] for r in per_image]
     over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
     return {
@@ -204,7 +203,8 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "camera": _exif_camera(cap.image_paths[0]),
         # the folder's K.txt (psctl depth's pinhole; psctl calibrate --K), or None
         "intrinsics": _intrinsics(cap.path),
-        "notes": capture_notes(cap) + _mat_gt_notes(cap),  # what normals, lights and depth will say about how they read it
+        "notes": capture_notes(cap) + [f"{cap.gt_path.name}: {e.message} (psctl normals and eval stop on it)"
+                                         for e in _gt_problems(cap, mask)],  # what normals, lights and depth will say about how they read it
         **_auto_method(cap),
     }
     if cap.n_images < 3:  # said before a run, not only by it (a helper's finding)
@@ -229,18 +229,21 @@ def _auto_method(cap: "Capture") -> dict:
     return {"auto_method": method, "auto_note": note}
 
 
-def _mat_gt_notes(cap: "Capture") -> list[str]:
-    """Normal_gt.mat read whole (open_capture read its variable list): what psctl normals would
-    refuse in its values (an HDF5 file, an image's codes) is a note here, as lights and depth
-    read no ground truth; --check stops on it as psctl normals does."""
+def _gt_problems(cap: "Capture", mask: np.ndarray) -> list[PsctlError]:
+    """The ground truth read whole (one file: open_capture read only its header or variable list):
+    what psctl normals would refuse in its values (an HDF5 .mat, an image's codes, no normal
+    inside the mask). A note in psctl info, as lights and depth read no ground
+    truth; --check stops on it as psctl normals does."""
     from psctl.io.capture import load_ground_truth
 
-    if cap.gt_path is None or cap.gt_path.suffix.lower() != ".mat":
+    if cap.gt_path is None:
         return []
     try:
-        load_ground_truth(cap)
+        gt = load_ground_truth(cap)
+        if not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():
+            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
     except PsctlError as e:
-        return [f"{cap.gt_path.name}: {e.message} (psctl normals and eval stop on it)"]
+        return [e]
     return []
 
 
