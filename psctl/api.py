@@ -742,8 +742,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         report["spread"] = spread_stats(spread, mask, error, valid)
     report["albedo"] = albedo_stats
     if cap.n_images < n_all:  # an --images subset: which images, so that the run can be repeated
+        from psctl.io.capture import selection_report
+
         report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
-        report["seed"] = seed
+        report.update(selection_report(seed, by_lights))
     if method != "l2":
         from psctl.infer import pick_device
 

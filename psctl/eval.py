@@ -439,7 +439,7 @@ def _collect(objects: list[dict], used: list[str], r: dict) -> None:
                     "n_images": r["n_images"], "seconds": r["seconds"], "n_dark": r["n_dark"], "notes": r["notes"]})
     objects[-1]["provenance"] = r["provenance"]  # the weights (sha256) and versions behind the row
     if "images_used" in r:  # an --images subset: which images, to repeat the run
-        objects[-1].update(images_used=r["images_used"], seed=r["seed"])
+        objects[-1].update(images_used=r["images_used"], selection=r["selection"], seed=r["seed"])
     if "spread" in r:  # the ensemble: where its networks disagree
         objects[-1]["spread"] = r["spread"]
     if "light_mae" in r:  # sdps: the lights LCNet estimated

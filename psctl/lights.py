@@ -862,8 +862,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     report["provenance"] = provenance(used, est.info["device"], started)
     report["notes"] += provenance_notes(report["provenance"])
     if subset:  # an --images subset: which images and the seed, as psctl normals reports them
+        from psctl.io.capture import selection_report
+
         report["images_used"] = [os.path.relpath(p, cap.path) for p in cap.image_paths]
-        report["seed"] = seed
+        report.update(selection_report(seed))  # never by the folder's lights
     if write:
         from psctl.io.atomic import own_outputs, read_outputs_list, replaced_notes, write_outputs_list
         from psctl.io.report import write_json

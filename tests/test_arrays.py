@@ -569,6 +569,7 @@ def test_a_report_names_what_made_it_and_its_image_subset(tmp_path, fake_weights
     import hashlib
 
     from psctl.api import run_normals
+    from psctl.io.capture import select_images
     from tests.conftest import write_capture
 
     write_capture(tmp_path / "o", n=8, size=32)
@@ -578,7 +579,7 @@ def test_a_report_names_what_made_it_and_its_image_subset(tmp_path, fake_weights
     assert p["psctl"] and p["numpy"] == np.__version__ and p["device"] == "cpu" and p["torch"]
     assert p["weights"] == {"ps-fcn": {"path": str(Path(w).resolve()),
                                        "sha256": hashlib.sha256(Path(w).read_bytes()).hexdigest()}}
-    assert r["seed"] == 3 and len(r["images_used"]) == 5 and all((tmp_path / "o" / n).is_file() for n in r["images_used"])
+    assert r["seed"] == 3 and r["selection"] == "random" and len(r["images_used"]) == 5 and all((tmp_path / "o" / n).is_file() for n in r["images_used"])
     r = run_normals(tmp_path / "o", method="l2", write=False)
     assert r["provenance"]["weights"] == {} and r["provenance"]["device"] is None and "images_used" not in r
     monkeypatch.setenv("PSCTL_WEIGHTS", str(fake_weights))  # sdps: LCNet and its second stage
@@ -591,7 +592,11 @@ def test_a_report_names_what_made_it_and_its_image_subset(tmp_path, fake_weights
     write_capture(tmp_path / "root" / "b", n=6, size=24, seed=2)
     res = run_benchmark("folder", root=tmp_path / "root", method="ps-fcn", weights=w, n_images=4, device="cpu")
     assert [o["provenance"]["weights"]["ps-fcn"]["sha256"] for o in res["objects"]] == [p["weights"]["ps-fcn"]["sha256"]] * 2
-    assert all(len(o["images_used"]) == 4 and o["seed"] is None for o in res["objects"])
+    assert all(len(o["images_used"]) == 4 and o["seed"] is None and o["selection"] == "spread" for o in res["objects"])
+    # sdps reads no light directions: a random subset, drawn with seed 0 (the report said null)
+    r = run_normals(tmp_path / "o", method="sdps", write=False, device="cpu", views=1, refine=False, n_images=5)
+    assert r["selection"] == "random" and r["seed"] == 0 and r["images_used"] == [
+        f"{i:03d}.png" for i in select_images(8, 5, 0) + 1], r["images_used"]
 
 
 def test_a_weights_file_modified_during_the_run_is_flagged(tmp_path, fake_weights):

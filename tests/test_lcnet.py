@@ -906,15 +906,17 @@ def test_lights_subset_lists_its_images(tmp_path, fake_weights):
     assert (out / "light_images.txt").read_text().split() == [names[i] for i in select_images(10, 3, 0)]
     assert r["outputs"]["light_images"] == str(out / "light_images.txt")
     # the report says which images and the seed, as psctl normals' does (a QA helper's note)
-    assert r["images_used"] == [names[i] for i in select_images(10, 3, 0)] and r["seed"] is None
+    # (drawn with seed 0 without --seed: the report says so, where it said null, as for no seed at all)
+    assert r["images_used"] == [names[i] for i in select_images(10, 3, 0)] and r["seed"] == 0
+    assert r["selection"] == "random"
     saved = json.loads((out / "lights_report.json").read_text())
-    assert saved["images_used"] == r["images_used"] and saved["seed"] is None
+    assert saved["images_used"] == r["images_used"] and saved["seed"] == 0 and saved["selection"] == "random"
     assert any("seed 0" in n for n in r["notes"]) and any("light_images.txt" in n for n in r["notes"])
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", n_images=3, seed=5,
                    refine=False, views=1)
     assert r["seed"] == 5 and r["images_used"] == [names[i] for i in select_images(10, 3, 5)]
     r = run_lights(tmp_path / "cap", out=out, weights=fake_weights / "lcnet.pt", device="cpu", refine=False, views=1)
-    assert "images_used" not in r and "seed" not in r
+    assert "images_used" not in r and "seed" not in r and "selection" not in r
     assert not (out / "light_images.txt").exists() and "light_images" not in r["outputs"]
     assert any("removed light_images.txt" in n for n in r["notes"])
 

@@ -1604,6 +1604,15 @@ def spread_lights(lights: np.ndarray, k: int) -> np.ndarray:
     return np.sort(np.asarray(picked, dtype=np.int64))
 
 
+def selection_report(seed: int | None, by_lights: bool = False) -> dict:
+    """How ``select_images`` chose a subset, for a report beside its ``images_used``: "spread"
+    over the light directions (seed null), or "random" with the seed it drew with (0 where none
+    was given: null there read as no seed at all)."""
+    if seed is None and by_lights:
+        return {"selection": "spread", "seed": None}
+    return {"selection": "random", "seed": 0 if seed is None else seed}
+
+
 def selection_notes(n: int, k: int | None, seed: int | None, by_lights: bool = False) -> list[str]:
     """What ``select_images`` did that a user may not expect, for the report's notes."""
     k, seed = check_int("--images", k), check_int("--seed", seed)  # before a note quotes 4.5 images
