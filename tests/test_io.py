@@ -945,6 +945,16 @@ def test_benchmark_sheet_draws_each_objects_maps():
     both = benchmark_sheet([wide, p], "X")
     col = np.nonzero(np.isclose(both[:, 12 + 60], red).all(-1))[0]  # the strip's error map, down its middle column
     assert len(col) == wide["error"].shape[0] and col[0] - (12 + 20 + 12 + 40 + 40 + 4) == (40 - len(col)) // 2
+    # an object taller than 1:3 is height / 3 wide, as tall as its aspect makes it to 3 x height, and
+    # its row as tall (a 25:1 object was a 6 px sliver; helper-162)
+    for rows, cols, shape in ((400, 100, (53, 13)), (1000, 40, (120, 5))):
+        pole = np.ones((rows, cols), bool)
+        t = object_panel("pole", 1.0, np.zeros((rows, cols, 3), np.float32), np.full((rows, cols), 30.0, np.float32),
+                         pole, height=40)
+        assert t["normals"].shape[:2] == t["error"].shape[:2] == shape
+    mixed_rows = benchmark_sheet([t, p], "X")
+    col = np.nonzero(np.isclose(mixed_rows[:, 12 + 2], red).all(-1))[0]  # the pole's error map, whole
+    assert len(col) == 120 and mixed_rows.shape[0] == both.shape[0] + 2 * (120 - 40)
     # grey (a mask pixel without ground truth) is keyed at the bottom, only when some panel has it
     from psctl.io.report import UNSCORED_KEY
 

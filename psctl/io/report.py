@@ -290,7 +290,9 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     spread map (the ensemble's, jet over 0..SPREAD_VMAX degrees; None: not an ensemble),
     black outside the mask, cropped to the mask's bounding box (4 px margin) and scaled (nearest
     pixel) to ``height`` rows and as many columns as keep its aspect; an object wider than 3:1 gets
-    3 x ``height`` columns and fewer rows instead (its aspect kept: ``benchmark_sheet`` centres it).
+    3 x ``height`` columns and fewer rows instead (its aspect kept: ``benchmark_sheet`` centres it),
+    and one taller than 1:3 more rows, as many as make it ``height`` / 3 wide, at most 3 x
+    ``height`` (its row is as tall: a 25:1 object was a 6 px sliver in a 160 px row).
 
     normals [H, W, 3], error and spread [H, W] degrees, mask [H, W] bool
     -> {"name", "mae", "normals", "error", "spread", "unscored", "height"} (unscored: grey in its
@@ -303,6 +305,9 @@ def object_panel(name: str, mae: float | None, normals: np.ndarray, error: np.nd
     h, w = height, max(1, round(m.shape[1] * height / m.shape[0]))
     if w > 3 * height:  # a wide strip: narrower than its aspect would make it, and as much lower
         w, h = 3 * height, max(1, round(3 * height * m.shape[0] / m.shape[1]))
+    elif 3 * w < height:  # a tall one: a third of height wide, as tall as that makes it, to 3 x height
+        h = min(3 * height, round(height / 3 * m.shape[0] / m.shape[1]))
+        w = max(1, round(h * m.shape[1] / m.shape[0]))
     nmap = np.where(m, (np.clip(np.asarray(normals[box], np.float32), -1, 1) + 1) / 2, 0.0)
     maps = {key: None if a is None else
             _resize_nearest(heat(a[box], m[..., 0], top), h, w)
