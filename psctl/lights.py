@@ -526,6 +526,13 @@ def _disk(canvas: np.ndarray, cy: float, cx: float, r: float, colour, ring: floa
     canvas[y0:y1, x0:x1][sel] = colour
 
 
+def _dot(canvas: np.ndarray, cy: float, cx: float, colour) -> None:
+    """An estimate's marker: a disk of radius 3.5 in ``colour`` with a light 1 px rim, which
+    keeps jet's dark ends (the weakest and strongest lights) apart from the dark grey disk."""
+    _disk(canvas, cy, cx, 4.5, 0.8)
+    _disk(canvas, cy, cx, 3.5, colour)
+
+
 def _segment(canvas: np.ndarray, p0: tuple[float, float], p1: tuple[float, float], colour) -> None:
     """A one-pixel line from p0 to p1 ((row, col) each)."""
     steps = int(max(abs(p1[0] - p0[0]), abs(p1[1] - p0[1]))) + 1
@@ -543,7 +550,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     Orthographic view of the hemisphere from the camera: a direction (x, y, z) is drawn at
     (x, y), x right, y up (axes labelled +X, +Y); grey circles at 30, 60 and 90 degrees from the
     view axis. Estimates are filled dots coloured by intensity divided by the intensities' mean
-    (jet over ``ints_range``, colour bar on the right, labelled), or, with ``intensities`` None (directions only: a chrome
+    (jet over ``ints_range``, colour bar on the right, labelled) with a light rim, or, with ``intensities`` None (directions only: a chrome
     sphere's), all orange with no bar; ground truth, when given, is a white ring joined to its
     estimate by a grey line. A legend under the disk says which is which.
     """
@@ -587,7 +594,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
         for k in range(len(g)):
             _disk(canvas, *at(g[k]), 5.0, 1.0, ring=1.5)
     for k in range(len(d)):
-        _disk(canvas, *at(d[k]), 3.5, colours[k])
+        _dot(canvas, *at(d[k]), colours[k])
     # each ring's angle from the view axis, just outside the ring where the fewest markers are near
     # (lower left first), drawn last in a dark outline: over DiLiGenT's lights the label was
     # unreadable (a QA helper), and at a fixed place it hid a light (helper-162)
@@ -618,7 +625,7 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     # legend: a dot, then a ring with its line (when there is ground truth)
     y = top + side + 3 * s
     mid = y + 3.5 * s
-    _disk(canvas, mid, 4 * s + 4, 3.5, dot)
+    _dot(canvas, mid, 4 * s + 4, dot)
     x = 4 * s + 12
     _stamp(canvas, legend, y, x)
     x += legend.shape[1] + 6 * s

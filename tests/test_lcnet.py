@@ -972,6 +972,22 @@ def test_lights_plot_ring_labels_hide_no_light():
         assert np.allclose(canvas[int(round(top - v[1] * 230)), int(round(cx + v[0] * 230))], colour, atol=1e-6), v
 
 
+def test_lights_plot_rims_each_estimate():
+    """jet's dark ends (the weakest and strongest lights) read as little on the dark grey disk
+    (helper-162): each estimate's dot has a light rim, with no ground truth drawn too."""
+    from psctl.io.report import jet
+
+    d = np.array([[-0.3, 0.0, 0.954], [0.3, 0.0, 0.954]])
+    e = np.array([0.1, 10.0])
+    canvas = lights_plot(d, e, radius=230)
+    top, cx = 40 + 12 + 230, 12 + 230
+    for v, colour in zip(d, jet(np.float32((e / e.mean() - 0.2) / 1.8))):  # near the bar's two ends
+        row, col = top - v[1] * 230, cx + v[0] * 230
+        assert np.allclose(canvas[int(round(row)), int(round(col))], colour, atol=1e-6)
+        for dy, dx in ((4, 0), (-4, 0), (0, 4), (0, -4)):  # the rim, 1 px outside the 3.5 px dot
+            assert np.allclose(canvas[int(round(row + dy)), int(round(col + dx))], 0.8), (v, dy, dx)
+
+
 def test_lights_plot_small_or_degenerate_inputs_still_draw():
     """A small disk put the ring labels left of the canvas (an IndexError), and a range of one
     intensity divided by zero: both draw now."""
