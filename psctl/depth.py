@@ -874,7 +874,8 @@ def found_beside(normals: Path, shape: tuple[int, int]) -> np.ndarray | None:
     from psctl.io.images import read_image
     from psctl.masks import FOUND_FILE
 
-    if not (written_by_normals(normals) and written_by_normals(normals.parent / FOUND_FILE)):
+    written = _written(normals.parent / "report.json")  # one read for both files
+    if not (_as_written(normals, written) and _as_written(normals.parent / FOUND_FILE, written)):
         return None
     try:
         found = read_image(normals.parent / FOUND_FILE)[0]
@@ -892,13 +893,6 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
     (linear up to its scale, which ``display_colors`` sets anyway). Returns (path, [H, W, 3]
     float32), or None; each of that run's albedo files passed over gets a note in ``notes``."""
     import json
-
-    def as_written(path: Path) -> bool:
-        try:
-            st = path.stat()
-        except OSError:
-            return False
-        return written.get(path.name) == [st.st_size, st.st_mtime_ns]
 
     why = None
     try:
@@ -919,7 +913,7 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
         return None
     if normals.name not in written:
         return None
-    if not as_written(normals):
+    if not _as_written(normals, written):
         if notes is not None and any(n in written for n in ALBEDO_FILES):
             notes.append(f"colours: {normals.name} is not as the psctl normals run that wrote it left it, by its "
                          f"report.json (replaced, or copied without its files' times); its albedo not used, the "
@@ -931,7 +925,7 @@ def albedo_beside(normals: Path, shape: tuple[int, int], notes: list[str] | None
             continue
         why = None
         try:
-            if not as_written(path):
+            if not _as_written(path, written):
                 why = ("not as the psctl normals run that wrote it left it, by its report.json (replaced, or copied "
                        "without its files' times); taken as another run's")
             elif name.endswith(".npy"):

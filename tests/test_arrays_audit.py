@@ -181,13 +181,18 @@ def test_load_images_checks_its_arguments():
                            ({"box": (slice(None), slice(0, 10, 2))}, "columns must be a slice of whole numbers"),
                            ({"box": (slice(20, 10), slice(None))}, "holds none of the image's 128 rows"),
                            # a factory's True: "'bool' object is not callable" mid-read (a review)
-                           ({"progress": True}, r"progress must be None or a callable advance\(k\)")):
+                           ({"progress": True}, r"progress must be None or a callable \(label, total\)")):
         with pytest.raises(PsctlError, match=needle):
             psctl.load_images(cap, **kwargs)
     for kwargs in ({"light_files": "no"}, {"intensity_file": 0}):  # "no" is truthy: its light files were read
         with pytest.raises(PsctlError, match=f"{next(iter(kwargs))} must be True or False"):
             psctl.open_capture(ROOT / "examples" / "bumpy_sphere", **kwargs)
     assert psctl.load_images(cap, box=(slice(np.int64(0), 10), slice(5, None))).shape == (24, 10, 123, 3)
+    # a factory (label, total) -> advance(k), as every psctl.* function takes (helper-164: it took the
+    # advance itself, and the others' factory was a TypeError)
+    seen = []
+    psctl.load_images(cap, progress=lambda label, total: (seen.append((label, total)), seen.append)[1])
+    assert seen == [("read bumpy_sphere", 24), *[1] * 24]
 
 
 def test_more_python_wording():

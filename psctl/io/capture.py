@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import check_lights_face_camera, lights_behind, unit_rows, unit_vectors
-from psctl.errors import PsctlError, check_bool, check_int, check_path, few
+from psctl.errors import ProgressFactory, PsctlError, check_bool, check_int, check_path, check_progress, few
 from psctl.io.icc import ToneCurve
 from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
                               srgb_like, srgb_to_linear, to_rgb)
@@ -107,11 +107,6 @@ class Capture:
         return tuple(i.channels for i in self.infos)
 
     @property
-    def jpeg(self) -> tuple[bool, ...]:
-        """Each image is JPEG data, by its content (whatever its name)."""
-        return tuple(i.format == "jpeg" for i in self.infos)
-
-    @property
     def pages(self) -> tuple[int, ...]:
         """Each image file's subimages (a TIFF stack: psctl reads the first)."""
         return tuple(i.pages for i in self.infos)
@@ -125,11 +120,6 @@ class Capture:
     def windowed(self) -> tuple[bool, ...]:
         """Each image's stored pixels are a window of its frame (an EXR's)."""
         return tuple(i.window is not None for i in self.infos)
-
-    @property
-    def tones(self) -> tuple[ToneCurve | None, ...]:
-        """Each image's embedded ICC profile's tone curves (psctl.io.icc), where it has one psctl reads."""
-        return tuple(i.tone for i in self.infos)
 
     @property
     def exposures(self) -> tuple[tuple[float, float, float], ...]:
@@ -1342,17 +1332,19 @@ class ImageCheck:
 
 
 def load_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
-                progress: Progress | None = None, as_captured: bool = False) -> np.ndarray:
+                progress: ProgressFactory | None = None, as_captured: bool = False) -> np.ndarray:
     """All images at once: float32 [N, h, w, 3], divided by their light intensities (as
     ``iter_images``), or with ``as_captured`` not (what ``psctl.estimate_lights`` takes). ``box``:
     a crop, (rows, columns) as two slices (``bounding_box`` of the mask gives one; None: the whole
-    frame); ``progress``: None or a callable advance(k), called with 1 after each image. Prefer
-    ``iter_images`` for large captures."""
+    frame); ``progress``: None or a factory (label, total) -> advance(k), as every psctl.* function
+    takes (``iter_images``, lower down, takes the advance(k) itself). Prefer ``iter_images`` for
+    large captures."""
     capture = as_capture(capture)
     if check_bool("as_captured", as_captured):
         capture = replace(capture, intensities=np.ones_like(capture.intensities))
+    advance = check_progress(progress)(f"read {capture.name}", capture.n_images)
     out = None
-    for k, img in enumerate(iter_images(capture, box, progress)):
+    for k, img in enumerate(iter_images(capture, box, advance)):
         if out is None:
             out = np.empty((capture.n_images, *img.shape), np.float32)
         out[k] = img
