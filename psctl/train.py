@@ -51,6 +51,7 @@ from psctl.checkpoint import (JOURNAL, OPTIM_PART, STAGED, TEMP_FILE, Stop, adam
                               drop_lines_after_checkpoint, finish_checkpoint, no_half_run, restore_checkpoint,
                               restore_stream, save_optimizer)
 from psctl.errors import PsctlError, few, like_default, moved_names, naming, not_a_file
+from psctl.models.lcnet import DEFAULT_CONFIG as LCNET_DEFAULT
 from psctl.models.weights import file_sha256, normalization_allowed, save_torch
 from psctl.synth.stream import MAX_SEED
 
@@ -84,10 +85,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # {lights: diligent}: select checkpoints under the narrow light cone of real captures)
     "val": {"samples": 64, "seed": 1_000_003, "images": 32, "size": 64, "batch_size": 16, "data": {}},
     "lcnet": {  # LCNet: the network trained by `train lcnet`, or the frozen one of `train ps-fcn-dagger`
-        "dirs_cls": 36,  # azimuth / elevation classes
-        "ints_cls": 20,  # intensity classes
-        "ints_range": [0.2, 2.0],  # intensities the classes cover
-        "in_mask": True,  # mask as a 4th input channel
+        # the network's classes and inputs, as psctl.models.lcnet's defaults (one place: no drift)
+        **{k: copy.deepcopy(LCNET_DEFAULT[k]) for k in ("dirs_cls", "ints_cls", "ints_range", "in_mask")},
         "loss_weights": [1.0, 1.0, 1.0],  # cross-entropy weights: azimuth, elevation, intensity
         "weights": None,  # ps-fcn-dagger: the frozen LCNet file (None: weights/lcnet.pt; --lcnet overrides)
         "decode": "argmax",  # ps-fcn-dagger: how the frozen LCNet's classes become lights (argmax | soft)
