@@ -638,6 +638,9 @@ def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None,
     array), else PATH/K.txt, else orthographic. Returns the report (what ``--json`` prints).
     The images (for estimated normals and the mesh's vertex colours) are read as
     ``psctl.io.capture.open_capture`` says for ``encoding``, ambient image subtracted.
+    ``write`` False: nothing written (the report alone); ``binary_ply`` False: mesh.ply in ASCII
+    (larger; for readers without binary PLY); ``config``: overrides of DEFAULT_CONFIG (the
+    solver's settings, ``depth_config``); ``progress``: None or a factory (label, total) -> advance(k).
     """
     from psctl.io.atomic import check_output_dir, output_folder
     from psctl.arrays import bounding_box

@@ -235,7 +235,14 @@ def test_an_object_name_outside_ascii_is_escaped_in_the_ply_header(tmp_path):
     report = psctl.run_depth(folder)
     head = open(report["outputs"]["mesh_ply"], "rb").read().split(b"end_header")[0]
     assert b"comment" in head and b"caf\\xe9 \\u2603" in head
-    assert len(read_ply(report["outputs"]["mesh_ply"]).vertices) > 0
+    binary = read_ply(report["outputs"]["mesh_ply"])
+    assert len(binary.vertices) > 0
+    # binary_ply=False (not on the command line): the same mesh in ASCII
+    text = psctl.run_depth(folder, out=tmp_path / "ascii", binary_ply=False)["outputs"]["mesh_ply"]
+    assert b"format ascii 1.0" in open(text, "rb").read(200)
+    ascii_mesh = read_ply(text)
+    np.testing.assert_allclose(ascii_mesh.vertices, binary.vertices, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(ascii_mesh.faces, binary.faces)
     write_ply(tmp_path / "m.ply", Mesh(np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32)),
               comment="a\tb\nsecond line \u00fc")
     lines = open(tmp_path / "m.ply", "rb").read().split(b"end_header")[0].splitlines()
