@@ -865,6 +865,13 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
     the unit disk), sphere.png (the brightest value of each pixel over the images, the fitted
     circle and, for chrome, each highlight) and calibration_report.json.
 
+    ``sphere``: "chrome" (directions from the highlights) or "matte" (directions and intensities
+    from the shading); ``circle``: the sphere's outline (a ``Circle``, "X,Y,R" or three numbers;
+    None: from mask.png, or for matte from the images); ``offset`` (matte): fit a constant per
+    image too (I = n . l e + c), for a black level or room light without an ambient image;
+    ``config``: overrides of DEFAULT_CALIBRATE; ``progress``: None or a factory (label, total)
+    -> advance(k).
+
     ``focal`` (pixels, or "exif": the images' EXIF headers) and ``principal`` model a pinhole
     camera (docs/calibration.md, "Perspective"); or ``K``, a 3 x 3 camera matrix (a file as
     ``psctl depth --K`` reads, such as the K.txt psctl undistort writes, or an array) with square

@@ -153,6 +153,7 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
         method: "poisson" (least squares) or "bilateral" (keeps depth discontinuities).
         K: [3, 3] camera intrinsics for a perspective camera; None for orthographic.
         config: overrides of DEFAULT_CONFIG.
+        progress: None or a factory (label, total) -> advance(k) (the solver's iterations).
     Returns:
         [H, W] float32 z coordinate, larger = nearer the camera, NaN outside the mask and at
         rejected normals (NaN, or facing away). Orthographic: pixel units, each connected

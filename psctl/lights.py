@@ -693,6 +693,14 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
                arrays: dict | None = None, snap: bool = True) -> dict:
     """Estimate a capture folder's lights with LCNet, write them, return the report.
 
+    ``weights``: LCNet's file (None: the installed one); ``device``: auto | cpu | cuda | cuda:N;
+    ``decode``: how LCNet's classes become lights, "soft" (soft-argmax: the expected class index
+    under the softmax, so an estimate can fall between bin centres) or "argmax" (the paper's bin
+    centre; ``psctl.models.lcnet.decode``); ``views``: LCNet's answers averaged over
+    1, 2, 4 or 8 symmetric views of the images (``psctl.symmetry``); ``n_images`` and ``seed``:
+    a subset (``psctl.io.capture.select_images``); ``progress``: None or a factory (label,
+    total) -> advance(k).
+
     ``encoding`` (auto | linear | srgb): how the images' values map to radiance
     (``psctl.io.capture.open_capture``; auto decodes files with an ICC profile through its tone curves,
     else JPEGs from sRGB, with a note).

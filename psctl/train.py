@@ -823,6 +823,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
         config: merged recipe (see ``load_config``). A resumed run keeps the recipe it started
             with (saved in state.json): pass None, or the same recipe (another one is an error).
         run_dir: run folder; with ``resume`` its checkpoint is continued.
+        device: "auto" (CUDA where there is one), "cpu", "cuda" or "cuda:N".
         max_seconds: stop (with a checkpoint) after this much wall time in this call, so a run
             can be split into commands of a fixed length.
         progress: called with a status dict after each logged step; if it returns ``STOP`` (it
