@@ -1438,6 +1438,42 @@ def test_a_run_notes_an_image_on_another_scale(tmp_path):
         assert any("times as bright" in n for n in check_pixels(cap, load_mask(cap))["notes"]) == said
 
 
+def test_a_run_notes_an_image_far_darker_than_the_rest(tmp_path):
+    """8-bit codes saved in a 16-bit file among 16-bit images read 257 times darker, as a light
+    that barely fired or a wrong intensity do (helper-163: no note, where the mixed-type one
+    needs another sample type): an image over DARK_OUTLIER times darker than the median image
+    over the object is named, by l2 and the network engine alike; a black one keeps its own
+    note; psctl info --check names an image once where the mixed-type note names it."""
+    from psctl.api import run_normals
+    from psctl.io.capture import DARK_OUTLIER, load_mask
+    from psctl.io.summary import check_pixels
+
+    d = write_capture(tmp_path / "c", n=8, size=32)
+    assert not any("darker" in n for n in run_normals(tmp_path / "c", method="l2", write=False)["notes"])
+    write_image(tmp_path / "c" / "004.png", d["images"][3] / 257, "uint16", kind="linear")
+    write_image(tmp_path / "c" / "007.png", d["images"][6] * 0, "uint16", kind="linear")
+    for method in ("l2", "ps-fcn"):
+        notes = run_normals(tmp_path / "c", method=method, write=False, device="cpu")["notes"]
+        said = [n for n in notes if "darker" in n]
+        assert len(said) == 1 and said[0].startswith(f"images: 1 of 8 is over {DARK_OUTLIER} times darker over the "
+                                                     f"object than the median image (004.png, 2"), said
+        assert any("black over the object (007.png)" in n for n in notes), notes
+    cap = open_capture(tmp_path / "c")
+    assert [n for n in check_pixels(cap, load_mask(cap))["notes"] if "darker" in n] == said
+    # its intensity listed as 1/257: as the others
+    e = np.loadtxt(tmp_path / "c" / "light_intensities.txt")
+    e[3] /= 257
+    np.savetxt(tmp_path / "c" / "light_intensities.txt", e)
+    assert not any("darker" in n for n in run_normals(tmp_path / "c", method="l2", write=False)["notes"])
+    # the others 8-bit: the mixed-type note names 004.png, the dark one does not again
+    for k in (0, 1, 2, 4, 5, 7):
+        write_image(tmp_path / "c" / f"{k + 1:03d}.png", d["images"][k], "uint8", kind="linear")
+    np.savetxt(tmp_path / "c" / "light_intensities.txt", d["intensities"])
+    cap = open_capture(tmp_path / "c")
+    said = [n for n in check_pixels(cap, load_mask(cap))["notes"] if "darker" in n]
+    assert len(said) == 1 and said[0].startswith("images: the 16-bit ones (004.png, 007.png) are "), said
+
+
 def test_a_run_notes_heavily_saturated_images(tmp_path):
     """Images with over 10 % of the object at the top code value get a run note (l2 and the
     network engine's reader, through any number of passes); an unsaturated capture none."""

@@ -1227,6 +1227,7 @@ CLIPPED_NOTE = 0.10
 
 
 BRIGHT_OUTLIER = 20  # an image whose mean over the object is over this many times the median image's: noted
+DARK_OUTLIER = 20  # and one (not black) whose mean is under the median's over this
 
 
 class ImageCheck:
@@ -1291,9 +1292,10 @@ class ImageCheck:
 
         return read
 
-    def notes(self) -> list[str]:
+    def notes(self, named_dark: Iterable[int] = ()) -> list[str]:
         """The same words for the same images whatever the reader divided them by (sdps reads a
-        capture twice and shows a note once)."""
+        capture twice and shows a note once). ``named_dark``: images another note already calls
+        darker (psctl info's on mixed sample types), left out of this one's."""
         notes = []
         black = sorted(self.seen - self.lit)  # a light that did not fire looks like a shadow everywhere
         if black:
@@ -1320,6 +1322,21 @@ class ImageCheck:
                          f"({self.capture.image_paths[worst].name + ', ' if len(bright) == 1 else ''}{most}): on another "
                          f"scale (a float file of 0..65535 values?) or lit far more strongly than the rest? "
                          f"{'It outweighs' if len(bright) == 1 else 'They outweigh'} the others")
+        # and one far darker, not black (a light at 80 degrees still lights a sphere a third as much as a
+        # frontal one): 8-bit codes in a 16-bit file read 257 times darker, as a light that barely fired
+        # or a wrong intensity do (helper-163: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees)
+        skip = set(named_dark) | set(black)
+        dark = sorted(k for k, v in level.items() if ref > 0 and 0 < v * DARK_OUTLIER < ref and k not in skip)
+        if dark:
+            worst = min(dark, key=lambda k: level[k])
+            names = few([self.capture.image_paths[i].name for i in dark])
+            one = len(dark) == 1
+            notes.append(f"images: {len(dark)} of {self.capture.n_images} {'is' if one else 'are'} over {DARK_OUTLIER} "
+                         f"times darker over the object than the median image ({names}"
+                         f"{'' if one else '; the darkest, ' + self.capture.image_paths[worst].name}, "
+                         f"{ref / level[worst]:.3g} times): a light that barely fired, a wrong intensity, or values "
+                         f"of another depth saved in {'it' if one else 'them'} (8-bit codes in a 16-bit file read 257 "
+                         f"times darker)? {'It reads' if one else 'They read'} as near shadow everywhere")
         share = {k: c[0] / c[1] for k, c in self.clipped.items() if c[1]}
         over = sorted(k for k, v in share.items() if v > CLIPPED_NOTE)
         if over:

@@ -101,40 +101,43 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
     for e in _gt_problems(cap, mask):  # as psctl normals refuses it, in its words
         raise ground_truth_error(e)
     means = [r["mean"] for r in per_image]
+    mixed, named = _mixed_type_notes(cap, means)  # (its darker images are not named twice)
     over = [r for r in per_image if r["saturated"] is not None and r["saturated"] > SATURATED_SHARE]
     return {
         "seconds": round(time.perf_counter() - t0, 3),
         "images": per_image,
         "mean_range": [float(min(means)), float(np.median(means)), float(max(means))],
         "saturated_images": [r["image"] for r in over],  # above SATURATED_SHARE of the object
-        "notes": check.notes() + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths]) +
-                 _mixed_type_notes(cap, means),
+        "notes": check.notes(named) + hot_pixel_notes({"hot_pixels": hot}, [p.name for p in cap.image_paths]) +
+                 mixed,
     }
 
 
 MIXED_DARKER = 16.0  # a sample type's median image this many times darker than another's: a note
 
 
-def _mixed_type_notes(cap: "Capture", means: list[float]) -> list[str]:
+def _mixed_type_notes(cap: "Capture", means: list[float]) -> tuple[list[str], set[int]]:
     """Images of mixed sample types compared by brightness over the object, as the notes on
     opening promise: 8-bit values saved in a 16-bit file read 257 times darker than their 8-bit
-    neighbours (a helper's repro: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees)."""
+    neighbours (a helper's repro: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees).
+    -> (the notes, the images they call darker)."""
     groups: dict[str, list[int]] = {}
     for k, kind in enumerate(cap.sample_kinds):
         groups.setdefault(kind, []).append(k)
     if len(groups) < 2:
-        return []
+        return [], set()
     med = {g: float(np.median([means[k] for k in ks])) for g, ks in groups.items()}
     top = max(med, key=med.get)
-    notes = []
+    notes, named = [], set()
     for g, ks in groups.items():
         if 0 < med[g] * MIXED_DARKER < med[top]:
+            named.update(ks)
             names = few([cap.image_paths[k].name for k in ks])
             one = len(ks) == 1
             notes.append(f"images: the {g} {'image' if one else 'ones'} ({names}) {'is' if one else 'are'} "
                          f"{med[top] / med[g]:.0f} times darker over the object than the {top} ones (medians): "
                          f"values of another depth saved in {'it' if one else 'them'}? Convert them alike")
-    return notes
+    return notes, named
 
 
 def _in_rows(note: str) -> bool:
