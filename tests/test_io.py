@@ -1474,6 +1474,37 @@ def test_a_run_notes_an_image_far_darker_than_the_rest(tmp_path):
     assert len(said) == 1 and said[0].startswith("images: the 16-bit ones (004.png, 007.png) are "), said
 
 
+def test_loose_images_beside_capture_folders_are_noted_both_ways(tmp_path):
+    """A folder of images beside capture subfolders is one capture to psctl normals and info and a
+    benchmark root to psctl eval (helper-163): each says what it left out. A list's imgs/ folder
+    is part of the capture, not another one."""
+    import shutil
+
+    from psctl.io.capture import capture_notes, root_notes
+
+    root = tmp_path / "r"
+    write_capture(root / "a", n=4, size=24)
+    write_capture(root / "b", n=4, size=24)
+    for k in range(1, 5):
+        shutil.copy(root / "a" / f"{k:03d}.png", root / f"{k:03d}.png")
+    cap = open_capture(root)
+    assert cap.sub_captures == ("a", "b") and cap.n_images == 4
+    said = [n for n in capture_notes(cap) if "capture folders" in n]
+    assert said == ["files: a, b inside are capture folders of their own, not read with it: psctl reads the 4 images "
+                    "of r as this capture (psctl eval --benchmark folder --root on this folder reads the subfolders "
+                    "as objects instead)"], said
+    assert root_notes(root) == ["objects: 4 images in the root itself (001.png, ...) not read: the objects are its "
+                                "capture subfolders (psctl normals on this folder reads these images as one capture "
+                                "instead)"]
+    # images listed from a subfolder: that folder is this capture's, not another one
+    one = tmp_path / "one"
+    write_capture(one / "imgs", n=4, size=24)
+    (one / "imgs" / "light_directions.txt").rename(one / "light_directions.txt")
+    (one / "filenames.txt").write_text("".join(f"imgs/{k:03d}.png\n" for k in range(1, 5)))
+    assert open_capture(one).sub_captures == () and not any("capture folder" in n for n in
+                                                            capture_notes(open_capture(one)))
+
+
 def test_a_run_notes_heavily_saturated_images(tmp_path):
     """Images with over 10 % of the object at the top code value get a run note (l2 and the
     network engine's reader, through any number of passes); an unsaturated capture none."""

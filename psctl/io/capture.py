@@ -81,6 +81,8 @@ class Capture:
     list_path: Path | None = None  # the image list (filenames.txt or names.txt), when the folder has one
     near: NearLights | None = None  # point lights: iter_images divides out their falloff (psctl.nearlight)
     light_lengths: tuple[float, float] | None = None  # the light file's shortest and longest rows, where not unit
+    # capture folders inside this one that hold none of its images: psctl eval --root reads them as objects
+    sub_captures: tuple[str, ...] = ()
 
     @property
     def n_images(self) -> int:
@@ -570,6 +572,10 @@ def root_notes(root: str | os.PathLike) -> list[str]:
         notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
                      f"{', ...' if len(own) > 1 else ''}) not read: objects.txt makes it a benchmark root of the "
                      f"folders it lists")
+    elif own:  # psctl normals, info and lights read them as one capture (their note names the subfolders)
+        notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
+                     f"{', ...' if len(own) > 1 else ''}) not read: the objects are its capture subfolders (psctl "
+                     f"normals on this folder reads these images as one capture instead)")
 
     def looks_meant(folder: Path) -> bool:  # a capture file, no image
         try:
@@ -718,10 +724,27 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
         lights=lights, intensities=intensities, intensities_given=given, mask_path=mask_path,
         gt_path=gt_path, encoding=encoding, ambient_path=ambient_path, light_lengths=light_lengths,
         infos=tuple(infos), ambient_info=ambient_info, lights_path=lights_path, intensities_path=intensities_path,
-        list_path=list_file,
+        list_path=list_file, sub_captures=_sub_captures(entries, image_paths),
         unread=_unread(entries, {*image_paths, *(p for p in (list_file, lights_path, intensities_path, mask_path,
                                                            gt_path, ambient_path) if p is not None)}),
     )
+
+
+def _sub_captures(entries: list[Path], image_paths: list[Path]) -> tuple[str, ...]:
+    """The names of the subfolders that are capture folders and hold none of ``image_paths``
+    (a list's imgs/001.png makes imgs part of this capture), in natural order."""
+    used = {os.path.realpath(p.parent) for p in image_paths}
+    subs = []
+    for p in entries:
+        if p.name.startswith(".") or p.name == "psctl" or not p.is_dir():
+            continue
+        real = os.path.realpath(p)
+        if any(u == real or u.startswith(real + os.sep) for u in used):
+            continue
+        with contextlib.suppress(OSError):  # an unreadable subfolder: not one to name
+            if is_capture_folder(p):
+                subs.append(p.name)
+    return tuple(sorted(subs, key=natural_key))
 
 
 def _listed_images(path: Path, list_file: Path) -> list[Path]:
@@ -1390,6 +1413,12 @@ def capture_notes(capture: Capture) -> list[str]:
         notes.append(f"images: named with numbers that a '-' or '+' precedes in some names and not in others "
                      f"({signed}); without {LIST_FILES[0]} they are in natural order, the sign read as text (l0 .. l6, "
                      f"then l-1 .. l-5): if it is a sign, list the images in {LIST_FILES[0]} in the light file's order")
+    if capture.sub_captures:  # psctl eval --root reads this folder otherwise: say which reading this is
+        one = len(capture.sub_captures) == 1
+        notes.append(f"files: {few(list(capture.sub_captures))} inside {'is a capture folder' if one else 'are capture folders'} "
+                     f"of {'its' if one else 'their'} own, not read with it: psctl reads the {capture.n_images} images "
+                     f"of {capture.name} as this capture (psctl eval --benchmark folder --root on this folder reads "
+                     f"the subfolders as objects instead)")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")
