@@ -2283,6 +2283,15 @@ def test_the_picture_font_tells_method_names_apart():
     assert apart("l", "1") >= 4 and apart("l", "I") >= 4 and apart("l", "|") >= 3
     q = glyph("q")  # (the old q's bowl closed into its stem at the top, as 9's loop does)
     assert q[2:, 4].all() and not q[2, 3] and not q[:2].any()  # a stem apart from the bowl's top
+    # tails below the line (helper-162: in 7 rows g, p and q read as 9, P and a): 2 rows more, where
+    # the text has one; the rest as before
+    from psctl.io.report import text_bitmap
+
+    assert text_bitmap("ABC pot1", 2).shape[0] == 18 and text_bitmap("ABC 01", 2).shape[0] == 14
+    for c in "gjpqy":
+        assert glyph(c).shape == (9, 5) and glyph(c)[7:].any() and not glyph(c)[:2, :3].any(), c
+    assert all(glyph(c).shape == (7, 5) for c in "abcdefhiklmnorstuvwxz0123456789P")
+    assert apart("g", "q") >= 3 and apart("p", "q") >= 4 and apart("g", "y") >= 3
 
 
 def test_a_damaged_exr_header_is_one_line(tmp_path):

@@ -89,25 +89,25 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
     "|": ["  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  "],
     "}": ["##   ", "  #  ", "  #  ", "   # ", "  #  ", "  #  ", "##   "],
     "~": ["     ", "     ", " #   ", "# # #", "   # ", "     ", "     "],
-    # small letters, so that names are drawn as spelt (catPNG, not CATPNG); in 7 rows those with a
-    # tail (g, j, p, q, y) have a shorter body, their tops level with the others'
+    # small letters, so that names are drawn as spelt (catPNG, not CATPNG); those with a tail (g, j,
+    # p, q, y) take 2 rows below the line (in 7 rows their squeezed bodies read as 9, P and a: helper-162)
     "a": ["     ", "     ", " ### ", "    #", " ####", "#   #", " ####"],
     "b": ["#    ", "#    ", "# ## ", "##  #", "#   #", "#   #", "#### "],
     "c": ["     ", "     ", " ### ", "#    ", "#    ", "#   #", " ### "],
     "d": ["    #", "    #", " ## #", "#  ##", "#   #", "#   #", " ####"],
     "e": ["     ", "     ", " ### ", "#   #", "#####", "#    ", " ### "],
     "f": ["  ## ", " #  #", " #   ", "###  ", " #   ", " #   ", " #   "],
-    "g": ["     ", "     ", " ####", "#   #", " ####", "    #", " ### "],
+    "g": ["     ", "     ", " ####", "#   #", "#   #", "#   #", " ####", "    #", " ### "],
     "h": ["#    ", "#    ", "# ## ", "##  #", "#   #", "#   #", "#   #"],
     "i": ["  #  ", "     ", " ##  ", "  #  ", "  #  ", "  #  ", " ### "],
-    "j": ["   # ", "     ", "  ## ", "   # ", "   # ", "#  # ", " ##  "],
+    "j": ["   # ", "     ", "  ## ", "   # ", "   # ", "   # ", "   # ", "#  # ", " ##  "],
     "k": ["#    ", "#    ", "#  # ", "# #  ", "##   ", "# #  ", "#  # "],
     "l": ["  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "   ##"],  # (with a serif on top it read as 1: "12" for l2)
     "m": ["     ", "     ", "## # ", "# # #", "# # #", "#   #", "#   #"],
     "n": ["     ", "     ", "# ## ", "##  #", "#   #", "#   #", "#   #"],
     "o": ["     ", "     ", " ### ", "#   #", "#   #", "#   #", " ### "],
-    "p": ["     ", "     ", "#### ", "#   #", "#### ", "#    ", "#    "],
-    "q": ["     ", "     ", " ## #", "#  ##", " ## #", "    #", "    #"],  # a straight stem (it read as 9)
+    "p": ["     ", "     ", "#### ", "#   #", "#   #", "#   #", "#### ", "#    ", "#    "],
+    "q": ["     ", "     ", " ## #", "#  ##", "#   #", "#  ##", " ## #", "    #", "    #"],  # a straight stem (it read as 9)
     "r": ["     ", "     ", "# ## ", "##  #", "#    ", "#    ", "#    "],
     "s": ["     ", "     ", " ####", "#    ", " ### ", "    #", "#### "],
     "t": [" #   ", " #   ", "###  ", " #   ", " #   ", " #  #", "  ## "],
@@ -115,7 +115,7 @@ _FONT = {  # 5 x 7 glyphs, '#' = ink
     "v": ["     ", "     ", "#   #", "#   #", "#   #", " # # ", "  #  "],
     "w": ["     ", "     ", "#   #", "#   #", "# # #", "# # #", " # # "],
     "x": ["     ", "     ", "#   #", " # # ", "  #  ", " # # ", "#   #"],
-    "y": ["     ", "     ", "#   #", "#   #", " ####", "    #", " ### "],
+    "y": ["     ", "     ", "#   #", "#   #", "#   #", "#   #", " ####", "    #", " ### "],
     "z": ["     ", "     ", "#####", "   # ", "  #  ", " #   ", "#####"],
 }
 
@@ -142,13 +142,19 @@ def drawable(text: str) -> str:
 
 
 def text_bitmap(text: str, scale: int = 1) -> np.ndarray:
-    """Render ``text`` (printable ASCII and ``°``; other letters as ``drawable`` spells them) as a bool bitmap [7 * scale, (6 * n - 1) * scale] for its n >= 1 characters."""
-    glyphs = [np.array([[c == "#" for c in row] for row in _FONT[ch]]) for ch in drawable(text)]
-    gap = np.zeros((7, 1), bool)
+    """Render ``text`` (printable ASCII and ``°``; other letters as ``drawable`` spells them) as a
+    bool bitmap [7 * scale, (6 * n - 1) * scale] for its n >= 1 characters, [9 * scale, ...] where
+    a letter has a tail below the line (g, j, p, q, y): the text's top row where it is stamped is
+    the same either way, the tails reach into the space below."""
+    chars = drawable(text)
+    rows = max((len(_FONT[ch]) for ch in chars), default=7)
+    glyphs = [np.array([[c == "#" for c in row] for row in _FONT[ch] + ["     "] * (rows - len(_FONT[ch]))])
+              for ch in chars]
+    gap = np.zeros((rows, 1), bool)
     parts = []
     for g in glyphs:
         parts += [g, gap]
-    bm = np.concatenate(parts[:-1], axis=1) if parts else np.zeros((7, 0), bool)
+    bm = np.concatenate(parts[:-1], axis=1) if parts else np.zeros((rows, 0), bool)
     return np.kron(bm, np.ones((scale, scale), bool))
 
 
@@ -178,7 +184,8 @@ def colour_bar(canvas: np.ndarray, y: int, x: int, h: int, width: int, labels: d
     for frac, text in labels.items():
         ty = y + int(round((1 - frac) * (h - 1)))
         bm = text_bitmap(text, s)
-        _stamp(canvas, bm, min(max(ty - bm.shape[0] // 2, y), y + h - bm.shape[0]), x + width + 2 * s)
+        body = 7 * s  # centred on the letters' body, not on a tail below it
+        _stamp(canvas, bm, min(max(ty - body // 2, y), y + h - body), x + width + 2 * s)
 
 
 def _degree_labels(vmax: float) -> dict[float, str]:

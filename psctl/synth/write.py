@@ -538,7 +538,7 @@ def _sheet_row(images: torch.Tensor, obj: SynthObject) -> np.ndarray:
     name = text_bitmap(obj.name, SHEET_TEXT)  # its name: rows are a sample of a large set
     if name.shape[1] + 4 > row.shape[1]:  # small tiles: the row grows to its name
         row = np.pad(row, ((0, 0), (0, name.shape[1] + 4 - row.shape[1]), (0, 0)), constant_values=0.12)
-    label = np.full((9 * SHEET_TEXT, row.shape[1], 3), 0.12, np.float32)
+    label = np.full((11 * SHEET_TEXT + 2, row.shape[1], 3), 0.12, np.float32)  # room for tails (g, p, y)
     _stamp(label, name, 2, 2)
     return np.concatenate([label, row], 0)
 
