@@ -482,7 +482,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
                 refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                 batch: "OutputBatch | None" = None, encoding: str = "auto",
                 light_distance: float | None = None, arrays: dict | None = None, downsample: int = 1,
-                precision: str = "float32", albedo: bool = False, snap: bool = True) -> dict:
+                precision: str = "float32", albedo: bool = False, snap: bool = True,
+                reuse: dict | None = None) -> dict:
     """Run a method on a capture folder, write its outputs, return the report.
 
     Returns the dict printed by ``psctl normals --json``: object, path, method, calibrated,
@@ -539,6 +540,10 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     and ``albedo.npy``: linear values), and the report's "albedo" (None without it).
     ``snap`` (sdps; True): its LCNet and light fit read a mask file snapped to the object
     (``psctl.masks.snap_mask``); False: as given (--no-snap). The other methods read it as given.
+    ``reuse`` (a dict kept across runs, held in memory: each network's normals on each capture):
+    ps-fcn, ps-fcn-n and the ensemble's members take a network's normals from an earlier run on
+    the same images, mask, lights and options instead of computing them again, with a note
+    (``psctl.infer.capture_normals``; psctl eval's comparisons pass one).
     """
     from dataclasses import replace
 
@@ -665,7 +670,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
         from psctl.infer import ENSEMBLE, capture_normals
 
         cfg = {**net_cfg, **_found_config(found)}
-        net = capture_normals(cap, read, method, weights, cfg, progress, memo)
+        net = capture_normals(cap, read, method, weights, cfg, progress, memo, reuse)
         normals, dark, spread = net.normals, net.dark, net.spread
         notes += ([] if found is None else [NO_MASK_PREFIX + n for n in found.notes]) + net.notes + (
             ["ensemble: the unit mean of the normals of " + " and ".join(ENSEMBLE)] if method == "ensemble" else [])

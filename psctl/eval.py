@@ -74,7 +74,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                   refine: bool = True, falloff: str | None = None, roll: bool | None = None,
                   encoding: str = "auto", light_distance: float | None = None, downsample: int = 1,
                   precision: str = "float32", albedo: bool = False, batch: OutputBatch | None = None,
-                  snap: bool = True) -> dict:
+                  snap: bool = True, reuse: dict | None = None) -> dict:
     """Evaluate ``method`` on every object under ``root``.
 
     Returns {"benchmark", "root", "method", "objects": [{"name", "mae", "median", "mae_missing_as_90",
@@ -100,6 +100,8 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
     normals --albedo`` writes them (every object's method must have lights: not ups-fcn).
     ``batch`` (with ``out``): stage the files into this ``OutputBatch``, which its owner commits
     (``compare_methods``: several runs' files appear together), instead of one of its own.
+    ``reuse``: passed to every object's ``psctl.api.run_normals`` (``compare_methods``: the
+    ensemble takes its members' normals from the runs of them).
     """
     from psctl.io.capture import root_notes
     from psctl.io.images import write_image
@@ -136,7 +138,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
                             weights=weights, device=device, lcnet=lcnet, views=views, refine=refine,
                             falloff=falloff, roll=roll, batch=batch, encoding=encoding,
                             light_distance=light_distance, arrays=arrays, downsample=downsample,
-                            precision=precision, albedo=albedo and out is not None, snap=snap)
+                            precision=precision, albedo=albedo and out is not None, snap=snap, reuse=reuse)
             _collect(objects, used, r)
             precisions.append(r["precision"])  # float32 for l2 (float64), whatever was asked
             used_views.add(r["views"])  # 1 for l2, whatever was asked
@@ -235,7 +237,7 @@ def method_names(given: Sequence[str]) -> list[str]:
 
 # what compare_methods passes on to each run_benchmark (the rest it sets itself)
 _RUN_OPTIONS = set(inspect.signature(run_benchmark).parameters) - {"benchmark", "root", "method", "out", "progress",
-                                                                    "batch"}
+                                                                    "batch", "reuse"}
 
 
 def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathLike | None = None,
@@ -254,6 +256,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     OUT/compare.json this result (then with "outputs"); they all appear together, or none does.
     """
     from psctl.api import METHODS, NETWORKS, resolve_method
+    from psctl.infer import ENSEMBLE
     from psctl.models.weights import installed_path, no_weights_error
     from psctl.io.atomic import outputs_list, replaced_notes, write_outputs_list
 
@@ -290,9 +293,15 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
         _check_out(out, root, COMPARE_FILES, None, lcnet)
         for m in methods:
             _check_out(Path(out) / m, root, EVAL_FILES, None, lcnet)
+    # the ensemble's members run as methods of their own too: each network once per object (the
+    # normals held in memory until the comparison ends; helper-165: 10 of the dev split's 20 network
+    # runs were repeats, the ensemble's minutes)
+    runs_of = [set(k) for k, m in ran.items() if m in methods]
+    reuse = {} if any("ensemble" in r for r in runs_of) and sum(bool(r & {"ensemble", *ENSEMBLE}) for r in runs_of) > 1 \
+        else None
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
         runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
-                              progress=progress, batch=batch, **options) for m in methods]
+                              progress=progress, batch=batch, reuse=reuse, **options) for m in methods]
         result = {"benchmark": benchmark, "root": os.path.abspath(root), "methods": methods, "runs": runs,
                   "notes": notes}
         if batch is not None:

@@ -29,6 +29,7 @@ on the CPU it moved the normals by 0.07-0.09 degrees on average, at most 0.6 (do
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -842,17 +843,23 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
 
 def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None = None,
                     config: dict | None = None, progress: "ProgressFactory | None" = None,
-                    memo: "DecodeMemo | None" = None) -> InferResult:
+                    memo: "DecodeMemo | None" = None, reuse: dict | None = None) -> InferResult:
     """A network method on a capture folder, streaming its images from disk. ``method``
     "ensemble": the installed ENSEMBLE networks, averaged; the images are read from disk once
     for all of them where ``cache_mb`` holds the cropped images (``ReadMemo``), else again.
     ``memo`` (``psctl.io.capture.DecodeMemo``): images decoded by an earlier pass over this
     capture, and this pass's kept there (sdps' passes). A capture without a mask file takes
     its exposure from its lit pixels (config ``exposure_pixels``) unless the config says
-    otherwise (``psctl.api`` passes "found" with the object it found)."""
+    otherwise (``psctl.api`` passes "found" with the object it found). ``reuse`` (a dict, kept
+    by the caller across runs): each network's result, kept under what it was computed from
+    (``reuse_key``), and taken from there, with a note, by a later run of the same network on
+    the same inputs (psctl eval's comparisons: the ensemble's members and the runs of them)."""
     if capture.mask_path is None:
         config = {"exposure_pixels": "lit", **(config or {})}
-    with _prefetch(capture, mask, config, memo) as decoded:
+    kept = reuse is not None and all(reuse_key(capture, mask, m, weights, config) in reuse
+                                     for m in (ENSEMBLE if method == "ensemble" else (method,)))
+    # (every result kept: no helper process decoding images that nothing reads)
+    with contextlib.nullcontext(None) if kept else _prefetch(capture, mask, config, memo) as decoded:
         if method == "ensemble":
             from psctl.io.capture import ImageCheck
 
@@ -862,11 +869,53 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
             check = ImageCheck(capture)
             reads = ReadMemo(check.reader(capture, mask, decoded, memo),
                              {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
-            res = ensemble_normals([_capture_member(capture, mask, m, None, config, progress, check, reads, decoded)
-                                    for m in ENSEMBLE])
+            res = ensemble_normals([_reused(reuse, capture, mask, m, None, config, lambda m=m: _capture_member(
+                capture, mask, m, None, config, progress, check, reads, decoded)) for m in ENSEMBLE])
         else:
-            res = _capture_member(capture, mask, method, weights, config, progress, decoded=decoded, memo=memo)
-        res.info["prefetched"] = decoded.served
+            res = _reused(reuse, capture, mask, method, weights, config, lambda: _capture_member(
+                capture, mask, method, weights, config, progress, decoded=decoded, memo=memo))
+        res.info["prefetched"] = 0 if decoded is None else decoded.served
+    return res
+
+
+def reuse_key(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
+              config: dict | None) -> tuple:
+    """What a network's result on a capture is computed from: the images (paths, encoding, ambient
+    image, near lights), the pixels read, the lights and intensities given, the network's file
+    (path, size, modification time) and the run's config."""
+    import hashlib
+
+    from psctl.models.weights import installed_path
+
+    h = hashlib.sha256()
+    for a in (np.asarray(mask, bool), capture.lights if capture.lights is not None else np.zeros(0),
+              capture.intensities):
+        h.update(repr(np.asarray(a).shape).encode() + np.ascontiguousarray(a).tobytes())
+    path = Path(weights) if weights is not None else installed_path(method)
+    st = path.stat() if path is not None and path.is_file() else None
+    return (method, os.path.realpath(capture.path), tuple(map(str, capture.image_paths)), capture.encoding,
+            str(capture.ambient_path), repr(capture.near), h.hexdigest(),
+            None if path is None else (os.path.realpath(path), st and st.st_size, st and st.st_mtime_ns),
+            repr(sorted((config or {}).items())))
+
+
+def _reused(reuse: dict | None, capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
+            config: dict | None, compute: Callable[[], InferResult]) -> InferResult:
+    """``compute()``, or (with ``reuse``) a copy of the result an earlier run kept there for the
+    same inputs, with a note that its time is not in this run's."""
+    import copy
+
+    if reuse is None:
+        return compute()
+    key = reuse_key(capture, mask, method, weights, config)
+    if key in reuse:
+        res = copy.deepcopy(reuse[key])
+        res.notes.append(f"{method}: normals taken from an earlier run on the same images and options (psctl eval's "
+                         f"comparisons reuse them), not computed again: its time is not in this run's seconds")
+        res.info["reused"] = True
+        return res
+    res = compute()
+    reuse[key] = copy.deepcopy(res)
     return res
 
 

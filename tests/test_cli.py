@@ -2004,6 +2004,57 @@ def test_eval_compares_methods_in_one_table(tmp_path):
     assert np.array_equal(both[-sheets[1].shape[0]:, :sheets[1].shape[1]], sheets[1])
 
 
+def test_a_comparison_runs_each_network_once_per_object(tmp_path, monkeypatch):
+    """ps-fcn, ps-fcn-n and the ensemble compared: the ensemble takes its members' normals from
+    their runs (helper-165: 10 of the dev split's 20 network runs were repeats), with a note; its
+    files are those of an ensemble run alone. The member after the ensemble takes its normals too;
+    the options (views) are part of what is reused; without the ensemble nothing is kept."""
+    import psctl.infer as infer
+    from psctl.eval import compare_methods, run_benchmark
+    from psctl.io.capture import open_capture
+    from psctl.io.images import read_image
+
+    root = _two_objects(tmp_path / "root")
+    calls = []
+    real = infer._capture_member
+    monkeypatch.setattr(infer, "_capture_member", lambda c, m, method, *a, **k: calls.append(method) or
+                        real(c, m, method, *a, **k))
+    res = compare_methods("diligent", ["ps-fcn", "ensemble", "ps-fcn-n"], root=root, out=tmp_path / "c")
+    assert sorted(calls) == ["ps-fcn"] * 2 + ["ps-fcn-n"] * 2, calls
+    calls.clear()
+    alone = run_benchmark("diligent", root, method="ensemble", out=tmp_path / "e")
+    assert len(calls) == 4
+    ens, last = res["runs"][1], res["runs"][2]
+    assert [o["mae"] for o in ens["objects"]] == [o["mae"] for o in alone["objects"]]
+    for name in ("ball", "cat"):
+        for f in ("normal.exr", "spread.png", "error.png"):
+            np.testing.assert_array_equal(read_image(tmp_path / "c" / "ensemble" / name / f)[0],
+                                          read_image(tmp_path / "e" / name / f)[0])
+    for run, member in ((ens, "ps-fcn"), (last, "ps-fcn-n")):  # (ps-fcn-n first ran in the ensemble)
+        for o in run["objects"]:
+            said = [n for n in o["notes"] if "taken from an earlier run" in n]
+            assert len(said) == 1 and said[0].startswith(f"{member}: normals taken from"), o["notes"]
+    assert not any("earlier run" in n for o in res["runs"][0]["objects"] for n in o["notes"])
+    calls.clear()  # a comparison keeps nothing for the next one
+    compare_methods("diligent", ["ps-fcn", "ensemble"], root=root, views=2)
+    assert sorted(calls) == ["ps-fcn"] * 2 + ["ps-fcn-n"] * 2, calls
+    # what a result is kept under: the inputs and options, the network's file
+    cap = open_capture(root / "ballPNG")
+    mask = np.ones((24, 24), bool)
+    key = infer.reuse_key(cap, mask, "ps-fcn", None, {"views": 1})
+    assert key == infer.reuse_key(open_capture(root / "ballPNG"), mask.copy(), "ps-fcn", None, {"views": 1})
+    other = mask.copy()
+    other[0, 0] = False
+    assert len({key, infer.reuse_key(cap, mask, "ps-fcn", None, {"views": 2}),
+                infer.reuse_key(cap, other, "ps-fcn", None, {"views": 1}),
+                infer.reuse_key(cap.subset([0, 1, 2, 3]), mask, "ps-fcn", None, {"views": 1}),
+                infer.reuse_key(cap, mask, "ps-fcn-n", None, {"views": 1}),
+                infer.reuse_key(open_capture(root / "catPNG"), mask, "ps-fcn", None, {"views": 1})}) == 6
+    calls.clear()
+    compare_methods("diligent", ["ps-fcn", "ps-fcn-n"], root=root)  # no ensemble: each once anyway
+    assert len(calls) == 4
+
+
 def test_eval_and_a_comparison_into_one_folder_say_what_the_other_left(tmp_path):
     """A single-method eval into a folder where a comparison wrote (or the reverse) leaves the
     other's files, as an earlier run's object folders are left, and says so (a QA helper's

@@ -895,6 +895,25 @@ def test_views_must_be_a_subgroup():
         views(images, lights, mask, model(), 3)
 
 
+def test_check_finite_names_the_tensor_in_every_dtype():
+    """check_finite reads CPU float32/64 tensors with NumPy (helper-165: torch.isfinite took up to
+    1 s on a loaded CPU) and the others with torch: a NaN or inf is found in each, integers pass."""
+    import torch
+
+    from psctl.models.weights import check_finite
+
+    for dtype in (torch.float32, torch.float64, torch.float16, torch.bfloat16):
+        state = {"ok": torch.ones(4), "n": torch.arange(3), "w": torch.zeros(2, 3, dtype=dtype)}
+        check_finite(state, None)
+        state["w"][1, 2] = float("inf") if dtype == torch.float32 else float("nan")
+        with pytest.raises(PsctlError, match=r"^w has 1 NaN or infinite values \(of 6\)"):
+            check_finite(state, None)
+    t = torch.zeros(4, 6)[:, ::2]  # strided, as a view of a loaded file may be
+    t[3, 1] = float("nan")
+    with pytest.raises(PsctlError, match="of 12"):
+        check_finite({"v": t}, None)
+
+
 def test_weights_with_nan_are_refused(tmp_path):
     """A NaN in an unused kernel tap can hide behind kernels that skip zero padding (the LCNet of
     2026-11-22/23 shipped 126,208 of them): files with non-finite values are refused on load and

@@ -264,12 +264,21 @@ def check_finite(state: dict, path: Path | None) -> None:
     """PsctlError naming the first tensor with NaN or infinite entries. Such a file can still give
     finite outputs with kernels that skip zero padding (0 * NaN never computed) and NaN with
     others, so it is refused rather than trusted."""
+    import numpy as np
     import torch
 
     for k, v in state.items():
-        if v.is_floating_point() and not torch.isfinite(v).all():
-            bad = int((~torch.isfinite(v)).sum())
-            raise PsctlError(path, f"{k} has {bad:,} NaN or infinite values (of {v.numel():,}): not usable weights")
+        if not v.is_floating_point():
+            continue
+        # NumPy's check of CPU float32/64 tensors (no copy): torch.isfinite took 25 ms to 1 s for
+        # PS-FCN's 2.2 M values on a loaded 2-core CPU, NumPy under 1 ms (helper-165)
+        if v.device.type == "cpu" and v.dtype in (torch.float32, torch.float64):
+            if np.isfinite(v.detach().numpy()).all():
+                continue
+        elif torch.isfinite(v).all():
+            continue
+        bad = int((~torch.isfinite(v)).sum())
+        raise PsctlError(path, f"{k} has {bad:,} NaN or infinite values (of {v.numel():,}): not usable weights")
 
 
 def normalization_allowed(method: str, norm: str) -> bool:
