@@ -21,10 +21,14 @@ if TYPE_CHECKING:
 def _isolated(monkeypatch):
     """Each test as on a fresh clone: the installed weights are the repository's (a developer's
     $PSCTL_WEIGHTS would change what auto picks, and tests that set it put the user's value back
-    through monkeypatch), and torch's thread count as it was (some tests set it)."""
+    through monkeypatch), the data beside the checkout (not $PSCTL_DATA, $PSCTL_MESHES or
+    $PSCTL_MERL), output as CI's (no $COLUMNS, $FORCE_COLOR, ...: helper-166 found tables 321
+    columns wide under FORCE_COLOR=1), and torch's thread count as it was (some tests set it)."""
     import torch
 
-    monkeypatch.delenv("PSCTL_WEIGHTS", raising=False)
+    for name in ("PSCTL_WEIGHTS", "PSCTL_DATA", "PSCTL_MESHES", "PSCTL_MERL", "COLUMNS", "LINES", "FORCE_COLOR",
+                 "NO_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE"):
+        monkeypatch.delenv(name, raising=False)
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)

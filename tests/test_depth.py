@@ -379,6 +379,11 @@ def test_cli_depth_end_to_end(capture, tmp_path):
 
     # the sphere's centre faces the camera: its radiance, sRGB-encoded as the file's tag says
     assert abs(shading[20, 20, 0] - linear_to_srgb(shade(np.array([0.0, 0.0, 1.0]), LIGHT))) < 0.03
+    # shade() by hand (helper-166: without its ambient term the test above passed, as it compares
+    # with shade()): 0.08 ambient + 0.92 max(n . l, 0), the light's own direction 1, facing away 0.08
+    n = np.array([[0.0, 0.0, 1.0], LIGHT, -LIGHT, [np.nan] * 3])
+    np.testing.assert_allclose(shade(n)[:3], [0.08 + 0.92 * LIGHT[2], 1.0, 0.08], rtol=1e-12)
+    assert np.isnan(shade(n)[3])
 
     # normals from a file, bilateral, perspective from PATH/K.txt
     np.save(tmp_path / "n.npy", write_capture(tmp_path / "again")["normals"])
