@@ -302,6 +302,12 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
         runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
                               progress=progress, batch=batch, reuse=reuse, **options) for m in methods]
+        took = [run["method"] for run in runs
+                if any("taken from an earlier run" in n for o in run["objects"] for n in o["notes"])]
+        if took:  # its seconds would read as the ensemble's speed
+            notes.append(f"methods: {' and '.join(took)} took the normals of the networks that ran before "
+                         f"{'it' if len(took) == 1 else 'them'} on the same inputs from those runs (each network "
+                         f"ran once per object): {'its' if len(took) == 1 else 'their'} seconds leave that time out")
         result = {"benchmark": benchmark, "root": os.path.abspath(root), "methods": methods, "runs": runs,
                   "notes": notes}
         if batch is not None:

@@ -2035,6 +2035,9 @@ def test_a_comparison_runs_each_network_once_per_object(tmp_path, monkeypatch):
             said = [n for n in o["notes"] if "taken from an earlier run" in n]
             assert len(said) == 1 and said[0].startswith(f"{member}: normals taken from"), o["notes"]
     assert not any("earlier run" in n for o in res["runs"][0]["objects"] for n in o["notes"])
+    assert [n for n in res["notes"] if "took the normals" in n] == [
+        "methods: ensemble and ps-fcn-n took the normals of the networks that ran before them on the same inputs "
+        "from those runs (each network ran once per object): their seconds leave that time out"]
     calls.clear()  # a comparison keeps nothing for the next one
     compare_methods("diligent", ["ps-fcn", "ensemble"], root=root, views=2)
     assert sorted(calls) == ["ps-fcn"] * 2 + ["ps-fcn-n"] * 2, calls
