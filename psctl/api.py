@@ -540,10 +540,12 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     and ``albedo.npy``: linear values), and the report's "albedo" (None without it).
     ``snap`` (sdps; True): its LCNet and light fit read a mask file snapped to the object
     (``psctl.masks.snap_mask``); False: as given (--no-snap). The other methods read it as given.
-    ``reuse`` (a dict kept across runs, held in memory: each network's normals on each capture):
+    ``reuse`` (a dict kept across runs: each network's normals on each capture, held in memory):
     ps-fcn, ps-fcn-n and the ensemble's members take a network's normals from an earlier run on
-    the same images, mask, lights and options instead of computing them again, with a note
-    (``psctl.infer.capture_normals``; psctl eval's comparisons pass one).
+    the same images (the same files, sizes and times), mask, lights, options and weights file
+    instead of computing them again, with a note; each kept result is taken once, then let go
+    (``psctl.infer.capture_normals``; psctl eval's comparisons pass a ``psctl.infer.KeptNormals``,
+    which keeps no more than its budget).
     """
     from dataclasses import replace
 

@@ -1142,7 +1142,7 @@ def sphere_picture(brightest: np.ndarray, circle: Circle, box: tuple[slice, slic
     img = np.repeat(np.repeat(grey, k, 0), k, 1)
     s = 2  # text scale
     label = text_bitmap(title, s) if title else None
-    top_px = 11 * s if title else 0
+    top_px = 12 * s if title else 0  # the title and its tails (g, p, y), then s of space
     key = [(SPHERE_OUTLINE, text_bitmap(OUTLINE_KEY, s))]
     if highlights:
         key.append((HIGHLIGHT_DOT, text_bitmap(HIGHLIGHT_KEY, s)))

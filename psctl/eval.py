@@ -256,7 +256,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     OUT/compare.json this result (then with "outputs"); they all appear together, or none does.
     """
     from psctl.api import METHODS, NETWORKS, resolve_method
-    from psctl.infer import ENSEMBLE
+    from psctl.infer import ENSEMBLE, KeptNormals
     from psctl.models.weights import installed_path, no_weights_error
     from psctl.io.atomic import outputs_list, replaced_notes, write_outputs_list
 
@@ -297,8 +297,8 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     # normals held in memory until the comparison ends; helper-165: 10 of the dev split's 20 network
     # runs were repeats, the ensemble's minutes)
     runs_of = [set(k) for k, m in ran.items() if m in methods]
-    reuse = {} if any("ensemble" in r for r in runs_of) and sum(bool(r & {"ensemble", *ENSEMBLE}) for r in runs_of) > 1 \
-        else None
+    reuse = KeptNormals() if any("ensemble" in r for r in runs_of) and \
+        sum(bool(r & {"ensemble", *ENSEMBLE}) for r in runs_of) > 1 else None
     with OutputBatch(out) if out is not None else contextlib.nullcontext() as batch:
         runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
                               progress=progress, batch=batch, reuse=reuse, **options) for m in methods]

@@ -852,7 +852,7 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     its exposure from its lit pixels (config ``exposure_pixels``) unless the config says
     otherwise (``psctl.api`` passes "found" with the object it found). ``reuse`` (a dict, kept
     by the caller across runs): each network's result, kept under what it was computed from
-    (``reuse_key``), and taken from there, with a note, by a later run of the same network on
+    (``reuse_key``), and taken out of it, with a note, by a later run of the same network on
     the same inputs (psctl eval's comparisons: the ensemble's members and the runs of them)."""
     if capture.mask_path is None:
         config = {"exposure_pixels": "lit", **(config or {})}
@@ -878,44 +878,77 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     return res
 
 
+REUSE_MB = 1024  # psctl eval's comparisons keep at most this much of networks' results for later runs
+
+
+class KeptNormals(dict):
+    """A ``reuse`` dict with a memory budget (``budget_mb``; None: REUSE_MB): a result that would
+    take it over is not kept (computed again where asked for), and a result taken is let go."""
+
+    def __init__(self, budget_mb: float | None = None):
+        super().__init__()
+        self.budget, self.used = int((REUSE_MB if budget_mb is None else budget_mb) * 2**20), 0
+
+
+def _nbytes(res: InferResult) -> int:
+    return res.normals.nbytes + res.dark.nbytes + (0 if res.spread is None else res.spread.nbytes)
+
+
 def reuse_key(capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
               config: dict | None) -> tuple:
-    """What a network's result on a capture is computed from: the images (paths, encoding, ambient
-    image, near lights), the pixels read, the lights and intensities given, the network's file
-    (path, size, modification time) and the run's config."""
+    """What a network's result on a capture is computed from: the images and the ambient image
+    (paths, sizes, modification times: a capture taken again into the same names is another),
+    how they are read (encoding, near lights), the pixels read, the lights and intensities given,
+    the network's file (path, size, modification time) and the settings (DEFAULT_INFER with the
+    run's config over it)."""
     import hashlib
 
     from psctl.models.weights import installed_path
+
+    def stamp(p: "Path | None") -> tuple | None:
+        if p is None:
+            return None
+        try:
+            st = os.stat(p)
+        except OSError:
+            return (str(p), None)
+        return (str(p), st.st_size, st.st_mtime_ns)
 
     h = hashlib.sha256()
     for a in (np.asarray(mask, bool), capture.lights if capture.lights is not None else np.zeros(0),
               capture.intensities):
         h.update(repr(np.asarray(a).shape).encode() + np.ascontiguousarray(a).tobytes())
     path = Path(weights) if weights is not None else installed_path(method)
-    st = path.stat() if path is not None and path.is_file() else None
-    return (method, os.path.realpath(capture.path), tuple(map(str, capture.image_paths)), capture.encoding,
-            str(capture.ambient_path), repr(capture.near), h.hexdigest(),
-            None if path is None else (os.path.realpath(path), st and st.st_size, st and st.st_mtime_ns),
-            repr(sorted((config or {}).items())))
+    return (method, os.path.realpath(capture.path), tuple(map(stamp, capture.image_paths)), capture.encoding,
+            stamp(capture.ambient_path), repr(capture.near), h.hexdigest(),
+            None if path is None else (os.path.realpath(path), *stamp(path)[1:]),
+            repr(sorted({**DEFAULT_INFER, **(config or {})}.items())))
 
 
 def _reused(reuse: dict | None, capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
             config: dict | None, compute: Callable[[], InferResult]) -> InferResult:
-    """``compute()``, or (with ``reuse``) a copy of the result an earlier run kept there for the
-    same inputs, with a note that its time is not in this run's."""
+    """``compute()``, or (with ``reuse``) the result an earlier run kept there for the same inputs,
+    taken out of it (each is reused once: the ensemble its members', or a member the ensemble's),
+    with a note that its time is not in this run's. A result computed is kept (a copy; in a
+    ``KeptNormals`` only within its budget)."""
     import copy
 
     if reuse is None:
         return compute()
     key = reuse_key(capture, mask, method, weights, config)
     if key in reuse:
-        res = copy.deepcopy(reuse[key])
+        res = reuse.pop(key)
+        if isinstance(reuse, KeptNormals):
+            reuse.used -= _nbytes(res)
         res.notes.append(f"{method}: normals taken from an earlier run on the same images and options (psctl eval's "
                          f"comparisons reuse them), not computed again: its time is not in this run's seconds")
         res.info["reused"] = True
         return res
     res = compute()
-    reuse[key] = copy.deepcopy(res)
+    if not isinstance(reuse, KeptNormals) or reuse.used + _nbytes(res) <= reuse.budget:
+        reuse[key] = copy.deepcopy(res)
+        if isinstance(reuse, KeptNormals):
+            reuse.used += _nbytes(res)
     return res
 
 

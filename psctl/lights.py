@@ -402,7 +402,7 @@ def capture_lights(capture: "Capture", mask: np.ndarray, weights: str | os.PathL
         if w.official:  # the guard's band describes psctl's training exposures, not the authors'
             config = {"exposure_band": None, **(config or {})}
         raw = replace(capture, intensities=np.ones_like(capture.intensities))
-        check = ImageCheck(capture)  # black images, negative values: notes
+        check = ImageCheck(replace(raw, intensities_given=False))  # black images, ...: notes (on images as captured)
         reader = check.reader(raw, mask, pf, memo)
         if read != box:
             reader = _cut_reader(reader, check.reader(raw, mask, pf, memo, _inner(box, read)), box, read)

@@ -477,7 +477,7 @@ def test_sphere_picture_keys_its_marks():
     matte = sphere_picture(brightest, circle, box, None, title="MATTE")
     for pic, keys in ((chrome, (OUTLINE_KEY, HIGHLIGHT_KEY)), (matte, (OUTLINE_KEY,))):
         k = 9  # 40 px enlarged to at least 360
-        below = 22 + 40 * k  # the title band, then the picture
+        below = 24 + 40 * k  # the title band (its tails, then 2 px), then the picture
         assert pic.shape[0] > below
         for key, colour in zip(keys, (SPHERE_OUTLINE, HIGHLIGHT_DOT)):
             (y, x), = _text_at(pic, key, 2)
@@ -486,6 +486,8 @@ def test_sphere_picture_keys_its_marks():
         assert bool(_text_at(pic, HIGHLIGHT_KEY, 2)) == (pic is chrome)
         green = np.isclose(pic, SPHERE_OUTLINE).all(-1)
         assert green[:below].any() and not green[below:, 20:].any()  # in the key: its swatch alone
+    tails = sphere_picture(brightest, circle, box, None, title="gypsy")  # tails end 2 px above the picture
+    assert _text_at(tails, "gypsy", 2) == [(4, 4)] and np.allclose(tails[22:24, :80], 0.12)
 
 
 def test_calibrate_command_writes_light_files(tmp_path):

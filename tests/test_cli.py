@@ -2056,6 +2056,29 @@ def test_a_comparison_runs_each_network_once_per_object(tmp_path, monkeypatch):
     calls.clear()
     compare_methods("diligent", ["ps-fcn", "ps-fcn-n"], root=root)  # no ensemble: each once anyway
     assert len(calls) == 4
+    # helper-167: a key of the images' paths alone took a capture taken again into the same names, and
+    # one of the run's config alone a changed DEFAULT_INFER setting, as the same; a result is taken once
+    from psctl.api import run_normals
+    from psctl.io.images import write_image
+
+    kept, cap = {}, root / "ballPNG"
+    calls.clear()
+    run_normals(cap, method="ps-fcn", write=False, reuse=kept)
+    run_normals(cap, method="ps-fcn", write=False, reuse=kept)  # taken
+    assert len(calls) == 1 and len(kept) == 0
+    run_normals(cap, method="ps-fcn", write=False, reuse=kept)  # (taken once: computed, kept again)
+    img = read_image(cap / "003.png")[0]
+    write_image(cap / "003.png", img[::-1].copy(), "uint16", kind="linear")
+    run_normals(cap, method="ps-fcn", write=False, reuse=kept)
+    assert len(calls) == 3, calls
+    monkeypatch.setitem(infer.DEFAULT_INFER, "grow", 8)
+    run_normals(cap, method="ps-fcn", write=False, reuse=kept)
+    assert len(calls) == 4, calls
+    # a comparison keeps no more than its budget: past it, computed again
+    calls.clear()
+    monkeypatch.setattr(infer, "REUSE_MB", 0)
+    compare_methods("diligent", ["ps-fcn", "ensemble"], root=root)
+    assert sorted(calls) == ["ps-fcn"] * 4 + ["ps-fcn-n"] * 2, calls
 
 
 def test_eval_and_a_comparison_into_one_folder_say_what_the_other_left(tmp_path):

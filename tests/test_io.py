@@ -1123,7 +1123,7 @@ def test_error_map_draws_the_errors(tmp_path):
     pic, info = read_image(tmp_path / "e.png")
     k = 3  # a map under LABELLED_BAR (96) pixels tall is drawn in whole k x k blocks: 120 x 150 here
     assert info.dtype == "uint8" and pic.shape[1] > 50 * k  # room for the bar
-    top = 24  # one title line of 9 * s px and 3 * s px more, at text scale s = 2
+    top = 26  # one title line of 10 * s px (9 s with tails and s of space) and 3 * s px more, at text scale s = 2
     left = 4  # 2 * s: the map's left edge in line with the title's, off the picture's
     assert (pic[top:top + 40 * k, :left] == pic[0, 0]).all()  # the background
     big = pic[top:top + 40 * k, left:left + 50 * k]
@@ -1259,10 +1259,12 @@ def test_error_map_labels_and_title_are_the_numbers_drawn(tmp_path):
     # with a label (run_normals': the object and the method) on a line of its own above the numbers
     write_error_map(tmp_path / "e.png", err, mask, mae=12.5, median=10.0, label="cat  ps-fcn-n")
     e = read_image(tmp_path / "e.png")[0]
-    assert _text_at(e, "cat  ps-fcn-n", 2) == [(4, 4)] and _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(22, 4)]
+    assert _text_at(e, "cat  ps-fcn-n", 2) == [(4, 4)] and _text_at(e, "MAE 12.50°  MEDIAN 10.00°", 2) == [(24, 4)]
+    # the p's tails (rows 18-21) and the next line (from 24) apart (helper-167: they touched)
+    assert (np.abs(e[22:24, 4:300] - e[0, 0]) < 1 / 255).all()
     write_spread_map(tmp_path / "s.png", err, mask, mean=1.25, p90=3.5, label="cat  ensemble")
     sp = read_image(tmp_path / "s.png")[0]
-    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°", 2) == [(22, 4)] and _text_at(sp, "cat  ensemble", 2)
+    assert _text_at(sp, "SPREAD MEAN 1.25°  P90 3.50°", 2) == [(24, 4)] and _text_at(sp, "cat  ensemble", 2)
     assert _text_at(sp, f">{SPREAD_VMAX:.0f}°", 2) and not _text_at(sp, ">45°", 2)
     from psctl.api import run_normals
 
@@ -1503,6 +1505,13 @@ def test_loose_images_beside_capture_folders_are_noted_both_ways(tmp_path):
     (one / "filenames.txt").write_text("".join(f"imgs/{k:03d}.png\n" for k in range(1, 5)))
     assert open_capture(one).sub_captures == () and not any("capture folder" in n for n in
                                                             capture_notes(open_capture(one)))
+    # the images links into raw/: raw is this capture's too (helper-167)
+    linked = tmp_path / "linked"
+    write_capture(linked / "raw", n=4, size=24)
+    for k in range(1, 5):
+        (linked / f"{k:03d}.png").symlink_to(f"raw/{k:03d}.png")
+    (linked / "raw" / "light_directions.txt").rename(linked / "light_directions.txt")
+    assert open_capture(linked).n_images == 4 and open_capture(linked).sub_captures == ()
 
 
 def test_a_run_notes_heavily_saturated_images(tmp_path):

@@ -235,7 +235,7 @@ def error_heatmap(error: np.ndarray, mask: np.ndarray, vmax: float = 45.0,
     h, w = img.shape[:2]
     s = max(2, min(h, w) // 200)  # text 14 px tall at least: legible at 100 % on DiLiGenT-sized maps
     lines = [text_bitmap(t, s) if t else None for t in title.split("\n")] if title else []
-    line = 9 * s
+    line = 10 * s  # a line with tails (g, p, y) is 9 s tall: s of space under it
     labels = labels or _degree_labels(vmax)
     # room right of the map for the bar (at 4 s, 10 s wide) and its labels (2 s beyond it)
     top, bar_w = len(lines) * line + 3 * s, 10 * s
