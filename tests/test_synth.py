@@ -815,8 +815,9 @@ def test_written_folders_round_trip_through_the_reader(tmp_path):
 
     sheet = read_image(rep["preview"])[0]
     assert _text_at(sheet, "6 IMAGES, LIGHT LEFT TO RIGHT", 2) == [(2, 2)]  # text 14 px tall (scale 2)
-    # a 20 px header, then each row: its 18 px name band (the name 2 px down), 32 px of tiles and a 2 px gap
-    assert [y for y, _ in _text_at(sheet, "blobby_01", 2)] == [22] and [y for y, _ in _text_at(sheet, "blobby_02", 2)] == [22 + 50 + 2]
+    # a 20 px header, then each row: its 24 px name band (the name 2 px down, room for its tails), 32 px
+    # of tiles and a 2 px gap
+    assert [y for y, _ in _text_at(sheet, "blobby_01", 2)] == [22] and [y for y, _ in _text_at(sheet, "blobby_02", 2)] == [22 + 56 + 2]
     assert [p.name for p in find_objects(out)] == rep["objects"]
     objs = preset_objects("blobby", seed=2, size=32, n_lights=8, k=2)
     for folder, obj in zip(find_objects(out), objs):
