@@ -242,6 +242,15 @@ def check_progress(progress: Any) -> Any:
     if not callable(progress):
         raise PsctlError(None, f"progress must be None or a callable (label, total) -> advance(k), "
                                f"not {_short(progress)}")
+    import inspect
+
+    try:
+        inspect.signature(progress).bind("label", 1)
+    except TypeError:  # an advance(k) itself (psctl.load_images took one until session 75): a TypeError mid-run
+        raise PsctlError(None, "progress must be a factory (label, total) -> advance(k), called once per stage; "
+                               "this callable does not take (label, total)") from None
+    except ValueError:  # no signature to read (some builtins): called as it is
+        pass
     return progress
 
 

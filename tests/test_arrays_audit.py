@@ -181,7 +181,9 @@ def test_load_images_checks_its_arguments():
                            ({"box": (slice(None), slice(0, 10, 2))}, "columns must be a slice of whole numbers"),
                            ({"box": (slice(20, 10), slice(None))}, "holds none of the image's 128 rows"),
                            # a factory's True: "'bool' object is not callable" mid-read (a review)
-                           ({"progress": True}, r"progress must be None or a callable \(label, total\)")):
+                           ({"progress": True}, r"progress must be None or a callable \(label, total\)"),
+                           # an advance(k) itself, as load_images took until session 75 (helper-168: a TypeError)
+                           ({"progress": lambda k: None}, r"progress must be a factory \(label, total\)")):
         with pytest.raises(PsctlError, match=needle):
             psctl.load_images(cap, **kwargs)
     for kwargs in ({"light_files": "no"}, {"intensity_file": 0}):  # "no" is truthy: its light files were read

@@ -1512,6 +1512,11 @@ def test_loose_images_beside_capture_folders_are_noted_both_ways(tmp_path):
         (linked / f"{k:03d}.png").symlink_to(f"raw/{k:03d}.png")
     (linked / "raw" / "light_directions.txt").rename(linked / "light_directions.txt")
     assert open_capture(linked).n_images == 4 and open_capture(linked).sub_captures == ()
+    one_image = tmp_path / "one_image"  # "the 1 image", not "the 1 images" (helper-168)
+    write_capture(one_image / "sub", n=4, size=24)
+    shutil.copy(one_image / "sub" / "001.png", one_image / "001.png")
+    assert any("psctl reads the 1 image of one_image as this capture" in n
+               for n in capture_notes(open_capture(one_image)))
 
 
 def test_a_run_notes_heavily_saturated_images(tmp_path):

@@ -1419,8 +1419,8 @@ def capture_notes(capture: Capture) -> list[str]:
     if capture.sub_captures:  # psctl eval --root reads this folder otherwise: say which reading this is
         one = len(capture.sub_captures) == 1
         notes.append(f"files: {few(list(capture.sub_captures))} inside {'is a capture folder' if one else 'are capture folders'} "
-                     f"of {'its' if one else 'their'} own, not read with it: psctl reads the {capture.n_images} images "
-                     f"of {capture.name} as this capture (psctl eval --benchmark folder --root on this folder reads "
+                     f"of {'its' if one else 'their'} own, not read with it: psctl reads the {capture.n_images} "
+                     f"image{'s' * (capture.n_images != 1)} of {capture.name} as this capture (psctl eval --benchmark folder --root on this folder reads "
                      f"the subfolders as objects instead)")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
