@@ -293,9 +293,9 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
         _check_out(out, root, COMPARE_FILES, None, lcnet)
         for m in methods:
             _check_out(Path(out) / m, root, EVAL_FILES, None, lcnet)
-    # the ensemble's members run as methods of their own too: each network once per object (the
-    # normals held in memory until the comparison ends; helper-165: 10 of the dev split's 20 network
-    # runs were repeats, the ensemble's minutes)
+    # the ensemble's members run as methods of their own too: each network once per object (a
+    # result held in memory until a later run takes it, within KeptNormals' budget; helper-165: 10 of
+    # the dev split's 20 network runs were repeats, the ensemble's minutes)
     runs_of = [set(k) for k, m in ran.items() if m in methods]
     reuse = KeptNormals() if any("ensemble" in r for r in runs_of) and \
         sum(bool(r & {"ensemble", *ENSEMBLE}) for r in runs_of) > 1 else None

@@ -1418,10 +1418,11 @@ def capture_notes(capture: Capture) -> list[str]:
                      f"then l-1 .. l-5): if it is a sign, list the images in {LIST_FILES[0]} in the light file's order")
     if capture.sub_captures:  # psctl eval --root reads this folder otherwise: say which reading this is
         one = len(capture.sub_captures) == 1
-        notes.append(f"files: {few(list(capture.sub_captures))} inside {'is a capture folder' if one else 'are capture folders'} "
-                     f"of {'its' if one else 'their'} own, not read with it: psctl reads the {capture.n_images} "
-                     f"image{'s' * (capture.n_images != 1)} of {capture.name} as this capture (psctl eval --benchmark folder --root on this folder reads "
-                     f"the subfolders as objects instead)")
+        notes.append(f"files: {few(list(capture.sub_captures))} inside "
+                     f"{'is a capture folder' if one else 'are capture folders'} of {'its' if one else 'their'} own, "
+                     f"not read with it: psctl reads the {capture.n_images} image{'s' * (capture.n_images != 1)} of "
+                     f"{capture.name} as this capture (psctl eval --benchmark folder --root on this folder reads the "
+                     f"subfolders as objects instead)")
     if capture.unread:
         notes.append(f"files: not read: {', '.join(capture.unread)} (psctl reads {LIGHTS_FILE}, {INTENSITIES_FILE}, "
                      f"mask.png/.tif/.exr, Normal_gt.mat/.png/.exr, ambient.png/...; docs/formats.md)")

@@ -414,8 +414,8 @@ def render_info(report: dict) -> None:
         _render_check(con, r["check"])
         return
     # info is quick because it reads headers: a damaged image shows only when it is decoded
-    con.print("[dim]headers read, and the ground truth; --check decodes every file (normals, lights and depth do as they read)[/]",
-              highlight=False, soft_wrap=True)
+    con.print("[dim]headers read, and the ground truth; --check decodes every file (normals, lights and depth do "
+              "as they read)[/]", highlight=False, soft_wrap=True)
 
 
 def _render_check(con, c: dict) -> None:
