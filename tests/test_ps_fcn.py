@@ -1035,7 +1035,7 @@ def test_score_skips_pixels_without_gt(tmp_path):
 
     pic, _ = read_image(tmp_path / "out" / "error.png")
     k = 3  # error_heatmap: a map under 96 px tall (36 here) in whole 3 x 3 blocks, under the title's band
-    top = 2 * 18 + 6  # two title lines (object and method; MAE and median) of 9 * s px, 3 * s more, s = 2
+    top = 2 * 20 + 6  # two title lines (object and method; MAE and median) of 10 * s px, 3 * s more, s = 2
     body = pic[top:top + 36 * k:k, 4:4 + 36 * k:k]  # 2 * s px off the left edge
     grey = np.abs(body - UNSCORED).max(-1) < 1 / 255
     assert (grey == np.isnan(err)).all()
