@@ -578,7 +578,7 @@ def train(
     resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda | cuda:N")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
-    install: Annotated[bool, _flag(help="When finished, copy the best weights to the weights folder ($PSCTL_WEIGHTS, else the checkout's weights/); an installed file only with --force.")] = False,
+    install: Annotated[bool, _flag(help="When finished, copy the best weights to the weights folder ($PSCTL_WEIGHTS, else the checkout's weights/, else ~/.local/share/psctl/weights for an installed wheel); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
     lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
     average: Annotated[Optional[list[Path]], typer.Option("--average", metavar="FILE", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
