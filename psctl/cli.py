@@ -401,7 +401,7 @@ def normals(
 
 @app.command("eval", cls=_Command)
 def evaluate(
-    benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root).")] = "diligent",
+    benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root; a --root none of whose objects is named as one of DiLiGenT's is read as folder).")] = "diligent",
     root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
     method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", metavar="M[,M...]", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,

@@ -43,6 +43,8 @@ PAPER_DILIGENT_LIGHTS = {
 }
 
 BENCHMARKS = ("diligent", "folder")
+# DiLiGenT's ten objects (folders ballPNG, ...): a root of none of them is read as --benchmark folder
+DILIGENT_OBJECTS = ("ball", "cat", "pot1", "bear", "pot2", "buddha", "goblet", "reading", "cow", "harvest")
 
 
 def default_diligent_root() -> Path:
@@ -355,6 +357,8 @@ def _benchmark_objects(benchmark: str, root: str | os.PathLike | None,
         if cap.gt_path is None:
             raise PsctlError(cap.path, "has no ground truth normals (" + " / ".join(GT_FILES) + ")")
     names = [object_name(f) for f in folders]
+    if benchmark == "diligent" and not any(n in DILIGENT_OBJECTS for n in names):
+        benchmark = "folder"  # one's own objects under the default --benchmark: not headed "diligent"
     for name in dict.fromkeys(names):
         same = [f.name for f, n in zip(folders, names) if n == name]
         if len(same) > 1:  # one column (and one out/<object>/ folder) each

@@ -911,6 +911,14 @@ def test_eval_shows_published_numbers_only_beside_folders_named_as_diligent(tmp_
     (tmp_path / "root" / "ballPNG").rename(tmp_path / "root" / "ball")
     r = json.loads(cli("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
     assert r["paper"] == {} and r["paper_method"] is None and any("ball, cat not in" in n for n in r["notes"])
+    assert r["benchmark"] == "diligent"  # (named as DiLiGenT's objects: the note says why no paper number)
+    # objects none of which is named as one of DiLiGenT's: read as --benchmark folder (helper-169: the
+    # table was headed "diligent: ROOT" over one's own objects)
+    (tmp_path / "root" / "ball").rename(tmp_path / "root" / "mug")
+    (tmp_path / "root" / "cat").rename(tmp_path / "root" / "vase")
+    r = json.loads(cli("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
+    assert r["benchmark"] == "folder" and r["paper"] == {} and not any("DiLiGenT" in n for n in r["notes"])
+    assert cli("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout.startswith(f"folder: ")
 
 
 def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
