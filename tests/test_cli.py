@@ -918,7 +918,7 @@ def test_eval_shows_published_numbers_only_beside_folders_named_as_diligent(tmp_
     (tmp_path / "root" / "cat").rename(tmp_path / "root" / "vase")
     r = json.loads(cli("eval", "--root", tmp_path / "root", "-m", "l2", "--json", "--quiet", check=True).stdout)
     assert r["benchmark"] == "folder" and r["paper"] == {} and not any("DiLiGenT" in n for n in r["notes"])
-    assert cli("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout.startswith(f"folder: ")
+    assert cli("eval", "--root", tmp_path / "root", "-m", "l2", check=True).stdout.startswith("folder: ")
 
 
 def test_eval_out_writes_the_sheet_and_the_table(tmp_path):
