@@ -557,8 +557,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     from psctl.symmetry import check_views
     from psctl.io.atomic import output_folder, staged_outputs
     from psctl.arrays import bounding_box
-    from psctl.io.capture import (capture_notes, ground_truth_error, load_ground_truth, load_mask, open_capture,
-                                  select_images, selection_notes)
+    from psctl.io.capture import (capture_notes, check_ground_truth_inside, ground_truth_error, load_ground_truth,
+                                  load_mask, open_capture, select_images, selection_notes)
     from psctl.io.normals import ALBEDO_FORMATS, FORMATS, parse_formats, write_albedo_map, write_normal_map
     from psctl.io.report import write_error_map, write_json, write_spread_map
 
@@ -626,8 +626,8 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     mask = load_mask(cap)
     try:
         gt = load_ground_truth(cap)
-        if gt is not None and not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():  # before the work
-            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
+        if gt is not None:
+            check_ground_truth_inside(gt, mask, cap.gt_path)  # before the work
     except PsctlError as e:  # a user without a good ground truth still wants the normals: say how
         raise ground_truth_error(e) from None
     memo = None  # the albedo's pass takes the images this one decodes, where they fit
@@ -1078,14 +1078,14 @@ def _evaluate(normals: np.ndarray, gt: np.ndarray | None, mask: np.ndarray,
     found was read): the authors' count over a mask has none to go by, so mae_missing_as_90 is
     None and no note is given (it counted the background at 90 degrees: examples/bumpy_sphere
     without its mask gave 16.55 beside an MAE of 1.38, and 34.66 with l2 on the whole frame)."""
+    from psctl.io.capture import check_ground_truth_inside
     from psctl.metrics import angular_error, summarize
 
     if gt is None:
         return None, {"mae": None, "median": None, "within": {"11.25": None, "22.5": None, "30": None},
                       "mae_missing_as_90": None}, None, []
+    check_ground_truth_inside(gt, mask, gt_path)
     valid = mask & (np.linalg.norm(gt, axis=-1) > 0.5)
-    if not valid.any():
-        raise PsctlError(gt_path, "ground truth has no valid normal inside the mask")
     error = np.zeros(mask.shape, np.float32)
     error[mask & ~valid] = np.nan  # no ground truth there: the maps show it apart from 0 degrees
     error[valid] = angular_error(normals, gt, valid)

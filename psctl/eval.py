@@ -258,7 +258,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
     OUT/compare.json this result (then with "outputs"); they all appear together, or none does.
     """
     from psctl.api import METHODS, NETWORKS, resolve_method
-    from psctl.infer import ENSEMBLE, KeptNormals
+    from psctl.infer import ENSEMBLE, REUSED_NOTE, KeptNormals
     from psctl.models.weights import installed_path, no_weights_error
     from psctl.io.atomic import outputs_list, replaced_notes, write_outputs_list
 
@@ -305,7 +305,7 @@ def compare_methods(benchmark: str, methods: Sequence[str], root: str | os.PathL
         runs = [run_benchmark(benchmark, root, method=m, out=None if out is None else Path(out) / m,
                               progress=progress, batch=batch, reuse=reuse, **options) for m in methods]
         took = [run["method"] for run in runs
-                if any("taken from an earlier run" in n for o in run["objects"] for n in o["notes"])]
+                if any(REUSED_NOTE in n for o in run["objects"] for n in o["notes"])]
         if took:  # its seconds would read as the ensemble's speed
             notes.append(f"methods: {' and '.join(took)} took the normals of the networks that ran before "
                          f"{'it' if len(took) == 1 else 'them'} on the same inputs from those runs (each network "

@@ -856,8 +856,10 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
     the same inputs (psctl eval's comparisons: the ensemble's members and the runs of them)."""
     if capture.mask_path is None:
         config = {"exposure_pixels": "lit", **(config or {})}
-    kept = reuse is not None and all(reuse_key(capture, mask, m, weights, config) in reuse
-                                     for m in (ENSEMBLE if method == "ensemble" else (method,)))
+    # each network's key, made once (it stats every image and hashes the mask)
+    keys = {} if reuse is None else {m: reuse_key(capture, mask, m, weights, config)
+                                     for m in (ENSEMBLE if method == "ensemble" else (method,))}
+    kept = bool(keys) and all(k in reuse for k in keys.values())
     # (every result kept: no helper process decoding images that nothing reads)
     with contextlib.nullcontext(None) if kept else _prefetch(capture, mask, config, memo) as decoded:
         if method == "ensemble":
@@ -869,16 +871,17 @@ def capture_normals(capture: "Capture", mask: np.ndarray, method: str, weights: 
             check = ImageCheck(capture)
             reads = ReadMemo(check.reader(capture, mask, decoded, memo),
                              {**DEFAULT_INFER, **(config or {})}["cache_mb"] << 20)
-            res = ensemble_normals([_reused(reuse, capture, mask, m, None, config, lambda m=m: _capture_member(
+            res = ensemble_normals([_reused(reuse, keys.get(m), m, lambda m=m: _capture_member(
                 capture, mask, m, None, config, progress, check, reads, decoded)) for m in ENSEMBLE])
         else:
-            res = _reused(reuse, capture, mask, method, weights, config, lambda: _capture_member(
+            res = _reused(reuse, keys.get(method), method, lambda: _capture_member(
                 capture, mask, method, weights, config, progress, decoded=decoded, memo=memo))
         res.info["prefetched"] = 0 if decoded is None else decoded.served
     return res
 
 
 REUSE_MB = 1024  # psctl eval's comparisons keep at most this much of networks' results for later runs
+REUSED_NOTE = "normals taken from an earlier run"  # how a report's note says so (compare_methods looks for it)
 
 
 class KeptNormals(dict):
@@ -925,23 +928,21 @@ def reuse_key(capture: "Capture", mask: np.ndarray, method: str, weights: str | 
             repr(sorted({**DEFAULT_INFER, **(config or {})}.items())))
 
 
-def _reused(reuse: dict | None, capture: "Capture", mask: np.ndarray, method: str, weights: str | Path | None,
-            config: dict | None, compute: Callable[[], InferResult]) -> InferResult:
-    """``compute()``, or (with ``reuse``) the result an earlier run kept there for the same inputs,
-    taken out of it (each is reused once: the ensemble its members', or a member the ensemble's),
-    with a note that its time is not in this run's. A result computed is kept (a copy; in a
-    ``KeptNormals`` only within its budget)."""
+def _reused(reuse: dict | None, key: tuple | None, method: str, compute: Callable[[], InferResult]) -> InferResult:
+    """``compute()``, or (with ``reuse``) the result an earlier run kept there under ``key``
+    (``reuse_key``), taken out of it (each is reused once: the ensemble its members', or a member
+    the ensemble's), with a note that its time is not in this run's. A result computed is kept
+    (a copy; in a ``KeptNormals`` only within its budget)."""
     import copy
 
     if reuse is None:
         return compute()
-    key = reuse_key(capture, mask, method, weights, config)
     if key in reuse:
         res = reuse.pop(key)
         if isinstance(reuse, KeptNormals):
             reuse.used -= _nbytes(res)
-        res.notes.append(f"{method}: normals taken from an earlier run on the same images and options (psctl eval's "
-                         f"comparisons reuse them), not computed again: its time is not in this run's seconds")
+        res.notes.append(f"{method}: {REUSED_NOTE} on the same images and options (psctl eval's comparisons reuse "
+                         f"them), not computed again: its time is not in this run's seconds")
         res.info["reused"] = True
         return res
     res = compute()

@@ -568,14 +568,12 @@ def root_notes(root: str | os.PathLike) -> list[str]:
     listed = (root / "objects.txt").is_file()
     own = _image_files(entries)
 
-    if listed and own:
+    if own:  # (without objects.txt psctl normals, info and lights read them as one capture, and say so)
         notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
-                     f"{', ...' if len(own) > 1 else ''}) not read: objects.txt makes it a benchmark root of the "
-                     f"folders it lists")
-    elif own:  # psctl normals, info and lights read them as one capture (their note names the subfolders)
-        notes.append(f"objects: {len(own)} image{'s' if len(own) > 1 else ''} in the root itself ({own[0].name}"
-                     f"{', ...' if len(own) > 1 else ''}) not read: the objects are its capture subfolders (psctl "
-                     f"normals on this folder reads these images as one capture instead)")
+                     f"{', ...' if len(own) > 1 else ''}) not read: " + (
+                         "objects.txt makes it a benchmark root of the folders it lists" if listed else
+                         "the objects are its capture subfolders (psctl normals on this folder reads these images "
+                         "as one capture instead)"))
 
     def looks_meant(folder: Path) -> bool:  # a capture file, no image
         try:
@@ -1017,6 +1015,14 @@ def ground_truth_error(e: PsctlError) -> PsctlError:
     """A ground-truth file's problem, with the way on: it stops every command that opens the
     folder, though only the score reads it."""
     return e if e.message.endswith(GT_HINT) else PsctlError(e.path, f"{e.message}; {GT_HINT}")
+
+
+def check_ground_truth_inside(gt: np.ndarray, mask: np.ndarray, path: Path | None) -> None:
+    """PsctlError naming ``path`` where ``gt`` [H, W, 3] has no normal (a vector longer than 0.5)
+    on any pixel of ``mask`` [H, W]: nothing to score (psctl normals, before and after its work,
+    and psctl info)."""
+    if not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():
+        raise PsctlError(path, "ground truth has no valid normal inside the mask")
 
 
 def load_ground_truth(capture: Capture) -> np.ndarray | None:

@@ -1,7 +1,8 @@
 """Pictures for people: the angular-error heat map with a colour bar and its numbers, and the
 sheet of a whole benchmark run (normal and error maps of every object).
 
-Drawn with NumPy and a built-in 5 x 7 pixel font, so no plotting library is needed.
+Drawn with NumPy and a built-in 5 x 7 pixel font (g, j, p, q and y 2 rows longer, below the
+line), so no plotting library is needed.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from psctl.io.atomic import write_text_atomic
 from psctl.io.images import write_image
 
-_FONT = {  # 5 x 7 glyphs, '#' = ink
+_FONT = {  # 5 x 7 glyphs (5 x 9 with a tail), '#' = ink
     "0": [" ### ", "#   #", "#  ##", "# # #", "##  #", "#   #", " ### "],
     "1": ["  #  ", " ##  ", "  #  ", "  #  ", "  #  ", "  #  ", " ### "],
     "2": [" ### ", "#   #", "    #", "   # ", "  #  ", " #   ", "#####"],

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
 SATURATED_SHARE = 0.01  # an image with more of the object than this at its top code value is listed
 
 
-def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], None] | None = None) -> dict:
+def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], None] | None = None,
+                 gt_problems: "list[PsctlError] | None" = None) -> dict:
     """Decode every file of a capture (images, ambient image, ground truth) and describe the
     images over the object (``mask``), as captured: what ``psctl info --check`` adds.
 
@@ -98,7 +99,8 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         raise blacked_out
     if not check.lit:  # as psctl normals: nothing to estimate from
         raise PsctlError(cap.path, "all images are black inside the mask")
-    for e in _gt_problems(cap, mask):  # as psctl normals refuses it, in its words
+    # as psctl normals refuses it, in its words (``gt_problems``: describe_capture's, read once)
+    for e in _gt_problems(cap, mask) if gt_problems is None else gt_problems:
         raise ground_truth_error(e)
     means = [r["mean"] for r in per_image]
     mixed, named = _mixed_type_notes(cap, means)  # (its darker images are not named twice)
@@ -156,6 +158,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
 
     cap = open_capture(path, encoding)
     mask = load_mask(cap)
+    gt_problems = _gt_problems(cap, mask)  # the ground truth decoded once, for the notes and --check
     curves = [d for d in map(cap.decoding, range(cap.n_images)) if isinstance(d, ToneCurve)]
     srgb, profiled = cap.srgb_images, len(curves)
     exposures = relative_exposures(cap)
@@ -206,8 +209,9 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
         "camera": _exif_camera(cap.image_paths[0]),
         # the folder's K.txt (psctl depth's pinhole; psctl calibrate --K), or None
         "intrinsics": _intrinsics(cap.path),
+        # what normals, lights and depth will say about how they read it
         "notes": capture_notes(cap) + [f"{cap.gt_path.name}: {e.message} (psctl normals and eval stop on it)"
-                                         for e in _gt_problems(cap, mask)],  # what normals, lights and depth will say about how they read it
+                                         for e in gt_problems],
         **_auto_method(cap),
     }
     if cap.n_images < 3:  # said before a run, not only by it (a helper's finding)
@@ -215,7 +219,7 @@ def describe_capture(path: str | os.PathLike, encoding: str = "auto", check: boo
                                "networks' normals undetermined (expect large errors)")
     if check:
         bar = progress(f"check {cap.name}", cap.n_images) if progress is not None else None
-        report["check"] = check_pixels(cap, mask, bar)
+        report["check"] = check_pixels(cap, mask, bar, gt_problems)
     return report
 
 
@@ -237,14 +241,12 @@ def _gt_problems(cap: "Capture", mask: np.ndarray) -> list[PsctlError]:
     what psctl normals would refuse in its values (an HDF5 .mat, an image's codes, no normal
     inside the mask). A note in psctl info, as lights and depth read no ground
     truth; --check stops on it as psctl normals does."""
-    from psctl.io.capture import load_ground_truth
+    from psctl.io.capture import check_ground_truth_inside, load_ground_truth
 
     if cap.gt_path is None:
         return []
     try:
-        gt = load_ground_truth(cap)
-        if not (mask & (np.linalg.norm(gt, axis=-1) > 0.5)).any():
-            raise PsctlError(cap.gt_path, "ground truth has no valid normal inside the mask")
+        check_ground_truth_inside(load_ground_truth(cap), mask, cap.gt_path)
     except PsctlError as e:
         return [e]
     return []
