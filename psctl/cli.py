@@ -10,7 +10,6 @@ import contextlib
 import errno
 import functools
 import json
-import math
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -587,38 +586,16 @@ def train(
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""
     with _user_errors():
         from psctl.models.weights import read_weights
-        from psctl.train import (average_weights, check_install, check_method, install_weights, load_config,
-                                 train as run_training)
+        from psctl.train import average_weights, check_train_options, install_weights, train as run_training
 
-        from psctl.errors import PsctlError
-
-        if force and not install:
-            raise PsctlError("--force", "only replaces an installed file together with --install")
-        if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
-            raise PsctlError("--max-minutes", f"must be a positive number of minutes, not {max_minutes}")
-        if install:  # said before hours of training
-            check_install(method, replace=force)
-        method = check_method(method)  # before anything else is said about the other options
+        method, cfg = check_train_options(method, config, out, resume, device, max_minutes, install, force, lcnet,
+                                          average)
         if average:
-            if resume is not None or out is None:
-                raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
-                                              "the recipe's validation set)" + (", not --resume" if resume else ""))
-            if max_minutes is not None or lcnet is not None:  # averaging trains nothing: they would do nothing
-                raise PsctlError("--max-minutes" if max_minutes is not None else "--lcnet",
-                                 "is for training; --average only averages" +
-                                 (" (the members keep their own LCNet)" if max_minutes is None else ""))
-            from psctl.infer import pick_device
-
-            pick_device(device)  # --device tpu, or cuda without CUDA: refused even when nothing is measured
-            if install and config is None:  # install_weights would refuse the result afterwards
-                raise PsctlError("--install", "with --average needs --config RECIPE: a release file records "
-                                              "its validation on the recipe's set")
-            recipe = load_config(config) if config is not None else None
-            if quiet or recipe is None:
-                path = average_weights(average, out, recipe, device, method=method, recipe_name=config)
+            if quiet or cfg is None:
+                path = average_weights(average, out, cfg, device, method=method, recipe_name=config)
             else:  # building the validation set takes minutes on a CPU
                 with _stderr().status("averaging, then measuring on the recipe's validation set"):
-                    path = average_weights(average, out, recipe, device, method=method, recipe_name=config)
+                    path = average_weights(average, out, cfg, device, method=method, recipe_name=config)
             if not quiet:
                 metrics = read_weights(path).metadata["metrics"]
                 said = "".join(f"; synthetic validation {v:.4f}" for v in metrics.values())
@@ -627,16 +604,6 @@ def train(
             if install:
                 _stderr().print(f"installed {install_weights(out, method, replace=force)}", highlight=False, markup=False)
             return
-        if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
-            raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
-        # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
-        cfg = load_config(config) if config is not None or resume is None else None
-        if cfg is not None and config is not None:  # the recipe against the network, named by its file
-            from psctl.errors import naming
-            from psctl.train import check_method_recipe
-
-            with naming(config):
-                check_method_recipe(method, cfg)
         run_dir = resume or out or Path("runs") / method.replace("-", "_")
         con = _stderr()
         from rich.markup import escape

@@ -40,7 +40,7 @@ import math
 import os
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -1228,6 +1228,48 @@ def check_install(method: str, replace: bool = False) -> None:
     if not replace and installed_path(method) is not None:
         raise PsctlError(installed_path(method), "already installed: --install replaces it only with --force "
                                                  "(in Python: replace=True)")
+
+
+def check_train_options(method: str, config: str | os.PathLike | None = None, out: str | os.PathLike | None = None,
+                        resume: str | os.PathLike | None = None, device: str = "auto",
+                        max_minutes: float | None = None, install: bool = False, force: bool = False,
+                        lcnet: str | os.PathLike | None = None,
+                        average: Sequence[str | os.PathLike] | None = None) -> tuple[str, dict | None]:
+    """The rules ``psctl train``'s options follow, checked before any work (hours of training must
+    not end in a refusal): one line naming the option, or ``(method, recipe)``: the method as the
+    command line takes it and the loaded recipe. The recipe is None for a resumed run without
+    ``config`` (it keeps its own, in state.json) and for an average without one (then nothing is
+    measured). ``average``: files to average into ``out`` instead of training."""
+    if force and not install:
+        raise PsctlError("--force", "only replaces an installed file together with --install")
+    if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
+        raise PsctlError("--max-minutes", f"must be a positive number of minutes, not {max_minutes}")
+    if install:  # said before hours of training
+        check_install(method, replace=force)
+    method = check_method(method)  # before anything else is said about the other options
+    if average:
+        if resume is not None or out is None:
+            raise PsctlError("--average", "takes weight files and --out RUN (and --config RECIPE to measure it on "
+                                          "the recipe's validation set)" + (", not --resume" if resume else ""))
+        if max_minutes is not None or lcnet is not None:  # averaging trains nothing: they would do nothing
+            raise PsctlError("--max-minutes" if max_minutes is not None else "--lcnet",
+                             "is for training; --average only averages" +
+                             (" (the members keep their own LCNet)" if max_minutes is None else ""))
+        from psctl.infer import pick_device
+
+        pick_device(device)  # --device tpu, or cuda without CUDA: refused even when nothing is measured
+        if install and config is None:  # install_weights would refuse the result afterwards
+            raise PsctlError("--install", "with --average needs --config RECIPE: a release file records "
+                                          "its validation on the recipe's set")
+        return method, load_config(config) if config is not None else None
+    if resume is not None and out is not None and Path(out).resolve() != Path(resume).resolve():
+        raise PsctlError(out, "--out is for a new run; --resume continues the run in its own folder")
+    # a resumed run keeps its own recipe (state.json); --config then only has to agree with it
+    cfg = load_config(config) if config is not None or resume is None else None
+    if cfg is not None and config is not None:  # the recipe against the network, named by its file
+        with naming(config):
+            check_method_recipe(method, cfg)
+    return method, cfg
 
 
 def install_weights(run_dir: str | os.PathLike, method: str, replace: bool = False) -> Path:

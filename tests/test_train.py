@@ -1497,3 +1497,22 @@ def test_a_checkpoint_torn_by_a_hard_kill_is_named_as_such_on_resume(tmp_path):
     (run / "state.json").write_text(_json.dumps(st))
     train("ps-fcn", tiny(16), run, resume=True, device="cpu")
     assert _json.loads((run / "state.json").read_text())["samples"] == 16
+
+
+def test_check_train_options_from_python(tmp_path):
+    """psctl train's option rules are a library function (the command only calls it): the method
+    as the command line takes it, the recipe loaded, and one line naming the option otherwise."""
+    from psctl.errors import PsctlError
+    from psctl.train import DEFAULT_CONFIG, check_train_options
+
+    assert check_train_options("PS-FCN-N", resume=tmp_path / "run") == ("ps-fcn-n", None)  # keeps its own recipe
+    method, cfg = check_train_options("ps-fcn", out=tmp_path / "run")
+    assert method == "ps-fcn" and cfg == DEFAULT_CONFIG and cfg is not DEFAULT_CONFIG
+    assert check_train_options("lcnet", out=tmp_path / "avg", average=[tmp_path / "a.pt"]) == ("lcnet", None)
+    for kwargs, named in (({"force": True}, "--force"), ({"max_minutes": float("nan")}, "--max-minutes"),
+                          ({"average": ["a.pt"], "max_minutes": 1.0, "out": tmp_path}, "--max-minutes"),
+                          ({"average": ["a.pt"]}, "--average"),
+                          ({"out": tmp_path / "x", "resume": tmp_path / "y"}, str(tmp_path / "x"))):
+        with pytest.raises(PsctlError) as e:
+            check_train_options("ps-fcn", **kwargs)
+        assert str(e.value).startswith(named), (kwargs, str(e.value))
