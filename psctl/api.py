@@ -152,6 +152,18 @@ def _saturated(images) -> np.ndarray | None:
     return top.any(-1) if raw.ndim == 4 else top
 
 
+def _warn_value_notes(notes: list[str], who: str, level: int) -> None:
+    """LCNet's notes of values it changed (the exposure guard's scale, hot pixels clamped) as warnings
+    at the caller's ``level`` (its public function's): a folder's report carries them, and array
+    callers got silence (helper-172)."""
+    from psctl.hotpixels import HOT_PIXEL_WORDS
+    from psctl.lights import EXPOSURE_WORDS
+
+    for note in notes:
+        if HOT_PIXEL_WORDS in note or EXPOSURE_WORDS in note:
+            warnings.warn(f"{who}: {note}", PsctlWarning, stacklevel=level + 1)  # + this function's frame
+
+
 def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
                     decode: str = "soft", device: str = "auto", views: int = 8,
                     refine: bool = True, falloff: str | None = None,
@@ -195,7 +207,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
         intensities [N] float32 (relative; LCNet's scale, in [0.2, 2.0] before refinement).
     """
     from psctl.arrays import as_images, as_mask
-    from psctl.lights import array_lights, few_lights_note
+    from psctl.lights import array_lights, check_decode, few_lights_note
     from psctl.masks import array_shading, array_snap, find_object
     from psctl.refine import refine_config
     from psctl.models.weights import installed_path
@@ -203,9 +215,14 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
 
     from psctl.models import check_precision, precision_autocast
 
+    from psctl.symmetry import check_views
+
     fit = refine_config(falloff, roll)
     refine, snap = check_bool("refine", refine), check_bool("snap", snap)
     check_precision(precision)  # a bad name is an error with refine=False too
+    check_decode(decode)  # before the weights load and the mask snap (helper-172: 1.6 s, then the error)
+    check_views(views)
+    check_device_name(device)
     refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
     # the refinement's normals network; checked before any work (not where none will run)
     net_cfg = {"device": device, "autocast": precision_autocast(precision, device) if refines else None}
@@ -219,6 +236,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     used = {} if found is None or found.mask is None else {"exposure_pixels": "found"}  # the notes' words
     net_cfg.update(used)
     est = array_lights(images, fit_mask, weights, {"device": device, "decode": decode, "views": views, **used})
+    _warn_value_notes(est.notes, "estimate_lights", caller_level())
     few = few_lights_note(len(images))
     if few:  # (a folder's report notes it)
         warnings.warn(f"estimate_lights: {few}", PsctlWarning, stacklevel=caller_level())
@@ -291,7 +309,12 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         snap: sdps: its LCNet and light fit read ``mask`` snapped to the object (as
             ``estimate_lights``); False: as given. The other methods read the mask as given.
     Returns:
-        [H, W, 3] float32 unit normals.
+        [H, W, 3] float32 unit normals, x right / y up / z toward the camera (row 0 the top), 0
+        outside the mask (mask=None: see ``mask``).
+
+    Images may also be torch tensors or lists of [H, W, 3] images; [N, H, W, 1] is grey and an
+    alpha channel is dropped (``psctl.arrays.as_images``). Bad input raises ``psctl.PsctlError``
+    (a ValueError) naming the argument; what a folder's report would note is a ``PsctlWarning``.
     """
     from psctl.refine import refine_config
 
@@ -370,6 +393,7 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
             if note:
                 warnings.warn(f"sdps: {note}", PsctlWarning, stacklevel=level)
         est = array_lights(images, fit_mask, lcnet, sdps_lcnet_config(second, weights, device))
+        _warn_value_notes(est.notes, "sdps", level)
         source = array_source(images, read, second, weights, net_cfg, saturated, fit_mask)
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":

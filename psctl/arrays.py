@@ -45,6 +45,10 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     on that scale; LCNet's exposure guard rescales captures far outside it). ``n``: the number
     of images when known (from the lights): [N, H, W] with W = 3 or 4 is then a grey stack, not
     one colour image."""
+    if images is None or isinstance(images, (str, bytes, os.PathLike)):  # (helper-172: "got dtype <U21")
+        raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array, not {_short(images)}"
+                               + ("" if images is None else "; read a capture folder's images with "
+                                                            "psctl.load_images(psctl.open_capture(path))"))
     try:
         arr = np.asarray(plain(images))
     except (TypeError, ValueError) as e:

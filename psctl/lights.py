@@ -320,8 +320,8 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
         info["hot_pixels"] = dict(sorted(hot.items()))
     notes = []
     if factor != 1.0:
-        notes.append(f"lcnet: the images' mean {where}, {mean:.3g}, is outside the exposures LCNet was "
-                     f"trained on ({band[0]:g} to {band[1]:g}); it sees them scaled by {factor:.3g}")
+        notes.append(f"lcnet: the images' mean {where}, {mean:.3g}, is {EXPOSURE_WORDS} "
+                     f"({band[0]:g} to {band[1]:g}); it sees them scaled by {factor:.3g}")
     notes += [note for note in [few_lights_note(n)] if note]
     return LightEstimate(dirs.numpy().astype(np.float32), ints.numpy().astype(np.float32),
                          {k: v.numpy() for k, v in out.items()}, info, notes)
@@ -341,6 +341,17 @@ def few_lights_note(n: int) -> str | None:
     return (f"lights: only {n} image{'s' * (n != 1)}: LCNet estimates each light by comparing the images with one "
             f"another, and from few it is rougher (the DiLiGenT dev split's objects, random subsets: 15.0 degrees "
             f"off on average from 1 image, 9.7 from 2, 6.3 from 4, 4.9 from 8, 2.9 from all 96)")
+
+
+
+def check_decode(decode: str, name: str = "decode") -> str:
+    """LCNet's decoding, "soft" or "argmax", or a one-line error naming the option ``name``."""
+    if decode not in ("argmax", "soft"):
+        raise PsctlError(None, f"unknown {name} {decode!r}; choose argmax or soft")
+    return decode
+
+# the exposure guard's note, also found by these words (psctl.api warns with it)
+EXPOSURE_WORDS = "outside the exposures LCNet was trained on"
 
 
 def array_lights(images: np.ndarray, mask: np.ndarray | None = None, weights: str | os.PathLike | None = None,
@@ -746,8 +757,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.symmetry import check_views
 
     check_views(views)  # options first: their errors name the option, not the capture folder
-    if decode not in ("argmax", "soft"):
-        raise PsctlError(None, f"unknown --decode {decode!r}; choose argmax or soft")
+    check_decode(decode, "--decode")
     from psctl.models import check_precision, precision_autocast
 
     precision = check_precision(precision)

@@ -1007,3 +1007,60 @@ def test_no_decoding_helper_where_an_earlier_pass_kept_every_image(tmp_path, mon
     assert any(started) and DEFAULT_INFER["prefetch_mb"] > 0
     with pytest.raises(PsctlError, match="prefetch_mb must be a whole number"):
         _prefetch(cap, mask, {"prefetch_mb": -1}, memo)
+
+
+def test_lcnets_changed_values_are_warnings(data, tmp_path, fake_weights):
+    """estimate_lights and sdps dropped LCNet's notes of values it changed (helper-172): images on
+    a 0-255 scale, which the exposure guard scales, and a clamped hot pixel warned from
+    estimate_normals' l2 and networks but not there. Both are PsctlWarnings now."""
+    import shutil
+    import warnings
+
+    import psctl
+    from psctl.hotpixels import HOT_PIXEL_WORDS
+    from psctl.lights import EXPOSURE_WORDS
+    from tests.conftest import weights_in
+
+    images, _, mask, _ = data
+    (tmp_path / "lc").mkdir()
+    shutil.copy(fake_weights / "lcnet.pt", tmp_path / "lc")
+    shutil.copy(fake_weights / "ps_fcn_dagger.pt", tmp_path / "lc")
+    hot = images.copy()
+    ys, xs = np.nonzero(mask)
+    hot[2, ys[len(ys) // 2], xs[len(xs) // 2]] = 1000.0
+    with weights_in(tmp_path / "lc"):
+        for call in (lambda x: psctl.estimate_lights(x, mask, device="cpu", views=1, refine=False),
+                     lambda x: psctl.estimate_normals(x, None, mask, method="sdps", device="cpu", refine=False)):
+            for x, words in ((images * 255, EXPOSURE_WORDS), (hot, HOT_PIXEL_WORDS)):
+                with warnings.catch_warnings(record=True) as got:
+                    warnings.simplefilter("always")
+                    call(x)
+                said = [str(w.message) for w in got if issubclass(w.category, psctl.PsctlWarning)]
+                assert any(words in s for s in said), said
+                assert all(w.filename == __file__ for w in got if words in str(w.message))  # the caller's line
+
+
+def test_estimate_lights_checks_its_options_before_any_work(data, tmp_path):
+    """decode, views and device were checked after LCNet's weights loaded and the mask snapped
+    (helper-172: 1.6 s, then the error); with no weights installed the error is still the option's."""
+    import psctl
+    from tests.conftest import weights_in
+
+    images, _, mask, _ = data
+    (tmp_path / "none").mkdir()
+    with weights_in(tmp_path / "none"):
+        for kwargs, words in (({"decode": "mean"}, "unknown decode 'mean'"), ({"views": 3}, "views must be"),
+                              ({"device": "tpu"}, "unknown device 'tpu'")):
+            with pytest.raises(psctl.PsctlError, match=words):
+                psctl.estimate_lights(images, mask, **kwargs)
+
+
+def test_a_path_or_none_for_images_says_what_to_pass(data):
+    """A folder's path as images gave "got dtype <U21" (helper-172)."""
+    import psctl
+
+    _, lights, mask, _ = data
+    with pytest.raises(psctl.PsctlError, match=r"not 'cap'; read a capture folder's images with psctl.load_images"):
+        psctl.estimate_normals("cap", lights, mask)
+    with pytest.raises(psctl.PsctlError, match="array, not None$"):
+        psctl.estimate_lights(None, mask)

@@ -272,7 +272,7 @@ def check_finite(state: dict, path: Path | None) -> None:
             continue
         # NumPy's check of CPU float32/64 tensors (no copy): torch.isfinite took 25 ms to 1 s for
         # PS-FCN's 2.2 M values on a loaded 2-core CPU, NumPy under 1 ms (helper-165)
-        if v.device.type == "cpu" and v.dtype in (torch.float32, torch.float64):
+        if v.device.type == "cpu" and v.dtype in (torch.float16, torch.float32, torch.float64):  # LCNet's file is float16
             if np.isfinite(v.detach().numpy()).all():
                 continue
         elif torch.isfinite(v).all():
