@@ -58,7 +58,7 @@ def no_half_run(run: Path) -> Iterator[Any]:
     if (run / "log.jsonl").is_file():
         _cut_partial_line(run / "log.jsonl")
     log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0
-    log = open(run / "log.jsonl", "a")
+    log = open(run / "log.jsonl", "a", encoding="utf-8", newline="\n")  # the same bytes on Windows (helper-174)
     try:
         yield log
     except BaseException:
@@ -201,7 +201,8 @@ def _fsync(path: Path) -> None:
     """``path``'s data (a file) or its entries (a folder) on disk; a folder that cannot be opened
     so (Windows) is left to the system."""
     try:
-        fd = os.open(path, os.O_RDONLY)
+        # Windows: fsync is FlushFileBuffers, which needs a handle with write access (EBADF otherwise)
+        fd = os.open(path, os.O_RDWR if os.name == "nt" and not path.is_dir() else os.O_RDONLY)
     except OSError:
         if path.is_dir():
             return

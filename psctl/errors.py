@@ -169,6 +169,16 @@ def check_bool(where: str, value: Any) -> bool:
     return bool(value)
 
 
+def quoted_tilde(path: str | os.PathLike) -> str:
+    """For a missing path's message: a leading ~ that names an existing place in the home folder
+    (a quoted '~/cap' reaches psctl as it is: only the shell expands ~, helper-174)."""
+    text = os.fspath(path)
+    if not isinstance(text, str) or not text.startswith("~"):
+        return ""
+    home = os.path.expanduser(text)
+    return f" (a ~ in quotes is not your home folder: {home})" if home != text and os.path.exists(home) else ""
+
+
 def not_a_file(path: str | os.PathLike, missing: str, folder: str | None = None) -> str:
     """Why ``path``, which is not a regular file, cannot be read as one: ``folder`` for a folder,
     a device, FIFO or socket said as such (/dev/zero, a named pipe: not "missing"), else
@@ -178,7 +188,7 @@ def not_a_file(path: str | os.PathLike, missing: str, folder: str | None = None)
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        return missing
+        return missing + quoted_tilde(path)
     if stat.S_ISDIR(mode):
         if folder is None and missing.endswith(" is missing"):  # "camera file is missing": "is a folder, not a camera file"
             thing = missing[:-len(" is missing")]

@@ -122,8 +122,12 @@ def camera_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, tuple[
     if not path.is_file():
         raise PsctlError(path, not_a_file(path, "camera file is missing"))
     try:
-        text = read_small_text(path)
-    except (OSError, UnicodeDecodeError) as e:
+        text = read_small_text(path).removeprefix("\ufeff")  # a byte-order mark (Notepad, PowerShell)
+    except UnicodeDecodeError:
+        from psctl.io.capture import _not_utf8
+
+        raise PsctlError(path, _not_utf8(path)) from None
+    except OSError as e:
         raise PsctlError(path, f"cannot read the camera file ({getattr(e, 'strerror', None) or e})") from None
     if text.lstrip().startswith("<"):
         raise PsctlError(path, "is XML; psctl reads OpenCV's YAML or JSON calibration files: save it as .yml or .json")

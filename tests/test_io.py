@@ -776,6 +776,16 @@ def test_more_capture_mistakes_name_their_cause(tmp_path):
         (cap / "light_directions.txt").write_text(row + "\n")
         with pytest.raises(PsctlError, match=rf"line 1: expected 3 values, found {n} \(decimal commas\? psctl reads a"):
             read_matrix(cap / "light_directions.txt", (3,), "light directions")
+    # semicolons (a spreadsheet's CSV in a European locale) and empty fields (helper-174: read as 3 values)
+    for row, words in (("0,1;0,2;0,97", r"\(semicolons are not separators: use spaces, tabs or commas; and psctl "
+                                        r"reads a point as the decimal mark"),
+                       ("0.1;0.2;0.97", r"\(semicolons are not separators: use spaces, tabs or commas\)$"),
+                       ("0.1,,0.2,0.97", "an empty field in '0.1,,0.2,0.97'"), (",0.1,0.2,0.97", "an empty field")):
+        (cap / "light_directions.txt").write_text(row + "\n")
+        with pytest.raises(PsctlError, match=rf"line 1: .*{words}"):
+            read_matrix(cap / "light_directions.txt", (3,), "light directions")
+    (cap / "light_directions.txt").write_text("0.1, 0.2,\t0.97,\n")  # a trailing comma is no field
+    assert read_matrix(cap / "light_directions.txt", (3,), "light directions").shape == (1, 3)
     (cap / "light_directions.txt").write_text("0,1,0.2,0.97,1\n")  # commas as separators: no such word
     with pytest.raises(PsctlError, match=r"line 1: expected 3 values, found 5$"):
         read_matrix(cap / "light_directions.txt", (3,), "light directions")
@@ -2396,3 +2406,46 @@ def test_a_cropped_data_window_is_placed_in_its_frame(tmp_path, ext):
     want = np.zeros((10, 12, 3), np.float32)
     want[1:7, 2:10] = 0.5
     np.testing.assert_allclose(pixels, want, atol=1e-4)
+
+
+def test_names_alike_in_natural_order_keep_one_order(tmp_path):
+    """img01 / IMG01 (and img1 / img01) tie in natural order; their order, and so their light rows,
+    followed the folder's listing, which differs between file systems (helper-174: ext4 and tmpfs
+    gave two orders). The exact name breaks the tie."""
+    import random
+
+    from psctl.io.capture import _image_files
+
+    names = ["img01.png", "IMG01.png", "img1.png", "img2.png", "img10.png"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"")
+    entries = list(tmp_path.iterdir())
+    want = [p.name for p in _image_files(entries)]
+    assert want == ["IMG01.png", "img01.png", "img1.png", "img2.png", "img10.png"]
+    for seed in range(5):  # whatever order the folder lists them in
+        random.Random(seed).shuffle(entries)
+        assert [p.name for p in _image_files(entries)] == want
+
+
+def test_a_long_output_name_has_a_temporary_name_that_fits(tmp_path):
+    """A 250-character output name is valid, but its temporary name was 14 characters longer
+    (helper-174: psctl undistort failed on image names of 242-255 characters)."""
+    from psctl.io.atomic import atomic_path
+
+    dst = tmp_path / ("i" * 246 + ".png")
+    with atomic_path(dst) as tmp:
+        assert len(tmp.name) < 100
+        tmp.write_bytes(b"x")
+    assert dst.read_bytes() == b"x"
+
+
+def test_a_quoted_tilde_is_named_where_the_home_folder_holds_it(tmp_path, monkeypatch):
+    """'~/cap' in quotes reaches psctl as it is (only the shell expands ~): the error says so."""
+    from psctl.io.capture import open_capture
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "cap").mkdir()
+    with pytest.raises(PsctlError, match=r"~/cap: folder does not exist \(a ~ in quotes is not your home folder: "):
+        open_capture("~/cap")
+    with pytest.raises(PsctlError, match=r"~/none: folder does not exist$"):
+        open_capture("~/none")

@@ -372,7 +372,8 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
              "cv.json": OPENCV_JSON,  # a 1 x 1 node of 5 channels, which OpenCV reads too (a review)
              "channels.yml": OPENCV_YAML.replace("rows: 1\n   cols: 5\n   dt: d", "rows: 1\n   cols: 1\n   dt: 5d"),
              "plain.yaml": "K: [[812.5, 0, 319.5], [0, 810.25, 241], [0, 0, 1]]\n"
-             "D: [-0.28, 0.09, 0.0012, -0.0007, -0.015]\n"}
+             "D: [-0.28, 0.09, 0.0012, -0.0007, -0.015]\n",
+             "bom.yml": "\ufeff" + OPENCV_YAML.replace("%YAML 1.2", "%YAML:1.0")}  # Notepad's BOM hid %YAML (helper-174)
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         got_K, got_d = read_camera(tmp_path / name)
@@ -404,6 +405,9 @@ def test_read_camera_takes_opencvs_calibration_files(tmp_path):
         with pytest.raises(PsctlError, match=words) as e:
             read_camera(tmp_path / name)
         assert str(e.value.path) == str(tmp_path / name)
+    (tmp_path / "utf16.yml").write_text(OPENCV_YAML, encoding="utf-16")  # Python's codec message, before
+    with pytest.raises(PsctlError, match="utf16.yml: is UTF-16 text"):
+        read_camera(tmp_path / "utf16.yml")
     with pytest.raises(PsctlError, match="is a folder, not a camera file$"):  # it said "is a folder; camera file is missing"
         read_camera(tmp_path)
     # the command: --camera instead of --K and --distortion; one of the two is needed

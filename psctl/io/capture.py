@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from psctl.arrays import check_lights_face_camera, lights_behind, unit_rows, unit_vectors
-from psctl.errors import ProgressFactory, PsctlError, check_bool, check_int, check_path, check_progress, few
+from psctl.errors import (ProgressFactory, PsctlError, check_bool, check_int, check_path, check_progress, few,
+                          quoted_tilde)
 from psctl.io.icc import ToneCurve
 from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
                               srgb_like, srgb_to_linear, to_rgb)
@@ -276,7 +277,9 @@ def _image_files(entries: list[Path]) -> list[Path]:
         and not _NOT_IMAGES.match(p.stem)
         and p.is_file()
     ]
-    return sorted(files, key=lambda p: natural_key(p.name))
+    # the exact name breaks ties (img01 / IMG01, img1 / img01): else their order, and so their light rows,
+    # would follow the folder's listing order, which differs between file systems
+    return sorted(files, key=lambda p: (natural_key(p.name), p.name))
 
 
 def holds_capture(path: str | os.PathLike, ignore: Iterable[str] = ()) -> bool:
@@ -404,11 +407,16 @@ def read_matrix(path: Path, widths: tuple[int, ...], what: str, lines: list[int]
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
+        if re.search(r"(^|,)\s*,", line):  # "0.1,,0.2,0.9" read as 3 values would shift the next ones (helper-174)
+            raise PsctlError(path, f"line {lineno}: an empty field in {line!r}")
         parts = line.replace(",", " ").split()
         # float() alone would take '1_0' as 10 and full-width digits: plain ASCII decimals only
         # (nan and inf parse, to be refused below with their own message)
         if not all(_NUMBER.fullmatch(v) for v in parts):
-            raise PsctlError(path, f"line {lineno}: not a number in {line!r}")
+            # a spreadsheet's export in a European locale: "0,12;-0,01;0,99" (helper-174)
+            why = "" if ";" not in line else " (semicolons are not separators: use spaces, tabs or commas" + (
+                "; and psctl reads a point as the decimal mark: 0.1, not 0,1)" if re.search(r"\d,\d", line) else ")")
+            raise PsctlError(path, f"line {lineno}: not a number in {line!r}{why}")
         values = [float(v) for v in parts]
         if len(values) not in widths:
             want = " or ".join(str(w) for w in widths)
@@ -538,7 +546,7 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
                 raise PsctlError(f, f"listed in objects.txt but {why}")
         return folders
     folders = sorted((p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")
-                      and p.name != "psctl" and is_capture_folder(p)), key=lambda p: natural_key(p.name))
+                      and p.name != "psctl" and is_capture_folder(p)), key=lambda p: (natural_key(p.name), p.name))
     if not folders:
         hint = "; it is one capture folder: psctl normals PATH runs it" if is_capture_folder(root) else ""
         raise PsctlError(root, f"no object folders found (expected subfolders with images, or objects.txt){hint}")
@@ -629,7 +637,7 @@ def open_capture(path: str | os.PathLike, encoding: str = "auto", light_files: b
     light_files, intensity_file = check_bool("light_files", light_files), check_bool("intensity_file", intensity_file)
     path = Path(check_path("path", path))
     if not path.exists():
-        raise PsctlError(path, "folder does not exist")
+        raise PsctlError(path, "folder does not exist" + quoted_tilde(path))
     if not path.is_dir():
         raise PsctlError(path, "not a folder (expected a capture folder of images)")
     entries = list(path.iterdir())  # listed once (see _image_files)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psctl.errors import PsctlError, few, visible
+from psctl.errors import PsctlError, few, quoted_tilde, visible
 
 if TYPE_CHECKING:
     from psctl.io.capture import Capture
@@ -284,7 +284,7 @@ def describe(path: str | os.PathLike, encoding: str = "auto", check: bool = Fals
 
     path = Path(path)
     if not path.exists():
-        raise PsctlError(path, "folder does not exist")
+        raise PsctlError(path, "folder does not exist" + quoted_tilde(path))
     if is_benchmark_root(path):
         return {"kind": "benchmark", "path": str(path),
                 "objects": [describe_capture(f, encoding, check, progress) for f in find_objects(path)],
