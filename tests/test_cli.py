@@ -712,13 +712,23 @@ def _break(kind: str, folder: Path) -> str:
         (folder / "003.png").unlink()
         os.symlink(folder / "gone.png", folder / "003.png")
         return "003.png: listed in filenames.txt but is a broken link"
+    if kind in ("listed link loop", "listed link to a device"):  # each was "a broken link" (helper-170)
+        (folder / "filenames.txt").write_text("\n".join(f"{k + 1:03d}.png" for k in range(12)) + "\n")
+        (folder / "003.png").unlink()
+        if kind == "listed link loop":
+            os.symlink(folder / "loop.png", folder / "003.png")
+            os.symlink(folder / "003.png", folder / "loop.png")
+            return "003.png: listed in filenames.txt but is a loop of symbolic links"
+        os.symlink("/dev/null", folder / "003.png")
+        return "003.png: listed in filenames.txt but is a link to /dev/null, which is a device, not a regular file"
     raise ValueError(kind)
 
 
 BAD = ["missing image", "count mismatch", "malformed light", "nan light", "zero-length light", "short light row",
        "bad intensity", "image size", "mask size", "gt size", "empty mask", "corrupt image", "truncated image",
        "nan image", "too few images", "tiny intensity", "huge intensity", "coplanar lights", "black images",
-       "listed folder", "mask folder", "underscore light", "text gt", "cell gt", "listed broken link"]
+       "listed folder", "mask folder", "underscore light", "text gt", "cell gt", "listed broken link",
+       "listed link loop", "listed link to a device"]
 
 
 @pytest.mark.parametrize("kind", BAD)

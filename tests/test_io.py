@@ -465,6 +465,20 @@ def test_a_stray_image_is_named_in_the_count_error(tmp_path):
         open_capture(tmp_path / "cap")
 
 
+def test_files_named_like_the_images_but_not_read_are_named_in_the_count_error(tmp_path):
+    """003.png.bak, 003.bmp or 003 beside 001.png are not read for their extension; the count error
+    named none of them (helper-170), and names no other file (the light files, the list)."""
+    write_capture(tmp_path / "cap", n=6, size=16)
+    folder = tmp_path / "cap"
+    (folder / "filenames.txt").unlink()
+    for name in ("003.png.bak", "003.bmp", "003"):
+        (folder / "003.png").rename(folder / name)
+        with pytest.raises(PsctlError, match=rf"6 light rows but 5 images \(every image file in the folder counts; "
+                                             rf"named like them but not read for their extension: {name}; list"):
+            open_capture(folder)
+        (folder / name).rename(folder / "003.png")
+
+
 def test_images_left_out_for_their_names_are_named_in_the_count_error(tmp_path):
     """Images named like psctl's outputs (depth_002.png) or hidden are not read; when the count is
     then wrong the error says so, and never lists the mask or the ground truth."""
@@ -2057,6 +2071,9 @@ def test_pick_channels_by_name():
     assert pick_channels(["R", "G", "B", "A", "Z"]) == ((0, 1, 2, 3), "", ("",))
     assert pick_channels(["A", "B", "G", "R"]) == ((3, 2, 1, 0), "", ("",))  # EXR's alphabetical order
     assert pick_channels(["Y", "A"]) == ((), "", ("",)) and pick_channels(["X", "Y", "Z"]) == ((), "", ())
+    assert pick_channels(["R", "G"]) == ((), "", ())  # a 2-channel TIFF's default names: grey and alpha
+    with pytest.raises(ValueError, match="has colour channels R and G but not all of R, G and B"):
+        pick_channels(["R", "G"], named=True)  # an EXR's own names
     blender = ["Albedo.R", "Albedo.G", "Albedo.B", "Combined.R", "Combined.G", "Combined.B", "Combined.A"]
     assert pick_channels(blender) == ((3, 4, 5, 6), "Combined", ("Albedo", "Combined"))
     nested = [f"ViewLayer.{n}" for n in blender]  # Blender's own names: the view layer, then the pass
@@ -2083,9 +2100,18 @@ def test_an_image_without_a_colour_channel_is_refused(tmp_path):
         with pytest.raises(PsctlError, match=rf"003.exr: holds no colour channel, only "
                                              rf"{', '.join(names)}: not a photograph"):
             open_capture(tmp_path / "c")
-    for names in (("Y",), ("L",), ("blue", "green", "red")):  # grey; other tools' names (read as stored)
+    for names in (("Y",), ("L",), ("R",), ("blue", "green", "red")):  # grey; other tools' names (read as stored)
         _write_exr(tmp_path / "c" / "003.exr", np.repeat(grey, len(names), -1), names)
         assert open_capture(tmp_path / "c").n_images == 6
+    # two of R, G and B were grey and alpha (helper-170: G and B read as grey G, without a word), and
+    # luminance with chroma or X, Y, Z were read as stored
+    for names, words in ((("B", "G"), "has colour channels G and B but not all of R, G and B"),
+                         (("G", "R"), "has colour channels R and G but not"),
+                         (("BY", "RY", "Y"), r"has channels (Y, BY, RY|BY, RY, Y): Y with others than A"),
+                         (("X", "Y", "Z"), "has channels X, Y, Z: Y with others")):
+        _write_exr(tmp_path / "c" / "003.exr", np.repeat(grey, len(names), -1), names)
+        with pytest.raises(PsctlError, match=rf"003.exr: {words}"):
+            open_capture(tmp_path / "c")
 
 
 def test_exr_layers_and_data_windows_are_read_as_a_viewer_shows_them(tmp_path):
@@ -2449,3 +2475,31 @@ def test_a_quoted_tilde_is_named_where_the_home_folder_holds_it(tmp_path, monkey
         open_capture("~/cap")
     with pytest.raises(PsctlError, match=r"~/none: folder does not exist$"):
         open_capture("~/none")
+
+
+def test_an_empty_or_unreadable_image_says_so_plainly(tmp_path, monkeypatch):
+    """OpenImageIO's words hid the plainest causes (helper-170): 'Not a PNG file' for an empty file,
+    'Could not open file "PATH"' (the path twice) for one without read permission."""
+    import builtins
+    import errno
+
+    from psctl.io.images import _cannot_open, read_image
+
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(PsctlError, match=r"empty.png: is empty \(0 bytes\), not an image$"):
+        read_image(tmp_path / "empty.png")
+    (tmp_path / "junk.png").write_bytes(b"not a png at all")
+    with pytest.raises(PsctlError, match=r"junk.png: cannot open image \("):
+        read_image(tmp_path / "junk.png")
+    # no read permission (root, as on CI, reads any file: the refusal is simulated)
+    write_image(tmp_path / "locked.png", np.zeros((4, 4, 3)), "uint8")
+    real = builtins.open
+
+    def refusing(path, *args, **kwargs):
+        if str(path).endswith("locked.png"):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", refusing)
+    e = _cannot_open(tmp_path / "locked.png", f'Could not open file "{tmp_path / "locked.png"}"')
+    assert str(e) == f"{tmp_path / 'locked.png'}: cannot open image (permission denied)"

@@ -338,6 +338,13 @@ def _found_note(entries: list[Path], paths: list[Path]) -> str:
                      for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS and not p.is_file())
     if skipped:
         named += f"; not files, so not read: {few(skipped)}"
+    # 003.png.bak, 003.bmp or 003 beside 001.png: named like the images but not read for their
+    # extension (helper-170: the count error named none of them)
+    stem = common.rsplit(".", 1)[0]
+    other = sorted((p.name for p in entries if p.suffix.lower() not in IMAGE_EXTENSIONS and p.is_file()
+                    and (re.sub(r"\d+", "#", p.name.lower()) + ".").startswith(stem + ".")), key=natural_key)
+    if other:
+        named += f"; named like them but not read for their extension: {few(other)}"
     # a capture whose images are named like psctl's outputs or masks (depth_001.png) loses them
     known = {n.lower() for n in (*MASK_FILES, *AMBIENT_FILES, *GT_FILES)}  # read as what they are
     unnamed = sorted((p.name for p in entries if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
@@ -755,6 +762,20 @@ def _sub_captures(entries: list[Path], image_paths: list[Path]) -> tuple[str, ..
     return tuple(sorted(subs, key=natural_key))
 
 
+def _link_problem(p: Path) -> str:
+    """Why the symbolic link ``p`` is no file to read: broken, a loop, or a link to something else
+    (helper-170: a link to /dev/zero and a loop were each "a broken link")."""
+    import errno
+    import stat
+
+    try:
+        mode = os.stat(p).st_mode
+    except OSError as e:
+        return "is a loop of symbolic links" if e.errno == errno.ELOOP else f"is a broken link (to {os.readlink(p)})"
+    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+    return f"is a link to {os.readlink(p)}, which is {kind}, not a regular file"
+
+
 def _listed_images(path: Path, list_file: Path) -> list[Path]:
     """The images ``list_file`` (filenames.txt) names, in its order, each there as a regular file
     and none the ground truth's .mat (checked before any header is read); else the error naming
@@ -763,8 +784,8 @@ def _listed_images(path: Path, list_file: Path) -> list[Path]:
     for p in image_paths:
         if p.is_dir():
             raise PsctlError(p, f"listed in {list_file.name} but is a folder, not an image")
-        if not p.is_file() and p.is_symlink():  # dangling (or a loop): the entry is there, its target not
-            raise PsctlError(p, f"listed in {list_file.name} but is a broken link (to {os.readlink(p)})")
+        if not p.is_file() and p.is_symlink():  # the entry is there, its target not a file
+            raise PsctlError(p, f"listed in {list_file.name} but {_link_problem(p)}")
         if os.path.lexists(p) and not p.is_file():  # a FIFO, a socket, a device: there, but no file
             raise PsctlError(p, f"listed in {list_file.name} but is not a regular file")
         if not p.is_file():

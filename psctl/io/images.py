@@ -95,11 +95,28 @@ def holds_colour(names: "list[str] | tuple[str, ...]") -> bool:
     return not names or any(name.rpartition(".")[2].upper() not in NOT_COLOUR for name in names)
 
 
-def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], str, tuple[str, ...]]:
+def _cannot_open(path: Path, err: str) -> PsctlError:
+    """The error for a file OpenImageIO did not open, in plain words where its own hide the cause
+    (helper-170: 'Could not open file' for a file without read permission, 'Not a PNG file' for
+    an empty one)."""
+    try:
+        with open(path, "rb") as f:
+            empty = not f.read(1)
+    except OSError as e:
+        return PsctlError(path, f"cannot open image ({(e.strerror or str(e)).lower()})")
+    return PsctlError(path, "is empty (0 bytes), not an image" if empty else f"cannot open image ({_clean(err)})")
+
+
+def pick_channels(names: list[str] | tuple[str, ...],
+                  named: bool = False) -> tuple[tuple[int, ...], str, tuple[str, ...]]:
     """Which stored channels are the picture, by their names: (indices in R, G, B[, A] or Y[, A]
     order; empty: read as stored), the layer's name ("" for unprefixed channels) and the names of
     the layers that hold colour. A layer holds colour when it has R, G and B, or Y alone (with A).
-    Raises ValueError when several do and none is the unprefixed one or named as MAIN_LAYERS."""
+    Raises ValueError when several do and none is the unprefixed one or named as MAIN_LAYERS.
+    ``named``: the names are the file's own (EXR), not the reader's defaults (OpenImageIO calls a
+    2-channel TIFF's channels R and G): then a layer with two of R, G and B, or Y beside other
+    channels than A (luminance and chroma, or X, Y, Z), is a ValueError too, as read as stored
+    it would be grey and alpha (helper-170: G and B read as grey G, B dropped, without a word)."""
     layers: dict[str, dict[str, int]] = {}
     for i, name in enumerate(names):
         layer, _, chan = name.rpartition(".")
@@ -111,6 +128,15 @@ def pick_channels(names: list[str] | tuple[str, ...]) -> tuple[tuple[int, ...], 
         elif set(chans) in ({"Y"}, {"Y", "A"}):
             colour[layer] = [chans[c] for c in ("Y", "A") if c in chans]
     if not colour:
+        for layer, chans in layers.items() if named else ():
+            where = f"layer {layer!r} has" if layer else "has"
+            rgb = [c for c in "RGB" if c in chans]
+            if len(rgb) == 2:
+                raise ValueError(f"{where} colour channels {' and '.join(rgb)} but not all of R, G and B: psctl "
+                                 f"cannot tell the picture's colours; export it as RGB (or grey, one channel Y)")
+            if "Y" in chans and set(chans) - {"Y", "A"}:
+                raise ValueError(f"{where} channels {', '.join(chans)}: Y with others than A (luminance and "
+                                 f"chroma, or X, Y, Z) is not RGB, which psctl reads; export it as RGB")
         return (), "", ()
     found = tuple(colour)
     if "" in colour:
@@ -167,7 +193,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         inp = oiio.ImageInput.open(name)
         err = _geterror(oiio) if inp is None else ""
     if inp is None:
-        raise PsctlError(path, f"cannot open image ({_clean(err)})")
+        raise _cannot_open(path, err)
     try:
         spec = inp.spec()
         sensor = _RAW_PHOTOMETRIC.get(spec.get_int_attribute("tiff:PhotometricInterpretation", 0))
@@ -184,7 +210,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         orientation = spec.get_int_attribute("Orientation", 1)
         orientation = orientation if orientation in _UPRIGHT else 1
         try:
-            pick, layer, layers = pick_channels(list(spec.channelnames))
+            pick, layer, layers = pick_channels(list(spec.channelnames), named=inp.format_name() == "openexr")
         except ValueError as e:
             raise PsctlError(path, str(e)) from None
         # the frame a viewer shows: an EXR may store a smaller (a crop to the lit pixels) or shifted
@@ -325,7 +351,7 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
     with _quiet_stderr():
         inp = oiio.ImageInput.open(_oiio_name(path))
     if inp is None:
-        raise PsctlError(path, f"cannot open image ({_clean(_geterror(oiio))})")
+        raise _cannot_open(path, _geterror(oiio))
     try:
         spec = inp.spec()
         w, h = spec.width, spec.height  # as stored: EXIF's dimensions are too
@@ -393,7 +419,7 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     with _quiet_stderr():
         inp = oiio.ImageInput.open(_oiio_name(path), config)
         if inp is None:
-            raise PsctlError(path, f"cannot open image ({_clean(_geterror(oiio))})")
+            raise _cannot_open(path, _geterror(oiio))
         try:
             # OpenImageIO converts integer samples to float by dividing by the type's maximum.
             stored_channels = inp.spec().nchannels
