@@ -344,7 +344,7 @@ def _print_json(obj: dict) -> None:
 
 
 @app.command(cls=_Command)
-def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchmark root.")],
+def info(path: Annotated[Path, typer.Argument(readable=False, help="A capture folder or a benchmark root.")],
          encoding: EncodingOpt = "auto",
          check: Annotated[bool, _flag("--check", help="Also decode every file: damaged images, brightness, "
                                                      "saturation, black images.")] = False,
@@ -358,7 +358,7 @@ def info(path: Annotated[Path, typer.Argument(help="A capture folder or a benchm
 
 @app.command(cls=_Command)
 def normals(
-    path: Annotated[Path, typer.Argument(help="Capture folder (images, light_directions.txt, mask.png, ...).")],
+    path: Annotated[Path, typer.Argument(readable=False, help="Capture folder (images, light_directions.txt, mask.png, ...).")],
     method: MethodOpt = "auto",
     out: OutDir = None,
     fmt: Annotated[list[str] | None, typer.Option("--format", "-f", show_default="png16,exr", metavar="F[,F...]",
@@ -401,7 +401,7 @@ def normals(
 @app.command("eval", cls=_Command)
 def evaluate(
     benchmark: Annotated[str, typer.Option("--benchmark", "-b", help="diligent | folder (any folder of objects, with --root; a --root none of whose objects is named as one of DiLiGenT's is read as folder).")] = "diligent",
-    root: Annotated[Optional[Path], typer.Option(help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
+    root: Annotated[Optional[Path], typer.Option(readable=False, help="Benchmark root (DiLiGenT pmsData or pmsData_crop, or any folder of objects; needed with --benchmark folder). diligent without it: $PSCTL_DATA/DiLiGenT/pmsData (or diligent/pmsData), then ~/.cache/psctl/DiLiGenT/pmsData.")] = None,
     method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", metavar="M[,M...]", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
@@ -447,7 +447,7 @@ def evaluate(
 
 @app.command(cls=_Command)
 def lights(
-    path: Annotated[Path, typer.Argument(help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
+    path: Annotated[Path, typer.Argument(readable=False, help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
     out: OutDir = None,
     weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
     decode: Annotated[str, typer.Option(help="soft (soft-argmax) | argmax (class centres, the paper).")] = "soft",
@@ -480,7 +480,7 @@ def lights(
 
 @app.command(cls=_Command)
 def calibrate(
-    path: Annotated[Path, typer.Argument(help="Folder of images of a sphere, one per light in the object's order; mask.png: the sphere (or --circle).")],
+    path: Annotated[Path, typer.Argument(readable=False, help="Folder of images of a sphere, one per light in the object's order; mask.png: the sphere (or --circle).")],
     sphere: Annotated[str, typer.Option("--sphere", "-s", help="chrome (a mirror ball: directions from its highlights) | matte (a white Lambertian ball: directions and intensities).")],
     circle: Annotated[Optional[str], typer.Option("--circle", help="The sphere's outline as X,Y,R in pixels (the centre's column and row, the top-left pixel's centre at 0,0; the radius), instead of fitting one to mask.png.")] = None,
     offset: Annotated[bool, _flag("--offset/--no-offset", help="matte: fit a constant per image as well (I = n . l e + c): for images that keep a black level or room light and have no ambient.png (docs/calibration.md, 'Offset').")] = False,
@@ -503,7 +503,7 @@ def calibrate(
 
 @app.command(cls=_Command)
 def undistort(
-    path: Annotated[Path, typer.Argument(help="Capture folder whose photos were taken through a lens with distortion.")],
+    path: Annotated[Path, typer.Argument(readable=False, help="Capture folder whose photos were taken through a lens with distortion.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="New or empty folder (or an earlier undistort output, replaced) for the undistorted capture (images, mask.png, light files, K.txt).")],
     K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics in pixels (as psctl depth reads them; OpenCV's camera matrix).")] = None,
     distortion: Annotated[Optional[str], typer.Option("--distortion", "-d", help="OpenCV's distortion coefficients k1,k2,p1,p2[,k3[,k4,k5,k6]].")] = None,
@@ -551,7 +551,7 @@ def synth(
 
 @app.command(cls=_Command)
 def depth(
-    path: Annotated[Path, typer.Argument(help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png that the psctl normals run there wrote (its report.json), else the first of them there, else estimated (--method auto); with --out DIR, a map a psctl normals run of this capture wrote in DIR comes first.")],
+    path: Annotated[Path, typer.Argument(readable=False, help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png that the psctl normals run there wrote (its report.json), else the first of them there, else estimated (--method auto); with --out DIR, a map a psctl normals run of this capture wrote in DIR comes first.")],
     normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl's 16- or 8-bit PNG, EXR or .npy.")] = None,
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
     out: OutDir = None,

@@ -2532,3 +2532,21 @@ def test_depth_reads_the_map_the_run_there_wrote(capture, tmp_path):
     assert r["normals"] == os.path.abspath(folder / "normal.exr") and note in r["notes"]
     (folder / "report.json").unlink()
     assert pick_normal_file(folder) == (folder / "normal.exr", None)  # no report: the first there, as before
+
+
+def test_capture_paths_unreadable_to_os_access_are_psctls_to_judge(tmp_path, monkeypatch):
+    """click's own readability test answered a folder without read permission with "Invalid value
+    for 'path': path ... is not readable" (helper-170), unlike every other error ("error: PATH:
+    permission denied"). The capture and root arguments leave it to psctl: here os.access says
+    no (root, as on CI, may read anything) and psctl, which can read the folder, runs."""
+    from tests.conftest import write_capture
+
+    write_capture(tmp_path / "cap", n=6, size=16)
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, *a, **k: False if mode == os.R_OK and
+                        os.fspath(p).startswith(str(tmp_path)) else real(p, mode, *a, **k))
+    for args in (["info", tmp_path / "cap"], ["normals", tmp_path / "cap", "-m", "l2", "-o", tmp_path / "n"],
+                 ["depth", tmp_path / "cap", "-o", tmp_path / "d"], ["eval", "-b", "folder", "--root", tmp_path,
+                                                                    "-m", "l2"]):
+        r = cli(*args, "-q")
+        assert r.returncode == 0 and "not readable" not in r.stderr, (args, r.stderr)
