@@ -578,9 +578,11 @@ def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
     if not there:
         return None, None
     written = _written(folder / "report.json")  # read once, not once per map
-    for p in there:
+    for k, p in enumerate(there):
         if _as_written(p, written):
-            return p, None
+            passed = [q.name for q in there[:k] if q.name in written]  # that run's, changed since (helper-170)
+            return p, (f"normals: {p.name} read; {', '.join(passed)}, which the same psctl normals run wrote "
+                       f"first, changed since, so it was passed over (name a map with --normals)" if passed else None)
     listed = [n for n in NORMAL_FILES if n in written]
     if not listed:
         return there[0], None

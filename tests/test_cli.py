@@ -2530,6 +2530,13 @@ def test_depth_reads_the_map_the_run_there_wrote(capture, tmp_path):
     assert picked == folder / "normal.exr" and "it wrote normal.png, since changed or removed" in note
     r = run_depth(capture, write=False)
     assert r["normals"] == os.path.abspath(folder / "normal.exr") and note in r["notes"]
+    # the run wrote two maps and the first changed since: the second is read, with a note (helper-170)
+    run_normals(capture, method="l2", formats=["exr", "npy"])
+    os.utime(folder / "normal.exr", ns=(1, 1))
+    picked, note = pick_normal_file(folder)
+    assert picked == folder / "normal.npy" and note == (
+        "normals: normal.npy read; normal.exr, which the same psctl normals run wrote first, changed since, so it "
+        "was passed over (name a map with --normals)")
     (folder / "report.json").unlink()
     assert pick_normal_file(folder) == (folder / "normal.exr", None)  # no report: the first there, as before
 
