@@ -1,5 +1,7 @@
-"""The inference engine for PS-FCN-style networks: memory bounded in the number of images and in
-the image size, results equal to one pass of the network over the whole stack.
+"""The inference engine for PS-FCN-style networks: memory independent of the number of images and
+growing slowly with the image size (the network's activations and fused features are capped;
+what remains is a few whole-frame arrays: about 65 MB a megapixel above about 0.9 GB, helper-171),
+results equal to one pass of the network over the whole stack.
 
 The authors' test code stacks every image, runs the extractor on each, keeps every feature map
 and takes the max at the end: memory grows with the number of images (about 14 GB for one
@@ -430,7 +432,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
                 normalization: str = "none", train_images: int | None = None, config: dict | None = None,
                 progress: "ProgressFactory | None" = None, label: str = "network",
                 input_mean: float | None = None, input_clip: float | None = None) -> InferResult:
-    """Normals from a stream of images, memory bounded in N and in the image size.
+    """Normals from a stream of images, memory independent of N and capped in the network's
+    activations and features whatever the image size (module docstring).
 
     Args:
         model: a PSFCN in eval mode (its device is set here).

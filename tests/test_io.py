@@ -2503,3 +2503,26 @@ def test_an_empty_or_unreadable_image_says_so_plainly(tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "open", refusing)
     e = _cannot_open(tmp_path / "locked.png", f'Could not open file "{tmp_path / "locked.png"}"')
     assert str(e) == f"{tmp_path / 'locked.png'}: cannot open image (permission denied)"
+
+
+def test_image_checks_reader_sees_a_box_once(tmp_path):
+    """A large capture's network passes (one per tile group) read the same box again; the check's
+    saturated map, sums and extremes were worked out again each time (a third of a pass's work per
+    image at 12 MP, helper-171). A box already seen is read without them; another box is seen."""
+    import copy
+
+    from psctl.io.capture import ImageCheck
+
+    write_capture(tmp_path / "cap", n=5, size=24, bits=8)
+    cap = open_capture(tmp_path / "cap")
+    mask = load_mask(cap)
+    chk = ImageCheck(cap)
+    read = chk.reader(cap, mask)
+    whole = (slice(0, 24), slice(0, 24))
+    first = [x.copy() for x in read(0, whole)]
+    state = copy.deepcopy((chk.sums, chk.clipped, chk.seen, chk.lit))
+    again = list(read(0, whole)) + list(read(2, whole))
+    assert all(np.array_equal(a, b) for a, b in zip(first + first[2:], again))  # the same images
+    assert (chk.sums, chk.clipped, chk.seen, chk.lit) == state  # nothing counted twice
+    list(read(0, (slice(0, 12), slice(0, 24))))  # another box: seen
+    assert chk.sums != state[0]
