@@ -101,10 +101,25 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
   return $rc
 }
 
-fresh=1; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/back/${r##*:}/state.json ] || continue; fresh=0; done
+# fresh: some run has no state yet (here or carried back): check CUDA, launch, plan the runs not yet planned
+fresh=0; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/back/${r##*:}/state.json ] || fresh=1; done
+# RESUME=1 (a later call): refuse to start the runs over. A machine stays warm 30 s after a call,
+# so a later call usually gets a fresh one, which has no runs/ unless .cache/gpu/back was carried
+# (helper-173: the runs started over under the same names, and their parts overwrote the longer ones)
+if [ "${RESUME:-0}" = 1 ] && [ $fresh = 1 ]; then
+  echo "RESUME=1 but no run state here or in .cache/gpu/back (a fresh machine: carry .cache/gpu/back, docs/training.md)" | tee "$OUT/refused.txt"
+  exit 2
+fi
+logs_out() { for r in $RUNS; do [ -f runs/${r##*:}.out ] && cp runs/${r##*:}.out "$OUT/"; done; }  # a failed call's logs come back
 if [ $fresh = 1 ]; then
   nvidia-smi -L; python3 -c 'import torch; print("torch", torch.__version__, torch.cuda.get_device_name(0))'
   psctl train ps-fcn --config configs/tiny.yaml --device $DEVICE --out /tmp/tiny_$$ -q || exit 1
+  # what the real runs use and tiny.yaml does not: bf16 autocast on CUDA and views of the carried
+  # mesh (helper-173: first tried by the real runs, where a failure costs a whole launch)
+  gpu_amp=bf16; [ $DEVICE = cpu ] && gpu_amp=none  # (bf16 on a CPU without it is refused)
+  sed "s/shapes: {blobby: 1.0}}/shapes: {mesh: 1.0}, require_meshes: true}/; s/amp: none/amp: $gpu_amp/" \
+    configs/tiny.yaml > /tmp/tiny_mesh.yaml
+  psctl train ps-fcn --config /tmp/tiny_mesh.yaml --device $DEVICE --out /tmp/tiny_mesh_$$ -q || exit 1
   # the same with interreflections (their kernel runs on the stream's device), when a run uses them
   ir=0; for r in $RUNS; do IFS=: read -r m c name <<< "$r"; grep -q '^ *interreflection:' $c && ir=1; done
   if [ $ir = 1 ]; then
@@ -115,15 +130,19 @@ if [ $fresh = 1 ]; then
   [ "${IR_BENCH:-0}" = 0 ] || timeout 45 python3 benchmarks/bench_synth.py --device $DEVICE --skip pieces,writer \
     --batches 4 --warmup 1 --pool 16 --reuse 16 --interreflection 0.5 > "$OUT/ir_bench.txt" 2>&1 \
     || echo "ir bench: rc $? (45 s cap: 8 interreflection views did not fit)" >> "$OUT/ir_bench.txt"
-  launch $FIRST || { for r in $RUNS; do tail -n 5 runs/${r##*:}.out; done; exit 1; }
+  launch $FIRST || { for r in $RUNS; do tail -n 5 runs/${r##*:}.out; done; logs_out; exit 1; }
   names=(); for r in $RUNS; do names+=(runs/${r##*:}); done
-  python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; exit 1; }
+  python3 - $PLAN "${names[@]}" > "$OUT/plan.txt" <<'PY' || { cat "$OUT/plan.txt"; for r in $RUNS; do tail -n 5 runs/${r##*:}.out; done; logs_out; exit 1; }
 import json, statistics, sys
 from pathlib import Path
 plan = float(sys.argv[1])
 for run in map(Path, sys.argv[2:]):
-    recs = [json.loads(l) for l in open(run / "log.jsonl") if '"samples_per_s"' in l]
+    if not (run / "state.json").is_file():
+        sys.exit(f"{run.name}: no checkpoint after the first launch (its setup outlasted the deadline?): no plan")
     st = json.loads((run / "state.json").read_text())
+    if "schedule_from_rate" in st:  # planned in an earlier call (a retry after one run failed)
+        print(f"{run.name}: planned before ({st['schedule_from_rate']})"); continue
+    recs = [json.loads(l) for l in open(run / "log.jsonl") if '"samples_per_s"' in l]
     if len(recs) >= 6:  # past the warm-up (the first third of the log lines)
         rate = statistics.median(r["samples_per_s"] for r in recs[len(recs) // 3:])
     else:  # a slow device: the whole minute
@@ -135,7 +154,7 @@ for run in map(Path, sys.argv[2:]):
     t.update(samples=samples, lr_halve_every=samples // 5, val_every=samples // 15)
     st["schedule_from_rate"] = {"samples_per_s": rate, "plan_seconds": plan, "at_samples": st["samples"]}
     (run / "state.json").write_text(json.dumps(st, indent=1))
-    print(f"{run.name}: {rate:.0f} samples/s in the first minute -> samples {samples:,}, "
+    print(f"{run.name}: {rate:.0f} samples/s in the first {st['seconds'] / 60:.1f} training minutes -> samples {samples:,}, "
           f"lr halved every {samples // 5:,}, validation every {samples // 15:,}")
 PY
   cat "$OUT/plan.txt"
