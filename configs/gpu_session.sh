@@ -33,8 +33,9 @@
 # on for the rest of MINUTES. A later call resumes them for MINUTES. Each call copies model.pt,
 # state.json, stream.pt and the logs to $OUT (with 'final': best.pt as well, and with OPTIM=1 also the
 # Adam state, so that a later session can continue the run exactly), in parts of 15 MB (the device tool returns
-# files of at most 16 MB): cat runs.tar.part_* | tar -x. A run folder missing on the machine (a
-# fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments.
+# files of at most 16 MB): unpack them into a folder of their own (docs/training.md), not over runs/. A run folder missing on the machine (a
+# fresh machine) is restored from .cache/gpu/back/RUN (carried) with fresh Adam moments; RESUME=1
+# refuses a call that would start the runs over instead.
 set -u
 cd "$(dirname "$0")/.."
 DEVICE=${PSCTL_DEVICE:-cuda}  # cpu: tries the script here
