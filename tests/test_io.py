@@ -2526,3 +2526,18 @@ def test_image_checks_reader_sees_a_box_once(tmp_path):
     assert (chk.sums, chk.clipped, chk.seen, chk.lit) == state  # nothing counted twice
     list(read(0, (slice(0, 12), slice(0, 24))))  # another box: seen
     assert chk.sums != state[0]
+
+
+def test_an_output_folder_given_with_a_quoted_tilde_is_refused(tmp_path, monkeypatch):
+    """-o '~/out' reaches psctl as it is and made a folder named ~ in the working folder without a
+    word (helper-174); a folder ~ that is there already is the user's own choice."""
+    from psctl.io.atomic import check_output_dir
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(PsctlError, match=rf"~/out: starts with ~, which is not your home folder in quotes .*: write "
+                                         rf"{tmp_path / 'home' / 'out'} instead"):
+        check_output_dir("~/out")
+    assert not (tmp_path / "~").exists()
+    (tmp_path / "~").mkdir()
+    assert str(check_output_dir("~/out")) == "~/out"

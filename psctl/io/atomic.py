@@ -120,6 +120,12 @@ def check_output_dir(path: str | os.PathLike) -> Path:
     path = Path(path)
     utf8_path(path, "the output folder's path is not valid UTF-8 text, which OpenImageIO cannot write to; "
                     "choose another")  # images are written through OpenImageIO
+    first = path.parts[0] if path.parts else ""
+    if first.startswith("~") and not Path(first).exists() and os.path.expanduser(first) != first:
+        # '-o "~/out"': only the shell expands ~, and not in quotes; a folder named ~ would be made
+        # here without a word (helper-174)
+        raise PsctlError(path, f"starts with {first}, which is not your home folder in quotes (only the shell "
+                               f"expands it): write {os.path.expanduser(os.fspath(path))} instead")
     if path.is_symlink() and not path.exists():  # mkdir would say "File exists"
         raise PsctlError(path, f"is a broken link (to {os.readlink(path)}), not a folder: remove it or choose another")
     probe = path
