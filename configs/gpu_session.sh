@@ -103,12 +103,15 @@ launch() {  # launch MINUTES: every run, side by side; wait for all
 }
 
 # fresh: some run has no state yet (here or carried back): check CUDA, launch, plan the runs not yet planned
-fresh=0; for r in $RUNS; do [ -f runs/${r##*:}/state.json ] || [ -f .cache/gpu/back/${r##*:}/state.json ] || fresh=1; done
+# (checkpoint.json: a first checkpoint killed after its commit, which launch resumes)
+stateless=(); for r in $RUNS; do n=${r##*:}
+  [ -f runs/$n/state.json ] || [ -f runs/$n/checkpoint.json ] || [ -f .cache/gpu/back/$n/state.json ] || stateless+=($n); done
+fresh=0; [ ${#stateless[@]} = 0 ] || fresh=1
 # RESUME=1 (a later call): refuse to start the runs over. A machine stays warm 30 s after a call,
 # so a later call usually gets a fresh one, which has no runs/ unless .cache/gpu/back was carried
 # (helper-173: the runs started over under the same names, and their parts overwrote the longer ones)
 if [ "${RESUME:-0}" = 1 ] && [ $fresh = 1 ]; then
-  echo "RESUME=1 but no run state here or in .cache/gpu/back (a fresh machine: carry .cache/gpu/back, docs/training.md)" | tee "$OUT/refused.txt"
+  echo "RESUME=1 but no state of ${stateless[*]} here or in .cache/gpu/back (a fresh machine: carry .cache/gpu/back, docs/training.md)" | tee "$OUT/refused.txt"
   exit 2
 fi
 logs_out() { for r in $RUNS; do [ -f runs/${r##*:}.out ] && cp runs/${r##*:}.out "$OUT/"; done; }  # a failed call's logs come back

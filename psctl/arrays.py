@@ -45,6 +45,10 @@ def as_images(images: np.ndarray, n: int | None = None) -> np.ndarray:
     on that scale; LCNet's exposure guard rescales captures far outside it). ``n``: the number
     of images when known (from the lights): [N, H, W] with W = 3 or 4 is then a grey stack, not
     one colour image."""
+    paths = isinstance(images, (list, tuple)) and bool(images) and all(isinstance(x, (str, os.PathLike)) for x in images)
+    if paths:  # file names (helper-175)
+        raise PsctlError(None, "images must be a numeric [N, H, W, 3] array, not a list of file names; read them "
+                               "with psctl.load_images(psctl.open_capture(folder)) or psctl.io.images.read_image")
     if images is None or isinstance(images, (str, bytes, os.PathLike)):  # (helper-172: "got dtype <U21")
         raise PsctlError(None, f"images must be a numeric [N, H, W, 3] array, not {_short(images)}"
                                + ("" if images is None else "; read a capture folder's images with "

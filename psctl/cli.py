@@ -142,9 +142,9 @@ Json = Annotated[bool, _flag("--json", help="Print one JSON object on stdout.")]
 Images = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: K spread over the light directions, or a random K with --seed (sdps and ups-fcn, which do not read lights: a random K, seed 0 unless --seed).")]
 LightsImages = Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images: a random K (seed 0 unless --seed; the folder's lights are what is estimated, so they choose nothing); light_images.txt names them.")]
 Seed = Annotated[Optional[int], typer.Option(help="Seed for a random --images subset.")]
-OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", help="Output folder (default: PATH/psctl).")]
+OutDir = Annotated[Optional[Path], typer.Option("--out", "-o", readable=False, help="Output folder (default: PATH/psctl).")]
 MethodOpt = Annotated[str, typer.Option("--method", "-m", help="auto | l2 | ps-fcn | ps-fcn-n | ensemble | ups-fcn | sdps (ensemble: the average of PS-FCN's and PS-FCN+N's normals; auto: ensemble when both are installed, else the one that is, else l2; without light_directions.txt, or with --lcnet: sdps = LCNet + PS-FCN†, or + the installed PS-FCN (else PS-FCN+N) while PS-FCN† is not; ups-fcn where only its weights are installed).")]
-WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights: $PSCTL_WEIGHTS, else the checkout's weights/, else ~/.local/share/psctl/weights; docs/models.md). With sdps: its second stage (PS-FCN†, or a PS-FCN or PS-FCN+N file).")]
+WeightsOpt = Annotated[Optional[Path], typer.Option("--weights", "-w", readable=False, help="Network weights file: psctl's .pt or the authors' *.pth.tar (default: the installed weights: $PSCTL_WEIGHTS, else the checkout's weights/, else ~/.local/share/psctl/weights; docs/models.md). With sdps: its second stage (PS-FCN†, or a PS-FCN or PS-FCN+N file).")]
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto | cpu | cuda | cuda:N: where the networks run (l2 uses none).")]
 RefineOpt = Annotated[bool, _flag("--refine/--no-refine", help="sdps: refine LCNet's lights against the first normals, then estimate the normals again (docs/uncalibrated.md).")]
 FalloffOpt = Annotated[Optional[str], typer.Option("--falloff", help="sdps and psctl lights: the light refinement's shading model: shifted (the default) | lambertian (docs/uncalibrated.md, 'Falloff').")]
@@ -155,7 +155,7 @@ DownsampleOpt = Annotated[int, typer.Option(help="Network methods: run on the ca
 EncodingOpt = Annotated[str, typer.Option("--encoding", help="How image values map to radiance: auto (a file with an ICC profile is decoded through its tone curves; else JPEGs are decoded from sRGB, other files read as linear) | linear (all as stored) | srgb (all decoded from sRGB).")]
 LightDistanceOpt = Annotated[Optional[float], typer.Option("--light-distance", help="l2, ps-fcn, ps-fcn-n, ensemble, sdps, psctl lights' refinement: the lights are points this many image pixels from the object along the listed (sdps: estimated) directions; each image is divided by its light's falloff (docs/near-lights.md; DiLiGenT's rig: about 2400).")]
 PrecisionOpt = Annotated[str, typer.Option("--precision", help="Network methods: float32 (the default) | bf16 (an Ampere or newer GPU, or a CPU with native bf16: AVX512-BF16 or AMX; on a 2-core AVX512-BF16 CPU 1.6x faster end to end, normals about 0.1 degrees from float32's on average) | fp16 (CUDA). docs/models.md, 'Precision'.")]
-LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights). Given with --method auto, it selects sdps also on folders with light_directions.txt (which then only score the estimated lights).")]
+LcnetOpt = Annotated[Optional[Path], typer.Option("--lcnet", readable=False, help="LCNet weights for sdps: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights). Given with --method auto, it selects sdps also on folders with light_directions.txt (which then only score the estimated lights).")]
 
 
 def _stderr():
@@ -405,7 +405,7 @@ def evaluate(
     method: Annotated[Optional[list[str]], typer.Option("--method", "-m", show_default="auto", metavar="M[,M...]", help=MethodOpt.__metadata__[0].help + " Give -m more than once, or a list (-m l2,ps-fcn,ps-fcn-n), to compare methods in one table: each method's rows, then the paper's; with --out, OUT/<method>/ each and OUT/compare.png, compare.json.")] = None,
     images: Annotated[Optional[int], typer.Option("--images", "-n", help="Use K images per object (as psctl normals --images).")] = None,
     seed: Seed = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps; the ensemble's spread maps too) and OUT/eval.json.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", readable=False, help="Also write each object's outputs to OUT/<object>/, and OUT/eval.png (every object's normal and error maps; the ensemble's spread maps too) and OUT/eval.json.")] = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = "auto",
     lcnet: LcnetOpt = None,
@@ -449,14 +449,14 @@ def evaluate(
 def lights(
     path: Annotated[Path, typer.Argument(readable=False, help="Capture folder (images, mask.png; light_directions.txt is not needed).")],
     out: OutDir = None,
-    weights: Annotated[Optional[Path], typer.Option("--weights", "-w", help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
+    weights: Annotated[Optional[Path], typer.Option("--weights", "-w", readable=False, help="LCNet weights: psctl's lcnet.pt or the authors' LCNet_CVPR2019.pth.tar (default: the installed weights).")] = None,
     decode: Annotated[str, typer.Option(help="soft (soft-argmax) | argmax (class centres, the paper).")] = "soft",
     views: Annotated[int, typer.Option(help="Symmetric views averaged: 8 (the images turned and mirrored about the view axis) | 4 | 2 | 1 (one pass, the paper).")] = 8,
     images: LightsImages = None,
     seed: Seed = None,
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda | cuda:N: where LCNet and the refinement's normals network run.")] = "auto",
     refine: Annotated[bool, _flag("--refine/--no-refine", help="Refine LCNet's lights against the normals that the installed PS-FCN (or --normals-weights) gives from them (docs/uncalibrated.md).")] = True,
-    normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
+    normals_weights: Annotated[Optional[Path], typer.Option("--normals-weights", readable=False, help="With --refine: the normals network's weights (PS-FCN†, PS-FCN or PS-FCN+N; default: the installed one).")] = None,
     falloff: FalloffOpt = None,
     roll: RollOpt = None,
     encoding: EncodingOpt = "auto",
@@ -486,7 +486,7 @@ def calibrate(
     offset: Annotated[bool, _flag("--offset/--no-offset", help="matte: fit a constant per image as well (I = n . l e + c): for images that keep a black level or room light and have no ambient.png (docs/calibration.md, 'Offset').")] = False,
     focal: Annotated[Optional[str], typer.Option("--focal", help="The camera's focal length in pixels, or 'exif' to read it from the images: a pinhole camera instead of an orthographic one, for a sphere away from the image's centre (docs/calibration.md, 'Perspective').")] = None,
     principal: Annotated[Optional[str], typer.Option("--principal", help="With --focal: the principal point as X,Y in pixels (default: the image's centre).")] = None,
-    K: Annotated[Optional[Path], typer.Option("--K", help="Instead of --focal and --principal: a 3x3 camera matrix file (as psctl depth reads; the K.txt psctl undistort writes).")] = None,
+    K: Annotated[Optional[Path], typer.Option("--K", readable=False, help="Instead of --focal and --principal: a 3x3 camera matrix file (as psctl depth reads; the K.txt psctl undistort writes).")] = None,
     out: OutDir = None,
     encoding: EncodingOpt = "auto",
     json_out: Json = False,
@@ -504,10 +504,10 @@ def calibrate(
 @app.command(cls=_Command)
 def undistort(
     path: Annotated[Path, typer.Argument(readable=False, help="Capture folder whose photos were taken through a lens with distortion.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="New or empty folder (or an earlier undistort output, replaced) for the undistorted capture (images, mask.png, light files, K.txt).")],
-    K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics in pixels (as psctl depth reads them; OpenCV's camera matrix).")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", readable=False, help="New or empty folder (or an earlier undistort output, replaced) for the undistorted capture (images, mask.png, light files, K.txt).")],
+    K: Annotated[Optional[Path], typer.Option("--K", readable=False, help="3x3 camera intrinsics in pixels (as psctl depth reads them; OpenCV's camera matrix).")] = None,
     distortion: Annotated[Optional[str], typer.Option("--distortion", "-d", help="OpenCV's distortion coefficients k1,k2,p1,p2[,k3[,k4,k5,k6]].")] = None,
-    camera: Annotated[Optional[Path], typer.Option("--camera", help="Instead of --K and --distortion: OpenCV's calibration file (cv2.FileStorage YAML or JSON: camera_matrix, distortion_coefficients).")] = None,
+    camera: Annotated[Optional[Path], typer.Option("--camera", readable=False, help="Instead of --K and --distortion: OpenCV's calibration file (cv2.FileStorage YAML or JSON: camera_matrix, distortion_coefficients).")] = None,
     json_out: Json = False,
     quiet: Quiet = False,
 ) -> None:
@@ -552,10 +552,10 @@ def synth(
 @app.command(cls=_Command)
 def depth(
     path: Annotated[Path, typer.Argument(readable=False, help="Capture folder. Normals: the first of PATH/psctl/normal.exr, normal.npy, normal.png, normal_8bit.png that the psctl normals run there wrote (its report.json), else the first of them there, else estimated (--method auto); with --out DIR, a map a psctl normals run of this capture wrote in DIR comes first.")],
-    normals: Annotated[Optional[Path], typer.Option("--normals", help="Normal map to integrate: psctl's 16- or 8-bit PNG, EXR or .npy.")] = None,
+    normals: Annotated[Optional[Path], typer.Option("--normals", readable=False, help="Normal map to integrate: psctl's 16- or 8-bit PNG, EXR or .npy.")] = None,
     method: Annotated[str, typer.Option("--method", "-m", help="poisson | bilateral (keeps depth jumps)")] = "poisson",
     out: OutDir = None,
-    K: Annotated[Optional[Path], typer.Option("--K", help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,
+    K: Annotated[Optional[Path], typer.Option("--K", readable=False, help="3x3 camera intrinsics (perspective) (default: PATH/K.txt if present, else orthographic).")] = None,
     encoding: EncodingOpt = "auto",
     json_out: Json = False,
     quiet: Quiet = False,
@@ -572,15 +572,15 @@ def depth(
 @app.command(cls=_Command)
 def train(
     method: Annotated[str, typer.Argument(help="ps-fcn | ps-fcn-n | ups-fcn | lcnet | ps-fcn-dagger")],
-    config: Annotated[Optional[Path], typer.Option("--config", "-c", help="Recipe YAML (see configs/; without it: the paper's schedule, 2.5 M samples from scratch).")] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run folder for a new run, new or empty (default: runs/METHOD with _ for -, e.g. runs/ps_fcn_n).")] = None,
-    resume: Annotated[Optional[Path], typer.Option(help="Continue the run in this folder.")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", "-c", readable=False, help="Recipe YAML (see configs/; without it: the paper's schedule, 2.5 M samples from scratch).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", readable=False, help="Run folder for a new run, new or empty (default: runs/METHOD with _ for -, e.g. runs/ps_fcn_n).")] = None,
+    resume: Annotated[Optional[Path], typer.Option(readable=False, help="Continue the run in this folder.")] = None,
     device: Annotated[str, typer.Option(help="auto | cpu | cuda | cuda:N")] = "auto",
     max_minutes: Annotated[Optional[float], typer.Option(help="Checkpoint and stop after this many minutes.")] = None,
     install: Annotated[bool, _flag(help="When finished, copy the best weights to the weights folder ($PSCTL_WEIGHTS, else the checkout's weights/, else ~/.local/share/psctl/weights for an installed wheel); an installed file only with --force.")] = False,
     force: Annotated[bool, _flag("--force", help="With --install: replace the installed release file.")] = False,
-    lcnet: Annotated[Optional[Path], typer.Option("--lcnet", help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
-    average: Annotated[Optional[list[Path]], typer.Option("--average", metavar="FILE", help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
+    lcnet: Annotated[Optional[Path], typer.Option("--lcnet", readable=False, help="ps-fcn-dagger: the frozen LCNet's weights (default: the recipe's lcnet.weights, else weights/lcnet.pt).")] = None,
+    average: Annotated[Optional[list[Path]], typer.Option("--average", metavar="FILE", readable=False, help="Instead of training: write the parameter average of these weight files (repeat the option; same method and architecture) as OUT/best.pt; with --config, measured on that recipe's validation set.")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a network on the synthetic stream; resumable (checkpoints every few minutes and on Ctrl-C)."""

@@ -571,8 +571,8 @@ def mirror_map_notes(nmap: np.ndarray, mask: np.ndarray, source: Path) -> list[s
 
 def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
     """The normal map psctl depth reads in a psctl normals output ``folder``: the first of
-    NORMAL_FILES there that the run whose report.json lies beside it wrote (``written_by_normals``),
-    else the first there, with a note when report.json names other files (a map an earlier run
+    NORMAL_FILES there that the run whose report.json lies beside it wrote (``written_by_normals``;
+    a note names that run's maps before it in the order that changed since), else the first there, with a note when report.json names other files (a map an earlier run
     or the user left: it was read without a word, an interruption audit); (None, None) where none is."""
     there = [folder / n for n in NORMAL_FILES if (folder / n).is_file()]
     if not there:
@@ -581,8 +581,9 @@ def pick_normal_file(folder: Path) -> tuple[Path | None, str | None]:
     for k, p in enumerate(there):
         if _as_written(p, written):
             passed = [q.name for q in there[:k] if q.name in written]  # that run's, changed since (helper-170)
+            them = "it was" if len(passed) == 1 else "they were"
             return p, (f"normals: {p.name} read; {', '.join(passed)}, which the same psctl normals run wrote "
-                       f"first, changed since, so it was passed over (name a map with --normals)" if passed else None)
+                       f"first, changed since, so {them} passed over (name a map with --normals)" if passed else None)
     listed = [n for n in NORMAL_FILES if n in written]
     if not listed:
         return there[0], None

@@ -343,7 +343,6 @@ def few_lights_note(n: int) -> str | None:
             f"off on average from 1 image, 9.7 from 2, 6.3 from 4, 4.9 from 8, 2.9 from all 96)")
 
 
-
 def check_decode(decode: str, name: str = "decode") -> str:
     """LCNet's decoding, "soft" or "argmax", or a one-line error naming the option ``name``."""
     if decode not in ("argmax", "soft"):

@@ -1239,10 +1239,12 @@ def check_train_options(method: str, config: str | os.PathLike | None = None, ou
     not end in a refusal): one line naming the option, or ``(method, recipe)``: the method as the
     command line takes it and the loaded recipe. The recipe is None for a resumed run without
     ``config`` (it keeps its own, in state.json) and for an average without one (then nothing is
-    measured). ``average``: files to average into ``out`` instead of training."""
+    measured). ``average``: files to average into ``out`` instead of training. The errors name the
+    command's options (``--max-minutes`` for ``max_minutes``)."""
     if force and not install:
         raise PsctlError("--force", "only replaces an installed file together with --install")
-    if max_minutes is not None and not (math.isfinite(max_minutes) and max_minutes > 0):
+    if max_minutes is not None and (isinstance(max_minutes, bool) or not isinstance(max_minutes, (int, float))
+                                    or not (math.isfinite(max_minutes) and max_minutes > 0)):
         raise PsctlError("--max-minutes", f"must be a positive number of minutes, not {max_minutes}")
     if install:  # said before hours of training
         check_install(method, replace=force)

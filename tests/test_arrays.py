@@ -1064,3 +1064,5 @@ def test_a_path_or_none_for_images_says_what_to_pass(data):
         psctl.estimate_normals("cap", lights, mask)
     with pytest.raises(psctl.PsctlError, match="array, not None$"):
         psctl.estimate_lights(None, mask)
+    with pytest.raises(psctl.PsctlError, match="array, not a list of file names; read them with psctl.load_images"):
+        psctl.estimate_normals(["a.png", "b.png", "c.png"], lights[:3], mask)

@@ -2549,11 +2549,13 @@ def test_capture_paths_unreadable_to_os_access_are_psctls_to_judge(tmp_path, mon
     from tests.conftest import write_capture
 
     write_capture(tmp_path / "cap", n=6, size=16)
+    np.savetxt(tmp_path / "K.txt", [[40.0, 0, 8], [0, 40.0, 8], [0, 0, 1]])
     real = os.access
     monkeypatch.setattr(os, "access", lambda p, mode, *a, **k: False if mode == os.R_OK and
                         os.fspath(p).startswith(str(tmp_path)) else real(p, mode, *a, **k))
     for args in (["info", tmp_path / "cap"], ["normals", tmp_path / "cap", "-m", "l2", "-o", tmp_path / "n"],
                  ["depth", tmp_path / "cap", "-o", tmp_path / "d"], ["eval", "-b", "folder", "--root", tmp_path,
-                                                                    "-m", "l2"]):
+                                                                    "-m", "l2"],
+                 ["depth", tmp_path / "cap", "-o", tmp_path / "dk", "--K", tmp_path / "K.txt"]):  # every path option
         r = cli(*args, "-q")
         assert r.returncode == 0 and "not readable" not in r.stderr, (args, r.stderr)

@@ -38,7 +38,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     path = Path(path)
     # the stem cut short: a name of 242-255 characters is a valid output, its temporary name must be too
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem[:64]}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    stem = os.fsencode(path.stem)[:64].decode(errors="ignore") if os.name != "nt" else path.stem[:64]  # bytes: NAME_MAX counts bytes
+    fd, tmp = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     try:

@@ -539,7 +539,7 @@ def find_objects(root: str | os.PathLike) -> list[Path]:
     """Object folders of a benchmark root: those in objects.txt, else capture subfolders."""
     root = Path(check_path("root", root))
     if not root.is_dir():
-        raise PsctlError(root, "not a folder")
+        raise PsctlError(root, "not a folder" if root.exists() else "folder does not exist" + quoted_tilde(root))
     listed = root / "objects.txt"
     if listed.is_file():
         names = _read_list(listed, "objects")
@@ -1303,7 +1303,6 @@ class ImageCheck:
         self.negative: set[int] = set()
         self.clipped: dict[int, list[int]] = {}  # image -> [object pixels at the top code value, object pixels]
         self.sums: dict[int, list[float]] = {}  # image -> [sum of its values over the object, their count]
-        self.boxes: dict[tuple, set[int]] = {}  # a read box -> the images seen in it (reader)
 
     def see_clipped(self, k: int, top: np.ndarray, mask: np.ndarray) -> None:
         """``top``: image ``k``'s saturated-pixel flags (see iter_images), ``mask`` the object's
@@ -1343,11 +1342,14 @@ class ImageCheck:
         intensities: the image indices, and so the names in the notes, are the same).
         ``decoded``, ``memo``, ``ambient_check``: as ``iter_images``."""
 
+        boxes: dict[tuple, set[int]] = {}  # this reader's boxes -> the images seen in each
+
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             # a large capture's later passes (one per tile group) read the same box again: what they
             # would see is seen already (its saturated map, sums and extremes over the object took a
-            # third of a pass's work per image at 12 MP, helper-171)
-            done = self.boxes.setdefault(tuple((b.start, b.stop, b.step) for b in box), set())
+            # third of a pass's work per image at 12 MP, helper-171); per reader, as another reader
+            # of this check may read other intensities or another mask (helper-175)
+            done = boxes.setdefault(tuple((b.start, b.stop, b.step) for b in box), set())
             again = done.issuperset(range(start, capture.n_images))
             for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
                                                 clipped=None if again else self.clipped_reader(mask, box, start),
