@@ -1448,3 +1448,33 @@ def test_stream_options_are_checked_when_the_config_is_made(option, value, messa
         make_config({**SMALL, option: value})
     assert make_config({**SMALL, "blobby": {"steps": 12, "primitives": [1, 9]}})["blobby"]["primitives"] == (1, 9)
     assert make_config({**SMALL, "merl_names": "alum-bronze"})["merl_names"] == ["alum-bronze"]
+
+
+def test_a_signal_in_synths_clean_up_leaves_no_hidden_folder(tmp_path):
+    """SIGTERM as psctl synth removed its staging folder after moving the new set in left the
+    earlier set's files in a hidden folder for good (helper-177): the move and the clean-up now
+    run with signals held, and the run exits 143 after them."""
+    import subprocess
+    import sys
+
+    from psctl.synth.write import write_preset
+
+    write_preset(tmp_path / "set", "blobby", size=32, n_lights=16)
+    code = f"""
+import os, shutil, signal, sys
+real = shutil.rmtree
+def rmtree(path, *a, **k):
+    if ".psctl-synth." in str(path) and os.path.isdir(os.path.join(path, ".earlier")):
+        os.kill(os.getpid(), signal.SIGTERM)
+    return real(path, *a, **k)
+shutil.rmtree = rmtree
+from psctl.cli import main
+sys.argv = ["psctl", "synth", {str(tmp_path / "set")!r}, "--preset", "blobby", "--size", "32", "--lights", "16",
+            "--seed", "1", "-q"]
+main()
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 143, r.stderr
+    assert not [p.name for p in (tmp_path / "set").iterdir() if p.name.startswith(".psctl-synth")]
+    listed = (tmp_path / "set" / "objects.txt").read_text().split()
+    assert listed and all((tmp_path / "set" / n / "synth.json").is_file() for n in listed)  # the new set, whole

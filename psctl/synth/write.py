@@ -378,6 +378,18 @@ def _swap_in(stage: Path, out: Path, names: list[str], listing: str) -> None:
         raise
 
 
+def _remove_stale(out: Path, names: set[str], preview: bool) -> list[str]:
+    """What an earlier run into ``out`` wrote and this one did not (every object folder there is
+    psctl synth's: _check_synth_root), removed so that the folder holds this set alone."""
+    removed = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.is_symlink() and not p.name.startswith(".")
+                     and p.name not in names and (p / "synth.json").is_file())  # a link: someone else's folder
+    if not preview and (out / "preview.png").is_file():
+        removed.append("preview.png")
+    for name in removed:
+        (shutil.rmtree if (out / name).is_dir() else os.remove)(out / name)
+    return removed
+
+
 def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int = 128, n_lights: int = 100,
                  k: int | None = None, preview: bool = False, shadows: bool = True,
                  light_dist: str = "hemisphere", intensities: str = "unit",
@@ -403,7 +415,7 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
         folders are replaced and not listed).
     """
     from psctl.io.atomic import (by_final_name, check_output_dir, current_umask, ensure_writable_dir, missing_folders,
-                                 remove_empty, working_folder)
+                                 folder_locks, remove_empty, signals_deferred, working_folder)
 
     t0 = time.perf_counter()
     preset, light_dist, intensities = _lower(preset, light_dist, intensities)
@@ -469,13 +481,19 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
 
             write_image(stage / "preview.png", _sheet(sheet_rows), "uint8")
             preview_path = out / "preview.png"
-        try:
-            _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
-                     "".join(f"{o.name}\n" for o in objs))
-        except _RollbackFailed:
-            keep = True  # the earlier set's files are in the stage's backup: never deleted
-            raise
-        created = []  # the set is in place: the folders are its
+        # under the folder's lock and with signals held, as staged_outputs moves a run's outputs
+        # (helper-177: two runs into one folder swapped each other's objects out and one lost half
+        # its set; a SIGTERM in the clean-up left the earlier set's files in a hidden folder)
+        with folder_locks([out]), signals_deferred():
+            try:
+                _swap_in(stage, out, [o.name for o in objs] + (["preview.png"] if preview else []),
+                         "".join(f"{o.name}\n" for o in objs))
+            except _RollbackFailed:
+                keep = True  # the earlier set's files are in the stage's backup: never deleted
+                raise
+            created = []  # the set is in place: the folders are its
+            shutil.rmtree(stage, ignore_errors=True)
+            removed = _remove_stale(out, {o.name for o in objs}, preview)
     except _RollbackFailed:
         raise  # it names the kept backup in the stage, which is where the files are
     except PsctlError as e:  # a write that failed (a full disk): named in the set, not in the stage
@@ -491,15 +509,6 @@ def write_preset(out: str | os.PathLike, preset: str, seed: int = 0, size: int =
     if stage.exists():  # an earlier object's file that could not be deleted (read-only, immutable)
         notes.append(f"outputs: {stage} could not be removed (it holds the earlier set's files that could not be "
                      "deleted): the new set is in place; remove that folder by hand")
-    # what an earlier run here wrote and this one did not (_check_synth_root: every object folder
-    # here is psctl synth's), so that the folder holds this set alone
-    names = {o.name for o in objs}
-    removed = sorted(p.name for p in out.iterdir() if p.is_dir() and not p.is_symlink() and not p.name.startswith(".")
-                     and p.name not in names and (p / "synth.json").is_file())  # a link: someone else's folder
-    if not preview and (out / "preview.png").is_file():
-        removed.append("preview.png")
-    for name in removed:
-        (shutil.rmtree if (out / name).is_dir() else os.remove)(out / name)
     return {"out": os.path.abspath(out), "preset": preset, "seed": seed, "size": size, "n_lights": n_lights, "light_dist": light_dist,
             "intensities": intensities, "interreflections": interreflections, "ir_albedo": ir_albedo,
             "light_distance": light_distance, "objects": [o.name for o in objs],
