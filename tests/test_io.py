@@ -2546,3 +2546,22 @@ def test_an_output_folder_given_with_a_quoted_tilde_is_refused(tmp_path, monkeyp
     assert not (tmp_path / "~").exists()
     (tmp_path / "~").mkdir()
     assert str(check_output_dir("~/out")) == "~/out"
+
+
+def test_a_signal_while_staging_starts_leaves_no_folder_and_no_probe(tmp_path, monkeypatch):
+    """A signal after the output folder was made but before the staging folder was (helper-177):
+    the folders the run made stayed, holding the write test's probe file. Now the probe has no
+    name where the system allows, and the made folders go again."""
+    import psctl.io.atomic as atomic
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(atomic, "working_folder", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic.staged_outputs(tmp_path / "a" / "b"):
+            pass
+    assert not (tmp_path / "a").exists()
+    monkeypatch.undo()
+    atomic.ensure_writable_dir(tmp_path / "c")
+    assert list((tmp_path / "c").iterdir()) == []

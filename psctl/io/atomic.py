@@ -95,9 +95,10 @@ def ensure_writable_dir(path: str | os.PathLike) -> Path:
         raise PsctlError(path, "output path exists and is not a folder")
     try:
         path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".psctl-write-test.", dir=path)
-        os.close(fd)
-        os.unlink(probe)
+        # a file without a name where the system has them (O_TMPFILE): a signal between making a
+        # named probe and removing it left it in the output folder for good (helper-177)
+        with tempfile.TemporaryFile(prefix=".psctl-write-test.", dir=path):
+            pass
     except OSError as e:
         raise PsctlError(path, f"output folder is not writable ({e.strerror or e})") from None
     return path
@@ -431,8 +432,12 @@ class Staging:
                  inputs: Iterable[tuple[Path, tuple]] = ()) -> None:
         self.out_dir = Path(out_dir)
         self.created = missing_folders(self.out_dir)  # removed again (when empty) if the run fails
-        ensure_writable_dir(self.out_dir)
-        self.path = working_folder(self.out_dir, ".psctl-staging.")
+        try:
+            ensure_writable_dir(self.out_dir)
+            self.path = working_folder(self.out_dir, ".psctl-staging.")
+        except BaseException:  # (a signal here: staged_outputs never gets this object to clean up, helper-177)
+            remove_empty(self.created)
+            raise
         self.replaces = replaces if callable(replaces) else tuple(replaces)
         self.inputs = tuple(inputs)
         self._moved: list[str] = []  # earlier files set aside by commit (in path / ".replaced")
