@@ -101,5 +101,5 @@ def test_estimate_lights_refuses_bad_input(scene):
         estimate_lights(bad, mask, weights=release("lcnet.pt"))
     with pytest.raises(PsctlError, match="mask is empty"):
         estimate_lights(images, np.zeros_like(mask), weights=release("lcnet.pt"))
-    with pytest.raises(PsctlError, match="unknown decoding"):
+    with pytest.raises(PsctlError, match="unknown decode .median.; choose argmax or soft"):
         estimate_lights(images, mask, weights=release("lcnet.pt"), decode="median")
