@@ -2559,3 +2559,23 @@ def test_capture_paths_unreadable_to_os_access_are_psctls_to_judge(tmp_path, mon
                  ["depth", tmp_path / "cap", "-o", tmp_path / "dk", "--K", tmp_path / "K.txt"]):  # every path option
         r = cli(*args, "-q")
         assert r.returncode == 0 and "not readable" not in r.stderr, (args, r.stderr)
+
+
+def test_ctrl_c_while_the_command_imports_exits_130_quietly(monkeypatch, capsys):
+    """Ctrl-C in the first 0.1 s, while psctl.cli's modules import, printed Python's
+    KeyboardInterrupt traceback (helper-177); the entry point exits 130 as at any later moment."""
+    import builtins
+
+    from psctl import _start
+
+    real = builtins.__import__
+
+    def interrupted(name, *args, **kwargs):
+        if name == "psctl.cli":
+            raise KeyboardInterrupt
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    with pytest.raises(SystemExit) as e:
+        _start.main()
+    assert e.value.code == 130 and capsys.readouterr().err == ""
