@@ -153,9 +153,9 @@ def _saturated(images) -> np.ndarray | None:
 
 
 def _warn_value_notes(notes: list[str], who: str, level: int) -> None:
-    """LCNet's notes of values it changed (the exposure guard's scale, hot pixels clamped) as warnings
-    at the caller's ``level`` (its public function's): a folder's report carries them, and array
-    callers got silence (helper-172)."""
+    """The notes of values a network run changed (hot pixels clamped; LCNet's exposure guard's
+    scale) as warnings at the caller's ``level`` (its public function's): a folder's report carries
+    them, and array callers of LCNet got silence (helper-172)."""
     from psctl.hotpixels import HOT_PIXEL_WORDS
     from psctl.lights import EXPOSURE_WORDS
 
@@ -398,15 +398,12 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
         return second_stage(source, est, refine, fit)[1].normals
     if method in NETWORKS or method == "ensemble":
         from psctl.classic import lights_problem
-        from psctl.hotpixels import HOT_PIXEL_WORDS
         from psctl.infer import array_normals
 
         res = array_normals(images, lights, read, method, weights, net_cfg)
         if lights is not None and lights_problem(lights):  # no report here: a warning carries the note
             warnings.warn(undetermined_note(method, lights), PsctlWarning, stacklevel=level)
-        for note in res.notes:  # values changed: a warning, as l2's below
-            if HOT_PIXEL_WORDS in note:
-                warnings.warn(f"{method}: {note}", PsctlWarning, stacklevel=level)
+        _warn_value_notes(res.notes, method, level)  # values changed: a warning, as l2's below
         return res.normals
     if lights is None:
         raise PsctlError(None, f"{method} needs light directions")

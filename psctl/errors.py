@@ -194,8 +194,14 @@ def not_a_file(path: str | os.PathLike, missing: str, folder: str | None = None)
             thing = missing[:-len(" is missing")]
             folder = f"is a folder, not {'an' if thing[:1] in 'aeiou' else 'a'} {thing}"
         return folder or f"is a folder; {missing}"
-    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
-    return f"is {kind}, not a regular file"
+    return f"is {special_kind(mode)}, not a regular file"
+
+
+def special_kind(mode: int) -> str:
+    """What a file that is neither a regular file nor a folder is, by its ``st_mode``."""
+    import stat
+
+    return "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
 
 
 def check_path(where: str, value: Any, optional: bool = False) -> Any:

@@ -176,8 +176,7 @@ def run_lcnet(model: "LCNet", reader: "Reader", n: int, mask: np.ndarray, config
     t0 = time.perf_counter()
     if n < 1:
         raise PsctlError(None, "no images")
-    if cfg["decode"] not in ("argmax", "soft"):
-        raise PsctlError(None, f"unknown decoding {cfg['decode']!r}; choose argmax or soft")
+    check_decode(cfg["decode"], "decoding")
     where = exposure_where(cfg["exposure_pixels"])
     views = check_views(cfg["views"])
     mask = np.asarray(mask, bool)

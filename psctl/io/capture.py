@@ -766,14 +766,14 @@ def _link_problem(p: Path) -> str:
     """Why the symbolic link ``p`` is no file to read: broken, a loop, or a link to something else
     (helper-170: a link to /dev/zero and a loop were each "a broken link")."""
     import errno
-    import stat
+
+    from psctl.errors import special_kind
 
     try:
         mode = os.stat(p).st_mode
     except OSError as e:
         return "is a loop of symbolic links" if e.errno == errno.ELOOP else f"is a broken link (to {os.readlink(p)})"
-    kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
-    return f"is a link to {os.readlink(p)}, which is {kind}, not a regular file"
+    return f"is a link to {os.readlink(p)}, which is {special_kind(mode)}, not a regular file"
 
 
 def _listed_images(path: Path, list_file: Path) -> list[Path]:
