@@ -597,6 +597,22 @@ def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):
                         write=False)["notes"]
     assert not any("mixed" in n for n in plain)
 
+    # int16 beside uint16: OpenImageIO reads signed codes over 32767, twice as bright (helper-180:
+    # l2 5.73 against 5.21 degrees, without a note, as both were "16-bit")
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(16, 16, 3, "int16")
+    path = str(tmp_path / "plain" / "004.tif")
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, spec) and out.write_image((read_image(tmp_path / "plain" / "004.png")[0] * 32767).astype(np.int16))
+    out.close()
+    names = (tmp_path / "plain" / "filenames.txt").read_text().replace("004.png", "004.tif")
+    (tmp_path / "plain" / "filenames.txt").write_text(names)
+    (tmp_path / "plain" / "004.png").unlink()
+    notes = run_normals(tmp_path / "plain", method="l2", write=False)["notes"]
+    assert any(n.startswith("images: of mixed sample types (5 16-bit, 1 16-bit signed: 004.tif the rarer)")
+               for n in notes), notes
+
 
 def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
     """Mask.PNG and Light_Directions.txt are the mask and the light file; two masks are an error;
@@ -2201,22 +2217,49 @@ def test_psctls_own_pictures_are_not_read_as_images(tmp_path):
     assert open_capture(tmp_path / "root" / "a").n_images == 4
 
 
-def _write_cfa_tiff(path, mosaic: np.ndarray, photometric: int = 32803, subfile: int = 0) -> None:
+def _write_cfa_tiff(path, mosaic: np.ndarray, photometric: int = 32803, subfile: int = 0, cfa: bool = True) -> None:
     """A minimal little-endian TIFF of 16-bit sensor values with a DNG's photometric
-    interpretation (32803: a colour filter array; 34892: linear raw; 1: grey) and an RGGB CFA
-    pattern; ``subfile``: its NewSubfileType (1: a reduced-resolution image, as a DNG's preview)."""
+    interpretation (32803: a colour filter array; 34892: linear raw; 1: grey; or any other, as
+    0: WhiteIsZero, 8: CIE L*a*b*) and an RGGB CFA pattern (``cfa``); ``subfile``: its
+    NewSubfileType (1: a reduced-resolution image, as a DNG's preview). ``mosaic``: [H, W] or [H, W, C]."""
     import struct
 
-    h, w = mosaic.shape
+    h, w = mosaic.shape[:2]
     data = np.ascontiguousarray(mosaic, "<u2").tobytes()
     tags = [(254, 4, 1, subfile)] * bool(subfile) + [(256, 3, 1, w), (257, 3, 1, h), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, photometric),
-            (273, 4, 1, 0), (277, 3, 1, 1), (278, 3, 1, h), (279, 4, 1, len(data)),
-            (33421, 3, 2, 2 | 2 << 16), (33422, 1, 4, int.from_bytes(bytes([0, 1, 1, 2]), "little"))]
+            (273, 4, 1, 0), (277, 3, 1, 1 if mosaic.ndim == 2 else mosaic.shape[2]), (278, 3, 1, h),
+            (279, 4, 1, len(data))] + \
+        [(33421, 3, 2, 2 | 2 << 16), (33422, 1, 4, int.from_bytes(bytes([0, 1, 1, 2]), "little"))] * cfa
     ifd_size = 2 + 12 * len(tags) + 4
     offset = 8 + ifd_size  # the pixels after the header and the IFD
     entries = b"".join(struct.pack("<HHII", tag, kind, count, offset if tag == 273 else value)
                        for tag, kind, count, value in tags)
     path.write_bytes(b"II*\0" + struct.pack("<I", 8) + struct.pack("<H", len(tags)) + entries + b"\0\0\0\0" + data)
+
+
+def test_white_is_zero_and_lab_tiffs(tmp_path):
+    """A 16-bit grey TIFF whose photometric interpretation is WhiteIsZero (0 is white): OpenImageIO
+    inverts 1- to 8-bit ones but returned 16-bit ones as stored, so psctl read the capture
+    inverted without a word (helper-180: l2 58.24 degrees against 5.34 for its BlackIsZero twin;
+    as a mask, the background). Now read as its twin. A CIE L*a*b* TIFF was read as R, G, B: now
+    one line saying so."""
+    values = (np.arange(6 * 8).reshape(6, 8) * 1361 % 65536).astype(np.uint16)
+    _write_cfa_tiff(tmp_path / "black.tif", values, 1, cfa=False)
+    _write_cfa_tiff(tmp_path / "white.tif", 65535 - values, 0, cfa=False)
+    black, white = read_image(tmp_path / "black.tif")[0], read_image(tmp_path / "white.tif")[0]
+    assert black.shape == white.shape == (6, 8, 1)
+    np.testing.assert_allclose(white, black, atol=1e-6)
+    assert black.max() > 0.9 and black.min() == 0  # (not a flat picture both ways)
+    disc = np.zeros((6, 8), np.uint16)
+    disc[1:5, 2:6] = 65535
+    _write_cfa_tiff(tmp_path / "mask.tif", 65535 - disc, 0, cfa=False)  # white object on black, stored inverted
+    assert (read_image(tmp_path / "mask.tif")[0] > 0.5).sum() == 16  # as psctl's masks read it
+    _write_cfa_tiff(tmp_path / "lab.tif", np.full((6, 8, 3), 1000, np.uint16), 8, cfa=False)
+    with pytest.raises(PsctlError, match=r"lab.tif: holds CIE L\*a\*b\* colour \(TIFF photometric interpretation 8\), "
+                                         r"which psctl would read as R, G, B; export it as RGB"):
+        read_image(tmp_path / "lab.tif")
+    _write_cfa_tiff(tmp_path / "rgb.tif", np.full((6, 8, 3), 1000, np.uint16), 2, cfa=False)  # the same as RGB reads
+    assert read_image(tmp_path / "rgb.tif")[0].shape == (6, 8, 3)
 
 
 def test_camera_raw_files_are_refused_with_how_to_convert_them(tmp_path):

@@ -102,8 +102,10 @@ class Capture:
 
     @property
     def sample_kinds(self) -> tuple[str, ...]:
-        """Each image's sample type as the notes name it: "8-bit", "16-bit" (integers) or "half", "float"."""
-        return tuple(f"{b}-bit" if t.startswith(("uint", "int")) else t for b, t in self.kinds)
+        """Each image's sample type as the notes name it: "8-bit", "16-bit" (integers), "16-bit signed"
+        (read as value / 32767: the same codes read twice as bright as unsigned ones) or "half", "float"."""
+        return tuple(f"{b}-bit" + " signed" * t.startswith("int") if t.startswith(("uint", "int")) else t
+                     for b, t in self.kinds)
 
     @property
     def channel_counts(self) -> tuple[int, ...]:

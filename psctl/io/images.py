@@ -36,6 +36,7 @@ RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", 
                 ".x3f", ".mef", ".gpr")
 # TIFF photometric interpretations of sensor data (DNG's colour filter array and linear raw)
 _RAW_PHOTOMETRIC = {32803: "a colour filter array", 34892: "linear raw"}
+_LAB_PHOTOMETRIC = {8: "CIE L*a*b*", 9: "ICC L*a*b*", 10: "ITU L*a*b*"}
 JPEG_ICC_MAX = 65519  # bytes of an ICC profile in one JPEG APP2 segment (65533 less its 14-byte header)
 RAW_HINT = ("convert it to a 16-bit linear TIFF first, e.g. `dcraw -4 -T {name}` (or a raw converter with a linear "
             "profile, no tone curve and fixed white balance); docs/formats.md, 'Camera raw files'")
@@ -77,6 +78,9 @@ class ImageInfo:
     profile_problem: str = ""
     # what a PNG's colour chunks say its values are: "sRGB", "gamma 2.2" (a gAMA chunk), "" (neither, or linear)
     png_tag: str = ""
+    # a TIFF of photometric interpretation WhiteIsZero (0) wider than 8 bits: 0 is white, which
+    # OpenImageIO inverts for 1- to 8-bit samples but returns as stored for 16 and 32 (read_image inverts)
+    white_is_zero: bool = False
 
 
 # The picture among several layers of an EXR (Blender's multilayer files: Combined; renderers'
@@ -207,6 +211,15 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
                                    f"{RAW_HINT.format(name=path.name)}")
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
+        photometric = spec.get_int_attribute("tiff:PhotometricInterpretation", -1) \
+            if inp.format_name() == "tiff" else -1
+        if photometric in _LAB_PHOTOMETRIC:  # OpenImageIO returns L*, a*, b* as R, G, B
+            raise PsctlError(path, f"holds {_LAB_PHOTOMETRIC[photometric]} colour (TIFF photometric interpretation "
+                                   f"{photometric}), which psctl would read as R, G, B; export it as RGB")
+        white_is_zero = photometric == 0 and dtype != "uint8"
+        if white_is_zero and not dtype.startswith("uint"):
+            raise PsctlError(path, f"is a {dtype} TIFF whose photometric interpretation is WhiteIsZero (0 is white): "
+                                   f"psctl cannot tell its black; export it as BlackIsZero (min-is-black)")
         orientation = spec.get_int_attribute("Orientation", 1)
         orientation = orientation if orientation in _UPRIGHT else 1
         try:
@@ -238,7 +251,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
                          inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
                          tuple(spec.channelnames), tone, exposure, problem,
-                         png_colour_tag(path) if inp.format_name() == "png" else "")
+                         png_colour_tag(path) if inp.format_name() == "png" else "", white_is_zero)
     finally:
         inp.close()
 
@@ -441,6 +454,8 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
             pixels[y0:y1, x0:x1] = data[y0 - y:y1 - y, x0 - x:x1 - x]
     if info.pick:
         pixels = pixels[..., list(info.pick)]
+    if info.white_is_zero:  # grey (and alpha, not inverted): as OpenImageIO reads 8-bit WhiteIsZero
+        pixels[..., 0] = 1.0 - pixels[..., 0]
     pixels = upright(np.ascontiguousarray(pixels), info.orientation)
     # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
     # OpenImageIO already rescales them to the container's full range.
