@@ -937,7 +937,8 @@ def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: Progress
     advance = progress(f"{cap.name}: reading + l2", cap.n_images)
     check = ImageCheck(cap)  # black images, negative values: notes
     hot: dict[int, int] = {}
-    for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo)):
+    for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo,
+                                        peak=check.peak_reader())):
         check.see(k, img[mask[box]])
         # as the networks do: a hot value gives its own pixel a normal toward that image's light (66
         # degrees off in test_l2's sphere) and an albedo thousands of times the rest

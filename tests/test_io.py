@@ -614,6 +614,33 @@ def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):
                for n in notes), notes
 
 
+def test_twelve_bit_codes_in_a_sixteen_bit_file_beside_full_range_ones_are_noted(tmp_path):
+    """Every third image saved as 12-bit codes (0..4095) in a 16-bit PNG reads 16 times darker:
+    helper-180 measured l2 5.21 -> 7.74 degrees without a note (the types match, and 16 times is
+    under the darker-image note's 20). Now a note names them, in psctl normals and psctl info
+    --check; a capture saved wholly so, or full-range, has none."""
+    from psctl.api import run_normals
+    from psctl.io.capture import open_capture
+    from psctl.io.summary import describe_capture
+
+    for name, which in (("mixed", range(0, 12, 3)), ("all", range(12)), ("plain", ())):
+        write_capture(tmp_path / name, n=12, size=24)
+        for k in which:
+            path = tmp_path / name / f"{k + 1:03d}.png"
+            img = read_image(path)[0]
+            write_image(path, np.round(img * 4095) / 65535, "uint16")
+    words = "have no value above code 4095 of 65535 and read over 8 times darker over the object"
+    notes = run_normals(tmp_path / "mixed", method="l2", write=False)["notes"]
+    hit = [n for n in notes if words in n]
+    assert len(hit) == 1 and hit[0].startswith("images: 4 of 12 have") and "001.png, 004.png" in hit[0], notes
+    assert not any("times darker over the object than the median image" in n and "over 20" in n for n in notes)
+    info = describe_capture(tmp_path / "mixed", check=True)
+    assert any(words in n for n in info["check"]["notes"]), info["check"]["notes"]
+    for name in ("all", "plain"):
+        assert not any("code 4095" in n for n in run_normals(tmp_path / name, method="l2", write=False)["notes"])
+    assert open_capture(tmp_path / "mixed").kinds[0] == (16, "uint16")
+
+
 def test_capture_file_names_in_any_case_and_files_it_does_not_read(tmp_path):
     """Mask.PNG and Light_Directions.txt are the mask and the light file; two masks are an error;
     a file that looks meant for psctl but is not read (light_intensity.txt) gets a note."""

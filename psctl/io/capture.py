@@ -1121,7 +1121,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
                 progress: Progress | None = None,
                 clipped: Callable[[int, np.ndarray], None] | None = None,
                 decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None,
-                ambient_check: "bool | tuple[slice, slice]" = True) -> Iterator[np.ndarray]:
+                ambient_check: "bool | tuple[slice, slice]" = True,
+                peak: Callable[[int, float], None] | None = None) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
@@ -1132,7 +1133,9 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     this pass's decoded images kept in it. ``ambient_check``: an image that subtracting the
     ambient image turns black inside ``box`` is an error (False: a later pass over parts of
     images the first pass checked whole; a pair of slices: inside that part of ``box``, the
-    part a caller uses of a larger box read for a later pass)."""
+    part a caller uses of a larger box read for a later pass). ``peak(k, value)``, when given,
+    gets each integer image's largest value in ``box`` as read (1.0: the top code), before
+    anything is subtracted or divided."""
     capture = as_capture(capture)
     if progress is not None and not callable(progress):  # a TypeError mid-read otherwise (a review: True)
         raise PsctlError(None, f"progress must be None or a callable advance(k), called with 1 per image, not "
@@ -1186,6 +1189,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
             memo.keep(p, box, rgb, info, stamp)
         if clipped is not None and has_top_code(info):
             clipped(k, saturated_map(rgb))
+        if peak is not None and has_top_code(info) and rgb.size:
+            peak(k, float(rgb.max()))
         rgb = capture.to_linear(k, rgb)
         if ambient is not None:
             rgb = minus_ambient(rgb, ambient, capture, p.name, ambient_check)
@@ -1290,6 +1295,13 @@ CLIPPED_NOTE = 0.10
 
 BRIGHT_OUTLIER = 20  # an image whose mean over the object is over this many times the median image's: noted
 DARK_OUTLIER = 20  # and one (not black) whose mean is under the median's over this
+# 12-bit codes saved in a 16-bit file read 16 times darker: an unsigned 16-bit image with no value
+# above code 4095 whose mean is under the median's over this, beside images that go above it, is
+# (and some above code 255) noted as such (helper-180: every third image so, l2 5.21 -> 7.74 degrees without a word, 16 times
+# being under DARK_OUTLIER; DiLiGenT's darkest image is 1.7 times under its median, a syntest dragon's 6.8)
+TWELVE_BIT_DARKER = 8
+TWELVE_BIT_TOP = 4095 / 65535
+EIGHT_BIT_TOP = 255 / 65535  # (none above it: 8-bit codes, 257 times darker, the darker-image note's case)
 
 
 class ImageCheck:
@@ -1305,6 +1317,15 @@ class ImageCheck:
         self.negative: set[int] = set()
         self.clipped: dict[int, list[int]] = {}  # image -> [object pixels at the top code value, object pixels]
         self.sums: dict[int, list[float]] = {}  # image -> [sum of its values over the object, their count]
+        self.peaks: dict[int, float] = {}  # integer image -> its largest value read (1.0: the top code)
+
+    def see_peak(self, k: int, value: float) -> None:
+        """Image ``k``'s largest value in a box read (iter_images' ``peak``): the largest is kept."""
+        self.peaks[k] = max(value, self.peaks.get(k, value))
+
+    def peak_reader(self, start: int = 0) -> Callable[[int, float], None]:
+        """iter_images' ``peak`` callback for images read from ``start`` on."""
+        return lambda k, value: self.see_peak(start + k, value)
 
     def see_clipped(self, k: int, top: np.ndarray, mask: np.ndarray) -> None:
         """``top``: image ``k``'s saturated-pixel flags (see iter_images), ``mask`` the object's
@@ -1355,6 +1376,7 @@ class ImageCheck:
             again = done.issuperset(range(start, capture.n_images))
             for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
                                                 clipped=None if again else self.clipped_reader(mask, box, start),
+                                                peak=None if again else self.peak_reader(start),
                                                 decoded=decoded, memo=memo, ambient_check=ambient_check),
                                     start):
                 if not again:
@@ -1398,6 +1420,21 @@ class ImageCheck:
         # frontal one): 8-bit codes in a 16-bit file read 257 times darker, as a light that barely fired
         # or a wrong intensity do (helper-163: one such image of ball's 96 took l2 from 4.49 to 4.91 degrees)
         skip = set(named_dark) | set(black)
+        # 16-bit files of 12-bit codes beside full-range ones: said as such, not as a dim light below
+        kinds = self.capture.kinds
+        wide = [k for k in self.peaks if kinds[k] == (16, "uint16")]
+        twelve = sorted(k for k in wide if k in level and k not in skip and 0 < level[k] * TWELVE_BIT_DARKER < ref
+                        and EIGHT_BIT_TOP + 1e-7 < self.peaks[k] <= TWELVE_BIT_TOP + 1e-7) \
+            if any(self.peaks[k] > TWELVE_BIT_TOP + 1e-7 for k in wide) else []
+        if twelve:
+            names = few([self.capture.image_paths[i].name for i in twelve])
+            one = len(twelve) == 1
+            notes.append(f"images: {len(twelve)} of {self.capture.n_images} {'has' if one else 'have'} no value above "
+                         f"code 4095 of 65535 and {'reads' if one else 'read'} over {TWELVE_BIT_DARKER} times darker "
+                         f"over the object than the median image ({names}; the median image goes above it): 12-bit "
+                         f"codes saved in a 16-bit file, which read 16 times darker? Save every image alike (e.g. "
+                         f"the codes times 16)")
+            skip |= set(twelve)
         dark = sorted(k for k, v in level.items() if ref > 0 and 0 < v * DARK_OUTLIER < ref and k not in skip)
         if dark:
             worst = min(dark, key=lambda k: level[k])
