@@ -61,7 +61,7 @@ import numpy as np
 from psctl.arrays import as_mask, check_vector_dtype, plain, unit_vectors
 from psctl.errors import ProgressFactory, PsctlError, _short, check_bool, check_path, check_progress, like_default, not_a_file
 from psctl.io.normals import ALBEDO_FORMATS
-from psctl.poisson import solve_laplacian
+from psctl.poisson import laplacian, solve_laplacian, solve_system
 
 if TYPE_CHECKING:
     from psctl.io.mesh import Mesh
@@ -253,9 +253,12 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     tu, tv = -nx, ny  # s * dz/dcol = -nx and s * dz/drow = +ny, in both projections
 
     # --- graph of valid pixels: horizontal and vertical edges (i -> j = right / down) ------------
-    index = np.full((h, w), -1, np.int64)
-    index[valid] = np.arange(int(valid.sum()))
     npix = int(valid.sum())
+    # 32-bit pixel indices where they fit (always, short of 2 billion pixels): the edge arrays and the
+    # multigrid's coordinates are half the memory, the same numbers
+    itype = np.int32 if npix < 2**31 - 1 else np.int64
+    index = np.full((h, w), -1, itype)
+    index[valid] = np.arange(npix, dtype=itype)
     hor = valid[:, :-1] & valid[:, 1:]
     ver = valid[:-1, :] & valid[1:, :]
     ei = np.concatenate([index[:, :-1][hor], index[:-1, :][ver]])
@@ -267,7 +270,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
     t_all = np.concatenate([tu[valid], tv[valid]])
     axis_off = np.concatenate([np.zeros(n_hor, np.int64), np.full(len(ei) - n_hor, npix)])
     fwd, bwd = ei + axis_off, ej + axis_off  # rows in s_all/t_all of the two one-sided terms
-    coords = np.nonzero(valid)  # (row, col) of each unknown, for the multigrid's aggregates
+    coords = tuple(np.asarray(a, itype) for a in np.nonzero(valid))  # (row, col) of each unknown, for the multigrid
     del index, su, sv, tu, tv, n, nx, ny, nz, facing, finite, good
 
     graph_n, labels = csgraph.connected_components(
@@ -280,7 +283,14 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         sf, sb = s_all[fwd], s_all[bwd]
         c = 0.5 * (sf * sf + sb * sb)
         b = 0.5 * (sf * t_all[fwd] + sb * t_all[bwd])
-        z, its, _, converged = solve_laplacian(npix, ei, ej, c, b, pins, coords, None, cfg)
+        del sf, sb, s_all, t_all, fwd, bwd, axis_off
+        if len(ei):  # the system, then the edges' arrays let go: 12 MP of normals peaked at 4.1 GB with them
+            L, rhs = laplacian(npix, ei, ej, c, pins), np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
+            del c, b, ei, ej
+            z, its, _, converged = solve_system(L, rhs, coords, None, cfg)
+            del L, rhs
+        else:
+            z, its, _, converged = solve_laplacian(npix, ei, ej, c, b, pins, coords, None, cfg)
         rounds, total_its = 1, its
     else:
         z, rounds, total_its, kept, converged = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
@@ -483,8 +493,10 @@ def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarr
     colors = None if colors is None else np.asarray(plain(colors))
     cut = None if cut is None else np.asarray(plain(cut), bool)
     valid = np.isfinite(depth)
-    index = np.full((h + 1, w + 1), -1, np.int64)  # padded so blocks at the border see "no pixel"
-    index[:h, :w][valid] = np.arange(int(valid.sum()))
+    nv = int(valid.sum())  # (the faces are int32 in the end: 32-bit indices from the start where they fit)
+    itype = np.int32 if nv < 2**31 - 1 else np.int64
+    index = np.full((h + 1, w + 1), -1, itype)  # padded so blocks at the border see "no pixel"
+    index[:h, :w][valid] = np.arange(nv, dtype=itype)
     a, b = index[:-1, :-1], index[:-1, 1:]  # top-left, top-right of each block
     c, d = index[1:, :-1], index[1:, 1:]  # bottom-left, bottom-right
     a, b, c, d = (x.ravel() for x in (a, b, c, d))
@@ -501,7 +513,7 @@ def depth_mesh(depth: np.ndarray, K: np.ndarray | None = None, normals: np.ndarr
     for missing, tri in ((0, (b, c, d)), (1, (a, c, d)), (2, (a, d, b)), (3, (a, c, b))):
         sel = three & ~ok[missing]
         tris.append(np.stack(tri, 1)[sel])
-    faces = np.concatenate(tris).astype(np.int32)
+    faces = np.concatenate(tris).astype(np.int32, copy=False)
     vertices = depth_to_points(depth, K)[valid]
     return Mesh(vertices=vertices, faces=faces,
                 normals=None if normals is None else normals[valid].astype(np.float32),

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["solve_laplacian", "laplacian", "pcg", "SmoothedAggregation"]
+__all__ = ["solve_laplacian", "solve_system", "laplacian", "pcg", "SmoothedAggregation"]
 
 
 def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b: np.ndarray, pins: np.ndarray,
@@ -32,8 +32,17 @@ def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b:
     (z, cg iterations, preconditioner used, whether CG met cg_rtol)."""
     if len(ei) == 0:  # isolated pixels only
         return np.zeros(npix), 0, None, True
-    L = laplacian(npix, ei, ej, c, pins)
-    rhs = np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
+    return solve_system(laplacian(npix, ei, ej, c, pins), np.bincount(ej, b, npix) - np.bincount(ei, b, npix),
+                        coords, x0, cfg, amg)
+
+
+def solve_system(L, rhs: np.ndarray, coords: tuple[np.ndarray, np.ndarray], x0: np.ndarray | None, cfg: dict,
+                 amg: "SmoothedAggregation | None" = None
+                 ) -> tuple[np.ndarray, int, "SmoothedAggregation | None", bool]:
+    """``solve_laplacian`` from its matrix ``L`` (``laplacian``) and right-hand side ``rhs`` [npix]:
+    a caller that has no more use for the edges' arrays frees them before the solve (poisson in
+    ``psctl.depth.integrate``: with its other per-edge arrays, 4.2 -> 2.4 GB on 12 MP of normals)."""
+    npix = L.shape[0]
     if npix <= cfg["amg_max_coarse"]:
         import scipy.linalg
 
@@ -77,17 +86,20 @@ def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray 
     y = M(r)
     p = y.copy()
     ry = _dot(r, y)
+    del y  # (each iteration's y and q are let go before the next are made: two vectors fewer at the peak)
     for it in range(1, maxiter + 1):
         q = A @ p
         alpha = ry / _dot(p, q)
         x += np.multiply(p, alpha, out=tmp)
         r -= np.multiply(q, alpha, out=tmp)
+        del q
         if scaled_max(r) <= stop:
             return x, it, True
         y = M(r)
         ry, ry_old = _dot(r, y), ry
         p *= ry / ry_old
         p += y
+        del y
     return x, maxiter, False
 
 
@@ -98,8 +110,8 @@ def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np
     diag = np.bincount(ei, c, npix) + np.bincount(ej, c, npix)
     diag[pins] += max(float(diag.mean()), 1e-12)
     diag = np.maximum(diag, 1e-300)  # isolated pixels are pinned, so only a guard
-    rows = np.concatenate([ei, ej, np.arange(npix)])
-    cols = np.concatenate([ej, ei, np.arange(npix)])
+    rows = np.concatenate([ei, ej, np.arange(npix, dtype=ei.dtype)])  # (32-bit indices stay 32-bit)
+    cols = np.concatenate([ej, ei, np.arange(npix, dtype=ei.dtype)])
     return sp.csr_matrix((np.concatenate([-c, -c, diag]), (rows, cols)), shape=(npix, npix))
 
 
@@ -128,10 +140,15 @@ class SmoothedAggregation:
             dinv = 1.0 / A.diagonal()
             omega = (4.0 / 3.0) / _jacobi_radius_bound(A, dinv)
             P0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, nc))
-            P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr()
-            R = P.T.tocsr()
-            self.levels.append((A, omega * dinv, P, R))
+            # copied: the difference's arrays have room for both operands' entries (a third more)
+            P = (P0 - sp.diags(omega * dinv) @ (A @ P0)).tocsr().copy()
+            del P0
+            # the restriction R = P^T is P's arrays read by column (csc_matvec sums each coarse entry
+            # over the fine ones in the same order as R's csr_matvec: the same numbers), not a copy
+            self.levels.append((A, omega * dinv, P, P.T))
+            R = P.T.tocsr()  # a csr R for the Galerkin product only: as before
             A, coords = (R @ (A @ P)).tocsr(), coarse_coords
+            del R
         # sparse LU: single-threaded and tiny here (a dense Cholesky calls multithreaded BLAS,
         # which is slow on a busy 2-core machine); also copes when coarsening stalled early
         self.coarse = sla.splu(A.tocsc()).solve
@@ -143,13 +160,23 @@ class SmoothedAggregation:
         if k == len(self.levels):
             return self.coarse(b)
         A, wd, P, R = self.levels[k]
+
+        def residual(x: np.ndarray) -> np.ndarray:  # b - A x in A x's own array (one temporary)
+            t = A @ x
+            return np.subtract(b, t, out=t)
+
         x = wd * b
         for _ in range(self.sweeps - 1):
-            x += wd * (b - A @ x)
-        x += P @ self._vcycle(k + 1, R @ (b - A @ x))
+            x += _scaled(residual(x), wd)
+        x += P @ self._vcycle(k + 1, R @ residual(x))
         for _ in range(self.sweeps):
-            x += wd * (b - A @ x)
+            x += _scaled(residual(x), wd)
         return x
+
+
+def _scaled(t: np.ndarray, wd: np.ndarray) -> np.ndarray:
+    t *= wd
+    return t
 
 
 def _jacobi_radius_bound(A, dinv: np.ndarray) -> float:
@@ -167,11 +194,17 @@ def _aggregate(A, coords: tuple[np.ndarray, np.ndarray], theta: float):
     import scipy.sparse.csgraph as csgraph
 
     r, c = coords
-    A = A.tocoo()
-    i, j, v = A.row, A.col, A.data
-    d = A.diagonal()
-    keep = (i != j) & (-v >= theta * np.sqrt(d[i] * d[j])) & (r[i] // 3 == r[j] // 3) & (c[i] // 3 == c[j] // 3)
     n = A.shape[0]
+    # A's entries in its own order (as A.tocoo() gives them, without copying A), tested a slice at a
+    # time: the whole test's temporaries took several arrays of A's size at the solve's peak
+    j, v = A.indices, A.data
+    i = np.repeat(np.arange(n, dtype=j.dtype), np.diff(A.indptr))
+    d = A.diagonal()
+    keep = np.empty(len(v), bool)
+    for s in range(0, len(v), 1 << 20):
+        ii, jj = i[s:s + (1 << 20)], j[s:s + (1 << 20)]
+        keep[s:s + (1 << 20)] = ((ii != jj) & (-v[s:s + (1 << 20)] >= theta * np.sqrt(d[ii] * d[jj]))
+                                 & (r[ii] // 3 == r[jj] // 3) & (c[ii] // 3 == c[jj] // 3))
     graph = sp.csr_matrix((np.ones(int(keep.sum()), np.int8), (i[keep], j[keep])), shape=(n, n))
     _, agg = csgraph.connected_components(graph, directed=False)
     first = np.unique(agg, return_index=True)[1]
