@@ -752,6 +752,8 @@ def test_stream_never_uses_test_shapes(tmp_path, monkeypatch):
     default = {k: v for k, v in cfg.items() if k != "mesh_dir"}
     s = SynthStream(default)
     assert set(s.pool.names) == {"blobby"} and s.notes
+    from psctl.synth.stream import SynthDataset  # each DataLoader worker's stream too (it refused the
+    assert set(next(iter(SynthDataset(default)))["shapes"]) == {"blobby"}  # defaults it had filled in)
     with pytest.raises(PsctlError, match="no training mesh"):
         SynthStream({**default, "require_meshes": True})
     with pytest.raises(PsctlError, match="no geometry source left: shapes gives only mesh"):

@@ -675,10 +675,13 @@ class SynthDataset(torch.utils.data.IterableDataset):
     def __init__(self, config: dict | None = None, **overrides):
         super().__init__()
         self.cfg = make_config(config, **overrides)
+        # the mesh options the caller did not name: make_config filled in the defaults, which
+        # SynthStream would take for named meshes and refuse where lucy is absent (a fresh clone)
+        self._unnamed = {"meshes", "mesh_dir"} - set(config or {}) - set(overrides)
 
     def __iter__(self) -> Iterator[dict]:
         info = torch.utils.data.get_worker_info()
-        cfg = dict(self.cfg)
+        cfg = {k: v for k, v in self.cfg.items() if k not in self._unnamed}
         if info is not None:
             torch.set_num_threads(1)  # this process is a worker: its own thread budget
             cfg["seed"] = int(cfg["seed"]) + 7919 * info.id
