@@ -21,7 +21,11 @@ and takes the max at the end: memory grows with the number of images (about 14 G
    receptive field radius, a multiple of 4): the max fusion is per pixel and the halo holds every
    input an inner pixel sees, so tiled == untiled (the zero padding at a tile border only reaches
    the halo). Tiles are grouped so that at most ``group_mb`` of fused features are held at once;
-   each group is one pass over the images.
+   each group is one pass over the images. Passes after the first read only the group's part of
+   each image where the reader can (``reader.band``: psctl.io.capture.ImageCheck.reader decodes
+   the rows down to the part's last, not the whole image, and does not check again what the
+   first pass checked); the hot pixels the first pass clamped are set alike. 12 MP 16-bit PNGs, 8
+   groups: the 8 group passes' reads took 0.32 s a image instead of 0.76 (CPU, helper-178).
 
 channels_last and torch.inference_mode throughout; ``device`` auto | cpu | cuda | cuda:K. Autocast
 (``config["autocast"]``: bf16 on CUDA and on CPUs with native bf16, fp16 on CUDA) is off by default:
@@ -321,15 +325,50 @@ class _RegionImages:
         self.inside = np.zeros(self.shape, bool)  # the mask over the padded region
         self.inside[: self.rh, : self.rw] = self.mask[..., 0] > 0
         self.hot: dict[int, int] = {}  # image index -> values clamp_hot_pixels set (first pass)
+        # image index -> (rows, columns, channels, values) clamp_hot_pixels set, region coordinates: what a
+        # later pass over part of the image sets (the clamp's level is the whole image's mean)
+        self.fixes: dict[int, tuple[np.ndarray, ...]] = {}
 
-    def _prepare(self, img: np.ndarray, k: int) -> np.ndarray:
+    def _prepare(self, img: np.ndarray, k: int, part: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        y0, y1, x0, x1 = part or (0, self.shape[0], 0, self.shape[1])
+        rh, rw = max(min(y1, self.rh) - y0, 0), max(min(x1, self.rw) - x0, 0)  # what the image holds of part
         if img.ndim == 2:  # grey: the network takes RGB
             img = img[..., None]
-        if img.shape[:2] != (self.rh, self.rw):
+        if img.shape[:2] != (rh, rw):
             raise PsctlError(None, f"image {k + 1}: size changed while reading")
-        out = np.zeros((*self.shape, 3), np.float32)
-        np.multiply(img[..., :3], self.mask, out=out[: self.rh, : self.rw])
+        out = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+        np.multiply(img[..., :3], self.mask[y0:y0 + rh, x0:x0 + rw], out=out[:rh, :rw])
         return out
+
+    def part(self, y0: int, y1: int, x0: int, x1: int) -> Iterator[np.ndarray]:
+        """The images cut to rows y0:y1, columns x0:x1 of the region: the first pass's images cut
+        (it reads them whole), later passes' read as that part only where the reader can
+        (``reader.band``: the rows decoded down to y1, not the whole image; psctl.io.capture),
+        with the hot pixels the first pass found set alike. The same values either way."""
+        band = getattr(self.reader, "band", None)
+        if self.passes == 0 or band is None or (y0, y1, x0, x1) == (0, *self.shape[:1], 0, self.shape[1]):
+            for x in self:
+                yield x[y0:y1, x0:x1]
+            return
+        self.passes += 1
+        for x in self.cache:
+            self.advance(1)
+            yield x[y0:y1, x0:x1]
+        k = len(self.cache)
+        (ry, rx), inside = self.read_box, y0 < self.rh and x0 < self.rw
+        box = (slice(ry.start + y0, ry.start + min(y1, self.rh)), slice(rx.start + x0, rx.start + min(x1, self.rw)))
+        for img in band(k, box) if inside else (np.zeros((0, 0, 3), np.float32) for _ in range(k, self.n)):
+            x = self._prepare(img, k, (y0, y1, x0, x1)) if inside else np.zeros((y1 - y0, x1 - x0, 3), np.float32)
+            fix = self.fixes.get(k)
+            if fix is not None and inside:
+                ys, xs, cs, v = fix
+                sel = (ys >= y0) & (ys < y1) & (xs >= x0) & (xs < x1)
+                x[ys[sel] - y0, xs[sel] - x0, cs[sel]] = v[sel]
+            self.advance(1)
+            yield x
+            k += 1
+        if k != self.n:
+            raise PsctlError(None, f"expected {self.n} images, got {k}")
 
     def __iter__(self) -> Iterator[np.ndarray]:
         first = self.passes == 0
@@ -342,10 +381,13 @@ class _RegionImages:
             x = self._prepare(img, k)
             if first and not np.isfinite(x).all():
                 raise PsctlError(None, f"image {k + 1} contains NaN or infinite values")
-            x, hot = clamp_hot_pixels(x, self.inside)  # the same in every pass: it sees one image
+            clamped, hot = clamp_hot_pixels(x, self.inside)  # the same in every pass: it sees one image
+            if first and hot:
+                self.hot[k] = hot
+                where = np.nonzero(clamped != x)
+                self.fixes[k] = (*where, clamped[where])
+            x = clamped
             if first:
-                if hot:
-                    self.hot[k] = hot
                 for c in range(3):  # channel by channel: x.max(-1) over a length-3 axis is ~15x slower
                     np.maximum(self.peak, x[..., c], out=self.peak)
                 if len(self.cache) == k and (k + 1) * x.nbytes <= self.cache_bytes:
@@ -518,8 +560,8 @@ def run_network(model: "PSFCN", reader: Reader, n: int, lights: np.ndarray | Non
             fused: list[torch.Tensor | None] = [None] * len(group)
             pending: list[np.ndarray] = []
             k0 = 0
-            for k, img in enumerate(stream):
-                pending.append(img[gy0:gy1, gx0:gx1])
+            for k, img in enumerate(stream.part(gy0, gy1, gx0, gx1)):
+                pending.append(img)
                 if len(pending) < chunk and k < n - 1:
                     continue
                 xt = torch.from_numpy(np.stack(pending))  # [c, gh, gw, 3] on the host
@@ -836,6 +878,7 @@ def array_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.ndarra
         for k in range(start, n):
             yield images[k][box]
 
+    reader.band = reader  # (part of the region: the same slices)
     res = run_views(model, reader, n, lights, mask, run["normalization"], run["train_images"], config, progress, method,
                     run.get("input_mean"), run.get("input_clip"))
     res.notes.append(note)
@@ -1039,6 +1082,29 @@ class ReadMemo:
                 self.used += img.nbytes
             yield img
             k += 1
+
+    @property
+    def band(self) -> "Reader | None":
+        """``reader.band`` through the memo (run_network's later passes: part of a box read whole
+        before), or None where the reader has none."""
+        band = getattr(self.reader, "band", None)
+        if band is None:
+            return None
+
+        def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+            want = (box[0].start, box[0].stop, box[1].start, box[1].stop)
+            kept: list[np.ndarray] = []
+            for ((r0, r1, _), (c0, c1, _)), imgs in self.kept.items():
+                if len(imgs) > start and None not in (r0, r1, c0, c1) and r0 <= want[0] <= want[1] <= r1 and c0 <= want[2] <= want[3] <= c1:
+                    kept = [x[want[0] - r0:want[1] - r0, want[2] - c0:want[3] - c0] for x in imgs]
+                    break
+            k = start
+            while k < len(kept):
+                yield kept[k]
+                k += 1
+            yield from band(k, box)
+
+        return read
 
 
 # The "ensemble" method: the calibrated networks whose normals it averages. On psctl's synthetic

@@ -2635,3 +2635,17 @@ def test_a_signal_while_staging_starts_leaves_no_folder_and_no_probe(tmp_path, m
     monkeypatch.undo()
     atomic.ensure_writable_dir(tmp_path / "c")
     assert list((tmp_path / "c").iterdir()) == []
+
+
+@pytest.mark.parametrize("ext,dtype", [("png", "uint16"), ("png", "uint8"), ("tif", "float"), ("exr", "half")])
+def test_read_image_rows_are_the_whole_image_cut(tmp_path, ext, dtype):
+    # psctl.infer's later passes decode only a tile group's rows: the same values as reading whole
+    rng = np.random.default_rng(3)
+    img = rng.random((37, 23, 3)).astype(np.float32)
+    p = tmp_path / f"a.{ext}"
+    write_image(p, img, dtype, kind="linear")
+    whole, info = read_image(p)
+    for rows in ((0, 37), (0, 5), (11, 29), (36, 37)):
+        part, part_info = read_image(p, rows=rows)
+        assert part.shape == (rows[1] - rows[0], 23, 3) and part_info == info
+        assert part.tobytes() == whole[rows[0]:rows[1]].tobytes()

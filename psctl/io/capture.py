@@ -1122,7 +1122,7 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
                 clipped: Callable[[int, np.ndarray], None] | None = None,
                 decoded: "Prefetch | None" = None, memo: "DecodeMemo | None" = None,
                 ambient_check: "bool | tuple[slice, slice]" = True,
-                peak: Callable[[int, float], None] | None = None) -> Iterator[np.ndarray]:
+                peak: Callable[[int, float], None] | None = None, rows_only: bool = False) -> Iterator[np.ndarray]:
     """Yield each image as float32 [h, w, 3] (cropped to ``box``, a pair of slices such as
     ``bounding_box`` gives), divided by its intensities, and by its light's falloff where the
     capture has ``near`` lights. ``capture``: a Capture or a folder. ``clipped(k, top)``, when
@@ -1135,7 +1135,9 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     images the first pass checked whole; a pair of slices: inside that part of ``box``, the
     part a caller uses of a larger box read for a later pass). ``peak(k, value)``, when given,
     gets each integer image's largest value in ``box`` as read (1.0: the top code), before
-    anything is subtracted or divided."""
+    anything is subtracted or divided. ``rows_only``: decode only the rows of ``box``
+    (``read_image``'s ``rows``), for a later pass over images read whole before (their NaN and
+    truncation checked there)."""
     capture = as_capture(capture)
     if progress is not None and not callable(progress):  # a TypeError mid-read otherwise (a review: True)
         raise PsctlError(None, f"progress must be None or a callable advance(k), called with 1 per image, not "
@@ -1171,7 +1173,8 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
     for k, p in enumerate(capture.image_paths):
         got = None if memo is None or box is None else memo.take(p, box)
         # not from the memo: kept there below, stamped as the file was before it is read
-        stamp = memo.stamp(p) if memo is not None and box is not None and got is None else None
+        # (a part decoded for a later pass is not kept: the memo keeps what whole passes read)
+        stamp = memo.stamp(p) if memo is not None and box is not None and got is None and not rows_only else None
         if got is None and decoded is not None and box is not None:
             got = decoded.take(p, box)
             if got is not None and stamp is not None:
@@ -1179,11 +1182,14 @@ def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] |
         if got is not None:
             rgb, info = got  # cut to box in the helper or an earlier pass; the same size checked there
         else:
-            pixels, info = read_image(p)
+            band = range(*box[0].indices(capture.height)) if rows_only and box is not None else None
+            pixels, info = read_image(p, rows=None if band is None else (band.start, band.stop))
             if (info.width, info.height) != (capture.width, capture.height):  # changed since open
                 raise PsctlError(p, f"size {info.width}x{info.height} differs from the other images")
             rgb = to_rgb(pixels)
-            if box is not None:
+            if band is not None:
+                rgb = rgb[:, box[1]]
+            elif box is not None:
                 rgb = rgb[box]
         if stamp is not None:
             memo.keep(p, box, rgb, info, stamp)
@@ -1384,6 +1390,21 @@ class ImageCheck:
                     done.add(k)
                 yield img
 
+        def band(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+            # part of a box this reader gave whole (every image from start on) in an earlier pass: seen
+            # and checked there (ambient included); only the rows of the part are decoded
+            want = (box[0].start, box[0].stop, box[1].start, box[1].stop)
+            for ((r0, r1, _), (c0, c1, _)), done in boxes.items():
+                whole = (r0, r1, c0, c1)
+                if None in whole or None in want or not done.issuperset(range(start, capture.n_images)):
+                    continue
+                if r0 <= want[0] <= want[1] <= r1 and c0 <= want[2] <= want[3] <= c1:
+                    yield from iter_images(capture.subset(range(start, capture.n_images)), box, decoded=decoded,
+                                           memo=memo, ambient_check=False, rows_only=True)
+                    return
+            yield from read(start, box)  # (not inside one: read as any box)
+
+        read.band = band  # what psctl.infer.run_network's later passes call for each tile group's part
         return read
 
     def notes(self, named_dark: Iterable[int] = ()) -> list[str]:

@@ -413,7 +413,8 @@ def exif_focal(path: str | os.PathLike) -> tuple[float, str]:
     return float(f), how
 
 
-def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[np.ndarray, ImageInfo]:
+def read_image(path: str | os.PathLike, allow_nonfinite: bool = False,
+               rows: tuple[int, int] | None = None) -> tuple[np.ndarray, ImageInfo]:
     """Read an image as float32 [H, W, C] plus its header info.
 
     An image with an EXIF Orientation tag (phone and camera JPEGs) is turned upright, as photo
@@ -421,6 +422,13 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     PNG is divided by 65535 and an 8-bit one by 255. Corrupt or truncated files raise
     PsctlError naming the file, as do NaN/inf pixels unless ``allow_nonfinite`` (normal maps,
     where NaN marks "no normal" and the caller counts such pixels).
+
+    ``rows`` (y0, y1): only those rows of the upright image, [y1 - y0, W, C], and only they are
+    checked for NaN. A file of scanlines stored upright (no EXIF turn, no data window) is
+    decoded down to row y1 only (a PNG's decoder still goes through the rows above, but stops
+    there; the float conversion is the rows' alone); any other file is read whole and cut. For a
+    later pass over an image read whole before (psctl.infer: a large capture's tile groups):
+    a truncated file may decode without error above its cut.
     """
     oiio = _oiio()
     path = Path(path)
@@ -435,15 +443,23 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
             raise _cannot_open(path, _geterror(oiio))
         try:
             # OpenImageIO converts integer samples to float by dividing by the type's maximum.
-            stored_channels = inp.spec().nchannels
-            pixels = inp.read_image(0, 0, 0, stored_channels, "float")
+            spec = inp.spec()
+            stored_channels = spec.nchannels
+            band = rows is not None and info.orientation == 1 and info.window is None and spec.tile_width == 0 \
+                and not spec.deep and spec.depth <= 1 and spec.height == info.height and 0 <= rows[0] < rows[1] <= spec.height
+            if band:  # (y: the file's origin, as a PNG's oFFs chunk sets it; read as at 0, as read_image does)
+                pixels = inp.read_scanlines(0, 0, spec.y + rows[0], spec.y + rows[1], spec.z, 0, stored_channels, "float")
+            else:
+                pixels = inp.read_image(0, 0, 0, stored_channels, "float")
             err = _geterror(inp)
         finally:
             inp.close()
     if pixels is None or err:
         raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
     frame = (info.width, info.height) if info.orientation >= 5 else (info.height, info.width)
-    if info.window is None:
+    if band:
+        pixels = np.asarray(pixels, dtype=np.float32).reshape(rows[1] - rows[0], frame[1], stored_channels)
+    elif info.window is None:
         pixels = np.asarray(pixels, dtype=np.float32).reshape(*frame, stored_channels)
     else:  # the data window placed in the frame; outside it, 0 (as EXR viewers show it)
         x, y, w, h = info.window
@@ -457,6 +473,8 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False) -> tuple[
     if info.white_is_zero:  # grey (and alpha, not inverted): as OpenImageIO reads 8-bit WhiteIsZero
         pixels[..., 0] = 1.0 - pixels[..., 0]
     pixels = upright(np.ascontiguousarray(pixels), info.orientation)
+    if rows is not None and not band:
+        pixels = pixels[rows[0]:rows[1]]
     # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
     # OpenImageIO already rescales them to the container's full range.
     if not allow_nonfinite and not np.isfinite(pixels).all():
