@@ -1236,3 +1236,46 @@ def test_precision_option(tmp_path, monkeypatch, capsys):
                       out=tmp_path / "ev")
     assert r["precision"] == "bf16" and json.loads((tmp_path / "ev" / "eval.json").read_text())["precision"] == "bf16"
     assert run_benchmark("folder", root=tmp_path / "root", method="l2", precision="bf16")["precision"] == "float32"
+
+
+def test_later_passes_read_bands_of_rows_with_the_same_normals(tmp_path, monkeypatch):
+    """A capture of several tile groups (one pass over the images each): the passes after the
+    first decode only their group's rows (ImageCheck.reader's ``band``) and set the hot pixels
+    the first pass clamped (helper-178). The normals are those of whole reads, bit for bit,
+    for a network and for the ensemble (ReadMemo's band), a hot pixel among the images."""
+    from psctl.io import capture as capture_module
+    from psctl.io.capture import ImageCheck, load_mask, open_capture
+    from psctl.io.images import read_image, write_image
+    from psctl.infer import capture_normals
+
+    write_capture(tmp_path / "c", n=6, size=72)
+    img = read_image(tmp_path / "c" / "003.png")[0]
+    img[30, 40, 1] = 1000.0  # hot: far over 300 times the image's mean (a float file holds it)
+    write_image(tmp_path / "c" / "003.exr", img, "float")
+    (tmp_path / "c" / "003.png").unlink()
+    names = (tmp_path / "c" / "filenames.txt").read_text().replace("003.png", "003.exr")
+    (tmp_path / "c" / "filenames.txt").write_text(names)
+    cap = open_capture(tmp_path / "c")
+    mask = load_mask(cap)
+    cfg = {"device": "cpu", "tile": 32, "group_mb": 1, "cache_mb": 0, "prefetch_mb": 0}
+    bands = []
+    iter_images = capture_module.iter_images
+    monkeypatch.setattr(capture_module, "iter_images",
+                        lambda *a, **k: (bands.append(k.get("rows_only")), iter_images(*a, **k))[1])
+    got = {m: capture_normals(cap, mask, m, config=cfg) for m in ("ps-fcn-n", "ensemble")}
+    assert bands.count(True) >= 4, bands  # the later passes read bands
+    assert any("hot" in n for n in got["ps-fcn-n"].notes), got["ps-fcn-n"].notes
+    reader = ImageCheck.reader
+
+    def whole_reads(self, *a, **k):  # the reader without its band: later passes read whole boxes again
+        read = reader(self, *a, **k)
+        del read.band
+        return read
+
+    monkeypatch.setattr(ImageCheck, "reader", whole_reads)
+    bands.clear()
+    for m, res in got.items():
+        ref = capture_normals(cap, mask, m, config=cfg)
+        assert res.normals.tobytes() == ref.normals.tobytes(), m
+        assert res.notes == ref.notes
+    assert True not in bands
