@@ -938,7 +938,7 @@ def _l2_normals(cap: "Capture", mask: np.ndarray, box: tuple, progress: Progress
     check = ImageCheck(cap)  # black images, negative values: notes
     hot: dict[int, int] = {}
     for k, img in enumerate(iter_images(cap, box, clipped=check.clipped_reader(mask, box), memo=memo,
-                                        peak=check.peak_reader())):
+                                        ceiling=check.ceiling_reader(mask, box))):
         check.see(k, img[mask[box]])
         # as the networks do: a hot value gives its own pixel a normal toward that image's light (66
         # degrees off in test_l2's sphere) and an albedo thousands of times the rest

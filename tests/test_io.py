@@ -1613,6 +1613,70 @@ def test_a_run_notes_heavily_saturated_images(tmp_path):
     assert [n for n in check.notes() if "saturated" in n] == notes
 
 
+def test_a_run_notes_images_clipped_below_the_top_code(tmp_path):
+    """Over 10 % of the object at the image's own largest value, below the top code (12-bit codes
+    in a 16-bit file clipped at 4095) or in a float file (clipped at 0.8), gets a note: l2, the
+    network engine's reader in tiles and passes, and info --check alike; unclipped 12-bit codes,
+    a dim image of a few codes (no values just below its largest) and the top-code case none."""
+    from psctl.api import run_normals
+    from psctl.io.capture import CLIPPED_NOTE, ImageCheck
+    from psctl.io.summary import check_pixels
+
+    def note(folder):
+        return [n for n in run_normals(folder, method="l2", write=False)["notes"] if "largest value" in n]
+
+    cap = tmp_path / "cap"
+    write_capture(cap, n=8, size=24)
+    names = sorted(p.name for p in cap.glob("0*.png"))
+    raw = {name: read_image(cap / name)[0] for name in names}
+    top = 4095 / 65535
+    for name in names:  # a 12-bit camera's codes, saved as they are: nothing clipped
+        write_image(cap / name, np.round(raw[name] * 4095) / 65535, "uint16")
+    assert note(cap) == []
+    for name in names[:3]:  # three images 4x over: clipped at code 4095
+        write_image(cap / name, np.minimum(np.round(raw[name] * 4 * 4095) / 65535, top), "uint16")
+    notes = note(cap)
+    assert len(notes) == 1 and notes[0].startswith("images: 3 of 8 have over 10% of the object at their largest "
+                                                   "value, below the top code (most: "), notes
+    assert "at code 4095 of 65535" in notes[0]
+    c = open_capture(cap)
+    mask = load_mask(c)
+    check = ImageCheck(c)
+    read = check.reader(c, mask)
+    box = (slice(0, 24), slice(0, 12))  # two tiles, the second pass from image 2 on
+    for part in (box, (slice(0, 24), slice(12, 24))):
+        list(read(0, part))
+    list(read(2, box))
+    share = {k: at / n for k, (_, at, n, _) in check.ceiling.items()}
+    assert sorted(k for k, v in share.items() if v > CLIPPED_NOTE) == [0, 1, 2] and share[3] < 0.01
+    assert [n for n in check.notes() if "largest value" in n] == notes
+    assert [n for n in check_pixels(c, mask)["notes"] if "largest value" in n] == notes
+    inside = np.ones((4, 4), bool)  # boxes merged in either order: a lower largest value's pixels do not count
+    flat, peak = np.full((4, 4, 3), 0.5, np.float32), np.linspace(0.1, 0.6, 48, dtype=np.float32).reshape(4, 4, 3)
+    for order in ((flat, peak), (peak, flat)):
+        merged = ImageCheck(c)
+        for part in order:
+            merged.see_ceiling(0, part, inside)
+        assert merged.ceiling[0][:3] == [float(np.float32(0.6)), 1, 32]
+    for name in names[:3]:  # at the top code: the saturation note's, not this one
+        write_image(cap / name, np.clip(raw[name] * 4, 0, 1), "uint16")
+    assert note(cap) == []
+    for name in names:  # dim: a 16-bit file of codes up to 4, a fifth of the object at the largest
+        write_image(cap / name, np.round(raw[name] / raw[name].max() * 4) / 65535, "uint16")
+    assert note(cap) == []
+    flt = tmp_path / "flt"  # a float EXR capture, one image clipped at 0.8
+    write_capture(flt, n=8, size=24)
+    for k, name in enumerate(names):
+        img = raw[name] * 3 if k == 5 else raw[name]
+        write_image(flt / name.replace(".png", ".exr"), np.minimum(img, 0.8) if k == 5 else img, "float")
+        (flt / name).unlink()
+    (flt / "filenames.txt").write_text("".join(n.replace(".png", ".exr") + "\n" for n in names))
+    notes = note(flt)
+    assert len(notes) == 1 and notes[0].startswith(f"images: 1 of 8 has over 10% of the object at its largest "
+                                                   f"value ({names[5].replace('.png', '.exr')}: "), notes
+    assert "% at 0.8)" in notes[0]
+
+
 def test_two_images_without_lights_get_the_undetermined_note(tmp_path):
     """ups-fcn (and sdps) on fewer than 3 images: the same 'undetermined' note as a network given
     2 listed lights; 3 images none."""

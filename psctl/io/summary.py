@@ -66,8 +66,7 @@ def check_pixels(cap: "Capture", mask: np.ndarray, progress: Callable[[int], Non
         full = to_rgb(pixels)
         rgb = full[mask]  # [pixels over the object, 3]
         saturated = float(saturated_map(rgb).mean()) if has_top_code(info) and len(rgb) else None
-        if has_top_code(info) and full[box].size:
-            check.see_peak(k, float(full[box].max()))  # as the readers see it: in the object's box
+        check.see_ceiling(k, full[box], box_mask)  # (any sample type) as well
         rgb = cap.to_linear(k, rgb)
         if ambient is not None and ambient.shape == full.shape:  # (a size mismatch: open_capture's error)
             full = cap.to_linear(k, full)
