@@ -1,6 +1,6 @@
 """The documentation's examples, run: every ```python block of README.md and docs/*.md, and every
-``psctl ...`` command in the ```bash / ```sh / ```console blocks of README.md and docs/usage.md,
-so that a function, argument or option renamed in the code (or misspelt in a doc) fails here,
+``psctl ...`` command in the ```bash / ```sh / ```console blocks of README.md, docs/*.md and
+weights/README.md, so that a function, argument or option renamed in the code (or misspelt in a doc) fails here,
 naming the doc file and line.
 
 Where they run: a fresh copy of a small "world" per test (``world`` below: 32 px, 12-image
@@ -13,7 +13,9 @@ How: a Python block is executed in-process, compiled under the doc's own path an
 (a traceback points into the doc); a ``psctl`` command runs in-process through typer's runner
 (exit status 0 wanted; ``> FILE`` gets its stdout). Commands of a shell block run in order, in one
 world, as a reader would type them; lines that are not psctl commands (``pip install``, ``mkdir``)
-are left out. ``psctl.PsctlWarning`` from a Python block is a failure unless SETUPS allows it:
+are left out, but for ``cp`` (the test copies as it says). A fence without a language that holds a
+psctl command fails ``test_untagged_blocks_hold_no_commands``: tag it ```bash so that it is run.
+``psctl.PsctlWarning`` from a Python block is a failure unless SETUPS allows it:
 an example that warns does not do what its text says.
 
 Markers: a block that needs more than the world (a fragment that continues an earlier block,
@@ -47,7 +49,7 @@ import yaml
 from tests.conftest import REPO, write_capture
 
 PYTHON_DOCS = ["README.md", *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))]
-SHELL_DOCS = ["README.md", "docs/usage.md"]
+SHELL_DOCS = [*PYTHON_DOCS, "weights/README.md"]
 SHELL_LANGS = {"bash", "sh", "shell", "console"}
 MARKER = re.compile(r"^<!--\s*docs-test:\s*(?:id=(?P<id>[\w.-]+)|skip\s*\((?P<skip>[^)]*)\))\s*-->\s*$")
 
@@ -89,6 +91,30 @@ SETUPS: dict[str, Setup] = {
         replace=(("configs/ps_fcn_n.yaml", "configs/docs_tiny.yaml"), ('device="cuda"', 'device="cpu"')),
         env=(("PSCTL_WEIGHTS", "{world}/weights"),),
         epilogue='assert (Path(r"{world}") / "weights" / "ps_fcn_n.pt").is_file()'),
+    # docs/calibration.md: the outlines drawn by hand where the world's spheres are (64 px images;
+    # the one beside the object: obj_sphere's, in images with a phone's EXIF, as chrome's)
+    "calibrate-cli": Setup(replace=(("--circle 307.9,263.9,70.9", "--circle 31.7,32.6,25.6"),
+                                    ("./obj --sphere chrome --circle 80,420,36",
+                                     "./obj_sphere --sphere chrome --circle 14,46,10"))),
+    # docs/synthetic.md: the three presets at 16 px, 8 lights, one material or shape each (4, 3 and
+    # 1 objects), with small ellipsoids for the test meshes (psctl ships none)
+    "synth-cli": Setup(
+        replace=(("--preset syntest --materials 4", "--preset syntest --materials 1 --size 16 --lights 8"),
+                 ("--preset dragon-svbrdf --materials 2", "--preset dragon-svbrdf --materials 1 --size 16 --lights 8"),
+                 ("--preset blobby --materials 8", "--preset blobby --materials 1 --size 16 --lights 8")),
+        env=(("PSCTL_MESHES", "{world}/test_meshes"),)),
+    # docs/training.md: the three commands on the 2-step recipe and the CPU, installing into the world's
+    "train-cli": Setup(replace=(("configs/ps_fcn_n.yaml", "configs/docs_tiny.yaml"), ("--device cuda", "--device cpu")),
+                       env=(("PSCTL_WEIGHTS", "{world}/weights"),)),
+    # docs/uncalibrated.md: `psctl eval` without --root reads $PSCTL_DATA/DiLiGenT/pmsData
+    "uncalibrated-cli": Setup(env=(("PSCTL_DATA", "{world}/uncalibrated"),)),
+    # docs/uncalibrated.md, training: LCNet's and PS-FCN†'s recipes cut to 2 samples at 16 px, on the
+    # CPU; the weights folder is the world's (holding a copy of the release's lcnet.pt)
+    "train-lcnet-cli": Setup(
+        replace=(("configs/lcnet.yaml", "configs/docs_tiny_lcnet.yaml"),
+                 ("configs/ps_fcn_dagger.yaml", "configs/docs_tiny_ps_fcn_dagger.yaml"),
+                 ("--device cuda", "--device cpu")),
+        env=(("PSCTL_WEIGHTS", "{world}/weights"),)),
 }
 
 
@@ -145,11 +171,13 @@ class Command:
     text: str  # the doc's line, as written
     argv: tuple[str, ...]  # psctl's arguments
     stdout_to: str | None  # `> FILE`
+    tool: str = "psctl"  # or "cp" (with_cp=True)
 
 
-def psctl_commands(block: Block) -> list[Command]:
+def psctl_commands(block: Block, with_cp: bool = False) -> list[Command]:
     """The psctl commands of a shell block: each line (with its backslash continuations) split at
-    &&, || and ;, the parts that start with ``psctl`` (or ``python -m psctl``, ``$ psctl``)."""
+    &&, || and ;, the parts that start with ``psctl`` (or ``python -m psctl``, ``$ psctl``); with
+    ``with_cp``, the ``cp`` commands among them too, in order."""
     out = []
     raw = block.text.splitlines()
     k = 0
@@ -175,14 +203,19 @@ def psctl_commands(block: Block) -> list[Command]:
                 cur.append(t)
         parts.append(cur)
         for p in parts:
+            tool = "psctl"
             if p[:1] == ["psctl"]:
                 args = p[1:]
+            elif with_cp and p[:1] == ["cp"]:
+                tool, args = "cp", p[1:]
             elif p[:3] in (["python", "-m", "psctl"], ["python3", "-m", "psctl"], ["python", "-m", "psctl.cli"]):
                 args = p[3:]
             else:
                 continue
             where = f"{block.doc}:{block.line + 1 + first}"
             shell = [t for t in args if any(c in t for c in "|<$`*?~") or t.startswith("(")]
+            if tool == "cp" and (shell or ">" in args):
+                continue  # a reader's own files (README: cp /path/to/photos/*.jpg cap/): the world has them
             stdout_to = None
             if ">" in args:
                 i = args.index(">")
@@ -192,7 +225,7 @@ def psctl_commands(block: Block) -> list[Command]:
             if shell:
                 raise AssertionError(f"{where}: shell syntax this test does not run ({' '.join(shell)}): "
                                      f"{text.strip()}")
-            out.append(Command(block.line + 1 + first, text.strip(), tuple(args), stdout_to))
+            out.append(Command(block.line + 1 + first, text.strip(), tuple(args), stdout_to, tool))
     return out
 
 
@@ -205,14 +238,31 @@ SHELL_WITH_PSCTL = [b for b in SHELL_BLOCKS if psctl_commands(b)]
 def world_template(tmp_path_factory) -> Path:
     """Every folder and file the examples name, small: calibrated 32 px captures of 12 images with
     ground truth (examples/bumpy_sphere, obj, two DiLiGenT objects, two of one's own), a folder of
-    JPEGs without light files (cap: sdps), chrome and matte spheres, intrinsics, the smoke recipe."""
-    from psctl.io.images import write_image
-    from tests.test_calibrate import write_sphere_folder
+    JPEGs without light files (cap: sdps), 6-image ballPNG and catPNG (uncalibrated), chrome and
+    matte spheres (with a phone's EXIF), intrinsics, OpenCV's calib.yml, a normal map (other.exr),
+    the authors' checkpoints' layout, stand-in test meshes, the smoke recipes."""
+    import torch
+
+    from psctl.io.images import read_image, write_image
+    from tests.test_calibrate import write_exif, write_sphere_folder
+    from tests.test_synth import uv_sphere, write_obj
 
     w = tmp_path_factory.mktemp("docs_world")
     for i, name in enumerate(["examples/bumpy_sphere", "obj", "DiLiGenT/pmsData/ballPNG",
                               "DiLiGenT/pmsData/catPNG", "my_objects/a", "my_objects/b"]):
-        write_capture(w / name, n=12, size=32, seed=i)
+        arrays = write_capture(w / name, n=12, size=32, seed=i)
+        if name == "obj":  # a normal map of its own (docs/depth.md: --normals other.exr)
+            normals = np.where(arrays["mask"][..., None], arrays["normals"], 0)
+            write_image(w / "other.exr", normals, "float", kind="data")
+    for name in ("pmsData_crop", "DiLiGenT/pmsData_crop"):  # docs/models.md, docs/near-lights.md
+        shutil.copytree(w / "DiLiGenT/pmsData", w / name)
+    # docs/uncalibrated.md: 6 images each (LCNet's 8 views at 128 px per image are most of sdps'
+    # time); cat alone in $PSCTL_DATA/DiLiGenT/pmsData for `psctl eval` without --root
+    for i, name in enumerate(["ballPNG", "catPNG"]):
+        write_capture(w / name, n=6, size=32, seed=2 + i)
+    shutil.copytree(w / "catPNG", w / "uncalibrated/DiLiGenT/pmsData/catPNG")  # one object
+    for name in ("light_directions.txt", "light_intensities.txt"):  # "(auto)": no light_directions.txt
+        (w / "catPNG" / name).unlink()
     images = write_capture(w / "cap_png", n=12, size=32, seed=9, gt="none", mask=False, intensities=False)["images"]
     shutil.rmtree(w / "cap_png")
     (w / "cap").mkdir()
@@ -220,12 +270,25 @@ def world_template(tmp_path_factory) -> Path:
     for k, img in enumerate(images):
         write_image(w / "cap" / f"IMG_{k + 1:04d}.jpg", np.clip(img + bg, 0, 1) ** (1 / 2.2), "uint8")
     write_sphere_folder(w / "chrome", "chrome", n=12, size=64, lights_file=False)
+    # docs/calibration.md: --focal exif reads the images' EXIF (a phone's 35 mm equivalent here)
+    # and a chrome ball beside "the object" (none drawn), in an image that EXIF describes too
+    write_sphere_folder(w / "obj_sphere", "chrome", n=12, size=64, lights_file=False, circle=(14.0, 46.0, 10.0))
+    for f in [*sorted((w / "chrome").glob("0*.png")), *sorted((w / "obj_sphere").glob("0*.png"))]:
+        write_exif(f, read_image(f)[0], FocalLengthIn35mmFilm=28)
     write_sphere_folder(w / "chrome_ball", "chrome", n=12, size=64, lights_file=False)
     write_sphere_folder(w / "white", "matte", n=12, size=64, lights_file=False)
     write_sphere_folder(w / "white_ball", "matte", n=12, size=64, lights_file=False)
     k_txt = "40.0 0.0 16.0\n0.0 40.0 16.0\n0.0 0.0 1.0\n"  # 3 x 3 intrinsics, pixels (docs/depth.md)
     (w / "K.txt").write_text(k_txt)
     (w / "obj" / "K.txt").write_text(k_txt)
+    (w / "intrinsics.txt").write_text(k_txt)  # docs/depth.md
+    # docs/calibration.md: OpenCV's calibration file (cv2.FileStorage YAML)
+    (w / "calib.yml").write_text(
+        "%YAML:1.0\n---\nimage_width: 32\nimage_height: 32\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        "   data: [ 40., 0., 16., 0., 40., 16., 0., 0., 1. ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+        "   data: [ -0.12, 0.031, 0.0004, -0.0002, 0. ]\n")
     # the smoke recipe cut to 2 steps, one validation and one 16 px G-buffer (tiny.yaml itself took
     # 12 s of this file's 25 on a quiet 2-core VM; most of what is left is torch importing dynamo for Adam)
     recipe = yaml.safe_load((REPO / "configs" / "tiny.yaml").read_text())
@@ -234,8 +297,32 @@ def world_template(tmp_path_factory) -> Path:
     recipe["val"].update(samples=4)
     (w / "configs").mkdir()
     (w / "configs" / "docs_tiny.yaml").write_text(yaml.safe_dump(recipe))
+    # LCNet's and PS-FCN†'s recipes as small (docs/uncalibrated.md): their own method, loss and
+    # data settings, tiny's sizes
+    for method, name in (("lcnet", "lcnet"), ("ps-fcn-dagger", "ps_fcn_dagger")):
+        full = yaml.safe_load((REPO / "configs" / f"{name}.yaml").read_text())
+        assert full["method"] == method
+        full["data"].update(size=16, pool=1, shapes={"blobby": 1.0})
+        full["train"].update(batch_size=2, images_per_sample=6, crop=16, samples=2, val_every=2, log_every=1,
+                             amp="none")
+        full["val"].update(samples=1, size=16, images=6, batch_size=1)
+        (w / "configs" / f"docs_tiny_{name}.yaml").write_text(yaml.safe_dump(full))
     (w / "weights").mkdir()
+    shutil.copy(REPO / "weights" / "lcnet.pt", w / "weights")  # PS-FCN†'s frozen LCNet, as installed
+    # the authors' checkpoints' layout (docs/models.md, docs/uncalibrated.md), from the release's
+    # weights (NENet has PS-FCN's keys)
+    for name, file, model in (("ps_fcn", "PS-FCN_B_S_32.pth.tar", "PS_FCN"),
+                              ("ps_fcn_n", "PS-FCN_B_S_32_normalize.pth.tar", "PS_FCN"),
+                              ("lcnet", "LCNet_CVPR2019.pth.tar", "LCNet"),
+                              ("ps_fcn", "NENet_CVPR2019.pth.tar", "NENet")):
+        torch.save({"state_dict": torch.load(REPO / "weights" / f"{name}.pt", map_location="cpu")["state_dict"],
+                    "model": model}, w / file)
     (w / "meshes").mkdir()  # none: the synthetic stream as in a fresh clone
+    # stand-ins for the test shapes (psctl synth --preset syntest, dragon-svbrdf): small ellipsoids
+    verts, faces = uv_sphere(8, 16)
+    (w / "test_meshes").mkdir()
+    for k, name in enumerate(("bunny", "dragon", "armadillo")):
+        write_obj(w / "test_meshes" / f"{name}.obj", verts * [1.0, 1.3 + 0.2 * k, 0.8], faces)
     (w / "tmp").mkdir()
     return w
 
@@ -253,9 +340,27 @@ def world(world_template, tmp_path, monkeypatch) -> Path:
 def test_the_docs_have_the_blocks_this_file_runs():
     """The extractor finds what the docs hold (an extractor that finds nothing passes everything)."""
     assert len(PYTHON_BLOCKS) >= 9, [b.where for b in PYTHON_BLOCKS]
-    assert sum(len(psctl_commands(b)) for b in SHELL_BLOCKS) >= 15
-    assert {"info", "normals", "lights", "depth", "eval", "calibrate", "undistort"} <= {
+    assert sum(len(psctl_commands(b)) for b in SHELL_BLOCKS) >= 60
+    assert {"info", "normals", "lights", "depth", "eval", "calibrate", "undistort", "synth", "train"} <= {
         c.argv[0] for b in SHELL_BLOCKS for c in psctl_commands(b)}
+
+
+def test_untagged_blocks_hold_no_commands():
+    """A fence without a language is not run: one holding a psctl command is to be tagged ```bash."""
+    untagged = [f"{b.doc}:{c.line}" for b in all_blocks() if not b.lang
+                for c in psctl_commands(dataclasses.replace(b, lang="bash"))]
+    assert not untagged, f"psctl commands in fences without a language (tag them ```bash): {untagged}"
+    # nor in a Markdown indented code block (4 spaces, outside a fence): fence it, ```bash
+    indented = []
+    for doc in dict.fromkeys(PYTHON_DOCS + SHELL_DOCS):
+        fence = None
+        for i, line in enumerate((REPO / doc).read_text(encoding="utf-8").splitlines(), 1):
+            m = re.match(r"^\s*(`{3,}|~{3,})", line)
+            if m and (fence is None or line.strip().startswith(fence)):
+                fence = m.group(1) if fence is None else None
+            elif fence is None and re.match(r"^ {4,}(\$ )?psctl [a-z]", line):
+                indented.append(f"{doc}:{i}")
+    assert not indented, f"psctl commands in indented code blocks (fence them ```bash): {indented}"
 
 
 def test_markers_and_setups_agree():
@@ -370,9 +475,19 @@ def test_shell_example(block: Block, world: Path, monkeypatch):
     setup = _setup(block)
     for name, value in setup.env:
         monkeypatch.setenv(name, value.format(world=world))
+    text = block.text
+    for old, new in setup.replace:
+        assert old in block.text, f"{block.where}: SETUPS[{block.marker_id!r}] replaces {old!r}, no longer in the block"
+        assert "\n" not in old + new, f"SETUPS[{block.marker_id!r}]: a replacement keeps to one line"
+        text = text.replace(old, new)
     failures = []
-    for cmd in psctl_commands(block):
+    for cmd in psctl_commands(dataclasses.replace(block, text=text), with_cp=True):
         args = [a.replace("/tmp/", f"{world}/tmp/") for a in cmd.argv]
+        if cmd.tool == "cp":
+            *sources, dest = [a for a in args if not a.startswith("-")]
+            for src in sources:
+                (shutil.copytree if Path(src).is_dir() else shutil.copy)(src, dest)
+            continue
         r = CliRunner().invoke(app, args, env={"COLUMNS": "100"})
         if r.exception is not None and not isinstance(r.exception, SystemExit):
             tb = "".join(traceback.format_exception(r.exception)).strip()
