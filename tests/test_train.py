@@ -343,7 +343,7 @@ def test_a_run_without_its_optimiser_state_resumes_with_fresh_moments(tmp_path):
     state = tmp_path / "run" / "state.json"
     st = json.loads(state.read_text())
     with pytest.raises(PsctlError, match="optim.*missing"):  # listed but missing: not silently fresh
-        train("ps-fcn", None, tmp_path / "run", resume=True, device="cpu")
+        train("ps-fcn", cfg, tmp_path / "run", resume=True, device="cpu")  # (lengthened: a finished run is not read)
     st["optim_files"] = []
     state.write_text(json.dumps(st))
     before = read_weights(tmp_path / "run" / "model.pt").state_dict
@@ -1312,6 +1312,12 @@ def test_resume_checks_hold_after_a_fresh_moments_resume_an_edited_log_and_a_fin
     odd = merge(tiny(10), {"train": {"batch_size": 4}})  # ends at 12
     assert train("ps-fcn", odd, tmp_path / "odd", device="cpu")["samples"] == 12
     assert train("ps-fcn", odd, tmp_path / "odd", resume=True, device="cpu")["samples"] == 12
+    # finished: a resume (to --install it) renders no data and leaves the checkpoint as it is
+    state = (tmp_path / "odd" / "state.json").read_bytes()
+    st = train("ps-fcn", odd, tmp_path / "odd", resume=True, device="cpu",
+               make_stream=lambda *a, **k: pytest.fail("rendered data for a finished run"))
+    assert st["finished"] and st["signal"] is None and st["samples"] == 12
+    assert (tmp_path / "odd" / "state.json").read_bytes() == state
     bad = tiny(64)
     bad["train"]["samples"] = "1e5"
     with pytest.raises(PsctlError, match="'train.samples' must be a finite integer"):
