@@ -1586,11 +1586,25 @@ def test_loose_images_beside_capture_folders_are_noted_both_ways(tmp_path):
                for n in capture_notes(open_capture(one_image)))
 
 
+def _read_in_two_tiles(c, mask):
+    """An ImageCheck fed as the network engine feeds it: a 24 x 24 capture read in two tiles, then
+    a second pass over the first from image 2 on."""
+    from psctl.io.capture import ImageCheck
+
+    check = ImageCheck(c)
+    read = check.reader(c, mask)
+    box = (slice(0, 24), slice(0, 12))
+    for part in (box, (slice(0, 24), slice(12, 24))):
+        list(read(0, part))
+    list(read(2, box))
+    return check
+
+
 def test_a_run_notes_heavily_saturated_images(tmp_path):
     """Images with over 10 % of the object at the top code value get a run note (l2 and the
     network engine's reader, through any number of passes); an unsaturated capture none."""
     from psctl.api import run_normals
-    from psctl.io.capture import CLIPPED_NOTE, ImageCheck
+    from psctl.io.capture import CLIPPED_NOTE
 
     cap = tmp_path / "cap"
     write_capture(cap, n=8, size=24)
@@ -1602,12 +1616,7 @@ def test_a_run_notes_heavily_saturated_images(tmp_path):
     assert len(notes) == 1 and notes[0].startswith("images: 3 of 8 have over 10% of the object saturated"), notes
     c = open_capture(cap)
     mask = load_mask(c)
-    check = ImageCheck(c)
-    read = check.reader(c, mask)
-    box = (slice(0, 24), slice(0, 12))  # two tiles, the second pass from image 2 on
-    for part in (box, (slice(0, 24), slice(12, 24))):
-        list(read(0, part))
-    list(read(2, box))
+    check = _read_in_two_tiles(c, mask)
     share = {k: a / b for k, (a, b) in check.clipped.items()}
     assert sorted(k for k, v in share.items() if v > CLIPPED_NOTE) == [0, 1, 2] and share[3] == 0
     assert [n for n in check.notes() if "saturated" in n] == notes
@@ -1641,12 +1650,7 @@ def test_a_run_notes_images_clipped_below_the_top_code(tmp_path):
     assert "at code 4095 of 65535" in notes[0]
     c = open_capture(cap)
     mask = load_mask(c)
-    check = ImageCheck(c)
-    read = check.reader(c, mask)
-    box = (slice(0, 24), slice(0, 12))  # two tiles, the second pass from image 2 on
-    for part in (box, (slice(0, 24), slice(12, 24))):
-        list(read(0, part))
-    list(read(2, box))
+    check = _read_in_two_tiles(c, mask)
     share = {k: at / n for k, (_, at, n, _) in check.ceiling.items()}
     assert sorted(k for k, v in share.items() if v > CLIPPED_NOTE) == [0, 1, 2] and share[3] < 0.01
     assert [n for n in check.notes() if "largest value" in n] == notes
