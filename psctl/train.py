@@ -910,12 +910,6 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if saved is not None:
         st = saved
         lcnet = saved.get("lcnet") or lcnet  # the frozen LCNet the run started with
-        if st["samples"] >= t["samples"]:
-            # finished already (`--resume RUN --install` installs it): nothing to train, so no stream
-            # or validation set is rendered (6 of 7 s with the docs' 2-step recipe, helper-183; tens
-            # of seconds at a real recipe's sizes) and the checkpoint is left as it is
-            st["finished"], st["signal"] = True, None
-            return st
 
     torch.manual_seed(t["seed"])  # initial weights (the stream has its own generator)
     task = lcnet_task(config, dev, amp) if method == "lcnet" else normals_task(method, config, dev, amp, lcnet)
@@ -928,6 +922,13 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
             raise PsctlError(task.metadata["lcnet"]["path"], "is not the frozen LCNet this run started with (its "
                                                               "contents changed since); put that file back to resume")
         st["lcnet_sha256"] = digest
+    if saved is not None and st["samples"] >= t["samples"]:
+        # finished already (`--resume RUN --install` installs it): nothing to train, so no stream or
+        # validation set is rendered (6 of 7 s with the docs' 2-step recipe, helper-183; tens of
+        # seconds at a real recipe's sizes) and the checkpoint is left as it is; after the frozen
+        # LCNet's check above (PS-FCN† is installed to run on that LCNet's lights, helper-184)
+        st["finished"], st["signal"] = True, None
+        return st
     if t["init"] and not resume:  # fine-tuning: start from another run's weights (recorded)
         st["init"] = init_from(model, t["init"])
     if st.get("init"):

@@ -1274,6 +1274,9 @@ def test_a_ps_fcn_dagger_run_refuses_a_frozen_lcnet_whose_file_changed(tmp_path)
     save_weights(lc, LCNet({"size": 32}), {"method": "lcnet", "train_images": 8})
     with pytest.raises(PsctlError, match="lc.pt: is not the frozen LCNet this run started with"):
         train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")
+    # finished, resumed to be installed: still refused (helper-184: the early return skipped the check)
+    with pytest.raises(PsctlError, match="lc.pt: is not the frozen LCNet this run started with"):
+        train("ps-fcn-dagger", None, tmp_path / "run", resume=True, device="cpu")
     lc.write_bytes(same)
     assert train("ps-fcn-dagger", cfg, tmp_path / "run", resume=True, device="cpu")["samples"] == 16
 

@@ -1302,17 +1302,20 @@ CLIPPED_NOTE = 0.10
 # 0.8): over CLIPPED_NOTE of the object at the image's own largest value is noted as well, where
 # the values just below it are finely spaced, CEILING_STEP of it or closer (at least 256 levels:
 # not 8-bit data, nor a dim image's few codes). Unclipped images stay far below: at most 0.06 %
-# of the object at their largest value on 4,608 16-bit syntest images, 0.54 % as half-float EXR,
-# 2.7 % with about 300 codes below it, 0.87 % on DiLiGenT's 8-bit crops (helper-182; clipped: 30-56 %).
+# of the object at their largest value on 2,564 unclipped 16-bit syntest images, 0.54 % as half-float
+# EXR, 2.7 % with about 300 codes below it, 0.87 % on DiLiGenT's 8-bit crops (helper-182; clipped
+# images 30-71 %). The largest value is the box's, as each command reads it: where nothing is
+# clipped past the object (a camera clips the whole frame) that is the object's too.
 CEILING_STEP = 1 / 256
 
 
 BRIGHT_OUTLIER = 20  # an image whose mean over the object is over this many times the median image's: noted
 DARK_OUTLIER = 20  # and one (not black) whose mean is under the median's over this
 # 12-bit codes saved in a 16-bit file read 16 times darker: an unsigned 16-bit image with no value
-# above code 4095 whose mean is under the median's over this, beside images that go above it, is
-# (and some above code 255) noted as such (helper-180: every third image so, l2 5.21 -> 7.74 degrees without a word, 16 times
-# being under DARK_OUTLIER; DiLiGenT's darkest image is 1.7 times under its median, a syntest dragon's 6.8)
+# above code 4095 (and some above code 255: else 8-bit codes, the darker-image note's case) whose
+# mean is under the median's over this, beside images that go above 4095, is noted as such
+# (helper-180: every third image so, l2 5.21 -> 7.74 degrees without a word, 16 times being under
+# DARK_OUTLIER; DiLiGenT's darkest image is 1.7 times under its median, a syntest dragon's 6.8)
 TWELVE_BIT_DARKER = 8
 TWELVE_BIT_TOP = 4095 / 65535
 EIGHT_BIT_TOP = 255 / 65535  # (none above it: 8-bit codes, 257 times darker, the darker-image note's case)

@@ -218,7 +218,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
                                    f"{photometric}), which psctl would read as R, G, B; export it as RGB")
         white_is_zero = photometric == 0 and dtype != "uint8"
         if white_is_zero and not dtype.startswith("uint"):
-            raise PsctlError(path, f"is a {dtype} TIFF whose photometric interpretation is WhiteIsZero (0 is white): "
+            raise PsctlError(path, f"is a TIFF of {dtype} samples whose photometric interpretation is WhiteIsZero (0 is white): "
                                    f"psctl cannot tell its black; export it as BlackIsZero (min-is-black)")
         orientation = spec.get_int_attribute("Orientation", 1)
         orientation = orientation if orientation in _UPRIGHT else 1
