@@ -1279,3 +1279,34 @@ def test_later_passes_read_bands_of_rows_with_the_same_normals(tmp_path, monkeyp
         assert res.normals.tobytes() == ref.normals.tobytes(), m
         assert res.notes == ref.notes
     assert True not in bands
+
+
+def test_an_image_rewritten_between_passes_is_an_error(tmp_path, monkeypatch):
+    """A file rewritten at the same size between the engine's passes was read old in some tile
+    groups and new in others, without a word (helper-186: 5,716 pixels changed): now one error
+    naming it, with band reads and whole reads alike."""
+    from psctl.io import capture as capture_module
+    from psctl.io.capture import load_mask, open_capture
+    from psctl.io.images import read_image, write_image
+    from psctl.infer import capture_normals
+
+    write_capture(tmp_path / "c", n=6, size=72)
+    cap = open_capture(tmp_path / "c")
+    mask = load_mask(cap)
+    cfg = {"device": "cpu", "tile": 32, "group_mb": 1, "cache_mb": 0, "prefetch_mb": 0}
+    calls = []
+    iter_images = capture_module.iter_images
+
+    def rewrite_after_the_first_pass(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:  # the +N pass and the first group's are done
+            path = tmp_path / "c" / "003.png"
+            write_image(path, read_image(path)[0] * 0.5, "uint16")
+        return iter_images(*a, **k)
+
+    monkeypatch.setattr(capture_module, "iter_images", rewrite_after_the_first_pass)
+    with pytest.raises(PsctlError, match=r"003.png: changed on disk while psctl read it \(between its passes"):
+        capture_normals(cap, mask, "ps-fcn-n", config=cfg)
+    monkeypatch.undo()
+    write_capture(tmp_path / "c", n=6, size=72)  # as it was: runs through
+    assert capture_normals(open_capture(tmp_path / "c"), mask, "ps-fcn-n", config=cfg).normals.any()

@@ -1337,6 +1337,7 @@ class ImageCheck:
         # image -> [its largest value read, object pixels with a channel at it, object pixels,
         # whether a value lies within CEILING_STEP below it]: mergeable over boxes and passes
         self.ceiling: dict[int, list] = {}
+        self.stamps: dict[Path, tuple | None] = {}  # image file -> (inode, size, mtime) when first read
 
     def see_ceiling(self, k: int, rgb: np.ndarray, inside: np.ndarray) -> None:
         """Image ``k``'s values in a box as read (iter_images' ``ceiling``), ``inside`` the
@@ -1409,6 +1410,16 @@ class ImageCheck:
 
         boxes: dict[tuple, set[int]] = {}  # this reader's boxes -> the images seen in each
 
+        def same(k: int) -> None:
+            # a file rewritten between passes (same size) was read old in some tiles and new in others
+            # without a word (helper-186): each read is checked against the file as first read
+            path = capture.image_paths[k]
+            now = DecodeMemo.stamp(path)
+            first = self.stamps.setdefault(path, now)
+            if now != first:
+                raise PsctlError(path, "changed on disk while psctl read it (between its passes over the images): "
+                                       "run again once it is written")
+
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             # a large capture's later passes (one per tile group) read the same box again: what they
             # would see is seen already (its saturated map, sums and extremes over the object took a
@@ -1421,6 +1432,7 @@ class ImageCheck:
                                                 ceiling=None if again else self.ceiling_reader(mask, box, start),
                                                 decoded=decoded, memo=memo, ambient_check=ambient_check),
                                     start):
+                same(k)
                 if not again:
                     self.see(k, img[mask[box]])
                     done.add(k)
@@ -1435,8 +1447,11 @@ class ImageCheck:
                 if None in whole or None in want or not done.issuperset(range(start, capture.n_images)):
                     continue
                 if r0 <= want[0] <= want[1] <= r1 and c0 <= want[2] <= want[3] <= c1:
-                    yield from iter_images(capture.subset(range(start, capture.n_images)), box, decoded=decoded,
-                                           memo=memo, ambient_check=False, rows_only=True)
+                    for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
+                                                        decoded=decoded, memo=memo, ambient_check=False,
+                                                        rows_only=True), start):
+                        same(k)
+                        yield img
                     return
             yield from read(start, box)  # (not inside one: read as any box)
 
