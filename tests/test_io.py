@@ -629,11 +629,19 @@ def test_twelve_bit_codes_in_a_sixteen_bit_file_beside_full_range_ones_are_noted
             path = tmp_path / name / f"{k + 1:03d}.png"
             img = read_image(path)[0]
             write_image(path, np.round(img * 4095) / 65535, "uint16")
-    words = "have no value above code 4095 of 65535 and read over 8 times darker over the object"
+    words = "and some read over 8 times darker over the object than the median image, which goes above it"
     notes = run_normals(tmp_path / "mixed", method="l2", write=False)["notes"]
     hit = [n for n in notes if words in n]
-    assert len(hit) == 1 and hit[0].startswith("images: 4 of 12 have") and "001.png, 004.png" in hit[0], notes
+    assert len(hit) == 1 and hit[0].startswith("images: 4 of 12 have no value above code 4095 of 65535 (001.png, "
+                                                "004.png"), notes
     assert not any("times darker over the object than the median image" in n and "over 20" in n for n in notes)
+    # one of them listed 4 times dimmer (so only 4 times darker once divided): named with the others,
+    # as LCNet's reading as captured needs (helper-187: lights named 5 of 8, normals 8)
+    e = np.loadtxt(tmp_path / "mixed" / "light_intensities.txt")
+    np.savetxt(tmp_path / "mixed" / "light_intensities.txt", np.where(np.arange(12)[:, None] == 0, e / 4, e))
+    again = [n for n in run_normals(tmp_path / "mixed", method="l2", write=False)["notes"] if words in n]
+    assert again == hit, again
+    np.savetxt(tmp_path / "mixed" / "light_intensities.txt", e)
     info = describe_capture(tmp_path / "mixed", check=True)
     assert any(words in n for n in info["check"]["notes"]), info["check"]["notes"]
     for name in ("all", "plain"):

@@ -1495,17 +1495,20 @@ class ImageCheck:
         # 16-bit files of 12-bit codes beside full-range ones: said as such, not as a dim light below
         kinds = self.capture.kinds  # (bits, sample type)
         peaks = {k: c[0] for k, c in self.ceiling.items() if kinds[k] == (16, "uint16")}  # (1.0: the top code)
-        twelve = sorted(k for k, v in peaks.items() if k in level and k not in skip
-                        and 0 < level[k] * TWELVE_BIT_DARKER < ref and EIGHT_BIT_TOP + 1e-7 < v <= TWELVE_BIT_TOP + 1e-7) \
-            if any(v > TWELVE_BIT_TOP + 1e-7 for v in peaks.values()) else []
+        coded = [k for k, v in peaks.items() if k not in skip and EIGHT_BIT_TOP + 1e-7 < v <= TWELVE_BIT_TOP + 1e-7]
+        # one far darker names the rest of its kind too: LCNet judges the images as captured, where
+        # a bright light's 12-bit image can stay under the threshold (helper-187: lights named 5 of
+        # 8, normals all 8)
+        twelve = sorted(coded) if any(v > TWELVE_BIT_TOP + 1e-7 for v in peaks.values()) and any(
+            k in level and 0 < level[k] * TWELVE_BIT_DARKER < ref for k in coded) else []
         if twelve:
             names = few([self.capture.image_paths[i].name for i in twelve])
             one = len(twelve) == 1
             notes.append(f"images: {len(twelve)} of {self.capture.n_images} {'has' if one else 'have'} no value above "
-                         f"code 4095 of 65535 and {'reads' if one else 'read'} over {TWELVE_BIT_DARKER} times darker "
-                         f"over the object than the median image ({names}; the median image goes above it): 12-bit "
-                         f"codes saved in a 16-bit file, which read 16 times darker? Save every image alike (e.g. "
-                         f"the codes times 16)")
+                         f"code 4095 of 65535 ({names}) and {'reads' if one else 'some read'} over {TWELVE_BIT_DARKER} "
+                         f"times darker over the object than the median image, which goes above it: 12-bit codes "
+                         f"saved in a 16-bit file, which read 16 times darker? Save every image alike (e.g. the codes "
+                         f"times 16)")
             skip |= set(twelve)
         dark = sorted(k for k, v in level.items() if ref > 0 and 0 < v * DARK_OUTLIER < ref and k not in skip)
         if dark:
