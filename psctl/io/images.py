@@ -471,7 +471,12 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False,
     if info.pick:
         pixels = pixels[..., list(info.pick)]
     if info.white_is_zero:  # grey (and alpha, not inverted): as OpenImageIO reads 8-bit WhiteIsZero
-        pixels[..., 0] = 1.0 - pixels[..., 0]
+        if (info.dtype, info.bits) == ("uint16", 16):  # the codes inverted, then scaled as OpenImageIO
+            # scales them (code x float32(1/65535)): bit for bit the black-is-zero twin (1 - value was 3e-8 off)
+            codes = np.rint(pixels[..., 0] * np.float32(65535))
+            pixels[..., 0] = (np.float32(65535) - codes) * np.float32(1 / 65535)
+        else:
+            pixels[..., 0] = 1.0 - pixels[..., 0]
     pixels = upright(np.ascontiguousarray(pixels), info.orientation)
     if rows is not None and not band:
         pixels = pixels[rows[0]:rows[1]]
