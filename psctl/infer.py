@@ -1092,11 +1092,13 @@ class ReadMemo:
             return None
 
         def read(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
-            want = (box[0].start, box[0].stop, box[1].start, box[1].stop)
+            from psctl.io.capture import box_within
+
             kept: list[np.ndarray] = []
-            for ((r0, r1, _), (c0, c1, _)), imgs in self.kept.items():
-                if len(imgs) > start and None not in (r0, r1, c0, c1) and r0 <= want[0] <= want[1] <= r1 and c0 <= want[2] <= want[3] <= c1:
-                    kept = [x[want[0] - r0:want[1] - r0, want[2] - c0:want[3] - c0] for x in imgs]
+            for key, imgs in self.kept.items():
+                if len(imgs) > start and box_within(box, key):
+                    (r0, _, _), (c0, _, _) = key
+                    kept = [x[box[0].start - r0:box[0].stop - r0, box[1].start - c0:box[1].stop - c0] for x in imgs]
                     break
             k = start
             while k < len(kept):

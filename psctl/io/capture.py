@@ -1109,12 +1109,20 @@ def has_top_code(info: ImageInfo) -> bool:
     return info.dtype.startswith(("uint", "int"))
 
 
-def saturated_map(rgb: np.ndarray) -> np.ndarray:
-    """[..., C] values read from an integer file -> [...] bool: any channel at the top code value."""
-    top = rgb[..., 0] >= 1.0  # channel by channel: ~7x faster than (rgb >= 1).any(-1)
+def saturated_map(rgb: np.ndarray, level: float = 1.0) -> np.ndarray:
+    """[..., C] values read from an integer file -> [...] bool: any channel at the top code value
+    (or at ``level`` or above: an image's own largest value, ImageCheck.see_ceiling)."""
+    top = rgb[..., 0] >= level  # channel by channel: ~7x faster than (rgb >= 1).any(-1)
     for c in range(1, rgb.shape[-1]):
-        top |= rgb[..., c] >= 1.0
+        top |= rgb[..., c] >= level
     return top
+
+
+def box_within(part: tuple[slice, slice], key: tuple[tuple, tuple]) -> bool:
+    """``part`` (rows, columns) lies inside the box a reader kept under ``key`` ((start, stop,
+    step) of its rows and of its columns); open-ended slices never do."""
+    ends = (part[0].start, part[0].stop, part[1].start, part[1].stop, key[0][0], key[0][1], key[1][0], key[1][1])
+    return None not in ends and key[0][0] <= ends[0] <= ends[1] <= key[0][1] and key[1][0] <= ends[2] <= ends[3] <= key[1][1]
 
 
 def iter_images(capture: Capture | str | os.PathLike, box: tuple[slice, slice] | None = None,
@@ -1317,8 +1325,8 @@ DARK_OUTLIER = 20  # and one (not black) whose mean is under the median's over t
 # (helper-180: every third image so, l2 5.21 -> 7.74 degrees without a word, 16 times being under
 # DARK_OUTLIER; DiLiGenT's darkest image is 1.7 times under its median, a syntest dragon's 6.8)
 TWELVE_BIT_DARKER = 8
-TWELVE_BIT_TOP = 4095 / 65535
-EIGHT_BIT_TOP = 255 / 65535  # (none above it: 8-bit codes, 257 times darker, the darker-image note's case)
+TWELVE_BIT_TOP = 4095.5 / 65535  # (half a code above: the codes as read, float32)
+EIGHT_BIT_TOP = 255.5 / 65535  # (none above it: 8-bit codes, 257 times darker, the darker-image note's case)
 
 
 class ImageCheck:
@@ -1347,11 +1355,8 @@ class ImageCheck:
         if not rgb.size:
             return
         top = float(rgb.max())
-        eq = rgb == top
-        near = np.count_nonzero(rgb >= top - abs(top) * CEILING_STEP) > np.count_nonzero(eq)
-        at = eq[..., 0]  # channel by channel, as saturated_map
-        for c in range(1, eq.shape[-1]):
-            at |= eq[..., c]
+        near = np.count_nonzero(rgb >= top - abs(top) * CEILING_STEP) > np.count_nonzero(rgb == top)
+        at = saturated_map(rgb, top)  # (nothing is above top: at it)
         at &= inside
         got, n = int(np.count_nonzero(at)), int(np.count_nonzero(inside))
         c = self.ceiling.get(k)
@@ -1441,12 +1446,8 @@ class ImageCheck:
         def band(start: int, box: tuple[slice, slice]) -> Iterator[np.ndarray]:
             # part of a box this reader gave whole (every image from start on) in an earlier pass: seen
             # and checked there (ambient included); only the rows of the part are decoded
-            want = (box[0].start, box[0].stop, box[1].start, box[1].stop)
-            for ((r0, r1, _), (c0, c1, _)), done in boxes.items():
-                whole = (r0, r1, c0, c1)
-                if None in whole or None in want or not done.issuperset(range(start, capture.n_images)):
-                    continue
-                if r0 <= want[0] <= want[1] <= r1 and c0 <= want[2] <= want[3] <= c1:
+            for key, done in boxes.items():
+                if box_within(box, key) and done.issuperset(range(start, capture.n_images)):
                     for k, img in enumerate(iter_images(capture.subset(range(start, capture.n_images)), box,
                                                         decoded=decoded, memo=memo, ambient_check=False,
                                                         rows_only=True), start):
@@ -1495,11 +1496,11 @@ class ImageCheck:
         # 16-bit files of 12-bit codes beside full-range ones: said as such, not as a dim light below
         kinds = self.capture.kinds  # (bits, sample type)
         peaks = {k: c[0] for k, c in self.ceiling.items() if kinds[k] == (16, "uint16")}  # (1.0: the top code)
-        coded = [k for k, v in peaks.items() if k not in skip and EIGHT_BIT_TOP + 1e-7 < v <= TWELVE_BIT_TOP + 1e-7]
+        coded = [k for k, v in peaks.items() if k not in skip and EIGHT_BIT_TOP < v <= TWELVE_BIT_TOP]
         # one far darker names the rest of its kind too: LCNet judges the images as captured, where
         # a bright light's 12-bit image can stay under the threshold (helper-187: lights named 5 of
         # 8, normals all 8)
-        twelve = sorted(coded) if any(v > TWELVE_BIT_TOP + 1e-7 for v in peaks.values()) and any(
+        twelve = sorted(coded) if any(v > TWELVE_BIT_TOP for v in peaks.values()) and any(
             k in level and 0 < level[k] * TWELVE_BIT_DARKER < ref for k in coded) else []
         if twelve:
             names = few([self.capture.image_paths[i].name for i in twelve])
@@ -1531,7 +1532,7 @@ class ImageCheck:
                          f"{share[worst]:.0%}): brightness is lost there, and the normals with it; a shorter "
                          f"exposure would keep it (psctl info --check lists every image)")
         # and at a value below it (or a float file's): clipped before it was saved
-        ints = [t.startswith(("uint", "int")) for _, t in kinds]
+        ints = [has_top_code(i) for i in self.capture.infos]
         low = {k: c[1] / c[2] for k, c in self.ceiling.items()
                if c[2] and c[0] > 0 and c[3] and not (ints[k] and c[0] >= 1.0)}
         below = sorted(k for k, v in low.items() if v > CLIPPED_NOTE)
