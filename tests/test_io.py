@@ -12,7 +12,7 @@ from psctl.errors import PsctlError
 from psctl.arrays import bounding_box
 from psctl.io.capture import (find_objects, load_ground_truth, load_images, load_mask, object_name, read_matrix,
                               open_capture, select_images)
-from psctl.io.images import read_image, write_image
+from psctl.io.images import image_info, read_image, write_image
 from psctl.io.normals import read_normal_map, write_normal_map
 from psctl.metrics import angular_error
 from tests.conftest import write_capture
@@ -612,6 +612,53 @@ def test_a_capture_of_mixed_sample_types_and_channels_says_so(tmp_path):
     notes = run_normals(tmp_path / "plain", method="l2", write=False)["notes"]
     assert any(n.startswith("images: of mixed sample types (5 16-bit, 1 16-bit signed: 004.tif the rarer)")
                for n in notes), notes
+
+
+def _low_depth_png(path, codes, depth, colour_type=0):
+    """A grey (colour type 0) PNG of 1-, 2- or 4-bit samples, written byte by byte (OpenImageIO
+    writes 8 bits at least)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    h, w = codes.shape
+    per = 8 // depth
+    rows = b""
+    for row in codes:
+        packed = [sum(int(v) << (8 - depth * (i + 1)) for i, v in enumerate(row[j:j + per])) for j in range(0, w, per)]
+        rows += b"\x00" + bytes(packed)
+    head = struct.pack(">IIBBBBB", w, h, depth, colour_type, 0, 0, 0)
+    extra = chunk(b"PLTE", bytes(range(3 * 2 ** depth))) if colour_type == 3 else b""
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + extra + chunk(b"IDAT", zlib.compress(rows))
+                     + chunk(b"IEND", b""))
+
+
+def test_a_png_of_fewer_than_8_bits_is_named_by_its_own_depth(tmp_path):
+    """OpenImageIO reads a 4-bit grey PNG as 8-bit samples at full range (its values are right) and
+    gives no bit depth: the mixed-types note called it "8-bit" (helper-180), and an empty mask's
+    message counted its codes out of 255."""
+    from psctl.api import run_normals
+
+    codes = np.tile(np.arange(16, dtype=np.uint8), (16, 1))
+    _low_depth_png(tmp_path / "g4.png", codes, 4)
+    info = image_info(tmp_path / "g4.png")
+    assert (info.bits, info.dtype) == (4, "uint8")
+    assert np.allclose(read_image(tmp_path / "g4.png")[0][..., 0], codes / 15)
+    _low_depth_png(tmp_path / "p4.png", codes, 4, colour_type=3)  # a palette's samples are 8-bit
+    assert image_info(tmp_path / "p4.png").bits == 8
+
+    write_capture(tmp_path / "cap", n=6, size=16)
+    img, _ = read_image(tmp_path / "cap" / "002.png")
+    _low_depth_png(tmp_path / "cap" / "002.png", np.round(img.mean(-1) * 15).astype(np.uint8), 4)
+    write_image(tmp_path / "cap" / "003.png", img, "uint8")
+    notes = run_normals(tmp_path / "cap", method="l2", write=False)["notes"]
+    assert any(n.startswith("images: of mixed sample types (4 16-bit, 1 4-bit, 1 8-bit: 002.png, 003.png the rarer)") for n in notes), notes
+
+    _low_depth_png(tmp_path / "cap" / "mask.png", np.ones((16, 16), np.uint8), 4)  # 0/1 codes: a bool mask
+    with pytest.raises(PsctlError, match=r"the brightest is 1 of 15; a 0/1 mask\? save the object as 15"):
+        run_normals(tmp_path / "cap", method="l2", write=False)
 
 
 def test_twelve_bit_codes_in_a_sixteen_bit_file_beside_full_range_ones_are_noted(tmp_path):

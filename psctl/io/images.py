@@ -183,6 +183,18 @@ def _oiio_name(path: Path) -> str:
     return utf8_path(path, "the path is not valid UTF-8 text, which OpenImageIO cannot open; rename it")
 
 
+def _png_sample_bits(path: Path) -> int | None:
+    """A PNG's bits per sample from its IHDR chunk, where under 8 (OpenImageIO reports them as 8-bit
+    samples, scaled to full range, and no oiio:BitsPerSample); None otherwise. A palette PNG's depth
+    is its index's: its samples are 8-bit."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    # signature (8), IHDR length and type (8), width and height (8), bit depth, colour type
+    if len(head) < 26 or head[12:16] != b"IHDR" or head[25] == 3 or head[24] >= 8:
+        return None
+    return head[24]
+
+
 def image_info(path: str | os.PathLike) -> ImageInfo:
     """Read an image's header only (cheap)."""
     oiio = _oiio()
@@ -211,6 +223,8 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
                                    f"{RAW_HINT.format(name=path.name)}")
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
+        if inp.format_name() == "png" and dtype == "uint8":  # 1-, 2- and 4-bit grey come as uint8 too
+            bits = _png_sample_bits(path) or bits
         photometric = spec.get_int_attribute("tiff:PhotometricInterpretation", -1) \
             if inp.format_name() == "tiff" else -1
         if photometric in _LAB_PHOTOMETRIC:  # OpenImageIO returns L*, a*, b* as R, G, B
