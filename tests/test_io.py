@@ -2412,6 +2412,123 @@ def test_white_is_zero_and_lab_tiffs(tmp_path):
     assert read_image(tmp_path / "rgb.tif")[0].shape == (6, 8, 3)
 
 
+def _strip_tiff(path, pixels: np.ndarray, compression: str = "none", rows_per_strip: int = 8, tile: int = 0,
+                **attrs) -> bytes:
+    """A TIFF as OpenImageIO writes it, of several strips (``rows_per_strip``) or ``tile`` x ``tile``
+    tiles, and other ``attrs`` ("planarconfig", "tiff:bigtiff"); returns its bytes."""
+    import OpenImageIO as oiio
+
+    h, w, c = pixels.shape
+    spec = oiio.ImageSpec(w, h, c, oiio.UINT8 if pixels.dtype == np.uint8 else oiio.UINT16)
+    spec.attribute("compression", compression)
+    spec.attribute("tiff:RowsPerStrip", rows_per_strip)
+    spec.tile_width = spec.tile_height = tile
+    for name, value in attrs.items():
+        spec.attribute(name, value)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(pixels)), out.geterror()
+    out.close()
+    return path.read_bytes()
+
+
+def _tiff_entry(data: bytes, tag: int) -> tuple[int, int, list[int]]:
+    """A tag of a little-endian TIFF's first IFD: where its entry is, where its values are, the values."""
+    import struct
+
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    for i in range(struct.unpack_from("<H", data, ifd)[0]):
+        entry = ifd + 2 + 12 * i
+        found, kind, count, field = struct.unpack_from("<HHII", data, entry)
+        if found == tag:
+            code, size = {3: ("H", 2), 4: ("I", 4)}[kind]
+            where = entry + 8 if count * size <= 4 else field
+            return entry, where, list(struct.unpack_from(f"<{count}{code}", data, where))
+    raise KeyError(tag)
+
+
+def test_a_truncated_jpeg_is_named_once(tmp_path):
+    """libjpeg's message quotes the file's path, which the error already starts with (helper-190:
+    'X.jpg: corrupt or truncated image (JPEG error: Premature end of JPEG file ("X.jpg"))')."""
+    write_image(tmp_path / "a.jpg", np.random.default_rng(0).random((32, 32, 3), np.float32), "uint8")
+    data = (tmp_path / "a.jpg").read_bytes()
+    (tmp_path / "a.jpg").write_bytes(data[:len(data) // 2])
+    with pytest.raises(PsctlError) as e:
+        read_image(tmp_path / "a.jpg")
+    assert str(e.value) == f"{tmp_path / 'a.jpg'}: corrupt or truncated image (JPEG error: Premature end of JPEG file)"
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("compression", ["none", "lzw"])
+def test_a_tiff_strip_without_an_offset_is_one_line(tmp_path, bits, compression):
+    """helper-190: a StripOffsets tag with fewer values than the image has strips (1 for 6) read
+    as garbage without an error: libtiff fills the missing offsets with 0 and reads the file's
+    header as pixels, OpenImageIO says nothing (a sphere's l2 normals 11.5 degrees off instead of
+    1.0). A zero offset alone, the same. Now one line naming the file, in a whole read and in a
+    band read (psctl.infer's later passes) alike; a strip past the file's end is named as such."""
+    import struct
+
+    dtype = np.uint8 if bits == 8 else np.uint16
+    pixels = (np.arange(48 * 64 * 3).reshape(48, 64, 3) * 37 % (1 << bits)).astype(dtype)
+    good = _strip_tiff(tmp_path / "good.tif", pixels, compression)
+    entry, where, offsets = _tiff_entry(good, 273)
+    assert len(offsets) == 6
+    assert np.array_equal(np.rint(read_image(tmp_path / "good.tif")[0] * ((1 << bits) - 1)), pixels)
+    one, zero, past = bytearray(good), bytearray(good), bytearray(good)
+    struct.pack_into("<II", one, entry + 4, 1, offsets[0])  # count 1, the first strip's offset in the entry
+    struct.pack_into("<I", zero, where + 4 * 3, 0)
+    struct.pack_into("<I", past, where + 4 * 3, len(good) + 100)
+    for data, words in ((one, "its StripOffsets tag lists 1 offset for 6 strips"),
+                        (zero, "its strip 3 has offset 0, inside the TIFF header"),
+                        (past, f"its strip 3 starts at byte {len(good) + 100:,}, past the file's end")):
+        bad = tmp_path / "bad.tif"
+        bad.write_bytes(bytes(data))
+        for rows in (None, (16, 40)):
+            with pytest.raises(PsctlError) as e:
+                read_image(bad, rows=rows)
+            assert e.value.path == str(bad) and e.value.message.startswith(f"corrupt image ({words}"), e.value.message
+
+
+def test_tiffs_of_every_strip_and_tile_layout_still_read(tmp_path):
+    """The strip check (helper-190) finds nothing wrong in what OpenImageIO writes: one strip,
+    a strip a row, strips not dividing the height, tiles, separate planes, BigTIFF, compressed."""
+    pixels = (np.arange(37 * 53 * 3).reshape(37, 53, 3) * 997 % 65536).astype(np.uint16)
+    layouts = {"one strip": {"rows_per_strip": 64}, "a row a strip": {"rows_per_strip": 1},
+               "7 rows a strip": {"rows_per_strip": 7}, "tiles": {"tile": 16},
+               "planes": {"planarconfig": "separate"}, "tiled planes": {"tile": 32, "planarconfig": "separate"},
+               "bigtiff": {"tiff:bigtiff": 1}, "lzw": {"compression": "lzw"}, "zip tiles": {"compression": "zip", "tile": 16}}
+    for name, layout in layouts.items():
+        path = tmp_path / f"{name}.tif"
+        _strip_tiff(path, pixels, **layout)
+        got = read_image(path)[0]
+        assert np.array_equal(np.rint(got * 65535), pixels), name
+        assert np.array_equal(read_image(path, rows=(5, 30))[0], got[5:30]), name
+
+
+def test_a_capture_with_a_tiff_strip_without_an_offset_is_one_line(tmp_path):
+    """psctl normals on TIFFs, one of which lists 1 StripOffsets value for 8 strips: before the
+    fix it wrote normals 11.5 degrees off (1.0 on the good capture) and exited 0."""
+    import subprocess
+    import struct
+
+    write_capture(tmp_path / "cap", n=8, size=64)
+    names = []
+    for png in sorted((tmp_path / "cap").glob("0*.png")):
+        _strip_tiff(png.with_suffix(".tif"), np.rint(read_image(png)[0] * 65535).astype(np.uint16))
+        png.unlink()
+        names.append(png.with_suffix(".tif").name)
+    (tmp_path / "cap" / "filenames.txt").write_text("\n".join(names) + "\n")
+    bad = tmp_path / "cap" / "005.tif"
+    data = bytearray(bad.read_bytes())
+    entry, _, offsets = _tiff_entry(bytes(data), 273)
+    struct.pack_into("<II", data, entry + 4, 1, offsets[0])
+    bad.write_bytes(bytes(data))
+    proc = subprocess.run([sys.executable, "-m", "psctl.cli", "normals", str(tmp_path / "cap"), "-m", "l2", "-q",
+                           "-o", str(tmp_path / "o")], capture_output=True, text=True)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert f"{bad}: corrupt image (its StripOffsets tag lists 1 offset for 8 strips" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_camera_raw_files_are_refused_with_how_to_convert_them(tmp_path):
     """Camera raw files: OpenImageIO (without its raw plugin) read a DNG as a grey picture of the
     sensor's colour mosaic, and most raw formats are TIFF inside (the embedded preview): now one

@@ -111,6 +111,88 @@ def _cannot_open(path: Path, err: str) -> PsctlError:
     return PsctlError(path, "is empty (0 bytes), not an image" if empty else f"cannot open image ({_clean(err)})")
 
 
+# TIFF field types whose values the strip layout uses: SHORT, LONG, LONG8 (BigTIFF) -> struct code, size
+_TIFF_INTS = {3: ("H", 2), 4: ("I", 4), 16: ("Q", 8)}
+
+
+def tiff_layout_problem(path: str | os.PathLike) -> str:
+    """What is wrong with where a TIFF's first image keeps its pixels, in a few words ("" when
+    nothing is, or the file is no TIFF psctl can parse: OpenImageIO then judges it). libtiff reads
+    a strip (or tile) that has no offset from the file's first byte: a StripOffsets tag with fewer
+    values than the image has strips (helper-190: 1 for 6) is filled with zeros, and a zero offset
+    (GDAL's sparse strips too) reads the TIFF header as pixels, without an error from libtiff or
+    OpenImageIO. An offset at or past the file's end is named here too (libtiff's own message is
+    "Read error at scanline 4294967295")."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(16)
+            if len(head) < 8 or head[:2] not in (b"II", b"MM"):
+                return ""
+            e = "<" if head[:2] == b"II" else ">"
+            magic = struct.unpack(e + "H", head[2:4])[0]
+            if magic == 42:
+                ifd, header, count_fmt, entry_fmt, entry_size = struct.unpack(e + "I", head[4:8])[0], 8, "H", "HHI4s", 12
+            elif magic == 43 and len(head) == 16:
+                ifd, header, count_fmt, entry_fmt, entry_size = struct.unpack(e + "Q", head[8:16])[0], 16, "Q", "HHQ8s", 20
+            else:
+                return ""
+            f.seek(ifd)
+            raw = f.read(struct.calcsize(e + count_fmt))
+            if len(raw) < struct.calcsize(e + count_fmt):
+                return ""
+            n = struct.unpack(e + count_fmt, raw)[0]
+            entries = f.read(min(n, 4096) * entry_size)
+            tags: dict[int, list[int]] = {}
+            for i in range(len(entries) // entry_size):
+                tag, kind, count, field = struct.unpack(e + entry_fmt, entries[i * entry_size:(i + 1) * entry_size])
+                if tag not in (256, 257, 259, 273, 277, 278, 284, 322, 323, 324) or kind not in _TIFF_INTS:
+                    continue
+                code, width = _TIFF_INTS[kind]
+                if count > 1 << 22:  # (a damaged count: left to OpenImageIO)
+                    return ""
+                if count * width <= len(field):
+                    data = field[:count * width]
+                else:
+                    f.seek(struct.unpack(e + ("I" if len(field) == 4 else "Q"), field)[0])
+                    data = f.read(count * width)
+                    if len(data) < count * width:
+                        return ""
+                tags[tag] = list(struct.unpack(f"{e}{count}{code}", data))
+    except (OSError, struct.error, ValueError, OverflowError):
+        return ""
+
+    def one(tag: int, default: int) -> int:
+        return tags[tag][0] if tags.get(tag) else default
+
+    width, height, channels = one(256, 0), one(257, 0), one(277, 1)
+    if width <= 0 or height <= 0 or one(259, 1) == 6:  # (old-style JPEG: libtiff finds its data by other tags)
+        return ""
+    planes = channels if one(284, 1) == 2 else 1
+    if 322 in tags:  # tiled (libtiff's test: a TileWidth tag; the offsets in either tag)
+        tw, th = one(322, 0), one(323, 0)
+        if tw <= 0 or th <= 0:
+            return ""
+        name, unit, offsets, blocks = "TileOffsets", "tile", tags.get(324) or tags.get(273), \
+            -(-width // tw) * -(-height // th) * planes
+    else:
+        rows = min(one(278, height), height)  # (none: the whole image, one strip)
+        if rows <= 0:
+            return ""
+        name, unit, offsets, blocks = "StripOffsets", "strip", tags.get(273) or tags.get(324), -(-height // rows) * planes
+    if not offsets:
+        return ""
+    if len(offsets) < blocks:
+        return (f"its {name} tag lists {len(offsets)} offset{'s' * (len(offsets) != 1)} for {blocks} {unit}s: "
+                f"the others would be read from the file's first bytes")
+    for k, at in enumerate(offsets[:blocks]):
+        if at < header:
+            return f"its {unit} {k} has offset {at}, inside the TIFF header: no data stored for it"
+        if at >= size:
+            return f"its {unit} {k} starts at byte {at:,}, past the file's end ({size:,} bytes): truncated?"
+    return ""
+
+
 def pick_channels(names: list[str] | tuple[str, ...],
                   named: bool = False) -> tuple[tuple[int, ...], str, tuple[str, ...]]:
     """Which stored channels are the picture, by their names: (indices in R, G, B[, A] or Y[, A]
@@ -447,6 +529,9 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False,
     oiio = _oiio()
     path = Path(path)
     info = image_info(path)
+    problem = tiff_layout_problem(path) if info.format == "tiff" else ""
+    if problem:  # read without an error, as the file's first bytes (helper-190)
+        raise PsctlError(path, f"corrupt image ({problem})")
     # Without this hint OpenImageIO multiplies a PNG's or TIFF's colour by its alpha as it reads;
     # psctl ignores alpha (docs/formats.md): a photo's pixels are what they are.
     config = oiio.ImageSpec()
@@ -469,7 +554,9 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False,
         finally:
             inp.close()
     if pixels is None or err:
-        raise PsctlError(path, f"corrupt or truncated image ({_clean(err) or 'no pixels'})")
+        # (libjpeg's message quotes the path the error already starts with)
+        why = _clean(err).replace(f' ("{_oiio_name(path)}")', "")
+        raise PsctlError(path, f"corrupt or truncated image ({why or 'the decoder gave no reason'})")
     frame = (info.width, info.height) if info.orientation >= 5 else (info.height, info.width)
     if band:
         pixels = np.asarray(pixels, dtype=np.float32).reshape(rows[1] - rows[0], frame[1], stored_channels)
