@@ -10,8 +10,12 @@ memory-hungry at millions of unknowns. Pure functions of arrays and a config dic
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # scipy is imported where used
+    from scipy.sparse import csr_matrix
 
 __all__ = ["solve_laplacian", "solve_system", "laplacian", "pcg", "SmoothedAggregation"]
 
@@ -36,7 +40,7 @@ def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b:
                         coords, x0, cfg, amg)
 
 
-def solve_system(L, rhs: np.ndarray, coords: tuple[np.ndarray, np.ndarray], x0: np.ndarray | None, cfg: dict,
+def solve_system(L: csr_matrix, rhs: np.ndarray, coords: tuple[np.ndarray, np.ndarray], x0: np.ndarray | None, cfg: dict,
                  amg: "SmoothedAggregation | None" = None
                  ) -> tuple[np.ndarray, int, "SmoothedAggregation | None", bool]:
     """``solve_laplacian`` from its matrix ``L`` (``laplacian``) and right-hand side ``rhs`` [npix]:
@@ -63,7 +67,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
+def pcg(A: csr_matrix, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray | None, rtol: float,
         maxiter: int) -> tuple[np.ndarray, int, bool]:
     """Preconditioned conjugate gradients until max_i |r_i| / a_ii <= rtol max_i |b_i| / a_ii.
 
@@ -103,7 +107,7 @@ def pcg(A, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0: np.ndarray 
     return x, maxiter, False
 
 
-def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np.ndarray):
+def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np.ndarray) -> csr_matrix:
     """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree)."""
     import scipy.sparse as sp
 
