@@ -11,7 +11,7 @@ point with the lowest mean over the synthetic sets syntest, syntest_dl and synte
 reported afterwards, never used to choose.
 
 That choice (0.6 / 0.3; 6.57 against L2's 12.23 over the three sets) lost to L2 on the DiLiGenT
-dev split (12.12 vs 9.46; bear 17.27, pot2 20.07). The second rule, written after that and before
+dev split (12.12 vs 9.47; bear 17.27, pot2 20.07). The second rule, written after that and before
 this run: the same over five sets, adding syntest_dl_miscal (a wrong intensity file for 20 images
 of each object) and syntest_dl as an 8-bit camera at a dark exposure would record it (``--quant``:
 object mean 0.02 of full scale, truncated to 8 bits, as the DiLiGenT crops; benchmarks/

@@ -110,9 +110,9 @@ def resolve_method(method: str, calibrated: bool, weights: str | os.PathLike | N
 
         # the average of the two installed networks beat either alone on the synthetic test sets,
         # by which psctl chooses (benchmarks/ensemble.py's rule, session 34: the sum over seven
-        # sets 29.60 vs PS-FCN 30.13 and PS-FCN+N 32.87); of the two alone PS-FCN comes first:
-        # the release ps_fcn.pt beats ps_fcn_n.pt on them (syntest 4.94 vs 5.87, DiLiGenT-like
-        # lights 4.15 vs 4.47; weights/README.md)
+        # sets 29.60 vs PS-FCN 30.13 and PS-FCN+N 32.87; since session 55 28.97 vs 30.13 and 31.78); of the two alone PS-FCN comes first:
+        # the release ps_fcn.pt beats ps_fcn_n.pt on them (syntest 4.94 vs 5.68, DiLiGenT-like
+        # lights 4.15 vs 4.32, GPU stage 12; weights/README.md)
         have = [m for m in ENSEMBLE if installed_path(m) is not None]
         if len(have) == len(ENSEMBLE):
             return "ensemble", None
@@ -176,7 +176,9 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
             light intensity; float on the scale psctl reads files at (integer value / (2^bits -
             1)), or uint8 / uint16 arrays, which are scaled so. LCNet depends on that scale; a
             capture far outside its training exposures is rescaled for it (the exposure guard,
-            docs/uncalibrated.md).
+            docs/uncalibrated.md). Only integer arrays show which values are saturated (at the
+            top code), which the light fit leaves out as ``psctl lights`` does; float arrays keep
+            them in (the cropped ball: light error 1.78 degrees against 1.66, helper-192).
         mask: [H, W] bool or numbers (above 0.5 is the object; None: LCNet and the light fit
             read the object found without it (by brightness, or by shading before a lit
             background: ``psctl.masks.find_object``), and a warning

@@ -10,7 +10,7 @@ and cast) are a pixel's darkest observations and specular highlights its brighte
 break m_k = l_k . b; sorting each pixel's observations and dropping the darkest ``low`` and the
 brightest ``high`` shares keeps those that a Lambertian model explains. Needs every observation
 of a pixel at once: [N, P] grey values. Not a psctl method: chosen on synthetic sets it beats L2
-there (7.85 vs 11.80 degrees over five) but loses on the DiLiGenT dev split (10.60 vs 9.46; ball
+there (7.85 vs 11.80 degrees over five) but loses on the DiLiGenT dev split (10.60 vs 9.47; ball
 and cat better, pot1, bear and pot2 worse), the go/no-go written before that run
 (benchmarks/trim_grid.py, docs/usage.md). Kept for that benchmark and for Python users.
 """
@@ -143,7 +143,7 @@ def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
 # The shares dropped per pixel, chosen on synthetic test sets only (benchmarks/trim_grid.py,
 # docs/usage.md "A trimmed L2: tried, not a method"). First rule (syntest, syntest_dl, syntest_dl_ir): 0.6 / 0.3, which
 # lost to L2 on the DiLiGenT dev split; second rule, adding a wrong intensity file and an 8-bit
-# dark capture: 0.55 / 0.25 (mean over the five sets 7.85, L2 11.80), which lost too (10.60 vs 9.46)
+# dark capture: 0.55 / 0.25 (mean over the five sets 7.85, L2 11.80), which lost too (10.60 vs 9.47)
 DEFAULT_TRIM = {"low": 0.55, "high": 0.25}
 _CHUNK = 16384  # pixels solved at once (bounds the [K, chunk, 3] temporaries)
 
