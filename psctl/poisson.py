@@ -17,7 +17,7 @@ import numpy as np
 if TYPE_CHECKING:  # scipy is imported where used
     from scipy.sparse import csr_matrix
 
-__all__ = ["solve_laplacian", "solve_system", "laplacian", "pcg", "SmoothedAggregation"]
+__all__ = ["solve_laplacian", "solve_system", "laplacian", "laplacian_pattern", "pcg", "SmoothedAggregation"]
 
 
 def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b: np.ndarray, pins: np.ndarray,
@@ -41,11 +41,15 @@ def solve_laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, b:
 
 
 def solve_system(L: csr_matrix, rhs: np.ndarray, coords: tuple[np.ndarray, np.ndarray], x0: np.ndarray | None, cfg: dict,
-                 amg: "SmoothedAggregation | None" = None
+                 amg: "SmoothedAggregation | None" = None, release_stale: bool = False
                  ) -> tuple[np.ndarray, int, "SmoothedAggregation | None", bool]:
     """``solve_laplacian`` from its matrix ``L`` (``laplacian``) and right-hand side ``rhs`` [npix]:
     a caller that has no more use for the edges' arrays frees them before the solve (poisson in
-    ``psctl.depth.integrate``: with its other per-edge arrays, 4.2 -> 2.4 GB on 12 MP of normals)."""
+    ``psctl.depth.integrate``: with its other per-edge arrays, 4.2 -> 2.4 GB on 12 MP of normals).
+
+    ``release_stale``: where ``amg`` is not good enough and a new one is built, empty ``amg`` first
+    (its matrices go although the caller still holds it: two hierarchies, the old one with its
+    own copy of the matrix, were alive at bilateral's peak). The caller must not use it again."""
     npix = L.shape[0]
     if npix <= cfg["amg_max_coarse"]:
         import scipy.linalg
@@ -56,6 +60,8 @@ def solve_system(L: csr_matrix, rhs: np.ndarray, coords: tuple[np.ndarray, np.nd
         x0, its, done = pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["amg_rebuild_iters"])
         if done:
             return x0, its, amg, True
+        if release_stale:
+            amg.release()
     amg = SmoothedAggregation(L, coords, cfg)
     z, more, done = pcg(L, rhs, amg, x0, cfg["cg_rtol"], cfg["cg_maxiter"])
     return z, its + more, amg, done
@@ -107,16 +113,52 @@ def pcg(A: csr_matrix, b: np.ndarray, M: Callable[[np.ndarray], np.ndarray], x0:
     return x, maxiter, False
 
 
-def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np.ndarray) -> csr_matrix:
-    """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree)."""
+def laplacian(npix: int, ei: np.ndarray, ej: np.ndarray, c: np.ndarray, pins: np.ndarray,
+              pattern: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> csr_matrix:
+    """Weighted graph Laplacian + 1 equation z_p = 0 per pinned pixel (weight: the mean degree).
+
+    ``pattern``: ``laplacian_pattern(npix, ei, ej)``, to fill this graph's matrix again with other
+    weights without the COO arrays and their conversion (the same matrix to the bit; it shares the
+    pattern's index arrays, which nothing writes to)."""
     import scipy.sparse as sp
 
-    diag = np.bincount(ei, c, npix) + np.bincount(ej, c, npix)
+    diag = (np.bincount(ei, c, npix) + np.bincount(ej, c, npix)).astype(np.float64, copy=False)  # (no edge: int64 zeros)
     diag[pins] += max(float(diag.mean()), 1e-12)
     diag = np.maximum(diag, 1e-300)  # isolated pixels are pinned, so only a guard
+    if pattern is not None:
+        indptr, indices, slot = pattern
+        e = len(c)
+        data = np.zeros(len(slot))
+        data[slot[:e]] = c
+        data[slot[e:2 * e]] = c
+        np.negative(data, out=data)  # -c in place (exact), not another edge array
+        data[slot[2 * e:]] = diag
+        return sp.csr_matrix((data, indices, indptr), shape=(npix, npix))
     rows = np.concatenate([ei, ej, np.arange(npix, dtype=ei.dtype)])  # (32-bit indices stay 32-bit)
     cols = np.concatenate([ej, ei, np.arange(npix, dtype=ei.dtype)])
     return sp.csr_matrix((np.concatenate([-c, -c, diag]), (rows, cols)), shape=(npix, npix))
+
+
+def laplacian_pattern(npix: int, ei: np.ndarray, ej: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``laplacian``'s sparsity for the graph (ei, ej), for matrices of it with other weights:
+    (indptr, indices, slot), slot[k] = where the k-th of the COO entries (edges i -> j, edges
+    j -> i, the diagonal) lands in the matrix's data. 4 bytes an entry kept, to spare each later
+    matrix 16 bytes an entry of COO arrays (bilateral builds one a round, while the last one and
+    its multigrid are still alive). None where the graph repeats an edge (entries are summed)."""
+    import scipy.sparse as sp
+
+    nnz = 2 * len(ei) + npix
+    itype = np.int32 if nnz < 2**31 - 1 else np.int64
+    rows = np.concatenate([ei, ej, np.arange(npix, dtype=ei.dtype)])
+    cols = np.concatenate([ej, ei, np.arange(npix, dtype=ei.dtype)])
+    # laplacian's own conversion, with each entry's COO position as its value
+    m = sp.csr_matrix((np.arange(nnz, dtype=itype), (rows, cols)), shape=(npix, npix))
+    del rows, cols
+    if m.nnz != nnz:
+        return None
+    slot = np.empty(nnz, itype)
+    slot[m.data] = np.arange(nnz, dtype=itype)
+    return m.indptr, m.indices, slot
 
 
 class SmoothedAggregation:
@@ -159,6 +201,10 @@ class SmoothedAggregation:
 
     def __call__(self, b: np.ndarray) -> np.ndarray:
         return self._vcycle(0, b)
+
+    def release(self) -> None:
+        """Let go of the levels' matrices (``solve_system``'s release_stale); unusable after."""
+        self.levels, self.coarse = [], None
 
     def _vcycle(self, k: int, b: np.ndarray) -> np.ndarray:
         if k == len(self.levels):

@@ -859,3 +859,36 @@ def test_the_laplacian_solve_is_the_dense_one():
                              np.bincount(ej, b, h * w) - np.bincount(ei, b, h * w))
     z2, _, _, done2 = solve_laplacian(h * w, ei, ej, c2, b, pins, coords, z, cfg, amg)
     assert done2 and np.abs(z2 - exact2).max() < 1e-6 * np.abs(exact2).max()
+
+
+def test_the_laplacian_from_its_pattern_is_the_same_matrix():
+    """Bilateral fills each round's matrix into a pattern built once (no COO arrays a round): the
+    same data, indices and index pointers, to the bit; a graph that repeats an edge has none."""
+    from psctl.poisson import laplacian, laplacian_pattern
+
+    rng = np.random.default_rng(5)
+    valid = rng.random((40, 60)) > 0.3
+    npix = int(valid.sum())
+    index = np.full(valid.shape, -1, np.int32)
+    index[valid] = np.arange(npix)
+    hor, ver = valid[:, :-1] & valid[:, 1:], valid[:-1] & valid[1:]
+    ei = np.concatenate([index[:, :-1][hor], index[:-1][ver]])
+    ej = np.concatenate([index[:, 1:][hor], index[1:][ver]])
+    pattern = laplacian_pattern(npix, ei, ej)
+    for _ in range(2):
+        c = rng.uniform(1e-6, 3.0, len(ei))
+        a, b = laplacian(npix, ei, ej, c, np.array([0, 7])), laplacian(npix, ei, ej, c, np.array([0, 7]), pattern)
+        for name in ("data", "indices", "indptr"):
+            assert getattr(a, name).dtype == getattr(b, name).dtype
+            assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
+    assert laplacian_pattern(3, np.array([0, 0]), np.array([1, 1])) is None
+
+
+def test_a_laplacian_without_edges_is_its_pins():
+    """A graph of isolated pixels (every one pinned): np.bincount of no edges is int64, which the
+    pins' float weight cannot be added to in place (helper-189: a casting error)."""
+    from psctl.poisson import laplacian
+
+    empty = np.array([], np.int32)
+    L = laplacian(3, empty, empty, np.array([]), np.array([0, 1, 2]))
+    assert L.dtype == np.float64 and np.allclose(L.toarray(), 1e-12 * np.eye(3))
