@@ -144,8 +144,12 @@ def tiff_layout_problem(path: str | os.PathLike) -> str:
             n = struct.unpack(e + count_fmt, raw)[0]
             entries = f.read(min(n, 4096) * entry_size)
             tags: dict[int, list[int]] = {}
+            seen: set[int] = set()
             for i in range(len(entries) // entry_size):
                 tag, kind, count, field = struct.unpack(e + entry_fmt, entries[i * entry_size:(i + 1) * entry_size])
+                if tag in seen:  # a repeated tag: libtiff keeps its first entry
+                    continue
+                seen.add(tag)
                 if tag not in (256, 257, 259, 273, 277, 278, 284, 322, 323, 324) or kind not in _TIFF_INTS:
                     continue
                 code, width = _TIFF_INTS[kind]
