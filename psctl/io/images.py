@@ -269,18 +269,6 @@ def _oiio_name(path: Path) -> str:
     return utf8_path(path, "the path is not valid UTF-8 text, which OpenImageIO cannot open; rename it")
 
 
-def _png_sample_bits(path: Path) -> int | None:
-    """A PNG's bits per sample from its IHDR chunk, where under 8 (OpenImageIO reports them as 8-bit
-    samples, scaled to full range, and no oiio:BitsPerSample); None otherwise. A palette PNG's depth
-    is its index's: its samples are 8-bit."""
-    with open(path, "rb") as f:
-        head = f.read(26)
-    # signature (8), IHDR length and type (8), width and height (8), bit depth, colour type
-    if len(head) < 26 or head[12:16] != b"IHDR" or head[25] == 3 or head[24] >= 8:
-        return None
-    return head[24]
-
-
 def image_info(path: str | os.PathLike) -> ImageInfo:
     """Read an image's header only (cheap)."""
     oiio = _oiio()
@@ -309,8 +297,8 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
                                    f"{RAW_HINT.format(name=path.name)}")
         dtype = str(spec.format)
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
-        if inp.format_name() == "png" and dtype == "uint8":  # 1-, 2- and 4-bit grey come as uint8 too
-            bits = _png_sample_bits(path) or bits
+        low_bits, png_tag = _png_header(path) if inp.format_name() == "png" else (None, "")
+        bits = low_bits or bits  # (1-, 2- and 4-bit grey PNGs come as uint8, with no bit depth)
         photometric = spec.get_int_attribute("tiff:PhotometricInterpretation", -1) \
             if inp.format_name() == "tiff" else -1
         if photometric in _LAB_PHOTOMETRIC:  # OpenImageIO returns L*, a*, b* as R, G, B
@@ -351,7 +339,7 @@ def image_info(path: str | os.PathLike) -> ImageInfo:
         return ImageInfo(path, w, h, len(pick) or spec.nchannels, dtype, int(bits), orientation, pages,
                          inp.format_name(), pick, layer if len(layers) > 1 else "", window, color_space,
                          tuple(spec.channelnames), tone, exposure, problem,
-                         png_colour_tag(path) if inp.format_name() == "png" else "", white_is_zero)
+                         png_tag, white_is_zero)
     finally:
         inp.close()
 
@@ -371,11 +359,18 @@ def png_colour_tag(path: str | os.PathLike) -> str:
     cICP of 8). cICP outranks sRGB and sRGB gAMA, as the PNG standard (third edition) orders
     them. OpenImageIO's oiio:ColorSpace cannot tell: it says sRGB for a PNG without any of them
     too. (An iCCP chunk is read as the file's ICC profile: psctl.io.icc.)"""
-    srgb, gamma, cicp = False, 0.0, -1
+    return _png_header(path)[1]
+
+
+def _png_header(path: str | os.PathLike) -> tuple[int | None, str]:
+    """A PNG's chunks before its pixels, read once: (its bits per sample where under 8, else None;
+    ``png_colour_tag``'s tag). OpenImageIO reads 1-, 2- and 4-bit grey as 8-bit samples at full
+    range and gives no bit depth; a palette PNG's depth is its index's (its samples are 8-bit)."""
+    srgb, gamma, cicp, bits = False, 0.0, -1, None
     try:
         with open(path, "rb") as f:
             if f.read(8) != PNG_SIGNATURE:
-                return ""
+                return None, ""
             for _ in range(10_000):  # chunks before the pixels: a few, unless the file is damaged
                 head = f.read(8)
                 if len(head) < 8:
@@ -383,24 +378,27 @@ def png_colour_tag(path: str | os.PathLike) -> str:
                 size, kind = struct.unpack(">I4s", head)
                 if kind in (b"IDAT", b"IEND"):
                     break
-                body = f.read(size) if kind in (b"sRGB", b"gAMA", b"cICP") and size <= 4 else None
+                body = f.read(size) if kind in (b"sRGB", b"gAMA", b"cICP") and size <= 4 or \
+                    kind == b"IHDR" and size == 13 else None
                 if body is None:
                     f.seek(size, os.SEEK_CUR)
                 f.seek(4, os.SEEK_CUR)  # the chunk's CRC
+                if kind == b"IHDR" and body is not None and len(body) == 13 and body[9] != 3 and body[8] < 8:
+                    bits = body[8]  # (width, height, then bit depth and colour type; 3: a palette)
                 srgb |= kind == b"sRGB" and body is not None and len(body) == 1
                 if kind == b"gAMA" and body is not None and len(body) == 4:
                     gamma = struct.unpack(">I", body)[0] / 100000.0
                 if kind == b"cICP" and body is not None and len(body) == 4:
                     cicp = body[1]
     except OSError:
-        return ""
+        return bits, ""
     if cicp >= 0:
-        return "" if cicp == 8 else _CICP_TRANSFER.get(cicp, f"transfer characteristics {cicp} (cICP)")
+        return bits, "" if cicp == 8 else _CICP_TRANSFER.get(cicp, f"transfer characteristics {cicp} (cICP)")
     if srgb:  # sRGB outranks gAMA (writers add a gAMA of 0.45455 beside it)
-        return "sRGB"
+        return bits, "sRGB"
     if not 0.1 <= gamma <= 10.0 or abs(1.0 / gamma - 1.0) <= 0.01:  # (libpng too ignores one out of range)
-        return ""
-    return f"gamma {1.0 / gamma:.3g}"
+        return bits, ""
+    return bits, f"gamma {1.0 / gamma:.3g}"
 
 
 def srgb_like(tag: str) -> bool:
