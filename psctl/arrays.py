@@ -176,7 +176,8 @@ def check_vector_dtype(a: np.ndarray, what: str) -> None:
     be taken as vectors all in one octant, so the message says how to decode them."""
     if a.dtype.kind not in "fi":
         raise PsctlError(None, f"{what}, got dtype {a.dtype}"
-                               + (" (decode a PNG's pixels first: psctl.io.normals.decode_normal_pixels)"
+                               + (" (read the file with psctl.io.normals.read_normal_map, or decode RGB codes "
+                                  "with psctl.io.normals.decode_normal_pixels)"
                                   if a.dtype.kind in "ub" else ""))
 
 

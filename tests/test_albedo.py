@@ -170,7 +170,7 @@ def test_estimate_albedo_checks_its_arrays():
     # as estimate_normals and angular_error (a QA helper's findings): an encoded map's pixels, black
     # images, a number given as text
     encoded = np.round((normals + 1) / 2 * 255).astype(np.uint8)
-    with pytest.raises(psctl.PsctlError, match=r"got dtype uint8 \(decode a PNG's pixels first"):
+    with pytest.raises(psctl.PsctlError, match=r"got dtype uint8 \(read the file with psctl.io.normals.read_normal_map"):
         psctl.estimate_albedo(images, lights, encoded, mask)
     with pytest.raises(psctl.PsctlError, match=r"normals must be a numeric \[H, W, 3\] array"):  # ragged
         psctl.estimate_albedo(images, lights, [[[0, 0, 1]] * 3, [[0, 0, 1]] * 2], mask)

@@ -213,7 +213,7 @@ def test_depth_config_is_checked():
             integrate_normals(normals, mask, config=config)
     z = integrate_normals(normals, mask, config={"cg_maxiter": 500.0})  # a whole float is fine
     assert np.isfinite(z[mask]).all()
-    for bad, needle in ((np.round((normals + 1) / 2 * 65535).astype(np.uint16), "decode a PNG's pixels"),
+    for bad, needle in ((np.round((normals + 1) / 2 * 65535).astype(np.uint16), "decode RGB codes with psctl.io.normals.decode_normal_pixels"),
                         (normals.astype(complex), "complex128")):
         with pytest.raises(PsctlError, match=needle):
             integrate_normals(bad, mask)
@@ -429,8 +429,27 @@ def test_angular_error_of_two_vectors_and_of_encoded_pixels():
     assert np.isnan(psctl.angular_error([0, 0, np.nan], [0, 0, 1]))
     assert float(psctl.angular_error([0, 0, 1], [0, 0, 1])) == 0.0  # integer vectors are vectors
     pixels = np.full((2, 2, 3), 128, np.uint8)  # a normal map's PNG pixels, (n + 1) / 2
-    with pytest.raises(PsctlError, match="dtype uint8 .*decode_normal_pixels"):
+    with pytest.raises(PsctlError, match="dtype uint8 .*read_normal_map.*decode_normal_pixels"):
         psctl.angular_error(pixels, pixels)
+
+
+def test_the_hints_decoder_takes_raw_codes():
+    """check_vector_dtype sends uint8 / uint16 pixels to decode_normal_pixels; raw codes (PIL,
+    imageio) came back all in one octant, 41.5 degrees off on a sphere (helper-196)."""
+    import psctl
+    from psctl.io.normals import decode_normal_pixels, encode_png
+
+    yy, xx = np.mgrid[-1:1:33j, -1:1:33j]
+    inside = xx ** 2 + yy ** 2 < 0.9
+    n = np.dstack([xx, -yy, np.sqrt(np.clip(1 - xx ** 2 - yy ** 2, 0, 1))]) * inside[..., None]
+    for bits, dtype, tol in ((8, np.uint8, 0.5), (16, np.uint16, 0.01)):
+        codes = np.round(encode_png(n, inside) * np.iinfo(dtype).max).astype(dtype)  # as a PNG holds them
+        got = decode_normal_pixels(codes)
+        err = psctl.angular_error(got, n, mask=inside)
+        assert float(np.nanmax(err)) < tol, bits
+        assert not got[~inside].any()
+        # as read_image gives them (divided by the largest code): the same normals
+        np.testing.assert_allclose(decode_normal_pixels(codes / np.iinfo(dtype).max), got, atol=1e-6)
 
 
 def test_bfloat16_tensors_are_taken_as_float32(data):

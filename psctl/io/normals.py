@@ -50,10 +50,19 @@ NO_NORMAL_LENGTH = 0.5
 def decode_normal_pixels(pixels: np.ndarray, info: ImageInfo | None = None) -> np.ndarray:
     """Inverse of the encodings: integer images hold (n + 1) / 2, float images hold n.
 
+    ``pixels``: as ``read_image`` gives them (float in [0, 1] for integer files; ``info`` says
+    which files are float, and without it every float array is taken as (n + 1) / 2), or raw
+    uint8 / uint16 codes in RGB order (PIL's and imageio's; OpenCV gives BGR: reverse the last
+    axis first), which are divided by their type's largest value first. ``read_normal_map(path)``
+    does all of this from a file.
+
     All-zero pixels (outside the mask) decode to 0, as do integer pixels that hold a vector
     shorter than NO_NORMAL_LENGTH (mid-grey: the zero vector).
     """
+    pixels = np.asarray(pixels)
     rgb = pixels[..., :3].astype(np.float32)
+    if pixels.dtype.kind in "ui":  # raw codes (PIL, imageio, cv2): (n + 1) / 2 * (2^bits - 1)
+        rgb /= np.float32(np.iinfo(pixels.dtype).max)
     is_float = info is not None and info.dtype in ("half", "float", "double")
     if is_float:
         return rgb
