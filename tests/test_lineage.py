@@ -1,0 +1,162 @@
+"""configs/lineage.yaml (every stage behind the release weights) and its replay, psctl.lineage."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from psctl import lineage as lin
+from psctl.errors import PsctlError
+from psctl.models.weights import read_weights
+from psctl.train import STOP, check_method_recipe
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def manifest() -> dict:
+    return lin.load_lineage()
+
+
+def test_every_stage_is_a_recipe_todays_code_accepts(manifest):
+    """A replay must not fail hours in on a recipe key that has since been renamed or refused."""
+    stages = manifest["stages"]
+    trained = [s for s in stages.values() if "recipe" in s]
+    assert len(trained) >= 35
+    for sid, s in stages.items():
+        if "recipe" not in s:
+            assert len(s["average"]) >= 2, sid
+            continue
+        config = lin.stage_recipe(s, None if s["init"] is None else "start.pt")
+        check_method_recipe(s["method"], config)  # the stream's options with today's psctl.synth
+        tr = s["recipe"]["train"]
+        # kept at or before the planned end (a run's last batch may pass it)
+        assert config["train"]["samples"] == s["samples"] < tr["samples"] + tr["batch_size"], sid
+        # the schedule is the recorded one: halvings in samples, so stopping early keeps it
+        assert config["train"]["lr_halve_every"] == s["recipe"]["train"]["lr_halve_every"], sid
+
+
+def test_each_release_file_is_its_last_stage(manifest):
+    """The installed files are the manifest's: a new release file needs a new stage (written by
+    benchmarks/lineage_from_git.py), or this fails."""
+    for file, sid in manifest["ships"].items():
+        stage = manifest["stages"][sid]
+        assert hashlib.sha256((REPO / file).read_bytes()).hexdigest() == stage["sha256"], file
+        md = read_weights(REPO / file).metadata
+        assert md["method"] == stage["method"]
+        assert md["samples_seen"] == stage.get("samples", stage.get("samples_seen")), file
+        order = lin.stages_for(manifest, file)
+        assert order[-1] == sid and len(order) == len(set(order))
+        for k, s in enumerate(order):  # every stage after the ones it starts from
+            assert all(order.index(p) < k for p in lin._parents(manifest["stages"][s])), (file, s)
+        assert manifest["stages"][order[0]]["init"] is None  # from scratch
+
+
+def test_lineage_sample_counts_match_the_docs(manifest):
+    """docs/training.md's counts for two lineages (scale stage 4, PS-FCN stage 12), from the manifest."""
+    order = lin.stages_for(manifest, "ps_fcn_n.scale4")
+    assert sum(manifest["stages"][s]["samples"] for s in order) == 1_283_488
+    order = lin.stages_for(manifest, "ps_fcn.12")
+    assert sum(manifest["stages"][s]["samples"] for s in order) == 1_107_520  # PS-FCN stage 12's
+
+
+def test_manifest_is_what_git_history_gives():
+    """The manifest is written from the weights committed over the project's history, each link
+    checked against the child's record of its start; a hand edit or a stale file fails here."""
+    probe = subprocess.run(["git", "-C", str(REPO), "cat-file", "-e", "9485390:weights/ps_fcn_n.pt"],
+                           capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip("no git history here (a shallow clone or an unpacked archive)")
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "lineage_from_git.py"), "--check"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def _small(manifest: dict) -> dict:
+    """A five-stage lineage of real recipes: PS-FCN+N from scratch, PS-FCN from it, UPS-FCN from
+    that (the light filters dropped), a second PS-FCN stage, and the average of the two PS-FCNs."""
+    st = manifest["stages"]
+    pick = {"a": ("ps_fcn_n.1", None), "b": ("ps_fcn.1", "a"), "c": ("ps_fcn.2", "b"), "u": ("ups_fcn.1", "b")}
+    stages = {k: {**copy.deepcopy(st[src]), "init": init} for k, (src, init) in pick.items()}
+    stages["avg"] = {"method": "ps-fcn", "average": ["b", "c"]}
+    return {"ships": {"weights/x.pt": "avg"}, "stages": stages}
+
+
+def _weights(path: Path) -> dict:
+    return read_weights(path).state_dict
+
+
+def test_tiny_replay_chains_stages_and_resumes_exactly(manifest, tmp_path):
+    torch.set_num_threads(2)
+    small = _small(manifest)
+    lines: list[str] = []
+    res = lin.rebuild("weights/x.pt", tmp_path / "a", small, device="cpu", tiny=True, report=lines.append)
+    assert res["finished"] and res["file"] == tmp_path / "a" / "avg" / "best.pt"
+    assert [ln.split(":")[0] for ln in lines] == ["[1/4] a", "[2/4] b", "[3/4] c", "[4/4] avg"]
+    # each stage started from its parent's result (its recorded start), at the tiny sample count
+    for sid, parent in (("b", "a"), ("c", "b")):
+        md = read_weights(tmp_path / "a" / sid / "model.pt").metadata
+        assert md["init"]["path"].endswith(f"{parent}/model.pt") and md["samples_seen"] == 4
+        assert md["method"] == "ps-fcn"
+    b, c = _weights(tmp_path / "a" / "b" / "model.pt"), _weights(tmp_path / "a" / "c" / "model.pt")
+    avg = _weights(res["file"])
+    assert all(torch.allclose(avg[k].float(), (b[k].float() + c[k].float()) / 2, atol=1e-6) for k in avg)
+    assert any(not torch.equal(b[k], c[k]) for k in b)  # c trained on from b
+    # UPS-FCN from PS-FCN: the light input dropped, as configs/ups_fcn_cpu.yaml did
+    res_u = lin.rebuild("u", tmp_path / "a", small, device="cpu", tiny=True, report=lines.append)
+    assert res_u["finished"] and read_weights(res_u["file"]).method == "ups-fcn"
+    assert lines[-1].startswith("[3/3] u") and len(lines) == 5  # a and b were not trained again
+
+    # interrupted in stage c (as by a signal: train's progress says STOP), then called again;
+    # a and b are copied in finished (the replay skips them: saves two stages' time)
+    import shutil
+
+    for sid in ("a", "b"):
+        shutil.copytree(tmp_path / "a" / sid, tmp_path / "b" / sid)
+    stopped: list[dict] = []
+
+    def stop_in_c(rec: dict):
+        if not stopped and (tmp_path / "b" / "c").exists():
+            stopped.append(rec)
+            return STOP
+        return None
+
+    res = lin.rebuild("weights/x.pt", tmp_path / "b", small, device="cpu", tiny=True, report=lambda s: None,
+                      progress=stop_in_c)
+    assert not res["finished"] and res["stage"] == "c" and stopped[0]["samples"] < 4
+    res = lin.rebuild("weights/x.pt", tmp_path / "b", small, device="cpu", tiny=True, report=lambda s: None)
+    assert res["finished"]
+    one, two = _weights(tmp_path / "a" / "avg" / "best.pt"), _weights(res["file"])
+    assert all(torch.equal(one[k], two[k]) for k in one)  # the same bits as the uninterrupted replay
+
+
+def test_manifest_errors_name_the_file_and_the_stage(tmp_path, manifest):
+    import yaml
+
+    bad = copy.deepcopy(_small(manifest))
+    bad["stages"]["c"]["init"] = "nowhere"
+    path = tmp_path / "l.yaml"
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(PsctlError, match="stage 'c' starts from 'nowhere', which is not a stage") as e:
+        lin.load_lineage(path)
+    assert str(e.value.path) == str(path)
+    bad["stages"]["c"]["init"], bad["stages"]["a"]["init"] = "b", "c"  # a -> c -> b -> a
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(PsctlError, match="depends on itself"):
+        lin.load_lineage(path)
+    with pytest.raises(PsctlError, match="neither a stage nor a release file"):
+        lin.stages_for(manifest, "weights/ps_fcn_dagger.pt")
+    assert lin.main(["plan", "nothing", "--lineage", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_plan_lists_a_release_files_stages(capsys):
+    assert lin.main(["plan", "weights/lcnet.pt"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("lcnet.1 ") and out[-2].startswith("lcnet.gpu7 ")
+    assert out[-1] == "7 stages, 644,624 samples trained in all"
