@@ -153,7 +153,8 @@ def integrate_normals(normals: np.ndarray, mask: np.ndarray | None = None, metho
         method: "poisson" (least squares) or "bilateral" (keeps depth discontinuities).
         K: [3, 3] camera intrinsics for a perspective camera; None for orthographic.
         config: overrides of DEFAULT_CONFIG.
-        progress: None or a factory (label, total) -> advance(k) (the solver's iterations).
+        progress: None or a factory (label, total) -> advance(k): poisson one step (its solve),
+            bilateral one per round (advanced to its total when it converges early).
     Returns:
         [H, W] float32 z coordinate, larger = nearer the camera, NaN outside the mask and at
         rejected normals (NaN, or facing away). Orthographic: pixel units, each connected
@@ -288,6 +289,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
         c = 0.5 * (sf * sf + sb * sb)
         b = 0.5 * (sf * t_all[fwd] + sb * t_all[bwd])
         del sf, sb, s_all, t_all, fwd, bwd
+        advance = progress("integrating (poisson, one sparse solve)", 1)  # seconds at 12 MP: said, not silent
         if len(ei):  # the system, then the edges' arrays let go: 12 MP of normals peaked at 4.1 GB with them
             L, rhs = laplacian(npix, ei, ej, c, pins), np.bincount(ej, b, npix) - np.bincount(ei, b, npix)
             del c, b, ei, ej
@@ -295,6 +297,7 @@ def integrate(normals: np.ndarray, mask: np.ndarray | None = None, method: str =
             del L, rhs
         else:
             z, its, _, converged = solve_laplacian(npix, ei, ej, c, b, pins, coords, None, cfg)
+        advance(1)
         rounds, total_its = 1, its
     else:
         z, rounds, total_its, kept, converged = _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg,
@@ -453,6 +456,7 @@ def _bilateral(npix, ei, ej, fwd, bwd, s_all, t_all, pins, coords, cfg, advance)
         del df, db
         advance(1)
         if rounds > anneal + 1 and abs(energy - old) <= cfg["bilateral_tol"] * max(old, 1e-300):
+            advance(cfg["bilateral_iters"] - rounds)  # converged early: the bar ends full (helper-196)
             break
     del amg, pattern
     sf, sb = s_all[fwd], s_all[bwd]
