@@ -1293,6 +1293,36 @@ def test_written_normal_maps_are_zero_outside_the_mask(tmp_path, fmt, name):
     assert (back[~m] == 0).all() and np.allclose(back[m], [0, 0, 1], atol=0.01)
 
 
+
+@pytest.mark.parametrize("fmt,name", [("png16", "n.png"), ("exr", "n.exr")])
+def test_write_normal_map_checks_what_it_writes(tmp_path, fmt, name):
+    """helper-196: non-unit vectors came back turned from a PNG (each channel clipped), a mask of
+    0.3 counted as the object, None and a wrong shape raised numpy's errors, NaN became 0 through
+    an undefined cast with a warning."""
+    import warnings
+
+    from psctl.io.normals import read_normal_map, write_normal_map
+
+    true = np.array([0.314, 0.105, 0.943])
+    n = np.tile((3 * true / np.linalg.norm(true)).astype(np.float32), (4, 5, 1))
+    n[0, 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_normal_map(tmp_path / name, n, None, fmt)  # None: every pixel
+    back = read_normal_map(tmp_path / name)
+    assert (back[0, 0] == 0).all()  # no direction: no normal
+    assert np.degrees(np.arccos(np.clip(back[1:, 1:] @ (true / np.linalg.norm(true)), -1, 1))).max() < 0.1
+    write_normal_map(tmp_path / name, n, np.full((4, 5), 0.3), fmt)  # numbers: above 0.5 is the object
+    assert not read_normal_map(tmp_path / name).any()
+    for mask, needle in ((np.ones((5, 4), bool), r"mask must be \[H, W\] = \[4, 5\]"),
+                         ("mask.png", "not the path")):
+        with pytest.raises(PsctlError, match=needle):
+            write_normal_map(tmp_path / name, n, mask, fmt)
+    with pytest.raises(PsctlError, match=r"normals must be \[H, W, 3\], got \[4, 5\]"):
+        write_normal_map(tmp_path / name, n[..., 0], None, fmt)
+    with pytest.raises(PsctlError, match="read_normal_map"):  # encoded pixels are not normals
+        write_normal_map(tmp_path / name, np.full((4, 5, 3), 128, np.uint8), None, fmt)
+
 def test_exr_files_hold_no_write_time(tmp_path):
     """The same pixels give the same bytes: OpenImageIO's EXR writer stamps DateTime unless told not to."""
     import OpenImageIO as oiio

@@ -119,19 +119,37 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
     return np.where(np.isfinite(nmap).all(axis=-1, keepdims=True), nmap, np.float32(np.nan))
 
 
-def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndarray, fmt: str) -> None:
-    """Write one encoding atomically. ``fmt`` is one of FORMATS."""
-    normals = np.where(mask[..., None], normals, 0.0).astype(np.float32)
+def write_normal_map(path: str | os.PathLike, normals: np.ndarray, mask: np.ndarray | None, fmt: str) -> None:
+    """Write one encoding atomically. ``fmt`` is one of FORMATS.
+
+    ``normals`` [H, W, 3]: unit normals. A vector more than 1e-3 off unit length is normalised
+    (a PNG clips each channel of (n + 1) / 2, which would turn it), and one with no direction (NaN,
+    infinite, zero) is written as 0, no normal. ``mask`` [H, W] as ``psctl.arrays.as_mask`` reads
+    it (bool, or numbers above 0.5), or None for every pixel; outside it every encoding holds 0.
+    """
+    from psctl.arrays import as_mask, check_vector_dtype, plain, unit_vectors
+
+    if fmt not in FORMATS:
+        raise PsctlError(None, f"unknown normal-map format {fmt!r}")
+    raw = np.asarray(plain(normals))
+    check_vector_dtype(raw, "normals must be unit vectors of real numbers")
+    if raw.ndim != 3 or raw.shape[2] != 3:
+        raise PsctlError(path, f"normals must be [H, W, 3], got {list(raw.shape)}")
+    keep = as_mask(mask, raw.shape[:2], allow_empty=True)
+    unit, ok = unit_vectors(raw, 1e-6)
+    with np.errstate(invalid="ignore", over="ignore"):
+        off = ~(np.abs(np.linalg.norm(raw.astype(np.float64), axis=-1) - 1.0) <= 1e-3)
+    # unit normals are written as given (psctl's own maps stay bit for bit what they were)
+    mask = ok if keep is None else ok & keep
+    normals = np.where(mask[..., None], np.where(off[..., None], unit, raw), 0.0).astype(np.float32)
     if fmt == "png16":
         write_image(path, encode_png(normals, mask), "uint16", kind="data")
     elif fmt == "png8":
         write_image(path, encode_png(normals, mask), "uint8", kind="data")
     elif fmt == "exr":
         write_image(path, normals, "float", kind="data")
-    elif fmt == "npy":
-        write_npy(path, normals)
     else:
-        raise PsctlError(None, f"unknown normal-map format {fmt!r}")
+        write_npy(path, normals)
 
 
 def write_albedo_map(path: str | os.PathLike, albedo: np.ndarray, mask: np.ndarray, fmt: str, scale: float) -> None:
