@@ -115,6 +115,10 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     Returns:
         Refinement (directions [N, 3], intensities [N], quality q, weight, status).
     """
+    unknown = sorted(set(config or {}) - set(DEFAULT_REFINE))
+    if unknown:  # a typo ("gates") would fit with the defaults without a word (helper-196)
+        raise PsctlError(None, f"refine_lights: unknown config keys {', '.join(map(repr, unknown))}; known: "
+                               f"{', '.join(DEFAULT_REFINE)}")
     cfg = {**DEFAULT_REFINE, **(config or {})}
     # observations stay float32 (as sampled) and [P, N] arrays are only made a block of pixels at a
     # time: whole, in float64, they were about 0.5 GB for 960 images (session 38)
@@ -123,10 +127,11 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     d0 = np.asarray(directions, np.float64)
     e0 = np.asarray(intensities, np.float64).reshape(-1)
     if o.ndim != 2 or n.shape != (o.shape[1], 3) or d0.shape != (o.shape[0], 3) or e0.shape != (o.shape[0],):
-        raise ValueError(f"shapes: observations {o.shape}, normals {n.shape}, directions {d0.shape}, "
-                         f"intensities {e0.shape}")
+        raise PsctlError(None, f"refine_lights: shapes must be observations [N, P], normals [P, 3], directions "
+                               f"[N, 3], intensities [N]; got {list(o.shape)}, {list(n.shape)}, {list(d0.shape)}, "
+                               f"{list(e0.shape)}")
     if cfg["falloff"] not in FALLOFFS:
-        raise ValueError(f"falloff must be one of {FALLOFFS}, not {cfg['falloff']!r}")
+        raise PsctlError(None, f"refine_lights: falloff must be one of {', '.join(FALLOFFS)}, not {cfg['falloff']!r}")
     keep = Refinement(d0.astype(np.float32), e0.astype(np.float32), float("inf"), 0.0, "too few pixels")
     # NaN: an observation not to use (a saturated one: its true value is unknown, and taking the top
     # code for it pulls the light toward the clipped highlight); a pixel keeps its other observations

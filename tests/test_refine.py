@@ -99,7 +99,7 @@ def test_shifted_falloff_undoes_the_outward_bias_of_a_steep_falloff():
     a = refine_lights(obs, nrm, start, ints, {"falloff": "lambertian"})
     b = refine_lights(obs, nrm, start, ints)
     assert light_direction_error(a.directions, b.directions).max() < 0.2
-    with pytest.raises(ValueError, match="falloff"):
+    with pytest.raises(PsctlError, match="falloff must be one of"):
         refine_lights(obs, nrm, start, ints, {"falloff": "cosine"})
 
 
@@ -118,8 +118,10 @@ def test_refine_input_checks_and_too_few_pixels():
     obs, nrm, lights, ints = scene(size=8)  # ~40 pixels: too few to fit
     ref = refine_lights(obs, nrm, lights, ints)
     assert ref.weight == 0.0 and not np.isfinite(ref.quality) and ref.status == "too few pixels"
-    with pytest.raises(ValueError, match="shapes"):
+    with pytest.raises(PsctlError, match=r"shapes must be .*; got \[\d+, \d+\], \[\d+, 3\]"):
         refine_lights(obs[:, :-1], nrm, lights, ints)
+    with pytest.raises(PsctlError, match="unknown config keys 'gates'"):  # ignored before (helper-196)
+        refine_lights(obs, nrm, lights, ints, {"gates": (0.0, 1.0)})
 
 
 def test_sample_observations_reads_the_sampled_pixels_once():
