@@ -513,8 +513,9 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     n_images, height, width, views, downsample, precision, light_distance, seconds, outputs, mae, median, within,
     mae_missing_as_90 (the MAE as the authors' code scores: mask pixels without ground truth at 90
     degrees), n_mask_pixels, n_evaluated_pixels, n_dark, albedo ({png_scale, median, n_undetermined} with
-    ``albedo``, else None), written ({file: [bytes, mtime ns]} of the files written) and notes
-    (docs/formats.md has each key).
+    ``albedo``, else None), written ({file: [bytes, mtime ns]} of the files written), notes and
+    provenance (``psctl.api.provenance``), with an ``n_images`` subset also images_used, selection
+    and seed (docs/formats.md has each key).
     Outputs (when ``write``): ``normal.png`` (16-bit), ``normal.exr`` and others per
     ``formats``, ``report.json``, and with ground truth ``error.png``. Default folder:
     ``PATH/psctl``. With the ensemble also ``spread.png``, the angle between its members'

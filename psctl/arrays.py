@@ -143,10 +143,10 @@ def as_lights(lights: np.ndarray | None, n: int) -> np.ndarray | None:
         raise PsctlError(None, f"lights must be [{n}, 3] (one direction per image), got {list(arr.shape)}")
     bad = np.flatnonzero(~np.isfinite(arr).all(1))
     if bad.size:
-        raise PsctlError(None, f"lights row {bad[0] + 1}: NaN or infinite value")
+        raise PsctlError(None, f"lights[{bad[0]}]: NaN or infinite value")  # indexed as the array (the warnings too)
     unit, bad = unit_rows(arr)
     if bad.size:
-        raise PsctlError(None, f"lights row {bad[0] + 1}: zero-length light direction (shorter than 1e-6)")
+        raise PsctlError(None, f"lights[{bad[0]}]: zero-length light direction (shorter than 1e-6)")
     check_lights_face_camera(unit, None)
     return unit
 

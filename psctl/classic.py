@@ -98,7 +98,8 @@ class L2Accumulator:
         self.lights: list[np.ndarray] = []
 
     def add(self, image: np.ndarray, light: np.ndarray) -> None:
-        """image: [H, W, 3] or [H, W] linear, intensity-normalised; light: [3]."""
+        """image: [H, W, 3] or [H, W] linear, intensity-normalised; light: [3], used as given (a
+        unit direction for such an image: a row of length 2 is read as a light twice as bright)."""
         grey = image @ GREY if image.ndim == 3 else image
         m = grey[self.mask].astype(np.float64)
         light = np.asarray(light, np.float64)
@@ -121,7 +122,10 @@ def l2_normals(images: Iterable[np.ndarray] | np.ndarray, lights: np.ndarray,
 
     Args:
         images: [N, H, W, 3] or [N, H, W] array, or an iterable of [H, W, (3)] images.
-        lights: [N, 3] light directions (x right, y up, z toward the camera).
+        lights: [N, 3] light directions (x right, y up, z toward the camera), used as given: unit
+            rows for images divided by their intensities, or rows of length e_j (direction times
+            intensity) for images as captured. ``psctl.estimate_normals`` normalises the rows and
+            divides by ``intensities`` itself.
         mask: [H, W] bool, pixels to solve (all when None).
     """
     lights = np.asarray(lights, np.float64)

@@ -730,7 +730,8 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     Returns the dict printed by ``psctl lights --json``: object, n_images, light_mae and
     intensity_re (None without ground truth), outputs, plus path, device, decode, views, light_distance,
     lights_refined ({quality, weight, ...} or None), lcnet_light_mae and lcnet_intensity_re
-    (LCNet's own lights), seconds, notes and provenance (``psctl.api.provenance``). Outputs (when
+    (LCNet's own lights), precision, found_object (the object found without a mask file, else
+    None), seconds, notes and provenance (``psctl.api.provenance``); docs/formats.md has each key. Outputs (when
     ``write``, all or none): light_directions.txt, light_intensities.txt, lights.png and
     lights_report.json (this report) in ``out`` (default ``PATH/psctl``), never in the capture
     folder itself; with an ``n_images`` subset also light_images.txt.

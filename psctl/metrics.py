@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from psctl.errors import PsctlError
+
 THRESHOLDS = (11.25, 22.5, 30.0)
 
 
@@ -17,7 +19,6 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     pixels) are a ``PsctlError``.
     """
     from psctl.arrays import as_mask, check_vector_dtype, plain
-    from psctl.errors import PsctlError
 
     arrays = []
     for name, a in (("normals", normals), ("gt", gt)):
@@ -35,7 +36,10 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
             m = m[..., 0]
         if m.shape != normals.shape[:-1]:
             raise PsctlError(None, f"angular_error: mask must be {list(normals.shape[:-1])}, got {list(m.shape)}")
-        m = as_mask(m.reshape(1, -1), (1, m.size), allow_empty=True).reshape(m.shape)
+        try:
+            m = as_mask(m.reshape(1, -1), (1, m.size), allow_empty=True).reshape(m.shape)
+        except PsctlError as e:  # said as this function's, as its other errors are
+            raise PsctlError(None, f"angular_error: {e.message}") from None
         normals, gt = normals[m], gt[m]
     # float64: in float32, arccos near 1 cannot resolve angles below ~0.03 degrees
     normals, gt = normals.astype(np.float64), gt.astype(np.float64)
@@ -57,6 +61,9 @@ def angular_error(normals: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
 def summarize(errors: np.ndarray) -> dict:
     """MAE, median and the fraction of pixels under 11.25 / 22.5 / 30 degrees."""
     errors = np.asarray(errors, dtype=np.float64)
+    if not np.isfinite(errors).all():  # mae NaN, yet 'within' counted a NaN as not within (helper-196)
+        raise PsctlError(None, f"summarize: {int((~np.isfinite(errors)).sum())} of {errors.size} errors are NaN or "
+                               f"infinite; score only the pixels that have both normals")
     if errors.size == 0:
         return {"mae": None, "median": None, "within": {f"{t:g}": None for t in THRESHOLDS}}
     return {
@@ -78,5 +85,10 @@ def intensity_relative_error(est: np.ndarray, gt: np.ndarray) -> float:
     """
     est = np.asarray(est, np.float64).reshape(-1)
     gt = np.asarray(gt, np.float64).reshape(-1)
+    if est.shape != gt.shape:
+        raise PsctlError(None, f"intensity_relative_error: {est.size} estimates but {gt.size} true intensities")
+    if not (np.isfinite(gt).all() and (gt > 0).all() and np.isfinite(est).all()):
+        raise PsctlError(None, "intensity_relative_error: intensities must be finite, the true ones above 0 (the "
+                               "error is relative to them)")
     s = float(est @ gt / max(est @ est, 1e-12))
     return float(np.mean(np.abs(s * est - gt) / gt))

@@ -22,9 +22,9 @@ def data():
 
 
 @pytest.mark.parametrize("change,needle", [
-    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 2, np.nan, L), m), "lights row 3: NaN"),
-    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 0, np.inf, L), m), "lights row 1: NaN or infinite"),
-    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 4, 0.0, L), m), "lights row 5: zero-length"),
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 2, np.nan, L), m), "lights[2]: NaN"),
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 0, np.inf, L), m), "lights[0]: NaN or infinite"),
+    (lambda i, L, m: (i, np.where(np.arange(12)[:, None] == 4, 0.0, L), m), "lights[4]: zero-length"),
     (lambda i, L, m: (i, L[:5], m), "lights must be [12, 3]"),
     (lambda i, L, m: (i, [["a", "b", "c"]] * 12, m), "numeric"),
     (lambda i, L, m: (np.zeros_like(i), L, m), "all images are black"),
@@ -57,7 +57,7 @@ def test_light_rows_scaled_alike_are_directions(data):
     np.testing.assert_allclose(estimate_normals(images, lights * 1e-7, mask, method="l2"), ref, atol=1e-5)
     odd = lights.copy()
     odd[4] *= 1e-7
-    with pytest.raises(PsctlError, match="lights row 5: zero-length"):
+    with pytest.raises(PsctlError, match=r"lights\[4\]: zero-length"):
         estimate_normals(images, odd, mask, method="l2")
 
 
@@ -1085,3 +1085,48 @@ def test_a_path_or_none_for_images_says_what_to_pass(data):
         psctl.estimate_lights(None, mask)
     with pytest.raises(psctl.PsctlError, match="array, not a list of file names; read them with psctl.load_images"):
         psctl.estimate_normals(["a.png", "b.png", "c.png"], lights[:3], mask)
+
+
+def test_report_docstrings_name_every_key():
+    """run_normals' and run_lights' docstrings list the report's keys; three had been left out
+    (provenance; precision, found_object: helper-196)."""
+    import re
+
+    import psctl
+    from psctl.lights import run_lights
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "bumpy_sphere"
+    for fn, report in ((psctl.run_normals, psctl.run_normals(example, method="l2", write=False, n_images=8)),
+                       (run_lights, run_lights(example, write=False, refine=False))):
+        words = set(re.findall(r"\w+", fn.__doc__))
+        assert not set(report) - words, (fn.__name__, sorted(set(report) - words))
+
+
+def test_metric_helpers_refuse_what_they_cannot_score():
+    """helper-196: summarize gave mae NaN beside a 'within' that counted NaN as a miss,
+    intensity_relative_error inf with a RuntimeWarning on a 0 and numpy's matmul error on
+    mismatched lengths; angular_error's mask error lacked its prefix; formats=[] said "unknown
+    formats ''"."""
+    import warnings
+
+    import psctl
+    from psctl.io.normals import parse_formats
+    from psctl.metrics import intensity_relative_error, summarize
+
+    assert summarize([1.0, 3.0])["mae"] == 2.0
+    with pytest.raises(PsctlError, match="summarize: 1 of 3 errors are NaN or infinite"):
+        summarize([1.0, np.nan, 3.0])
+    assert intensity_relative_error([1.0, 2.0], [2.0, 4.0]) == pytest.approx(0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for est, gt, needle in (([1.0, 2.0], [0.0, 4.0], "the true ones above 0"),
+                                ([1.0, 2.0], [1.0, np.nan], "must be finite"),
+                                ([1.0, 2.0, 3.0], [1.0, 2.0], "3 estimates but 2 true intensities")):
+            with pytest.raises(PsctlError, match=needle):
+                intensity_relative_error(est, gt)
+    v = np.ones((2, 2, 3))
+    with pytest.raises(PsctlError, match="^angular_error: mask contains NaN"):
+        psctl.angular_error(v, v, mask=np.full((2, 2), np.nan))
+    for spec in ("", " , "):
+        with pytest.raises(PsctlError, match="no output format given; choose one or more of png16"):
+            parse_formats(spec)

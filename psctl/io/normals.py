@@ -24,6 +24,8 @@ ALBEDO_FORMATS = {"png16": "albedo.png", "png8": "albedo_8bit.png", "exr": "albe
 def parse_formats(spec: str) -> list[str]:
     """"png16,exr" -> ["png16", "exr"], with a clear error for unknown names."""
     names = [s.strip().lower() for s in spec.split(",") if s.strip()]
+    if not names:  # "" or [] said "unknown --format ''" (helper-196)
+        raise PsctlError(None, f"no output format given; choose one or more of {', '.join(FORMATS)}")
     bad = [n for n in names if n not in FORMATS]
     if bad or not names:
         raise PsctlError(None, f"unknown --format {','.join(bad) or spec!r}; choose from {', '.join(FORMATS)}")
