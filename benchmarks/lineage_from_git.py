@@ -11,8 +11,10 @@ recipes come from configs/ as they are today (their comments say which checkpoin
 PS-FCN+N stage 4 (its 36,000-sample checkpoint started stage 5) and scale stage 3.
 
 The edges (which stage started from which) are written below by hand, from docs/training.md; the
-script checks each one against the child's recorded start: the parent's sample count and its
-validation metric must be what the child's metadata says it started from. ``--check`` only
+script checks each one whose child recorded its start (31 of 43): the parent's sample count and
+its validation metric must be what the child's metadata says it started from; an average's
+members by the sha256 it lists (6). The other 6 children recorded no start (average members,
+configs/ stages): checked by hand in session 79 (docs/training.md). ``--check`` only
 compares the result with the committed manifest (exit 1 on a difference).
 """
 
@@ -146,7 +148,7 @@ def build() -> dict:
                 if md.get(key) is not None:
                     entry[key] = md[key]
             entry["val"] = md.get("metrics", {})
-            if "#" not in source:  # a member lists only its start's path
+            if "#" not in source:  # an average's member records no start (its recipe names a path only)
                 recorded[sid] = md.get("init") or {}
         stages[sid] = entry
     # each edge against the child's own record of its start

@@ -26,11 +26,12 @@ This module must not import OpenImageIO: it runs on the GPU machine, which lacks
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +44,8 @@ HEADER = """\
 # the weights committed over the project's history; do not edit by hand). `ships` names each
 # release file's last stage; a stage has the stage it started from (`init`, null: from scratch) or
 # the stages it averages (`average`), the sample count of the file that was kept (`samples`), and
-# its recipe as its own weights recorded it (train.init left out: the replay sets it).
+# its recipe as its own weights recorded it (two stages that never shipped: their configs/ file as
+# load_config reads it; `source` says which), train.init left out: the replay sets it.
 # Replay: python -m psctl.lineage rebuild weights/ps_fcn_n.pt --out runs/rebuild (docs/training.md).
 """
 # a replay's mechanics in seconds (tests, `--tiny`): every stage at tiny sizes, procedural shapes
@@ -55,8 +57,10 @@ TINY = {"data": {"size": 16, "pool": 1, "shapes": {"blobby": 1.0}, "require_mesh
 
 
 def load_lineage(path: str | os.PathLike | None = None) -> dict:
-    """Read a lineage manifest (default: configs/lineage.yaml) and check its links: every ``init``
-    and ``average`` names a stage, every stage trains or averages, and no stage depends on itself."""
+    """Read a lineage manifest (default: configs/lineage.yaml) and check it: each stage trains
+    (a method, a recipe mapping, a positive sample count, ``init`` a stage or null) or averages (a
+    list of at least two stages); ``ships`` maps files to stages; no stage depends on itself.
+    Errors name the file and the stage."""
     import yaml
 
     path = Path(path) if path is not None else LINEAGE
@@ -72,14 +76,27 @@ def load_lineage(path: str | os.PathLike | None = None) -> dict:
     for sid, s in stages.items():
         if not isinstance(s, dict) or ("recipe" in s) == ("average" in s):
             raise PsctlError(path, f"stage {sid!r} must have either a recipe or an average")
-        for parent in ([s.get("init")] if "recipe" in s else s["average"]):
-            if parent is not None and parent not in stages:
+        if not isinstance(s.get("method"), str):
+            raise PsctlError(path, f"stage {sid!r} names no method")
+        if "recipe" in s:
+            n = s.get("samples")
+            if not isinstance(s["recipe"], dict) or not (isinstance(n, int) and not isinstance(n, bool) and n > 0):
+                raise PsctlError(path, f"stage {sid!r} needs a recipe mapping and a positive whole 'samples' "
+                                       f"(the kept file's count)")
+            parents = [s.get("init")]
+        else:
+            parents = s["average"]
+            if not (isinstance(parents, list) and len(parents) >= 2):
+                raise PsctlError(path, f"stage {sid!r}: 'average' must list at least two stages")
+        for parent in parents:
+            if parent is not None and (not isinstance(parent, str) or parent not in stages):
                 raise PsctlError(path, f"stage {sid!r} starts from {parent!r}, which is not a stage")
     for file, sid in lineage["ships"].items():
-        if sid not in stages:
+        if not isinstance(sid, str) or sid not in stages:
             raise PsctlError(path, f"{file} ships stage {sid!r}, which is not a stage")
     for sid in stages:
         stages_for(lineage, sid, path)  # a cycle raises
+    lineage["path"] = str(path)
     return lineage
 
 
@@ -89,13 +106,14 @@ def _parents(stage: dict) -> list[str]:
 
 def stages_for(lineage: dict, target: str, path: str | os.PathLike | None = None) -> list[str]:
     """The stages ``target`` (a stage id, or a release file that ``ships`` names, e.g.
-    ``weights/ps_fcn_n.pt``) needs, each after the ones it starts from, ``target`` last."""
+    ``weights/ps_fcn_n.pt`` or ``ps_fcn_n.pt``) needs, each after the ones it starts from,
+    ``target`` last."""
     stages, ships = lineage["stages"], lineage["ships"]
     key = str(target).replace(os.sep, "/")
-    sid = key if key in stages else (ships.get(key) or ships.get(f"weights/{Path(key).name}"))
+    sid = key if key in stages else ships.get(key) or ships.get(f"weights/{key}")
     if sid is None:
-        raise PsctlError(path, f"{target!r} is neither a stage nor a release file of the lineage "
-                               f"({', '.join(ships)})")
+        raise PsctlError(path or lineage.get("path"), f"{target!r} is neither a stage nor a release file of the "
+                                                      f"lineage ({', '.join(ships)})")
     order: list[str] = []
     visiting: set[str] = set()
 
@@ -118,7 +136,10 @@ def stage_recipe(stage: dict, init: str | os.PathLike | None, tiny: bool = False
     """A stage's recipe as ``psctl.train.train`` takes it: its recorded recipe over the defaults,
     ``train.init`` the file it starts from and ``train.samples`` its kept sample count (the
     learning-rate schedule is the recipe's: halvings are counted in samples, not in fractions of
-    the run). ``tiny``: the same at tiny sizes (``TINY``), for checking a replay's mechanics."""
+    the run). Where the recipe draws the training mesh (``data.shapes.mesh`` above 0) the mesh is
+    required: the early recipes did not say so, and without it the stream falls back to procedural
+    shapes with only a note. ``tiny``: the same at tiny sizes (``TINY``), procedural shapes, for
+    checking a replay's mechanics."""
     from psctl.train import DEFAULT_CONFIG, check_recipe, merge
 
     recipe = copy.deepcopy(stage["recipe"])
@@ -128,6 +149,8 @@ def stage_recipe(stage: dict, init: str | os.PathLike | None, tiny: bool = False
         for section, values in TINY.items():
             recipe.setdefault(section, {}).update(copy.deepcopy(values))
         recipe["data"] = {k: v for k, v in recipe["data"].items() if v is not None}
+    elif ((recipe.get("data") or {}).get("shapes") or {}).get("mesh", 0) > 0:
+        recipe["data"]["require_meshes"] = True
     config = merge(DEFAULT_CONFIG, recipe)
     if config["train"]["warmup"] > config["train"]["samples"]:
         config["train"]["warmup"] = config["train"]["samples"]
@@ -140,14 +163,72 @@ def stage_output(run: Path, stage: dict) -> Path:
     return run / ("best.pt" if "average" in stage else "model.pt")
 
 
-def _finished(run: Path) -> bool:
-    """A run folder whose checkpoint reached its recipe's sample count (an unreadable state.json
-    is left to ``train``'s resume to name)."""
+def _saved_run(run: Path) -> dict | None:
+    """A run folder's state.json, or None where it cannot be read (``train``'s resume names it)."""
     try:
         st = json.loads((run / "state.json").read_text(encoding="utf-8"))
-        return st["samples"] >= st["config"]["train"]["samples"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
+        return st if isinstance(st, dict) and isinstance(st.get("config"), dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def _check_same_recipe(run: Path, saved: dict, config: dict, sid: str) -> None:
+    """A stage's run folder must hold this stage's recipe in this mode: a real rebuild into a
+    folder of a ``--tiny`` one (or the reverse) went on with the other's runs and reported their
+    files as its result (helper-197)."""
+    from psctl.train import DEFAULT_CONFIG, _differences, _plain_json, _recipe_core, merge
+
+    a, b = _recipe_core(config), _recipe_core(_plain_json(merge(DEFAULT_CONFIG, saved["config"])))
+    for core in (a, b):
+        core["train"].pop("init", None)  # the same file under another spelling of --out
+    changed = _differences(a, b)
+    if changed:
+        raise PsctlError(run, f"holds a run of another recipe than stage {sid!r} ({', '.join(changed[:3])}"
+                              f"{' ...' if len(changed) > 3 else ''} differ; a --tiny replay's folder?): rebuild "
+                              f"into another --out, or remove this folder to train the stage again")
+
+
+def _check_average(path: Path, members: list[Path]) -> None:
+    """An average made earlier must be of the members' files as they are now (a member stage
+    trained again would leave a stale average)."""
+    from psctl.models.weights import file_sha256, read_weights
+
+    had = [m.get("sha256") for m in read_weights(path).metadata.get("averaged_from", [])]
+    if had != [file_sha256(m) for m in members]:
+        raise PsctlError(path, "is the average of other files than its members' now (a member stage was trained "
+                               "again?): remove it to average them again")
+
+
+@contextlib.contextmanager
+def _exclusive(out: Path) -> Iterator[None]:
+    """One rebuild at a time into ``out``: two at once trained the same stage into one folder
+    and the second died with a traceback (helper-197). A lock file held for the whole replay
+    (flock: released by the kernel when the process ends, however it ends)."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: no flock; as without the lock
+        yield
+        return
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    lock = out / ".rebuild.lock"
+    try:
+        with open(lock, "a") as f:
+            try:
+                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise PsctlError(out, "another rebuild is running into this folder; wait for it, or use another "
+                                      "--out") from None
+            except OSError:  # a file system without flock
+                pass
+            yield
+    finally:
+        # a folder this call made and left with nothing in it (its first stage refused at once,
+        # or interrupted before writing): not left behind as an empty output
+        if made and [p.name for p in out.iterdir()] == [lock.name]:
+            lock.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                out.rmdir()
 
 
 def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None, device: str = "auto",
@@ -156,44 +237,74 @@ def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None
     """Replay the stages ``target`` needs (``stages_for``) into ``out_dir``, one run folder per
     stage, resuming where an earlier call stopped.
 
-    Returns ``{"finished": bool, "file": the target's file or None, "stage": the stage it stopped
-    in or None, "signal": a signal's number or None}``. It stops at ``max_seconds`` of training in
-    this call (the unfinished stage checkpointed), or on SIGINT/SIGTERM/SIGHUP, as ``psctl train``.
-    ``report`` gets a line as each stage starts, ``progress`` ``train``'s status dicts.
+    Every stage's recipe is checked before the first one trains. Returns ``{"finished": bool,
+    "file": the target's file or None, "stage": the stage it stopped in or None, "signal": a
+    signal's number or None}``. It stops at ``max_seconds`` of training in this call (the
+    unfinished stage checkpointed), or on SIGINT/SIGTERM/SIGHUP, as ``psctl train``. ``report``
+    gets a line as each stage starts and the stream's notes (no training mesh, ...),
+    ``progress`` ``train``'s status dicts.
     """
     import time
 
-    from psctl.train import average_weights, check_method, train
+    from psctl.infer import pick_device
+    from psctl.train import average_weights, check_method, check_method_recipe, train
 
     lineage = load_lineage() if lineage is None else lineage
+    where = lineage.get("path")
     order = stages_for(lineage, target)
+    if max_seconds is not None and not max_seconds > 0:
+        raise PsctlError(None, f"the time limit must be above 0 (--max-minutes), not {max_seconds / 60:g}")
+    pick_device(device)  # a device this machine lacks: one line before anything runs
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise PsctlError(out, "is a file; --out takes a folder (one run folder per stage)")
     stages = lineage["stages"]
+    recipes: dict[str, dict] = {}
+    for sid in order:  # every recipe first: not a key refused hours into the replay
+        stage = stages[sid]
+        try:
+            method = check_method(stage["method"])
+            if "recipe" in stage:
+                init = stage_output(out / stage["init"], stages[stage["init"]]) if stage.get("init") else None
+                recipes[sid] = stage_recipe(stage, init, tiny)
+                check_method_recipe(method, recipes[sid])
+        except PsctlError as e:
+            raise PsctlError(where, f"stage {sid!r}: {e.message}") from None
     t0 = time.perf_counter()
-    for k, sid in enumerate(order, 1):
-        stage, run = stages[sid], out / sid
-        method = check_method(stage["method"])
-        done = stage_output(run, stage)
-        if "average" in stage:
-            if not done.is_file():
-                report(f"[{k}/{len(order)}] {sid}: the average of {', '.join(stage['average'])}")
-                average_weights([stage_output(out / m, stages[m]) for m in stage["average"]], run, method=method)
-            continue
-        init = stage_output(out / stage["init"], stages[stage["init"]]) if stage.get("init") else None
-        resume = (run / "state.json").is_file()
-        left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
-        if left is not None and left <= 0:
-            return {"finished": False, "file": None, "stage": sid, "signal": None}
-        config = None if resume else stage_recipe(stage, init, tiny)
-        if not (resume and _finished(run)):
-            n = int(config["train"]["samples"] if config else stage["samples"])
-            report(f"[{k}/{len(order)}] {sid}: {method}, {n:,} samples"
-                   f"{', from ' + stage['init'] if init else ' from scratch'}{' (resumed)' if resume else ''}")
-        st = train(method, config, run, resume=resume, device=device, max_seconds=left, progress=progress)
-        if not st["finished"]:
-            return {"finished": False, "file": None, "stage": sid, "signal": st.get("signal")}
+    with _exclusive(out):
+        for k, sid in enumerate(order, 1):
+            stage, run = stages[sid], out / sid
+            method = check_method(stage["method"])
+            if "average" in stage:
+                members = [stage_output(out / m, stages[m]) for m in stage["average"]]
+                if stage_output(run, stage).is_file():
+                    _check_average(stage_output(run, stage), members)
+                else:
+                    report(f"[{k}/{len(order)}] {sid}: the average of {', '.join(stage['average'])}")
+                    average_weights(members, run, method=method)
+                continue
+            config = recipes[sid]
+            saved = _saved_run(run) if (run / "state.json").is_file() else None
+            resume = (run / "state.json").is_file()
+            if saved is not None:
+                _check_same_recipe(run, saved, config, sid)
+            finished = saved is not None and saved.get("samples", 0) >= config["train"]["samples"]
+            left = None if max_seconds is None else max_seconds - (time.perf_counter() - t0)
+            if not finished and left is not None and left <= 0:
+                return {"finished": False, "file": None, "stage": sid, "signal": None}
+            if not finished:
+                begun = f", resumed at {saved['samples']:,}" if saved else ""
+                start = f"from {stage['init']}" if stage.get("init") else "from scratch"
+                report(f"[{k}/{len(order)}] {sid}: {method}, {config['train']['samples']:,} samples {start}{begun}")
+            try:
+                st = train(method, None if resume else config, run, resume=resume, device=device, max_seconds=left,
+                           progress=progress, note=lambda text: report(f"    note: {text}"))
+            except PsctlError as e:
+                inside = e.path is not None and Path(e.path).resolve().is_relative_to(run.resolve())
+                raise PsctlError(e.path, f"{e.message} (stage {sid!r} of the rebuild"
+                                         f"{f'; removing {run} trains it again' if inside else ''})") from None
+            if not st["finished"]:
+                return {"finished": False, "file": None, "stage": sid, "signal": st.get("signal")}
     return {"finished": True, "file": stage_output(out / order[-1], stages[order[-1]]), "stage": None, "signal": None}
 
 
@@ -263,6 +374,9 @@ def main(argv: list[str] | None = None) -> int:
     except PsctlError as e:
         print(f"psctl.lineage: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before train's own handlers are in place (setting up a stage)
+        print("psctl.lineage: interrupted", file=sys.stderr)
+        return 130
     if res["finished"]:
         print(f"finished: {res['file']}")
         return 0

@@ -135,6 +135,15 @@ def test_tiny_replay_chains_stages_and_resumes_exactly(manifest, tmp_path):
     one, two = _weights(tmp_path / "a" / "avg" / "best.pt"), _weights(res["file"])
     assert all(torch.equal(one[k], two[k]) for k in one)  # the same bits as the uninterrupted replay
 
+    # a real replay into the tiny one's folder went on with its runs and called their files the
+    # result (helper-197); now the stage's recipe is compared first
+    with pytest.raises(PsctlError, match="holds a run of another recipe than stage 'a'.*--tiny replay"):
+        lin.rebuild("weights/x.pt", tmp_path / "b", small, device="cpu", report=lambda s: None)
+    # an average of members that have since changed is not kept as it is
+    shutil.copy(tmp_path / "a" / "c" / "model.pt", tmp_path / "b" / "b" / "model.pt")
+    with pytest.raises(PsctlError, match="average of other files than its members"):
+        lin.rebuild("weights/x.pt", tmp_path / "b", small, device="cpu", tiny=True, report=lambda s: None)
+
 
 def test_manifest_errors_name_the_file_and_the_stage(tmp_path, manifest):
     import yaml
@@ -153,6 +162,56 @@ def test_manifest_errors_name_the_file_and_the_stage(tmp_path, manifest):
     with pytest.raises(PsctlError, match="neither a stage nor a release file"):
         lin.stages_for(manifest, "weights/ps_fcn_dagger.pt")
     assert lin.main(["plan", "nothing", "--lineage", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_manifest_values_are_checked(tmp_path, manifest):
+    """Malformed manifests were tracebacks (KeyError, TypeError) or read a string as a list of
+    letters (helper-197)."""
+    import yaml
+
+    path = tmp_path / "l.yaml"
+    for change, needle in ((lambda m: m["stages"]["b"].pop("samples"), "stage 'b' needs a recipe mapping and a positive"),
+                           (lambda m: m["stages"]["b"].update(samples="four"), "positive whole 'samples'"),
+                           (lambda m: m["stages"]["b"].update(recipe=[1, 2]), "needs a recipe mapping"),
+                           (lambda m: m["stages"]["avg"].update(average="b"), "'average' must list at least two"),
+                           (lambda m: m["ships"].update({"x.pt": ["a"]}), r"x.pt ships stage \['a'\]"),
+                           (lambda m: m["stages"]["c"].pop("method"), "stage 'c' names no method")):
+        bad = _small(manifest)
+        change(bad)
+        path.write_text(yaml.safe_dump(bad))
+        with pytest.raises(PsctlError, match=needle):
+            lin.load_lineage(path)
+    # a recipe today's code refuses: named with the manifest and the stage, before anything trains
+    bad = _small(manifest)
+    bad["stages"]["c"]["recipe"]["train"]["lr"] = "fast"
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(PsctlError, match=r"stage 'c': config 'train.lr'") as e:
+        lin.rebuild("weights/x.pt", tmp_path / "out", lin.load_lineage(path), device="cpu", tiny=True,
+                    report=lambda s: None)
+    assert str(e.value.path) == str(path) and not (tmp_path / "out").exists()
+    with pytest.raises(PsctlError, match="must be above 0"):
+        lin.rebuild("weights/x.pt", tmp_path / "out", _small(manifest), device="cpu", max_seconds=0)
+
+
+def test_one_rebuild_at_a_time_into_a_folder(tmp_path, manifest):
+    fcntl = pytest.importorskip("fcntl")
+    out = tmp_path / "out"
+    out.mkdir()
+    with open(out / ".rebuild.lock", "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        with pytest.raises(PsctlError, match="another rebuild is running into this folder"):
+            lin.rebuild("weights/x.pt", out, _small(manifest), device="cpu", tiny=True, report=lambda s: None)
+    assert sorted(p.name for p in out.iterdir()) == [".rebuild.lock"]
+
+
+def test_real_recipes_that_draw_the_mesh_require_it(manifest):
+    """Without the mesh folder a real replay trained the first eight stages on procedural shapes
+    with only a note, and failed at the first recipe that said require_meshes (helper-197)."""
+    first = manifest["stages"]["ps_fcn_n.1"]
+    assert "require_meshes" not in first["recipe"]["data"] and first["recipe"]["data"]["shapes"]["mesh"] > 0
+    assert lin.stage_recipe(first, None)["data"]["require_meshes"] is True
+    tiny = lin.stage_recipe(first, None, tiny=True)["data"]
+    assert tiny["require_meshes"] is False and tiny["shapes"] == {"blobby": 1.0}  # tiny: procedural only
 
 
 def test_plan_lists_a_release_files_stages(capsys):
