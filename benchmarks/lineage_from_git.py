@@ -1,11 +1,11 @@
-"""Write configs/lineage.yaml: every training stage behind the release weights, read from git (run by hand).
+"""Write weights/lineage.yaml: every training stage behind the release weights, read from git (run by hand).
 
-    python benchmarks/lineage_from_git.py [--out configs/lineage.yaml] [--check]
+    python benchmarks/lineage_from_git.py [--out weights/lineage.yaml] [--check]
 
 Each release file's metadata records its own recipe, its sample count and the file it started
 from (path, samples seen, validation), and an average records its members' recipes. So the
 weights committed over the project's history hold almost the whole lineage; this script reads
-them (``git show REV:weights/FILE.pt``) and writes one manifest, ``configs/lineage.yaml``, that
+them (``git show REV:weights/FILE.pt``) and writes one manifest, ``weights/lineage.yaml``, that
 ``python -m psctl.lineage`` replays. Two stages never shipped and were not averaged, so their
 recipes come from configs/ as they are today (their comments say which checkpoint was kept):
 PS-FCN+N stage 4 (its 36,000-sample checkpoint started stage 5) and scale stage 3.
@@ -178,7 +178,7 @@ def build() -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default=str(ROOT / "configs" / "lineage.yaml"))
+    ap.add_argument("--out", default=str(ROOT / "weights" / "lineage.yaml"))
     ap.add_argument("--check", action="store_true", help="compare with the committed manifest only")
     args = ap.parse_args()
     text = HEADER + yaml.safe_dump(build(), sort_keys=False, default_flow_style=None, width=120)

@@ -46,8 +46,39 @@ OPTIM_PART = re.compile(r"optim\.\d+\.pt")
 
 
 @contextlib.contextmanager
-def no_half_run(run: Path) -> Iterator[Any]:
-    """Make the run folder, open its log (yielded) and close it; and if training fails (out of memory at the
+def run_lock(run: Path) -> Iterator[None]:
+    """Hold an exclusive advisory lock (flock) on the run folder itself for a run's whole life: a
+    second ``psctl train --resume`` of the same folder while one runs finished the first one's
+    checkpoint under it and stopped with a misleading "committed but not carried out" (session
+    79). A lock on the folder's own descriptor, not a file in it (the run folder's contents are
+    checked by name). No flock (Windows, some network file systems): as without."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    try:
+        fd = os.open(run, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:  # cannot be opened as a folder: the run's own checks name it
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise PsctlError(run, "another psctl train is running in this run folder; let it finish (or stop it "
+                                  "with Ctrl-C: it checkpoints) before resuming") from None
+        except OSError:
+            pass
+        yield
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def no_half_run(run: Path, held: contextlib.ExitStack | None = None) -> Iterator[Any]:
+    """Make the run folder (locked in ``held`` when this call made it), open its log (yielded)
+    and close it; and if training fails (out of memory at the
     first step, a NaN loss, a second Ctrl-C, a full disk in the first checkpoint) before a
     checkpoint is whole, remove what cannot be resumed without state.json (model.pt, stream.pt,
     optim.*.pt). A validated best.pt is kept, with the log that says what it is; without one the
@@ -55,6 +86,8 @@ def no_half_run(run: Path) -> Iterator[Any]:
     folders this call made are removed, so that the same --out starts again."""
     made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
     run.mkdir(parents=True, exist_ok=True)
+    if made and held is not None:  # a folder this run made: locked from now on (run_lock)
+        held.enter_context(run_lock(run))
     if (run / "log.jsonl").is_file():
         _cut_partial_line(run / "log.jsonl")
     log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0

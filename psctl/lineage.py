@@ -5,7 +5,7 @@
 
 The release files were not trained by one recipe: each is the end of a chain of fine-tuning
 stages (and two parameter averages), chosen one at a time by rules on synthetic sets
-(docs/training.md, docs/weights-history.md). ``configs/lineage.yaml`` lists every stage: its
+(docs/training.md, docs/weights-history.md). ``weights/lineage.yaml`` lists every stage: its
 full recipe as the stage's own weights recorded it, the stage it started from, the sample count
 of the file that was kept, and where and how it ran. ``benchmarks/lineage_from_git.py`` wrote it
 from the weights committed over the project's history and checks each link against the child's
@@ -37,7 +37,7 @@ from typing import Any
 
 from psctl.errors import PsctlError
 
-LINEAGE = Path(__file__).resolve().parents[1] / "configs" / "lineage.yaml"
+LINEAGE = Path(__file__).resolve().parents[1] / "weights" / "lineage.yaml"
 RECIPE_SECTIONS = ("method", "model", "normalization", "data", "train", "val", "lcnet")
 HEADER = """\
 # Every training stage behind the release weights (written by benchmarks/lineage_from_git.py from
@@ -57,7 +57,7 @@ TINY = {"data": {"size": 16, "pool": 1, "shapes": {"blobby": 1.0}, "require_mesh
 
 
 def load_lineage(path: str | os.PathLike | None = None) -> dict:
-    """Read a lineage manifest (default: configs/lineage.yaml) and check it: each stage trains
+    """Read a lineage manifest (default: weights/lineage.yaml) and check it: each stage trains
     (a method, a recipe mapping, a positive sample count, ``init`` a stage or null) or averages (a
     list of at least two stages); ``ships`` maps files to stages; no stage depends on itself.
     Errors name the file and the stage."""
@@ -65,7 +65,7 @@ def load_lineage(path: str | os.PathLike | None = None) -> dict:
 
     path = Path(path) if path is not None else LINEAGE
     if not path.is_file():
-        raise PsctlError(path, "no lineage manifest here (configs/lineage.yaml is in a git checkout, not in the wheel)")
+        raise PsctlError(path, "no lineage manifest here (weights/lineage.yaml is in a git checkout, not in the wheel)")
     try:
         lineage = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
@@ -352,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--max-minutes", type=float, default=None)
     r.add_argument("--tiny", action="store_true", help="every stage at tiny sizes: checks the mechanics in seconds")
     for q in (p, r):
-        q.add_argument("--lineage", default=None, help="the manifest (default: configs/lineage.yaml)")
+        q.add_argument("--lineage", default=None, help="the manifest (default: weights/lineage.yaml)")
     args = ap.parse_args(argv)
     try:
         lineage = load_lineage(args.lineage)

@@ -49,7 +49,7 @@ import torch
 
 from psctl.checkpoint import (JOURNAL, OPTIM_PART, STAGED, TEMP_FILE, Stop, adam_steps, check_state, commit_checkpoint,
                               drop_lines_after_checkpoint, finish_checkpoint, no_half_run, restore_checkpoint,
-                              restore_stream, save_optimizer)
+                              restore_stream, run_lock, save_optimizer)
 from psctl.errors import PsctlError, few, like_default, moved_names, naming, not_a_file
 from psctl.models.lcnet import DEFAULT_CONFIG as LCNET_DEFAULT
 from psctl.models.weights import file_sha256, normalization_allowed, save_torch
@@ -846,6 +846,16 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     Side effects on the process: torch's global generator is seeded (the initial weights), and
     on a CPU ``keep_freed_memory`` keeps the heap at its peak size afterwards.
     """
+    with contextlib.ExitStack() as held:  # the run folder's lock (psctl.checkpoint.run_lock), held to the end
+        return _train(method, config, run_dir, resume, device, max_seconds, progress, make_stream, lcnet, note,
+                      started, recipe, held)
+
+
+def _train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: bool, device: str,
+           max_seconds: float | None, progress: Callable[[dict], object] | None, make_stream: Callable,
+           lcnet: str | os.PathLike | None, note: Callable[[str], object] | None,
+           started: Callable[[], object] | None, recipe: str | os.PathLike | None,
+           held: contextlib.ExitStack) -> dict:
     from psctl.infer import pick_device
     from psctl.io.atomic import atomic_path
     from psctl.models.weights import save_weights
@@ -861,6 +871,8 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if run.exists() and not run.is_dir():
         raise PsctlError(run, f"is a file; {'--resume' if resume else '--out'} takes a run folder")
     state_file = run / "state.json"
+    if run.is_dir():  # before any of its files is touched (finish_checkpoint below)
+        held.enter_context(run_lock(run))
     if resume and run.is_dir():
         finish_checkpoint(run)  # one a hard kill left committed but not carried out (or only staged)
     if resume and not run.exists():
@@ -1014,7 +1026,7 @@ def train(method: str, config: dict | None, run_dir: str | os.PathLike, resume: 
     if init_mae is not None and not math.isfinite(init_mae):  # before the run folder exists
         raise PsctlError(run, f"validation {task.metric} of train.init's weights is {init_mae} (no object pixel in "
                               f"the validation views? see val.data, data.shapes, data.blobby): nothing was trained")
-    with no_half_run(run) as log, Stop() as stop:
+    with no_half_run(run, held) as log, Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
             log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")

@@ -1,4 +1,4 @@
-"""configs/lineage.yaml (every stage behind the release weights) and its replay, psctl.lineage."""
+"""weights/lineage.yaml (every stage behind the release weights) and its replay, psctl.lineage."""
 
 from __future__ import annotations
 

@@ -1562,3 +1562,24 @@ def test_check_train_options_from_python(tmp_path):
         with pytest.raises(PsctlError) as e:
             check_train_options("ps-fcn", **kwargs)
         assert str(e.value).startswith(named), (kwargs, str(e.value))
+
+
+def test_a_second_train_of_a_running_folder_is_refused(tmp_path):
+    """Two `psctl train --resume RUN` at once: the second finished the first's checkpoint under it
+    and stopped with "committed but not carried out" (session 79). The run folder is locked while
+    a run lives; the lock is on the folder itself, so the folder's listing is unchanged."""
+    pytest.importorskip("fcntl")
+    from psctl.checkpoint import run_lock
+
+    torch.set_num_threads(2)
+    run = tmp_path / "run"
+    train("ps-fcn", tiny(8), run, device="cpu")
+    listing = sorted(p.name for p in run.iterdir())
+    with run_lock(run):  # another process's run, as far as flock can tell (another open file)
+        with pytest.raises(PsctlError, match="another psctl train is running in this run folder"):
+            train("ps-fcn", tiny(16), run, resume=True, device="cpu")
+        with pytest.raises(PsctlError, match="another psctl train is running"):
+            train("ps-fcn", tiny(16), tmp_path / "run", device="cpu")  # a new run into it waits its turn too
+    assert sorted(p.name for p in run.iterdir()) == listing
+    st = train("ps-fcn", tiny(16), run, resume=True, device="cpu")  # the lock went with the first
+    assert st["finished"] and st["samples"] == 16
