@@ -66,8 +66,8 @@ def run_lock(run: Path) -> Iterator[None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise PsctlError(run, "another psctl train is running in this run folder; let it finish (or stop it "
-                                  "with Ctrl-C: it checkpoints) before resuming") from None
+            raise PsctlError(run, "is locked by another process (another psctl train of this run folder?); one "
+                                  "run at a time: let it finish, or stop it with Ctrl-C (it checkpoints)") from None
         except OSError:
             pass
         yield
@@ -86,8 +86,11 @@ def no_half_run(run: Path, held: contextlib.ExitStack | None = None) -> Iterator
     folders this call made are removed, so that the same --out starts again."""
     made = [p for p in (run, *run.parents) if not p.exists()]  # leaf first
     run.mkdir(parents=True, exist_ok=True)
-    if made and held is not None:  # a folder this run made: locked from now on (run_lock)
+    if held is not None:  # a folder that did not exist at the run's checks: locked from now on (run_lock)
         held.enter_context(run_lock(run))
+        if not made and any(run.iterdir()):  # another run made it after this one's checks (two fresh runs, one --out)
+            raise PsctlError(run, "another psctl train started in this run folder while this one was setting up; "
+                                  "use another --out, or --resume it once that run has stopped")
     if (run / "log.jsonl").is_file():
         _cut_partial_line(run / "log.jsonl")
     log_start = (run / "log.jsonl").stat().st_size if (run / "log.jsonl").is_file() else 0

@@ -109,7 +109,9 @@ def stages_for(lineage: dict, target: str, path: str | os.PathLike | None = None
     ``weights/ps_fcn_n.pt`` or ``ps_fcn_n.pt``) needs, each after the ones it starts from,
     ``target`` last."""
     stages, ships = lineage["stages"], lineage["ships"]
-    key = str(target).replace(os.sep, "/")
+    key = os.path.normpath(str(target)).replace(os.sep, "/")  # ./weights/x.pt is weights/x.pt
+    with contextlib.suppress(ValueError, OSError):  # the checkout's own file by its full path
+        key = Path(target).resolve().relative_to(LINEAGE.parents[1]).as_posix() if Path(target).is_absolute() else key
     sid = key if key in stages else ships.get(key) or ships.get(f"weights/{key}")
     if sid is None:
         raise PsctlError(path or lineage.get("path"), f"{target!r} is neither a stage nor a release file of the "
@@ -366,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{row['stage']:<18} {row['method']:<9} {row['samples'] or '':>9} "
                           f"{'' if secs is None else f'{secs / 60:7.1f} min':>11}  {row['device'][:28]:<28}  {row['what']}")
                 total = sum(r["samples"] or 0 for r in rows)
-                print(f"{len(rows)} stages, {total:,} samples trained in all")
+                print(f"{len(rows)} stage{'s' if len(rows) != 1 else ''}, {total:,} samples trained in all")
             return 0
         res = rebuild(args.target, args.out, lineage, args.device,
                       None if args.max_minutes is None else 60 * args.max_minutes, args.tiny,
@@ -377,6 +379,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # before train's own handlers are in place (setting up a stage)
         print("psctl.lineage: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `plan ... | head`: the reader left; nothing more to say (helper-198)
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     if res["finished"]:
         print(f"finished: {res['file']}")
         return 0

@@ -871,7 +871,8 @@ def _train(method: str, config: dict | None, run_dir: str | os.PathLike, resume:
     if run.exists() and not run.is_dir():
         raise PsctlError(run, f"is a file; {'--resume' if resume else '--out'} takes a run folder")
     state_file = run / "state.json"
-    if run.is_dir():  # before any of its files is touched (finish_checkpoint below)
+    existed = run.is_dir()
+    if existed:  # before any of its files is touched (finish_checkpoint below)
         held.enter_context(run_lock(run))
     if resume and run.is_dir():
         finish_checkpoint(run)  # one a hard kill left committed but not carried out (or only staged)
@@ -1026,7 +1027,7 @@ def _train(method: str, config: dict | None, run_dir: str | os.PathLike, resume:
     if init_mae is not None and not math.isfinite(init_mae):  # before the run folder exists
         raise PsctlError(run, f"validation {task.metric} of train.init's weights is {init_mae} (no object pixel in "
                               f"the validation views? see val.data, data.shapes, data.blobby): nothing was trained")
-    with no_half_run(run, held) as log, Stop() as stop:
+    with no_half_run(run, None if existed else held) as log, Stop() as stop:
         if init_mae is not None:
             st["val"].append([0, round(init_mae, 4)])
             log.write(json.dumps({"samples": 0, f"val_{task.metric}": round(init_mae, 4), "init": st["init"]["path"]}) + "\n")

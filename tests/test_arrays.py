@@ -450,6 +450,9 @@ def test_the_hints_decoder_takes_raw_codes():
         assert not got[~inside].any()
         # as read_image gives them (divided by the largest code): the same normals
         np.testing.assert_allclose(decode_normal_pixels(codes / np.iinfo(dtype).max), got, atol=1e-6)
+    for dtype in (np.int16, np.int64, bool):  # no PNG holds these: one vector everywhere before (helper-198)
+        with pytest.raises(PsctlError, match="takes a PNG's uint8 or uint16 codes"):
+            decode_normal_pixels(np.ones((2, 2, 3), dtype))
 
 
 def test_bfloat16_tensors_are_taken_as_float32(data):

@@ -1293,7 +1293,6 @@ def test_written_normal_maps_are_zero_outside_the_mask(tmp_path, fmt, name):
     assert (back[~m] == 0).all() and np.allclose(back[m], [0, 0, 1], atol=0.01)
 
 
-
 @pytest.mark.parametrize("fmt,name", [("png16", "n.png"), ("exr", "n.exr")])
 def test_write_normal_map_checks_what_it_writes(tmp_path, fmt, name):
     """helper-196: non-unit vectors came back turned from a PNG (each channel clipped), a mask of
@@ -1322,6 +1321,7 @@ def test_write_normal_map_checks_what_it_writes(tmp_path, fmt, name):
         write_normal_map(tmp_path / name, n[..., 0], None, fmt)
     with pytest.raises(PsctlError, match="read_normal_map"):  # encoded pixels are not normals
         write_normal_map(tmp_path / name, np.full((4, 5, 3), 128, np.uint8), None, fmt)
+
 
 def test_exr_files_hold_no_write_time(tmp_path):
     """The same pixels give the same bytes: OpenImageIO's EXR writer stamps DateTime unless told not to."""

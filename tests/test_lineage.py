@@ -219,3 +219,7 @@ def test_plan_lists_a_release_files_stages(capsys):
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith("lcnet.1 ") and out[-2].startswith("lcnet.gpu7 ")
     assert out[-1] == "7 stages, 644,624 samples trained in all"
+    # the same file however it is named (helper-198: ./ and absolute paths were refused)
+    for name in ("./weights/lcnet.pt", str(REPO / "weights" / "lcnet.pt"), "lcnet.pt"):
+        assert lin.stages_for(lin.load_lineage(), name)[-1] == "lcnet.gpu7", name
+    assert lin.main(["plan", "lcnet.1"]) == 0 and capsys.readouterr().out.splitlines()[-1].startswith("1 stage,")

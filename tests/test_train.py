@@ -1576,10 +1576,23 @@ def test_a_second_train_of_a_running_folder_is_refused(tmp_path):
     train("ps-fcn", tiny(8), run, device="cpu")
     listing = sorted(p.name for p in run.iterdir())
     with run_lock(run):  # another process's run, as far as flock can tell (another open file)
-        with pytest.raises(PsctlError, match="another psctl train is running in this run folder"):
+        with pytest.raises(PsctlError, match=r"is locked by another process \(another psctl train of this run folder\?\)"):
             train("ps-fcn", tiny(16), run, resume=True, device="cpu")
-        with pytest.raises(PsctlError, match="another psctl train is running"):
+        with pytest.raises(PsctlError, match="is locked by another process"):
             train("ps-fcn", tiny(16), tmp_path / "run", device="cpu")  # a new run into it waits its turn too
     assert sorted(p.name for p in run.iterdir()) == listing
     st = train("ps-fcn", tiny(16), run, resume=True, device="cpu")  # the lock went with the first
     assert st["finished"] and st["samples"] == 16
+
+
+def test_a_run_folder_made_by_another_run_during_set_up_is_refused(tmp_path):
+    """Two fresh `psctl train --out X` at once: the second passed its checks before the first made
+    X, then trained into it unlocked (helper-198: both finished, one log holding both runs)."""
+    pytest.importorskip("fcntl")
+    torch.set_num_threads(2)
+    run = tmp_path / "run"
+    with pytest.raises(PsctlError, match="started in this run folder while this one was setting up"):
+        train("ps-fcn", tiny(8), run, device="cpu", started=lambda: (run.mkdir(), (run / "log.jsonl").write_text("")))
+    assert [p.name for p in run.iterdir()] == ["log.jsonl"]  # the other run's folder, untouched
+    st = train("ps-fcn", tiny(8), tmp_path / "empty", device="cpu", started=(tmp_path / "empty").mkdir)
+    assert st["finished"]  # an empty folder made meanwhile is as an empty --out: used
