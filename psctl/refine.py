@@ -60,12 +60,23 @@ DEFAULT_REFINE = {
     # LCNet's are kept, blended between. gate[1] was 0.10 for the Lambertian fit (sessions 16-19);
     # 0.15 since session 20, chosen with the shifted falloff on synthetic folders
     # (docs/uncalibrated.md, "Falloff")
-    "gate": (0.05, 0.15),
+    # (0.05, 0.15) until the dark observations left the fit and q (helper-195): scaled by 0.75, the ratio
+    # of median q without / with them on a fresh tuning set (psctl synth --seed 83, mixed, 3 bounces)
+    "gate": (0.0375, 0.1125),
     # a fitted light further than this from its start (degrees) means the fit went astray (on a
     # mirror-like surface it can shrink the lit set until a few pixels fit): the start is kept.
     # There is no horizon check: a fitted light may end slightly below it (z < 0) and is then
     # written and used as it is
     "max_change": 30.0,
+    # observations darker than this fraction of the object's 99.9th-percentile observation are
+    # left out of the fit (the albedo and light steps), as saturated ones are: mostly cast
+    # shadows, zeros where the model says lit, which pull each pixel's albedo and each light
+    # toward the shadow. 0: all kept (today's fit)
+    "dark": 0.01,
+    # with "dark" > 0, which observations the gate's q is computed over: "all" (those today's
+    # fit uses, dark ones included, the albedo refit over them for the fitted lights: the gate
+    # keeps the meaning it was tuned with) or "fit" (only those the fit used)
+    "gate_q": "fit",
     # the shading model: "shifted", o = rho (n.s + b) with b <= 0 per image, a cosine that falls
     # to zero before the terminator; or "lambertian", o = rho max(n.s, 0) (b = 0; the default until
     # session 20). Cast shadows and many real reflectances fall off faster than a cosine near the
@@ -139,6 +150,12 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     ok = seen.any(0) & np.isfinite(n).all(1) & (np.linalg.norm(n, axis=1) > 0.5)
     if not ok.all():
         o, n, seen = o[:, ok], n[ok], seen[:, ok]
+    if cfg["gate_q"] not in ("all", "fit"):
+        raise PsctlError(None, f"refine_lights: gate_q must be 'all' or 'fit', not {cfg['gate_q']!r}")
+    dark = float(cfg["dark"]) > 0 and bool(seen.any())
+    if dark:  # the fit leaves out observations too dark to use (DEFAULT_REFINE["dark"]), as saturated ones
+        o_all, seen_all = np.where(seen, o, np.float32(0.0)), seen
+        seen = seen & ~(o < np.float32(float(cfg["dark"]) * float(np.percentile(o[seen], 99.9))))
     gaps = not seen.all()
     if gaps:
         o = np.where(seen, o, np.float32(0.0))
@@ -203,6 +220,9 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     change = np.degrees(np.arccos(np.clip((fitted * d0).sum(1), -1, 1)))
     if (change > cfg["max_change"]).any():
         return replace(keep, status="astray")
+    if dark and cfg["gate_q"] == "all":  # q over the observations today's fit uses (dark ones in)
+        o, seen = o_all, seen_all
+        gaps = not seen.all()
     lit, rho = albedo(s, b)
     if not lit.any():
         return keep

@@ -67,9 +67,17 @@ def test_astray_fits_and_badly_explained_pixels_keep_the_lights():
     assert ref.weight == 0.0 and ref.status == "astray"  # the fit shrinks the lit set to a few pixels
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
     np.testing.assert_allclose(ref.intensities, ints, rtol=1e-5)
-    ref = refine_lights(obs, nrm, start, ints)  # the shifted falloff stays near, but explains it badly
-    assert ref.status == "fitted" and ref.weight == 0.0 and ref.quality > DEFAULT_REFINE["gate"][1]
+    # the shifted falloff stays near, but explains it badly: with every observation in q (the fit of
+    # sessions 20-78) the gate keeps the start
+    ref = refine_lights(obs, nrm, start, ints, {"dark": 0.0, "gate": (0.05, 0.15)})
+    assert ref.status == "fitted" and ref.weight == 0.0 and ref.quality > 0.15
     np.testing.assert_allclose(ref.directions, start, atol=1e-6)
+    # since session 79 the dark observations (most of a mirror's) are out of q too: 0.45 -> 0.09,
+    # and the gate lets a quarter of the fit in. Known and documented (docs/uncalibrated.md); here
+    # the blend does not move the lights further from the truth than the start
+    ref = refine_lights(obs, nrm, start, ints)
+    assert ref.status == "fitted" and 0.0 < ref.weight < 0.5
+    assert light_direction_error(ref.directions, lights).mean() <= light_direction_error(start, lights).mean()
     # observations a Lambertian model explains badly (here: strong noise): the gate keeps LCNet's lights
     obs, nrm, lights, ints = scene(noise=0.3)
     ref = refine_lights(obs, nrm, start, ints)
@@ -1180,3 +1188,48 @@ def test_lights_and_sdps_say_when_the_estimates_lie_to_one_side(tmp_path, fake_w
         for r in (run_lights(tmp_path / "aPNG", write=False, device="cpu", refine=False),
                   run_normals(tmp_path / "aPNG", method="sdps", write=False, device="cpu", refine=False)):
             assert any("lie to one side of the view axis" in n for n in r["notes"]) == said
+
+
+# cast-shadow zeros out of the fit and out of the gate's q, the gate scaled with them (helper-195,
+# session 79: the rule written first passed on three fresh synthetic sets)
+
+def _shadowed(seed=0, frac=0.08):
+    """scene() with cast-shadow zeros: a random 8 % of the lit observations set to 0."""
+    obs, nrm, lights, ints = scene(seed=seed)
+    rng = np.random.default_rng(seed + 10)
+    return np.where((obs > 0) & (rng.random(obs.shape) < frac), np.float32(0), obs), nrm, lights, ints
+
+
+def test_without_dark_observations_gate_q_changes_nothing():
+    """dark 0 is the fit of sessions 20-78: which q the gate reads is then moot."""
+    obs, nrm, lights, ints = _shadowed()
+    start = rotate_randomly(lights, 5.0, seed=1)
+    a = refine_lights(obs, nrm, start, ints, {"dark": 0.0, "gate_q": "all"})
+    b = refine_lights(obs, nrm, start, ints, {"dark": 0.0, "gate_q": "fit"})
+    assert np.array_equal(a.directions, b.directions) and a.quality == b.quality
+
+
+def test_dark_zeros_left_out_keep_the_fit_at_the_truth():
+    obs, nrm, lights, ints = _shadowed()
+    before = refine_lights(obs, nrm, lights, ints, {"gate": (1.0, 2.0), "dark": 0.0})  # ungated, zeros in
+    now = refine_lights(obs, nrm, lights, ints, {"gate": (1.0, 2.0)})  # the default: zeros out
+    assert DEFAULT_REFINE["dark"] > 0
+    assert light_direction_error(now.directions, lights).mean() < light_direction_error(before.directions, lights).mean()
+
+
+def test_gate_q_all_is_the_old_q_without_cast_shadows():
+    obs, nrm, lights, ints = scene(seed=3)  # no zeros where lit (noise-free Lambertian)
+    start = rotate_randomly(lights, 5.0, seed=1)
+    a = refine_lights(obs, nrm, start, ints, {"dark": 0.0})
+    b = refine_lights(obs, nrm, start, ints, {"gate_q": "all"})
+    # only observations near or past the terminator are dark: they move the fit a little
+    assert b.quality == pytest.approx(a.quality, rel=1e-3)
+
+
+def test_gate_q_fit_leaves_the_shadows_out_of_q():
+    obs, nrm, lights, ints = _shadowed()
+    qa = refine_lights(obs, nrm, lights, ints, {"gate_q": "all"}).quality
+    qf = refine_lights(obs, nrm, lights, ints).quality  # the default, "fit"
+    assert DEFAULT_REFINE["gate_q"] == "fit" and qf < qa
+    with pytest.raises(PsctlError, match="gate_q must be 'all' or 'fit'"):
+        refine_lights(obs, nrm, lights, ints, {"gate_q": "some"})
