@@ -2518,6 +2518,38 @@ def test_a_tiff_strip_without_an_offset_is_one_line(tmp_path, bits, compression)
             assert e.value.path == str(bad) and e.value.message.startswith(f"corrupt image ({words}"), e.value.message
 
 
+def test_a_repeated_strip_offsets_tag_is_read_as_libtiff_reads_it(tmp_path):
+    """A StripOffsets tag listed twice (invalid TIFF): libtiff, under OpenImageIO, keeps the first
+    entry, and so does the check since session 78 (helper-193). Good then zeros reads as the
+    image; zeros then good is refused, as libtiff would read the header as pixels."""
+    import struct
+
+    pixels = (np.arange(48 * 64 * 3).reshape(48, 64, 3) * 37 % 65536).astype(np.uint16)
+    good = _strip_tiff(tmp_path / "good.tif", pixels)
+    entry, _, offsets = _tiff_entry(good, 273)
+    ifd = struct.unpack_from("<I", good, 4)[0]
+    n = struct.unpack_from("<H", good, ifd)[0]
+    entries = [good[ifd + 2 + 12 * i: ifd + 14 + 12 * i] for i in range(n)]
+    k = (entry - ifd - 2) // 12
+
+    def with_twice(first_good: bool) -> bytes:
+        zeros_at = len(good) + (len(good) % 2)  # the zero offsets' block, word-aligned, after the file
+        body = bytearray(good) + bytes(len(good) % 2) + bytes(4 * len(offsets))
+        dup = struct.pack("<HHII", 273, 4, len(offsets), zeros_at)
+        pair = [entries[k], dup] if first_good else [dup, entries[k]]
+        new_ifd = len(body) + (len(body) % 2)
+        body += bytes(len(body) % 2) + struct.pack("<H", n + 1) + b"".join(entries[:k] + pair + entries[k + 1:])
+        body += struct.pack("<I", 0)  # no next IFD
+        struct.pack_into("<I", body, 4, new_ifd)
+        return bytes(body)
+
+    (tmp_path / "first_good.tif").write_bytes(with_twice(True))
+    got = read_image(tmp_path / "first_good.tif")[0]
+    assert np.array_equal(np.rint(got * 65535), pixels)
+    (tmp_path / "first_zero.tif").write_bytes(with_twice(False))
+    with pytest.raises(PsctlError, match="its strip 0 has offset 0, inside the TIFF header"):
+        read_image(tmp_path / "first_zero.tif")
+
 def test_tiffs_of_every_strip_and_tile_layout_still_read(tmp_path):
     """The strip check (helper-190) finds nothing wrong in what OpenImageIO writes: one strip,
     a strip a row, strips not dividing the height, tiles, separate planes, BigTIFF, compressed."""
