@@ -262,10 +262,11 @@ def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None
         raise PsctlError(out, "is a file; --out takes a folder (one run folder per stage)")
     stages = lineage["stages"]
     recipes: dict[str, dict] = {}
+    methods: dict[str, str] = {}
     for sid in order:  # every recipe first: not a key refused hours into the replay
         stage = stages[sid]
         try:
-            method = check_method(stage["method"])
+            method = methods[sid] = check_method(stage["method"])
             if "recipe" in stage:
                 init = stage_output(out / stage["init"], stages[stage["init"]]) if stage.get("init") else None
                 recipes[sid] = stage_recipe(stage, init, tiny)
@@ -275,8 +276,7 @@ def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None
     t0 = time.perf_counter()
     with _exclusive(out):
         for k, sid in enumerate(order, 1):
-            stage, run = stages[sid], out / sid
-            method = check_method(stage["method"])
+            stage, run, method = stages[sid], out / sid, methods[sid]
             if "average" in stage:
                 members = [stage_output(out / m, stages[m]) for m in stage["average"]]
                 if stage_output(run, stage).is_file():
@@ -286,8 +286,8 @@ def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None
                     average_weights(members, run, method=method)
                 continue
             config = recipes[sid]
-            saved = _saved_run(run) if (run / "state.json").is_file() else None
             resume = (run / "state.json").is_file()
+            saved = _saved_run(run) if resume else None
             if saved is not None:
                 _check_same_recipe(run, saved, config, sid)
             finished = saved is not None and saved.get("samples", 0) >= config["train"]["samples"]
