@@ -46,33 +46,39 @@ OPTIM_PART = re.compile(r"optim\.\d+\.pt")
 
 
 @contextlib.contextmanager
-def run_lock(run: Path) -> Iterator[None]:
-    """Hold an exclusive advisory lock (flock) on the run folder itself for a run's whole life: a
-    second ``psctl train --resume`` of the same folder while one runs finished the first one's
-    checkpoint under it and stopped with a misleading "committed but not carried out" (session
-    79). A lock on the folder's own descriptor, not a file in it (the run folder's contents are
-    checked by name). No flock (Windows, some network file systems): as without."""
+def folder_lock(folder: Path, busy: str) -> Iterator[None]:
+    """Hold an exclusive advisory lock (flock) on ``folder``'s own descriptor, not on a file in
+    it (folders' contents are checked by name, and nothing is left behind); the kernel releases
+    it when the process ends, however it ends. Held elsewhere: PsctlError(folder, busy). No flock
+    (Windows, some network file systems) or a folder that cannot be opened: as without."""
     try:
         import fcntl
     except ImportError:
         yield
         return
     try:
-        fd = os.open(run, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    except OSError:  # cannot be opened as a folder: the run's own checks name it
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:  # cannot be opened as a folder: the caller's own checks name it
         yield
         return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise PsctlError(run, "is locked by another process (another psctl train of this run folder?); one "
-                                  "run at a time: let it finish, or stop it with Ctrl-C (it checkpoints)") from None
+            raise PsctlError(folder, busy) from None
         except OSError:
             pass
         yield
     finally:
         os.close(fd)
+
+
+def run_lock(run: Path) -> contextlib.AbstractContextManager[None]:
+    """One process at a time in a run folder, for the run's whole life: a second ``psctl train
+    --resume`` of the same folder while one ran finished the first one's checkpoint under it and
+    stopped with a misleading "committed but not carried out" (session 79)."""
+    return folder_lock(run, "is locked by another process (another psctl train of this run folder?); one run "
+                            "at a time: let it finish, or stop it with Ctrl-C (it checkpoints)")
 
 
 @contextlib.contextmanager

@@ -204,33 +204,21 @@ def _check_average(path: Path, members: list[Path]) -> None:
 @contextlib.contextmanager
 def _exclusive(out: Path) -> Iterator[None]:
     """One rebuild at a time into ``out``: two at once trained the same stage into one folder
-    and the second died with a traceback (helper-197). A lock file held for the whole replay
-    (flock: released by the kernel when the process ends, however it ends)."""
-    try:
-        import fcntl
-    except ImportError:  # Windows: no flock; as without the lock
-        yield
-        return
+    and the second died with a traceback (helper-197). The folder itself locked for the whole
+    replay (psctl.checkpoint.folder_lock)."""
+    from psctl.checkpoint import folder_lock  # torch: rebuild's alone, not plan's
+
     made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    lock = out / ".rebuild.lock"
     try:
-        with open(lock, "a") as f:
-            try:
-                fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                raise PsctlError(out, "another rebuild is running into this folder; wait for it, or use another "
-                                      "--out") from None
-            except OSError:  # a file system without flock
-                pass
+        with folder_lock(out, "another rebuild is running into this folder; wait for it, or use another --out"):
             yield
     finally:
-        # a folder this call made and left with nothing in it (its first stage refused at once,
-        # or interrupted before writing): not left behind as an empty output
-        if made and [p.name for p in out.iterdir()] == [lock.name]:
-            lock.unlink(missing_ok=True)
+        # a folder this call made and left empty (its first stage refused at once, or
+        # interrupted before writing): not left behind as an empty output
+        if made:
             with contextlib.suppress(OSError):
-                out.rmdir()
+                out.rmdir()  # only an empty folder goes
 
 
 def rebuild(target: str, out_dir: str | os.PathLike, lineage: dict | None = None, device: str = "auto",
