@@ -63,9 +63,12 @@ def load_lineage(path: str | os.PathLike | None = None) -> dict:
     Errors name the file and the stage."""
     import yaml
 
-    path = Path(path) if path is not None else LINEAGE
+    given = path is not None
+    path = Path(path) if given else LINEAGE
     if not path.is_file():
-        raise PsctlError(path, "no lineage manifest here (weights/lineage.yaml is in a git checkout, not in the wheel)")
+        raise PsctlError(path, "lineage manifest is missing" if given else
+                         "no lineage manifest here (it is weights/lineage.yaml of psctl's source checkout or sdist, "
+                         "not in the wheel): pass --lineage FILE")
     try:
         lineage = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
@@ -110,8 +113,10 @@ def stages_for(lineage: dict, target: str, path: str | os.PathLike | None = None
     ``target`` last."""
     stages, ships = lineage["stages"], lineage["ships"]
     key = os.path.normpath(str(target)).replace(os.sep, "/")  # ./weights/x.pt is weights/x.pt
-    with contextlib.suppress(ValueError, OSError):  # the checkout's own file by its full path
-        key = Path(target).resolve().relative_to(LINEAGE.parents[1]).as_posix() if Path(target).is_absolute() else key
+    # the manifest's checkout's own file by its full path (--lineage: that checkout, not the one psctl runs from)
+    with contextlib.suppress(ValueError, OSError, IndexError):
+        root = Path(lineage["path"]).resolve().parents[1] if lineage.get("path") else LINEAGE.parents[1]
+        key = Path(target).resolve().relative_to(root).as_posix() if Path(target).is_absolute() else key
     sid = key if key in stages else ships.get(key) or ships.get(f"weights/{key}")
     if sid is None:
         raise PsctlError(path or lineage.get("path"), f"{target!r} is neither a stage nor a release file of the "

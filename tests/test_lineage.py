@@ -227,3 +227,19 @@ def test_plan_lists_a_release_files_stages(capsys):
     for name in ("./weights/lcnet.pt", str(REPO / "weights" / "lcnet.pt"), "lcnet.pt"):
         assert lin.stages_for(lin.load_lineage(), name)[-1] == "lcnet.gpu7", name
     assert lin.main(["plan", "lcnet.1"]) == 0 and capsys.readouterr().out.splitlines()[-1].startswith("1 stage,")
+
+
+def test_a_release_file_by_its_full_path_in_the_manifests_checkout(tmp_path, monkeypatch, capsys):
+    """--lineage names another checkout's manifest (an installed wheel has none of its own): that
+    checkout's release file by its full path is the file, as in the checkout psctl runs from; without
+    a manifest the message says to pass --lineage (helper-199)."""
+    other = tmp_path / "clone" / "weights"
+    other.mkdir(parents=True)
+    (other / "lineage.yaml").write_bytes((REPO / "weights" / "lineage.yaml").read_bytes())
+    assert lin.main(["plan", str(other / "lcnet.pt"), "--lineage", str(other / "lineage.yaml")]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "7 stages, 644,624 samples trained in all"
+    monkeypatch.setattr(lin, "LINEAGE", tmp_path / "site-packages" / "weights" / "lineage.yaml")  # as a wheel
+    assert lin.main(["plan", "lcnet.pt"]) == 2
+    assert capsys.readouterr().err.strip().endswith("not in the wheel): pass --lineage FILE")
+    assert lin.main(["plan", "lcnet.pt", "--lineage", str(tmp_path / "nope.yaml")]) == 2
+    assert capsys.readouterr().err.strip() == f"psctl.lineage: {tmp_path / 'nope.yaml'}: lineage manifest is missing"
