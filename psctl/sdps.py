@@ -42,6 +42,14 @@ SHOWN = {"ps-fcn-dagger": "PS-FCN†", "ps-fcn-n": "PS-FCN+N", "ps-fcn": "PS-FCN
          "ensemble": "the PS-FCN/PS-FCN+N average"}
 
 
+def _elsewhere(shipped: str) -> str:
+    """How to point psctl at weights, for a message: an installed wheel's copy hint, else the
+    folder variable and what a clone ships."""
+    from psctl.models.weights import ENV_VAR, install_hint
+
+    return install_hint() or f"; set ${ENV_VAR} to use another folder; a clone of psctl ships {shipped} in weights/"
+
+
 def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--weights for sdps") -> tuple[str, str]:
     """The network that estimates sdps's normals from LCNet's lights: (method, note for the user).
 
@@ -51,7 +59,8 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
     when there is none, or when the file holds another network (``flag`` names the option that
     passed it).
     """
-    from psctl.models.weights import ENV_VAR, file_name, installed_path, missing_folder_note, read_weights, weights_dir
+    from psctl.models.weights import (file_name, installed_path, missing_folder_note, read_weights, source_files_note,
+                                      weights_dir)
 
     if weights is not None:
         w = read_weights(weights)
@@ -69,11 +78,10 @@ def sdps_second_stage(weights: str | os.PathLike | None = None, flag: str = "--w
             raise PsctlError(None, f"sdps needs a normals network after LCNet (PS-FCN†, else PS-FCN or PS-FCN+N), and "
                                    f"none is installed (looked for {where / file_name('ps-fcn-dagger')}, "
                                    f"{where / file_name('ps-fcn')} and {where / file_name('ps-fcn-n')}"
-                                   f"{missing_folder_note()}; set ${ENV_VAR} to use another folder; a clone of psctl "
-                                   f"ships ps_fcn.pt in weights/). Train one with `psctl train ps-fcn --config "
-                                   f"configs/ps_fcn.yaml --install` (a GPU is needed, see docs/training.md), or pass "
+                                   f"{missing_folder_note()}{_elsewhere('ps_fcn.pt')}). Train one with `psctl train "
+                                   f"ps-fcn --config configs/ps_fcn.yaml --install` (a GPU is needed, see docs/training.md), or pass "
                                    f"{flag.split()[0]} FILE: psctl's PS-FCN†, PS-FCN or PS-FCN+N file, or the "
-                                   f"authors' NENet (docs/uncalibrated.md)")
+                                   f"authors' NENet (docs/uncalibrated.md){source_files_note()}")
         method = "ensemble" if SDPS_ENSEMBLE and have == ["ps-fcn", "ps-fcn-n"] else have[0]
     if method == "ps-fcn-dagger":
         return method, SDPS_NOTE
@@ -110,8 +118,8 @@ def sdps_lcnet_config(method: str, weights: str | os.PathLike | None, device: st
 def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os.PathLike | None = None) -> str:
     """Fail early, in one line, when sdps lacks weights: which files are missing and how to get
     them. Returns the note naming the second stage (``sdps_second_stage``)."""
-    from psctl.models.weights import (ENV_VAR, file_name, installed_path, missing_folder_note, no_weights_error,
-                                      read_weights, weights_dir)
+    from psctl.models.weights import (file_name, installed_path, missing_folder_note, no_weights_error, read_weights,
+                                      source_files_note, weights_dir)
 
     # a given file must hold what its flag is for, checked before minutes of LCNet work
     if lcnet is not None:
@@ -127,11 +135,11 @@ def check_sdps_weights(weights: str | os.PathLike | None = None, lcnet: str | os
         raise PsctlError(None, f"sdps needs LCNet's weights and a normals network's (PS-FCN†, else PS-FCN or PS-FCN+N), "
                                f"and none is installed (looked for {where / file_name('lcnet')}, "
                                f"{where / file_name('ps-fcn-dagger')}, {where / file_name('ps-fcn')} and "
-                               f"{where / file_name('ps-fcn-n')}{missing_folder_note()}; set ${ENV_VAR} to use another folder; a clone of "
-                               f"psctl ships lcnet.pt and ps_fcn.pt in weights/). Train them with `psctl train lcnet "
+                               f"{where / file_name('ps-fcn-n')}{missing_folder_note()}"
+                               f"{_elsewhere('lcnet.pt and ps_fcn.pt')}). Train them with `psctl train lcnet "
                                f"--config configs/lcnet.yaml --install` and `psctl train ps-fcn --config "
                                f"configs/ps_fcn.yaml --install` (docs/training.md), or pass --lcnet FILE and "
-                               f"--weights FILE (docs/uncalibrated.md)")
+                               f"--weights FILE (docs/uncalibrated.md){source_files_note()}")
     return sdps_second_stage(weights)[1]
 
 

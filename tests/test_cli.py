@@ -116,9 +116,15 @@ def test_an_installed_wheel_keeps_its_weights_in_the_user_data_folder(capture, t
     assert r["method"] == "l2" and any("copy the .pt files into" in n for n in r["notes"])
     with pytest.raises(PsctlError, match="release weights are in the weights/ folder of its source checkout"):
         run_normals(capture, method="ps-fcn", write=False)
+    with pytest.raises(PsctlError) as e:  # nor does a wheel hold the configs/ and docs/ the messages name
+        run_normals(capture, method="sdps", write=False)
+    assert "copy the .pt files into" in str(e.value) and "a clone of psctl ships" not in str(e.value)
+    assert str(e.value).endswith("(configs/ and docs/ are in psctl's source checkout, not in the wheel)")
     weights_dir().mkdir(parents=True)
     shutil.copy(repo / "weights" / "ps_fcn.pt", weights_dir())
     assert run_normals(capture, write=False)["method"] == "ps-fcn"
+    with pytest.raises(PsctlError, match=r"--config configs/lcnet.yaml .*not in the wheel\)$"):
+        run_normals(capture, method="sdps", write=False)
     with weights_in(tmp_path / "mine"):  # $PSCTL_WEIGHTS still comes first, and then no hint
         with pytest.raises(PsctlError) as e:
             run_normals(capture, method="ps-fcn", write=False)

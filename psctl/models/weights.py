@@ -100,6 +100,13 @@ def install_hint() -> str:
             f"into {weights_dir()}, or set ${ENV_VAR} to the checkout's weights/ folder")
 
 
+def source_files_note() -> str:
+    """For a message that names configs/ or docs/ files: an installed wheel has neither."""
+    from psctl.paths import checkout_root
+
+    return "" if checkout_root() is not None else " (configs/ and docs/ are in psctl's source checkout, not in the wheel)"
+
+
 def weights_where() -> str:
     """The weights folder for a message: with $PSCTL_WEIGHTS, says so, and whether it is missing
     (a mistyped variable would otherwise look like weights that were never installed)."""
@@ -160,7 +167,7 @@ def no_weights_error(method: str, flag: str = "--weights") -> PsctlError:
             None,
             f"no weights are installed for {method} (looked for {where}). Train them with `psctl train {method} "
             f"--config {recipe} --install` (a GPU is needed, see docs/training.md), or pass a weights file with "
-            f"{flag} FILE: psctl's own or the authors' {official} (docs/uncalibrated.md)",
+            f"{flag} FILE: psctl's own or the authors' {official} (docs/uncalibrated.md){source_files_note()}",
         )
     if method == "ups-fcn":  # no lights: l2 is no alternative, sdps is
         return PsctlError(
