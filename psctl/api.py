@@ -820,7 +820,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
             if found_mask is not None:
                 from psctl.io.images import write_image
 
-                write_image(stage / FOUND_FILE, found_mask.astype(np.float32), "uint8")
+                write_image(stage / FOUND_FILE, found_mask.astype(np.float32), "uint8", kind="data")
             if light_files:
                 from psctl.lights import image_list, write_light_files, write_lights_plot
 

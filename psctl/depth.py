@@ -680,7 +680,12 @@ def _as_written(path: Path, written: dict) -> bool:
         st = path.stat()
     except OSError:
         return False
-    return written.get(path.name) == [st.st_size, st.st_mtime_ns]
+    rec = written.get(path.name)
+    if not (isinstance(rec, list) and len(rec) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in rec)):
+        return False
+    # the time in ns (about 1.8e18) is beyond the integers every JSON reader keeps exactly (2^53):
+    # a report passed through jq 1.6 or JavaScript holds it rounded to a double, 256 ns apart
+    return rec[0] == st.st_size and (rec[1] == st.st_mtime_ns or float(rec[1]) == float(st.st_mtime_ns))
 
 
 def run_depth(path: str | os.PathLike, normals: str | os.PathLike | None = None, method: str = "poisson",

@@ -923,7 +923,7 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
             if shown:
                 from psctl.io.images import write_image
 
-                write_image(stage / FOUND_FILE, found.mask.astype(np.float32), "uint8")
+                write_image(stage / FOUND_FILE, found.mask.astype(np.float32), "uint8", kind="data")
             write_lights_plot(stage / OUTPUT_FILES["lights"], est.directions, est.intensities, cap.lights,
                               errors["light_mae"], cap.name)
             report["outputs"]["report"] = os.path.abspath(out_dir / REPORT_FILE)

@@ -647,3 +647,28 @@ def test_depth_with_a_report_without_the_written_record_says_so(tmp_path):
             report.write_text(text)
         r = psctl.run_depth(folder, write=False)
         assert r["colors"] == "mean image" and any(why in n and "session" not in n for n in r["notes"]), (text, r["notes"])
+
+
+def test_depth_reads_a_report_whose_times_a_double_based_reader_rounded(tmp_path):
+    """report.json's "written" times are ns since 1970 (about 1.8e18), past the 2^53 that JSON
+    readers built on doubles keep exactly: jq 1.6 or JavaScript, given the report to pretty-print
+    or edit, write the times back rounded to 256 ns. Those files are still the run's (helper-200:
+    `jq . report.json` made psctl depth take every map as replaced)."""
+    import json
+
+    import psctl
+
+    folder = tmp_path / "sphere"
+    write_capture(folder, n=6, size=16)
+    psctl.run_normals(folder, method="l2", albedo=True)
+    report = folder / "psctl" / "report.json"
+    r = json.loads(report.read_text())
+    r["written"] = {k: [size, int(float(ns))] for k, (size, ns) in r["written"].items()}
+    report.write_text(json.dumps(r))
+    got = psctl.run_depth(folder, write=False)
+    assert got["colors"] == str(folder / "psctl" / "albedo.exr") and not got["notes"], got["notes"]
+    for name in r["written"]:  # a size that differs is still another file
+        if name.startswith("albedo"):
+            r["written"][name][0] += 1
+    report.write_text(json.dumps(r))
+    assert psctl.run_depth(folder, write=False)["colors"] == "mean image"

@@ -1013,6 +1013,9 @@ def test_the_object_found_is_written_as_a_mask(tmp_path, fake_weights, monkeypat
     s = run_normals(tmp_path / "bPNG", method="sdps", out=tmp_path / "sd", device="cpu")
     assert s["outputs"]["mask_found"] == str(tmp_path / "sd" / FOUND_FILE) and (tmp_path / "sd" / FOUND_FILE).is_file()
     assert json.loads((tmp_path / "sd" / "report.json").read_text())["written"][FOUND_FILE]
+    from psctl.io.images import png_colour_tag  # a mask is numbers, as mask.png and the normal maps: no sRGB chunk
+
+    assert png_colour_tag(tmp_path / "out" / FOUND_FILE) == png_colour_tag(tmp_path / "sd" / FOUND_FILE) == ""
     shutil.copytree(tmp_path / "bPNG", tmp_path / "nomask")
     shutil.copy(tmp_path / "out" / FOUND_FILE, tmp_path / "bPNG" / "mask.png")  # the user takes it as the mask
     assert np.array_equal(load_mask(open_capture(tmp_path / "bPNG")), found)
