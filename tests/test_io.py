@@ -2951,3 +2951,25 @@ def test_read_image_rows_are_the_whole_image_cut(tmp_path, ext, dtype):
         part, part_info = read_image(p, rows=rows)
         assert part.shape == (rows[1] - rows[0], 23, 3) and part_info == info
         assert part.tobytes() == whole[rows[0]:rows[1]].tobytes()
+
+
+def test_read_image_names_nonfinite_values(tmp_path):
+    """A NaN or infinite value is one line that says what, how many, in which channel and where
+    (helper-202: "image contains NaN or infinite values" alone left a NaN alpha, which psctl
+    otherwise ignores, or a half-float EXR's highlight over 65504, to be hunted for)."""
+    img = np.full((6, 8, 4), 0.5, np.float32)
+    img[2, 5, 1] = np.nan
+    img[4, 1, 1] = np.nan
+    write_image(tmp_path / "g.exr", img, "float")
+    with pytest.raises(PsctlError, match=r"image contains NaN values: 2 pixels \(channel G; first at row 2, column 5\)$"):
+        read_image(tmp_path / "g.exr")
+    img = np.full((6, 8, 4), 0.5, np.float32)
+    img[0, 3, 3] = np.nan
+    write_image(tmp_path / "a.exr", img, "float")
+    with pytest.raises(PsctlError, match=r"NaN values: 1 pixel \(channel A; first at row 0, column 3\); only in its alpha"):
+        read_image(tmp_path / "a.exr")
+    write_image(tmp_path / "h.exr", np.full((6, 8, 3), np.inf, np.float32), "half")  # (1e5 as half)
+    with pytest.raises(PsctlError, match=r"\+inf values: 48 pixels \(channels R, G, B; first at row 0, column 0\); "
+                                         r"a half-float file holds at most 65504"):
+        read_image(tmp_path / "h.exr")
+    assert np.isnan(read_image(tmp_path / "g.exr", allow_nonfinite=True)[0][2, 5, 1])

@@ -30,8 +30,8 @@ from psctl.arrays import check_lights_face_camera, lights_behind, unit_rows, uni
 from psctl.errors import (ProgressFactory, PsctlError, check_bool, check_int, check_path, check_progress, few,
                           quoted_tilde)
 from psctl.io.icc import ToneCurve
-from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, read_image,
-                              srgb_like, srgb_to_linear, to_rgb)
+from psctl.io.images import (IMAGE_EXTENSIONS, RAW_SUFFIXES, ImageInfo, holds_colour, image_info, nonfinite_problem,
+                              read_image, srgb_like, srgb_to_linear, to_rgb)
 from psctl.io.matfile import load_variable, variable_shapes
 from psctl.nearlight import NearLights
 
@@ -1079,7 +1079,7 @@ def load_ground_truth(capture: Capture) -> np.ndarray | None:
         if info.channels < 3:
             raise PsctlError(p, f"ground truth needs 3 channels (nx, ny, nz), this image has {info.channels}")
         if info.dtype not in ("half", "float", "double") and not np.isfinite(pixels).all():
-            raise PsctlError(p, "image contains NaN or infinite values")
+            raise PsctlError(p, nonfinite_problem(pixels, info))
         gt = decode_normal_pixels(pixels, info)
         gt = np.where(np.isfinite(gt).all(axis=-1, keepdims=True), gt, 0.0)
     if not np.isfinite(gt).all():

@@ -586,8 +586,31 @@ def read_image(path: str | os.PathLike, allow_nonfinite: bool = False,
     # Files with fewer bits than their container (12-bit TIFF in uint16) need nothing more:
     # OpenImageIO already rescales them to the container's full range.
     if not allow_nonfinite and not np.isfinite(pixels).all():
-        raise PsctlError(path, "image contains NaN or infinite values")
+        raise PsctlError(path, nonfinite_problem(pixels, info))
     return pixels, info
+
+
+def nonfinite_problem(pixels: np.ndarray, info: ImageInfo) -> str:
+    """The error for an image [H, W, C] (as read_image returns it: channels picked, upright) with
+    NaN or infinite values: what, how many, in which channels, the first one's place (row 0 the
+    top), so that the user can find them (a NaN in an alpha channel, which psctl otherwise ignores,
+    or a half-float EXR's highlight over 65504 stored as infinite, look like nothing in a viewer)."""
+    bad = ~np.isfinite(pixels)
+    stored = [info.names[i] for i in info.pick] if info.pick and len(info.names) > max(info.pick) else list(info.names)
+    names = stored if len(stored) == pixels.shape[-1] else [str(c) for c in range(pixels.shape[-1])]
+    kinds = [w for w, m in (("NaN", np.isnan(pixels)), ("+inf", np.isposinf(pixels)), ("-inf", np.isneginf(pixels)))
+             if m.any()]
+    chans = [names[c] for c in range(pixels.shape[-1]) if bad[..., c].any()]
+    y, x = (int(v) for v in np.argwhere(bad.any(axis=-1))[0])
+    n = int(bad.any(axis=-1).sum())
+    alpha_only = all(c.rpartition(".")[2].upper() in ("A", "ALPHA") for c in chans)
+    hint = ""
+    if alpha_only:
+        hint = "; only in its alpha channel, which psctl does not read as colour: fill it, or save the image without it"
+    elif info.dtype == "half" and "+inf" in kinds:
+        hint = "; a half-float file holds at most 65504: brighter values become infinite (save as 32-bit float)"
+    return (f"image contains {' and '.join(kinds)} values: {n} pixel{'s' * (n != 1)} (channel"
+            f"{'s' * (len(chans) != 1)} {', '.join(chans)}; first at row {y}, column {x}){hint}")
 
 
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:
