@@ -312,8 +312,10 @@ def fit_circle(mask: np.ndarray, source: str = "mask", where: Path | None = None
     return Circle(cx, cy, r, source, round(rms, 4), p[keep])
 
 
-def check_circle(circle: "Circle | str | Iterable[float]") -> Circle:
-    """A ``Circle`` from one, from "X,Y,R" (``--circle``) or from three numbers."""
+def check_circle(circle: "Circle | str | Iterable[float]",
+                 min_radius: float = DEFAULT_CALIBRATE["min_radius"]) -> Circle:
+    """A ``Circle`` from one, from "X,Y,R" (``--circle``) or from three numbers; its radius at least
+    ``min_radius`` (the config's, as a fitted circle's)."""
     if isinstance(circle, Circle):
         values = [circle.x, circle.y, circle.r]
     else:
@@ -324,8 +326,8 @@ def check_circle(circle: "Circle | str | Iterable[float]") -> Circle:
     if len(values) != 3 or not all(np.isfinite(values)) or max(map(abs, values)) > 1e7:
         raise PsctlError(None, f"--circle must be X,Y,R (three numbers: the centre's column and row and the radius, "
                                f"in pixels), not {circle!r}")
-    if values[2] < DEFAULT_CALIBRATE["min_radius"]:
-        raise PsctlError(None, f"--circle's radius must be at least {DEFAULT_CALIBRATE['min_radius']:g} pixels "
+    if values[2] < min_radius:
+        raise PsctlError(None, f"--circle's radius must be at least {min_radius:g} pixels "
                                f"(got {values[2]:g})")
     source = circle.source if isinstance(circle, Circle) else "--circle"
     return Circle(*values, source)
@@ -472,6 +474,20 @@ def find_highlight(gray: np.ndarray, inside: np.ndarray, fraction: float = DEFAU
         return None
     b = max(float(np.percentile(gray[inside], base)), 0.0) if base > 0 else 0.0
     eight = np.ones((3, 3), bool)
+    # the level's peak leaves out lone pixels over HOT_RATIO times all their neighbours (hot pixels,
+    # below): a stuck pixel at full scale would otherwise set a level above an unsaturated highlight,
+    # which then is no candidate at all (a hot pixel of 65535 over a highlight peaking at 0.3 of it:
+    # 58 degrees off without a note). A real highlight, spread by the lens, is not lone; where the
+    # rest is under 1 / HOT_RATIO^2 of the peak over b (noise), the lone pixel may be a sub-pixel
+    # highlight, and sets the level as before
+    ring = eight.copy()
+    ring[1, 1] = False
+    around = ndimage.maximum_filter(g, footprint=ring, mode="constant", cval=-np.inf)
+    hot = inside & (g > HOT_RATIO * np.maximum(around, 0.0))
+    if hot.any():
+        rest = float(np.where(hot, -np.inf, g).max())
+        if rest - b > (peak - b) / HOT_RATIO**2:
+            peak = rest
 
     def regions(level: float) -> tuple[np.ndarray, int]:
         above = g > level
@@ -650,6 +666,12 @@ class _Calibrator:
         if not self.inside.any():
             raise PsctlError(None, f"the sphere (x {circle.x:.1f}, y {circle.y:.1f}, r {circle.r:.1f}) has no pixel "
                                    "inside the images")
+        # chrome: the sphere's pixels beyond the used part (rim), where a light far behind the sphere
+        # puts its highlight; each image's brightest value there (the errors on dark images say so)
+        ys = np.arange(box[0].start, box[0].stop, dtype=np.float64)[:, None]
+        xs = np.arange(box[1].start, box[1].stop, dtype=np.float64)[None, :]
+        self.outer = ((xs - circle.x) ** 2 + (ys - circle.y) ** 2 <= circle.r**2) & ~self.inside
+        self.outer_peaks: list[float] = []
         self.directions: list[np.ndarray] = []
         self.intensities: list[np.ndarray] = []
         self.images: list[dict] = []
@@ -671,11 +693,12 @@ class _Calibrator:
         if not np.isfinite(rgb[self.inside]).all():
             raise PsctlError(name, "holds NaN or infinite values on the sphere")
         if self.sphere == "chrome":
+            self.outer_peaks.append(float(gray[self.outer].max()) if self.outer.any() else 0.0)
             spot = find_highlight(gray, self.inside, self.cfg["highlight"], self.cfg["base"], self.normals,
                                   views=self.views, frame=self.frame)
             if spot is None:
-                raise PsctlError(name, "is black on the sphere: there is no highlight to locate (a light that did "
-                                       "not fire?)")
+                raise PsctlError(name, "is black on the sphere: there is no highlight to locate "
+                                       f"({self._why_dark(self.outer_peaks[-1] > 0)})")
             if spot["frame_peak"]:  # its brightest pixel on the image's edge: the rest of it lies beyond
                 raise PsctlError(name, "has its highlight at the image's edge, where the sphere goes on beyond the "
                                        "image: its centre cannot be located (frame the whole sphere)")
@@ -700,6 +723,17 @@ class _Calibrator:
             self.images.append({"pixels": fit["pixels"], "rms": None if fit["rms"] is None else round(fit["rms"], 5),
                                 "offset": None if fit["offset"] is None else round(fit["offset"], 5)})
 
+    def _why_dark(self, beyond: bool) -> str:
+        """Why a chrome image shows no usable highlight: a light that did not fire, or one whose highlight
+        lies beyond the used part of the sphere (``beyond``: it is brighter there: a light far behind
+        the sphere) or outside the image (where the sphere goes on beyond it)."""
+        if self.sphere == "chrome" and beyond:
+            return (f"it is brighter beyond the used part of the sphere, {self.cfg['rim']:g} of its radius: a light "
+                    "far behind the sphere, whose highlight lies too near its outline to be used")
+        if self.sphere == "chrome" and self.frame.any():
+            return "a light that did not fire, or a highlight outside the image, where the sphere goes on?"
+        return "a light that did not fire?"
+
     def result(self) -> SphereLights:
         # a light that did not fire leaves sensor noise, not black: its highlight (or fitted
         # intensity) a small share of the others' (a QA helper's noise image gave a direction 130
@@ -712,8 +746,10 @@ class _Calibrator:
             k = int(dark[0])
             what = "its highlight peaks at" if self.sphere == "chrome" else "its fitted intensity is"
             more = f" ({len(dark) - 1} more image{'s' * (len(dark) > 2)} too)" if len(dark) > 1 else ""
+            beyond = (self.sphere == "chrome" and self.outer_peaks[k] > level[k]
+                      and self.outer_peaks[k] >= DARK_LIGHT * ref)
             raise PsctlError(self.names[k], f"is dark on the sphere: {what} {100 * level[k] / ref:.2g} % of the "
-                                            f"median image's (a light that did not fire?){more}")
+                                            f"median image's ({self._why_dark(beyond)}){more}")
         ints = None
         if self.sphere == "matte":
             ints = np.array(self.intensities, np.float64)
@@ -786,7 +822,7 @@ def _calibrate_lights(images, sphere, mask, circle, config) -> SphereLights:
     if mask is not None and circle is not None:
         raise PsctlError(None, "give mask or circle, not both")
     if circle is not None:
-        c = check_circle(circle)
+        c = check_circle(circle, cfg["min_radius"])
     elif mask is not None:
         m = as_mask(mask, imgs.shape[1:3])
         try:
@@ -907,7 +943,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
             raise PsctlError(None, "--K gives the focal length and the principal point: leave out --focal and "
                                    "--principal")
         cfg["focal"], cfg["principal"], K_from = camera_from_K(K)
-    given = None if circle is None else check_circle(circle)
+    given = None if circle is None else check_circle(circle, cfg["min_radius"])
     # the folder's own light files are only compared with: a damaged one is skipped, with a note (a
     # damaged intensity file alone still leaves the directions to compare with)
     unread, kept = [], {"light_files": True, "intensity_file": True}

@@ -220,6 +220,13 @@ def test_chrome_with_a_large_saturated_highlight_and_a_hot_pixel():
     sharp[2, 60, 30] = 65535
     res = calibrate_lights(sharp, "chrome", mask=m)
     assert np.allclose(res.directions, clean.directions, atol=1e-3) and res.images[2]["spots"] == 2
+    # ... and over twice as bright as an unsaturated highlight, which is then under the level that the
+    # hot pixel's value would set (the hot pixel was taken: 58 degrees off without a note, a review found)
+    dim = to_uint16(sphere_views(lights, 80, cx, cy, r, "chrome") * 0.3 / 3.0)
+    clean = calibrate_lights(dim, "chrome", mask=m)
+    dim[2, 60, 30] = 65535
+    res = calibrate_lights(dim, "chrome", mask=m)
+    assert np.allclose(res.directions, clean.directions, atol=1e-3) and res.images[2]["spots"] == 2
 
 
 def test_chrome_highlight_at_the_rim_gets_a_note(tmp_path):
@@ -333,6 +340,26 @@ def test_a_light_that_did_not_fire_is_an_error_though_not_black(tmp_path, kind):
         run_calibrate(folder, kind, write=False)
 
 
+@ODD_SPHERE
+def test_a_chrome_highlight_beyond_the_used_part_or_the_image_is_not_called_a_light_that_did_not_fire():
+    """A light far behind the sphere puts its highlight beyond the used 0.97 of the radius, and a
+    sphere cut by the image's edge can have it outside the image: the dark-image error said only
+    'a light that did not fire?' (a review's finding)."""
+    lights = hemisphere_lights(6, 40.0, seed=2).astype(np.float64)
+    behind = np.array([[np.sin(np.radians(165.0)), 0.0, np.cos(np.radians(165.0))]])  # its normal at 0.99 r
+    cx, cy, r = 40.0, 40.0, 30.0
+    imgs = to_uint16(sphere_views(np.r_[lights, behind], 80, cx, cy, r, "chrome", sharpness=0.02) + 0.001)
+    with pytest.raises(PsctlError, match=r"images\[6\]: is dark on the sphere: .* brighter beyond the used part"):
+        calibrate_lights(imgs, "chrome", mask=disk(80, 80, cx, cy, r))
+    # the sphere cut by the left edge, one highlight beyond it
+    left = np.array([[-np.sin(np.radians(70.0)), 0.0, np.cos(np.radians(70.0))]])  # at x = 20 - 30 * 0.57 < 0
+    cx = 14.0
+    imgs = to_uint16(sphere_views(np.r_[lights, left], 80, cx, cy, r, "chrome", sharpness=0.01) + 0.001)
+    with pytest.raises(PsctlError, match=r"images\[6\]: is dark on the sphere: .*\(a light that did not fire, or a "
+                                         r"highlight outside the image, where the sphere goes on\?\)$"):
+        calibrate_lights(imgs, "chrome", mask=disk(80, 80, cx, cy, r))
+
+
 def test_matte_intensities_are_scored_per_channel(tmp_path):
     """A matte sphere measures each light's colour; its intensity_re scored their grey mean against
     the true RGB (0.037 for files right to 0.0006: a QA helper's finding). One scale per channel."""
@@ -375,6 +402,17 @@ def test_chrome_needs_an_outline_and_a_highlight():
             calibrate_lights(imgs, "chrome", circle=big)
     with pytest.raises(PsctlError, match="diagonal"):
         calibrate_lights(imgs, "chrome", circle=(25, 26, 1000))
+
+
+def test_a_given_circle_takes_the_configs_min_radius():
+    """--circle's radius was held to the default min_radius whatever the config said, while a
+    fitted circle took the config's (helper-203)."""
+    lights = hemisphere_lights(4, 40.0).astype(np.float64)
+    imgs = to_uint16(sphere_views(lights, 24, 12, 12, 6, "chrome", sharpness=0.05))
+    with pytest.raises(PsctlError, match="circle's radius must be at least 8 pixels"):
+        calibrate_lights(imgs, "chrome", circle=(12, 12, 6))
+    res = calibrate_lights(imgs, "chrome", circle=(12, 12, 6), config={"min_radius": 4})
+    assert np.degrees(np.arccos(np.clip(np.sum(res.directions * lights, 1), -1, 1))).max() < 10
 
 
 # --- matte -------------------------------------------------------------------------------------
