@@ -222,7 +222,7 @@ def estimate_lights(images: np.ndarray, mask: np.ndarray | None = None, weights:
     fit = refine_config(falloff, roll)
     refine, snap = check_bool("refine", refine), check_bool("snap", snap)
     check_precision(precision)  # a bad name is an error with refine=False too
-    check_decode(decode)  # before the weights load and the mask snap (helper-172: 1.6 s, then the error)
+    decode = check_decode(decode)  # before the weights load and the mask snap (helper-172: 1.6 s, then the error)
     check_views(views)
     check_device_name(device)
     refines = refine and any(installed_path(m) is not None for m in SDPS_SECOND)
@@ -374,10 +374,10 @@ def estimate_normals(images: np.ndarray, lights: np.ndarray | None, mask: np.nda
     if found is not None and found.normals_mask is not None:
         warnings.warn(f"{method}: mask=None: {_found_file_note(False)}", PsctlWarning, stacklevel=level)
     # options the method does not use: run_normals notes them; here, a warning, not silence
-    unused = unused_options(method, refine, views, downsample, precision, falloff, roll)
+    unused = unused_options(method, refine, views, downsample, precision, falloff, roll, snap)
     if unused:
         given = {"views": views, "downsample": downsample, "precision": precision, "refine": refine,
-                 "falloff": falloff, "roll": roll}
+                 "falloff": falloff, "roll": roll, "snap": snap}
         unused.sort(key=lambda kw: list(given).index(kw[0]))
         why = list(dict.fromkeys(UNUSED_WHY[w] for _, w in unused))
         warnings.warn(f"{method}: {', '.join(f'{k}={given[k]!r}' for k, _ in unused)} unused ({'; '.join(why)})",
@@ -462,11 +462,12 @@ def few_images_note(method: str, n_images: int) -> str:
 
 
 UNUSED_WHY = {"l2": "l2 solves each pixel alone, at full size, in float64", "sdps": "only sdps refines lights",
-              "refine": "sdps refines lights only with refine=True"}
+              "refine": "sdps refines lights only with refine=True",
+              "snap": "only sdps snaps the mask, for LCNet and its light fit"}
 
 
 def unused_options(method: str, refine: bool, views: int, downsample: int, precision: str,
-                   falloff: str | None, roll: bool | None) -> list[tuple[str, str]]:
+                   falloff: str | None, roll: bool | None, snap: bool = True) -> list[tuple[str, str]]:
     """The options ``method`` ignores, as (option, why), why a key of ``UNUSED_WHY``: "l2" (one
     pass at full size in float64), "sdps" (only sdps refines lights), "refine" (sdps without
     refinement). One table for run_normals' notes (``unused_note``) and estimate_normals' warning,
@@ -475,6 +476,8 @@ def unused_options(method: str, refine: bool, views: int, downsample: int, preci
            if v is not None and (method != "sdps" or not refine)]
     if not refine and method != "sdps":
         out.append(("refine", "sdps"))
+    if not snap and method != "sdps":  # --no-snap, like --no-refine, counts as asked for
+        out.append(("snap", "snap"))
     if method == "l2":
         out += [(k, "l2") for k, off in (("views", views > 1), ("downsample", downsample > 1),
                                           ("precision", precision != "float32")) if off]
@@ -492,6 +495,8 @@ def unused_note(option: str, why: str, value: object = None) -> str:
         return f"lights: {flag} is unused " + {"refine": "without --refine",
                                                "no-network": "(no normals network is installed to refine with)",
                                                }.get(why, "(only sdps refines lights)")
+    if option == "snap":
+        return "mask: --no-snap is unused (only sdps snaps the mask, for LCNet and its light fit)"
     return {"views": "views: l2 gives the same normals in every view; one pass",
             "downsample": "downsample: l2 solves each pixel alone, at full size; unused",
             "precision": f"precision: l2 solves in float64; --precision {value} unused"}[option]
@@ -621,7 +626,7 @@ def run_normals(path: str | os.PathLike, method: str = "auto", out: str | os.Pat
     notes = ([note] if note else []) + picked + capture_notes(cap)
     views, downsample = check_views(views), check_downsample(downsample)
     notes += [unused_note(k, why, precision) for k, why in
-              unused_options(method, refine, views, downsample, precision, falloff, roll)]
+              unused_options(method, refine, views, downsample, precision, falloff, roll, snap)]
     if method == "l2" and check_device_name(device).startswith("cuda"):
         notes.append(f"device: l2 solves with NumPy on the CPU; --device {device} unused")
     if method == "l2":  # what l2 does whatever was asked (the notes above say so)

@@ -195,7 +195,8 @@ def _check_camera(key: str, value: object) -> "float | tuple[float, float] | Non
     except (TypeError, ValueError, OverflowError):
         xy = []
     if len(xy) != 2 or not all(np.isfinite(xy)) or max(map(abs, xy)) > 1e7:
-        raise PsctlError(None, f"--principal must be the principal point as X,Y in pixels (two numbers), not "
+        raise PsctlError(None, f"--principal must be the principal point as X,Y in pixels (two finite numbers, "
+                               f"each within 1e7 of 0), not "
                                f"{_short(value)}")
     return xy[0], xy[1]
 
@@ -324,8 +325,8 @@ def check_circle(circle: "Circle | str | Iterable[float]",
         except (TypeError, ValueError):
             values = []
     if len(values) != 3 or not all(np.isfinite(values)) or max(map(abs, values)) > 1e7:
-        raise PsctlError(None, f"--circle must be X,Y,R (three numbers: the centre's column and row and the radius, "
-                               f"in pixels), not {circle!r}")
+        raise PsctlError(None, f"--circle must be X,Y,R (three finite numbers, each within 1e7 of 0: the centre's "
+                               f"column and row and the radius, in pixels), not {circle!r}")
     if values[2] < min_radius:
         raise PsctlError(None, f"--circle's radius must be at least {min_radius:g} pixels "
                                f"(got {values[2]:g})")
@@ -760,6 +761,7 @@ class _Calibrator:
 
 
 def check_sphere(sphere: str) -> str:
+    sphere = sphere.lower() if isinstance(sphere, str) else sphere  # as --method, --encoding: CHROME too
     if sphere not in SPHERES:
         raise PsctlError(None, f"unknown --sphere {sphere!r}; choose chrome (a mirror ball: directions) or matte "
                                "(a white Lambertian ball: directions and intensities)")
@@ -814,7 +816,7 @@ def _calibrate_lights(images, sphere, mask, circle, config) -> SphereLights:
     from psctl.io.capture import saturated_map
 
     cfg = check_config(config)
-    check_sphere(sphere)
+    sphere = check_sphere(sphere)
     _check_offset(cfg, sphere)
     imgs = as_images(images)
     integer = np.asarray(plain(images)).dtype.kind in "iu"  # float images have no top code: nothing is saturated
@@ -929,7 +931,7 @@ def run_calibrate(path: str | os.PathLike, sphere: str, out: str | os.PathLike |
         check_path(name, value, optional=name != "path")
     write = check_bool("write", write)
     progress = check_progress(progress)
-    check_sphere(sphere)
+    sphere = check_sphere(sphere)
     cfg = check_config(config)
     if check_bool("offset", offset):
         cfg["offset"] = True

@@ -80,6 +80,66 @@ def _refuse_empty(argv: list[str]) -> None:
         sys.exit(2)
 
 
+def _refuse_repeated(group: "_click.Group", argv: list[str]) -> None:
+    """An option that takes one value given twice with different values (``-o a -o b``, ``-m l2 -m
+    ps-fcn`` to psctl normals, ``--refine --no-refine``): click keeps the last without a word, so
+    the run would not be the one asked for. Options that take a list (``-f``, eval's ``-m``,
+    train's ``--average``) and the same value given twice (``-q -q``) are fine."""
+    cmd = group.commands.get(argv[0]) if argv else None
+    ends = argv.index("--") if "--" in argv else len(argv)
+    if cmd is None or {"-h", "--help"} & set(argv[:ends]):  # the help is asked for: shown, whatever else
+        return
+    by_flag: dict[str, tuple] = {}  # "-o" -> (param, takes a value, the value a flag sets)
+    for p in cmd.params:
+        if getattr(p, "param_type_name", None) != "option" or p.multiple or p.count:  # (typer's click has no Option at its top)
+            continue
+        takes = not p.is_flag
+        for o in p.opts:
+            by_flag[o] = (p, takes, True)
+        for o in p.secondary_opts:
+            by_flag[o] = (p, takes, False)
+    seen: dict[str, tuple[str, object]] = {}  # param name -> (as given, value)
+
+    def given(flag: str, value: object) -> None:
+        p = by_flag[flag][0]
+        if p.name in seen and seen[p.name][1] != value:
+            first = seen[p.name][0]
+            again = flag if by_flag[flag][1] is False else f"{flag} {value}"
+            _eprint(f"psctl {argv[0]}: {'/'.join([*p.opts, *p.secondary_opts])} given twice ({first}, then {again}); "
+                    f"give it once")
+            sys.exit(2)
+        seen.setdefault(p.name, (flag if not by_flag[flag][1] else f"{flag} {value}", value))
+
+    i = 1
+    while i < len(argv):
+        a = argv[i]
+        i += 1
+        if a == "--":
+            break
+        if a.startswith("--") and "=" in a and a.split("=", 1)[0] in by_flag:
+            flag, value = a.split("=", 1)
+            given(flag, value)
+        elif a in by_flag:
+            _, takes, sets = by_flag[a]
+            if takes:
+                if i >= len(argv):
+                    return  # click says the value is missing
+                given(a, argv[i])
+                i += 1
+            else:
+                given(a, sets)
+        elif a.startswith("-") and not a.startswith("--") and len(a) > 2:  # -qn5, -o/path
+            for j, c in enumerate(a[1:], 1):
+                if f"-{c}" not in by_flag:
+                    break  # click's to judge
+                _, takes, sets = by_flag[f"-{c}"]
+                if takes:
+                    given(f"-{c}", a[j + 1:] or (argv[i] if i < len(argv) else None))
+                    i += 0 if a[j + 1:] else 1
+                    break
+                given(f"-{c}", sets)
+
+
 def _close_options(name: str, params: "list[_click.Parameter]") -> list[str]:
     """The options (of a command's ``params``, --help among them) spelt like ``name``, compared
     without their dashes: click compares them with, and the dashes alone make '--bogus' look like
@@ -99,6 +159,7 @@ class _Root(_Group):
         argv = kwargs["args"] if "args" in kwargs else (args[0] if args else None)  # [] is a command line too
         argv = list(sys.argv[1:] if argv is None else argv)
         _refuse_empty(argv)
+        _refuse_repeated(self, argv)
         kwargs["standalone_mode"] = False  # errors come back here instead of being printed
         try:
             code = super().main(*args, **kwargs)

@@ -160,7 +160,7 @@ def run_benchmark(benchmark: str, root: str | os.PathLike | None = None, method:
 
         # options the run ignored: said once for the table, as psctl normals says them; only those every
         # object's method ignored (auto may run sdps on one object, which uses --no-refine, l2 on another)
-        ignored = [dict(unused_options(m, refine, views, downsample, precision, falloff, roll)) for m in set(used)]
+        ignored = [dict(unused_options(m, refine, views, downsample, precision, falloff, roll, snap)) for m in set(used)]
         for k, why in ignored[0].items() if ignored else ():
             if all(k in other for other in ignored):
                 result["notes"].append(unused_note(k, why, precision))

@@ -344,6 +344,7 @@ def few_lights_note(n: int) -> str | None:
 
 def check_decode(decode: str, name: str = "decode") -> str:
     """LCNet's decoding, "soft" or "argmax", or a one-line error naming the option ``name``."""
+    decode = decode.lower() if isinstance(decode, str) else decode  # as --method, --encoding: ARGMAX too
     if decode not in ("argmax", "soft"):
         raise PsctlError(None, f"unknown {name} {decode!r}; choose argmax or soft")
     return decode
@@ -756,8 +757,10 @@ def run_lights(path: str | os.PathLike, out: str | os.PathLike | None = None,
     from psctl.symmetry import check_views
 
     check_views(views)  # options first: their errors name the option, not the capture folder
-    check_decode(decode, "--decode")
-    from psctl.models import check_precision, precision_autocast
+    decode = check_decode(decode, "--decode")
+    from psctl.models import check_device_name, check_precision, precision_autocast
+
+    check_device_name(device)  # a typo named as psctl normals names it, before the capture is read
 
     precision = check_precision(precision)
     from psctl.models.weights import installed_path

@@ -162,6 +162,38 @@ def test_an_empty_argument_is_refused(capture, tmp_path):
 
 
 
+def test_an_option_given_twice_with_two_values_is_refused(capture, tmp_path):
+    """click keeps the last of a one-value option without a word: -o a -o b wrote to b only, and
+    psctl normals -m l2 -m ps-fcn (psctl eval's comparison) ran ps-fcn alone (helper-201)."""
+    for args, says in ((("normals", capture, "-m", "l2", "-o", tmp_path / "a", "-o", tmp_path / "b"),
+                        "--out/-o given twice"),
+                       (("normals", capture, "-m", "l2", "-m", "ps-fcn", "-o", tmp_path / "a"), "--method/-m given twice"),
+                       (("normals", capture, "-ml2", f"--out={tmp_path / 'a'}", "-n3", "--images", "4"),
+                        "--images/-n given twice (-n 3, then --images 4)"),
+                       (("normals", capture, "-m", "sdps", "--refine", "--no-refine", "-o", tmp_path / "a"),
+                        "--refine/--no-refine given twice (--refine, then --no-refine)"),
+                       (("synth", tmp_path / "s", "-p", "syntest", "-p", "blobby"), "--preset/-p given twice")):
+        proc = psctl(*args, cwd=tmp_path)
+        assert proc.returncode == 2 and says in proc.stderr and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert sorted(os.listdir(tmp_path)) == [capture.name]  # nothing written
+    # the same value twice, and the options that take a list, are fine
+    proc = psctl("normals", capture, "-q", "-m", "l2", "-q", "-o", tmp_path / "a", "-o", tmp_path / "a", "-f", "png16",
+                 "-f", "npy", "--no-snap", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(os.listdir(tmp_path / "a")) == sorted(["normal.png", "normal.npy", "error.png", "report.json",
+                                                         ".psctl-normals"])
+    assert "--no-snap is unused" in proc.stdout  # an option the method ignores is said, not silent
+
+
+def test_sphere_and_decode_take_any_case_as_the_other_choices_do():
+    """--method L2, --encoding SRGB, --precision FP16, --preset BLOBBY were taken; -s CHROME and
+    --decode ARGMAX were refused (helper-201)."""
+    from psctl.calibrate import check_sphere
+    from psctl.lights import check_decode
+
+    assert check_sphere("CHROME") == "chrome" and check_decode("ARGMAX", "--decode") == "argmax"
+
+
 def test_the_empty_check_reads_the_command_line_it_is_given(monkeypatch):
     """app(args=[...]) (a test runner, a script) is checked, not the host program's sys.argv."""
     from typer.testing import CliRunner
