@@ -71,11 +71,12 @@ DEFAULT_REFINE = {
     # observations darker than this fraction of the object's 99.9th-percentile observation are
     # left out of the fit (the albedo and light steps), as saturated ones are: mostly cast
     # shadows, zeros where the model says lit, which pull each pixel's albedo and each light
-    # toward the shadow. 0: all kept (today's fit)
+    # toward the shadow. 0: all kept (the fit of sessions 20-78). One threshold for all images: an
+    # image over ~100x dimmer than the brightest loses all its observations and keeps LCNet's light
     "dark": 0.01,
-    # with "dark" > 0, which observations the gate's q is computed over: "all" (those today's
-    # fit uses, dark ones included, the albedo refit over them for the fitted lights: the gate
-    # keeps the meaning it was tuned with) or "fit" (only those the fit used)
+    # with "dark" > 0, which observations the gate's q is computed over: "all" (those the fit of
+    # sessions 20-78 used, dark ones included, the albedo refit over them for the fitted lights:
+    # the gate's meaning before session 79) or "fit" (only those the fit used; since session 79)
     "gate_q": "fit",
     # the shading model: "shifted", o = rho (n.s + b) with b <= 0 per image, a cosine that falls
     # to zero before the terminator; or "lambertian", o = rho max(n.s, 0) (b = 0; the default until
@@ -103,6 +104,7 @@ class Refinement:
     quality: float  # q, the fit's relative residual (inf when nothing was fitted)
     weight: float  # in [0, 1]: 1 = the fitted lights, 0 = the ones passed in
     status: str = "fitted"  # fitted | too few pixels | astray (see DEFAULT_REFINE["max_change"]) | undetermined
+    unfitted: tuple[int, ...] = ()  # images (0-based) with too few lit, usable observations: their light kept
 
 
 def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.ndarray,
@@ -191,17 +193,21 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
             rho[px] = np.where(den > 0, (o[:, px].T * shl).sum(1) / np.maximum(den, 1e-300), 0.0)
         return lit, rho
 
+    unfitted: list[int] = []
     for _ in range(int(cfg["iters"])):
         lit, rho = albedo(s, b)
         new, new_b = s.copy(), b.copy()
+        unfitted = []
         for j in range(len(s)):
             use = np.flatnonzero(lit[:, j] & (rho > 0))
             if use.size < 10:
-                continue  # (nearly) no lit pixel for this light: keep it
+                unfitted.append(j)  # (nearly) no lit pixel for this light (or all under "dark"): keep it
+                continue
             ratio = o[j, use] / (rho[use] * (n[use] @ s[j] + b[j]))
             lo, hi = np.quantile(ratio, (lo_q, hi_q))
             use = use[(ratio >= lo) & (ratio <= hi)]
             if use.size < 10:
+                unfitted.append(j)
                 continue
             a = rho[use, None] * n[use]
             oj = o[j, use].astype(np.float64)
@@ -246,7 +252,7 @@ def refine_lights(observations: np.ndarray, normals: np.ndarray, directions: np.
     # is given the geometric mean of the intensities passed in
     g0 = np.exp(np.log(e0).mean())
     e = g0 * np.exp(w * (np.log(e) - np.log(e).mean()) + (1 - w) * (np.log(e0) - np.log(g0)))
-    return Refinement(d.astype(np.float32), e.astype(np.float32), q, w)
+    return Refinement(d.astype(np.float32), e.astype(np.float32), q, w, unfitted=tuple(unfitted))
 
 
 def sample_observations(reader: "Reader", n: int, mask: np.ndarray, normals: np.ndarray,
@@ -312,7 +318,17 @@ def refine_estimate(est: LightEstimate, reader: "Reader", n: int, mask: np.ndarr
     else:
         note = (f"lights: LCNet's lights {info['refine']['weight']:.0%} refined against {method}'s normals (fit "
                 f"residual {ref.quality:.3g})")
-    return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=[*est.notes, note])
+    notes = [*est.notes, note]
+    if ref.unfitted and ref.weight > 0:
+        # one dark threshold for the object: an image ~100x dimmer than the brightest has no usable
+        # observation and keeps LCNet's light, whose intensity classes stop at 0.2 (helper-208: 10x too bright)
+        info["refine"]["unfitted"] = [j + 1 for j in ref.unfitted]
+        above = f" above {cfg['dark']:g} of the object's brightest" if float(cfg["dark"]) > 0 else ""
+        shown = ", ".join(str(j + 1) for j in ref.unfitted[:8]) + (", ..." if len(ref.unfitted) > 8 else "")
+        notes.append(f"lights: image{'s' * (len(ref.unfitted) > 1)} {shown} (1-based, in the capture's order) had "
+                     f"too few lit pixels{above} for the light fit: LCNet's light kept there (a far dimmer image? its "
+                     "intensity may be far off)")
+    return replace(est, directions=ref.directions, intensities=ref.intensities, info=info, notes=notes)
 
 
 # --- the roll from integrability ---------------------------------------------------------------

@@ -174,6 +174,14 @@ def test_refine_estimate_says_what_it_did():
     flat = refine_estimate(est, reader, 12, mask, np.zeros_like(normals))  # no usable normal
     assert flat.info["refine"]["weight"] == 0.0 and "too few usable pixels" in flat.notes[-1]
     np.testing.assert_array_equal(flat.directions, est.directions)
+    assert "unfitted" not in out.info["refine"] and len(out.notes) == 2
+    # an image ~200x dimmer than the rest: all its observations under the dark threshold, so its
+    # light is not fitted; said, by its 1-based number (helper-208: its intensity stayed 10x too bright)
+    images[4] /= 200
+    dim = refine_estimate(est, reader, 12, mask, normals)
+    assert dim.info["refine"]["weight"] > 0 and dim.info["refine"]["unfitted"] == [5]
+    assert dim.notes[-1].startswith("lights: image 5 (1-based, in the capture's order) had too few lit pixels above "
+                                    "0.01 of the object's brightest for the light fit: LCNet's light kept there")
 
 
 @pytest.fixture
