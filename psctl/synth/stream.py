@@ -109,8 +109,8 @@ DEFAULT_CONFIG: dict = {
     # pixel drawn log-uniformly in `mean`, clipped, rounded to `bits` and scaled back (the
     # network sees the usual brightness, with the capture's rounding and black clipping).
     # DiLiGenT's 8-bit crops have mean object pixels of 0.018 (pot2) to 0.073 (ball).
-    # "floor": truncate instead of rounding (DiLiGenT's 8-bit crops are the 16-bit images / 257,
-    # truncated: everything under one step is black)
+    # "floor": truncate instead of rounding (DiLiGenT's 8-bit crops are the 16-bit images shifted
+    # right by 8 bits, floor(v / 256): everything under one step is black)
     "capture": None,  # None or {"p": 0.5, "mean": [0.01, 0.1], "bits": 8, "floor": False}
     "mask_images": True,  # zero the images outside the object
     "device": "cpu",
