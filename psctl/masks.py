@@ -244,8 +244,6 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     the background is not dark. ``reader``: who reads the object, for the notes' words
     (``FOUND_READERS``: "lights", LCNet and the light fit; "normals", the normals networks;
     "sdps", all three)."""
-    from scipy import ndimage
-
     who, whole, off = FOUND_READERS[reader]
     b = np.asarray(brightness, np.float64)
     b = np.where(np.isfinite(b), b, 0.0)  # NaN (a bad pixel outside the object): dark; LCNet refuses it inside
