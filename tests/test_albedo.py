@@ -97,14 +97,14 @@ def test_a_temporary_file_gives_the_same_albedo_and_the_images_are_read_once(mon
     real = tempfile.TemporaryFile
 
     def spy(*args, **kwargs):
-        made.append(1)
-        return real(*args, **kwargs)
+        made.append(real(*args, **kwargs))
+        return made[-1]
 
     monkeypatch.setattr(tempfile, "TemporaryFile", spy)
     for mb in (1e-4, 0.01):  # the ratios in a file; medians in bands of 1 pixel and of several
         got = albedo_from_reader(read, lights, normals, mask, {"budget_mb": mb}, median_progress=median_progress)
         assert np.array_equal(one.albedo, got.albedo) and np.array_equal(one.undetermined, got.undetermined)
-    assert len(calls) == 3 and len(made) == 2
+    assert len(calls) == 3 and len(made) == 2 and all(f.closed for f in made)  # each file closed after its pass
     npx = int((mask & (np.linalg.norm(normals, axis=-1) > 0)).sum())
     assert [b[0] for b in bars] == [npx, npx]  # each file's bands advance its bar to the pixel count
     assert [sum(b[1:]) for b in bars] == [npx, npx] and len(bars[0]) == npx + 1 and 2 < len(bars[1]) < npx + 1
@@ -143,6 +143,8 @@ def test_reader_with_the_wrong_number_of_images_is_an_error():
     normals, mask, lights, albedo, images = _textured(size=12, n=6)
     with pytest.raises(PsctlError, match="5 images for 6 lights"):
         albedo_from_reader(lambda box: (img[box] for img in images[:5]), lights, normals, mask)
+    with pytest.raises(PsctlError, match="more than the 6 images of the lights"):  # one more: not an IndexError
+        albedo_from_reader(lambda box: (img[box] for img in [*images, images[0]]), lights, normals, mask)
 
 
 def test_estimate_albedo_checks_its_arrays():
@@ -672,3 +674,112 @@ def test_depth_reads_a_report_whose_times_a_double_based_reader_rounded(tmp_path
             r["written"][name][0] += 1
     report.write_text(json.dumps(r))
     assert psctl.run_depth(folder, write=False)["colors"] == "mean image"
+
+
+def test_an_even_number_of_counted_images_takes_the_mean_of_the_middle_pair():
+    """The median of an even count is the mean of its middle two ratios, not either one (a
+    mutation audit: taking the upper one passed every test, as their middle pairs were equal)."""
+    from psctl.albedo import albedo_from_reader
+
+    lights = hemisphere_lights(4, max_angle_deg=20.0, seed=5)
+    normals = np.zeros((1, 1, 3), np.float32)
+    normals[0, 0] = [0.0, 0.0, 1.0]
+    mask = np.ones((1, 1), bool)
+    shading = lights[:, 2] / np.linalg.norm(lights, axis=1)
+    ratios = np.array([1.0, 2.0, 4.0, 8.0], np.float32)  # per image; every image counts (n . l near 1)
+    images = [np.full((1, 1, 3), ratios[k] * shading[k], np.float32) for k in range(4)]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, mask)
+    assert np.allclose(res.albedo[0, 0], 3.0, rtol=1e-5), res.albedo[0, 0]  # (2 + 4) / 2
+    images.pop()  # three: the middle one
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights[:3], normals, mask)
+    assert np.allclose(res.albedo[0, 0], 2.0, rtol=1e-5), res.albedo[0, 0]
+
+
+def test_the_median_of_two_ratios_near_float32s_top_is_finite():
+    """The middle pair's mean is taken as a + (b - a) / 2: (a + b) / 2 overflows float32 for
+    ratios above half its top (an audit: 3e38), and a mutation audit found no test held it."""
+    from psctl.albedo import albedo_from_reader
+
+    lights = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32)
+    normals = np.zeros((1, 1, 3), np.float32)
+    normals[0, 0] = [0.0, 0.0, 1.0]
+    images = [np.full((1, 1, 3), v, np.float32) for v in (2e38, 3e38)]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 1), bool))
+    assert np.isfinite(res.albedo).all() and np.allclose(res.albedo[0, 0], 2.5e38, rtol=1e-5), res.albedo[0, 0]
+
+
+def test_a_pixel_whose_best_image_is_exactly_at_min_shading_takes_only_that_floor():
+    """n . l equal to min_shading reaches it (docs: n . l >= min_shading), so the half-best floor
+    is not used there (a mutation audit: '>' for '>=' passed every test)."""
+    from psctl.albedo import albedo_from_reader, shading_floor
+
+    assert shading_floor(np.array([0.5, 0.3], np.float32), 0.5).tolist() == pytest.approx([0.5, 0.15])
+    # one image at n . l = 0.5 exactly and one at 0.3 (above half the best): only the first counts
+    lights = np.array([[np.sqrt(0.75), 0.0, 0.5], [np.sqrt(0.91), 0.0, 0.3]], np.float32)
+    normals = np.zeros((1, 1, 3), np.float32)
+    normals[0, 0] = [0.0, 0.0, 1.0]
+    images = [np.full((1, 1, 3), 0.5 * 0.4, np.float32), np.full((1, 1, 3), 0.3 * 2.0, np.float32)]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 1), bool),
+                             {"min_shading": 0.5})
+    assert np.allclose(res.albedo[0, 0], 0.4, rtol=1e-6), res.albedo[0, 0]
+
+
+def test_a_normal_at_right_angles_to_every_light_is_undetermined_not_an_error():
+    """n . l = 0 for every image (a silhouette pixel's normal): the half-best floor is 0 there, and
+    an image counts only above 0 (a mutation audit: without 's > 0' such a pixel divided by 0 and
+    stopped the pass with 'passes float32's range')."""
+    from psctl.albedo import albedo_from_reader
+
+    lights = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [0.0, -0.6, 0.8]], np.float32)
+    normals = np.zeros((1, 2, 3), np.float32)
+    normals[0, 0] = [0.0, 0.0, 1.0]
+    normals[0, 1] = [1.0, 0.0, 0.0]  # at 90 degrees to each light: n . l is exactly 0
+    images = [np.stack([np.full(3, 0.5 * l[2], np.float32), np.full(3, 0.01, np.float32)])[None] for l in lights]
+    res = albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 2), bool))
+    assert np.allclose(res.albedo[0, 0], 0.5, rtol=1e-6) and (res.albedo[0, 1] == 0).all()
+    assert res.undetermined.tolist() == [[False, True]]
+
+
+def test_a_ratio_past_float32s_range_is_an_error_not_an_image_left_out():
+    """image / (n . l) above float32's top was +inf, which the medians take for an uncounted
+    image: a mutation audit found that dropping the check left such images out without a word."""
+    from psctl.albedo import albedo_from_reader
+    from psctl.errors import PsctlError
+
+    lights = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [0.0, 0.0, 1.0]], np.float32)
+    normals = np.zeros((1, 1, 3), np.float32)
+    normals[0, 0] = [0.0, 0.6, 0.8]  # n . l = 0.8, 1.0 and 0.8
+    images = [np.full((1, 1, 3), 3e38, np.float32) for _ in lights]  # / 0.8 = 3.75e38: past 3.4e38
+    with pytest.raises(PsctlError, match=r"image / \(n . l\) passes float32's range; rescale the images"):
+        albedo_from_reader(lambda box: (img[box] for img in images), lights, normals, np.ones((1, 1), bool))
+
+
+def test_normals_mostly_facing_away_warn_and_albedo_png_scale_ignores_undetermined_pixels():
+    """Two rules no test held (a mutation audit): estimate_albedo warns when more than half of the
+    mask's normals have z <= 0 (flipped z: medians far off, silently), and not for a minority;
+    albedo.png's white is the percentile of the object's determined (nonzero) albedo, so pixels
+    left undetermined (0) do not brighten the rest into white."""
+    import warnings
+
+    from psctl.albedo import PNG_PERCENTILE, albedo_png_scale, estimate_albedo
+    from psctl.errors import PsctlWarning
+
+    lights = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.954], [-0.3, 0.0, 0.954]], np.float32)
+    images = np.full((3, 1, 4, 3), 0.5, np.float32)
+    normals = np.zeros((1, 4, 3), np.float32)
+    normals[..., 2] = 1.0
+    mask = np.ones((1, 4), bool)
+    normals[0, :3, 2] = -1.0  # 3 of 4 face away
+    with pytest.warns(PsctlWarning, match="3 of the mask's 4 normals have z <= 0"):
+        estimate_albedo(images, lights, normals, mask)
+    normals[0, :2, 2] = 1.0  # 1 of 4: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PsctlWarning)
+        estimate_albedo(images, lights, normals, mask)
+
+    albedo = np.zeros((10, 10, 3), np.float32)
+    albedo[0] = np.arange(1, 11, dtype=np.float32)[:, None]  # 10 determined pixels, 90 undetermined (0)
+    mask = np.ones((10, 10), bool)
+    want = float(np.percentile(albedo[0], PNG_PERCENTILE))
+    assert albedo_png_scale(albedo, mask) == pytest.approx(want) and want > 9.5
+    assert albedo_png_scale(np.zeros_like(albedo), mask) == 1.0  # a black object

@@ -173,10 +173,16 @@ def test_manifest_values_are_checked(tmp_path, manifest):
     path = tmp_path / "l.yaml"
     for change, needle in ((lambda m: m["stages"]["b"].pop("samples"), "stage 'b' needs a recipe mapping and a positive"),
                            (lambda m: m["stages"]["b"].update(samples="four"), "positive whole 'samples'"),
+                           (lambda m: m["stages"]["b"].update(samples=0), "positive whole 'samples'"),
                            (lambda m: m["stages"]["b"].update(recipe=[1, 2]), "needs a recipe mapping"),
                            (lambda m: m["stages"]["avg"].update(average="b"), "'average' must list at least two"),
+                           (lambda m: m["stages"]["avg"].update(average=["b"]), "'average' must list at least two"),
+                           (lambda m: m["ships"].update({"y.pt": "nowhere"}), "y.pt ships stage 'nowhere', which is not a stage"),
                            (lambda m: m["ships"].update({"x.pt": ["a"]}), r"x.pt ships stage \['a'\]"),
-                           (lambda m: m["stages"]["c"].pop("method"), "stage 'c' names no method")):
+                           (lambda m: m["stages"]["c"].pop("method"), "stage 'c' names no method"),
+                           # both, or neither (a mutation audit: both was taken as a recipe, its average ignored)
+                           (lambda m: m["stages"]["avg"].update(recipe={}, samples=4), "stage 'avg' must have either"),
+                           (lambda m: m["stages"]["avg"].pop("average"), "stage 'avg' must have either")):
         bad = _small(manifest)
         change(bad)
         path.write_text(yaml.safe_dump(bad))
@@ -243,3 +249,48 @@ def test_a_release_file_by_its_full_path_in_the_manifests_checkout(tmp_path, mon
     assert capsys.readouterr().err.strip().endswith("not in the wheel): pass --lineage FILE")
     assert lin.main(["plan", "lcnet.pt", "--lineage", str(tmp_path / "nope.yaml")]) == 2
     assert capsys.readouterr().err.strip() == f"psctl.lineage: {tmp_path / 'nope.yaml'}: lineage manifest is missing"
+
+
+def test_a_warmup_longer_than_the_stage_is_shortened_to_it(manifest):
+    """A stage's recipe whose warmup is longer than its kept sample count (or than a --tiny
+    replay's 4 samples) ramps the lr over the stage instead of being refused by check_recipe
+    (a mutation audit: no test held the shortening)."""
+    stage = {**copy.deepcopy(manifest["stages"]["ps_fcn.1"]), "samples": 500}
+    stage["recipe"]["train"]["warmup"] = 1000
+    assert lin.stage_recipe(stage, None)["train"]["warmup"] == 500
+    assert lin.stage_recipe(stage, None, tiny=True)["train"]["warmup"] == 4
+    stage["recipe"]["train"]["warmup"] = 100  # shorter: kept
+    assert lin.stage_recipe(stage, None)["train"]["warmup"] == 100
+
+
+def test_a_rebuild_that_writes_nothing_leaves_no_empty_out_folder(tmp_path, manifest):
+    """--out made by a rebuild that stopped before its first stage wrote anything (its time
+    limit already spent) is removed, as an output that holds nothing; a folder the user made is
+    kept (a mutation audit: dropping the removal failed no test)."""
+    out = tmp_path / "new" / "out"
+    res = lin.rebuild("weights/x.pt", out, _small(manifest), device="cpu", tiny=True, max_seconds=1e-9,
+                      report=lambda s: None)
+    assert not res["finished"] and res["stage"] == "a" and not out.exists()
+    out.mkdir(parents=True)
+    lin.rebuild("weights/x.pt", out, _small(manifest), device="cpu", tiny=True, max_seconds=1e-9, report=lambda s: None)
+    assert out.is_dir() and not any(out.iterdir())
+
+
+def test_rebuild_says_how_a_stage_failed_and_how_it_stopped(tmp_path, manifest, monkeypatch, capsys):
+    """A mutation audit's gaps: a stage's own run folder that cannot be resumed is named with the
+    way out (removing it trains the stage again); `rebuild` stopped by a signal exits 130, by its
+    time limit 0; the progress printer's last line (the stage's end) is always shown."""
+    out = tmp_path / "out"
+    (out / "a").mkdir(parents=True)
+    (out / "a" / "state.json").write_text("{not json")
+    with pytest.raises(PsctlError, match=rf"stage 'a' of the rebuild; removing {out / 'a'} trains it again\)"):
+        lin.rebuild("weights/x.pt", out, _small(manifest), device="cpu", tiny=True, report=lambda s: None)
+    for sig, code in ((15, 130), (None, 0)):
+        monkeypatch.setattr(lin, "rebuild", lambda *a, **k: {"finished": False, "file": None, "stage": "a", "signal": sig})
+        assert lin.main(["rebuild", "weights/lcnet.pt", "--out", str(tmp_path / "r")]) == code
+        assert "stopped in stage a" in capsys.readouterr().out
+    show = lin._every(3600.0)
+    rec = {"samples": 4, "total": 8, "loss": 0.5, "samples_per_s": 2.0}
+    show(rec)  # within the interval: quiet
+    show({**rec, "samples": 8})  # the last step: shown
+    assert capsys.readouterr().out.strip().startswith("8/8 samples, loss 0.5000")

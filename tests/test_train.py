@@ -669,21 +669,22 @@ def test_a_new_run_needs_a_new_or_empty_folder_and_removes_only_its_own_files(tm
     ("truncate stream", "stream.pt: cannot be read"),
     ("delete stream", "stream.pt: is missing"),
     ("other model", "model.pt: holds ps-fcn-n weights, not this ps-fcn run's"),
+    ("other best", "best.pt: holds ps-fcn-n weights, not this ps-fcn run's"),
     ("garble optim", "optim.0.pt: is not a torch file psctl wrote"),
 ])
 def test_a_damaged_run_is_one_error_on_resume(tmp_path, damage, needle):
     run = tmp_path / "run"
     train("ps-fcn", tiny(8), run, device="cpu")
     what, name = damage.split()
-    f = run / {"optim": "optim.0.pt", "stream": "stream.pt", "model": "model.pt"}[name]
+    f = run / {"optim": "optim.0.pt", "stream": "stream.pt", "model": "model.pt", "best": "best.pt"}[name]
     if what == "truncate":
         f.write_bytes(f.read_bytes()[:100])
     elif what == "empty":
         f.write_bytes(b"")
     elif what == "garble":
         f.write_bytes(bytes(range(256)) * 4)
-    elif what == "other" and name == "model":  # PS-FCN+N's file: the same shapes
-        w = read_weights(f)
+    elif what == "other" and name in ("model", "best"):  # PS-FCN+N's file: the same shapes
+        w = read_weights(run / "model.pt")
         from psctl.models.weights import save_weights
 
         save_weights(f, w.state_dict, {**w.metadata, "method": "ps-fcn-n", "normalization": "per-channel"})
@@ -1596,3 +1597,54 @@ def test_a_run_folder_made_by_another_run_during_set_up_is_refused(tmp_path):
     assert [p.name for p in run.iterdir()] == ["log.jsonl"]  # the other run's folder, untouched
     st = train("ps-fcn", tiny(8), tmp_path / "empty", device="cpu", started=(tmp_path / "empty").mkdir)
     assert st["finished"]  # an empty folder made meanwhile is as an empty --out: used
+
+
+def test_checkpoint_journal_log_state_and_signal_rules_without_a_run(tmp_path):
+    """psctl.checkpoint's own rules, each of which a mutation audit could drop without a failing
+    test: a journal naming a file outside the run folder is refused; the log after a checkpoint
+    is cut only at a line's end and only when every later line is a later step's; state.json's
+    counts are not negative; a listed optimiser part that is missing is named as such; and a
+    signal the caller ignores (nohup's SIGHUP) stays ignored while a run checkpoints on signals."""
+    import signal
+
+    from psctl.checkpoint import JOURNAL, Stop, check_state, drop_lines_after_checkpoint, finish_checkpoint, load_optimizer
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("../model.pt", "sub\\model.pt"):
+        (run / JOURNAL).write_text(json.dumps({"files": {name: "00"}, "state": {}, "remove": []}))
+        with pytest.raises(PsctlError, match="is not a readable checkpoint journal"):
+            finish_checkpoint(run)
+    (run / JOURNAL).write_text(json.dumps({"files": {}, "state": {}, "remove": ["../optim.0.pt"]}))
+    with pytest.raises(PsctlError, match="is not a readable checkpoint journal"):
+        finish_checkpoint(run)
+
+    log = tmp_path / "log.jsonl"
+    head = '{"samples": 8, "loss": 1.0}\n'
+    for tail, cut in (('{"samples": 12}\n{"samples": 16}\n', True),  # a killed run's later steps: cut
+                      ('{"samples": 12}\n{"samples": 8}\n', False),  # a step at the checkpoint's count: not later
+                      ('{"samples": 12}\n{"note": "mine"}\n', False)):  # the user's own line
+        log.write_text(head + tail)
+        drop_lines_after_checkpoint(log, len(head), 8)
+        assert log.read_text() == (head if cut else head + tail), tail
+    log.write_text(head + ' {"samples": 12}\n')  # the size is not at a line's end (an edited log): left alone,
+    drop_lines_after_checkpoint(log, len(head) + 1, 8)  # though what follows it reads as a later step
+    assert log.read_text() == head + ' {"samples": 12}\n'
+
+    for key in ("step", "samples", "log_bytes"):
+        with pytest.raises(PsctlError, match=f"holds a bad '{key}' \\(-1\\)"):
+            check_state(run / "state.json", {key: -1})
+    check_state(run / "state.json", {"step": 0, "samples": 0, "log_bytes": 0, "seconds": 0.0})
+
+    p = torch.nn.Parameter(torch.zeros(2))
+    with pytest.raises(PsctlError, match=r"optim.0.pt: optimiser state listed in state.json is missing"):
+        load_optimizer(run, torch.optim.Adam([p]), ["optim.0.pt"], torch.device("cpu"))
+
+    if hasattr(signal, "SIGHUP"):
+        old = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        try:
+            with Stop():
+                assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+                assert signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN
+        finally:
+            signal.signal(signal.SIGHUP, old)
