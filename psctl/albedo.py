@@ -247,7 +247,8 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
                    progress: "ProgressFactory | None" = None, memo: "DecodeMemo | None" = None) -> AlbedoResult:
     """``albedo_from_reader`` on a capture folder's images (read as the networks read them:
     divided by the capture's intensities, ambient image subtracted, near-light falloff divided
-    out), with the capture's lights. ``memo``: images an earlier pass decoded (``iter_images``)."""
+    out, isolated hot values set to their neighbours' level: ``psctl.hotpixels``), with the
+    capture's lights. ``memo``: images an earlier pass decoded (``iter_images``)."""
     from psctl.io.capture import iter_images
 
     if capture.lights is None:
@@ -258,8 +259,19 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
     # each image was checked against the ambient image over the method's whole box; the albedo's
     # box (the pixels with a normal) may be a smaller part, black in an image once it is subtracted
     medians = None if progress is None else (lambda total: progress(f"{capture.name}: albedo medians", total))
-    return albedo_from_reader(lambda box: iter_images(capture, box, memo=memo, ambient_check=False), lights,
-                              normals, mask, cfg, advance, medians)
+    from psctl.arrays import bounding_box
+    from psctl.hotpixels import clamp_hot_pixels
+
+    def read(box: tuple[slice, slice]) -> Iterator[np.ndarray]:
+        # isolated hot values set to their neighbours' level, as the method's pass did (its note says
+        # so): judged over the whole mask, then cut to the albedo's box (inside the mask's)
+        outer = bounding_box(mask)
+        inside = mask[outer]
+        cut = tuple(slice(b.start - o.start, b.stop - o.start) for b, o in zip(box, outer))
+        for img in iter_images(capture, outer, memo=memo, ambient_check=False):
+            yield clamp_hot_pixels(img * inside[..., None], inside)[0][cut]
+
+    return albedo_from_reader(read, lights, normals, mask, cfg, advance, medians)
 
 
 def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray, mask: np.ndarray | None = None,

@@ -783,3 +783,28 @@ def test_normals_mostly_facing_away_warn_and_albedo_png_scale_ignores_undetermin
     want = float(np.percentile(albedo[0], PNG_PERCENTILE))
     assert albedo_png_scale(albedo, mask) == pytest.approx(want) and want > 9.5
     assert albedo_png_scale(np.zeros_like(albedo), mask) == 1.0  # a black object
+
+
+def test_a_stuck_pixel_the_method_clamped_is_clamped_in_the_albedo_too(tmp_path):
+    # a float capture with one pixel stuck at 1e4 in every image: the normals' pass sets it to its
+    # neighbours' level with a note; the albedo's pass read it raw (helper-211: 1,216-1,843 against 0.25)
+    import psctl
+    from psctl.io.images import write_image
+
+    from conftest import hemisphere_lights, render_lambertian, sphere
+
+    folder = tmp_path / "stuck"
+    folder.mkdir()
+    normals, mask = sphere(32)
+    lights = hemisphere_lights(12, seed=0)
+    imgs = render_lambertian(normals, mask, lights, 0.7)
+    imgs[:, 16, 16] = 1e4
+    for k in range(len(lights)):
+        write_image(folder / f"{k + 1:03d}.exr", imgs[k], "float", kind="linear")
+    np.savetxt(folder / "light_directions.txt", lights, fmt="%.6f")
+    write_image(folder / "mask.png", mask.astype(np.float32), "uint8", kind="data")
+    arrays = {}
+    r = psctl.run_normals(folder, method="l2", albedo=True, write=False, arrays=arrays)
+    assert any("isolated hot pixel" in n for n in r["notes"])
+    assert np.allclose(arrays["albedo"][16, 16], 0.7, rtol=0.1)
+    assert arrays["albedo"].max() < 1.0

@@ -72,6 +72,18 @@ def test_zero_distortion_is_the_identity_and_a_fold_is_left_out():
     assert m.folded > 100 and not m.valid[det < -0.05].any() and m.valid[det > 0.05].any()
 
 
+
+def test_a_piece_cut_off_by_a_fold_is_left_out():
+    """p1 0.4, p2 0.3: a corner piece where the Jacobian is positive again lies beyond the fold, and
+    its pixels read photo pixels the main piece shows too (ghosts; helper 209)."""
+    from scipy import ndimage
+
+    K = np.array([[150.0, 0, 160], [0, 150.0, 120], [0, 0, 1]])
+    m = undistort_map(K, [0, 0, 0.4, 0.3], (240, 320))
+    assert ndimage.label(m.valid)[1] == 1
+    assert not m.valid[0, 70]  # it read the photo at (205, 180), as (190, 160) does
+    assert m.valid[160, 190] and abs(m.x[0, 70] - m.x[160, 190]) < 0.01 and abs(m.y[0, 70] - m.y[160, 190]) < 0.01
+
 def test_remap_is_bilinear():
     h, w = 40, 48
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
