@@ -276,7 +276,8 @@ def capture_albedo(capture: "Capture", normals: np.ndarray, mask: np.ndarray, co
 
 def estimate_albedo(images: np.ndarray, lights: np.ndarray, normals: np.ndarray, mask: np.ndarray | None = None,
                     min_shading: float = DEFAULT_ALBEDO["min_shading"]) -> np.ndarray:
-    """Albedo from arrays.
+    """Albedo from arrays. The images are taken as given: isolated hot values are not clamped here
+    (``psctl.hotpixels.clamp_hot_pixels`` does it, as ``estimate_normals`` and psctl normals do).
 
     Args:
         images: [N, H, W, 3] (or [N, H, W] grey) linear images divided by their light
