@@ -235,7 +235,8 @@ def _lit_object(b: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, int]:
 def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, reader: str = "lights") -> FoundObject:
     """The object of a capture without a mask, for LCNet and the light fit: ``brightness`` [H, W]
     each pixel's summed value over the images (as captured) -> the lit pixels
-    (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled. Where the
+    (``psctl.infer.lit_pixels``, Otsu's split of log brightness) with holes filled, but holes as dark
+    as the background around the object, and lit specks dropped (``_lit_object``). Where the
     unlit part is not dark (FOUND_DARK_CONTRAST: a lit background, which may be in the lit
     region) and ``profiles`` [N, h, w] are given (a pixel of each block of each image, ``profile_grid``),
     the cells whose shading differs from the background's instead (``shading_object``), when the
@@ -274,7 +275,7 @@ def find_object(brightness: np.ndarray, profiles: np.ndarray | None = None, read
     info = {"pixels": int(region.sum()), "frame_fraction": round(frac, 4),
             "contrast": None if contrast is None else round(contrast, 4), "by": by, "used": used,
             "border": round(float(region[ring].mean()), 4) if ring.any() else 0.0}
-    how = ("the lit pixels, holes filled" if by == "brightness" else
+    how = ("the lit pixels, holes filled but those as dark as the background" if by == "brightness" else
            "the pixels whose shading over the images differs from the background's, holes filled")
     if used and reader != "lights" and not for_normals(info):
         # the normals networks read the whole frame (for_normals); sdps' LCNet and light fit the object
