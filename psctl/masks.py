@@ -210,10 +210,11 @@ FOUND_HOLE_DARK = 1.5  # a hole of the lit part whose median brightness is at mo
 
 
 def _lit_object(b: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, int]:
-    """The lit pixels ``lit`` of brightness ``b`` -> (the object: holes filled but those as dark as
-    the background outside (FOUND_HOLE_DARK) and of FOUND_MIN_PIXELS or more, lit specks dropped: parts under FOUND_MIN_PIXELS
-    and a tenth of the largest: hot pixels, glints on the table (16-1057 pixels on each object of the
-    DiLiGenT dev split, each given normals 4 pixels around it); the hole pixels left out)."""
+    """The lit pixels ``lit`` of brightness ``b`` -> (the object, the number of hole pixels left
+    out). Holes are filled but those as dark as the background outside (FOUND_HOLE_DARK) and of
+    FOUND_MIN_PIXELS or more; lit specks are dropped: parts under FOUND_MIN_PIXELS and a tenth of
+    the largest (hot pixels, glints on the table: 16-1057 pixels on each object of the DiLiGenT
+    dev split, each given normals 4 pixels around it)."""
     from scipy import ndimage
 
     labels, count = ndimage.label(lit)
