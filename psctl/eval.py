@@ -435,6 +435,9 @@ def _table(benchmark: str, root: Path, objects: list[dict], used: list[str], lig
         "paper": {o["name"]: paper[o["name"]] for o in objects if o["name"] in paper},
         # whose published numbers "paper" holds
         "paper_method": paper_method if any(o["name"] in paper for o in objects) else None,
+        # the mean of the paper's numbers over these objects (the table's avg), None unless all have one
+        "mean_paper": float(np.mean([paper[o["name"]] for o in objects]))
+        if objects and all(o["name"] in paper for o in objects) else None,
         "notes": [],  # about the run as a whole (each object's are in its row)
     }
     if unlike:

@@ -564,6 +564,7 @@ def test_eval_table_names_whose_published_numbers_it_shows(capsys):
     render_benchmark(_table("diligent", Path("root"), objs, ["ps-fcn", "ps-fcn"], None))
     paper_row = next(line for line in capsys.readouterr().out.splitlines() if "ps-fcn (paper)" in line)
     assert " 2.8 " in paper_row and " 6.2 " in paper_row and "2.80" not in paper_row
+    assert r["mean_paper"] == pytest.approx((4.10 + 8.41) / 2)  # the paper row's avg, in the JSON too (helper-213)
     r = _table("folder", Path("root"), objs, ["ensemble", "ensemble"], None)
     assert r["paper"] == {} and r["paper_method"] is None
     # the settings that change the numbers are named beside the method; the defaults are not

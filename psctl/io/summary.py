@@ -560,7 +560,8 @@ def _benchmark_rows(result: dict) -> list[tuple[str, list[str], str, str]]:
             rows.append(("  scored as the paper", [_fmt(o.get("mae_missing_as_90")) for o in objs],
                          _fmt(result.get("mean_mae_missing_as_90")), ""))
         vals = [paper.get(o["name"]) for o in objs]
-        avg = float(np.mean([v for v in vals if v is not None])) if all(v is not None for v in vals) else None
+        avg = result.get("mean_paper") if "mean_paper" in result else (
+            float(np.mean(vals)) if all(v is not None for v in vals) else None)
         digits = PAPER_DECIMALS.get(result.get("paper_method"), 2)
         rows.append((f"{result.get('paper_method') or result['method']} (paper)",
                      ["-" if v is None else f"{v:.{digits}f}" for v in vals], _fmt(avg), "dim"))
@@ -610,6 +611,18 @@ def _near_lights_line(con, distance: float | None) -> None:
                   f"pixels from the object (--light-distance); the paper assumed distant lights", highlight=False)
 
 
+def _paper_avg(runs: list[dict]) -> str:
+    """Where a paper row has an avg on fewer than DiLiGenT's ten objects: what that avg is (the
+    paper publishes its means over all ten), for the line under the table."""
+    from psctl.eval import DILIGENT_OBJECTS
+
+    n = len(runs[0]["objects"])
+    if n >= len(DILIGENT_OBJECTS) or not any(run.get("mean_paper") is not None for run in runs):
+        return ""
+    return (f"; the paper's avg is of its numbers on these {n} object{'s' if n != 1 else ''}, as ours "
+            f"(its published means are over DiLiGenT's {len(DILIGENT_OBJECTS)})")
+
+
 def _seconds(secs: float) -> str:
     return f"{secs:.{2 if secs < 10 else 1}f} s"
 
@@ -623,7 +636,7 @@ def render_benchmark(result: dict) -> None:
     con.print(_benchmark_table(_benchmark_rows(result), [o["name"] for o in objs], con.width))
     n = {o["n_images"] for o in objs}
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each, "
-              f"{_seconds(sum(o['seconds'] for o in objs))}", highlight=False)
+              f"{_seconds(sum(o['seconds'] for o in objs))}{_paper_avg([result])}", highlight=False)
     if result.get("outputs"):  # --out
         spread = ", spread maps" if any("spread" in o for o in objs) else ""
         con.print(escape(f"wrote {result['outputs']['eval.png']} (every object's normal and error maps{spread}), eval.json "
@@ -671,7 +684,8 @@ def render_benchmark_markdown(result: dict) -> None:
     sys.stdout.write(benchmark_markdown(result))
     runs = result.get("runs") or [result]
     err = console(stderr=True)
-    print_notes(err, _run_notes(result))
+    paper_avg = _paper_avg(runs)
+    print_notes(err, _run_notes(result) + ([paper_avg[2].upper() + paper_avg[3:]] if paper_avg else []))
     _object_notes(err, runs)
 
 
@@ -698,7 +712,7 @@ def render_comparison(result: dict) -> None:
     n = {o["n_images"] for run in runs for o in run["objects"]}
     times = ", ".join(f"{run['method']} {_seconds(sum(o['seconds'] for o in run['objects']))}" for run in runs)
     con.print(f"{len(objs)} object{'s' if len(objs) != 1 else ''}, {'/'.join(map(str, sorted(n)))} images each; "
-              f"{times}", highlight=False)
+              f"{times}{_paper_avg(runs)}", highlight=False)
     if result.get("outputs"):
         con.print(escape(f"wrote {result['outputs']['compare.png']} (each method's eval.png, one above the other), "
                          f"compare.json and one folder per method"), highlight=False)
