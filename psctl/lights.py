@@ -582,9 +582,6 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     _segment(canvas, (cy, cx - radius), (cy, cx + radius), 0.3)
     _segment(canvas, (cy - radius, cx), (cy + radius, cx), 0.3)
     grey = (0.6, 0.6, 0.6)
-    _stamp(canvas, text_bitmap("+Y", s), int(cy - radius) + 2 * s, int(cx) + 3 * s, grey)
-    label = text_bitmap("+X", s)
-    _stamp(canvas, label, int(cy) + 3 * s, int(cx + radius) - label.shape[1] - 2 * s, grey)
 
     def at(d: np.ndarray) -> tuple[float, float]:
         return cy - d[1] * radius, cx + d[0] * radius  # y up: row 0 is the top
@@ -609,6 +606,29 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
     # (lower left first), drawn last in a dark outline: over DiLiGenT's lights the label was
     # unreadable (a QA helper), and at a fixed place it hid a light (helper-162)
     marks = np.array([at(v) for v in (*d, *(() if g is None else g))], np.float64).reshape(-1, 2)
+
+    def crowd(y: int, x: int, h: int, w: int) -> int:  # markers within 6 px of a label's box
+        return int(((marks[:, 0] > y - 6) & (marks[:, 0] < y + h + 6) & (marks[:, 1] > x - 6)
+                    & (marks[:, 1] < x + w + 6)).sum())
+
+    def outlined(bm: np.ndarray, y: int, x: int) -> None:  # over the markers, readable on any of them
+        for dy in (-s, 0, s):
+            for dx in (-s, 0, s):
+                _stamp(canvas, bm, y + dy, x + dx, (0.05, 0.05, 0.05))
+        _stamp(canvas, bm, y, x, grey)
+
+    # the axes' names at the rim, on the side of their axis with fewer markers (a light near the rim
+    # on an axis hid "+Y" or "+X" when they were drawn under the markers at a fixed place)
+    bm = text_bitmap("+Y", s)
+    h, w = bm.shape
+    y = int(cy - radius) + 2 * s
+    x = min((int(cx) + 3 * s, int(cx) - 3 * s - w), key=lambda x: crowd(y, x, h, w))
+    outlined(bm, y, x)
+    bm = text_bitmap("+X", s)
+    h, w = bm.shape
+    x = int(cx + radius) - w - 2 * s
+    y = min((int(cy) + 3 * s, int(cy) - 3 * s - h), key=lambda y: crowd(y, x, h, w))
+    outlined(bm, y, x)
     for zenith in (30.0, 60.0):
         bm = text_bitmap(f"{zenith:.0f}°", s)
         h, w = bm.shape
@@ -616,13 +636,9 @@ def lights_plot(directions: np.ndarray, intensities: np.ndarray | None, gt_direc
         spots = []
         for a in np.radians(225.0 + np.array(sorted(range(-165, 195, 15), key=lambda v: (abs(v), -v)))):  # 0, 15, -15, ..
             y, x = int(round(cy - reach * np.sin(a) - h / 2)), int(round(cx + reach * np.cos(a) - w / 2))
-            near = (marks[:, 0] > y - 6) & (marks[:, 0] < y + h + 6) & (marks[:, 1] > x - 6) & (marks[:, 1] < x + w + 6)
-            spots.append((int(near.sum()), len(spots), y, x))
+            spots.append((crowd(y, x, h, w), len(spots), y, x))
         _, _, y, x = min(spots)
-        for dy in (-s, 0, s):
-            for dx in (-s, 0, s):
-                _stamp(canvas, bm, y + dy, x + dx, (0.05, 0.05, 0.05))
-        _stamp(canvas, bm, y, x, grey)
+        outlined(bm, y, x)
     # colour bar: high intensities on top, its name above it
     ticks = [lo, *(v for v in (0.5, 1.0, 1.5) if lo < v < hi), hi]  # 1.0, the nominal intensity, among them
     labels = {(v - lo) / span: f"{v:.1f}" for v in ticks}

@@ -1101,3 +1101,15 @@ def test_names_that_moved_out_of_lights_and_train_are_still_found_there():
                 assert getattr(old, name) is getattr(new, name)
     with pytest.raises(AttributeError, match="has no attribute 'lit_pixels'"):  # only the moved names
         psctl.lights.lit_pixels
+
+
+def test_lights_plot_axis_names_stay_readable_beside_a_light_on_the_axis():
+    """A light at the rim on an axis does not hide "+Y" or "+X" (helper-212: drawn under the
+    markers at a fixed place, a light there covered them); each moves to its axis' other side."""
+    def grey_pixels(canvas):
+        return int((np.abs(canvas - 0.6).max(-1) < 1e-6).sum())
+
+    empty = lights_plot(np.zeros((0, 3)), np.zeros(0), radius=100)
+    for xy in ((0.07, 0.96), (0.92, -0.08)):
+        d = np.array([[*xy, np.sqrt(1 - xy[0] ** 2 - xy[1] ** 2)]])
+        assert grey_pixels(lights_plot(d, np.ones(1), radius=100)) == grey_pixels(empty)
