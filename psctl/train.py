@@ -900,6 +900,9 @@ def _train(method: str, config: dict | None, run_dir: str | os.PathLike, resume:
             raise PsctlError(run, "holds the best.pt of a run that failed before its first checkpoint (nothing to "
                                   "resume); keep it and choose another --out, or remove the folder")
         raise PsctlError(run, "is not empty and holds no run (no state.json); a new run needs a new or empty folder")
+    from psctl.io.atomic import check_output_dir
+
+    check_output_dir(run)  # one line naming the folder, not its log or a temporary file (helper-201)
     saved = None
     if resume:
         saved, config = _resumed_state(state_file, method, config, lcnet)
@@ -1205,6 +1208,9 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         raise PsctlError(out, "already exists; averaging writes a new run folder's best.pt")
     if Path(out_dir).is_dir() and any(Path(out_dir).iterdir()):  # as a new training run: never beside others' files
         raise PsctlError(out_dir, "is not empty; averaging writes best.pt into a new or empty folder")
+    from psctl.io.atomic import check_output_dir
+
+    check_output_dir(out_dir)  # named, not the temporary file best.pt is written through (helper-201)
     if config is not None:  # the training loop's validation, on the recipe's fixed set
         from psctl.infer import pick_device
 

@@ -1648,3 +1648,29 @@ def test_checkpoint_journal_log_state_and_signal_rules_without_a_run(tmp_path):
                 assert signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN
         finally:
             signal.signal(signal.SIGHUP, old)
+
+
+def test_a_read_only_out_folder_is_named_by_train_and_average(tmp_path, monkeypatch):
+    """A folder that cannot be written: one line naming it, as every other command says, not the
+    run's log.jsonl or the temporary file best.pt goes through (helper-201). os.access is made to
+    say no (the tests may run as root, whom permissions do not stop)."""
+    import os
+    import shutil
+
+    import psctl.io.atomic
+    from psctl.train import average_weights
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(psctl.io.atomic.os, "access", lambda p, mode: False if Path(p) == ro else real(p, mode))
+    src = Path(__file__).resolve().parents[1] / "weights" / "ps_fcn.pt"
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    shutil.copy(src, a)
+    shutil.copy(src, b)
+    with pytest.raises(PsctlError, match=r"ro: output folder is not writable$") as e:
+        average_weights([a, b], ro, method="ps-fcn")
+    assert e.value.path == str(ro)
+    with pytest.raises(PsctlError, match="cannot create output folder: .*ro is not writable"):
+        train("ps-fcn", tiny(), ro / "run", device="cpu")
+    assert not any(ro.iterdir())
