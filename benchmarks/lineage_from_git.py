@@ -135,6 +135,8 @@ def build() -> dict:
                          sha256=sha, samples_seen=md["samples_seen"])
             members = [m["sha256"] for m in md["averaged_from"]]
             entry["members_sha256"] = members
+            if md.get("metrics"):  # measured by --average --config (a release average's only record)
+                entry["val"] = md["metrics"]
         elif source.startswith("configs/"):
             cfg = load_config(ROOT / source)
             method = cfg.get("method")

@@ -1183,8 +1183,12 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
 
     def member(w) -> dict:
         m = w.metadata
+        # where and how each member trained, and what it started from: without them an average
+        # loses which member ran on which device (its `device` joins the set) and the lineage
+        # cannot check a member's start (weights/lineage.yaml, ps_fcn.gpu14)
         return {"path": str(w.path), "sha256": file_sha256(w.path),
                 "samples_seen": m.get("samples_seen"), "wall_seconds": m.get("wall_seconds"),
+                "device": m.get("device"), "precision": m.get("precision"), "init": m.get("init"),
                 "metrics": m.get("metrics", {}), "date": m.get("date"), "recipe": m.get("recipe")}
 
     meta = {key: first.metadata[key] for key in AVERAGE_SAME if key in first.metadata}
@@ -1194,7 +1198,10 @@ def average_weights(files: list[str | os.PathLike], out_dir: str | os.PathLike, 
         "samples_seen": sum(int(w.metadata.get("samples_seen") or 0) for w in members),
         "wall_seconds": round(sum(float(w.metadata.get("wall_seconds") or 0.0) for w in members), 1),
         "device": "; ".join(sorted({str(w.metadata.get("device")) for w in members})),
-        "precision": "float32",
+        # the members' training precisions (the average itself is taken in float32); None where
+        # no member recorded one
+        "precision": "; ".join(sorted({str(w.metadata["precision"]) for w in members
+                                       if w.metadata.get("precision")})) or None,
         "metrics": {},
     })
     # what inference reads from a recipe (the training clip, psctl.models.weights.for_method)

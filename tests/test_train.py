@@ -733,6 +733,11 @@ def test_average_weights_is_the_mean_and_says_of_what(tmp_path):
     assert m["input_mean"] == a.metadata["input_mean"] and m["samples_seen"] == 2 * a.metadata["samples_seen"]
     assert [x["sha256"] for x in m["averaged_from"]] == [hashlib.sha256(p.read_bytes()).hexdigest() for p in (run / "best.pt", b)]
     assert m["metrics"] == {}  # nothing measured: the rule decides
+    # each member says where and how it trained and what it started from (an average's own
+    # device and precision only join the members' sets)
+    for x in m["averaged_from"]:
+        assert (x["device"], x["precision"], x["init"]) == (a.metadata["device"], a.metadata["precision"], a.metadata.get("init"))
+    assert m["precision"] == a.metadata["precision"]  # the members' training precision, not the averaging's
     assert for_method(w, "ps-fcn") == for_method(a, "ps-fcn")  # same input scale and clip at inference
     load_network("ps-fcn", out)
     # measured on a recipe's set: the average of a file with itself scores what training logged for it
