@@ -669,9 +669,7 @@ class _Calibrator:
                                    "inside the images")
         # chrome: the sphere's pixels beyond the used part (rim), where a light far behind the sphere
         # puts its highlight; each image's brightest value there (the errors on dark images say so)
-        ys = np.arange(box[0].start, box[0].stop, dtype=np.float64)[:, None]
-        xs = np.arange(box[1].start, box[1].stop, dtype=np.float64)[None, :]
-        self.outer = ((xs - circle.x) ** 2 + (ys - circle.y) ** 2 <= circle.r**2) & ~self.inside
+        self.outer = sphere_normals(circle, box, 1.0)[1] & ~self.inside
         self.outer_peaks: list[float] = []
         self.directions: list[np.ndarray] = []
         self.intensities: list[np.ndarray] = []

@@ -91,7 +91,8 @@ def _refuse_repeated(group: "_click.Group", argv: list[str]) -> None:
         return
     by_flag: dict[str, tuple] = {}  # "-o" -> (param, takes a value, the value a flag sets)
     for p in cmd.params:
-        if getattr(p, "param_type_name", None) != "option" or p.multiple or p.count:  # (typer's click has no Option at its top)
+        # options only (typer's click has no Option class at its top to test against), of one value
+        if getattr(p, "param_type_name", None) != "option" or p.multiple or p.count:
             continue
         takes = not p.is_flag
         for o in p.opts:
